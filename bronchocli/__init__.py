@@ -1,0 +1,8 @@
+"""bronchopose: vision-based bronchoscopy pose estimation research platform."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("bronchocli")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "0.0.0+unknown"

@@ -1,0 +1,58 @@
+"""The `bronchopose` command line: registers the commands, nothing else."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import typer
+from rich.text import Text
+
+from . import __version__
+from .commands import config as config_cmd
+from .commands.common import err_console
+from .errors import BronchoError
+
+app = typer.Typer(
+    name="bronchopose",
+    help="Vision-based bronchoscopy pose estimation: synthetic data, BronchoPose models, "
+    "MLflow-tracked sweeps, Optuna tuning and the paper's tables.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+
+# The one explicit list of commands (name -> function); tests check it against --help.
+COMMANDS = {
+    "config": config_cmd.config,
+}
+# Command groups with subcommands (name -> Typer app).
+GROUPS: dict[str, typer.Typer] = {}
+
+for _name, _fn in COMMANDS.items():
+    app.command(name=_name)(_fn)
+for _name, _group in GROUPS.items():
+    app.add_typer(_group, name=_name)
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"bronchopose {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Optional[bool] = typer.Option(
+        None, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
+) -> None:
+    """Vision-based bronchoscopy pose estimation research platform."""
+
+
+def main() -> None:
+    try:
+        app()
+    except BronchoError as exc:
+        err_console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
+        raise SystemExit(exc.exit_code) from None

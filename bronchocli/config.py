@@ -1,0 +1,504 @@
+"""Typed experiments.yaml: schema, validation with every problem at once, profiles, grid cells.
+
+``load_config(path, profile, overrides)`` reads the YAML, deep-merges the named
+profile over it, applies ``--set key.path=value`` overrides, and validates the
+result against the frozen pydantic models below (unknown keys rejected). Every
+problem is reported in one ``ConfigError`` naming file, line, key path, the bad
+value and what is allowed.
+
+``expand_grid(cfg, patients)`` turns ``grid`` into frozen, hashable ``Cell``s
+whose ``key`` is a hash of the cell and of every config section that changes
+what a run computes, so the same config gives the same key everywhere and a
+changed config gives new cells.
+
+Relative paths in the config (dataset root, caches, SQLite URLs) are resolved
+against the directory of the config file, not the working directory.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Sequence
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
+
+from .errors import ConfigError
+
+ARCHS: tuple[str, ...] = ("baseline", "lstm", "convlstm", "conv3d", "offsetnet")
+ROT_LOSSES: tuple[str, ...] = ("mse", "de", "ce")
+POPULATIONS: tuple[str, ...] = ("personalized", "cross-subject")
+POSE_FRAMES: tuple[str, ...] = ("world", "camera")
+LOBES: tuple[str, ...] = ("ur", "br", "ul", "bl")
+
+Arch = Literal["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
+RotLoss = Literal["mse", "de", "ce"]
+Population = Literal["personalized", "cross-subject"]
+PoseFrameName = Literal["world", "camera"]
+Lobe = Literal["ur", "br", "ul", "bl"]
+
+DEFAULT_CONFIG = "experiments.yaml"
+
+
+class Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _listify(value: Any) -> Any:
+    """Let a grid axis be written as a scalar (``arch: lstm``) as well as a list."""
+    return [value] if isinstance(value, (str, int, float)) and not isinstance(value, bool) else value
+
+
+class Tracking(Section):
+    uri: str = "sqlite:///runs/mlflow.db"  # any MLflow tracking URI; ${VAR} is expanded
+    experiment: str | None = None  # MLflow experiment name; defaults to the config's name
+    artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
+
+
+class Storage(Section):
+    url: str = "sqlite:///runs/sweep.db"  # sweep claims and Optuna studies; ${VAR} is expanded
+
+
+class Realism(Section):
+    texture: bool = True  # procedural mucosa texture on the lumen wall
+    specular: float = Field(0.3, ge=0, le=1)
+    vignetting: bool = True  # spot-light fall-off towards the image border
+    blur: float = Field(0.0, ge=0, le=5)  # Gaussian blur sigma in pixels
+
+
+class Generate(Section):
+    """How ``data generate`` builds a synthetic dataset (also used when ``dataset.root`` is missing)."""
+
+    anatomy: str = "procedural"  # 'procedural' or a path to a .vtu/.vtp/.nii/.nii.gz/.mhd/.nrrd/.stl/.obj file
+    centreline: str | None = None  # centreline graph for a surface-mesh anatomy (computed when absent)
+    patients: int = Field(3, ge=1)  # procedural patients (seeds seed, seed+1, ...)
+    seed: int = 0
+    lobes: list[Lobe] = list(LOBES)
+    trajectories: int = Field(6, ge=1)  # per patient and lobe
+    image_size: int = Field(64, ge=16, le=1024)
+    fov_deg: float = Field(70.0, gt=10, lt=170)
+    voxel_mm: float = Field(0.5, gt=0)  # world voxel size for procedural anatomies
+    offset_voxels: int = Field(2, ge=0)  # position variations in [-k, k] voxels per axis
+    roll_deg: float = Field(45.0, ge=0, le=180)  # roll variations in [-r, r] ...
+    roll_step_deg: float = Field(15.0, gt=0)  # ... in steps of this
+    look_ahead_mm: float = Field(10.0, gt=0)  # the camera looks at the centreline this far ahead
+    step_mm: tuple[float, float] = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
+    max_frames: int | None = Field(None, ge=2)  # cap on frames per trajectory
+    realism: Realism = Realism()
+    workers: int = Field(2, ge=1)
+
+
+class CsvColumns(Section):
+    """Column names of a foreign pose CSV (``dataset.format: csv``)."""
+
+    patient: str | None = "patient"  # None: one patient named after the file
+    lobe: str | None = "lobe"  # None: a single lobe for every row
+    trajectory: str = "trajectory"
+    frame: str | None = "frame"  # None: row order within the trajectory
+    x: str = "x"
+    y: str = "y"
+    z: str = "z"
+    rx: str = "rx"
+    ry: str = "ry"
+    rz: str = "rz"
+    filename: str = "filename"
+
+
+class CsvImport(Section):
+    files: list[str] = []  # CSV paths or globs, relative to dataset.root
+    frames: str = "."  # directory the filename column is relative to (relative to dataset.root)
+    columns: CsvColumns = CsvColumns()
+    angle_units: Literal["deg", "rad"] = "deg"
+    euler: str = "XYZ"  # SciPy convention of the angle columns (e.g. 'xyz' extrinsic, 'ZYX' intrinsic)
+    position_units: Literal["voxel", "mm"] = "voxel"
+    spacing_mm: tuple[float, float, float] = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
+
+    @field_validator("euler")
+    @classmethod
+    def _euler(cls, v: str) -> str:
+        if not re.fullmatch(r"[xyz]{3}|[XYZ]{3}", v) or v[0] == v[1] or v[1] == v[2]:
+            raise ValueError("must be three axes, all upper case (intrinsic) or all lower case (extrinsic), "
+                             "no axis twice in a row, e.g. XYZ, ZYX, xyz")
+        return v
+
+
+class DatasetCfg(Section):
+    root: str = "data/synthetic"
+    format: Literal["bronchopose", "csv"] = "bronchopose"
+    generate: Generate = Generate()
+    csv: CsvImport = CsvImport()
+
+
+class Splits(Section):
+    train: int = Field(15, ge=1)  # personalized: trajectories per patient and lobe
+    val: int = Field(3, ge=1)
+    test: int = Field(3, ge=1)
+    cross_subject_val: int = Field(3, ge=1)  # cross-subject: val trajectories per training patient and lobe
+    seed: int = 0
+
+
+class Grid(Section):
+    arch: list[Arch] = list(ARCHS)
+    rot_loss: list[RotLoss] = list(ROT_LOSSES)
+    population: list[Population] = list(POPULATIONS)
+    folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
+    seed: list[int] = [0]
+    pose_frame: list[PoseFrameName] = ["world"]
+
+    _wrap = field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "folds", mode="before")(
+        lambda v: v if v == "all" else _listify(v)
+    )
+
+
+class DataCfg(Section):
+    image_size: int | None = Field(None, ge=16, le=1024)  # network input; None = the dataset's
+    window: int = Field(10, ge=1)  # L image pairs per training window of temporal models
+    overlap: int = Field(0, ge=0)  # pairs shared by consecutive windows
+    workers: int = Field(2, ge=0)  # DataLoader worker processes
+    cache_dir: str = "runs/cache"  # decoded-frame cache (uint8, memory-mapped)
+    augment: bool = False  # photometric augmentation of training frames
+
+
+class ModelCfg(Section):
+    dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
+    pretrained: str | None = None  # torchvision-format backbone state dict (local file)
+    channels_last: bool = True
+
+
+class Train(Section):
+    lr: float = Field(1e-4, gt=0)
+    weight_decay: float = Field(0.0, ge=0)
+    lr_decay: float = Field(1.0, gt=0, le=1)  # exponential decay factor per epoch
+    batch_size: int = Field(16, ge=1)  # samples (pairs or windows) per optimiser micro-batch
+    effective_batch: int | None = Field(None, ge=1)  # gradient accumulation up to this many samples
+    max_epochs: int = Field(2, ge=1)
+    min_epochs: int = Field(1, ge=0)
+    patience: int = Field(3, ge=1)  # early stopping on validation loss
+    min_delta: float = Field(0.0, ge=0)
+    tbptt_chunks: int = Field(1, ge=1)  # K chunks of L pairs per training sequence
+    rot_weight: float = Field(1.0, ge=0)
+    precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
+    devices: int = Field(1, ge=1)
+    max_train_batches: int | None = Field(None, ge=1)  # cap per epoch (quick runs)
+    threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
+
+
+class TuneParam(Section):
+    type: Literal["float", "int", "categorical"]
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    step: float | None = None
+    choices: list[Any] | None = None
+
+
+class Tune(Section):
+    trials: int = Field(20, ge=1)
+    timeout: float | None = Field(None, gt=0)
+    sampler: Literal["tpe", "random"] = "tpe"
+    seed: int = 0
+    pruner: Literal["median", "hyperband", "none"] = "median"
+    warmup_epochs: int = Field(1, ge=0)
+    space: dict[str, TuneParam] = {
+        "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
+        "model.dropout": TuneParam(type="float", low=0.0, high=0.5),
+    }
+
+
+class SweepCfg(Section):
+    max_retries: int = Field(1, ge=0)
+    heartbeat_s: float = Field(10.0, gt=0)
+    stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
+
+
+class Config(Section):
+    name: str
+    tracking: Tracking = Tracking()
+    storage: Storage = Storage()
+    dataset: DatasetCfg = DatasetCfg()
+    splits: Splits = Splits()
+    grid: Grid = Grid()
+    data: DataCfg = DataCfg()
+    model: ModelCfg = ModelCfg()
+    train: Train = Train()
+    tune: Tune = Tune()
+    sweep: SweepCfg = SweepCfg()
+    profiles: dict[str, dict[str, Any]] = {}
+
+    _base: Path = PrivateAttr(default_factory=Path.cwd)
+    _source: str = PrivateAttr(default="<memory>")
+    _profile: str | None = PrivateAttr(default=None)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", v):
+            raise ValueError("must start with a letter or digit and use only letters, digits, '.', '_', '-'")
+        return v
+
+    # -- paths and URLs ------------------------------------------------------
+    @property
+    def base_dir(self) -> Path:
+        return self._base
+
+    @property
+    def profile(self) -> str | None:
+        return self._profile
+
+    def resolve(self, path: str | os.PathLike) -> Path:
+        """A path from the config, made absolute against the config file's directory."""
+        p = Path(os.path.expandvars(os.fspath(path))).expanduser()
+        return p if p.is_absolute() else (self._base / p).resolve()
+
+    def resolve_url(self, url: str) -> str:
+        """Expand ${VAR}s and make a relative ``sqlite:///`` path absolute."""
+        url = os.path.expandvars(url)
+        m = re.match(r"^(sqlite(?:\+\w+)?:///)(?!/)(.+)$", url)
+        return f"{m.group(1)}{self.resolve(m.group(2))}" if m else url
+
+    @property
+    def tracking_uri(self) -> str:
+        return self.resolve_url(self.tracking.uri)
+
+    @property
+    def storage_url(self) -> str:
+        return self.resolve_url(self.storage.url)
+
+    @property
+    def experiment_name(self) -> str:
+        return self.tracking.experiment or self.name
+
+    def dump(self) -> dict[str, Any]:
+        """The resolved config as plain data (profiles dropped: they are already applied)."""
+        data = self.model_dump(mode="json")
+        data.pop("profiles")
+        return data
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.dump(), sort_keys=False)
+
+    def with_values(self, values: dict[str, Any]) -> "Config":
+        """A validated copy with dotted-path values set, e.g. ``{"train.lr": 1e-3}``."""
+        raw = self.model_dump(mode="json")
+        for key, value in values.items():
+            _set_path(raw, key, value, where=f"override {key}")
+        return _validate(raw, self._source, {}, self._base, self._profile)
+
+
+# -- loading ------------------------------------------------------------------
+
+
+def _set_path(data: dict[str, Any], dotted: str, value: Any, where: str) -> None:
+    parts = dotted.split(".")
+    node = data
+    for part in parts[:-1]:
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        if not isinstance(child, dict):
+            raise ConfigError(f"{where}: '{part}' in '{dotted}' is a value, not a section")
+        node = child
+    node[parts[-1]] = value
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``key.path=value`` -> (path, YAML-parsed value)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not re.fullmatch(r"[A-Za-z_][\w-]*(\.[\w-]+)*", key.strip()):
+        raise ConfigError(f"--set {text!r}: expected key.path=value, e.g. --set train.lr=3e-4")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError:
+        value = raw
+    return key.strip(), value
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def _line_index(node: yaml.Node, source: str, prefix: tuple = ()) -> dict[tuple, str]:
+    """Key path -> ``file:line`` where it is written, from a composed YAML node tree."""
+    where = {prefix: f"{source}:{node.start_mark.line + 1}"}
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            where.update(_line_index(value_node, source, prefix + (str(key_node.value),)))
+            where[prefix + (str(key_node.value),)] = f"{source}:{key_node.start_mark.line + 1}"
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            where.update(_line_index(item, source, prefix + (i,)))
+    return where
+
+
+def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple, str]]:
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    text = path.read_text(encoding="utf-8")
+    try:
+        node = yaml.compose(text)
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark else str(path)
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{where}: YAML syntax error: {problem}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of sections at the top level, got {type(data).__name__}")
+    return data, (_line_index(node, str(path)) if node is not None else {})
+
+
+def _allowed_keys(loc: tuple) -> list[str]:
+    model: Any = Config
+    for part in loc[:-1]:
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return []
+        model = field.annotation
+    return sorted(getattr(model, "model_fields", {}))
+
+
+def _describe(error: dict[str, Any]) -> str:
+    loc = tuple(error["loc"])
+    if error["type"] == "extra_forbidden":
+        allowed = _allowed_keys(loc)
+        return f"unknown key {loc[-1]!r}" + (f" (allowed: {', '.join(allowed)})" if allowed else "")
+    if error["type"] == "missing":
+        return "required key is missing"
+    value = error.get("input")
+    shown = json.dumps(value, default=str) if not isinstance(value, dict) else "a mapping"
+    msg = error["msg"]
+    if error["type"] == "literal_error":
+        msg = f"must be one of {error['ctx']['expected']}"
+    return f"{shown}: {msg[0].lower() + msg[1:]}"
+
+
+def _format_errors(exc: ValidationError, source: str, lines: dict[tuple, str]) -> str:
+    problems = []
+    for error in exc.errors():
+        loc = tuple(p for p in error["loc"] if not (isinstance(p, str) and p.startswith(("literal[", "list["))))
+        error = {**error, "loc": loc}
+        path = ".".join(str(p) if isinstance(p, str) else f"[{p}]" for p in loc).replace(".[", "[") or "<top>"
+        where = next((lines[loc[:n]] for n in range(len(loc), -1, -1) if loc[:n] in lines), source)
+        problems.append(f"{where}: {path}: {_describe(error)}")
+    unique = list(dict.fromkeys(problems))
+    head = f"invalid config ({len(unique)} problem{'s' if len(unique) > 1 else ''}):"
+    return "\n".join([head, *("  " + p for p in unique)])
+
+
+def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None) -> Config:
+    try:
+        cfg = Config.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, source, lines)) from None
+    cfg._base, cfg._source, cfg._profile = base, source, profile
+    return cfg
+
+
+def load_config(
+    path: str | os.PathLike = DEFAULT_CONFIG,
+    profile: str | None = None,
+    overrides: Sequence[str] = (),
+) -> Config:
+    """Load, merge profile and ``--set`` overrides, and validate ``experiments.yaml``."""
+    path = Path(path)
+    raw, lines = _read_yaml(path)
+    if profile is not None:
+        profiles = raw.get("profiles") or {}
+        if profile not in profiles:
+            names = ", ".join(sorted(profiles)) or "none defined"
+            raise ConfigError(f"{path}: profiles.{profile}: no such profile (available: {names})")
+        if not isinstance(profiles[profile], dict):
+            raise ConfigError(f"{path}: profiles.{profile}: must be a mapping of overrides")
+        raw = deep_merge(raw, profiles[profile])
+        prefix = ("profiles", profile)
+        lines = {**lines, **{k[2:]: v for k, v in lines.items() if k[:2] == prefix}}
+    for text in overrides:
+        key, value = parse_override(text)
+        _set_path(raw, key, value, where=f"--set {text}")
+        lines[tuple(key.split("."))] = f"--set {text}"
+    return _validate(raw, str(path), lines, path.resolve().parent, profile)
+
+
+# -- grid ---------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One run of the grid: what to train, on which population and fold."""
+
+    arch: str
+    rot_loss: str
+    population: str
+    fold: str | None  # held-out patient for cross-subject; None for personalized
+    seed: int
+    pose_frame: str
+    key: str  # stable hash of the above and of the run-defining config
+
+    @property
+    def label(self) -> str:
+        fold = f"/{self.fold}" if self.fold else ""
+        return f"{self.arch}/{self.rot_loss}/{self.population}{fold}/s{self.seed}/{self.pose_frame}"
+
+    def coords(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")}
+
+
+# Sections that change what a run computes; tracking, storage, tune, sweep and
+# profiles do not, so moving the MLflow store never invalidates finished cells.
+RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
+
+
+def run_signature(cfg: Config) -> dict[str, Any]:
+    return {k: cfg.model_dump(mode="json")[k] for k in RUN_SECTIONS}
+
+
+def cell_key(cfg: Config, coords: dict[str, Any]) -> str:
+    blob = json.dumps({"cell": coords, "config": run_signature(cfg)}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def make_cell(cfg: Config, arch: str, rot_loss: str, population: str, fold: str | None,
+              seed: int, pose_frame: str) -> Cell:
+    coords = dict(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed, pose_frame=pose_frame)
+    return Cell(**coords, key=cell_key(cfg, coords))
+
+
+def expand_grid(cfg: Config, patients: Sequence[str] | None = None) -> list[Cell]:
+    """Every cell of ``cfg.grid``, in a stable order.
+
+    ``patients`` (the dataset's patient ids) is needed when cross-subject folds
+    are ``all``; listed folds must be among them when it is given.
+    """
+    g = cfg.grid
+    folds: list[str] = []
+    if "cross-subject" in g.population:
+        if g.folds == "all":
+            if patients is None:
+                raise ConfigError("grid.folds: 'all' needs the dataset's patient list (generate or point at a dataset first)")
+            folds = list(patients)
+        else:
+            folds = list(g.folds)
+            unknown = [f for f in folds if patients is not None and f not in patients]
+            if unknown:
+                raise ConfigError(f"grid.folds: {unknown} not in the dataset's patients ({', '.join(patients)})")
+    cells = []
+    for population in g.population:
+        for fold in (folds if population == "cross-subject" else [None]):
+            for arch in g.arch:
+                for rot_loss in g.rot_loss:
+                    for seed in g.seed:
+                        for frame in g.pose_frame:
+                            cells.append(make_cell(cfg, arch, rot_loss, population, fold, seed, frame))
+    return cells
