@@ -1,0 +1,137 @@
+"""Typed config: shipped files load and expand; malformed ones give one clear error each."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from bronchocli import config as C
+from bronchocli.errors import ConfigError
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "experiments.yaml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def shipped_configs(repo: Path) -> list[tuple[Path, str | None]]:
+    out = []
+    for path in sorted(repo.glob("*.yaml")) + sorted((repo / "configs").glob("*.yaml")):
+        raw = C._read_yaml(path)[0]
+        out += [(path, None)] + [(path, p) for p in raw.get("profiles", {})]
+    return out
+
+
+def test_every_shipped_config_and_profile_loads_and_expands(repo):
+    configs = shipped_configs(repo)
+    assert (repo / "experiments.yaml", "paper") in configs
+    for path, profile in configs:
+        cfg = C.load_config(path, profile)
+        cells = C.expand_grid(cfg, patients=[f"p{i:02d}" for i in range(cfg.dataset.generate.patients)])
+        assert cells, (path, profile)
+        assert len({c.key for c in cells}) == len(cells)
+
+
+def test_defaults_and_relative_paths_resolve_against_the_config_dir(tmp_path):
+    cfg = C.load_config(write(tmp_path, "name: t\n"))
+    assert cfg.tracking_uri == f"sqlite:///{tmp_path}/runs/mlflow.db"
+    assert cfg.storage_url.startswith(f"sqlite:///{tmp_path}/runs/")
+    assert cfg.resolve(cfg.dataset.root) == tmp_path / "data" / "synthetic"
+    assert cfg.experiment_name == "t"
+    assert C.Config(name="x").resolve_url("postgresql://u@h/db") == "postgresql://u@h/db"
+
+
+def test_env_vars_expand_in_urls(tmp_path, monkeypatch):
+    monkeypatch.setenv("PGPASS", "s3cret")
+    cfg = C.load_config(write(tmp_path, "name: t\nstorage: {url: 'postgresql://u:${PGPASS}@h/db'}\n"))
+    assert cfg.storage_url == "postgresql://u:s3cret@h/db"
+    assert "s3cret" not in cfg.to_yaml()
+
+
+def test_profile_and_set_overrides_apply_in_order(repo):
+    cfg = C.load_config(repo / "experiments.yaml", "paper", ["train.lr=3e-4", "grid.arch=lstm"])
+    assert cfg.dataset.generate.image_size == 256  # from the profile
+    assert cfg.train.lr == 3e-4 and cfg.grid.arch == ["lstm"]  # --set wins, scalars become lists
+    assert cfg.profile == "paper"
+
+
+def test_every_problem_is_reported_at_once_with_line_value_and_allowed(tmp_path):
+    path = write(tmp_path, """\
+        name: t
+        grid:
+          arch: [baseline, resnet]
+          colour: red
+        train:
+          lr: fast
+          batch_size: 0
+        """)
+    with pytest.raises(ConfigError) as exc:
+        C.load_config(path)
+    msg = str(exc.value)
+    assert "4 problems" in msg
+    assert f"{path}:3: grid.arch[1]: \"resnet\": must be one of 'baseline', 'lstm'" in msg
+    assert f"{path}:4: grid.colour: unknown key 'colour' (allowed: arch, folds" in msg
+    assert f"{path}:6: train.lr: \"fast\"" in msg
+    assert f"{path}:7: train.batch_size: 0: input should be greater than or equal to 1" in msg
+
+
+def test_yaml_syntax_error_names_the_line(tmp_path):
+    path = write(tmp_path, "name: t\ngrid:\n  arch: [baseline\n  rot_loss: ce\n")
+    with pytest.raises(ConfigError, match=rf"{path}:\d+: YAML syntax error"):
+        C.load_config(path)
+
+
+def test_set_errors_name_the_override(tmp_path):
+    path = write(tmp_path, "name: t\n")
+    with pytest.raises(ConfigError, match=r"--set train.lrr=1: train.lrr: unknown key 'lrr'"):
+        C.load_config(path, overrides=["train.lrr=1"])
+    with pytest.raises(ConfigError, match="expected key.path=value"):
+        C.load_config(path, overrides=["train.lr"])
+    with pytest.raises(ConfigError, match="no such profile .available: none defined"):
+        C.load_config(path, profile="gpu")
+
+
+def test_missing_file_and_non_mapping(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        C.load_config(tmp_path / "nope.yaml")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        C.load_config(write(tmp_path, "- a\n- b\n"))
+
+
+def test_cells_are_frozen_hashable_and_keyed_stably(tmp_path):
+    path = write(tmp_path, "name: t\ngrid: {folds: [p01]}\n")
+    cells = C.expand_grid(C.load_config(path), patients=["p00", "p01"])
+    assert len(cells) == 5 * 3 * 2
+    with pytest.raises(Exception):
+        cells[0].arch = "lstm"  # type: ignore[misc]
+    assert len(set(cells)) == len(cells)
+    # same config in another process -> same keys
+    code = (
+        "import json,sys; from bronchocli import config as C; "
+        f"print(json.dumps([c.key for c in C.expand_grid(C.load_config({str(path)!r}), ['p00','p01'])]))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert json.loads(out) == [c.key for c in cells]
+
+
+def test_a_run_relevant_change_changes_the_key_and_tracking_does_not(tmp_path):
+    base = C.load_config(write(tmp_path, "name: t\ngrid: {folds: [p00]}\n"))
+    key = C.expand_grid(base, ["p00"])[0].key
+    assert C.expand_grid(base.with_values({"train.lr": 1e-3}), ["p00"])[0].key != key
+    assert C.expand_grid(base.with_values({"tracking.uri": "http://x:5000"}), ["p00"])[0].key == key
+
+
+def test_cross_subject_folds(tmp_path):
+    cfg = C.load_config(write(tmp_path, "name: t\ngrid: {population: cross-subject, arch: lstm, rot_loss: ce}\n"))
+    assert [c.fold for c in C.expand_grid(cfg, ["a", "b", "c"])] == ["a", "b", "c"]
+    with pytest.raises(ConfigError, match="needs the dataset's patient list"):
+        C.expand_grid(cfg)
+    listed = cfg.with_values({"grid.folds": ["zz"]})
+    with pytest.raises(ConfigError, match=r"\['zz'\] not in the dataset's patients"):
+        C.expand_grid(listed, ["a", "b"])

@@ -1,0 +1,113 @@
+"""Losses and metrics: hand-computed cases, DE's blindness to roll, finite gradients, accumulation."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from bronchocli import geometry as g
+from bronchocli import metrics as m
+
+
+def pose(x=0.0, y=0.0, z=0.0, a=0.0, b=0.0, c=0.0, dtype=torch.float64) -> torch.Tensor:
+    return torch.tensor([x, y, z, a, b, c], dtype=dtype)
+
+
+def test_position_errors_hand_computed():
+    p, t = pose(3, 4, 0), pose(0, 0, 0)
+    assert m.pos_l2(p, t).item() == pytest.approx(5.0)
+    assert m.pos_mse(p, t).item() == pytest.approx(25.0 / 3)
+
+
+def test_rotation_l2_uses_wrapped_differences():
+    # 179° vs -179° differ by 2°, not 358°
+    p, t = pose(a=179.0, c=-90.0), pose(a=-179.0, c=90.0)
+    assert m.rot_l2(p, t).item() == pytest.approx(math.hypot(2.0, 180.0))
+    assert m.rot_mse(p, t).item() == pytest.approx((4.0 + 180.0**2) / 3)
+
+
+def test_ce_hand_computed_and_zero_for_a_full_turn():
+    p, t = pose(a=90.0, b=0.0, c=360.0), pose()
+    assert m.cosine_error(p, t).item() == pytest.approx((1 - math.cos(math.pi / 2)) / 3, abs=1e-12)
+    assert m.cosine_error(pose(a=360.0, b=-720.0, c=360.0), pose()).item() == pytest.approx(0.0, abs=1e-12)
+    # degrees are converted: a 1° error is tiny, not 1 - cos(1 rad)
+    assert m.cosine_error(pose(a=1.0), pose()).item() == pytest.approx((1 - math.cos(math.radians(1))) / 3)
+
+
+def test_de_is_blind_to_roll_about_the_optical_axis_and_ce_is_not():
+    R = Rotation.from_euler("XYZ", [10, 20, 30], degrees=True).as_matrix()
+    rolled = g.roll_about_forward(R, 40.0)
+    e, e_rolled = torch.tensor(g.matrix_to_euler(R)), torch.tensor(g.matrix_to_euler(rolled))
+    p, t = torch.cat([torch.zeros(3, dtype=torch.float64), e_rolled]), torch.cat([torch.zeros(3, dtype=torch.float64), e])
+    assert m.direction_error(p, t).item() == pytest.approx(0.0, abs=1e-7)
+    assert m.cosine_error(p, t).item() > 0.01
+    assert m.geodesic(p, t).item() == pytest.approx(40.0, abs=1e-9)
+
+
+def test_de_hand_computed():
+    # yaw (about z) by 30° turns the optical axis by 30°
+    assert m.direction_error(pose(c=30.0), pose()).item() == pytest.approx(math.radians(30), abs=1e-12)
+    assert m.direction_error(pose(c=180.0), pose()).item() == pytest.approx(math.pi, abs=1e-12)
+
+
+def test_de_never_nan_even_when_rounding_pushes_the_dot_above_one():
+    e = torch.tensor(np.random.default_rng(0).uniform(-180, 180, (10000, 3)))
+    p = torch.cat([torch.zeros(10000, 3, dtype=torch.float64), e], 1)
+    assert not torch.isnan(m.direction_error(p, p)).any()
+    assert not torch.isnan(m.direction_error(p.float(), p.float())).any()
+    assert not torch.isnan(m.geodesic(p.float(), p.float())).any()
+
+
+@pytest.mark.parametrize("name", ["pos_l2", "rot_l2", "de", "ce", "geodesic"])
+def test_gradients_are_finite_at_zero_error(name):
+    t = pose(1, 2, 3, 10, 20, 30, dtype=torch.float32)
+    p = t.clone().requires_grad_(True)
+    m.METRICS[name](p, t).sum().backward()
+    assert torch.isfinite(p.grad).all()
+
+
+@pytest.mark.parametrize("rot_loss", ["mse", "de", "ce"])
+def test_pose_loss_gradient_finite_and_descends(rot_loss):
+    t = pose(1, 2, 3, 10, 20, 30, dtype=torch.float32)[None]
+    p = (t + torch.tensor([[0.5, -0.5, 0.2, 8.0, -6.0, 5.0]])).requires_grad_(True)
+    loss = m.pose_loss(p, t, rot_loss)
+    loss.backward()
+    assert torch.isfinite(p.grad).all()
+    with torch.no_grad():
+        assert m.pose_loss(p - 0.01 * p.grad, t, rot_loss) < loss
+    zero = t.clone().requires_grad_(True)
+    m.pose_loss(zero, t, rot_loss).backward()
+    assert torch.isfinite(zero.grad).all()
+
+
+def test_unknown_rotation_loss_lists_the_valid_ones():
+    with pytest.raises(ValueError, match="mse, de, ce"):
+        m.pose_loss(pose()[None], pose()[None], "huber")
+
+
+def test_pair_metrics_mean_and_population_std():
+    pred = np.array([[3, 4, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0]], dtype=float)
+    gt = np.zeros((2, 6))
+    stats = m.pair_metrics(pred, gt, spacing_mm=[0.5, 0.5, 0.5])
+    assert stats["pos_l2"] == m.Stat(2.5, 2.5, 2)  # ddof=0
+    assert stats["pos_l2_mm"].mean == pytest.approx(1.25)
+
+
+@pytest.mark.parametrize("frame", g.POSE_FRAMES)
+def test_accumulated_metrics_score_the_chained_endpoint(frame):
+    rng = np.random.default_rng(1)
+    start = np.array([10, 20, 30, 5, -5, 170], dtype=float)
+    gt = np.concatenate([rng.normal(0, 1, (20, 3)), rng.normal(0, 3, (20, 3))], 1)
+    pred = gt.copy()
+    pred[:, 0] += 0.1  # a constant bias of 0.1 voxel per pair along the first coordinate
+    stats = m.accumulated_metrics([(start, pred, gt)], frame)
+    if frame == "world":
+        assert stats["pos_l2"].mean == pytest.approx(2.0)  # 20 pairs x 0.1
+    assert stats["rot_l2"].mean == pytest.approx(0.0, abs=1e-9)
+    assert stats["pos_l2"].n == 1
+    perfect = m.accumulated_metrics([(start, gt, gt), (start, gt, gt)], frame)
+    assert perfect["pos_l2"].mean == pytest.approx(0.0, abs=1e-9) and perfect["pos_l2"].n == 2
