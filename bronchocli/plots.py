@@ -1,0 +1,92 @@
+"""Matplotlib figures shared by training artifacts and reports (Agg backend, PNG/PDF, atomic writes)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+def save_figure(fig, path: Path, formats: Sequence[str] = ("png",), dpi: int = 130) -> list[Path]:
+    """Save ``fig`` as ``path`` with each suffix in ``formats``, atomically; returns the files."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    written = []
+    for fmt in formats:
+        target = path.with_suffix(f".{fmt}")
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.stem}.", suffix=f".{fmt}")
+        os.close(fd)
+        try:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=fmt)
+            os.replace(tmp, target)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        written.append(target)
+    plt.close(fig)
+    return written
+
+
+def trajectory_figure(
+    ground_truth: Sequence[np.ndarray],
+    predictions: Mapping[str, Sequence[np.ndarray]],
+    titles: Sequence[str] | None = None,
+    columns: int = 3,
+):
+    """3-D trajectories (voxel axes): ground truth vs one or more models, one panel per trajectory.
+
+    ``ground_truth[i]`` and ``predictions[name][i]`` are ``(N, >=3)`` absolute poses.
+    """
+    import matplotlib.pyplot as plt
+
+    n = len(ground_truth)
+    cols = max(1, min(columns, n))
+    rows = max(1, -(-n // cols))
+    fig = plt.figure(figsize=(4.2 * cols, 3.8 * rows))
+    styles = ["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange"]
+    for i, gt in enumerate(ground_truth):
+        ax = fig.add_subplot(rows, cols, i + 1, projection="3d")
+        ax.plot(gt[:, 0], gt[:, 1], gt[:, 2], color="black", lw=2, label="ground truth")
+        ax.scatter(*gt[0, :3], color="black", s=12)
+        for (name, preds), color in zip(predictions.items(), styles):
+            p = preds[i]
+            ax.plot(p[:, 0], p[:, 1], p[:, 2], color=color, lw=1.4, label=name)
+        ax.set_xlabel("x (voxels)")
+        ax.set_ylabel("y (voxels)")
+        ax.set_zlabel("z (voxels)")
+        ax.tick_params(labelsize=7)
+        if titles:
+            ax.set_title(titles[i], fontsize=9)
+        if i == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    return fig
+
+
+def error_curve_figure(curves: Mapping[str, np.ndarray], ylabel: str, title: str = ""):
+    """Error against frame index along trajectories: ``curves[name]`` is ``(n_traj, N)`` (NaN-padded)."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for name, values in curves.items():
+        values = np.atleast_2d(values)
+        mean = np.nanmean(values, axis=0)
+        std = np.nanstd(values, axis=0)
+        x = np.arange(len(mean))
+        ax.plot(x, mean, label=name)
+        ax.fill_between(x, mean - std, mean + std, alpha=0.2)
+    ax.set_xlabel("frame")
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
