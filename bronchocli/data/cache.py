@@ -1,0 +1,245 @@
+"""Decode every frame once into a memory-mapped uint8 array, and normalisation statistics from it.
+
+``FrameCache.open_or_build(dataset, image_size, cache_dir)`` returns the cache
+``<cache_dir>/frames-<fingerprint[:12]>-<key>-<H>x<W>.npy``: a NumPy ``.npy``
+file holding ``uint8[n_frames, 3, H, W]`` (channel-first, RGB), row ``i`` =
+global frame index ``i`` of ``dataset.frames``. The key hashes the dataset
+fingerprint, the output size, the ordered frame file names and the cache
+format version, so a changed dataset or size gets a new file and an unchanged
+one is reused by every later epoch, run and process: PNGs are decoded once.
+
+Building decodes with Pillow on a thread pool (Pillow releases the GIL while
+decoding), converts to RGB and, when the size differs from the dataset's,
+resizes with Pillow's antialiased bilinear filter. The array is written under
+a unique temporary name and moved into place with ``os.replace``; an advisory
+lock file (``fcntl.lockf``) makes a second process that asks for the same
+cache wait and then reuse it instead of decoding again. Without the lock
+(other OSes, or file systems without locking) two builders still only race to
+``os.replace`` identical files, so the cache is never half-written.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import uuid
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from ..config import Config
+from ..errors import DataError
+from .reader import Dataset
+
+CACHE_VERSION = 1
+_CHUNK = 256  # frames per thread task
+
+
+def decode_frame(path: str, shape: tuple[int, int] | None) -> np.ndarray:
+    """Decode one image file to ``uint8[3, H, W]`` RGB, resized to ``shape`` (H, W) when given."""
+    try:
+        with Image.open(path) as im:
+            im = im.convert("RGB")
+            if shape is not None and im.size != (shape[1], shape[0]):
+                im = im.resize((shape[1], shape[0]), Image.Resampling.BILINEAR)
+            return np.asarray(im).transpose(2, 0, 1)
+    except OSError as exc:
+        raise DataError(f"{path}: cannot decode frame ({exc})") from None
+
+
+def resolve_image_size(image_size: int | None, dataset: Dataset) -> tuple[int, int]:
+    """Output frame shape (H, W): ``data.image_size`` squared, or the dataset's own shape when None."""
+    if image_size is not None:
+        return int(image_size), int(image_size)
+    return dataset.frame_shape
+
+
+def input_size(image_size: int | None, dataset: Dataset) -> int:
+    """The square network input side: ``data.image_size``, or the dataset's own when it is None."""
+    if image_size is not None:
+        return int(image_size)
+    if dataset.image_size is None:
+        h, w = dataset.frame_shape
+        raise DataError(f"{dataset.root}: frames are {w}x{h} (not square); set data.image_size to resize them")
+    return dataset.image_size
+
+
+def open_frame_cache(cfg: Config, dataset: Dataset, progress: bool = True) -> FrameCache:
+    """The frame cache for a run: ``data.image_size`` (default: the dataset's) under ``data.cache_dir``."""
+    return FrameCache.open_or_build(dataset, input_size(cfg.data.image_size, dataset),
+                                    cfg.resolve(cfg.data.cache_dir), progress=progress)
+
+
+def cache_key(dataset: Dataset, shape: tuple[int, int]) -> str:
+    h = hashlib.sha256(f"v{CACHE_VERSION}\0{dataset.fingerprint}\0{shape[0]}x{shape[1]}\0".encode())
+    h.update("\n".join(dataset.frames["filename"]).encode())
+    return h.hexdigest()[:16]
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    try:
+        import fcntl
+    except ImportError:  # no advisory locks here: concurrent builders race to os.replace identical files
+        yield
+        return
+    with open(path, "a+b") as fh:
+        try:
+            fcntl.lockf(fh, fcntl.LOCK_EX)
+        except OSError:  # e.g. a file system without locks: same fallback as above
+            yield
+            return
+        try:
+            yield
+        finally:
+            fcntl.lockf(fh, fcntl.LOCK_UN)
+
+
+class FrameCache:
+    """Decoded frames ``uint8[n, 3, H, W]``, memory-mapped read-only and opened lazily in each process.
+
+    Pickling drops the open memory map, so a DataLoader worker reopens the
+    file on first use instead of receiving a copy of the frames.
+    """
+
+    def __init__(self, path: str | os.PathLike, shape: tuple[int, int, int, int]):
+        self.path = Path(path)
+        self.shape = tuple(int(s) for s in shape)
+        self._array: np.ndarray | None = None
+
+    # -- access ------------------------------------------------------------
+    @property
+    def array(self) -> np.ndarray:
+        if self._array is None:
+            self._array = np.load(self.path, mmap_mode="r")
+        return self._array
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return self.shape[2], self.shape[3]
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def take(self, indices: np.ndarray) -> np.ndarray:
+        """Frames at global ``indices`` as a new writable ``uint8[len, 3, H, W]`` array."""
+        indices = np.asarray(indices, dtype=np.int64)
+        if len(indices) and indices[-1] - indices[0] == len(indices) - 1 and np.all(np.diff(indices) == 1):
+            return np.array(self.array[indices[0]: indices[-1] + 1])  # one contiguous read
+        return np.array(self.array[indices])
+
+    def __getstate__(self) -> dict:
+        return {"path": self.path, "shape": self.shape, "_array": None}
+
+    def __repr__(self) -> str:
+        return f"FrameCache({self.path.name}, {self.shape})"
+
+    # -- building ------------------------------------------------------------
+    @staticmethod
+    def _valid(path: Path, shape: tuple[int, ...]) -> bool:
+        try:
+            arr = np.load(path, mmap_mode="r")
+        except (OSError, ValueError):
+            return False
+        return arr.dtype == np.uint8 and tuple(arr.shape) == tuple(shape)
+
+    @classmethod
+    def open_or_build(cls, dataset: Dataset, image_size: int | None, cache_dir: str | os.PathLike,
+                      progress: bool = True, threads: int | None = None) -> FrameCache:
+        """The cache of ``dataset`` at ``image_size`` (None: the dataset's own size), built if missing."""
+        hw = resolve_image_size(image_size, dataset)
+        shape = (dataset.n_frames, 3, *hw)
+        cache_dir = Path(cache_dir)
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        path = cache_dir / f"frames-{dataset.fingerprint[:12]}-{cache_key(dataset, hw)}-{hw[0]}x{hw[1]}.npy"
+        if not cls._valid(path, shape):
+            with _locked(path.with_suffix(".lock")):
+                if not cls._valid(path, shape):  # another process may have built it while we waited
+                    _build(dataset, hw if image_size is not None else None, shape, path, progress, threads)
+        return cls(path, shape)
+
+
+def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | None, start: int) -> int:
+    """Decode frames ``start .. start+_CHUNK`` into ``out``; returns how many."""
+    expected = out.shape[1:]
+    stop = min(start + _CHUNK, len(paths))
+    for i in range(start, stop):
+        frame = decode_frame(paths[i], resize)
+        if frame.shape != expected:
+            raise DataError(f"{paths[i]}: frame is {frame.shape[2]}x{frame.shape[1]} pixels, the dataset's "
+                            f"are {expected[2]}x{expected[1]}; set data.image_size to resize every frame")
+        out[i] = frame
+    return stop - start
+
+
+def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, ...], path: Path,
+           progress: bool, threads: int | None) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+    paths = dataset.frames["path"].to_numpy()
+    try:
+        out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
+        pool = ThreadPoolExecutor(threads or min(8, os.cpu_count() or 1))
+        try:
+            with _progress(progress, len(paths), path.name) as advance:
+                for done in pool.map(partial(_decode_chunk, out, paths, resize), range(0, len(paths), _CHUNK)):
+                    advance(done)
+        finally:  # on an error or Ctrl-C, drop the chunks not started yet
+            pool.shutdown(wait=True, cancel_futures=True)
+        out.flush()
+        del out  # closes the memory map before the rename
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    _write_info(path, dataset, shape)
+
+
+def _write_info(path: Path, dataset: Dataset, shape: tuple[int, ...]) -> None:
+    """A human-readable sidecar (which dataset a cache file belongs to), written atomically."""
+    info = {"dataset": str(dataset.root), "fingerprint": dataset.fingerprint, "shape": list(shape),
+            "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION}
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.json.tmp")
+    tmp.write_text(json.dumps(info, indent=2))
+    os.replace(tmp, path.with_suffix(".json"))
+
+
+@contextmanager
+def _progress(enabled: bool, total: int, name: str):
+    if not enabled:
+        yield lambda n: None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn  # noqa: PLC0415
+
+    with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                  TimeRemainingColumn(), transient=True) as bar:
+        task = bar.add_task(f"decoding frames into {name}", total=total)
+        yield lambda n: bar.advance(task, n)
+
+
+def channel_stats(cache: FrameCache, frame_indices: Sequence[int] | np.ndarray,
+                  max_frames: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Per-channel mean and std (population, in [0, 1] units) over the given frames.
+
+    Call it with the training split's frame indices only. Above ``max_frames``
+    frames an evenly spaced subset of that many is used (deterministic).
+    """
+    idx = np.unique(np.asarray(frame_indices, dtype=np.int64))
+    if len(idx) == 0:
+        raise DataError("channel_stats: no frames given (is the training split empty?)")
+    if len(idx) > max_frames:
+        idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(np.int64)]
+    total = np.zeros(3)
+    squares = np.zeros(3)
+    for start in range(0, len(idx), 256):
+        x = cache.take(idx[start: start + 256]).astype(np.float64) / 255.0
+        total += x.sum((0, 2, 3))
+        squares += (x * x).sum((0, 2, 3))
+    n = len(idx) * cache.shape[2] * cache.shape[3]
+    mean = total / n
+    std = np.sqrt(np.maximum(squares / n - mean * mean, 0.0))
+    return mean, std
