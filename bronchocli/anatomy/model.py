@@ -7,6 +7,7 @@ Coordinates are the anatomy's own millimetres. The voxel grid (``origin_mm``,
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -54,6 +55,52 @@ class AirwayTree:
     spacing_mm: np.ndarray  # (3,) voxel size
     name: str = "airway"
     lobe_paths: dict[str, LobePath] = field(default_factory=dict)
+    # The source's own lumen surface (vtkPolyData in mm) for volume and mesh anatomies;
+    # None for centreline sources, whose surface ``lumen_surface`` builds from the radii.
+    surface: Any = field(default=None, repr=False, compare=False)
+    # Derived data computed on demand (e.g. the centreline KD-tree); not part of the model.
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def path_to(self, branch: int) -> list[int]:
+        """Branch indices from the trachea down to ``branch`` (inclusive)."""
+        path = [branch]
+        while self.branches[path[-1]].parent is not None:
+            path.append(self.branches[path[-1]].parent)
+        return path[::-1]
+
+    def leaves(self, under: int = 0) -> list[int]:
+        """Indices of the leaf branches in the subtree rooted at branch ``under``."""
+        out, stack = [], [under]
+        while stack:
+            b = stack.pop()
+            kids = self.branches[b].children
+            if kids:
+                stack.extend(kids)
+            else:
+                out.append(b)
+        return out
+
+    @property
+    def max_generation(self) -> int:
+        return max(b.generation for b in self.branches)
+
+    def __getstate__(self) -> dict:
+        """Picklable (for worker processes): the VTK surface travels as numpy arrays, the cache stays."""
+        state = dict(self.__dict__)
+        state["cache"] = {}
+        if self.surface is not None:
+            from ._vtk import poly_state  # noqa: PLC0415 (VTK only when there is a surface)
+
+            state["surface"] = ("vtkPolyData", poly_state(self.surface))
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        surface = state.get("surface")
+        if isinstance(surface, tuple) and surface[0] == "vtkPolyData":
+            from ._vtk import poly_from_state  # noqa: PLC0415
+
+            state = {**state, "surface": poly_from_state(surface[1])}
+        self.__dict__.update(state)
 
     def to_voxels(self, mm: np.ndarray) -> np.ndarray:
         return (np.asarray(mm, dtype=np.float64) - self.origin_mm) / self.spacing_mm
