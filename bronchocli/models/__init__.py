@@ -1,0 +1,75 @@
+"""The pose networks: BronchoPose's four architectures and OffsetNet, chosen by name.
+
+``build_model(name, image_size=..., dropout=..., pretrained=...)`` is the one
+entry point; ``ARCHITECTURES`` is the name -> builder dict it reads (keys are
+``config.ARCHS``). Every model maps frames ``[B, T, 3, H, W]`` to relative poses
+``[B, T-1, 6]`` and accepts/returns a recurrent state (see ``base.PoseNet``).
+docs/models.md describes the layers, parameter counts and the choices made.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from .backbones import n_params
+from .base import ModelError, PoseNet, State, detach_state
+from .baseline import BaselineNet
+from .conv3d import Conv3dNet
+from .convlstm import ConvLSTMNet
+from .lstm import LSTMNet
+from .offsetnet import OffsetNet
+from .pretrained import load_pretrained
+
+ARCHITECTURES: dict[str, Callable[..., PoseNet]] = {
+    "baseline": BaselineNet,
+    "lstm": LSTMNet,
+    "convlstm": ConvLSTMNet,
+    "conv3d": Conv3dNet,
+    "offsetnet": OffsetNet,
+}
+
+# The paper's parameter counts at 256x256, in millions, to the digits it reports.
+PAPER_PARAMS_M: dict[str, str] = {
+    "baseline": "13.967",
+    "lstm": "14.164",
+    "convlstm": "14.142",
+    "conv3d": "13.983",
+    "offsetnet": "43.6",
+}
+
+MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024  # what runs; 64-512 is the tested, documented range
+
+
+def build_model(
+    name: str,
+    *,
+    image_size: int = 256,
+    dropout: float = 0.2,
+    pretrained: str | Path | None = None,
+) -> PoseNet:
+    """A fresh model of architecture ``name``, optionally with backbone weights from a local file."""
+    if name not in ARCHITECTURES:
+        raise ModelError(f"unknown architecture {name!r} (valid: {', '.join(ARCHITECTURES)})")
+    if not isinstance(image_size, int) or not MIN_IMAGE_SIZE <= image_size <= MAX_IMAGE_SIZE:
+        raise ModelError(f"image size {image_size!r} is not an integer in [{MIN_IMAGE_SIZE}, {MAX_IMAGE_SIZE}]")
+    if not 0.0 <= dropout < 1.0:
+        raise ModelError(f"dropout {dropout!r} is not in [0, 1)")
+    model = ARCHITECTURES[name](image_size=image_size, dropout=dropout)
+    if pretrained is not None:
+        load_pretrained(model, os.fspath(pretrained))
+    return model
+
+
+__all__ = [
+    "ARCHITECTURES",
+    "PAPER_PARAMS_M",
+    "ModelError",
+    "PoseNet",
+    "State",
+    "build_model",
+    "detach_state",
+    "load_pretrained",
+    "n_params",
+]

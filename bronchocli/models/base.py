@@ -1,0 +1,160 @@
+"""What every pose network shares: the frame-pair interface, the two backbones, memory format, state.
+
+A ``PoseNet`` maps frames ``[B, T, 3, H, W]`` (already normalised floats) to
+``T - 1`` relative poses ``[B, T - 1, 6]``. Pair ``t`` is frames ``(t, t + 1)``:
+the *current* frame ``t + 1`` goes through ``backbone_cur`` and the *previous*
+frame ``t`` through ``backbone_prev`` (two separate networks, no weight
+sharing), and their features are concatenated current first.
+
+``forward(frames, state=None) -> (poses, state)``. Recurrent models
+(``recurrent = True``) return a state (a tuple of tensors) that continues the
+sequence: feeding chunk ``k`` = frames ``[k·L, (k+1)·L]`` (consecutive chunks
+share one frame) with the state returned by chunk ``k - 1`` gives the same
+poses as one pass over the whole sequence. The others ignore ``state`` and
+return ``None``. ``temporal`` says whether a model is trained on windows of
+pairs (True) or on independent pairs (False).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ..errors import BronchoError
+from .backbones import EfficientNetB0Features
+
+State = tuple[Tensor, ...] | None
+
+
+class ModelError(BronchoError, ValueError):
+    """A bad architecture name, size, setting or pretrained file (also a ValueError for library callers)."""
+
+
+def detach_state(state: Any) -> Any:
+    """The same recurrent state cut from the autograd graph (for truncated BPTT); None stays None."""
+    if state is None:
+        return None
+    if isinstance(state, Tensor):
+        return state.detach()
+    return type(state)(detach_state(s) for s in state)
+
+
+def pool_to(x: Tensor, size: tuple[int, int]) -> Tensor:
+    """Average-pool a feature map to the grid the head was sized for (identity when it already is).
+
+    At the paper's 256x256 input the map already has the reference size, so the
+    network is exactly the paper's; other input sizes are pooled (or, below
+    the reference, replicated by adaptive pooling) to the same grid, so the
+    head and its parameter count do not depend on the image size.
+    """
+    return x if tuple(x.shape[-2:]) == size else F.adaptive_avg_pool2d(x, size)
+
+
+class PoseNet(nn.Module):
+    """Base class: pair features from two backbones, channels-last handling, input checks."""
+
+    name: ClassVar[str] = ""
+    recurrent: ClassVar[bool] = False
+    temporal: ClassVar[bool] = False
+    backbone_kind: ClassVar[str] = "efficientnet_b0"  # what a ``pretrained`` file must hold
+
+    backbone_cur: nn.Module
+    backbone_prev: nn.Module
+
+    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
+        super().__init__()
+        self.image_size = image_size
+        self.dropout = dropout
+        self._memory_format = torch.contiguous_format
+
+    # -- inputs ----------------------------------------------------------------
+    @staticmethod
+    def check_frames(frames: Tensor) -> None:
+        if frames.ndim != 5 or frames.shape[2] != 3:
+            raise ValueError(f"frames must be [batch, T, 3, H, W], got shape {tuple(frames.shape)}")
+        if frames.shape[1] < 2:
+            raise ValueError(f"frames must hold at least 2 frames (one pair), got T={frames.shape[1]}")
+
+    def pair_features(self, frames: Tensor) -> Tensor:
+        """Backbone features of every pair, current frame first: ``[B·(T-1), C_cur + C_prev, ...]``."""
+        self.check_frames(frames)
+        b, t = frames.shape[:2]
+        current = frames[:, 1:].reshape(b * (t - 1), *frames.shape[2:])
+        previous = frames[:, :-1].reshape(b * (t - 1), *frames.shape[2:])
+        if self._memory_format is not torch.contiguous_format:
+            current = current.contiguous(memory_format=self._memory_format)
+            previous = previous.contiguous(memory_format=self._memory_format)
+        return torch.cat([self.backbone_cur(current), self.backbone_prev(previous)], dim=1)
+
+    def backbones(self) -> tuple[nn.Module, nn.Module]:
+        return self.backbone_cur, self.backbone_prev
+
+    def forward(self, frames: Tensor, state: State = None) -> tuple[Tensor, State]:  # pragma: no cover
+        raise NotImplementedError
+
+    # -- memory format ------------------------------------------------------------
+    @property
+    def memory_format(self) -> torch.memory_format:
+        return self._memory_format
+
+    def set_memory_format(self, memory_format: torch.memory_format) -> PoseNet:
+        """Channels-last (or back to contiguous) for every 4-D weight and every 4-D frame batch.
+
+        ``nn.Module.to(memory_format=torch.channels_last)`` fails on the 5-D
+        Conv3d weights, so 5-D weights get ``channels_last_3d`` instead.
+        ``model.to(memory_format=...)`` is routed here.
+        """
+        if memory_format not in (torch.channels_last, torch.contiguous_format):
+            raise ValueError(f"memory format must be channels_last or contiguous_format, got {memory_format}")
+        last = memory_format is torch.channels_last
+        for tensor in list(self.parameters()) + list(self.buffers()):
+            if tensor.ndim == 4:
+                tensor.data = tensor.data.contiguous(memory_format=memory_format)
+            elif tensor.ndim == 5:
+                fmt = torch.channels_last_3d if last else torch.contiguous_format
+                tensor.data = tensor.data.contiguous(memory_format=fmt)
+        self._memory_format = memory_format
+        return self
+
+    def to(self, *args: Any, **kwargs: Any) -> PoseNet:
+        memory_format = kwargs.pop("memory_format", None)
+        if args or kwargs:
+            super().to(*args, **kwargs)
+        if memory_format is not None:
+            self.set_memory_format(memory_format)
+        return self
+
+    def extra_repr(self) -> str:
+        return f"image_size={self.image_size}, dropout={self.dropout}, memory_format={self._memory_format}"
+
+
+# -- pieces shared by the four BronchoPose architectures ---------------------------
+
+FUSED_CHANNELS = 2 * 1280  # two EfficientNet-B0 feature maps, current frame first
+
+
+def fusion(kernel: int, act: type[nn.Module], padding: int | None = None) -> nn.Sequential:
+    """Conv2d 2560 -> 256 + BatchNorm2d + activation, applied to the concatenated pair features.
+
+    The conv has no bias: BatchNorm right after it makes a bias redundant, and
+    only the bias-free reading reproduces the paper's 13.967 M for the baseline
+    (with a bias it is 13,967,582, which rounds to 13.968 M).
+    """
+    padding = (kernel - 1) // 2 if padding is None else padding
+    return nn.Sequential(
+        nn.Conv2d(FUSED_CHANNELS, 256, kernel, padding=padding, bias=False),
+        nn.BatchNorm2d(256),
+        act(inplace=True),
+    )
+
+
+class EfficientPairNet(PoseNet):
+    """A PoseNet whose two backbones are EfficientNet-B0 ``features`` (1280 channels, stride 32)."""
+
+    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
+        super().__init__(image_size, dropout)
+        self.backbone_cur = EfficientNetB0Features()
+        self.backbone_prev = EfficientNetB0Features()

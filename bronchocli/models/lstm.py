@@ -1,0 +1,34 @@
+"""``lstm``: the baseline's feature path (with SiLU) feeding an LSTM over the sequence of pairs.
+
+Conv2d 2560->256 3x3 pad 1 (no bias) + BN + SiLU -> IR(256->128, s2) -> IR(128->64, s2)
+-> flatten 256 -> LSTM(256, hidden 128, 1 layer) -> Linear(128, 6) at every step
+(paper: 14.164 M parameters). State: ``(h, c)``, each ``[1, B, 128]``.
+"""
+
+from __future__ import annotations
+
+from torch import Tensor, nn
+
+from .backbones import InvertedResidual
+from .base import EfficientPairNet, State, fusion, pool_to
+
+GRID = (2, 2)
+
+
+class LSTMNet(EfficientPairNet):
+    name = "lstm"
+    recurrent = True
+    temporal = True
+
+    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
+        super().__init__(image_size, dropout)
+        self.fusion = fusion(3, nn.SiLU)
+        self.ir = nn.Sequential(InvertedResidual(256, 128, 2, dropout), InvertedResidual(128, 64, 2, dropout))
+        self.lstm = nn.LSTM(64 * GRID[0] * GRID[1], 128, num_layers=1, batch_first=True)
+        self.head = nn.Linear(128, 6)
+
+    def forward(self, frames: Tensor, state: State = None) -> tuple[Tensor, State]:
+        b, t = frames.shape[:2]
+        x = pool_to(self.ir(self.fusion(self.pair_features(frames))), GRID)
+        seq, (h, c) = self.lstm(x.flatten(1).view(b, t - 1, -1), state)
+        return self.head(seq), (h, c)
