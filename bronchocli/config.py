@@ -59,6 +59,8 @@ class Tracking(Section):
     uri: str = "sqlite:///runs/mlflow.db"  # any MLflow tracking URI; ${VAR} is expanded
     experiment: str | None = None  # MLflow experiment name; defaults to the config's name
     artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
+    checkpoints: str = "runs/checkpoints"  # Lightning checkpoints, one folder per MLflow run
+    log_checkpoint: bool = True  # also log the best checkpoint as an MLflow artifact
 
 
 class Storage(Section):
@@ -89,9 +91,26 @@ class Generate(Section):
     roll_step_deg: float = Field(15.0, gt=0)  # ... in steps of this
     look_ahead_mm: float = Field(10.0, gt=0)  # the camera looks at the centreline this far ahead
     step_mm: tuple[float, float] = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
+    base_step_mm: float = Field(0.5, gt=0)  # arc-length grid of base points; increments are multiples of it
+    wall_margin_mm: float = Field(0.4, ge=0)  # camera stays this far inside the local lumen radius
     max_frames: int | None = Field(None, ge=2)  # cap on frames per trajectory
     realism: Realism = Realism()
     workers: int = Field(2, ge=1)
+
+    @field_validator("step_mm")
+    @classmethod
+    def _step_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0 < v[0] <= v[1]):
+            raise ValueError("must be [min, max] with 0 < min <= max")
+        return v
+
+    @field_validator("base_step_mm")
+    @classmethod
+    def _base_step(cls, v: float, info: Any) -> float:
+        steps = info.data.get("step_mm")
+        if steps is not None and v > steps[0]:
+            raise ValueError(f"must not exceed step_mm's minimum ({steps[0]}): increments are whole base steps")
+        return v
 
 
 class CsvColumns(Section):
@@ -104,14 +123,14 @@ class CsvColumns(Section):
     x: str = "x"
     y: str = "y"
     z: str = "z"
-    rx: str = "rx"
-    ry: str = "ry"
+    rx: str = "rx"  # the three angle columns, in the order of the axes in dataset.csv.euler
+    ry: str = "ry"  # (e.g. euler ZYX: rx holds the Z angle, rz the X angle)
     rz: str = "rz"
     filename: str = "filename"
 
 
 class CsvImport(Section):
-    files: list[str] = []  # CSV paths or globs, relative to dataset.root
+    files: list[str] = []  # CSV paths or globs, relative to dataset.root; empty: every *.csv in it
     frames: str = "."  # directory the filename column is relative to (relative to dataset.root)
     columns: CsvColumns = CsvColumns()
     angle_units: Literal["deg", "rad"] = "deg"
@@ -164,6 +183,14 @@ class DataCfg(Section):
     cache_dir: str = "runs/cache"  # decoded-frame cache (uint8, memory-mapped)
     augment: bool = False  # photometric augmentation of training frames
 
+    @field_validator("overlap")
+    @classmethod
+    def _overlap(cls, v: int, info: Any) -> int:
+        window = info.data.get("window")
+        if window is not None and v >= window:
+            raise ValueError(f"must be smaller than data.window ({window}): consecutive windows share this many pairs")
+        return v
+
 
 class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
@@ -213,9 +240,19 @@ class Tune(Section):
 
 
 class SweepCfg(Section):
-    max_retries: int = Field(1, ge=0)
-    heartbeat_s: float = Field(10.0, gt=0)
+    max_retries: int = Field(1, ge=0)  # automatic re-runs of a FAILED cell (a lost worker counts as a failure)
+    heartbeat_s: float = Field(10.0, gt=0)  # a worker refreshes its claim this often
     stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
+    poll_s: float = Field(2.0, gt=0)  # an idle worker looks again this often (cells held elsewhere)
+    logs: str = "runs/sweep-logs"  # one log file per worker process
+
+    @field_validator("stale_after_s")
+    @classmethod
+    def _stale(cls, v: float, info: Any) -> float:
+        beat = info.data.get("heartbeat_s")
+        if beat is not None and v < 2 * beat:
+            raise ValueError(f"must be at least twice sweep.heartbeat_s ({beat:g}): a live worker must never look stale")
+        return v
 
 
 class Config(Section):

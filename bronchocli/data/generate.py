@@ -1,0 +1,375 @@
+"""Synthetic dataset generation: anatomy -> trajectories -> rendered frames and poses on disk.
+
+``generate_dataset(cfg)`` builds the dataset of ``cfg.dataset.generate`` in
+``cfg.dataset.root`` (layout: docs/dataset-format.md; pipeline and trajectory
+rules: docs/generator.md):
+
+1. per patient (in parallel): load the anatomy, write its centreline graph
+   (``<patient>/airway.vtp``) and its render-ready lumen surface (cached in
+   ``<root>/.work/``), and plan its trajectories (:mod:`.synth`);
+2. render every trajectory's missing frames (one task per trajectory, in
+   ``--workers`` processes, each with its own VTK context);
+3. write each patient's CSV once all its frames exist, then ``dataset.json``
+   last, and remove the work folder.
+
+It is resumable: ``<root>/.work/manifest.json`` records the generator config,
+frames already on disk are kept, and plans are deterministic, so a re-run
+continues where an interrupted one stopped and produces the same bytes. A
+root holding output of a different config is an error, never mixed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
+from dataclasses import dataclass
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from .. import __version__
+from ..config import Config, Generate
+from ..errors import DataError
+from ..render.camera import intrinsics
+from ..render.worker import (
+    Callback,
+    RenderProgress,
+    RenderTask,
+    close_renderer,
+    init_worker,
+    run_task,
+)
+from . import writer
+from .naming import DATASET_JSON, file_patient_id, procedural_patient_id
+from .synth import PathSampler, PlannedTrajectory, plan_lobe
+
+GENERATOR_VERSION = 1  # bump when the same config would render different frames
+WORK_DIR = ".work"
+MANIFEST = "manifest.json"
+LOCK = ".generate.lock"  # held while generating: concurrent generators of one root take turns
+OURS = (WORK_DIR, LOCK)
+IGNORED_KEYS = ("workers",)  # generator settings that do not change the dataset
+
+
+@dataclass(frozen=True)
+class PatientSource:
+    patient: str
+    index: int  # seeds trajectories (generate.seed + index for procedural anatomies)
+    anatomy: str  # 'procedural' or an absolute path
+    centreline: str | None
+    seed: int
+
+
+@dataclass
+class PatientPlan:
+    source: PatientSource
+    origin_mm: list[float]
+    spacing_mm: list[float]
+    trajectories: list[PlannedTrajectory]  # lobe order of generate.lobes, then trajectory index
+    lobe_paths: dict[str, dict]  # lobe -> {"length_mm", "generation"}
+    csv_text: str
+
+
+# -- config and sources -----------------------------------------------------------------
+
+
+def resolved_generate(cfg: Config) -> Generate:
+    """The generate section with anatomy/centreline paths made absolute (against the config's folder)."""
+    gen = cfg.dataset.generate
+    values = {}
+    if gen.anatomy != "procedural":
+        values["anatomy"] = str(cfg.resolve(gen.anatomy))
+    if gen.centreline:
+        values["centreline"] = str(cfg.resolve(gen.centreline))
+    return gen.model_copy(update=values)
+
+
+def patient_sources(gen: Generate) -> list[PatientSource]:
+    """One source per patient: ``patients`` seeded procedural trees, or the one anatomy file."""
+    if gen.anatomy == "procedural":
+        return [PatientSource(procedural_patient_id(i), i, "procedural", None, gen.seed + i) for i in range(gen.patients)]
+    return [PatientSource(file_patient_id(gen.anatomy), 0, gen.anatomy, gen.centreline, gen.seed)]
+
+
+def _signature(record: dict | None) -> dict:
+    """What must match for two generator configs to make the same dataset.
+
+    Anatomy files compare by name, so moving a project (absolute paths change)
+    does not orphan its datasets; the worker count never matters.
+    """
+    sig = {k: v for k, v in (record or {}).items() if k not in IGNORED_KEYS}
+    for key in ("anatomy", "centreline"):
+        if sig.get(key) not in (None, "procedural"):
+            sig[key] = Path(sig[key]).name
+    return sig
+
+
+def _differences(a: dict, b: dict) -> list[str]:
+    keys = sorted(set(a) | set(b))
+    return [k for k in keys if a.get(k) != b.get(k)]
+
+
+# -- root state -----------------------------------------------------------------------------
+
+
+def _check_root(root: Path, record: dict) -> str:
+    """'complete', 'resume' or 'fresh'; DataError if ``root`` holds something generated otherwise."""
+    meta_path = root / DATASET_JSON
+    want = _signature(record)
+    if meta_path.is_file():
+        meta = json.loads(meta_path.read_text())
+        have = _signature(meta.get("generator"))
+        if have == want and meta.get("generator_version") == GENERATOR_VERSION:
+            return "complete"
+        diff = _differences(have, want) or ["generator_version"]
+        raise DataError(f"{root}: holds a complete dataset generated with a different config "
+                        f"(differs in generate.{', generate.'.join(diff)}); choose another --out/dataset.root or delete it")
+    if not root.exists():
+        return "fresh"
+    manifest = root / WORK_DIR / MANIFEST
+    what = "files that are not a bronchopose dataset"
+    if manifest.is_file():
+        stored = json.loads(manifest.read_text())
+        have = _signature(stored.get("generator"))
+        if have == want and stored.get("generator_version") == GENERATOR_VERSION:
+            return "resume"
+        diff = _differences(have, want) or ["generator_version"]
+        what = f"a partial dataset of a different config (differs in generate.{', generate.'.join(diff)})"
+    if any(p.name not in OURS for p in root.iterdir()):
+        raise DataError(f"{root}: holds {what}; choose another --out/dataset.root or delete it")
+    return "fresh"  # empty, or only an unstarted work folder of another config: take it over
+
+
+# -- per-patient preparation (runs in workers) --------------------------------------------------
+
+
+def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientPlan:
+    """Load one anatomy, write its centreline graph and render-ready surface, plan its trajectories."""
+    from ..anatomy import centreline_distance, load_anatomy, save_centreline  # noqa: PLC0415
+
+    tree = load_anatomy(source.anatomy, seed=source.seed, voxel_mm=gen.voxel_mm, centreline=source.centreline)
+    missing = [lb for lb in gen.lobes if lb not in tree.lobe_paths]
+    if missing:
+        raise DataError(f"{source.anatomy}: no lobe path for {', '.join(missing)} "
+                        f"(found: {', '.join(tree.lobe_paths) or 'none'})")
+    patient_dir = Path(root) / source.patient
+    patient_dir.mkdir(parents=True, exist_ok=True)
+    if not (patient_dir / "airway.vtp").exists():
+        save_centreline(tree, patient_dir / "airway.vtp")
+    surface_path = _surface_path(root, source.patient)
+    if not surface_path.exists():
+        _write_surface(tree, gen, source, surface_path)
+    distance = lambda pts: centreline_distance(tree, pts)  # noqa: E731
+    plans: list[PlannedTrajectory] = []
+    for lobe in gen.lobes:
+        lp = tree.lobe_paths[lobe]
+        path = PathSampler(np.asarray(lp.points, dtype=np.float64), np.asarray(lp.radii, dtype=np.float64))
+        plans += plan_lobe(path, gen, tree.spacing_mm, distance, patient=source.patient,
+                           patient_index=source.index, lobe=lobe)
+    info = {lb: {"length_mm": round(float(tree.lobe_paths[lb].arc_length[-1]), 3),
+                 "generation": int(tree.lobe_paths[lb].generation)} for lb in gen.lobes}
+    return PatientPlan(source, [float(v) for v in tree.origin_mm], [float(v) for v in tree.spacing_mm], plans, info,
+                       writer.patient_csv(plans, tree.to_voxels))
+
+
+def _surface_path(root: str | Path, patient: str) -> Path:
+    return Path(root) / WORK_DIR / f"{patient}-lumen.vtp"
+
+
+def _write_surface(tree, gen: Generate, source: PatientSource, path: Path) -> None:
+    from ..anatomy import lumen_surface  # noqa: PLC0415
+    from ..render.surface import prepare_surface, write_polydata  # noqa: PLC0415
+
+    surface = prepare_surface(lumen_surface(tree, voxel_mm=gen.voxel_mm), texture=gen.realism.texture,
+                              seed=abs(gen.seed) * 1000 + source.index)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    write_polydata(surface, tmp)
+    os.replace(tmp, path)
+
+
+# -- execution: in-process or a pool of spawned workers -------------------------------------
+
+
+class _Runner:
+    """Runs tasks in this process (workers=1) or in spawned processes, each with its own VTK context."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self.pool = None
+        if workers > 1:
+            threads = max(1, (os.cpu_count() or 1) // workers)
+            self.pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                            initializer=init_worker, initargs=(threads,))
+
+    def map(self, fn, *iterables) -> list:
+        if self.pool is None:
+            return [fn(*args) for args in zip(*iterables)]
+        return list(self.pool.map(fn, *iterables))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+        close_renderer()
+
+
+def _tasks(plans: list[PatientPlan], root: Path, gen: Generate) -> list[RenderTask]:
+    tasks = []
+    for pp in plans:
+        surface = str(_surface_path(root, pp.source.patient))
+        for t in pp.trajectories:
+            names = [writer.frame_filename(t.patient, t.lobe, t.index, f) for f in range(len(t))]
+            tasks.append(RenderTask(t.patient, t.lobe, t.index, str(root), surface, names, t.position_mm,
+                                    t.rotation, t.radius_mm, gen.image_size, gen.fov_deg, gen.realism))
+    return tasks
+
+
+def _render_all(runner: _Runner, tasks: list[RenderTask], work: Path, progress: bool,
+                callback: Callback | None) -> list[list[bytes]]:
+    """Frame digests per task (same order), rendering what is missing.
+
+    A finished task's digests are kept in ``.work/digests/`` so a resumed run
+    does not re-read the frames of trajectories that were complete.
+    """
+    results: list[list[bytes] | None] = [writer.load_digests(_digest_path(work, t), len(t.filenames)) for t in tasks]
+    pending = [i for i, (r, t) in enumerate(zip(results, tasks)) if r is None or t.missing()]
+
+    def finish(i: int, digests: list[bytes]) -> None:
+        results[i] = digests
+        writer.save_digests(_digest_path(work, tasks[i]), digests)
+
+    with RenderProgress([tasks[i] for i in pending], sum(len(t.filenames) for t in tasks), progress, callback) as bar:
+        if runner.pool is None:
+            for i in pending:
+                finish(i, run_task(tasks[i], on_frame=lambda rendered: bar.advance(int(rendered)))[0])
+        else:
+            futures = {runner.pool.submit(run_task, tasks[i]): i for i in pending}
+            for fut in as_completed(futures):
+                digests, rendered = fut.result()
+                finish(futures[fut], digests)
+                bar.advance(rendered)
+    return results  # type: ignore[return-value]
+
+
+def _digest_path(work: Path, task: RenderTask) -> Path:
+    return work / "digests" / f"{task.patient}-{task.lobe}-{task.trajectory}.sha256"
+
+
+# -- public API ----------------------------------------------------------------------------
+
+
+def generate_dataset(cfg: Config, *, root: Path | None = None, workers: int | None = None,
+                     progress: bool = True, callback: Callback | None = None) -> Path:
+    """Generate (or finish, or just confirm) the synthetic dataset of ``cfg.dataset.generate``.
+
+    Returns the dataset root. Idempotent: a complete dataset of the same config
+    is left as is; a partial one is resumed. ``callback(done, total)`` is called
+    as frames complete (raising from it interrupts the generation cleanly).
+    With ``workers > 1`` the renderers run in spawned processes, so a script
+    calling this needs the usual ``if __name__ == "__main__":`` guard.
+    """
+    root = Path(root) if root is not None else cfg.resolve(cfg.dataset.root)
+    gen = resolved_generate(cfg)
+    record = {**gen.model_dump(mode="json")}
+    if _check_root(root, record) == "complete":
+        return root
+    with _exclusive(root):
+        state = _check_root(root, record)  # again: another process may have worked here while we waited
+        if state != "complete":
+            _generate(root, gen, record, workers or gen.workers, progress, callback, fresh=state == "fresh")
+    return root
+
+
+def _generate(root: Path, gen: Generate, record: dict, workers: int, progress: bool, callback: Callback | None,
+              *, fresh: bool) -> None:
+    work = root / WORK_DIR
+    if fresh:  # cached surfaces of another config must not be reused
+        shutil.rmtree(work, ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
+    writer.write_json(work / MANIFEST, {"generator_version": GENERATOR_VERSION, "generator": record})
+    writer.remove_stale_temps(root)
+    sources = patient_sources(gen)
+    runner = _Runner(workers)
+    try:
+        plans = runner.map(prepare_patient, sources, [gen] * len(sources), [str(root)] * len(sources))
+        tasks = _tasks(plans, root, gen)
+        digests = _render_all(runner, tasks, work, progress, callback)
+    finally:
+        runner.close()
+    _finish(root, gen, record, plans, tasks, digests)
+
+
+@contextmanager
+def _exclusive(root: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``<root>/.generate.lock`` (POSIX ``flock``; no locking elsewhere)."""
+    root.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl  # noqa: PLC0415
+    except ImportError:  # pragma: no cover (Windows)
+        yield
+        return
+    with open(root / LOCK, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def ensure_dataset(cfg: Config) -> Path:
+    """The configured dataset root, generated first when it is a ``bronchopose`` dataset without dataset.json."""
+    root = cfg.resolve(cfg.dataset.root)
+    if cfg.dataset.format == "bronchopose" and not (root / DATASET_JSON).is_file():
+        generate_dataset(cfg, root=root)
+    return root
+
+
+def _finish(root: Path, gen: Generate, record: dict, plans: list[PatientPlan], tasks: list[RenderTask],
+            digests: list[list[bytes]]) -> None:
+    """Write the CSVs, then dataset.json (last), then drop the work folder."""
+    by_patient: dict[str, list[bytes]] = {}
+    for task, d in zip(tasks, digests):
+        by_patient.setdefault(task.patient, []).extend(d)
+    parts = []
+    for pp in plans:
+        path = root / f"{pp.source.patient}.csv"
+        data = pp.csv_text.encode("utf-8")
+        if not path.is_file() or path.read_bytes() != data:
+            writer.atomic_write_bytes(path, data)
+        parts.append((data, by_patient.get(pp.source.patient, [])))
+    writer.write_json(root / DATASET_JSON, _metadata(gen, record, plans, writer.fingerprint(parts)))
+    shutil.rmtree(root / WORK_DIR, ignore_errors=True)
+
+
+def _metadata(gen: Generate, record: dict, plans: list[PatientPlan], fingerprint: str) -> dict:
+    cam = intrinsics(gen.image_size, gen.image_size, gen.fov_deg)
+    per_patient = {}
+    for pp in plans:
+        ts = pp.trajectories
+        per_patient[pp.source.patient] = {
+            "frames": int(sum(len(t) for t in ts)), "trajectories": len(ts),
+            "rejected_positions": int(sum(t.rejected for t in ts)),
+            "clamped_positions": int(sum(int(t.clamped.sum()) for t in ts)),
+        }
+    total = lambda key: int(sum(p[key] for p in per_patient.values()))  # noqa: E731
+    return {
+        "format": writer.FORMAT_NAME, "version": writer.FORMAT_VERSION,
+        "patients": [pp.source.patient for pp in plans],
+        "lobes": list(gen.lobes),
+        "image_size": [gen.image_size, gen.image_size],
+        "camera": cam.as_json(),
+        "voxel_grid": {pp.source.patient: {"origin_mm": pp.origin_mm, "spacing_mm": pp.spacing_mm} for pp in plans},
+        "anatomy": {pp.source.patient: {"source": pp.source.anatomy, "seed": pp.source.seed, "lobe_paths": pp.lobe_paths}
+                    for pp in plans},
+        "generator": record,
+        "generator_version": GENERATOR_VERSION,
+        "counts": {"frames": total("frames"), "trajectories": total("trajectories"),
+                   "rejected_positions": total("rejected_positions"), "clamped_positions": total("clamped_positions"),
+                   "per_patient": per_patient},
+        "fingerprint": fingerprint,
+        "bronchocli_version": __version__,
+    }

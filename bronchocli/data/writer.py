@@ -1,0 +1,175 @@
+"""Writing a ``bronchopose`` dataset: atomic files, frame PNGs, patient CSVs, fingerprint, dataset.json.
+
+Every finished file is written to a temporary name in its own directory and
+moved into place with ``os.replace``, so a reader never sees half a frame or
+half a CSV. The layout and columns are those of docs/dataset-format.md.
+
+Fingerprint (recorded in dataset.json): SHA-256 over, for each patient in
+dataset.json's order, the bytes of ``<patient>.csv`` followed by the 32-byte
+SHA-256 digest of every frame file listed in that CSV, in row order.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .. import geometry
+from .synth import PlannedTrajectory
+
+PNG_COMPRESSION = 1  # zlib level: the fastest level still shrinks frames ~2x; DESIGN §7
+CSV_COLUMNS: tuple[str, ...] = (
+    "patient", "lobe", "trajectory", "frame", "pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz", "filename",
+    "base_filename", "arc_mm", "dx", "dy", "dz", "roll", "clearance_mm", "radius_mm", "clamped",
+)
+FORMAT_NAME = "bronchopose-dataset"
+FORMAT_VERSION = 1
+
+
+# -- atomic files ---------------------------------------------------------------------
+
+
+def _temp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same directory and ``os.replace``."""
+    path = Path(path)
+    tmp = _temp_name(path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def remove_stale_temps(folder: Path) -> int:
+    """Delete temp files an interrupted run left in ``folder`` (recursively); returns how many."""
+    n = 0
+    for tmp in Path(folder).rglob("*.tmp*"):
+        if tmp.is_file() and (tmp.name.startswith(".") or tmp.name.endswith(".tmp")):
+            tmp.unlink()
+            n += 1
+    return n
+
+
+# -- frames -----------------------------------------------------------------------------
+
+
+def encode_png(frame: np.ndarray) -> bytes:
+    """An ``H x W x 3`` uint8 frame as PNG bytes (fast compression, deterministic)."""
+    from PIL import Image  # noqa: PLC0415
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(frame), "RGB").save(buf, format="PNG", compress_level=PNG_COMPRESSION)
+    return buf.getvalue()
+
+
+def write_frame(path: Path, frame: np.ndarray) -> bytes:
+    """Write one frame atomically; returns the SHA-256 digest of the file bytes."""
+    data = encode_png(frame)
+    atomic_write_bytes(path, data)
+    return hashlib.sha256(data).digest()
+
+
+def file_digest(path: Path) -> bytes:
+    return hashlib.sha256(Path(path).read_bytes()).digest()
+
+
+def frame_filename(patient: str, lobe: str, trajectory: int, frame: int) -> str:
+    """Frame path relative to the dataset root, e.g. ``p00/ur/t003_f0012.png``."""
+    return f"{patient}/{lobe}/t{trajectory:03d}_f{frame:04d}.png"
+
+
+def base_filename(lobe: str, base_index: int) -> str:
+    """Id of the un-varied view at base point ``base_index`` of ``lobe``'s path, e.g. ``ur/b00042``."""
+    return f"{lobe}/b{base_index:05d}"
+
+
+# -- CSV ----------------------------------------------------------------------------------
+
+
+def _num(x: float) -> str:
+    return f"{round(float(x), 6) + 0.0:.6f}"  # + 0.0 turns -0.0 into 0.0
+
+
+def trajectory_rows(plan: PlannedTrajectory, to_voxels) -> list[str]:
+    """CSV lines (no newline) of one planned trajectory; ``to_voxels`` maps mm to voxel coordinates."""
+    pos = to_voxels(plan.position_mm)
+    euler = geometry.matrix_to_euler(plan.rotation)
+    rows = []
+    for f in range(len(plan)):
+        values = [
+            plan.patient, plan.lobe, str(plan.index), str(f),
+            *(_num(v) for v in pos[f]), *(_num(v) for v in euler[f]),
+            frame_filename(plan.patient, plan.lobe, plan.index, f), base_filename(plan.lobe, int(plan.base_index[f])),
+            _num(plan.arc_mm[f]), *(str(int(v)) for v in plan.offset_voxels[f]), _num(plan.roll_deg[f]),
+            _num(plan.clearance_mm[f]), _num(plan.radius_mm[f]), str(int(bool(plan.clamped[f]))),
+        ]
+        rows.append(",".join(values))
+    return rows
+
+
+def patient_csv(plans: Sequence[PlannedTrajectory], to_voxels) -> str:
+    """The whole ``<patient>.csv`` text: header and rows ordered by lobe (given order), trajectory, frame."""
+    lines = [",".join(CSV_COLUMNS)]
+    for plan in plans:
+        lines += trajectory_rows(plan, to_voxels)
+    return "\n".join(lines) + "\n"
+
+
+# -- fingerprint and metadata ---------------------------------------------------------------
+
+
+def fingerprint(parts: Iterable[tuple[bytes, Sequence[bytes]]]) -> str:
+    """SHA-256 hex over (CSV bytes, frame digests in row order) per patient, in order."""
+    h = hashlib.sha256()
+    for csv_bytes, digests in parts:
+        h.update(csv_bytes)
+        for d in digests:
+            h.update(d)
+    return h.hexdigest()
+
+
+def fingerprint_dir(root: Path, patients: Sequence[str]) -> str:
+    """Recompute the fingerprint of a dataset on disk from its CSVs and frame files."""
+    parts = []
+    for p in patients:
+        data = (Path(root) / f"{p}.csv").read_bytes()
+        lines = data.decode("utf-8").splitlines()
+        col = lines[0].split(",").index("filename")
+        parts.append((data, [file_digest(Path(root) / ln.split(",")[col]) for ln in lines[1:] if ln]))
+    return fingerprint(parts)
+
+
+def save_digests(path: Path, digests: Sequence[bytes]) -> None:
+    """Keep a finished trajectory's frame digests (resumption reads them instead of the frames)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, b"".join(digests))
+
+
+def load_digests(path: Path, n: int) -> list[bytes] | None:
+    """The ``n`` digests saved at ``path``; None when absent or of another length."""
+    if not path.is_file():
+        return None
+    data = path.read_bytes()
+    if len(data) != 32 * n:
+        return None
+    return [data[i:i + 32] for i in range(0, len(data), 32)]
+
+
+def write_json(path: Path, data: dict) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")

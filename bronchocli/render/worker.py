@@ -1,0 +1,143 @@
+"""Rendering one trajectory's frames to disk; runs in the generator's process or in a worker process.
+
+Each process keeps one ``FrameRenderer`` (one OpenGL context) for the patient
+it last rendered and replaces it when a task for another patient arrives, so
+tasks sorted by patient load each surface about once per worker. Frames that
+already exist are not rendered again (resumption); their digests are read
+back from disk so the dataset fingerprint covers them too. ``RenderProgress``
+is the generator's progress bar.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from ..config import Realism
+
+Callback = Callable[[int, int], None]  # (frames done, frames total)
+
+
+@dataclass
+class RenderTask:
+    """The frames of one trajectory: where to write them and the camera for each."""
+
+    patient: str
+    lobe: str
+    trajectory: int
+    root: str  # dataset root
+    surface: str  # prepared lumen surface (.vtp), mm
+    filenames: list[str]  # relative to root
+    position_mm: np.ndarray  # (N, 3)
+    rotation: np.ndarray  # (N, 3, 3)
+    radius_mm: np.ndarray  # (N,)
+    width: int
+    fov_deg: float
+    realism: Realism
+
+    def missing(self) -> int:
+        """Frames of this task not on disk yet."""
+        return sum(not (Path(self.root) / f).exists() for f in self.filenames)
+
+
+_CURRENT: dict = {}  # {"key": (surface, width, fov, realism), "renderer": FrameRenderer}
+
+
+def init_worker(threads: int | None) -> None:
+    """Process-pool initializer: bound the software rasteriser's threads so workers do not oversubscribe."""
+    if threads:
+        os.environ.setdefault("LP_NUM_THREADS", str(threads))
+
+
+def _renderer(task: RenderTask):
+    from .scene import FrameRenderer  # noqa: PLC0415 (VTK loads only in rendering processes)
+    from .surface import read_polydata  # noqa: PLC0415
+
+    key = (task.surface, task.width, task.fov_deg, task.realism)
+    if _CURRENT.get("key") != key:
+        close_renderer()
+        surface = read_polydata(Path(task.surface))
+        _CURRENT["renderer"] = FrameRenderer(surface, width=task.width, fov_deg=task.fov_deg, realism=task.realism)
+        _CURRENT["key"] = key
+    return _CURRENT["renderer"]
+
+
+def close_renderer() -> None:
+    """Release this process's renderer (its OpenGL context), if any."""
+    renderer = _CURRENT.pop("renderer", None)
+    _CURRENT.pop("key", None)
+    if renderer is not None:
+        renderer.close()
+
+
+def run_task(task: RenderTask, on_frame: Callable[[bool], None] | None = None) -> tuple[list[bytes], int]:
+    """Render and write the task's missing frames; returns (SHA-256 digest per frame, frames rendered).
+
+    ``on_frame(rendered)`` is called after each frame (``rendered`` False when it was already on disk).
+    """
+    from ..data.writer import file_digest, write_frame  # noqa: PLC0415
+
+    root = Path(task.root)
+    digests, rendered = [], 0
+    for i, name in enumerate(task.filenames):
+        path = root / name
+        rendered_now = not path.exists()
+        if not rendered_now:
+            digests.append(file_digest(path))
+        else:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            frame = _renderer(task).render(task.position_mm[i], task.rotation[i], task.radius_mm[i])
+            digests.append(write_frame(path, frame))
+            rendered += 1
+        if on_frame is not None:
+            on_frame(rendered_now)
+    return digests, rendered
+
+
+class RenderProgress:
+    """A rich progress bar (frames done / total, rendering fps) that also feeds the callback."""
+
+    def __init__(self, pending: Iterable[RenderTask], total: int, show: bool, callback: Callback | None) -> None:
+        self.total = total
+        self.done = total - sum(t.missing() for t in pending)
+        self.rendered, self.start = 0, time.perf_counter()
+        self.callback, self.bar = callback, None
+        if show:
+            from rich.progress import (  # noqa: PLC0415
+                BarColumn,
+                MofNCompleteColumn,
+                Progress,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
+            self.bar = Progress(TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+                                TextColumn("{task.fields[fps]}"), TimeElapsedColumn(), TimeRemainingColumn())
+            self.task = self.bar.add_task("render", total=self.total, completed=self.done, fps="")
+
+    def __enter__(self) -> "RenderProgress":
+        if self.bar is not None:
+            self.bar.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+    def advance(self, rendered: int) -> None:
+        """``rendered`` more frames are on disk (frames found on disk were counted at the start)."""
+        if not rendered:
+            return
+        self.rendered += rendered
+        self.done += rendered
+        if self.bar is not None:
+            fps = self.rendered / max(time.perf_counter() - self.start, 1e-9)
+            self.bar.update(self.task, advance=rendered, fps=f"{fps:.0f} fps")
+        if self.callback is not None:
+            self.callback(self.done, self.total)
