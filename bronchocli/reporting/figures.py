@@ -1,0 +1,152 @@
+"""Report figures from the runs' ``predictions.csv`` artifacts (PNG + PDF, written atomically).
+
+* ``fig5-trajectories``: ground truth vs BronchoTrack (ConvLSTM + MSE+CE) vs
+  OffsetNet (MSE+MSE), 3-D in voxel axes, for chosen test trajectories (the
+  paper's Figure 5); personalized runs.
+* ``fig-error-position`` / ``fig-error-rotation``: per architecture (its
+  MSE+CE personalized run), the error of the accumulated pose against the
+  frame index along the test trajectories: position L2 in voxels and geodesic
+  angle in degrees, mean ± std over trajectories at each frame.
+
+``predictions.csv`` has one row per test frame with ``gt_abs_*``/``pred_abs_*``
+(absolute poses, predictions chained from the true first pose).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from .. import metrics
+from ..config import LOBES
+from ..plots import error_curve_figure, save_figure, trajectory_figure
+from .collect import RunIndex, RunRecord
+from .tables import ABLATION_LOSS, ARCH_NAMES, BRONCHOTRACK, LOSSES, OFFSETNET
+
+POSE = ("x", "y", "z", "rx", "ry", "rz")
+KEY = ("patient", "lobe", "trajectory")
+FORMATS = ("png", "pdf")
+Key = tuple[str, str, str]
+Loader = Callable[[RunRecord], "object | None"]  # run -> predictions DataFrame or None
+
+
+def read_predictions(path: Path):
+    """A predictions.csv as a DataFrame with string trajectory keys."""
+    import pandas as pd
+
+    return pd.read_csv(path, dtype={k: str for k in KEY})
+
+
+def mlflow_loader(client, warnings: list[str]) -> Loader:
+    """Loader downloading each run's ``predictions.csv`` artifact; a missing one becomes a warning."""
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no tqdm bar per download
+
+    def load(run: RunRecord):
+        with tempfile.TemporaryDirectory() as tmp:
+            try:
+                path = client.download_artifacts(run.run_id, "predictions.csv", tmp)
+            except Exception as exc:  # noqa: BLE001 - any store error means "no predictions for this run"
+                warnings.append(f"figures: run {run.run_id} ({run.label}) has no predictions.csv artifact "
+                                f"({type(exc).__name__})")
+                return None
+            return read_predictions(Path(path))
+    return load
+
+
+def trajectory_keys(df) -> list[Key]:
+    return [tuple(map(str, k)) for k in df[list(KEY)].drop_duplicates().itertuples(index=False)]
+
+
+def choose_trajectories(frames: Sequence, n: int) -> list[Key]:
+    """Up to ``n`` trajectories present in every frame: one per lobe (ur, br, ul, bl) first, then the rest, sorted."""
+    common = set(trajectory_keys(frames[0]))
+    for df in frames[1:]:
+        common &= set(trajectory_keys(df))
+    ordered = sorted(common)
+    first = [next(k for k in ordered if k[1] == lobe) for lobe in LOBES if any(k[1] == lobe for k in ordered)]
+    rest = [k for k in ordered if k not in first]
+    return (first + rest)[:n]
+
+
+def poses(df, key: Key, which: str) -> np.ndarray:
+    """``(N, 6)`` absolute poses (``which`` = gt or pred) of one trajectory, in frame order."""
+    sel = df[(df["patient"] == key[0]) & (df["lobe"] == key[1]) & (df["trajectory"] == key[2])].sort_values("frame")
+    return sel[[f"{which}_abs_{c}" for c in POSE]].to_numpy(dtype=np.float64)
+
+
+def trajectory_comparison(models: Mapping[str, object], keys: Sequence[Key]):
+    """Figure 5: the first model's ground truth vs every model's chained prediction, one 3-D panel per key."""
+    first = next(iter(models.values()))
+    gt = [poses(first, k, "gt") for k in keys]
+    preds = {name: [poses(df, k, "pred") for k in keys] for name, df in models.items()}
+    return trajectory_figure(gt, preds, titles=[f"{p} {lobe} trajectory {t}" for p, lobe, t in keys],
+                             columns=min(len(keys), 4))
+
+
+def frame_errors(df) -> tuple[np.ndarray, np.ndarray]:
+    """Accumulated-pose position (voxels) and geodesic (degrees) error per frame, ``(n_traj, max_len)`` NaN-padded."""
+    keys = trajectory_keys(df)
+    pos, rot = [], []
+    for k in keys:
+        gt, pred = poses(df, k, "gt"), poses(df, k, "pred")
+        pos.append(np.linalg.norm(pred[:, :3] - gt[:, :3], axis=1))
+        rot.append(metrics.per_pose_errors(pred, gt)["geodesic"])
+    width = max(len(p) for p in pos)
+    pad = lambda rows: np.array([np.pad(r, (0, width - len(r)), constant_values=np.nan) for r in rows])  # noqa: E731
+    return pad(pos), pad(rot)
+
+
+def error_figures(models: Mapping[str, object]) -> dict[str, object]:
+    """``{"position": fig, "rotation": fig}``: error of the accumulated pose vs frame, one curve per model."""
+    errors = {name: frame_errors(df) for name, df in models.items()}
+    title = f"personalized, {LOSSES[ABLATION_LOSS]}: mean ± std over test trajectories"
+    labels = {"position": "accumulated position error (voxels)", "rotation": "accumulated rotation error (degrees)"}
+    return {kind: error_curve_figure({n: e[k] for n, e in errors.items()}, label, title)
+            for k, (kind, label) in enumerate(labels.items())}
+
+
+def _first_run(index: RunIndex, arch: str, loss: str) -> RunRecord | None:
+    runs = index.select("personalized", arch, loss)
+    return runs[0] if runs else None
+
+
+def _cached(load: Loader, cache: dict[str, object]) -> Loader:
+    def cached(run: RunRecord):
+        if run.run_id not in cache:
+            cache[run.run_id] = load(run)
+        return cache[run.run_id]
+    return cached
+
+
+def make_figures(index: RunIndex, load: Loader, out: Path, n_trajectories: int, warnings: list[str]) -> list[Path]:
+    """Write the trajectory comparison and the error curves under ``out``; returns the files written."""
+    written: list[Path] = []
+    cache: dict[str, object] = {}
+    load = _cached(load, cache)
+    chosen = {"BronchoTrack": _first_run(index, *BRONCHOTRACK), "OffsetNet": _first_run(index, *OFFSETNET)}
+    models = {name: df for name, run in chosen.items() if run is not None and (df := load(run)) is not None}
+    for name in chosen.keys() - models.keys():
+        warnings.append(f"figures: fig5-trajectories has no {name} curve (no FINISHED personalized run with "
+                        f"predictions.csv)")
+    if models:
+        keys = choose_trajectories(list(models.values()), n_trajectories)
+        if keys:
+            written += save_figure(trajectory_comparison(models, keys), out / "fig5-trajectories", FORMATS)
+        else:
+            warnings.append("figures: fig5-trajectories skipped: the runs share no test trajectory")
+    per_arch = {}
+    for arch, name in ARCH_NAMES.items():
+        run = _first_run(index, arch, ABLATION_LOSS)
+        df = load(run) if run is not None else None
+        if df is not None:
+            per_arch[name] = df
+    if per_arch:
+        for kind, fig in error_figures(per_arch).items():
+            written += save_figure(fig, out / f"fig-error-{kind}", FORMATS)
+    else:
+        warnings.append("figures: no error-vs-frame curves (no personalized MSE+CE run with predictions.csv)")
+    return written

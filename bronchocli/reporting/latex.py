@@ -1,0 +1,106 @@
+"""LaTeX rendering of a ``model.Table``: a standalone document that compiles with pdflatex.
+
+The document needs only packages of Debian's texlive-latex-base and
+texlive-latex-recommended (booktabs, xcolor, geometry). The ``table``
+environment between the ``% --- table`` markers can be pasted into a paper that
+loads booktabs and xcolor. Marks: \\textbf = best of its architecture group,
+\\textcolor{red} = best of the column, \\textcolor{blue} = second best.
+Warnings go into the file as comments.
+"""
+
+from __future__ import annotations
+
+from .markdown import label_cells, run_lines
+from .model import MISSING, Table, cell_texts, marks
+
+_SPECIAL = {
+    "\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+    "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
+}
+_UNICODE = {
+    "±": r"\ensuremath{\pm}", "°": r"\ensuremath{^\circ}", "—": "---", "–": "--", "−": r"\ensuremath{-}",
+    "σ": r"\ensuremath{\sigma}", "μ": r"\ensuremath{\mu}", "Σ": r"\ensuremath{\Sigma}", "²": r"\ensuremath{^{2}}",
+    "×": r"\ensuremath{\times}", "†": r"\ensuremath{^\dagger}", "‡": r"\ensuremath{^\ddagger}",
+    "’": "'", "‘": "`", "“": "``", "”": "''",
+}
+
+PREAMBLE = r"""\documentclass{article}
+\usepackage[utf8]{inputenc}
+\usepackage[margin=1.5cm]{geometry}
+\usepackage{booktabs}
+\usepackage{xcolor}
+\pagestyle{empty}
+\begin{document}
+"""
+
+
+def escape(text: str) -> str:
+    """Plain text -> LaTeX text (special characters escaped, known non-ASCII symbols as commands)."""
+    return "".join(_SPECIAL.get(ch) or _UNICODE.get(ch) or ch for ch in text)
+
+
+def _cell(text: str, mark: set[str]) -> str:
+    out = escape(text)
+    if text == MISSING:
+        return out
+    if "group" in mark:
+        out = rf"\textbf{{{out}}}"
+    if "best" in mark:
+        out = rf"\textcolor{{red}}{{{out}}}"
+    elif "second" in mark:
+        out = rf"\textcolor{{blue}}{{{out}}}"
+    return out
+
+
+def _legend(table: Table) -> str:
+    parts = []
+    if table.grouped:
+        parts.append(r"\textbf{bold}: best of its architecture group")
+    if any(c.highlight for c in table.columns):
+        parts += [r"\textcolor{red}{red}: best of the column", r"\textcolor{blue}{blue}: second best"]
+    parts.append("---: no FINISHED run")
+    return "; ".join(parts) + "."
+
+
+def _body(table: Table) -> list[str]:
+    texts, mk = cell_texts(table), marks(table)
+    lines = []
+    for i, (labels, row_texts, row_marks) in enumerate(zip(label_cells(table), texts, mk)):
+        if table.grouped and i > 0 and labels[0]:
+            lines.append(r"\midrule")
+        cells = [escape(x) for x in labels] + [_cell(t, m) for t, m in zip(row_texts, row_marks)]
+        lines.append(" & ".join(cells) + r" \\")
+    return lines
+
+
+def _runs(table: Table) -> str:
+    entries = []
+    for line in run_lines(table):
+        name, _, ids = line.partition(": ")
+        entries.append(escape(name) + ": " + ", ".join(rf"\texttt{{{i}}}" for i in ids.split(", ")))
+    return "Runs: " + "; ".join(entries) + "." if entries else ""
+
+
+def table_environment(table: Table) -> str:
+    """The ``table`` float alone (booktabs + xcolor), ready to paste into a paper."""
+    spec = "l" * len(table.headers) + "r" * len(table.columns)
+    head = [escape(h) for h in table.headers] + [escape(c.heading) for c in table.columns]
+    lines = [r"\begin{table}[ht]", r"\centering", r"\small", r"\setlength{\tabcolsep}{4pt}",
+             rf"\caption{{{escape(table.caption)}}}",
+             rf"\label{{tab:{table.key}}}", rf"\begin{{tabular}}{{{spec}}}", r"\toprule",
+             " & ".join(head) + r" \\", r"\midrule", *_body(table), r"\bottomrule", r"\end{tabular}",
+             "", r"\medskip", r"\begin{minipage}{\linewidth}\footnotesize\raggedright", _legend(table)]
+    runs = _runs(table)
+    if runs:
+        lines += [r"\par", runs]
+    lines += [r"\end{minipage}", r"\end{table}"]
+    return "\n".join(lines)
+
+
+def to_latex(table: Table) -> str:
+    """A standalone document holding ``table_environment(table)``; warnings as comments."""
+    head = [f"% {escape(table.title)} -- written by `bronchopose report`; compile with pdflatex.",
+            "% Needs booktabs and xcolor; the table environment between the markers can be pasted into a paper."]
+    head += [f"% warning: {' '.join(w.splitlines())}" for w in table.warnings]
+    return "\n".join(head) + "\n" + PREAMBLE + "% --- table begins\n" + table_environment(table) + \
+        "\n% --- table ends\n\\end{document}\n"

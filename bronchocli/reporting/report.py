@@ -1,0 +1,150 @@
+"""`bronchopose report` in library form: collect runs once, build tables, write Markdown/LaTeX and figures.
+
+``make_report`` is what the command calls; ``build_tables`` and
+``write_tables`` are usable on their own (tests, notebooks).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from .. import tracking
+from ..config import Config
+from ..errors import BronchoError
+from ..tracking import redact_url
+from .collect import RunIndex
+from .figures import FORMATS, Loader, make_figures
+from .latex import to_latex
+from .markdown import to_markdown
+from .model import Table
+from .tables import TABLES, Profiler, ReportContext
+
+OUTPUT_FORMATS = {"md": ("md",), "latex": ("tex",), "both": ("md", "tex")}
+RENDERERS = {"md": to_markdown, "tex": to_latex}
+
+
+@dataclass
+class ReportResult:
+    tables: list[Table]
+    files: list[Path] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # besides each table's own warnings (figures, ...)
+
+
+def output_suffixes(fmt: str) -> tuple[str, ...]:
+    if fmt not in OUTPUT_FORMATS:
+        raise BronchoError(f"--format {fmt!r}: must be one of {', '.join(OUTPUT_FORMATS)}")
+    return OUTPUT_FORMATS[fmt]
+
+
+def write_text_atomic(path: Path, text: str) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence[str]) -> list[Table]:
+    """Every requested table, for every requested evaluation, in that order."""
+    return [TABLES[name](ctx, ev) for name in names for ev in evaluations]
+
+
+def write_tables(tables: Sequence[Table], out: Path, suffixes: Sequence[str]) -> list[Path]:
+    return [write_text_atomic(Path(out) / f"{t.key}.{s}", RENDERERS[s](t)) for t in tables for s in suffixes]
+
+
+def dataset_figures(root: Path, out: Path, warnings: list[str]) -> list[Path]:
+    """The dataset's sample-frame montage and positions plot (data preview); a missing dataset is a warning."""
+    from ..data import preview
+    from ..errors import DataError
+    from ..plots import save_figure
+
+    try:
+        montage = preview.montage_figure(root)
+        positions = preview.positions_figure(root)
+    except (DataError, OSError) as exc:
+        warnings.append(f"figures: no dataset figures ({exc})")
+        return []
+    return save_figure(montage, out / "fig-dataset-frames", FORMATS) + \
+        save_figure(positions, out / "fig-dataset-positions", FORMATS)
+
+
+def make_report(
+    ctx: ReportContext,
+    names: Sequence[str],
+    evaluations: Sequence[str],
+    suffixes: Sequence[str],
+    out: Path,
+    *,
+    loader: Loader | None = None,
+    n_trajectories: int = 4,
+    dataset_root: Path | None = None,
+    warnings: list[str] | None = None,
+) -> ReportResult:
+    """Tables (and, with a ``loader``, the run figures; with ``dataset_root``, the dataset figures) under ``out``.
+
+    ``warnings`` (the list a loader reports into, if any) becomes ``result.warnings``.
+    """
+    tables = build_tables(ctx, names, evaluations)
+    result = ReportResult(tables, write_tables(tables, out, suffixes), warnings if warnings is not None else [])
+    if loader is not None:
+        result.files += make_figures(ctx.index, loader, Path(out), n_trajectories, result.warnings)
+    if dataset_root is not None:
+        result.files += dataset_figures(Path(dataset_root), Path(out), result.warnings)
+    return result
+
+
+def summary_index(index: RunIndex) -> str:
+    """One line: how many runs the report sees and how many were set aside."""
+    dup = sum(len(v) for v in index.duplicates.values())
+    unfinished = sum(len(v) for v in index.unfinished.values())
+    return (f"sweep {index.sweep!r} (experiment {index.experiment!r}, pose frame {index.pose_frame!r}): "
+            f"{len(index.runs)} cells with a FINISHED run, {dup} superseded duplicate(s), "
+            f"{len(index.unfinished)} cell(s) with only unfinished runs ({unfinished} run(s))")
+
+
+def open_store(cfg: Config):
+    """The config's MLflow client; a missing SQLite store is an error here (a report must not create one)."""
+    m = re.match(r"^sqlite(?:\+\w+)?:///(.+)$", cfg.tracking_uri)
+    if m and not Path(m.group(1)).is_file():
+        raise BronchoError(f"tracking.uri {redact_url(cfg.tracking_uri)}: no MLflow store there yet; "
+                           f"run `bronchopose sweep` or `bronchopose train` first")
+    return tracking.client_for(cfg)
+
+
+def profiles_from_json(path: Path) -> Profiler:
+    """A profiler answering from `bronchopose profile --format json` output (no measuring)."""
+    try:
+        rows = json.loads(Path(path).read_text())
+        by_arch = {r["arch"]: r for r in rows}
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise BronchoError(f"--latency-from {path}: expected the JSON list of `bronchopose profile --format json` "
+                           f"({type(exc).__name__}: {exc})") from None
+    return lambda arch: by_arch.get(arch)
+
+
+def measuring_profiler(image_size: int, device: str, batch: int = 1, repeats: int = 5) -> Profiler:
+    """``profiling.profile_arch`` with fixed settings, imported only when the ablation table needs it.
+
+    The table shows batch-1 latency only, so batch N defaults to 1 (profile_arch times both).
+    """
+    def profile(arch: str):
+        from .. import profiling
+
+        return profiling.profile_arch(arch, image_size=image_size, device=device, batch=batch, repeats=repeats)
+    return profile
+
+
+def default_image_size(cfg: Config) -> int:
+    return cfg.data.image_size or cfg.dataset.generate.image_size
