@@ -9,6 +9,13 @@ from rich.text import Text
 
 from . import __version__
 from .commands import config as config_cmd
+from .commands import data as data_cmd
+from .commands import report as report_cmd
+from .commands import profile as profile_cmd
+from .commands import status as status_cmd
+from .commands import sweep as sweep_cmd
+from .commands import train as train_cmd
+from .commands import ui as ui_cmd
 from .commands.common import err_console
 from .errors import BronchoError
 
@@ -25,9 +32,15 @@ app = typer.Typer(
 # The one explicit list of commands (name -> function); tests check it against --help.
 COMMANDS = {
     "config": config_cmd.config,
+    "train": train_cmd.train,
+    "ui": ui_cmd.ui,
+    "report": report_cmd.report,
+    "profile": profile_cmd.profile,
+    "sweep": sweep_cmd.sweep,
+    "status": status_cmd.status,
 }
 # Command groups with subcommands (name -> Typer app).
-GROUPS: dict[str, typer.Typer] = {}
+GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app}
 
 for _name, _fn in COMMANDS.items():
     app.command(name=_name)(_fn)

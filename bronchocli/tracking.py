@@ -52,6 +52,7 @@ def client_for(cfg: Config) -> "MlflowClient":
     _quiet()
     from mlflow.tracking import MlflowClient
 
+    _quiet()  # mlflow configures its own logger on import
     uri = cfg.tracking_uri
     m = re.match(r"^sqlite(?:\+\w+)?:///(.+)$", uri)
     if m:

@@ -9,7 +9,6 @@ import typer
 from rich import box
 from rich.table import Table
 
-from .. import profiling
 from ..errors import BronchoError
 from .common import console, err_console
 
@@ -41,6 +40,8 @@ def profile(
     """
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
+    from .. import profiling  # torch: imported only when the command runs
+
     names = profiling.arch_names(arch)
     if threads is not None:
         profiling.set_threads(threads)

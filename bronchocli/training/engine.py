@@ -10,6 +10,7 @@ import logging
 import math
 import os
 import signal
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -71,18 +72,27 @@ class Outcome:
 
 def prepare_data(cfg: Config, cell: Cell, progress: bool = True) -> PreparedData:
     """Open the dataset, split it for the cell, decode frames into the cache, normalisation stats (train only)."""
-    from ..data.cache import FrameCache, channel_stats
+    from ..data.cache import channel_stats, input_size, open_frame_cache
     from ..data.reader import open_dataset
     from ..data.splits import make_split
 
     dataset = open_dataset(cfg)
     split = make_split(dataset, cell.population, cell.fold, cfg.splits)
-    image_size = cfg.data.image_size or int(dataset.image_size[0] if hasattr(dataset.image_size, "__len__")
-                                            else dataset.image_size)
-    cache = FrameCache.open_or_build(dataset, image_size, cfg.resolve(cfg.data.cache_dir), progress=progress)
-    train_frames = sorted({int(i) for t in split.train for i in t.frame_index})
-    mean, std = channel_stats(cache, train_frames)
-    return PreparedData(dataset, split, cache, image_size, tuple(map(float, mean)), tuple(map(float, std)))
+    cache = open_frame_cache(cfg, dataset, progress=progress)  # decodes every frame: fails early on a bad one
+    mean, std = channel_stats(cache, split.frame_indices("train"))
+    return PreparedData(dataset, split, cache, input_size(cfg.data.image_size, dataset),
+                        tuple(map(float, mean)), tuple(map(float, std)))
+
+
+def quiet_lightning() -> None:
+    """Keep Lightning's start-up chatter (accelerator lines, tips, benign warnings) off the console."""
+    import warnings
+
+    for name in ("lightning.pytorch", "lightning.fabric", "lightning"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    for message in (r"Checkpoint directory .* exists and is not empty", r".*LeafSpec.*is deprecated",
+                    r"The '\w+_dataloader' does not have many workers", r".*litlogger.*"):
+        warnings.filterwarnings("ignore", message=message)
 
 
 def _ignore_sigint(_: int) -> None:
@@ -93,10 +103,15 @@ def _ignore_sigint(_: int) -> None:
 
 def _loader(ds, cfg: Config, shuffle: bool, seed: int, cuda: bool) -> DataLoader:
     workers = cfg.data.workers
+    # A last training batch of one sample would crash BatchNorm on 1x1 maps:
+    # drop the incomplete batch when there is at least one full one.
+    # Persistent workers keep the dataset copy they started with, so they would
+    # not see set_epoch: augmented data restarts its workers every epoch.
+    persistent = workers > 0 and getattr(ds, "augmentation", None) is None
     return DataLoader(
         ds, batch_size=cfg.train.batch_size, shuffle=shuffle, num_workers=workers,
-        persistent_workers=workers > 0, pin_memory=cuda, worker_init_fn=_ignore_sigint if workers else None,
-        generator=torch.Generator().manual_seed(seed), drop_last=False,
+        persistent_workers=persistent, pin_memory=cuda, worker_init_fn=_ignore_sigint if workers else None,
+        generator=torch.Generator().manual_seed(seed), drop_last=shuffle and len(ds) >= cfg.train.batch_size,
     )
 
 
@@ -109,6 +124,9 @@ class _EpochLogger(pl.Callback):
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         self._t0 = time.perf_counter()
+        dataset = getattr(trainer.train_dataloader, "dataset", None)
+        if hasattr(dataset, "set_epoch"):  # new augmentation draws each epoch
+            dataset.set_epoch(trainer.current_epoch)
 
     def on_validation_end(self, trainer, pl_module) -> None:
         if trainer.sanity_checking or not trainer.is_global_zero:
@@ -172,13 +190,24 @@ def _datasets(cfg: Config, cell: Cell, data: PreparedData, temporal: bool):
     return train, val
 
 
+def _check_sizes(train_ds, val_ds, cell: Cell) -> None:
+    from ..errors import DataError
+
+    what = "windows" if train_ds.n_pairs > 1 else "pairs"
+    if len(train_ds) < 2 or len(val_ds) < 1:
+        raise DataError(
+            f"{cell.label}: the split gives {len(train_ds)} training and {len(val_ds)} validation {what} of "
+            f"{train_ds.n_pairs} pair(s); need >= 2 and >= 1 (longer trajectories, more trajectories or a smaller "
+            f"data.window)")
+
+
 def _trainer(cfg: Config, callbacks: list, progress: bool, cuda: bool) -> pl.Trainer:
     devices = cfg.train.devices if cuda else 1
     accelerator = "cpu" if cfg.train.device == "cpu" else ("auto" if cfg.train.device == "auto" else cfg.train.device)
     return pl.Trainer(
         accelerator=accelerator, devices=devices, strategy="ddp_spawn" if devices > 1 else "auto",
         precision=_precision(cfg, cuda), max_epochs=cfg.train.max_epochs, min_epochs=cfg.train.min_epochs,
-        limit_train_batches=cfg.train.max_train_batches or 1.0, num_sanity_val_steps=0, logger=False,
+        limit_train_batches=cfg.train.max_train_batches, num_sanity_val_steps=0, logger=False,
         enable_progress_bar=progress, enable_model_summary=False, callbacks=callbacks,
         deterministic=True if not cuda else "warn", default_root_dir=None,
     )
@@ -188,6 +217,7 @@ def train_and_evaluate(cfg: Config, cell: Cell, data: PreparedData, client, run_
                        progress: bool, on_epoch=None) -> Outcome:
     from lightning.pytorch.callbacks import EarlyStopping, ModelCheckpoint
 
+    quiet_lightning()
     pl.seed_everything(cell.seed, workers=True, verbose=False)
     torch.set_num_threads(cpu_threads(cfg))
     cuda = torch.cuda.is_available() and cfg.train.device in ("auto", "cuda")
@@ -199,10 +229,13 @@ def train_and_evaluate(cfg: Config, cell: Cell, data: PreparedData, client, run_
         client.log_artifact(run_id, str(manifest))
     module = _build(cfg, cell, data)
     train_ds, val_ds = _datasets(cfg, cell, data, module.model.temporal)
+    _check_sizes(train_ds, val_ds, cell)
+    # best: weights only (for evaluation); last: full state (for --resume), removed once the run FINISHED.
     best = ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor="val_loss", mode="min", save_top_k=1,
-                           save_last=True, enable_version_counter=False)
+                           save_weights_only=True, enable_version_counter=False)
     callbacks = [
         best,
+        ModelCheckpoint(dirpath=ckpt_dir, filename="last", save_top_k=1, enable_version_counter=False),
         EarlyStopping(monitor="val_loss", mode="min", patience=cfg.train.patience, min_delta=cfg.train.min_delta),
         _EpochLogger(cfg.tracking_uri, run_id, on_epoch),
         _StopOnSignal(stop, ckpt_dir),
@@ -220,6 +253,9 @@ def train_and_evaluate(cfg: Config, cell: Cell, data: PreparedData, client, run_
     if stop.signal is not None:
         raise RunInterrupted(f"{signal.Signals(stop.signal).name} received; checkpoint: {last}")
     metrics = _evaluate_best(cfg, cell, data, module, best.best_model_path or str(last), client, run_id)
+    last.unlink(missing_ok=True)  # optimiser state is only needed to resume an unfinished run
+    if cfg.tracking.log_checkpoint:  # the weights now live in MLflow as checkpoint/model.pt
+        Path(best.best_model_path).unlink(missing_ok=True)
     metrics |= {
         "n_params": float(n_params), "train.time_s": train_time, "train.epochs": float(trainer.current_epoch),
         "train.pairs_per_s": module.pairs_seen / max(train_time, 1e-9),
@@ -240,35 +276,28 @@ def _evaluate_best(cfg: Config, cell: Cell, data: PreparedData, module: PoseModu
     t0 = time.perf_counter()
     items = TrajectoryDataset(data.split.test, data.cache, cell.pose_frame)
     chunk = cfg.data.window if module.model.temporal else PAIR_CHUNK
-    preds = evaluate.predict_trajectories(module, (items[i] for i in range(len(items))), cell.pose_frame, chunk)
+    described = (
+        {**items[i], "patient": t.patient, "lobe": t.lobe, "traj_id": t.traj_id,
+         "spacing_mm": data.dataset.spacing_mm(t.patient)}
+        for i, t in enumerate(data.split.test)
+    )
+    preds = evaluate.predict_trajectories(module, described, cell.pose_frame, chunk)
     metrics = evaluate.score(preds, cell.pose_frame)
     zero = evaluate.zero_motion_score(preds, cell.pose_frame)
     metrics |= {f"zero_motion.{k}": v for k, v in zero.items() if k.startswith(("pair.pos_l2.", "acc.pos_l2."))}
     metrics["eval.time_s"] = time.perf_counter() - t0
-    out = checkpoint_dir(cfg, run_id)
-    table = out / "predictions.csv"
-    _atomic_csv(evaluate.predictions_table(preds), table)
-    client.log_artifact(run_id, str(table))
-    shown = preds[:6]
-    fig = trajectory_figure([p.gt_abs for p in shown], {cell.arch: [p.pred_abs for p in shown]},
-                            titles=[p.key for p in shown])
-    for path in save_figure(fig, out / "trajectories"):
-        client.log_artifact(run_id, str(path))
-    if cfg.tracking.log_checkpoint:
-        weights = out / "model.pt"
-        _atomic_torch_save({"arch": cell.arch, "image_size": data.image_size, "mean": data.mean, "std": data.std,
-                            "pose_frame": cell.pose_frame, "state_dict": module.model.state_dict()}, weights)
-        client.log_artifact(run_id, str(weights), "checkpoint")
+    # Artifacts are written to a scratch folder and copied into the MLflow store by log_artifact.
+    with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
+        out = Path(tmp)
+        evaluate.predictions_table(preds).to_csv(out / "predictions.csv", index=False)
+        client.log_artifact(run_id, str(out / "predictions.csv"))
+        shown = preds[:6]
+        fig = trajectory_figure([p.gt_abs for p in shown], {cell.arch: [p.pred_abs for p in shown]},
+                                titles=[p.key for p in shown])
+        for path in save_figure(fig, out / "trajectories"):
+            client.log_artifact(run_id, str(path))
+        if cfg.tracking.log_checkpoint:
+            torch.save({"arch": cell.arch, "image_size": data.image_size, "mean": data.mean, "std": data.std,
+                        "pose_frame": cell.pose_frame, "state_dict": module.model.state_dict()}, out / "model.pt")
+            client.log_artifact(run_id, str(out / "model.pt"), "checkpoint")
     return metrics
-
-
-def _atomic_csv(df, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    df.to_csv(tmp, index=False)
-    os.replace(tmp, path)
-
-
-def _atomic_torch_save(obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)

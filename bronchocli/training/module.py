@@ -21,21 +21,13 @@ import torch
 
 from .. import metrics
 from ..errors import BronchoError
+from ..models import detach_state
 
 VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
 
 
 class NonFiniteLoss(BronchoError):
     """The training loss became NaN or infinite; the run fails with this reason."""
-
-
-def detach_state(state: Any) -> Any:
-    """Detach a recurrent state (tensor, or nested tuples/lists of tensors, or None)."""
-    if state is None:
-        return None
-    if isinstance(state, torch.Tensor):
-        return state.detach()
-    return type(state)(detach_state(s) for s in state)
 
 
 class PoseModule(pl.LightningModule):
@@ -53,7 +45,6 @@ class PoseModule(pl.LightningModule):
         accum: int = 1,
         mean: tuple[float, float, float] = (0.5, 0.5, 0.5),
         std: tuple[float, float, float] = (0.25, 0.25, 0.25),
-        channels_last: bool = False,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False  # TBPTT + accumulation are done by hand, see module doc
@@ -61,7 +52,6 @@ class PoseModule(pl.LightningModule):
         self.rot_loss, self.rot_weight = rot_loss, rot_weight
         self.lr, self.weight_decay, self.lr_decay = lr, weight_decay, lr_decay
         self.window, self.chunks, self.accum = window, chunks, max(1, accum)
-        self.channels_last = channels_last
         self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32).view(1, 1, 3, 1, 1))
         self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 1, 3, 1, 1))
         self._backwards = 0  # chunks back-propagated since the last optimiser step
