@@ -1,0 +1,1 @@
+"""Datasets: on-disk layout, synthetic generation, reading, trajectories, splits and caching."""
