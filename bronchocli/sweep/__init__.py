@@ -1,0 +1,45 @@
+"""Sweeps: a grid of cells run exactly once each by cooperating workers over shared SQL storage.
+
+- ``storage``: the claims table (SQLite on one machine, PostgreSQL for many) and its atomic transitions;
+- ``worker``: the claim -> run -> record loop with its heartbeat and signal handling;
+- ``plan``: cell selection (``--only``) and the shared state prepared once before workers start;
+- ``pool``: local worker processes and the parent's live view;
+- ``status``: tables for the plan, the live view and ``bronchopose status``.
+
+See docs/sweep.md for the model and the exactly-once argument.
+"""
+
+from .plan import Plan, parse_only, plan_cells, prepare, read_plan, select_cells
+from .pool import PoolResult, resolve_runner, run_pool, spawn_worker, worker_config
+from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, Claim, StorageError, SweepStore, normalize_url
+from .worker import TAG_ATTEMPT, TAG_CLAIM, TAG_WORKER, StopSignals, Worker, WorkerSpec, worker_process
+
+__all__ = [
+    "FAILED",
+    "FINISHED",
+    "PENDING",
+    "RUNNING",
+    "TAG_ATTEMPT",
+    "TAG_CLAIM",
+    "TAG_WORKER",
+    "CellRow",
+    "Claim",
+    "Plan",
+    "PoolResult",
+    "StopSignals",
+    "StorageError",
+    "SweepStore",
+    "Worker",
+    "WorkerSpec",
+    "normalize_url",
+    "parse_only",
+    "plan_cells",
+    "prepare",
+    "read_plan",
+    "resolve_runner",
+    "run_pool",
+    "select_cells",
+    "spawn_worker",
+    "worker_config",
+    "worker_process",
+]

@@ -1,0 +1,161 @@
+"""What a sweep looks like: the plan table, the live progress view, and ``bronchopose status``'s report.
+
+Everything here reads the claims table (and, for metrics, the MLflow runs the
+rows point at); nothing writes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from rich import box
+from rich.console import Console, Group
+from rich.progress_bar import ProgressBar
+from rich.table import Table
+from rich.text import Text
+
+from .. import tracking
+from ..config import Config
+from .plan import Plan
+from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow
+
+HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
+STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
+
+
+def fmt_duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    s = int(round(seconds))
+    if s < 60:
+        return f"{seconds:.1f}s" if seconds < 10 else f"{s}s"
+    if s < 3600:
+        return f"{s // 60}m{s % 60:02d}s"
+    return f"{s // 3600}h{s % 3600 // 60:02d}m"
+
+
+@dataclass
+class Progress:
+    total: int
+    finished: int
+    running: int
+    failed: int  # failed for good (no retry left)
+    pending: int  # includes failed cells that will be retried
+    mean_s: float | None  # mean runner time of finished cells
+    eta_s: float | None
+
+
+def progress(plan: Plan, max_retries: int, workers: int) -> Progress:
+    rows = [plan.rows.get(c.key) for c in plan.cells]
+    fin = [r for r in rows if r and r.state == FINISHED]
+    running = sum(1 for r in rows if r and r.state == RUNNING)
+    failed = sum(1 for r in rows if r and r.state == FAILED and not r.retryable(max_retries))
+    pending = len(rows) - len(fin) - running - failed
+    durations = [r.duration_s for r in fin if r.duration_s is not None]
+    mean = sum(durations) / len(durations) if durations else None
+    eta = None if mean is None else mean * (pending + running) / max(1, workers)
+    return Progress(len(rows), len(fin), running, failed, pending, mean, eta)
+
+
+def summary_line(p: Progress) -> Text:
+    t = Text()
+    t.append(f"done {p.finished}/{p.total}", style="bold green")
+    t.append(f"  running {p.running}", style="cyan")
+    t.append(f"  failed {p.failed}", style="red" if p.failed else "")
+    t.append(f"  pending {p.pending}", style="dim")
+    if p.finished and p.mean_s is not None:
+        t.append(f"  ~{fmt_duration(p.mean_s)}/cell")
+    if p.eta_s is not None and (p.pending or p.running):
+        t.append(f"  ETA {fmt_duration(p.eta_s)}", style="bold")
+    return t
+
+
+def wide(console: Console) -> Console:
+    """Piped output is not cut to 80 columns: run ids and cell labels stay whole for grep and logs."""
+    return console if console.is_terminal else Console(width=max(console.width, 200), file=console.file,
+                                                       no_color=console.no_color)
+
+
+def plan_table(plan: Plan, max_retries: int) -> Table:
+    table = Table(title=f"sweep {plan.sweep}: {len(plan.cells)} cells", title_justify="left", box=box.SIMPLE_HEAD)
+    for col in ("#", "cell", "key", "state", "attempts"):
+        table.add_column(col, justify="right" if col in ("#", "attempts") else "left",
+                         no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
+    for i, cell in enumerate(plan.cells, 1):
+        row = plan.rows.get(cell.key)
+        state = _state_label(row, max_retries)
+        table.add_row(str(i), cell.label, cell.key, Text(state, style=STYLE.get(row.state if row else PENDING, "")),
+                      str(row.attempts if row else 0))
+    return table
+
+
+def _state_label(row: CellRow | None, max_retries: int) -> str:
+    if row is None:
+        return "new"
+    if row.state == FAILED and row.retryable(max_retries):
+        return "failed (will retry)"
+    return row.state
+
+
+def live_view(plan: Plan, max_retries: int, workers: int, now: float | None = None) -> Group:
+    """The parent's live status: summary, a bar, and what each worker is running."""
+    p = progress(plan, max_retries, workers)
+    bar = ProgressBar(total=max(1, p.total), completed=p.finished + p.failed, width=50)
+    running = Table(box=None, show_header=False, padding=(0, 1))
+    now = now if now is not None else time.time()
+    for cell in plan.cells:
+        row = plan.rows.get(cell.key)
+        if row and row.state == RUNNING:
+            since = fmt_duration(now - row.claimed_at) if row.claimed_at else "-"
+            running.add_row(Text("▶", style="cyan"), cell.label, row.worker or "", since)
+    return Group(summary_line(p), bar, *([running] if running.row_count else []))
+
+
+def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """Headline metrics and timing of each MLflow run (missing runs are skipped)."""
+    if not run_ids:
+        return {}
+    client = tracking.client_for(cfg)
+    out: dict[str, dict[str, Any]] = {}
+    for run_id in run_ids:
+        try:
+            run = client.get_run(run_id)
+        except Exception:  # noqa: BLE001 - a run deleted or a store moved: show the row without metrics
+            continue
+        info = run.info
+        out[run_id] = {
+            "status": info.status,
+            "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
+            **{k: run.data.metrics.get(k) for k in HEADLINE},
+        }
+    return out
+
+
+def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int) -> Table:
+    table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
+    for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
+                      ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
+        table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
+    for cell in plan.cells:
+        row = plan.rows.get(cell.key)
+        m = metrics.get(row.run_id, {}) if row and row.run_id else {}
+        dur = m.get("duration_s") if row and row.state == FINISHED else None
+        dur = row.duration_s if dur is None and row else dur
+        table.add_row(
+            cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
+            str(row.attempts if row else 0), (row.run_id or "-") if row else "-", fmt_duration(dur),
+            _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
+        )
+    return table
+
+
+def _num(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+def failures(plan: Plan) -> list[tuple[str, str]]:
+    return [(c.label, plan.rows[c.key].failure_reason or "unknown") for c in plan.cells
+            if c.key in plan.rows and plan.rows[c.key].state == FAILED]

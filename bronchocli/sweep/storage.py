@@ -1,0 +1,364 @@
+"""The claims table: one row per (sweep, cell key) in the SQL database of ``storage.url``.
+
+Every state change is one short transaction whose UPDATE is conditional on
+what the writer read (``version``) and on the claimability predicate,
+re-evaluated by the database at write time; the UPDATE's row count tells the
+writer whether it won. On PostgreSQL the candidate row is also locked with
+``SELECT ... FOR UPDATE SKIP LOCKED`` so concurrent claimers pick different
+cells instead of queueing on one; on SQLite write transactions start with
+``BEGIN IMMEDIATE`` (one writer at a time, WAL so readers never block) and
+wait on a busy timeout. Claim, finish, fail, release and heartbeat all carry
+the claim's random ``token``: a worker whose claim was taken over can no
+longer change the row. Heartbeats and the stale cut-off use the database
+server's clock, so workers on machines with skewed clocks agree.
+See docs/sweep.md for why this gives exactly one FINISHED run per cell.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+import uuid
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import (
+    Column,
+    Connection,
+    Engine,
+    Float,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    and_,
+    create_engine,
+    event,
+    inspect,
+    literal_column,
+    or_,
+    select,
+    update,
+)
+from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
+
+from ..config import Cell
+from ..errors import BronchoError
+from ..tracking import redact_url
+
+TABLE = "bronchopose_sweep_cells"
+PENDING, RUNNING, FINISHED, FAILED = "pending", "running", "finished", "failed"
+STATES = (PENDING, RUNNING, FINISHED, FAILED)
+SQLITE_BUSY_MS = 60_000
+_SQLITE_FILE = re.compile(r"^sqlite(?:\+\w+)?:///(.+)$")
+
+metadata = MetaData()
+cells_table = Table(
+    TABLE, metadata,
+    Column("sweep", String(200), primary_key=True),
+    Column("cell_key", String(64), primary_key=True),
+    Column("ord", Integer, nullable=False),  # position in the grid: claim order
+    Column("label", String(300), nullable=False),
+    Column("coords", Text, nullable=False),  # JSON of Cell.coords()
+    Column("state", String(16), nullable=False, default=PENDING),
+    Column("attempts", Integer, nullable=False, default=0),  # claims not given back by a clean release
+    Column("version", Integer, nullable=False, default=0),  # bumped by every state change
+    Column("worker", String(300)),  # host:pid of the claim holder
+    Column("token", String(32)),  # random id of the current claim
+    Column("heartbeat", Float),  # database epoch seconds
+    Column("claimed_at", Float),
+    Column("finished_at", Float),
+    Column("created_at", Float),
+    Column("run_id", String(64)),  # MLflow run of the current/last attempt
+    Column("failure_reason", Text),
+    Column("duration_s", Float),  # time inside the runner
+)
+
+
+def normalize_url(url: str) -> str:
+    """``postgres://`` and ``postgresql://`` use psycopg 3 (the installed driver)."""
+    return re.sub(r"^postgres(?:ql)?://", "postgresql+psycopg://", url)
+
+
+@dataclass(frozen=True)
+class CellRow:
+    sweep: str
+    cell_key: str
+    ord: int
+    label: str
+    coords: dict[str, Any]
+    state: str
+    attempts: int
+    version: int
+    worker: str | None
+    token: str | None
+    heartbeat: float | None
+    claimed_at: float | None
+    finished_at: float | None
+    created_at: float | None
+    run_id: str | None
+    failure_reason: str | None
+    duration_s: float | None
+
+    @classmethod
+    def from_mapping(cls, m: Any) -> CellRow:
+        data = dict(m)
+        data["coords"] = json.loads(data["coords"])
+        return cls(**data)
+
+    def retryable(self, max_retries: int) -> bool:
+        return self.state == FAILED and self.attempts <= max_retries
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A won claim. ``previous`` is the row as it was when it was taken from a lost worker;
+    ``exhausted`` means that cell used up its attempts: settle it and mark it failed, do not run it;
+    ``released_run`` is the KILLED run of a cell given back by Ctrl-C (a candidate for resuming)."""
+
+    row: CellRow
+    token: str
+    previous: CellRow | None = None
+    exhausted: bool = False
+    released_run: str | None = None
+
+
+class SweepStore:
+    """The claims table of one storage URL (one engine per process)."""
+
+    def __init__(self, url: str):
+        self.url = normalize_url(url)
+        self.redacted = redact_url(self.url)
+        if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
+            raise BronchoError(f"storage.url {self.redacted}: an in-memory SQLite database cannot be shared by "
+                               "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
+        try:
+            self.engine: Engine = _make_engine(self.url)
+        except (SQLAlchemyError, ImportError, ValueError) as exc:
+            raise BronchoError(f"storage.url {self.redacted}: {_first_line(exc)}") from None
+        self.dialect = self.engine.dialect.name
+        self._now = literal_column(_now_sql(self.dialect), Float)
+
+    # -- transactions ------------------------------------------------------------
+    @contextmanager
+    def _tx(self, write: bool = False) -> Iterator[Connection]:
+        try:
+            with self.engine.connect() as conn:
+                conn = conn.execution_options(sweep_write=write)
+                with conn.begin():
+                    yield conn
+        except (OperationalError, ProgrammingError, DBAPIError) as exc:
+            if isinstance(exc, IntegrityError):
+                raise
+            raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    # -- schema ------------------------------------------------------------------
+    def exists(self) -> bool:
+        m = _SQLITE_FILE.match(self.url)
+        if m and not Path(m.group(1)).exists():  # do not create an empty database just to look
+            return False
+        try:
+            with self.engine.connect() as conn:
+                return inspect(conn).has_table(TABLE)
+        except SQLAlchemyError as exc:
+            raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+
+    def ensure_schema(self) -> None:
+        """Create the table if missing; tolerate another machine creating it at the same moment."""
+        m = _SQLITE_FILE.match(self.url)
+        if m and m.group(1) != ":memory:":
+            Path(m.group(1)).parent.mkdir(parents=True, exist_ok=True)
+        for attempt in range(5):
+            try:
+                metadata.create_all(self.engine, checkfirst=True)
+                return
+            except SQLAlchemyError as exc:
+                if self.exists():
+                    return
+                if attempt == 4:
+                    raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+                time.sleep(0.2 * (attempt + 1))
+
+    def db_now(self) -> float:
+        with self._tx() as conn:
+            return float(conn.execute(select(self._now)).scalar_one())
+
+    # -- planning ----------------------------------------------------------------
+    def add_cells(self, sweep: str, cells: Sequence[Cell]) -> int:
+        """Insert the rows that are missing (idempotent, safe against concurrent planners); returns how many."""
+        existing = {r.cell_key for r in self.rows(sweep, [c.key for c in cells])}
+        added = 0
+        for ord_, cell in enumerate(cells):
+            if cell.key in existing:
+                continue
+            values = dict(sweep=sweep, cell_key=cell.key, ord=ord_, label=cell.label, coords=json.dumps(cell.coords()),
+                          state=PENDING, attempts=0, version=0)
+            try:
+                with self._tx(write=True) as conn:
+                    conn.execute(cells_table.insert().values(**values, created_at=self._now))
+                added += 1
+            except IntegrityError:  # another planner inserted it first
+                pass
+        return added
+
+    def rows(self, sweep: str, keys: Sequence[str] | None = None) -> list[CellRow]:
+        q = select(cells_table).where(cells_table.c.sweep == sweep).order_by(cells_table.c.ord, cells_table.c.cell_key)
+        if keys is not None:
+            q = q.where(cells_table.c.cell_key.in_(list(keys)))
+        with self._tx() as conn:
+            return [CellRow.from_mapping(m) for m in conn.execute(q).mappings()]
+
+    def sweeps(self) -> list[str]:
+        with self._tx() as conn:
+            return sorted(conn.execute(select(cells_table.c.sweep).distinct()).scalars())
+
+    def reset_failed(self, sweep: str, keys: Sequence[str]) -> int:
+        """``--retry-failed``: failed cells back to pending with a fresh attempt budget."""
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            res = conn.execute(
+                update(cells_table)
+                .where(c.sweep == sweep, c.cell_key.in_(list(keys)), c.state == FAILED)
+                .values(state=PENDING, attempts=0, version=c.version + 1, token=None, worker=None, run_id=None)
+            )
+            return res.rowcount
+
+    # -- claims ------------------------------------------------------------------
+    def _claimable(self, max_retries: int, stale_after_s: float):
+        c = cells_table.c
+        return or_(
+            c.state == PENDING,
+            and_(c.state == FAILED, c.attempts <= max_retries),
+            and_(c.state == RUNNING, or_(c.heartbeat.is_(None), c.heartbeat < self._now - float(stale_after_s))),
+        )
+
+    def claim(self, sweep: str, keys: Sequence[str], worker: str, *, max_retries: int,
+              stale_after_s: float) -> Claim | None:
+        """Take one claimable cell of ``keys`` (pending first, then retries, then stale claims), or None."""
+        c = cells_table.c
+        claimable = self._claimable(max_retries, stale_after_s)
+        order = [(c.state == FAILED).asc(), c.ord, c.cell_key]
+        for _ in range(len(keys) + 1):
+            with self._tx(write=True) as conn:
+                q = select(cells_table).where(c.sweep == sweep, c.cell_key.in_(list(keys)), claimable)
+                q = q.order_by(*order).limit(1)
+                if self.dialect == "postgresql":
+                    q = q.with_for_update(skip_locked=True)
+                m = conn.execute(q).mappings().first()
+                if m is None:
+                    return None
+                row = CellRow.from_mapping(m)
+                previous = row if row.state == RUNNING else None
+                exhausted = previous is not None and row.attempts > max_retries
+                token = uuid.uuid4().hex
+                res = conn.execute(
+                    update(cells_table)
+                    .where(c.sweep == sweep, c.cell_key == row.cell_key, c.version == row.version, claimable)
+                    .values(state=RUNNING, token=token, worker=worker, version=c.version + 1,
+                            attempts=c.attempts + (0 if exhausted else 1), heartbeat=self._now,
+                            claimed_at=self._now, finished_at=None, run_id=None, duration_s=None,
+                            failure_reason=row.failure_reason if exhausted else None)
+                )
+                if res.rowcount == 1:
+                    won = CellRow(**{**row.__dict__, "state": RUNNING, "token": token, "worker": worker,
+                                     "attempts": row.attempts + (0 if exhausted else 1), "version": row.version + 1})
+                    released = row.run_id if row.state == PENDING else None
+                    return Claim(won, token, previous, exhausted, released)
+            # lost the race for that row (optimistic path): look again
+        return None
+
+    def _by_token(self, conn: Connection, claim: str, /, **values: Any) -> bool:
+        c = cells_table.c
+        res = conn.execute(update(cells_table).where(c.token == claim, c.state == RUNNING).values(**values))
+        return res.rowcount == 1
+
+    def heartbeat(self, token: str) -> bool:
+        """Refresh the claim; False when it is no longer ours (reclaimed or reset)."""
+        with self._tx(write=True) as conn:
+            return self._by_token(conn, token, heartbeat=self._now)
+
+    def set_run_id(self, token: str, run_id: str) -> bool:
+        with self._tx(write=True) as conn:
+            return self._by_token(conn, token, run_id=run_id, heartbeat=self._now)
+
+    def finish(self, token: str, run_id: str, duration_s: float) -> bool:
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            return self._by_token(conn, token, state=FINISHED, run_id=run_id, duration_s=duration_s,
+                                  finished_at=self._now, failure_reason=None, version=c.version + 1)
+
+    def fail(self, token: str, reason: str, run_id: str | None = None, duration_s: float | None = None) -> bool:
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            return self._by_token(conn, token, state=FAILED, run_id=run_id, duration_s=duration_s,
+                                  finished_at=self._now, failure_reason=reason[:4000], version=c.version + 1)
+
+    def release(self, token: str) -> bool:
+        """Give the cell back (Ctrl-C): pending again, and the attempt is not counted."""
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            return self._by_token(conn, token, state=PENDING, token=None, worker=None, heartbeat=None,
+                                  attempts=c.attempts - 1, version=c.version + 1)
+
+    def all_done(self, sweep: str, keys: Sequence[str], max_retries: int) -> bool:
+        """True when every cell is finished or failed with no retry left (nothing left to run or wait for)."""
+        c = cells_table.c
+        q = select(cells_table.c.cell_key).where(
+            c.sweep == sweep, c.cell_key.in_(list(keys)),
+            or_(c.state.in_([PENDING, RUNNING]), and_(c.state == FAILED, c.attempts <= max_retries)),
+        ).limit(1)
+        with self._tx() as conn:
+            return conn.execute(q).first() is None
+
+
+class StorageError(BronchoError):
+    """The sweep storage could not be reached or queried (URL shown with its password hidden)."""
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+    return redact_url(text[0] if text else type(exc).__name__)
+
+
+def _now_sql(dialect: str) -> str:
+    """The database server's clock in epoch seconds (shared by every machine using the database)."""
+    if dialect == "sqlite":
+        return "((julianday('now') - 2440587.5) * 86400.0)"
+    if dialect == "postgresql":
+        return "CAST(EXTRACT(EPOCH FROM clock_timestamp()) AS DOUBLE PRECISION)"
+    if dialect in ("mysql", "mariadb"):
+        return "UNIX_TIMESTAMP(NOW(6))"
+    raise BronchoError(f"storage.url: database {dialect!r} is not supported for sweeps (use sqlite or postgresql)")
+
+
+def _make_engine(url: str) -> Engine:
+    if url.startswith("sqlite"):
+        engine = create_engine(url, connect_args={"timeout": SQLITE_BUSY_MS / 1000})
+        _sqlite_events(engine)
+        return engine
+    return create_engine(url, pool_pre_ping=True)
+
+
+def _sqlite_events(engine: Engine) -> None:
+    @event.listens_for(engine, "connect")
+    def _connect(dbapi_conn, _record) -> None:
+        dbapi_conn.isolation_level = None  # we issue BEGIN ourselves (pysqlite's own is deferred)
+        cur = dbapi_conn.cursor()
+        cur.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_MS}")
+        cur.execute("PRAGMA journal_mode = WAL")  # readers (status, monitors) never block the writer
+        cur.execute("PRAGMA synchronous = NORMAL")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _begin(conn: Connection) -> None:
+        # A write transaction takes the write lock up front, so a read-then-update
+        # never fails half-way with SQLITE_BUSY_SNAPSHOT; readers use deferred BEGIN.
+        conn.exec_driver_sql("BEGIN IMMEDIATE" if conn.get_execution_options().get("sweep_write") else "BEGIN")

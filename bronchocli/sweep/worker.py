@@ -1,0 +1,388 @@
+"""A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
+
+The cell runner is injectable: any function with ``run_cell``'s signature,
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> RunResult``
+(the real one trains; tests and benchmarks pass fast fakes). Workers are
+processes started by ``bronchopose sweep`` (multiprocessing ``spawn``; see
+``pool.py``) or by anyone calling ``worker_process``.
+
+Signals: SIGINT/SIGTERM stop the worker. While a cell runs, ``run_cell``
+itself turns the signal into a KILLED MLflow run (``RunInterrupted``); outside
+its training loop the worker raises ``KeyboardInterrupt`` into the runner.
+Either way the cell is released (pending again, attempt not counted) and the
+worker exits with 130. When the heartbeat finds the claim taken over (this
+worker looked dead), the worker interrupts its own run with SIGTERM, marks the
+run KILLED and goes on with another cell.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from .. import tracking
+from ..config import Cell, Config
+from ..errors import BronchoError
+from .storage import CellRow, Claim, StorageError, SweepStore
+
+log = logging.getLogger(__name__)
+
+TAG_CLAIM = "sweep_claim"  # the claim token the run was made under (finds orphans of a lost worker)
+TAG_WORKER = "sweep_worker"
+TAG_ATTEMPT = "sweep_attempt"
+EXIT_OK, EXIT_INTERRUPTED = 0, 130
+
+Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
+
+
+def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
+    """The real runner (imported lazily: it pulls in torch and Lightning)."""
+    from ..training.run import run_cell
+
+    return run_cell(cfg, cell, **kw)
+
+
+def checkpoint_path(cfg: Config, run_id: str):
+    """Where the training engine leaves an interrupted run's checkpoint (training.engine.checkpoint_dir)."""
+    return cfg.resolve(cfg.tracking.checkpoints) / run_id / "last.ckpt"
+
+
+def worker_id() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class ClaimLost(BronchoError):
+    """This worker's claim was taken over by another worker (it had looked dead)."""
+
+
+def _is_interrupt(exc: BaseException) -> bool:
+    # RunInterrupted (training.engine) has exit code 130; matching on that avoids importing torch here.
+    return isinstance(exc, KeyboardInterrupt) or (isinstance(exc, BronchoError) and exc.exit_code == 130)
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}"[:4000]
+
+
+class StopSignals:
+    """Turns SIGINT/SIGTERM into a stop request; interrupts the runner when one is in progress."""
+
+    def __init__(self, event: Any = None, parent_pid: int | None = None):
+        self.requested: int | None = None
+        self.installed = False  # only a process that handles SIGTERM itself may send it to itself
+        self.in_runner = False
+        self.self_term = False  # a SIGTERM we sent ourselves because the claim was lost
+        self.event, self.parent_pid = event, parent_pid
+
+    def install(self) -> None:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self._handle)
+        self.installed = True
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.self_term and signum == signal.SIGTERM:
+            self.self_term = False
+        else:
+            self.requested = signum
+        if self.in_runner:
+            raise KeyboardInterrupt
+
+    def parent_gone(self) -> bool:
+        return self.parent_pid is not None and os.getppid() != self.parent_pid
+
+    @property
+    def stop(self) -> bool:
+        return self.requested is not None or (self.event is not None and self.event.is_set()) or self.parent_gone()
+
+    def wait(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while not self.stop and (left := end - time.monotonic()) > 0:
+            time.sleep(min(0.1, left))
+
+
+class Heartbeat(threading.Thread):
+    """Refreshes the claim every ``interval`` seconds; calls ``on_lost`` once if the claim is gone."""
+
+    def __init__(self, store: SweepStore, token: str, interval: float, on_lost: Callable[[], None],
+                 signals: StopSignals):
+        super().__init__(name="sweep-heartbeat", daemon=True)
+        self.store, self.token, self.interval, self.on_lost, self.signals = store, token, interval, on_lost, signals
+        self.lost = False
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        while not self._halt.wait(self.interval):
+            if self.signals.installed and self.signals.parent_gone() and self.signals.requested is None:
+                log.warning("parent process is gone: stopping")
+                self.signals.requested = signal.SIGTERM
+                os.kill(os.getpid(), signal.SIGTERM)
+            try:
+                alive = self.store.heartbeat(self.token)
+            except StorageError as exc:  # transient outage: the claim goes stale only after stale_after_s
+                log.warning("heartbeat failed: %s", exc)
+                continue
+            if not alive and not self._halt.is_set():
+                self.lost = True
+                self.on_lost()
+                return
+
+    def halt(self) -> None:
+        self._halt.set()
+        if self.is_alive():
+            self.join()
+
+
+@dataclass
+class WorkerStats:
+    cells: int = 0
+    finished: int = 0
+    failed: int = 0
+    lost: int = 0
+    runner_s: float = 0.0
+    outcomes: list[tuple[str, str]] = field(default_factory=list)  # (cell key, outcome)
+
+
+class Worker:
+    """The claim -> run -> record loop of one process."""
+
+    def __init__(self, cfg: Config, cells: Sequence[Cell], store: SweepStore, runner: Runner = default_runner,
+                 *, signals: StopSignals | None = None, sweep: str | None = None, ident: str | None = None):
+        self.cfg, self.store, self.runner = cfg, store, runner
+        self.cells = {c.key: c for c in cells}
+        self.sweep = sweep or cfg.name
+        self.ident = ident or worker_id()
+        self.signals = signals or StopSignals()
+        self.stats = WorkerStats()
+        self._client = None
+
+    @property
+    def client(self):
+        if self._client is None:
+            self._client = tracking.client_for(self.cfg)
+        return self._client
+
+    def _db(self, fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
+        """A storage call, retried through short outages (up to sweep.stale_after_s, while our claim holds)."""
+        delay, deadline = 0.2, time.monotonic() + self.cfg.sweep.stale_after_s
+        while True:
+            try:
+                return fn(*args, **kw)
+            except StorageError as exc:
+                if time.monotonic() > deadline:
+                    raise
+                log.warning("storage unavailable, retrying: %s", exc)
+                time.sleep(delay)
+                delay = min(2 * delay, 5.0)
+
+    # -- the loop ----------------------------------------------------------------
+    def run(self) -> int:
+        s = self.cfg.sweep
+        keys = list(self.cells)
+        while not self.signals.stop:
+            claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
+                             stale_after_s=s.stale_after_s)
+            if claim is None:
+                if self._db(self.store.all_done, self.sweep, keys, s.max_retries):
+                    return EXIT_OK
+                self.signals.wait(s.poll_s)  # cells held by other workers: wait for them or their staleness
+                continue
+            if self._handle(claim) == "stop":
+                return EXIT_INTERRUPTED
+        return EXIT_INTERRUPTED
+
+    def _handle(self, claim: Claim) -> str:
+        if claim.previous is not None:
+            self._settle_orphans(claim.previous)
+        if claim.exhausted:
+            prev = claim.previous
+            reason = (f"worker {prev.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s) on the last "
+                      f"allowed attempt ({prev.attempts}); reset with --retry-failed")
+            self._db(self.store.fail, claim.token, reason)
+            self.stats.failed += 1
+            return "failed"
+        return self._run_claim(claim)
+
+    def _run_claim(self, claim: Claim) -> str:
+        cell = self.cells[claim.row.cell_key]
+        seen: dict[str, str] = {}
+
+        def on_run_id(run_id: str) -> None:
+            seen["run_id"] = run_id
+            if not self._db(self.store.set_run_id, claim.token, run_id):
+                raise ClaimLost(f"claim of cell {cell.label} was taken over before run {run_id} started")
+            if run_id == claim.released_run:  # a resumed run is now made under this claim
+                self.client.set_tag(run_id, TAG_CLAIM, claim.token)
+
+        def on_lost() -> None:
+            if self.signals.installed and self.signals.in_runner:  # stop our now-duplicate run at its next batch
+                self.signals.self_term = True
+                os.kill(os.getpid(), signal.SIGTERM)
+
+        tags = {TAG_CLAIM: claim.token, TAG_WORKER: self.ident, TAG_ATTEMPT: str(claim.row.attempts)}
+        hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
+        resume = self._resumable(claim.released_run, cell)
+        kw = {"resume": resume} if resume else {}
+        log.info("claimed %s (key %s, attempt %d)%s", cell.label, cell.key, claim.row.attempts,
+                 f", resuming run {resume}" if resume else "")
+        result, error = None, None
+        t0 = time.perf_counter()
+        hb.start()
+        try:
+            self.signals.in_runner = True
+            result = self.runner(self.cfg, cell, extra_tags=tags, progress=False, run_id_callback=on_run_id, **kw)
+        except BaseException as exc:  # noqa: BLE001 - every outcome must be recorded on the row
+            error = exc
+        finally:
+            self.signals.in_runner = False
+            hb.halt()
+            self.signals.self_term = False
+        elapsed = time.perf_counter() - t0
+        self.stats.cells += 1
+        self.stats.runner_s += elapsed
+        if result is not None:  # a signal that lands just after the runner returned: record the result first
+            error = None  # (the stop request itself is kept in self.signals and ends the loop)
+        run_id = getattr(result, "run_id", None) or seen.get("run_id")
+        try:
+            outcome = self._record(claim, cell, result, error, run_id, elapsed, hb.lost)
+        except StorageError:  # cannot tell whether we still hold the claim: our run must not count
+            self._terminate(run_id, "KILLED", f"sweep worker {self.ident} could not record the outcome "
+                            "(storage unreachable); the cell will be taken over", ("RUNNING", "FINISHED"))
+            raise
+        self.stats.outcomes.append((cell.key, outcome))
+        return outcome
+
+    def _record(self, claim: Claim, cell: Cell, result: Any, error: BaseException | None, run_id: str | None,
+                elapsed: float, lost: bool) -> str:
+        if lost or isinstance(error, ClaimLost):
+            return self._lost(cell, run_id)
+        if error is not None and _is_interrupt(error):
+            self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
+            self._db(self.store.release, claim.token)
+            log.info("interrupted %s: released", cell.label)
+            return "stop"
+        if error is not None:
+            if not isinstance(error, (BronchoError, StorageError)):
+                log.error("runner failed on %s", cell.label, exc_info=error)
+            reason = _reason(error)
+            self._terminate(run_id, "FAILED", reason, ("RUNNING",))
+            return self._fail(claim, cell, reason, run_id, elapsed)
+        if result.status == "FINISHED":
+            duration = getattr(result, "duration_s", None) or elapsed
+            if not self._db(self.store.finish, claim.token, result.run_id, duration):
+                return self._lost(cell, run_id)
+            self.stats.finished += 1
+            log.info("finished %s: run %s", cell.label, result.run_id)
+            return "finished"
+        reason = result.failure_reason or f"run ended {result.status}"
+        return self._fail(claim, cell, reason, run_id, elapsed)
+
+    def _fail(self, claim: Claim, cell: Cell, reason: str, run_id: str | None, elapsed: float) -> str:
+        if not self._db(self.store.fail, claim.token, reason, run_id, elapsed):
+            return self._lost(cell, run_id)
+        self.stats.failed += 1
+        log.warning("failed %s: %s", cell.label, reason)
+        return "failed"
+
+    def _lost(self, cell: Cell, run_id: str | None) -> str:
+        self.stats.lost += 1
+        log.warning("lost the claim of %s (no heartbeat for too long); its run %s is KILLED", cell.label, run_id)
+        self._terminate(run_id, "KILLED", f"sweep worker {self.ident} lost its claim (no heartbeat for "
+                        f"{self.cfg.sweep.stale_after_s:g} s); the cell was taken over", ("RUNNING", "FINISHED"))
+        return "lost"
+
+    # -- MLflow side ---------------------------------------------------------------
+    def _resumable(self, run_id: str | None, cell: Cell) -> str | None:
+        """A run given back by Ctrl-C is resumed when it is KILLED and its checkpoint is on this machine."""
+        if not run_id or not checkpoint_path(self.cfg, run_id).is_file():
+            return None
+        try:
+            run = self.client.get_run(run_id)
+        except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
+            return None
+        ok = run.info.status == "KILLED" and run.data.tags.get(tracking.TAG_CELL_KEY) == cell.key
+        return run_id if ok else None
+
+    def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:
+        """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run)."""
+        if not run_id:
+            return
+        try:
+            run = self.client.get_run(run_id)
+            if run.info.status in only:
+                self.client.set_tag(run_id, tracking.TAG_FAILURE, reason)
+                self.client.set_terminated(run_id, status)
+        except Exception as exc:  # noqa: BLE001 - the tracking store is best effort here; logged
+            log.warning("could not mark run %s %s: %s", run_id, status, exc)
+
+    def _settle_orphans(self, previous: CellRow) -> None:
+        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell."""
+        run_ids = {previous.run_id} if previous.run_id else set()
+        try:
+            exp = tracking.experiment_id(self.client, self.cfg)
+            found = tracking.search_runs(self.client, [exp], {TAG_CLAIM: previous.token or "-"})
+            run_ids |= {r.info.run_id for r in found}
+        except Exception as exc:  # noqa: BLE001
+            log.warning("could not search the orphan runs of %s: %s", previous.label, exc)
+        reason = (f"sweep worker {previous.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s); "
+                  f"cell taken over by {self.ident}")
+        for run_id in sorted(run_ids):
+            self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
+
+
+# -- process entry point -----------------------------------------------------------
+
+
+@dataclass
+class WorkerSpec:
+    """Everything a spawned worker process needs (picklable)."""
+
+    cfg: Config  # storage URL already redacted: the config is logged to MLflow
+    storage_url: str
+    cells: list[Cell]
+    runner: Runner = default_runner
+    sweep: str | None = None
+    parent_pid: int | None = None
+    log_path: str | None = None
+
+
+def _redirect_output(path: str | None) -> None:
+    if path is None:
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+
+
+def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
+    """Entry point of a worker process: run the loop, exit 0 (nothing left) or 130 (stopped)."""
+    if spec.parent_pid is not None:
+        os.setpgrp()  # a terminal Ctrl-C reaches the parent only; it stops the workers once, with SIGTERM
+    _redirect_output(spec.log_path)
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
+                        format=f"%(asctime)s {worker_id()} %(levelname)s %(name)s: %(message)s")
+    signals = StopSignals(stop_event, spec.parent_pid)
+    signals.install()
+    code = EXIT_INTERRUPTED
+    try:
+        store = SweepStore(spec.storage_url)
+        code = Worker(spec.cfg, spec.cells, store, spec.runner, signals=signals, sweep=spec.sweep).run()
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+    except BronchoError as exc:
+        log.error("%s", exc)
+        code = 2
+    finally:
+        logging.shutdown()
+    sys.exit(code)

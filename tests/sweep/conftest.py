@@ -1,0 +1,83 @@
+"""Fixtures of the sweep tests: configs on temp stores, a template MLflow DB, fake runners, PostgreSQL schemas."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+import yaml
+
+HERE = Path(__file__).resolve().parent
+PG_BASE = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
+
+if str(HERE) not in sys.path:  # spawned workers inherit sys.path: they can import sweep_fakes
+    sys.path.insert(0, str(HERE))
+
+
+@pytest.fixture(scope="session")
+def mlflow_template(tmp_path_factory) -> Path:
+    """An initialised MLflow SQLite store, made once: MLflow's first migration takes seconds."""
+    from bronchocli import tracking
+
+    path = tmp_path_factory.mktemp("mlflow-template") / "mlflow.db"
+    tracking._quiet()
+    from mlflow.tracking import MlflowClient
+
+    MlflowClient(tracking_uri=f"sqlite:///{path}").search_experiments()
+    return path
+
+
+@pytest.fixture
+def fake_dir(tmp_path, monkeypatch) -> Path:
+    d = tmp_path / "fake"
+    d.mkdir()
+    monkeypatch.setenv("SWEEP_FAKE_DIR", str(d))
+    return d
+
+
+@pytest.fixture
+def make_config(tmp_path, mlflow_template):
+    """Write an experiments.yaml in tmp_path (MLflow store copied from the template) and load it."""
+    from bronchocli.config import load_config
+
+    def make(storage: str | None = None, name: str = "t", archs=("baseline", "lstm"), losses=("mse",),
+             populations=("personalized",), sweep: dict | None = None, **sections):
+        db = tmp_path / "mlflow.db"
+        if not db.exists():
+            shutil.copy(mlflow_template, db)
+        data = {
+            "name": name,
+            "tracking": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
+            "storage": {"url": storage or "sqlite:///sweep.db"},
+            "dataset": {"root": "data/tiny"},
+            "grid": {"arch": list(archs), "rot_loss": list(losses), "population": list(populations),
+                     "folds": ["p00"]},
+            "sweep": {"max_retries": 1, "heartbeat_s": 0.3, "stale_after_s": 2.0, "poll_s": 0.1, **(sweep or {})},
+            **sections,
+        }
+        path = tmp_path / "experiments.yaml"
+        path.write_text(yaml.safe_dump(data))
+        return load_config(path)
+
+    return make
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh schema in the PostgreSQL database ``test`` (dropped afterwards); skips if no server."""
+    psycopg = pytest.importorskip("psycopg")
+    try:
+        conn = psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
+                               autocommit=True)
+    except psycopg.Error as exc:
+        pytest.skip(f"PostgreSQL at 127.0.0.1:5432/test unreachable: {exc}")
+    schema = f"sweep_{uuid.uuid4().hex[:10]}"
+    conn.execute(f"CREATE SCHEMA {schema}")
+    try:
+        yield f"{PG_BASE}?options=-csearch_path%3D{schema}"
+    finally:
+        conn.execute(f"DROP SCHEMA {schema} CASCADE")
+        conn.close()

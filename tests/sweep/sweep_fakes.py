@@ -1,0 +1,115 @@
+"""Fast fake cell runners for the sweep tests: each creates a real MLflow run (no training).
+
+They have ``run_cell``'s signature and are importable by spawned worker
+processes (the tests put this folder on ``sys.path``, which ``spawn`` passes on).
+Behaviour is driven by files in the directory named by ``$SWEEP_FAKE_DIR``:
+
+- ``fail-<arch>`` containing N: the first N runs of each such cell end FAILED;
+- ``block-<arch>``: the run writes ``started-<cell key>-<pid>`` and waits until
+  ``release`` exists (a gate the test controls; interrupting it ends the run KILLED);
+- every call leaves ``calls/<cell key>-<pid>-<n>`` behind.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from bronchocli import tracking
+from bronchocli.errors import BronchoError
+
+HERE = Path(__file__).resolve().parent
+
+
+@dataclass
+class FakeResult:
+    run_id: str
+    status: str
+    metrics: dict = field(default_factory=dict)
+    failure_reason: str | None = None
+    duration_s: float = 0.0
+    train_time_s: float = 0.0
+
+
+class FakeInterrupted(BronchoError):
+    exit_code = 130
+
+
+def _dir() -> Path:
+    return Path(os.environ["SWEEP_FAKE_DIR"])
+
+
+def _metric(key: str) -> float:
+    return int(key[:6], 16) / 2**24  # deterministic per cell, so status output can be checked
+
+
+def calls(key: str) -> int:
+    """How many times a fake runner was called for the cell."""
+    return len(list((_dir() / "calls").glob(f"{key}-*")))
+
+
+def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_id_callback=None, **_):
+    t0 = time.perf_counter()
+    d = _dir()
+    (d / "calls").mkdir(exist_ok=True)
+    n_calls = len(list((d / "calls").glob(f"{cell.key}-*")))
+    # The marker holds the storage URL the runner's config carries (tests check it has no password).
+    (d / "calls" / f"{cell.key}-{os.getpid()}-{uuid.uuid4().hex[:6]}").write_text(cfg.storage.url)
+    client = tracking.client_for(cfg)
+    exp = tracking.experiment_id(client, cfg)
+    if resume:  # like run_cell: reopen the KILLED run
+        run_id = resume
+        client.update_run(run_id, "RUNNING")
+    else:
+        run_id = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+    if run_id_callback:
+        run_id_callback(run_id)
+    try:
+        if (d / f"block-{cell.arch}").exists():
+            (d / f"started-{cell.key}-{os.getpid()}").write_text(run_id)
+            while not (d / "release").exists():
+                time.sleep(0.02)
+        fail = d / f"fail-{cell.arch}"
+        if fail.exists() and n_calls < int(fail.read_text() or 1):
+            client.set_tag(run_id, tracking.TAG_FAILURE, "fake failure")
+            client.set_terminated(run_id, "FAILED")
+            return FakeResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
+    except KeyboardInterrupt:  # like run_cell: a checkpoint, then KILLED
+        ckpt = cfg.resolve(cfg.tracking.checkpoints) / run_id / "last.ckpt"
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        ckpt.write_text("fake checkpoint")
+        client.set_terminated(run_id, "KILLED")
+        raise FakeInterrupted(f"run {run_id} interrupted") from None
+    metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key)}
+    tracking.log_metrics(client, run_id, metrics)
+    client.set_terminated(run_id, "FINISHED")
+    return FakeResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
+
+
+def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
+    """Creates and finishes an MLflow run, nothing else (the benchmark's zero-work cell)."""
+    t0 = time.perf_counter()
+    client = tracking.client_for(cfg)
+    run_id = client.create_run(tracking.experiment_id(client, cfg),
+                               tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+    if run_id_callback:
+        run_id_callback(run_id)
+    client.set_terminated(run_id, "FINISHED")
+    return FakeResult(run_id, "FINISHED", duration_s=time.perf_counter() - t0)
+
+
+def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
+    """How many MLflow runs of each cell key have ``status`` (None: any)."""
+    from bronchocli import tracking
+
+    client = tracking.client_for(cfg)
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    if exp is None:
+        return Counter()
+    runs = tracking.search_runs(client, [exp.experiment_id], {tracking.TAG_SWEEP: cfg.name},
+                                [status] if status else None)
+    return Counter(r.data.tags[tracking.TAG_CELL_KEY] for r in runs)

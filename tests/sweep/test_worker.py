@@ -1,0 +1,127 @@
+"""The worker loop in-process with fast fake runners: retries, claims lost mid-run, orphans of dead workers."""
+
+from __future__ import annotations
+
+import pytest
+from sqlalchemy import update
+from sweep_fakes import fake_runner, runs_by_cell
+
+from bronchocli import tracking
+from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
+from bronchocli.sweep.storage import cells_table
+
+
+def setup(cfg):
+    store = SweepStore(cfg.storage_url)
+    plan = prepare(cfg, store, dataset=False)
+    return store, plan
+
+
+def rows(store, cfg):
+    return {r.label.split("/")[0]: r for r in store.rows(cfg.name)}
+
+
+def test_failed_cells_are_retried_automatically_up_to_max_retries(make_config, fake_dir):
+    cfg = make_config(sweep={"max_retries": 1})
+    (fake_dir / "fail-baseline").write_text("1")  # fails once, then succeeds
+    store, plan = setup(cfg)
+    assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
+    r = rows(store, cfg)
+    assert (r["baseline"].state, r["baseline"].attempts) == (FINISHED, 2)
+    assert (r["lstm"].state, r["lstm"].attempts) == (FINISHED, 1)
+    base = r["baseline"].cell_key
+    assert runs_by_cell(cfg, "FAILED") == {base: 1}
+    assert runs_by_cell(cfg) == {c.key: 1 for c in plan.cells}
+
+
+def test_without_retries_a_failure_stays_until_reset(make_config, fake_dir):
+    cfg = make_config(sweep={"max_retries": 0})
+    (fake_dir / "fail-baseline").write_text("1")
+    store, plan = setup(cfg)
+    assert Worker(cfg, plan.cells, store, fake_runner).run() == 0  # nothing left to run: the worker is done
+    r = rows(store, cfg)
+    assert (r["baseline"].state, r["baseline"].failure_reason) == (FAILED, "fake failure")
+    again = prepare(cfg, store, dataset=False)  # a re-run does not retry it...
+    assert again.state(next(c for c in again.cells if c.arch == "baseline")) == FAILED
+    prepare(cfg, store, dataset=False, retry_failed=True)  # ...--retry-failed does
+    Worker(cfg, plan.cells, store, fake_runner).run()
+    assert rows(store, cfg)["baseline"].state == FINISHED
+    assert runs_by_cell(cfg) == {c.key: 1 for c in plan.cells}
+
+
+def test_a_runner_exception_fails_the_cell_with_its_reason(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
+    store, plan = setup(cfg)
+
+    def broken(cfg, cell, **kw):
+        raise ValueError("bad frame 7\nmore detail")
+
+    Worker(cfg, plan.cells, store, broken).run()
+    row = rows(store, cfg)["baseline"]
+    assert (row.state, row.failure_reason, row.run_id) == (FAILED, "ValueError: bad frame 7", None)
+
+
+def test_a_worker_that_lost_its_claim_kills_its_run_and_the_cell_is_run_once(make_config, fake_dir):
+    """Mid-run the cell is taken over (as if this worker had looked dead); its FINISHED run must not count."""
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 2})  # the thief's lost claim uses an attempt too
+    store, plan = setup(cfg)
+    lost_runs = []
+
+    def hijacked(cfg, cell, run_id_callback=None, **kw):
+        def callback(run_id):
+            run_id_callback(run_id)
+            if not lost_runs:  # first attempt: another worker steals the claim right after the run starts
+                lost_runs.append(run_id)
+                with store.engine.begin() as conn:
+                    conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
+                assert store.claim(cfg.name, [cell.key], "thief", max_retries=1, stale_after_s=2) is not None
+
+        return fake_runner(cfg, cell, run_id_callback=callback, **kw)
+
+    worker = Worker(cfg, plan.cells, store, hijacked)
+    assert worker.run() == 0  # the thief never heartbeats: its claim goes stale and this worker takes it back
+    assert worker.stats.lost == 1 and worker.stats.finished == 1
+    client = tracking.client_for(cfg)
+    lost = client.get_run(lost_runs[0])
+    assert lost.info.status == "KILLED" and "lost its claim" in lost.data.tags[tracking.TAG_FAILURE]
+    assert runs_by_cell(cfg) == {plan.cells[0].key: 1}
+    row = store.rows(cfg.name)[0]
+    assert row.state == FINISHED and row.run_id != lost_runs[0] and row.attempts == 3
+
+
+def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over(make_config, fake_dir):
+    cfg = make_config(archs=("baseline", "lstm"))
+    store, plan = setup(cfg)
+    client = tracking.client_for(cfg)
+    exp = tracking.experiment_id(client, cfg)
+    orphans = {}
+    for cell in plan.cells:
+        claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
+        run = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **{TAG_CLAIM: claim.token}))
+        orphans[cell.arch] = run.info.run_id
+        if cell.arch == "lstm":  # died after finishing its run, before recording it on the row
+            store.set_run_id(claim.token, run.info.run_id)
+            client.set_terminated(run.info.run_id, "FINISHED")
+        # baseline: died right after creating the run (the row never learnt its id)
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
+    assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
+    for run_id in orphans.values():
+        run = client.get_run(run_id)
+        assert run.info.status == "KILLED" and "dead:1 lost" in run.data.tags[tracking.TAG_FAILURE]
+    assert runs_by_cell(cfg) == {c.key: 1 for c in plan.cells}
+    assert all(r.state == FINISHED and r.run_id not in orphans.values() for r in store.rows(cfg.name))
+
+
+def test_a_worker_that_cannot_record_its_outcome_does_not_leave_a_finished_run(make_config, fake_dir, monkeypatch):
+    cfg = make_config(archs=("baseline",), sweep={"heartbeat_s": 0.1, "stale_after_s": 0.3})
+    store, plan = setup(cfg)
+
+    def unreachable(*args, **kw):
+        raise StorageError("sweep storage postgresql+psycopg://u:***@db/x: connection refused")
+
+    monkeypatch.setattr(store, "finish", unreachable)
+    with pytest.raises(StorageError):
+        Worker(cfg, plan.cells, store, fake_runner).run()
+    assert runs_by_cell(cfg, "FINISHED") == {} and runs_by_cell(cfg, "KILLED") == {plan.cells[0].key: 1}
+    assert store.rows(cfg.name)[0].state == "running"  # goes stale, and another worker takes it over
