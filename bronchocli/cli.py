@@ -15,6 +15,7 @@ from .commands import profile as profile_cmd
 from .commands import status as status_cmd
 from .commands import sweep as sweep_cmd
 from .commands import train as train_cmd
+from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
 from .commands.common import err_console
 from .errors import BronchoError
@@ -34,6 +35,7 @@ COMMANDS = {
     "config": config_cmd.config,
     "train": train_cmd.train,
     "ui": ui_cmd.ui,
+    "tune": tune_cmd.tune,
     "report": report_cmd.report,
     "profile": profile_cmd.profile,
     "sweep": sweep_cmd.sweep,

@@ -232,7 +232,8 @@ class Tune(Section):
     sampler: Literal["tpe", "random"] = "tpe"
     seed: int = 0
     pruner: Literal["median", "hyperband", "none"] = "median"
-    warmup_epochs: int = Field(1, ge=0)
+    warmup_epochs: int = Field(1, ge=0)  # epochs a trial always runs before it may be pruned
+    startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
     space: dict[str, TuneParam] = {
         "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
         "model.dropout": TuneParam(type="float", low=0.0, high=0.5),
@@ -497,8 +498,16 @@ class Cell:
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 
 
+# Settings that change how fast a run goes, not what it computes.
+NOT_IN_KEY = (("train", "threads"), ("data", "workers"), ("data", "cache_dir"))
+
+
 def run_signature(cfg: Config) -> dict[str, Any]:
-    return {k: cfg.model_dump(mode="json")[k] for k in RUN_SECTIONS}
+    data = cfg.model_dump(mode="json")
+    sig = {k: data[k] for k in RUN_SECTIONS}
+    for section, key in NOT_IN_KEY:
+        sig[section].pop(key, None)
+    return sig
 
 
 def cell_key(cfg: Config, coords: dict[str, Any]) -> str:

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
 from . import __version__
 from .config import Cell, Config
+from .locks import file_lock
 
 if TYPE_CHECKING:  # mlflow is imported lazily: it costs ~1.5 s
     from mlflow.entities import Run
@@ -55,9 +56,13 @@ def client_for(cfg: Config) -> "MlflowClient":
     _quiet()  # mlflow configures its own logger on import
     uri = cfg.tracking_uri
     m = re.match(r"^sqlite(?:\+\w+)?:///(.+)$", uri)
-    if m:
-        Path(m.group(1)).parent.mkdir(parents=True, exist_ok=True)
-    return MlflowClient(tracking_uri=uri)
+    if not m:
+        return MlflowClient(tracking_uri=uri)
+    # MLflow creates (migrates) its tables when it opens a store; two processes doing that at once collide.
+    with file_lock(m.group(1) + ".lock"):
+        client = MlflowClient(tracking_uri=uri)
+        client.search_experiments(max_results=1)
+    return client
 
 
 def _is_local_store(uri: str) -> bool:

@@ -135,3 +135,10 @@ def test_cross_subject_folds(tmp_path):
     listed = cfg.with_values({"grid.folds": ["zz"]})
     with pytest.raises(ConfigError, match=r"\['zz'\] not in the dataset's patients"):
         C.expand_grid(listed, ["a", "b"])
+
+
+def test_speed_only_settings_do_not_change_the_key(tmp_path):
+    base = C.load_config(write(tmp_path, "name: t\ngrid: {folds: [p00]}\n"))
+    key = C.expand_grid(base, ["p00"])[0].key
+    fast = base.with_values({"train.threads": 7, "data.workers": 0, "data.cache_dir": "/elsewhere"})
+    assert C.expand_grid(fast, ["p00"])[0].key == key

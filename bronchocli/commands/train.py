@@ -27,6 +27,7 @@ def train(
     pose_frame: str = typer.Option("world", "--pose-frame", help=f"Relative-pose frame: {', '.join(POSE_FRAMES)}."),
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),
     run_id: Optional[str] = typer.Option(None, "--run-id", help="With --resume: the MLflow run to continue."),
+    use_tuned: Optional[str] = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
@@ -53,9 +54,16 @@ def train(
         raise BronchoError("--fold: only cross-subject runs have a held-out patient")
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
+    tags = {}
+    if use_tuned:
+        from ..tuning import best_values
+
+        values, tags["hparams_source"] = best_values(cfg, use_tuned)
+        cfg = cfg.with_values(values)
+        console.print(f"hyperparameters from {tags['hparams_source']}: {values}")
     cell = make_cell(cfg, arch, rot_loss, population, fold, seed, pose_frame)
     console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
-    result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet)
+    result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet, extra_tags=tags)
     if result.status != "FINISHED":
         console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
         raise typer.Exit(1)

@@ -24,7 +24,7 @@ import hashlib
 import json
 import os
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from functools import partial
@@ -35,6 +35,7 @@ from PIL import Image
 
 from ..config import Config
 from ..errors import DataError
+from ..locks import file_lock
 from .reader import Dataset
 
 CACHE_VERSION = 1
@@ -80,25 +81,6 @@ def cache_key(dataset: Dataset, shape: tuple[int, int]) -> str:
     h = hashlib.sha256(f"v{CACHE_VERSION}\0{dataset.fingerprint}\0{shape[0]}x{shape[1]}\0".encode())
     h.update("\n".join(dataset.frames["filename"]).encode())
     return h.hexdigest()[:16]
-
-
-@contextmanager
-def _locked(path: Path) -> Iterator[None]:
-    try:
-        import fcntl
-    except ImportError:  # no advisory locks here: concurrent builders race to os.replace identical files
-        yield
-        return
-    with open(path, "a+b") as fh:
-        try:
-            fcntl.lockf(fh, fcntl.LOCK_EX)
-        except OSError:  # e.g. a file system without locks: same fallback as above
-            yield
-            return
-        try:
-            yield
-        finally:
-            fcntl.lockf(fh, fcntl.LOCK_UN)
 
 
 class FrameCache:
@@ -159,7 +141,7 @@ class FrameCache:
         cache_dir.mkdir(parents=True, exist_ok=True)
         path = cache_dir / f"frames-{dataset.fingerprint[:12]}-{cache_key(dataset, hw)}-{hw[0]}x{hw[1]}.npy"
         if not cls._valid(path, shape):
-            with _locked(path.with_suffix(".lock")):
+            with file_lock(path.with_suffix(".lock")):
                 if not cls._valid(path, shape):  # another process may have built it while we waited
                     _build(dataset, hw if image_size is not None else None, shape, path, progress, threads)
         return cls(path, shape)

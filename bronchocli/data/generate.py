@@ -24,17 +24,16 @@ import json
 import os
 import shutil
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from .. import __version__
 from ..config import Config, Generate
 from ..errors import DataError
+from ..locks import file_lock
 from ..render.camera import intrinsics
 from ..render.worker import (
     Callback,
@@ -303,21 +302,9 @@ def _generate(root: Path, gen: Generate, record: dict, workers: int, progress: b
     _finish(root, gen, record, plans, tasks, digests)
 
 
-@contextmanager
-def _exclusive(root: Path) -> Iterator[None]:
-    """Hold an exclusive lock on ``<root>/.generate.lock`` (POSIX ``flock``; no locking elsewhere)."""
-    root.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl  # noqa: PLC0415
-    except ImportError:  # pragma: no cover (Windows)
-        yield
-        return
-    with open(root / LOCK, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+def _exclusive(root: Path):
+    """Hold an exclusive lock on ``<root>/.generate.lock`` while generating."""
+    return file_lock(root / LOCK)
 
 
 def ensure_dataset(cfg: Config) -> Path:

@@ -30,10 +30,18 @@ log = logging.getLogger(__name__)
 PAIR_CHUNK = 64  # pairs per forward when evaluating non-temporal models
 
 
-class RunInterrupted(BronchoError):
+class RunStopped(BronchoError):
+    """Training stopped on purpose before the end; the MLflow run is marked KILLED with the reason."""
+
+
+class RunInterrupted(RunStopped):
     """Training was stopped by SIGINT/SIGTERM; the run is KILLED and can be resumed."""
 
     exit_code = 130
+
+
+class RunPruned(RunStopped):
+    """An observer (the Optuna pruner) stopped the run after an epoch; the run is KILLED, tagged ``pruned``."""
 
 
 def checkpoint_dir(cfg: Config, run_id: str) -> Path:

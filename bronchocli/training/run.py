@@ -9,7 +9,8 @@ trajectory plot, best checkpoint).
 
 Faults: SIGINT (Ctrl-C) or SIGTERM stops training at the next batch, saves a
 checkpoint and marks the run KILLED (``RunInterrupted`` is raised so callers
-stop too); ``resume=`` continues such a run from its checkpoint. A NaN/inf loss
+stop too); ``resume=`` continues such a run from its checkpoint. An ``on_epoch``
+observer may raise ``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
 or any other error marks the run FAILED with the reason in the
 ``failure_reason`` tag. Lightning writes checkpoints atomically (temp file +
 rename through fsspec transactions).
@@ -29,7 +30,7 @@ from typing import Callable, Iterator
 from .. import tracking
 from ..config import Cell, Config
 from ..errors import BronchoError
-from .engine import RunInterrupted, prepare_data, train_and_evaluate
+from .engine import RunInterrupted, RunPruned, RunStopped, prepare_data, train_and_evaluate
 
 log = logging.getLogger(__name__)
 
@@ -130,8 +131,10 @@ def run_cell(
         with _stop_on_signals(flag):
             outcome = train_and_evaluate(cfg, cell, data, client, run_id, stop=flag, resumed=resumed,
                                          progress=progress, on_epoch=on_epoch)
-    except RunInterrupted as exc:
+    except RunStopped as exc:
         client.set_tag(run_id, tracking.TAG_FAILURE, str(exc))
+        if isinstance(exc, RunPruned):
+            client.set_tag(run_id, "pruned", "true")
         client.set_terminated(run_id, "KILLED")
         raise
     except KeyboardInterrupt:

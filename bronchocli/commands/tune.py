@@ -1,0 +1,106 @@
+"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.table import Table
+
+from ..config import ARCHS, DEFAULT_CONFIG, POPULATIONS, ROT_LOSSES
+from ..errors import BronchoError
+from ..tracking import redact_url
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+
+
+def _target(arch, rot_loss, population, fold, seed, pose_frame):
+    from ..tuning import Target
+
+    if arch is None or rot_loss is None or population is None:
+        return None
+    for value, allowed, flag in ((arch, ARCHS, "--arch"), (rot_loss, ROT_LOSSES, "--rot-loss"),
+                                 (population, POPULATIONS, "--population")):
+        if value not in allowed:
+            raise BronchoError(f"{flag} {value!r}: must be one of {', '.join(allowed)}")
+    if population == "cross-subject" and fold is None:
+        raise BronchoError("--fold: cross-subject needs the held-out patient (e.g. --fold p00)")
+    return Target(arch, rot_loss, population, fold if population == "cross-subject" else None, seed, pose_frame)
+
+
+def _show(cfg, study: str, storage: Optional[str], fmt: str) -> None:
+    from ..tuning import summary
+
+    info = summary(cfg, study, storage)
+    if fmt == "json":
+        console.print_json(json.dumps(info, default=str))
+        return
+    counts = ", ".join(f"{v} {k}" for k, v in info["counts"].items() if v)
+    console.print(f"[bold]study[/] {study}: {counts or 'no trials'}")
+    best = info["best"]
+    if best is None:
+        console.print("no completed trial yet")
+        return
+    table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
+                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
+    for name, value in best["params"].items():
+        imp = info["importances"].get(name)
+        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),
+                      "—" if imp is None else f"{imp:.3f}")
+    console.print(table)
+    if info.get("importances_note"):
+        console.print(f"importances unavailable: {info['importances_note']}")
+    console.print(f"apply it: bronchopose sweep --use-tuned {study}  (or train --use-tuned {study})")
+
+
+def tune(
+    arch: Optional[str] = typer.Option(None, "--arch", "-a", help=f"Architecture: {', '.join(ARCHS)}."),
+    rot_loss: Optional[str] = typer.Option(None, "--rot-loss", "-l", help=f"Rotation loss: {', '.join(ROT_LOSSES)}."),
+    population: Optional[str] = typer.Option(None, "--population", "-P", help=f"{', '.join(POPULATIONS)}."),
+    fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
+    seed: int = typer.Option(0, "--seed", help="Training seed of every trial."),
+    pose_frame: str = typer.Option("world", "--pose-frame", help="world or camera."),
+    trials: Optional[int] = typer.Option(None, "--trials", "-n", help="Total finished trials of the study [tune.trials]."),
+    timeout: Optional[float] = typer.Option(None, "--timeout", help="Stop starting trials after this many seconds."),
+    storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL [storage.url]."),
+    study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, help="Local worker processes tuning the study."),
+    show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
+    fmt: str = typer.Option("table", "--format", help="--show output: table or json."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
+    config: ConfigOpt = Path(DEFAULT_CONFIG),
+    profile: ProfileOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Tune one cell's hyperparameters over `tune.space` with Optuna (TPE, seeded), minimising validation loss.
+
+    Every trial is an MLflow run (tags run_kind=trial, study, trial); the pruner
+    (`tune.pruner`: median or hyperband) stops poor trials from their per-epoch
+    validation loss. The study lives in the shared storage, so several processes
+    or machines can tune it together and an interrupted study resumes. With
+    --show, print the best trial and parameter importances (no training).
+    """
+    from .. import tuning
+
+    cfg = load(config, profile, set_)
+    if fmt not in ("table", "json"):
+        raise BronchoError(f"--format {fmt!r}: must be table or json")
+    target = _target(arch, rot_loss, population, fold, seed, pose_frame)
+    if show:
+        if study is None and target is None:
+            names = tuning.list_studies(cfg, storage)
+            raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
+                               f"studies in the storage: {', '.join(names) or 'none'}")
+        _show(cfg, study or target.study_name(cfg), storage, fmt)
+        return
+    if target is None:
+        raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
+    n = trials or cfg.tune.trials
+    where = redact_url(cfg.resolve_url(storage) if storage else cfg.storage_url)
+    name = study or target.study_name(cfg)
+    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {where}")
+    s = tuning.tune(cfg, target, n, storage=storage, study=study, timeout=timeout or cfg.tune.timeout,
+                    workers=workers, progress=not quiet)
+    console.print(f"{tuning.finished(s)} finished trials in study {name}")
+    _show(cfg, name, storage, "table")

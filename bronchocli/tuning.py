@@ -1,0 +1,296 @@
+"""Hyperparameter tuning with Optuna: one study per (arch, rot_loss, population, fold) on the shared storage.
+
+Each trial samples ``tune.space`` (dotted config paths -> distributions), trains
+the cell with those values as one MLflow run (tagged ``run_kind=trial``, the
+study and trial number) and returns the best validation loss, which the study
+minimises. Per-epoch validation losses are reported to Optuna, whose pruner
+(median or Hyperband) may stop a trial early: its run is KILLED and tagged
+``pruned``. The study lives in ``storage.url`` (SQLite file or PostgreSQL), so
+several processes or machines tune it together and an interrupted study
+resumes where it stopped: ``--trials N`` is the total of finished (complete or
+pruned) trials of the study, not of this process. Trials whose process died
+are failed by Optuna's heartbeat and do not count.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Callable, Mapping, Sequence
+
+from .config import Cell, Config, TuneParam, make_cell
+from .errors import BronchoError, ConfigError
+from .locks import file_lock
+
+log = logging.getLogger(__name__)
+
+
+class TrialFailed(BronchoError):
+    """A trial's run FAILED (e.g. a non-finite loss); the study records it and goes on."""
+
+
+ATTR_RUN = "mlflow_run_id"
+ATTR_CELL = "cell"
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a study tunes: everything of a cell except the hyperparameters being searched."""
+
+    arch: str
+    rot_loss: str
+    population: str
+    fold: str | None = None
+    seed: int = 0
+    pose_frame: str = "world"
+
+    def study_name(self, cfg: Config) -> str:
+        fold = f"-{self.fold}" if self.fold else ""
+        return f"{cfg.name}-{self.arch}-{self.rot_loss}-{self.population}{fold}-{self.pose_frame}-s{self.seed}"
+
+    def cell(self, cfg: Config) -> Cell:
+        return make_cell(cfg, self.arch, self.rot_loss, self.population, self.fold, self.seed, self.pose_frame)
+
+
+def _optuna():
+    import warnings
+
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    # heartbeats are "experimental" in Optuna's API but are what makes dead trials fail cleanly
+    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+    return optuna
+
+
+def storage_for(cfg: Config, url: str | None = None):
+    """Optuna RDB storage on ``url`` (default ``storage.url``) with heartbeats for dead trials."""
+    from .sweep.storage import normalize_url
+
+    optuna = _optuna()
+    url = normalize_url(cfg.resolve_url(url) if url else cfg.storage_url)
+    kwargs: dict[str, Any] = {}
+    if url.startswith("sqlite"):
+        kwargs = {"connect_args": {"timeout": 60}}
+    beat = max(1, int(cfg.sweep.heartbeat_s))
+    make = partial(optuna.storages.RDBStorage, url, engine_kwargs=kwargs, heartbeat_interval=beat,
+                   grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
+    if url.startswith("sqlite"):
+        with file_lock(url.split(":///", 1)[1] + ".lock"):  # table creation must not race
+            return make()
+    return make()
+
+
+def check_space(cfg: Config) -> None:
+    """Every ``tune.space`` key must be a settable config path and every distribution well formed."""
+    problems = []
+    for path, p in cfg.tune.space.items():
+        if path.split(".")[0] in ("grid", "tune", "profiles", "tracking", "storage", "sweep", "name"):
+            problems.append(f"tune.space.{path}: only run settings can be tuned (data, model, train, splits, dataset)")
+            continue
+        try:
+            cfg.with_values({path: _probe(p)})
+        except ConfigError as exc:
+            problems.append(f"tune.space.{path}: {str(exc).splitlines()[-1].strip()}")
+            continue
+        if p.type == "categorical" and not p.choices:
+            problems.append(f"tune.space.{path}: categorical needs a non-empty 'choices' list")
+        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
+            problems.append(f"tune.space.{path}: {p.type} needs low < high (got low={p.low}, high={p.high})")
+        elif p.log and p.type != "categorical" and p.low <= 0:
+            problems.append(f"tune.space.{path}: log scale needs low > 0 (got {p.low})")
+    if problems:
+        raise ConfigError("invalid tune.space:\n  " + "\n  ".join(problems))
+
+
+def _probe(p: TuneParam) -> Any:
+    if p.type == "categorical":
+        return (p.choices or [None])[0]
+    value = p.low if p.low is not None else 0
+    return int(value) if p.type == "int" else value
+
+
+def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
+    values: dict[str, Any] = {}
+    for path, p in space.items():
+        if p.type == "float":
+            values[path] = trial.suggest_float(path, p.low, p.high, log=p.log, step=p.step)
+        elif p.type == "int":
+            values[path] = trial.suggest_int(path, int(p.low), int(p.high), log=p.log, step=int(p.step or 1))
+        else:
+            values[path] = trial.suggest_categorical(path, p.choices)
+    return values
+
+
+def make_pruner(cfg: Config):
+    optuna = _optuna()
+    t = cfg.tune
+    if t.pruner == "median":
+        return optuna.pruners.MedianPruner(n_startup_trials=t.startup_trials, n_warmup_steps=t.warmup_epochs)
+    if t.pruner == "hyperband":
+        return optuna.pruners.HyperbandPruner(min_resource=max(1, t.warmup_epochs), max_resource=cfg.train.max_epochs)
+    return optuna.pruners.NopPruner()
+
+
+def make_sampler(cfg: Config, worker: int = 0):
+    optuna = _optuna()
+    seed = cfg.tune.seed + worker  # workers of one study must not propose identical first trials
+    if cfg.tune.sampler == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    return optuna.samplers.TPESampler(seed=seed, n_startup_trials=cfg.tune.startup_trials)
+
+
+def open_study(cfg: Config, target: Target, *, storage: str | None = None, study: str | None = None, worker: int = 0):
+    optuna = _optuna()
+    name = study or target.study_name(cfg)
+    s = optuna.create_study(study_name=name, storage=storage_for(cfg, storage), direction="minimize",
+                            sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg), load_if_exists=True)
+    s.set_user_attr("target", target.__dict__)
+    return s
+
+
+def finished(study) -> int:
+    optuna = _optuna()
+    return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,
+                                                         optuna.trial.TrialState.PRUNED)))
+
+
+def _running(study) -> int:
+    optuna = _optuna()
+    return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)))
+
+
+def objective(cfg: Config, target: Target, study_name: str, progress: bool = False) -> Callable:
+    """The function Optuna calls per trial: train one configured run, return its best validation loss."""
+    from .training.engine import RunPruned
+    from .training.run import run_cell
+
+    optuna = _optuna()
+
+    def run(trial) -> float:
+        values = suggest(trial, cfg.tune.space)
+        trial_cfg = cfg.with_values(values)
+        cell = target.cell(trial_cfg)
+        trial.set_user_attr(ATTR_CELL, cell.key)
+
+        def on_epoch(epoch: int, metrics: dict[str, float]) -> None:
+            trial.report(metrics["val_loss"], epoch)
+            if trial.should_prune():
+                raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at epoch {epoch} "
+                                f"(val_loss {metrics['val_loss']:.4g})")
+
+        tags = {"run_kind": "trial", "study": study_name, "trial": str(trial.number),
+                "hparams_source": f"optuna:{study_name}#{trial.number}"}
+        try:
+            result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_epoch=on_epoch,
+                              run_id_callback=lambda rid: trial.set_user_attr(ATTR_RUN, rid))
+        except RunPruned as exc:
+            raise optuna.TrialPruned(str(exc)) from None
+        if result.status != "FINISHED":
+            raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
+        value = result.metrics.get("best_val_loss", math.nan)
+        if not math.isfinite(value):
+            raise TrialFailed(f"trial {trial.number}: no finite validation loss")
+        return value
+
+    return run
+
+
+def tune_worker(cfg: Config, target: Target, trials: int, *, storage: str | None = None, study: str | None = None,
+                timeout: float | None = None, worker: int = 0, progress: bool = False,
+                enqueue: Sequence[Mapping[str, Any]] = ()) -> int:
+    """Run trials of the study until it holds ``trials`` finished ones (or the timeout); returns trials run here."""
+    import time
+
+    s = open_study(cfg, target, storage=storage, study=study, worker=worker)
+    for params in enqueue:
+        s.enqueue_trial(dict(params), skip_if_exists=True)
+    fn = objective(cfg, target, s.study_name, progress)
+    deadline = None if timeout is None else time.monotonic() + timeout
+    ran = 0
+    # A trial that fails (not pruned) is retried by the next iteration; three in a row stop this worker.
+    failures = 0
+    while finished(s) + _running(s) < trials and failures < 3:
+        if deadline is not None and time.monotonic() >= deadline:
+            break
+        before = finished(s)
+        s.optimize(fn, n_trials=1, catch=(TrialFailed,))
+        ran += 1
+        failures = 0 if finished(s) > before else failures + 1
+    return ran
+
+
+def _worker_entry(args: tuple) -> None:
+    cfg, target, trials, storage, study, timeout, worker = args
+    tune_worker(cfg, target, trials, storage=storage, study=study, timeout=timeout, worker=worker)
+
+
+def tune(cfg: Config, target: Target, trials: int, *, storage: str | None = None, study: str | None = None,
+         timeout: float | None = None, workers: int = 1, progress: bool = True,
+         enqueue: Sequence[Mapping[str, Any]] = ()) -> Any:
+    """Tune with ``workers`` local processes (1: in this process); returns the study."""
+    check_space(cfg)
+    s = open_study(cfg, target, storage=storage, study=study)  # creates it once, before workers race
+    if workers <= 1:
+        tune_worker(cfg, target, trials, storage=storage, study=study, timeout=timeout, progress=progress,
+                    enqueue=enqueue)
+        return s
+    for params in enqueue:
+        s.enqueue_trial(dict(params), skip_if_exists=True)
+    from .training.engine import cpu_threads
+
+    per = cfg.with_values({"train.threads": cpu_threads(cfg, workers)})
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_worker_entry, args=((per, target, trials, storage, study, timeout, i),))
+             for i in range(workers)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+    return s
+
+
+def best_values(cfg: Config, study_name: str, storage: str | None = None) -> tuple[dict[str, Any], str]:
+    """The best finished trial's parameters (dotted config paths) and a provenance string."""
+    optuna = _optuna()
+    try:
+        s = optuna.load_study(study_name=study_name, storage=storage_for(cfg, storage))
+    except KeyError:
+        raise BronchoError(f"no Optuna study named {study_name!r} in the storage") from None
+    try:
+        best = s.best_trial
+    except ValueError:
+        raise BronchoError(f"study {study_name!r} has no completed trial yet") from None
+    return dict(best.params), f"optuna:{study_name}#{best.number}"
+
+
+def summary(cfg: Config, study_name: str, storage: str | None = None) -> dict[str, Any]:
+    """Counts, best trial and parameter importances of a study (for ``tune --show``)."""
+    optuna = _optuna()
+    try:
+        s = optuna.load_study(study_name=study_name, storage=storage_for(cfg, storage))
+    except KeyError:
+        raise BronchoError(f"no Optuna study named {study_name!r} in the storage") from None
+    states = optuna.trial.TrialState
+    trials = s.get_trials(deepcopy=False)
+    counts = {st.name.lower(): sum(t.state == st for t in trials) for st in states}
+    out: dict[str, Any] = {"study": study_name, "counts": counts, "best": None, "importances": {}}
+    complete = [t for t in trials if t.state == states.COMPLETE]
+    if complete:
+        b = s.best_trial
+        out["best"] = {"number": b.number, "value": b.value, "params": b.params,
+                       "run_id": b.user_attrs.get(ATTR_RUN)}
+    if len(complete) >= 2 and len(s.best_trial.params) > 0:
+        try:
+            out["importances"] = dict(optuna.importance.get_param_importances(s))
+        except (RuntimeError, ValueError) as exc:  # e.g. every trial with the same value
+            out["importances_note"] = str(exc)
+    return out
+
+
+def list_studies(cfg: Config, storage: str | None = None) -> list[str]:
+    optuna = _optuna()
+    return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg, storage)))
