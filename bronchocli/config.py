@@ -234,6 +234,7 @@ class Tune(Section):
     pruner: Literal["median", "hyperband", "none"] = "median"
     warmup_epochs: int = Field(1, ge=0)  # epochs a trial always runs before it may be pruned
     startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
+    applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
     space: dict[str, TuneParam] = {
         "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
         "model.dropout": TuneParam(type="float", low=0.0, high=0.5),

@@ -106,7 +106,7 @@ def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
         TAG_SWEEP: cfg.name,
         TAG_GIT: git_commit(cfg.base_dir),
         TAG_VERSION: __version__,
-        TAG_HPARAMS: "config",
+        TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
         "profile": cfg.profile or "",
         "mlflow.runName": f"{cell.arch}-{cell.rot_loss}-{cell.population}" + (f"-{cell.fold}" if cell.fold else ""),
@@ -130,7 +130,8 @@ def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
 def log_params(client: "MlflowClient", run_id: str, params: Mapping[str, str]) -> None:
     from mlflow.entities import Param
 
-    items = [Param(k, v[:6000]) for k, v in sorted(params.items())]
+    # URL-valued settings may carry a password: never store it in clear.
+    items = [Param(k, redact_url(v)[:6000]) for k, v in sorted(params.items())]
     for i in range(0, len(items), _PARAM_BATCH):
         client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
 

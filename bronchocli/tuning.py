@@ -267,6 +267,12 @@ def best_values(cfg: Config, study_name: str, storage: str | None = None) -> tup
     return dict(best.params), f"optuna:{study_name}#{best.number}"
 
 
+def apply_best(cfg: Config, study_name: str, storage: str | None = None) -> Config:
+    """``cfg`` with the study's best parameters set and ``tune.applied`` recording where they came from."""
+    values, source = best_values(cfg, study_name, storage)
+    return cfg.with_values({**values, "tune.applied": source})
+
+
 def summary(cfg: Config, study_name: str, storage: str | None = None) -> dict[str, Any]:
     """Counts, best trial and parameter importances of a study (for ``tune --show``)."""
     optuna = _optuna()

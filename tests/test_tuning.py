@@ -66,6 +66,12 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert cell_runs[0].data.tags["hparams_source"] == f"optuna:{study.study_name}#{study.best_trial.number}"
     assert float(cell_runs[0].data.params["train.rot_weight"]) == 0.0
 
+    code, out, err = cli("sweep", "-c", str(project / "experiments.yaml"), "--use-tuned", study.study_name,
+                         "--only", "arch=baseline;rot_loss=mse;population=personalized")
+    assert code == 0, err
+    swept = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "cell"})
+    assert len(swept) == 2 and {r.data.tags["hparams_source"] for r in swept} == {cell_runs[0].data.tags["hparams_source"]}
+
     code, out, _ = cli("tune", "-c", str(project / "experiments.yaml"), "--study", study.study_name, "--show")
     assert code == 0 and "best trial" in out and "train.rot_weight" in out
 

@@ -30,6 +30,8 @@ def sweep(
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit."),
     retry_failed: bool = typer.Option(False, "--retry-failed",
                                       help="Reset FAILED cells (and their retry budget) first."),
+    use_tuned: Optional[str] = typer.Option(None, "--use-tuned",
+                                            help="Apply the best trial of this Optuna study to every cell."),
     runner: Optional[str] = typer.Option(None, "--runner", hidden=True,
                                          help="module:function run instead of training (tests, benchmarks)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
@@ -51,10 +53,14 @@ def sweep(
     selection = parse_only(only)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
+    if use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
+        from ..tuning import apply_best
+
+        cfg = apply_best(cfg, use_tuned)
     run = resolve_runner(runner)
     store = SweepStore(cfg.storage_url)
     console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {redact_url(cfg.tracking_uri)}"
-                  f"  experiment {cfg.experiment_name}")
+                  f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}" if use_tuned else ""))
     if dry_run:
         plan = read_plan(store, cfg.name, plan_cells(cfg, selection))
         _print_plan(console, plan, cfg.sweep.max_retries, workers)

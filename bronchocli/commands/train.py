@@ -54,16 +54,14 @@ def train(
         raise BronchoError("--fold: only cross-subject runs have a held-out patient")
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
-    tags = {}
     if use_tuned:
-        from ..tuning import best_values
+        from ..tuning import apply_best
 
-        values, tags["hparams_source"] = best_values(cfg, use_tuned)
-        cfg = cfg.with_values(values)
-        console.print(f"hyperparameters from {tags['hparams_source']}: {values}")
+        cfg = apply_best(cfg, use_tuned)
+        console.print(f"hyperparameters from {cfg.tune.applied}")
     cell = make_cell(cfg, arch, rot_loss, population, fold, seed, pose_frame)
     console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
-    result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet, extra_tags=tags)
+    result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet)
     if result.status != "FINISHED":
         console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
         raise typer.Exit(1)

@@ -127,7 +127,7 @@ def run_cell(
         if not resumed:
             client.set_tag(run_id, tracking.TAG_FINGERPRINT, data.fingerprint)
             tracking.log_params(client, run_id, tracking.flatten(cfg.dump()))
-            _log_text(client, run_id, "config.yaml", cfg.to_yaml())
+            _log_text(client, run_id, "config.yaml", tracking.redact_url(cfg.to_yaml()))
         with _stop_on_signals(flag):
             outcome = train_and_evaluate(cfg, cell, data, client, run_id, stop=flag, resumed=resumed,
                                          progress=progress, on_epoch=on_epoch)
