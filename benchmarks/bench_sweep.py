@@ -71,7 +71,7 @@ def write_config(root: Path, storage: str, real: bool) -> Path:
     if real:
         cfg.update(splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
                    data={"window": 3, "workers": 0, "cache_dir": "cache"},
-                   train={"batch_size": 4, "max_epochs": 1, "max_train_batches": 2})
+                   train={"batch_size": 4, "max_epochs": 1, "max_train_pairs": 8})
     path = root / "experiments.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path

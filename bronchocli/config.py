@@ -213,7 +213,8 @@ class Train(Section):
     precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
     devices: int = Field(1, ge=1)
-    max_train_batches: int | None = Field(None, ge=1)  # cap per epoch (quick runs)
+    max_train_pairs: int | None = Field(None, ge=1)  # cap on training pairs per epoch (quick runs), any arch
+    max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs per epoch
     threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import lightning.pytorch as pl
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
@@ -195,7 +196,17 @@ def _datasets(cfg: Config, cell: Cell, data: PreparedData, temporal: bool):
     train = SequenceDataset(data.split.train, data.cache, n_pairs, overlap, cell.pose_frame,
                             augment=cfg.data.augment, seed=cell.seed)
     val = SequenceDataset(data.split.val, data.cache, n_pairs, overlap, cell.pose_frame)
+    if cfg.train.max_val_pairs and len(val) * n_pairs > cfg.train.max_val_pairs:
+        # the same evenly spread samples every epoch, so validation losses stay comparable
+        keep = max(1, cfg.train.max_val_pairs // n_pairs)
+        val = _Subset(val, np.linspace(0, len(val) - 1, keep).round().astype(int).tolist())
     return train, val
+
+
+class _Subset(torch.utils.data.Subset):
+    @property
+    def n_pairs(self) -> int:
+        return self.dataset.n_pairs
 
 
 def _check_sizes(train_ds, val_ds, cell: Cell) -> None:
@@ -209,13 +220,20 @@ def _check_sizes(train_ds, val_ds, cell: Cell) -> None:
             f"data.window)")
 
 
-def _trainer(cfg: Config, callbacks: list, progress: bool, cuda: bool) -> pl.Trainer:
+def _batch_cap(max_pairs: int | None, cfg: Config, ds) -> int | None:
+    """``train.max_*_pairs`` in batches of this dataset (a batch holds batch_size x n_pairs pairs)."""
+    if max_pairs is None:
+        return None
+    return max(1, math.ceil(max_pairs / (cfg.train.batch_size * ds.n_pairs)))
+
+
+def _trainer(cfg: Config, callbacks: list, progress: bool, cuda: bool, train_batches: int | None) -> pl.Trainer:
     devices = cfg.train.devices if cuda else 1
     accelerator = "cpu" if cfg.train.device == "cpu" else ("auto" if cfg.train.device == "auto" else cfg.train.device)
     return pl.Trainer(
         accelerator=accelerator, devices=devices, strategy="ddp_spawn" if devices > 1 else "auto",
         precision=_precision(cfg, cuda), max_epochs=cfg.train.max_epochs, min_epochs=cfg.train.min_epochs,
-        limit_train_batches=cfg.train.max_train_batches, num_sanity_val_steps=0, logger=False,
+        limit_train_batches=train_batches, num_sanity_val_steps=0, logger=False,
         enable_progress_bar=progress, enable_model_summary=False, callbacks=callbacks,
         deterministic=True if not cuda else "warn", default_root_dir=None,
     )
@@ -248,7 +266,7 @@ def train_and_evaluate(cfg: Config, cell: Cell, data: PreparedData, client, run_
         _EpochLogger(cfg.tracking_uri, run_id, on_epoch),
         _StopOnSignal(stop, ckpt_dir),
     ]
-    trainer = _trainer(cfg, callbacks, progress, cuda)
+    trainer = _trainer(cfg, callbacks, progress, cuda, _batch_cap(cfg.train.max_train_pairs, cfg, train_ds))
     last = ckpt_dir / "last.ckpt"
     n_params = sum(p.numel() for p in module.model.parameters())
     t0 = time.perf_counter()

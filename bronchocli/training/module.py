@@ -117,7 +117,8 @@ class PoseModule(pl.LightningModule):
             self.log(f"val.{name}", metrics.METRICS[name](out, labels).mean(), batch_size=n)
 
     def configure_optimizers(self):
-        opt = torch.optim.Adam(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay)
+        # The fused kernel is ~5x faster than the per-tensor loop on CPU (benchmarks/README.md).
+        opt = torch.optim.Adam(self.model.parameters(), lr=self.lr, weight_decay=self.weight_decay, fused=True)
         if math.isclose(self.lr_decay, 1.0):
             return opt
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=self.lr_decay)

@@ -34,7 +34,7 @@ dataset: {{root: {data}}}
 splits: {{train: 2, val: 1, test: 1, cross_subject_val: 1}}
 grid: {{arch: [convlstm, offsetnet], rot_loss: [ce, mse], population: [personalized, cross-subject], folds: [p00]}}
 data: {{window: 3, workers: 0, cache_dir: {tmp_path}/runs/cache}}
-train: {{max_epochs: 1, batch_size: 4, max_train_batches: 2, threads: 1}}
+train: {{max_epochs: 1, batch_size: 4, max_train_pairs: 8, threads: 1}}
 """)
     code, _, stderr = cli("sweep", "-c", str(cfg))
     assert code == 0, stderr

@@ -17,7 +17,7 @@ def test_a_real_two_worker_sweep_trains_each_cell_once(cli, make_config, tmp_pat
         archs=("baseline", "lstm"), sweep={"heartbeat_s": 1.0, "stale_after_s": 30.0},
         splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
         data={"window": 3, "workers": 0, "cache_dir": "cache"},
-        train={"batch_size": 4, "max_epochs": 1, "max_train_batches": 2},
+        train={"batch_size": 4, "max_epochs": 1, "max_train_pairs": 8},
     )
     path = str(cfg.base_dir / "experiments.yaml")
     code, out, err = cli("sweep", "-c", path, "--workers", "2")
