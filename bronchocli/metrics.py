@@ -140,7 +140,7 @@ class Stat:
 
 
 def _to_tensor(x) -> torch.Tensor:
-    return torch.as_tensor(np.asarray(x, dtype=np.float64))
+    return torch.from_numpy(np.array(x, dtype=np.float64))  # a copy: inputs may be read-only views
 
 
 def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None) -> dict[str, np.ndarray]:

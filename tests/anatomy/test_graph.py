@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from synthetic_airway import synthetic_tree, tree_graph, write_graph
@@ -10,12 +12,11 @@ from bronchocli.anatomy import load_anatomy, main_bronchi, save_centreline, up_v
 from bronchocli.anatomy.graph import tree_from_graph
 
 
-@pytest.fixture(scope="module")
-def real(request):
-    from conftest import REAL_TREE
+REAL_TREE = Path(__file__).resolve().parents[1] / "fixtures" / "airways" / "TestSubject002MajorAirways.vtu"
 
-    if not REAL_TREE.is_file():
-        pytest.skip(f"{REAL_TREE} not present")
+
+@pytest.fixture(scope="module")
+def real():
     return load_anatomy(REAL_TREE)
 
 
@@ -68,8 +69,6 @@ def test_real_tree_paths_end_at_the_reference_leaves(real):
 
 
 def test_mirrored_tree_keeps_anatomical_sides(real, tmp_path):
-    from conftest import REAL_TREE
-
     from bronchocli.anatomy.readers import graph_arrays
 
     points, radii, edges = graph_arrays(REAL_TREE)
@@ -80,8 +79,6 @@ def test_mirrored_tree_keeps_anatomical_sides(real, tmp_path):
 
 
 def test_lobe_generation_cut(real):
-    from conftest import REAL_TREE
-
     cut = load_anatomy(REAL_TREE, lobe_generation=5)
     for lobe, p in cut.lobe_paths.items():
         assert p.generation == min(5, real.lobe_paths[lobe].generation)
