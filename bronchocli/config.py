@@ -82,6 +82,7 @@ class Generate(Section):
     patients: int = Field(3, ge=1)  # procedural patients (seeds seed, seed+1, ...)
     seed: int = 0
     lobes: list[Lobe] = list(LOBES)
+    lobe_generation: int | None = Field(6, ge=2)  # lobe paths end at this generation (paper: 4-6); None: deepest
     trajectories: int = Field(6, ge=1)  # per patient and lobe
     image_size: int = Field(64, ge=16, le=1024)
     fov_deg: float = Field(70.0, gt=10, lt=170)

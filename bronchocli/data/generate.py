@@ -151,7 +151,8 @@ def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientP
     """Load one anatomy, write its centreline graph and render-ready surface, plan its trajectories."""
     from ..anatomy import centreline_distance, load_anatomy, save_centreline  # noqa: PLC0415
 
-    tree = load_anatomy(source.anatomy, seed=source.seed, voxel_mm=gen.voxel_mm, centreline=source.centreline)
+    tree = load_anatomy(source.anatomy, seed=source.seed, voxel_mm=gen.voxel_mm, centreline=source.centreline,
+                        lobe_generation=gen.lobe_generation)
     missing = [lb for lb in gen.lobes if lb not in tree.lobe_paths]
     if missing:
         raise DataError(f"{source.anatomy}: no lobe path for {', '.join(missing)} "

@@ -285,6 +285,8 @@ def train_and_evaluate(cfg: Config, cell: Cell, data: PreparedData, client, run_
     metrics |= {
         "n_params": float(n_params), "train.time_s": train_time, "train.epochs": float(trainer.current_epoch),
         "train.pairs_per_s": module.pairs_seen / max(train_time, 1e-9),
+        "train.step_time_s": module.step_time,
+        "train.val_time_s": module.val_time,
         "best_val_loss": float(best.best_model_score) if best.best_model_score is not None else float("nan"),
     }
     tracking.log_metrics(client, run_id, metrics)

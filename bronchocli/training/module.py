@@ -14,6 +14,7 @@ accumulation; K > 1 and accum = 1 is the classic TBPTT of Lightning 1.x.
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import lightning.pytorch as pl
@@ -56,6 +57,8 @@ class PoseModule(pl.LightningModule):
         self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 1, 3, 1, 1))
         self._backwards = 0  # chunks back-propagated since the last optimiser step
         self.pairs_seen = 0  # training pairs processed by this process (throughput figure)
+        self.step_time = 0.0  # seconds inside training steps (forward, backward, optimiser)
+        self.val_time = 0.0  # seconds inside validation steps
 
     # -- inputs ---------------------------------------------------------------
     def prepare(self, frames: torch.Tensor) -> torch.Tensor:
@@ -75,6 +78,7 @@ class PoseModule(pl.LightningModule):
             )
 
     def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        t0 = time.perf_counter()
         x = self.prepare(batch["frames"])
         labels = batch["labels"].to(self.device).float()
         n_pairs = labels.shape[1]
@@ -92,6 +96,7 @@ class PoseModule(pl.LightningModule):
             state = detach_state(state)
             total, parts = total + loss.detach(), parts + 1
         self.pairs_seen += labels.shape[0] * n_pairs
+        self.step_time += time.perf_counter() - t0
         self.log("train_loss", total / parts, on_step=False, on_epoch=True, prog_bar=True, batch_size=labels.shape[0])
 
     def _step(self, opt) -> None:
@@ -108,6 +113,7 @@ class PoseModule(pl.LightningModule):
         self.log("lr", self.optimizers().param_groups[0]["lr"], on_epoch=True)
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> None:
+        t0 = time.perf_counter()
         out, _ = self(batch["frames"])
         labels = batch["labels"].to(self.device).float()
         out = out.float()
@@ -115,6 +121,7 @@ class PoseModule(pl.LightningModule):
         self.log("val_loss", metrics.pose_loss(out, labels, self.rot_loss, self.rot_weight), prog_bar=True, batch_size=n)
         for name in VAL_METRICS:
             self.log(f"val.{name}", metrics.METRICS[name](out, labels).mean(), batch_size=n)
+        self.val_time += time.perf_counter() - t0
 
     def configure_optimizers(self):
         # The fused kernel is ~5x faster than the per-tensor loop on CPU (benchmarks/README.md).

@@ -82,7 +82,9 @@ def test_ground_truth_is_consistent(reference):
     from bronchocli.anatomy import load_anatomy
 
     meta = json.loads((reference / "dataset.json").read_text())
-    tree = load_anatomy("procedural", seed=meta["anatomy"]["p00"]["seed"], voxel_mm=meta["generator"]["voxel_mm"])
+    gen = meta["generator"]
+    tree = load_anatomy("procedural", seed=meta["anatomy"]["p00"]["seed"], voxel_mm=gen["voxel_mm"],
+                        lobe_generation=gen["lobe_generation"])
     assert check_ground_truth(reference, "p00", tree) == meta["counts"]["frames"]
 
 

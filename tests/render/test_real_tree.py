@@ -15,7 +15,7 @@ def test_real_tree_renders_along_four_lobe_paths(real_tree, tmp_path):
     from bronchocli.anatomy import load_anatomy
     from bronchocli.data.generate import generate_dataset
 
-    tree = load_anatomy(real_tree, voxel_mm=1.0)
+    tree = load_anatomy(real_tree, voxel_mm=1.0, lobe_generation=Config(name="x").dataset.generate.lobe_generation)
     assert set(tree.lobe_paths) == {"ur", "br", "ul", "bl"}
     assert all(p.arc_length[-1] > 80 for p in tree.lobe_paths.values())
     cfg = Config(name="real").with_values({
