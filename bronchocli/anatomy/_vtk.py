@@ -142,3 +142,23 @@ def captured_vtk_errors() -> Iterator[list[str]]:
             lines = [ln.strip() for ln in block.splitlines() if ln.strip()]
             if len(lines) >= 2 and lines[0].startswith("ERROR"):  # warnings are dropped
                 messages.append(re.sub(r" \(0x[0-9a-f]+\)", "", lines[1]))
+
+
+def write_polydata(poly: vtkPolyData, path, what: str = "surface") -> None:
+    """Write ``poly`` as binary VTK XML (.vtp) atomically (temp name + os.replace); DataError on failure."""
+    from pathlib import Path
+
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+    from ..errors import DataError
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    writer = vtkXMLPolyDataWriter()
+    writer.SetFileName(str(tmp))
+    writer.SetInputData(poly)
+    writer.SetDataModeToBinary()
+    if not writer.Write():
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"{path}: could not write the {what}")
+    os.replace(tmp, path)

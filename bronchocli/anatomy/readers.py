@@ -9,7 +9,6 @@ around the airway. Volume and mesh trees carry their own lumen surface
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -343,9 +342,8 @@ def save_centreline(tree: AirwayTree, path: str | Path) -> Path:
     cell ``branch``, ``generation``, ``parent``), atomically. ``load_anatomy`` reads it back."""
     from vtkmodules.vtkCommonCore import vtkPoints  # noqa: PLC0415
     from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData  # noqa: PLC0415
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter  # noqa: PLC0415
 
-    from ._vtk import numpy_to_vtk, numpy_to_vtkIdTypeArray  # noqa: PLC0415
+    from ._vtk import numpy_to_vtk, numpy_to_vtkIdTypeArray, write_polydata  # noqa: PLC0415
 
     path = Path(path)
     pts = np.concatenate([b.points for b in tree.branches])
@@ -368,13 +366,6 @@ def save_centreline(tree: AirwayTree, path: str | Path) -> Path:
         arr = numpy_to_vtk(np.asarray(values, dtype=np.int32), deep=True)
         arr.SetName(name)
         poly.GetCellData().AddArray(arr)
-    tmp = path.with_name(path.name + ".tmp")
-    writer = vtkXMLPolyDataWriter()
-    writer.SetFileName(str(tmp))
-    writer.SetInputData(poly)
-    writer.SetDataModeToBinary()
-    if not writer.Write():
-        raise DataError(f"{path}: could not write the centreline")
-    os.replace(tmp, path)
+    write_polydata(poly, path, "centreline")
     return path
 

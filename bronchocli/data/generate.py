@@ -183,13 +183,12 @@ def _surface_path(root: str | Path, patient: str) -> Path:
 
 def _write_surface(tree, gen: Generate, source: PatientSource, path: Path) -> None:
     from ..anatomy import lumen_surface  # noqa: PLC0415
-    from ..render.surface import prepare_surface, write_polydata  # noqa: PLC0415
+    from ..anatomy._vtk import write_polydata  # noqa: PLC0415
+    from ..render.surface import prepare_surface  # noqa: PLC0415
 
     surface = prepare_surface(lumen_surface(tree, voxel_mm=gen.voxel_mm), texture=gen.realism.texture,
                               seed=abs(gen.seed) * 1000 + source.index)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    write_polydata(surface, tmp)
-    os.replace(tmp, path)
+    write_polydata(surface, path)
 
 
 # -- execution: in-process or a pool of spawned workers -------------------------------------

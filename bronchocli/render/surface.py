@@ -27,7 +27,7 @@ from vtkmodules.util.numpy_support import (  # noqa: E402
 from vtkmodules.vtkCommonCore import vtkPoints  # noqa: E402
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData  # noqa: E402
 from vtkmodules.vtkFiltersCore import vtkPolyDataNormals, vtkTriangleFilter  # noqa: E402
-from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLPolyDataWriter  # noqa: E402
+from vtkmodules.vtkIOXML import vtkXMLPolyDataReader  # noqa: E402
 
 AIRWAY_RGB = (0.96, 0.60, 0.48)  # diffuse mucosa colour (DESIGN §7)
 VESSEL_RGB = (0.62, 0.18, 0.20)  # darker red for the vessel network of the texture
@@ -165,16 +165,6 @@ def split_blocks(poly: vtkPolyData, blocks: int) -> list[vtkPolyData]:
         groups += [order[: len(order) // 2], order[len(order) // 2:]]
     groups.sort(key=lambda g: int(g.min()))  # stable actor order
     return [_subset(poly, pts, tris[np.sort(g)]) for g in groups]
-
-
-def write_polydata(poly: vtkPolyData, path: Path) -> None:
-    """Write ``poly`` as binary VTK XML (.vtp); the caller makes it atomic (temp name + os.replace)."""
-    writer = vtkXMLPolyDataWriter()
-    writer.SetFileName(str(path))
-    writer.SetInputData(poly)
-    writer.SetDataModeToBinary()
-    if not writer.Write():
-        raise OSError(f"{path}: could not write the surface")
 
 
 def read_polydata(path: Path) -> vtkPolyData:
