@@ -66,6 +66,8 @@ def train(
         console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
         raise typer.Exit(1)
     m = result.metrics
+    if result.stop_requested:
+        console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
     console.print(
         f"run {result.run_id} FINISHED in {result.duration_s:.1f} s — "
         f"pair pos L2 {m['pair.pos_l2.mean']:.3f} vox, pair CE {m['pair.ce.mean']:.4f}, "

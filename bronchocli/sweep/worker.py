@@ -250,6 +250,8 @@ class Worker:
         self.stats.runner_s += elapsed
         if result is not None:  # a signal that lands just after the runner returned: record the result first
             error = None  # (the stop request itself is kept in self.signals and ends the loop)
+            if getattr(result, "stop_requested", None) and self.signals.requested is None:
+                self.signals.requested = result.stop_requested  # arrived while the run was evaluating
         run_id = getattr(result, "run_id", None) or seen.get("run_id")
         try:
             outcome = self._record(claim, cell, result, error, run_id, elapsed, hb.lost)

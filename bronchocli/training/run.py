@@ -43,6 +43,7 @@ class RunResult:
     failure_reason: str | None = None
     duration_s: float = 0.0
     train_time_s: float = 0.0
+    stop_requested: int | None = None  # a SIGINT/SIGTERM that arrived during evaluation: the caller should stop
 
 
 class _StopFlag:
@@ -150,6 +151,7 @@ def run_cell(
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
     client.set_terminated(run_id, "FINISHED")
+    # A signal after training (during evaluation) let the run finish; it is passed on, not lost.
     return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
-                     train_time_s=outcome.train_time_s)
+                     train_time_s=outcome.train_time_s, stop_requested=flag.signal)
 

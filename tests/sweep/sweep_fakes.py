@@ -33,6 +33,7 @@ class FakeResult:
     failure_reason: str | None = None
     duration_s: float = 0.0
     train_time_s: float = 0.0
+    stop_requested: int | None = None
 
 
 class FakeInterrupted(BronchoError):

@@ -125,3 +125,19 @@ def test_a_worker_that_cannot_record_its_outcome_does_not_leave_a_finished_run(m
         Worker(cfg, plan.cells, store, fake_runner).run()
     assert runs_by_cell(cfg, "FINISHED") == {} and runs_by_cell(cfg, "KILLED") == {plan.cells[0].key: 1}
     assert store.rows(cfg.name)[0].state == "running"  # goes stale, and another worker takes it over
+
+
+def test_a_stop_that_arrived_while_the_run_was_evaluating_is_obeyed_after_recording_it(make_config, fake_dir):
+    import signal
+    from dataclasses import replace
+
+    cfg = make_config(archs=("baseline", "lstm"))
+    store, plan = setup(cfg)
+
+    def stopped_during_evaluation(cfg, cell, **kw):
+        return replace(fake_runner(cfg, cell, **kw), stop_requested=signal.SIGTERM)
+
+    assert Worker(cfg, plan.cells, store, stopped_during_evaluation).run() == 130
+    states = sorted(r.state for r in store.rows(cfg.name))
+    assert states.count(FINISHED) == 1  # the finished run is recorded, and no further cell is started
+    assert len(runs_by_cell(cfg)) == 1
