@@ -2,7 +2,7 @@
 
     python benchmarks/bench_surface.py [--voxel 0.5] [--seeds 0 1 2] [--repeat 3]
 
-For the real CT-derived tree (../shared/data/airways) and a few procedural
+For the real CT-derived tree (tests/fixtures/airways, a copy of ../shared/data/airways) and a few procedural
 patients: time to load the anatomy (tree + lobe paths), then each stage of
 ``lumen_surface`` - the round-cone signed distance, Flying Edges, largest piece,
 windowed-sinc smoothing, decimation to the triangle budget, cleaning/normals -
@@ -22,7 +22,7 @@ from bronchocli.anatomy import centreline_distance, load_anatomy
 from bronchocli.anatomy import surface as S
 from bronchocli.anatomy.sdf import lumen_sdf_grid
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "airways" / "TestSubject002MajorAirways.vtu"
+REAL = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirways.vtu"
 
 
 def best_of(repeat: int, fn):
