@@ -228,6 +228,10 @@ def _batch_cap(max_pairs: int | None, cfg: Config, ds) -> int | None:
 
 
 def _trainer(cfg: Config, callbacks: list, progress: bool, cuda: bool, train_batches: int | None) -> pl.Trainer:
+    if progress:
+        from lightning.pytorch.callbacks import RichProgressBar
+
+        callbacks = [*callbacks, RichProgressBar(leave=True)]
     devices = cfg.train.devices if cuda else 1
     accelerator = "cpu" if cfg.train.device == "cpu" else ("auto" if cfg.train.device == "auto" else cfg.train.device)
     return pl.Trainer(
