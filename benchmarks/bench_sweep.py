@@ -2,7 +2,7 @@
 
     python benchmarks/bench_sweep.py [--cells 5 40] [--workers 1 2] [--storage URL] [--real]
 
-Runs the real command (`bronchopose sweep --runner bench_sweep:noop_runner`) in a
+Runs the real command (`bronchopose sweep --runner sweep_fakes:noop_runner`, the tests' no-op runner) in a
 subprocess on a fresh sweep, with a no-op runner that only creates and finishes
 an MLflow run (inside-runner time, recorded per cell in the claims table). For
 each worker count it runs two sweep sizes and reports
@@ -30,31 +30,9 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+FAKES = HERE.parent / "tests" / "sweep"  # sweep_fakes.noop_runner: the zero-work cell the tests use too
 sys.path.insert(0, str(HERE.parent / "tests"))
 ARCHS = ["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
-
-
-def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
-    """The zero-work cell: one MLflow run created and finished (what every real run also does)."""
-    from dataclasses import dataclass
-
-    from bronchocli import tracking
-
-    @dataclass
-    class Result:
-        run_id: str
-        status: str
-        failure_reason: str | None = None
-        duration_s: float = 0.0
-
-    t0 = time.perf_counter()
-    client = tracking.client_for(cfg)
-    run_id = client.create_run(tracking.experiment_id(client, cfg),
-                               tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
-    if run_id_callback:
-        run_id_callback(run_id)
-    client.set_terminated(run_id, "FINISHED")
-    return Result(run_id, "FINISHED", duration_s=time.perf_counter() - t0)
 
 
 def write_config(root: Path, storage: str, real: bool) -> Path:
@@ -87,7 +65,7 @@ def sweep(config: Path, name: str, cells: int, workers: int, runner: str | None,
     args = ["--set", f"name={name}", "--set", f"grid.seed={seeds}", "--workers", str(workers), *extra]
     if runner:
         args += ["--runner", runner]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FAKES), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code, "sweep", "-c", str(config), *args], capture_output=True,
@@ -128,7 +106,7 @@ def main() -> None:
             points = []
             for cells in args.cells:
                 n += 1
-                wall, inside = sweep(config, f"bench{n}", cells, workers, "bench_sweep:noop_runner", [])
+                wall, inside = sweep(config, f"bench{n}", cells, workers, "sweep_fakes:noop_runner", [])
                 points.append((cells, wall, inside, wall - inside / workers))
             (c1, _, _, o1), (c2, _, _, o2) = points
             per_cell = (o2 - o1) / (c2 - c1)

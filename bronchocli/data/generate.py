@@ -116,16 +116,23 @@ def _differences(a: dict, b: dict) -> list[str]:
 # -- root state -----------------------------------------------------------------------------
 
 
+def _mismatch(stored: dict, want: dict) -> list[str] | None:
+    """None when ``stored`` (dataset.json or the work manifest) was made with this config and generator,
+    else the generate keys that differ."""
+    have = _signature(stored.get("generator"))
+    if have == want and stored.get("generator_version") == GENERATOR_VERSION:
+        return None
+    return _differences(have, want) or ["generator_version"]
+
+
 def _check_root(root: Path, record: dict) -> str:
     """'complete', 'resume' or 'fresh'; DataError if ``root`` holds something generated otherwise."""
     meta_path = root / DATASET_JSON
     want = _signature(record)
     if meta_path.is_file():
-        meta = json.loads(meta_path.read_text())
-        have = _signature(meta.get("generator"))
-        if have == want and meta.get("generator_version") == GENERATOR_VERSION:
+        diff = _mismatch(json.loads(meta_path.read_text()), want)
+        if diff is None:
             return "complete"
-        diff = _differences(have, want) or ["generator_version"]
         raise DataError(f"{root}: holds a complete dataset generated with a different config "
                         f"(differs in generate.{', generate.'.join(diff)}); choose another --out/dataset.root or delete it")
     if not root.exists():
@@ -133,11 +140,9 @@ def _check_root(root: Path, record: dict) -> str:
     manifest = root / WORK_DIR / MANIFEST
     what = "files that are not a bronchopose dataset"
     if manifest.is_file():
-        stored = json.loads(manifest.read_text())
-        have = _signature(stored.get("generator"))
-        if have == want and stored.get("generator_version") == GENERATOR_VERSION:
+        diff = _mismatch(json.loads(manifest.read_text()), want)
+        if diff is None:
             return "resume"
-        diff = _differences(have, want) or ["generator_version"]
         what = f"a partial dataset of a different config (differs in generate.{', generate.'.join(diff)})"
     if any(p.name not in OURS for p in root.iterdir()):
         raise DataError(f"{root}: holds {what}; choose another --out/dataset.root or delete it")
