@@ -14,7 +14,7 @@ import time
 
 import torch
 
-from bronchocli import profiling
+from bronchocli.models import profile as profiling
 from bronchocli.models import ARCHITECTURES
 
 

@@ -33,14 +33,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bronchocli.config import Generate, Realism, load_config  # noqa: E402
-from bronchocli.render.worker import RenderTask, init_worker, run_task  # noqa: E402
+from bronchocli.render.tasks import RenderTask, init_worker, run_task  # noqa: E402
 
 
 def build(anatomy: str, work: Path) -> tuple[Path, list]:
     """The prepared lumen surface (.vtp) and one planned trajectory per lobe."""
     from bronchocli.anatomy import centreline_distance, load_anatomy, lumen_surface
-    from bronchocli.data.synth import PathSampler, plan_lobe
-    from bronchocli.render.surface import prepare_surface, write_polydata
+    from bronchocli.generation.trajectories import PathSampler, plan_lobe
+    from bronchocli.render.appearance import prepare_surface, write_polydata
 
     tree = load_anatomy(anatomy, seed=0, voxel_mm=0.5)
     surface = prepare_surface(lumen_surface(tree, voxel_mm=0.5), texture=True, seed=0)
@@ -58,7 +58,7 @@ def build(anatomy: str, work: Path) -> tuple[Path, list]:
 
 def render_only(surface: Path, plans: list, size: int) -> float:
     from bronchocli.render.scene import FrameRenderer
-    from bronchocli.render.surface import read_polydata
+    from bronchocli.render.appearance import read_polydata
 
     with FrameRenderer(read_polydata(surface), width=size, realism=Realism()) as r:
         r.render(plans[0].position_mm[0], plans[0].rotation[0], plans[0].radius_mm[0])  # warm-up (shaders)
@@ -78,7 +78,7 @@ def _tasks(surface: Path, plans: list, size: int, out: Path) -> list[RenderTask]
 
 def _worker_pass(tasks: list[RenderTask], start_at: float) -> tuple[float, float, int]:
     """Build the renderer, wait for the common start time, then run the tasks; returns (start, end, frames)."""
-    from bronchocli.render.worker import _renderer  # noqa: PLC0415
+    from bronchocli.render.tasks import _renderer  # noqa: PLC0415
 
     _renderer(tasks[0])
     while time.time() < start_at:
@@ -112,7 +112,7 @@ def end_to_end(surface: Path, plans: list, size: int, workers: int, out: Path) -
 def default_dataset(out: Path) -> tuple[float, dict]:
     import json
 
-    from bronchocli.data.generate import generate_dataset
+    from bronchocli.generation.pipeline import generate_dataset
 
     cfg = load_config(REPO / "experiments.yaml")
     start = time.perf_counter()

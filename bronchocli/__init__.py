@@ -1,6 +1,9 @@
 """bronchopose: vision-based bronchoscopy pose estimation research platform."""
 
+import os
 from importlib.metadata import PackageNotFoundError, version
+
+os.environ.setdefault("MPLBACKEND", "Agg")  # figures are files: never ask for a display
 
 try:
     __version__ = version("bronchocli")

@@ -10,8 +10,8 @@ from rich.text import Text
 from . import __version__
 from .commands import config as config_cmd
 from .commands import data as data_cmd
-from .commands import report as report_cmd
 from .commands import profile as profile_cmd
+from .commands import report as report_cmd
 from .commands import status as status_cmd
 from .commands import sweep as sweep_cmd
 from .commands import train as train_cmd

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import itertools
 import json
 import os
 import re
@@ -27,21 +28,11 @@ from pathlib import Path
 from typing import Any, Literal, Sequence
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
+from . import cells, urls
+from .cells import ARCHS, LOBES, POPULATIONS, ROT_LOSSES, Arch, Cell, Lobe, Population, PoseFrame, RotLoss
 from .errors import ConfigError
-
-ARCHS: tuple[str, ...] = ("baseline", "lstm", "convlstm", "conv3d", "offsetnet")
-ROT_LOSSES: tuple[str, ...] = ("mse", "de", "ce")
-POPULATIONS: tuple[str, ...] = ("personalized", "cross-subject")
-POSE_FRAMES: tuple[str, ...] = ("world", "camera")
-LOBES: tuple[str, ...] = ("ur", "br", "ul", "bl")
-
-Arch = Literal["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
-RotLoss = Literal["mse", "de", "ce"]
-Population = Literal["personalized", "cross-subject"]
-PoseFrameName = Literal["world", "camera"]
-Lobe = Literal["ur", "br", "ul", "bl"]
 
 DEFAULT_CONFIG = "experiments.yaml"
 
@@ -59,8 +50,8 @@ class Tracking(Section):
     uri: str = "sqlite:///runs/mlflow.db"  # any MLflow tracking URI; ${VAR} is expanded
     experiment: str | None = None  # MLflow experiment name; defaults to the config's name
     artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
-    checkpoints: str = "runs/checkpoints"  # Lightning checkpoints, one folder per MLflow run
-    log_checkpoint: bool = True  # also log the best checkpoint as an MLflow artifact
+    checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
+    model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
 
 
 class Storage(Section):
@@ -168,20 +159,37 @@ class Grid(Section):
     rot_loss: list[RotLoss] = list(ROT_LOSSES)
     population: list[Population] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
-    seed: list[int] = [0]
-    pose_frame: list[PoseFrameName] = ["world"]
+    seed: list[int] = [0, 1, 2]
+    pose_frame: list[PoseFrame] = ["world"]
+    train_trajectories: list[int | None] = [None]  # training trajectories per patient and lobe (None: splits.train)
 
-    _wrap = field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "folds", mode="before")(
-        lambda v: v if v == "all" else _listify(v)
-    )
+    _wrap = field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "folds", "train_trajectories",
+                            mode="before")(lambda v: v if v == "all" else _listify(v))
+
+    @field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "train_trajectories")
+    @classmethod
+    def _not_empty(cls, v: list) -> list:
+        if not v:
+            raise ValueError("must list at least one value (an empty axis makes an empty grid)")
+        if len(set(map(str, v))) != len(v):
+            raise ValueError("lists a value twice")
+        return v
+
+    @field_validator("train_trajectories")
+    @classmethod
+    def _positive(cls, v: list) -> list:
+        if any(n is not None and n < 1 for n in v):
+            raise ValueError("every value must be >= 1 (or null for splits.train)")
+        return v
 
 
 class DataCfg(Section):
     image_size: int | None = Field(None, ge=16, le=1024)  # network input; None = the dataset's
     window: int = Field(10, ge=1)  # L image pairs per training window of temporal models
     overlap: int = Field(0, ge=0)  # pairs shared by consecutive windows
-    workers: int = Field(2, ge=0)  # DataLoader worker processes
+    workers: int = Field(0, ge=0)  # frame cache decoding threads (0: one per core, at most 8)
     cache_dir: str = "runs/cache"  # decoded-frame cache (uint8, memory-mapped)
+    frames_on_device: Literal["auto", "yes", "no"] = "auto"  # CUDA: keep the whole frame cache in GPU memory
     augment: bool = False  # photometric augmentation of training frames
 
     @field_validator("overlap")
@@ -200,23 +208,33 @@ class ModelCfg(Section):
 
 
 class Train(Section):
-    lr: float = Field(1e-4, gt=0)
-    weight_decay: float = Field(0.0, ge=0)
-    lr_decay: float = Field(1.0, gt=0, le=1)  # exponential decay factor per epoch
-    batch_size: int = Field(16, ge=1)  # samples (pairs or windows) per optimiser micro-batch
-    effective_batch: int | None = Field(None, ge=1)  # gradient accumulation up to this many samples
-    max_epochs: int = Field(2, ge=1)
-    min_epochs: int = Field(1, ge=0)
-    patience: int = Field(3, ge=1)  # early stopping on validation loss
+    """The training budget and optimiser; docs/training.md explains each choice."""
+
+    steps: int = Field(400, ge=1)  # optimiser steps: the budget, identical for every cell of a sweep
+    batch_size: int = Field(20, ge=1)  # image pairs per micro-batch (temporal models: batch_size / window windows)
+    effective_batch: int | None = Field(None, ge=1)  # image pairs per optimiser step (gradient accumulation)
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(0.0, ge=0)  # > 0: AdamW (decoupled), else Adam
+    warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
+    schedule: Literal["cosine", "constant"] = "cosine"  # after the warm-up
+    val_every: int = Field(50, ge=1)  # steps between validations (best weights, early stopping, pruning)
+    patience: int | None = Field(None, ge=1)  # validations without improvement before stopping; None: never
     min_delta: float = Field(0.0, ge=0)
+    standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
+    bn_recalibrate: int = Field(16, ge=0)  # training batches that re-estimate BatchNorm statistics per validation
     tbptt_chunks: int = Field(1, ge=1)  # K chunks of L pairs per training sequence
     rot_weight: float = Field(1.0, ge=0)
     precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
-    devices: int = Field(1, ge=1)
-    max_train_pairs: int | None = Field(None, ge=1)  # cap on training pairs per epoch (quick runs), any arch
-    max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs per epoch
+    max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs (evenly spread, the same every time)
     threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
+
+    @model_validator(mode="after")
+    def _accumulation(self) -> "Train":
+        if self.effective_batch is not None and self.effective_batch % self.batch_size:
+            raise ValueError(f"effective_batch ({self.effective_batch}) must be a multiple of batch_size "
+                             f"({self.batch_size}): each optimiser step sums whole micro-batches")
+        return self
 
 
 class TuneParam(Section):
@@ -234,7 +252,7 @@ class Tune(Section):
     sampler: Literal["tpe", "random"] = "tpe"
     seed: int = 0
     pruner: Literal["median", "hyperband", "none"] = "median"
-    warmup_epochs: int = Field(1, ge=0)  # epochs a trial always runs before it may be pruned
+    warmup_validations: int = Field(1, ge=0)  # validations a trial always runs before it may be pruned
     startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
     applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
     space: dict[str, TuneParam] = {
@@ -259,6 +277,40 @@ class SweepCfg(Section):
         return v
 
 
+@dataclass(frozen=True)
+class Paths:
+    """Every path and URL of a config, resolved once (``${VAR}``, ``~``, relative to the config's folder)."""
+
+    base: Path
+    dataset: Path
+    cache: Path
+    checkpoints: Path
+    artifacts: Path
+    sweep_logs: Path
+    pretrained: Path | None
+    anatomy: Path | None  # None: procedural
+    centreline: Path | None
+    tracking_uri: str
+    storage_url: str
+
+    @classmethod
+    def of(cls, cfg: "Config", base: Path) -> "Paths":
+        def path(p: str | None) -> Path | None:
+            if p is None:
+                return None
+            q = Path(os.path.expandvars(p)).expanduser()
+            return q if q.is_absolute() else (base / q).resolve()
+
+        gen = cfg.dataset.generate
+        return cls(
+            base=base, dataset=path(cfg.dataset.root), cache=path(cfg.data.cache_dir),
+            checkpoints=path(cfg.tracking.checkpoints), artifacts=path(cfg.tracking.artifacts),
+            sweep_logs=path(cfg.sweep.logs), pretrained=path(cfg.model.pretrained),
+            anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy), centreline=path(gen.centreline),
+            tracking_uri=urls.resolve(cfg.tracking.uri, base), storage_url=urls.resolve(cfg.storage.url, base),
+        )
+
+
 class Config(Section):
     name: str
     tracking: Tracking = Tracking()
@@ -273,7 +325,7 @@ class Config(Section):
     sweep: SweepCfg = SweepCfg()
     profiles: dict[str, dict[str, Any]] = {}
 
-    _base: Path = PrivateAttr(default_factory=Path.cwd)
+    _paths: Paths | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="<memory>")
     _profile: str | None = PrivateAttr(default=None)
 
@@ -284,37 +336,25 @@ class Config(Section):
             raise ValueError("must start with a letter or digit and use only letters, digits, '.', '_', '-'")
         return v
 
-    # -- paths and URLs ------------------------------------------------------
     @property
-    def base_dir(self) -> Path:
-        return self._base
+    def paths(self) -> Paths:
+        """Every path and URL, resolved against the config file's folder when it was loaded."""
+        if self._paths is None:
+            self._paths = Paths.of(self, Path.cwd())
+        return self._paths
 
     @property
     def profile(self) -> str | None:
         return self._profile
 
-    def resolve(self, path: str | os.PathLike) -> Path:
-        """A path from the config, made absolute against the config file's directory."""
-        p = Path(os.path.expandvars(os.fspath(path))).expanduser()
-        return p if p.is_absolute() else (self._base / p).resolve()
-
-    def resolve_url(self, url: str) -> str:
-        """Expand ${VAR}s and make a relative ``sqlite:///`` path absolute."""
-        url = os.path.expandvars(url)
-        m = re.match(r"^(sqlite(?:\+\w+)?:///)(?!/)(.+)$", url)
-        return f"{m.group(1)}{self.resolve(m.group(2))}" if m else url
-
-    @property
-    def tracking_uri(self) -> str:
-        return self.resolve_url(self.tracking.uri)
-
-    @property
-    def storage_url(self) -> str:
-        return self.resolve_url(self.storage.url)
-
     @property
     def experiment_name(self) -> str:
         return self.tracking.experiment or self.name
+
+    def cell(self, **coords: Any) -> Cell:
+        """A validated cell of this config, with its key (ConfigError naming the bad field otherwise)."""
+        bare = cells.make(**coords)
+        return bare.model_copy(update={"key": cell_key(self, bare.coords())})
 
     def dump(self) -> dict[str, Any]:
         """The resolved config as plain data (profiles dropped: they are already applied)."""
@@ -323,14 +363,15 @@ class Config(Section):
         return data
 
     def to_yaml(self) -> str:
-        return yaml.safe_dump(self.dump(), sort_keys=False)
+        """The config as YAML, every URL password shown as ``***``."""
+        return urls.redact(yaml.safe_dump(self.dump(), sort_keys=False))
 
     def with_values(self, values: dict[str, Any]) -> "Config":
         """A validated copy with dotted-path values set, e.g. ``{"train.lr": 1e-3}``."""
         raw = self.model_dump(mode="json")
         for key, value in values.items():
             _set_path(raw, key, value, where=f"override {key}")
-        return _validate(raw, self._source, {}, self._base, self._profile)
+        return _validate(raw, self._source, {}, self.paths.base, self._profile)
 
 
 # -- loading ------------------------------------------------------------------
@@ -443,7 +484,8 @@ def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: P
         cfg = Config.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(_format_errors(exc, source, lines)) from None
-    cfg._base, cfg._source, cfg._profile = base, source, profile
+    cfg._source, cfg._profile = source, profile
+    cfg._paths = Paths.of(cfg, base)
     return cfg
 
 
@@ -475,34 +517,13 @@ def load_config(
 # -- grid ---------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Cell:
-    """One run of the grid: what to train, on which population and fold."""
-
-    arch: str
-    rot_loss: str
-    population: str
-    fold: str | None  # held-out patient for cross-subject; None for personalized
-    seed: int
-    pose_frame: str
-    key: str  # stable hash of the above and of the run-defining config
-
-    @property
-    def label(self) -> str:
-        fold = f"/{self.fold}" if self.fold else ""
-        return f"{self.arch}/{self.rot_loss}/{self.population}{fold}/s{self.seed}/{self.pose_frame}"
-
-    def coords(self) -> dict[str, Any]:
-        return {k: getattr(self, k) for k in ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")}
-
-
 # Sections that change what a run computes; tracking, storage, tune, sweep and
 # profiles do not, so moving the MLflow store never invalidates finished cells.
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 
 
 # Settings that change how fast a run goes, not what it computes.
-NOT_IN_KEY = (("train", "threads"), ("data", "workers"), ("data", "cache_dir"))
+NOT_IN_KEY = (("train", "threads"), ("data", "workers"), ("data", "cache_dir"), ("data", "frames_on_device"))
 
 
 def run_signature(cfg: Config) -> dict[str, Any]:
@@ -516,12 +537,6 @@ def run_signature(cfg: Config) -> dict[str, Any]:
 def cell_key(cfg: Config, coords: dict[str, Any]) -> str:
     blob = json.dumps({"cell": coords, "config": run_signature(cfg)}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def make_cell(cfg: Config, arch: str, rot_loss: str, population: str, fold: str | None,
-              seed: int, pose_frame: str) -> Cell:
-    coords = dict(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed, pose_frame=pose_frame)
-    return Cell(**coords, key=cell_key(cfg, coords))
 
 
 def expand_grid(cfg: Config, patients: Sequence[str] | None = None) -> list[Cell]:
@@ -542,12 +557,11 @@ def expand_grid(cfg: Config, patients: Sequence[str] | None = None) -> list[Cell
             unknown = [f for f in folds if patients is not None and f not in patients]
             if unknown:
                 raise ConfigError(f"grid.folds: {unknown} not in the dataset's patients ({', '.join(patients)})")
-    cells = []
+    out = []
     for population in g.population:
         for fold in (folds if population == "cross-subject" else [None]):
-            for arch in g.arch:
-                for rot_loss in g.rot_loss:
-                    for seed in g.seed:
-                        for frame in g.pose_frame:
-                            cells.append(make_cell(cfg, arch, rot_loss, population, fold, seed, frame))
-    return cells
+            for arch, rot_loss, size, seed, frame in itertools.product(g.arch, g.rot_loss, g.train_trajectories,
+                                                                        g.seed, g.pose_frame):
+                out.append(cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                                    pose_frame=frame, train_trajectories=size))
+    return out

@@ -114,13 +114,27 @@ ROT_LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
 }
 
 
-def pose_loss(pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float = 1.0) -> torch.Tensor:
-    """Training loss L_pos(MSE) + w * L_rot, averaged over every pose in the batch."""
+def pose_loss(pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float = 1.0,
+              scale: torch.Tensor | None = None) -> torch.Tensor:
+    """Training loss L_pos(MSE) + w * L_rot, averaged over every pose in the batch.
+
+    ``scale`` (6,): divide the position errors, and the rotation errors of the MSE
+    rotation loss, by these (the training labels' std when labels are standardised),
+    so each component weighs the same whatever its unit. DE and CE are bounded
+    angular losses and are never scaled.
+    """
     try:
         rot = ROT_LOSSES[rot_loss]
     except KeyError:
         raise ValueError(f"rotation loss {rot_loss!r} is not one of {', '.join(ROT_LOSSES)}") from None
-    return pos_mse(pred, gt).mean() + rot_weight * rot(pred, gt).mean()
+    if scale is None:
+        return pos_mse(pred, gt).mean() + rot_weight * rot(pred, gt).mean()
+    pos = ((_pos_err(pred, gt) / scale[:3]) ** 2).mean(-1)
+    if rot_loss == "mse":
+        rot_term = ((_rot_err(pred, gt) / scale[3:]) ** 2).mean(-1)
+    else:
+        rot_term = rot(pred, gt)
+    return pos.mean() + rot_weight * rot_term.mean()
 
 
 @dataclass(frozen=True)

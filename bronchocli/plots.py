@@ -1,37 +1,11 @@
-"""Matplotlib figures shared by training artifacts and reports (Agg backend, PNG/PDF, atomic writes)."""
+"""Matplotlib figures shared by training artifacts and reports (saved with ``io.save_figure``)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
-from pathlib import Path
 from typing import Mapping, Sequence
 
+import matplotlib.pyplot as plt
 import numpy as np
-
-os.environ.setdefault("MPLBACKEND", "Agg")
-
-
-def save_figure(fig, path: Path, formats: Sequence[str] = ("png",), dpi: int = 130) -> list[Path]:
-    """Save ``fig`` as ``path`` with each suffix in ``formats``, atomically; returns the files."""
-    import matplotlib.pyplot as plt
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    written = []
-    for fmt in formats:
-        target = path.with_suffix(f".{fmt}")
-        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.stem}.", suffix=f".{fmt}")
-        os.close(fd)
-        try:
-            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=fmt)
-            os.replace(tmp, target)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-        written.append(target)
-    plt.close(fig)
-    return written
 
 
 def trajectory_figure(
@@ -44,8 +18,6 @@ def trajectory_figure(
 
     ``ground_truth[i]`` and ``predictions[name][i]`` are ``(N, >=3)`` absolute poses.
     """
-    import matplotlib.pyplot as plt
-
     n = len(ground_truth)
     cols = max(1, min(columns, n))
     rows = max(1, -(-n // cols))
@@ -72,8 +44,6 @@ def trajectory_figure(
 
 def error_curve_figure(curves: Mapping[str, np.ndarray], ylabel: str, title: str = ""):
     """Error against frame index along trajectories: ``curves[name]`` is ``(n_traj, N)`` (NaN-padded)."""
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for name, values in curves.items():
         values = np.atleast_2d(values)

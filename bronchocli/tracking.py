@@ -9,22 +9,22 @@ from __future__ import annotations
 
 import logging
 import os
-import re
 import subprocess
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
-from . import __version__
-from .config import Cell, Config
-from .locks import file_lock
+from . import __version__, urls
+from .cells import FIELDS, Cell
+from .config import Config
+from .io import file_lock
 
 if TYPE_CHECKING:  # mlflow is imported lazily: it costs ~1.5 s
     from mlflow.entities import Run
     from mlflow.tracking import MlflowClient
 
-# Tags every cell run carries; report/status/sweep filter on them.
-CELL_TAGS = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")
+# Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
+CELL_TAGS = FIELDS
 TAG_CELL_KEY = "cell_key"
 TAG_SWEEP = "sweep"
 TAG_FINGERPRINT = "dataset_fingerprint"
@@ -44,9 +44,9 @@ def _quiet() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
 
 
-def redact_url(url: str) -> str:
-    """Hide the password of a URL (``scheme://user:secret@host`` -> ``scheme://user:***@host``)."""
-    return re.sub(r"(://[^:/@]+):[^@/]*@", r"\1:***@", url)
+def redacted_uri(cfg: Config) -> str:
+    """The tracking URI as it may be printed (password hidden)."""
+    return urls.redact(cfg.paths.tracking_uri)
 
 
 def client_for(cfg: Config) -> "MlflowClient":
@@ -54,12 +54,12 @@ def client_for(cfg: Config) -> "MlflowClient":
     from mlflow.tracking import MlflowClient
 
     _quiet()  # mlflow configures its own logger on import
-    uri = cfg.tracking_uri
-    m = re.match(r"^sqlite(?:\+\w+)?:///(.+)$", uri)
-    if not m:
+    uri = cfg.paths.tracking_uri
+    db = urls.sqlite_file(uri)
+    if db is None:
         return MlflowClient(tracking_uri=uri)
     # MLflow creates (migrates) its tables when it opens a store; two processes doing that at once collide.
-    with file_lock(m.group(1) + ".lock"):
+    with file_lock(f"{db}.lock"):
         client = MlflowClient(tracking_uri=uri)
         client.search_experiments(max_results=1)
     return client
@@ -78,8 +78,8 @@ def experiment_id(client: "MlflowClient", cfg: Config, name: str | None = None) 
     if exp is not None:
         return exp.experiment_id
     location = None
-    if _is_local_store(cfg.tracking_uri):
-        location = cfg.resolve(cfg.tracking.artifacts).as_uri()
+    if _is_local_store(cfg.paths.tracking_uri):
+        location = cfg.paths.artifacts.as_uri()
     try:
         return client.create_experiment(name, artifact_location=location)
     except MlflowException:  # another worker created it first
@@ -100,16 +100,16 @@ def git_commit(cwd: Path | None = None) -> str:
 
 
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
-    tags = {k: "" if getattr(cell, k) is None else str(getattr(cell, k)) for k in CELL_TAGS}
+    tags = cell.tags()
     tags.update({
         TAG_CELL_KEY: cell.key,
         TAG_SWEEP: cfg.name,
-        TAG_GIT: git_commit(cfg.base_dir),
+        TAG_GIT: git_commit(cfg.paths.base),
         TAG_VERSION: __version__,
         TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
         "profile": cfg.profile or "",
-        "mlflow.runName": f"{cell.arch}-{cell.rot_loss}-{cell.population}" + (f"-{cell.fold}" if cell.fold else ""),
+        "mlflow.runName": cell.label.replace("/", "-"),
     })
     tags.update(extra)
     return tags
@@ -131,7 +131,7 @@ def log_params(client: "MlflowClient", run_id: str, params: Mapping[str, str]) -
     from mlflow.entities import Param
 
     # URL-valued settings may carry a password: never store it in clear.
-    items = [Param(k, redact_url(v)[:6000]) for k, v in sorted(params.items())]
+    items = [Param(k, urls.redact(v)[:6000]) for k, v in sorted(params.items())]
     for i in range(0, len(items), _PARAM_BATCH):
         client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bronchocli.anatomy.model import AirwayTree, Branch, LobePath
+from bronchocli.anatomy.airway import AirwayTree, Branch, LobePath
 
 
 def tube_centreline(n_straight: int = 61, n_arc: int = 64) -> tuple[np.ndarray, np.ndarray]:

@@ -5,8 +5,8 @@ file path (``.vtu``/``.vtp`` graphs, ``.nii``/``.nii.gz``/``.mhd``/``.nrrd``
 label volumes, ``.stl``/``.obj``/``.vtp`` surface meshes). It returns an
 ``AirwayTree`` rooted at the trachea with its four lobe paths. ``lumen_surface``
 turns a tree into the watertight mesh the renderer draws; ``centreline_distance``
-and ``Lumen`` answer "is this point inside the airway?". VTK is imported only by
-the functions that need it. See docs/anatomy.md.
+and ``Lumen`` answer "is this point inside the airway?". Only dataset generation
+uses this package (it loads VTK). See docs/anatomy.md.
 """
 
 from __future__ import annotations
@@ -14,11 +14,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import ConfigError
+from .airway import AirwayTree, Branch, LobePath
 from .lobes import LOBES, find_lobe_paths, lobe_path, main_bronchi, up_vector
 from .lumen import Lumen, Nearest, centreline_distance, lumen_index, path_at, resample
-from .model import AirwayTree, Branch, LobePath
 from .procedural import Morphometry, procedural_tree
 from .readers import ALLOWED_EXTS, read_anatomy_file, save_centreline
+from .surface import lumen_surface
 
 __all__ = [
     "ALLOWED_EXTS",
@@ -67,8 +68,3 @@ def load_anatomy(source: str | Path, *, seed: int = 0, voxel_mm: float = 0.5,
     return tree
 
 
-def lumen_surface(tree: AirwayTree, voxel_mm: float = 0.5, **kwargs):
-    """The watertight lumen mesh (vtkPolyData, mm) of ``tree``; see ``surface.lumen_surface``."""
-    from .surface import lumen_surface as build  # noqa: PLC0415 (VTK only when a surface is wanted)
-
-    return build(tree, voxel_mm, **kwargs)

@@ -1,7 +1,7 @@
-"""Lazy VTK access for the anatomy package, and numpy <-> VTK conversions it shares.
+"""numpy <-> VTK conversions and VTK error capture shared by the anatomy package.
 
-Importing this module loads VTK; the rest of the package imports it inside
-functions only, so training (which never needs VTK) does not pay for it.
+The anatomy package is used by dataset generation only; training, sweeps and
+reports never import it, so they run where VTK is not installed.
 """
 
 from __future__ import annotations
@@ -17,8 +17,17 @@ import numpy as np
 # set before the first VTK import anywhere in the process.
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
-from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray, vtk_to_numpy  # noqa: E402
-from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkPoints, vtkStringOutputWindow  # noqa: E402
+from vtkmodules.util.numpy_support import (  # noqa: E402
+    numpy_to_vtk,
+    numpy_to_vtkIdTypeArray,
+    vtk_to_numpy,
+)
+from vtkmodules.vtkCommonCore import (  # noqa: E402
+    vtkLogger,
+    vtkOutputWindow,
+    vtkPoints,
+    vtkStringOutputWindow,
+)
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkImageData, vtkPolyData  # noqa: E402
 
 __all__ = [
@@ -142,23 +151,3 @@ def captured_vtk_errors() -> Iterator[list[str]]:
             lines = [ln.strip() for ln in block.splitlines() if ln.strip()]
             if len(lines) >= 2 and lines[0].startswith("ERROR"):  # warnings are dropped
                 messages.append(re.sub(r" \(0x[0-9a-f]+\)", "", lines[1]))
-
-
-def write_polydata(poly: vtkPolyData, path, what: str = "surface") -> None:
-    """Write ``poly`` as binary VTK XML (.vtp) atomically (temp name + os.replace); DataError on failure."""
-    from pathlib import Path
-
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
-
-    from ..errors import DataError
-
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    writer = vtkXMLPolyDataWriter()
-    writer.SetFileName(str(tmp))
-    writer.SetInputData(poly)
-    writer.SetDataModeToBinary()
-    if not writer.Write():
-        tmp.unlink(missing_ok=True)
-        raise DataError(f"{path}: could not write the {what}")
-    os.replace(tmp, path)

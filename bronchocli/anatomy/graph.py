@@ -23,7 +23,7 @@ from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from ..errors import DataError
-from .model import AirwayTree, Branch
+from .airway import AirwayTree, Branch
 
 MERGE_TOL_MM = 1e-3  # points closer than this are one node (centreline files often repeat junction points)
 ROOT_RADIUS_TIE = 0.8  # terminal branches at least this fraction of the widest compete on height

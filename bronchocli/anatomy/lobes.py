@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError, DataError
-from .model import AirwayTree, LobePath
+from .airway import AirwayTree, LobePath
 
 LOBES = ("ur", "br", "ul", "bl")
 SPUR_RADII = 2.0  # a lone leaf child shorter than this many parent radii is a spur, not a lobar bronchus

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .model import AirwayTree, LobePath
+from .airway import AirwayTree, LobePath
 
 STEP_MM = 0.1
 NEIGHBOURS = 4  # nearest samples whose adjacent segments are measured exactly

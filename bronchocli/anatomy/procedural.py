@@ -28,8 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .airway import AirwayTree, Branch
 from .graph import grid_around
-from .model import AirwayTree, Branch
 
 RIGHT, LEFT = -1.0, 1.0  # sign of x towards each lung (LPS: +x is the patient's left)
 MEDIASTINUM_MM = 8.0  # peripheral branches keep this far from the mid-sagittal plane (x = 0)

@@ -14,10 +14,31 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from vtkmodules.vtkCommonCore import vtkPoints
+from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData
+from vtkmodules.vtkFiltersCore import vtkCellDataToPointData
+from vtkmodules.vtkImagingStencil import (
+    vtkImageStencilToImage,
+    vtkPolyDataToImageStencil,
+)
+from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkSTLReader
+from vtkmodules.vtkIOImage import vtkMetaImageReader, vtkNIFTIImageReader, vtkNrrdReader
+from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLUnstructuredGridReader
 
 from ..errors import DataError
+from ..io import write_polydata
+from ._vtk import (
+    captured_vtk_errors,
+    image_to_array,
+    numpy_to_vtk,
+    numpy_to_vtkIdTypeArray,
+    points_of,
+    vtk_to_numpy,
+)
+from .airway import AirwayTree
 from .graph import tree_from_graph
-from .model import AirwayTree
+from .skeleton import graph_from_mask, largest_component
+from .surface import clean_surface, polish, surface_from_mask
 
 GRAPH_EXTS = (".vtu", ".vtp")
 VOLUME_EXTS = (".nii", ".nii.gz", ".mhd", ".nrrd")
@@ -47,7 +68,6 @@ def read_anatomy_file(path: str | Path, *, voxel_mm: float = 0.5,
 
 # ---- centreline graphs --------------------------------------------------------------------
 def _read_xml(path: Path):
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLUnstructuredGridReader  # noqa: PLC0415
 
     reader = vtkXMLUnstructuredGridReader() if extension(path) == ".vtu" else vtkXMLPolyDataReader()
     data = _run(reader, path)
@@ -58,7 +78,6 @@ def _read_xml(path: Path):
 
 def _run(reader, path: Path):
     """Run a VTK reader on ``path``; its error messages become one DataError line instead of log spam."""
-    from ._vtk import captured_vtk_errors  # noqa: PLC0415
 
     reader.SetFileName(str(path))
     with captured_vtk_errors() as errors:
@@ -70,7 +89,6 @@ def _run(reader, path: Path):
 
 def _line_edges(data) -> np.ndarray:
     """(E, 2) point pairs of the line and polyline cells of a vtkPolyData or vtkUnstructuredGrid."""
-    from ._vtk import vtk_to_numpy  # noqa: PLC0415
 
     if data.IsA("vtkPolyData"):
         cells = data.GetLines()
@@ -91,7 +109,6 @@ def _line_edges(data) -> np.ndarray:
 
 
 def _cell_types(grid) -> np.ndarray:
-    from ._vtk import vtk_to_numpy  # noqa: PLC0415
 
     try:
         types = grid.GetCellTypes()  # VTK >= 9.6: the per-cell type array
@@ -102,9 +119,7 @@ def _cell_types(grid) -> np.ndarray:
 
 def _radius_array(data, path: Path) -> np.ndarray:
     """Per-point lumen radii (mm) from a radius-like (or diameter) point or cell array."""
-    from vtkmodules.vtkFiltersCore import vtkCellDataToPointData  # noqa: PLC0415
 
-    from ._vtk import vtk_to_numpy  # noqa: PLC0415
 
     found = _find_radius(data.GetPointData())
     if found is None and _find_radius(data.GetCellData()) is not None:
@@ -143,7 +158,6 @@ def _is_graph(data) -> bool:
 
 def graph_arrays(path: Path, data=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points, radii, edges) of a .vtu/.vtp centreline graph (``data``: the file, already read)."""
-    from ._vtk import points_of  # noqa: PLC0415
 
     data = _read_xml(path) if data is None else data
     edges = _line_edges(data)
@@ -169,9 +183,7 @@ def _from_vtp(path: Path, voxel_mm: float, centreline) -> AirwayTree:
 # ---- segmentation volumes ------------------------------------------------------------------
 def read_volume(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(foreground mask [z, y, x], spacing xyz, origin xyz) of a label volume: nonzero = airway."""
-    from vtkmodules.vtkIOImage import vtkMetaImageReader, vtkNIFTIImageReader, vtkNrrdReader  # noqa: PLC0415
 
-    from ._vtk import image_to_array  # noqa: PLC0415
 
     ext = extension(path)
     if ext == ".mhd":
@@ -228,8 +240,6 @@ def _nifti_origin(reader, origin: np.ndarray) -> np.ndarray:
 
 
 def _from_volume(path: Path, voxel_mm: float, centreline) -> AirwayTree:
-    from .skeleton import graph_from_mask, largest_component  # noqa: PLC0415
-    from .surface import surface_from_mask  # noqa: PLC0415
 
     mask, spacing, origin = read_volume(path)
     mask = largest_component(mask, str(path))
@@ -251,7 +261,6 @@ def _from_volume(path: Path, voxel_mm: float, centreline) -> AirwayTree:
 
 # ---- surface meshes ------------------------------------------------------------------------
 def _read_mesh(path: Path):
-    from vtkmodules.vtkIOGeometry import vtkOBJReader, vtkSTLReader  # noqa: PLC0415
 
     reader = {".stl": vtkSTLReader, ".obj": vtkOBJReader}[extension(path)]()
     return _run(reader, path)
@@ -262,8 +271,6 @@ def _from_mesh(path: Path, voxel_mm: float, centreline) -> AirwayTree:
 
 
 def _tree_from_surface(poly, path: Path, voxel_mm: float, centreline) -> AirwayTree:
-    from .skeleton import graph_from_mask  # noqa: PLC0415
-    from .surface import clean_surface, polish  # noqa: PLC0415
 
     if poly is None or poly.GetNumberOfPolys() == 0:
         raise DataError(f"{path}: no surface polygons found (empty or unreadable {extension(path)} file)")
@@ -304,9 +311,7 @@ def _check_inside_bounds(tree: AirwayTree, surface, centreline: Path, mesh: Path
 
 def voxelise(surface, voxel_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """(mask [z, y, x], origin xyz) of the inside of a closed surface on a ``voxel_mm`` grid."""
-    from vtkmodules.vtkImagingStencil import vtkImageStencilToImage, vtkPolyDataToImageStencil  # noqa: PLC0415
 
-    from ._vtk import image_to_array  # noqa: PLC0415
 
     b = np.asarray(surface.GetBounds()).reshape(3, 2)
     origin = b[:, 0] - 2 * voxel_mm
@@ -340,10 +345,7 @@ READERS: dict[str, Callable[[Path, float, object], AirwayTree]] = {
 def save_centreline(tree: AirwayTree, path: str | Path) -> Path:
     """Write the tree as a .vtp centreline graph (one polyline per branch; point ``radius``;
     cell ``branch``, ``generation``, ``parent``), atomically. ``load_anatomy`` reads it back."""
-    from vtkmodules.vtkCommonCore import vtkPoints  # noqa: PLC0415
-    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData  # noqa: PLC0415
 
-    from ._vtk import numpy_to_vtk, numpy_to_vtkIdTypeArray, write_polydata  # noqa: PLC0415
 
     path = Path(path)
     pts = np.concatenate([b.points for b in tree.branches])

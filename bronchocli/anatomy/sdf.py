@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .airway import AirwayTree
 from .lumen import resample
-from .model import AirwayTree
 
 MIN_RADIUS_VOXELS = 1.0  # thinner airways are drawn at this radius so the surface stays one piece
 BAND_VOXELS = 3  # exact distances this far beyond each cone

@@ -22,8 +22,20 @@ import warnings
 
 import numpy as np
 from scipy import ndimage
+from vtkmodules.vtkFiltersCore import (
+    vtkCleanPolyData,
+    vtkDecimatePro,
+    vtkFeatureEdges,
+    vtkFlyingEdges3D,
+    vtkPolyDataConnectivityFilter,
+    vtkPolyDataNormals,
+    vtkQuadricDecimation,
+    vtkTriangleFilter,
+    vtkWindowedSincPolyDataFilter,
+)
 
-from .model import AirwayTree
+from ._vtk import image_from_array, polydata_from_arrays, polydata_to_arrays
+from .airway import AirwayTree
 from .sdf import lumen_sdf_grid
 
 COARSEST_MM = 1.0  # never contour coarser than this, however wide the airways
@@ -57,9 +69,7 @@ def surface_grid_mm(tree: AirwayTree, voxel_mm: float = 0.5) -> float:
 
 def iso_surface(values: np.ndarray, origin: np.ndarray, spacing: np.ndarray, level: float):
     """Flying Edges iso-surface of a ``[z, y, x]`` array (VTK's x-fastest layout)."""
-    from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D  # noqa: PLC0415
 
-    from ._vtk import image_from_array  # noqa: PLC0415
 
     image = image_from_array(values, origin, spacing)
     fe = vtkFlyingEdges3D()
@@ -96,7 +106,6 @@ def _decimated_closed(poly, reduction: float):
 
 
 def _smooth(poly):
-    from vtkmodules.vtkFiltersCore import vtkWindowedSincPolyDataFilter  # noqa: PLC0415
 
     sinc = vtkWindowedSincPolyDataFilter()
     sinc.SetInputData(poly)
@@ -111,7 +120,6 @@ def _smooth(poly):
 
 
 def _decimate_quadric(poly, reduction: float):
-    from vtkmodules.vtkFiltersCore import vtkQuadricDecimation  # noqa: PLC0415
 
     dec = vtkQuadricDecimation()  # keeps the shape smooth (DecimatePro leaves visible creases)
     dec.SetInputData(poly)
@@ -122,7 +130,6 @@ def _decimate_quadric(poly, reduction: float):
 
 
 def _decimate_pro(poly, reduction: float):
-    from vtkmodules.vtkFiltersCore import vtkDecimatePro  # noqa: PLC0415
 
     dec = vtkDecimatePro()  # topology-preserving: the surface stays closed and manifold
     dec.SetInputData(poly)
@@ -140,7 +147,6 @@ def _drop_fins(poly):
     Such a pair shares all three edges, so one of them ends up on four triangles (a
     non-manifold edge); dropping both copies leaves the rest of the surface closed.
     """
-    from ._vtk import polydata_from_arrays, polydata_to_arrays  # noqa: PLC0415
 
     points, tris = polydata_to_arrays(poly)
     _, inverse, counts = np.unique(np.sort(tris, axis=1), axis=0, return_inverse=True, return_counts=True)
@@ -150,7 +156,6 @@ def _drop_fins(poly):
 
 def largest_piece(poly):
     """The largest connected piece of a surface (a new vtkPolyData without unused points)."""
-    from vtkmodules.vtkFiltersCore import vtkCleanPolyData, vtkPolyDataConnectivityFilter  # noqa: PLC0415
 
     conn = vtkPolyDataConnectivityFilter()
     conn.SetInputData(poly)
@@ -164,7 +169,6 @@ def largest_piece(poly):
 
 def clean_surface(poly):
     """Triangulated, merged, largest connected piece, normals into the lumen (a new vtkPolyData)."""
-    from vtkmodules.vtkFiltersCore import vtkCleanPolyData, vtkPolyDataNormals, vtkTriangleFilter  # noqa: PLC0415
 
     tri = vtkTriangleFilter()
     tri.SetInputData(poly)
@@ -200,7 +204,6 @@ def surface_from_mask(mask: np.ndarray, spacing_xyz: np.ndarray, origin_xyz: np.
 
 def mesh_report(poly, pieces: bool = True) -> dict[str, int]:
     """Counts for checking a surface: triangles, boundary edges, non-manifold edges, connected pieces."""
-    from vtkmodules.vtkFiltersCore import vtkFeatureEdges, vtkPolyDataConnectivityFilter  # noqa: PLC0415
 
     edges = {}
     for kind in ("boundary", "non_manifold"):

@@ -7,7 +7,9 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
+from ..cells import FIELDS
 from ..config import DEFAULT_CONFIG, expand_grid
+from ..generation.sources import planned_patients
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -25,15 +27,9 @@ def config(
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return
-    patients = None
-    if cfg.grid.folds == "all" and "cross-subject" in cfg.grid.population:
-        # Patient ids of a procedural dataset are known before it exists.
-        from ..data.naming import patient_ids_for  # noqa: PLC0415 (keeps start-up light)
-
-        patients = patient_ids_for(cfg)
-    table = Table("key", "arch", "rot_loss", "population", "fold", "seed", "pose_frame", title=f"grid of {cfg.name}")
-    cells = expand_grid(cfg, patients)
-    for c in cells:
-        table.add_row(c.key, c.arch, c.rot_loss, c.population, c.fold or "-", str(c.seed), c.pose_frame)
+    table = Table("key", *FIELDS, title=f"grid of {cfg.name}")
+    grid_cells = expand_grid(cfg, planned_patients(cfg))  # a procedural dataset's patients are known beforehand
+    for c in grid_cells:
+        table.add_row(c.key, *(v or "-" for v in c.tags().values()))
     console.print(table)
-    console.print(f"{len(cells)} cells")
+    console.print(f"{len(grid_cells)} cells")

@@ -11,6 +11,7 @@ import typer
 from rich.table import Table
 
 from ..config import DEFAULT_CONFIG, Config, parse_override
+from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -68,11 +69,13 @@ def generate(
     Resumable: run it again after an interruption and it continues where it stopped (same seed, same bytes).
     A folder holding a dataset of a different config is refused. See docs/generator.md.
     """
-    from ..data.generate import generate_dataset  # noqa: PLC0415 (VTK loads only when generating)
+    from ..generation.pipeline import generate_dataset  # lazy: VTK loads only when generating
 
     flags = _flag_overrides(anatomy, patients=patients, image_size=image_size, trajectories=trajectories, seed=seed)
     cfg = _config(config, profile, [*(set_ or []), *flags])
-    root = out.expanduser().resolve() if out is not None else cfg.resolve(cfg.dataset.root)
+    root = out.expanduser().resolve() if out is not None else cfg.paths.dataset
+    if root.exists() and not root.is_dir():
+        raise BronchoError(f"--out {root}: is a file, not a dataset folder; choose a folder path")
     already = (root / "dataset.json").is_file()
     start = time.perf_counter()
     generate_dataset(cfg, root=root, workers=workers, progress=progress)

@@ -20,7 +20,7 @@ def preview(
     """Draw a dataset: a PNG montage of frames sampled along one trajectory per patient and lobe, and a
     3-D plot of every camera position visited per patient (voxel axes, coloured by lobe, over the centreline).
     """
-    from ..data.preview import preview as draw  # noqa: PLC0415 (matplotlib only when drawing)
+    from ..reporting.dataset_figures import preview as draw  # lazy: matplotlib only when drawing
 
     root = dataset.expanduser().resolve()
     target = out if out is not None else Path("reports") / f"{root.name}-montage.png"

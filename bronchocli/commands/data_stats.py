@@ -10,6 +10,7 @@ import typer
 from rich.table import Table
 
 from ..config import DEFAULT_CONFIG, Config, parse_override
+from ..errors import ConfigError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -47,10 +48,9 @@ def stats(
 
     The dataset is read as the config's dataset.format (bronchopose, or csv with dataset.csv's mapping).
     """
-    from ..data import stats as st  # noqa: PLC0415 (pandas/numpy only when the command runs)
-    from ..data.reader import open_dataset
+    from ..data import stats as st  # lazy: pandas only when the command runs (keeps --help fast)
+    from ..data.source import open_dataset
     from ..data.splits import make_split
-    from ..errors import ConfigError
 
     if manifest is not None and population is None:
         raise ConfigError("--manifest needs --population (personalized or cross-subject)")

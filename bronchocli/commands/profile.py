@@ -40,7 +40,7 @@ def profile(
     """
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
-    from .. import profiling  # torch: imported only when the command runs
+    from ..models import profile as profiling  # lazy: torch loads only when the command runs
 
     names = profiling.arch_names(arch)
     if threads is not None:

@@ -7,7 +7,8 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG, POSE_FRAMES
+from ..cells import POSE_FRAMES
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load
 
@@ -50,7 +51,9 @@ def report(
     (ground truth vs BronchoTrack vs OffsetNet), error vs frame per
     architecture, dataset frames and positions. See docs/reports.md.
     """
-    from ..reporting import collect, report as rep, tables as tbl
+    from ..reporting import collect
+    from ..reporting import report as rep
+    from ..reporting import tables as tbl
     from ..reporting.figures import mlflow_loader
     from ..reporting.markdown import to_rich
 
@@ -79,7 +82,7 @@ def report(
     warnings: list[str] = []
     result = rep.make_report(
         ctx, names, evals, suffixes, out, loader=mlflow_loader(client, warnings) if with_figures else None,
-        n_trajectories=trajectories, dataset_root=cfg.resolve(cfg.dataset.root) if with_figures else None,
+        n_trajectories=trajectories, dataset_root=cfg.paths.dataset if with_figures else None,
         warnings=warnings,
     )
     if not quiet:

@@ -7,7 +7,8 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG, Cell
+from .. import cells
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from ..sweep import SweepStore, plan_cells, read_plan
 from ..sweep.plan import Plan
@@ -35,7 +36,7 @@ def status(
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    store = SweepStore(cfg.storage_url)
+    store = SweepStore(cfg.paths.storage_url)
     name = sweep or cfg.name
     if not store.exists():
         console.print(f"no sweep has used storage {store.redacted} yet")
@@ -61,5 +62,5 @@ def _stored_plan(store: SweepStore, name: str) -> Plan:
     if not rows:
         known = ", ".join(store.sweeps()) if store.exists() else ""
         raise BronchoError(f"--sweep {name}: no such sweep in storage {store.redacted} (stored: {known or 'none'})")
-    cells = [Cell(**r.coords, key=r.cell_key) for r in rows]
-    return Plan(name, cells, {r.cell_key: r for r in rows})
+    stored = [cells.make(**r.coords, key=r.cell_key) for r in rows]
+    return Plan(name, stored, {r.cell_key: r for r in rows})

@@ -7,17 +7,17 @@ from typing import Optional
 
 import typer
 
+from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
-from ..sweep import SweepStore, parse_only, plan_cells, prepare, read_plan, resolve_runner, run_pool
+from ..sweep import SweepStore, plan_cells, prepare, read_plan, run_pool
 from ..sweep.pool import cells_left
 from ..sweep.status import failures, plan_table, progress, summary_line, wide
-from ..tracking import redact_url
+from ..tracking import redacted_uri
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
-             "(arch, rot_loss, population, fold, seed, pose_frame), "
-             "e.g. --only 'arch=lstm,conv3d;population=personalized'.")
+             f"({', '.join(FIELDS)}), e.g. --only 'arch=lstm,conv3d;population=personalized'.")
 STORAGE_HELP = ("Claims database URL, overriding storage.url (sqlite:///runs/sweep.db; "
                 "postgresql://user:${PGPASSWORD}@host/db for many machines).")
 
@@ -32,8 +32,6 @@ def sweep(
                                       help="Reset FAILED cells (and their retry budget) first."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned",
                                             help="Apply the best trial of this Optuna study to every cell."),
-    runner: Optional[str] = typer.Option(None, "--runner", hidden=True,
-                                         help="module:function run instead of training (tests, benchmarks)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -54,12 +52,11 @@ def sweep(
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
     if use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
-        from ..tuning import apply_best
+        from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
-    run = resolve_runner(runner)
-    store = SweepStore(cfg.storage_url)
-    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {redact_url(cfg.tracking_uri)}"
+    store = SweepStore(cfg.paths.storage_url)
+    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {redacted_uri(cfg)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}" if use_tuned else ""))
     if dry_run:
         plan = read_plan(store, cfg.name, plan_cells(cfg, selection))
@@ -72,7 +69,7 @@ def sweep(
     _print_plan(console, plan, cfg.sweep.max_retries, workers)
     if left == 0:
         raise typer.Exit(_final(console, plan, cfg.sweep.max_retries, 0 if plan.counts()["failed"] == 0 else 1))
-    result = run_pool(cfg, store, plan, workers=workers, runner=run, console=console)
+    result = run_pool(cfg, store, plan, workers=workers, console=console)
     if result.interrupted:
         console.print("[yellow]interrupted:[/] running cells were released; run the same command again to resume")
     bad = [c for c in result.worker_codes if c not in (0, 130)]

@@ -7,15 +7,11 @@ from typing import Optional
 
 import typer
 
-from ..config import ARCHS, DEFAULT_CONFIG, POPULATIONS, POSE_FRAMES, ROT_LOSSES, make_cell
+from ..cells import ARCHS, POPULATIONS, POSE_FRAMES, ROT_LOSSES
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..generation.sources import ensure_dataset
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
-
-
-def _choice(value: str, allowed: tuple[str, ...], flag: str) -> str:
-    if value not in allowed:
-        raise BronchoError(f"{flag} {value!r}: must be one of {', '.join(allowed)}")
-    return value
 
 
 def train(
@@ -25,6 +21,8 @@ def train(
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the run."),
     pose_frame: str = typer.Option("world", "--pose-frame", help=f"Relative-pose frame: {', '.join(POSE_FRAMES)}."),
+    train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories", help="Training trajectories per "
+                                                     "patient and lobe (default: splits.train)."),
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),
     run_id: Optional[str] = typer.Option(None, "--run-id", help="With --resume: the MLflow run to continue."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study."),
@@ -36,30 +34,26 @@ def train(
     """Train one (arch, rot_loss, population, fold, seed, pose_frame) cell and evaluate it on its test split.
 
     Generates the configured dataset first if it does not exist. Progress is shown
-    per epoch; the run, its metrics (per pair and accumulated), the resolved config,
-    split manifest, predictions CSV, trajectory plot and best checkpoint land in
-    MLflow (`bronchopose ui`). Ctrl-C stops at the next batch, saves a checkpoint
-    and marks the run KILLED; `--resume` continues it. Exit code 1 when the run FAILED.
+    per optimiser step; the run, its metrics (per pair and accumulated, with the
+    zero-motion and training-mean references), the resolved config, split manifest,
+    predictions, per-trajectory errors, trajectory plot and weights land in MLflow
+    (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
+    marks the run KILLED; `--resume` continues it. Exit code 1 when the run FAILED.
     """
-    from ..training.run import run_cell
+    from ..training.run import run_cell  # lazy: torch loads after the flags are checked (fast --help)
 
     cfg = load(config, profile, set_)
-    _choice(arch, ARCHS, "--arch")
-    _choice(rot_loss, ROT_LOSSES, "--rot-loss")
-    _choice(population, POPULATIONS, "--population")
-    _choice(pose_frame, POSE_FRAMES, "--pose-frame")
-    if population == "cross-subject" and fold is None:
-        raise BronchoError("--fold: cross-subject needs the held-out patient (e.g. --fold p00)")
-    if population == "personalized" and fold is not None:
-        raise BronchoError("--fold: only cross-subject runs have a held-out patient")
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
+    cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                    pose_frame=pose_frame, train_trajectories=train_trajectories)
     if use_tuned:
-        from ..tuning import apply_best
+        from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
+        cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
         console.print(f"hyperparameters from {cfg.tune.applied}")
-    cell = make_cell(cfg, arch, rot_loss, population, fold, seed, pose_frame)
+    ensure_dataset(cfg)
     console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
     result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet)
     if result.status != "FINISHED":
@@ -68,8 +62,10 @@ def train(
     m = result.metrics
     if result.stop_requested:
         console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
+    ratio = m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"]
     console.print(
-        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s — "
-        f"pair pos L2 {m['pair.pos_l2.mean']:.3f} vox, pair CE {m['pair.ce.mean']:.4f}, "
-        f"accumulated pos L2 {m['acc.pos_l2.mean']:.2f} vox"
+        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m['train.steps']:.0f} steps, "
+        f"{m['train.pairs_seen']:.0f} pairs seen) — pair pos L2 {m['pair.pos_l2.mean']:.3f} vox "
+        f"({ratio:.2f} x the training-mean predictor's {m['train_mean.pair.pos_l2.mean']:.3f}, zero motion "
+        f"{m['zero_motion.pair.pos_l2.mean']:.3f}), accumulated pos L2 {m['acc.pos_l2.mean']:.2f} vox"
     )

@@ -9,30 +9,17 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from ..config import ARCHS, DEFAULT_CONFIG, POPULATIONS, ROT_LOSSES
+from .. import cells, urls
+from ..cells import ARCHS, POPULATIONS, ROT_LOSSES
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..tracking import redact_url
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
-def _target(arch, rot_loss, population, fold, seed, pose_frame):
-    from ..tuning import Target
+def _show(cfg, study: str, fmt: str) -> None:
+    from ..sweep.tuning import summary  # lazy: optuna only when the command runs
 
-    if arch is None or rot_loss is None or population is None:
-        return None
-    for value, allowed, flag in ((arch, ARCHS, "--arch"), (rot_loss, ROT_LOSSES, "--rot-loss"),
-                                 (population, POPULATIONS, "--population")):
-        if value not in allowed:
-            raise BronchoError(f"{flag} {value!r}: must be one of {', '.join(allowed)}")
-    if population == "cross-subject" and fold is None:
-        raise BronchoError("--fold: cross-subject needs the held-out patient (e.g. --fold p00)")
-    return Target(arch, rot_loss, population, fold if population == "cross-subject" else None, seed, pose_frame)
-
-
-def _show(cfg, study: str, storage: Optional[str], fmt: str) -> None:
-    from ..tuning import summary
-
-    info = summary(cfg, study, storage)
+    info = summary(cfg, study)
     if fmt == "json":
         console.print_json(json.dumps(info, default=str))
         return
@@ -61,9 +48,13 @@ def tune(
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Training seed of every trial."),
     pose_frame: str = typer.Option("world", "--pose-frame", help="world or camera."),
-    trials: Optional[int] = typer.Option(None, "--trials", "-n", help="Total finished trials of the study [tune.trials]."),
-    timeout: Optional[float] = typer.Option(None, "--timeout", help="Stop starting trials after this many seconds."),
-    storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL [storage.url]."),
+    train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories",
+                                                     help="Training trajectories per patient and lobe."),
+    trials: Optional[int] = typer.Option(None, "--trials", "-n", min=1,
+                                         help="Total finished trials of the study (default: tune.trials)."),
+    timeout: Optional[float] = typer.Option(None, "--timeout", min=0.001,
+                                            help="Stop starting trials after this many seconds."),
+    storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL (default: storage.url)."),
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
     workers: int = typer.Option(1, "--workers", "-w", min=1, help="Local worker processes tuning the study."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
@@ -81,26 +72,35 @@ def tune(
     or machines can tune it together and an interrupted study resumes. With
     --show, print the best trial and parameter importances (no training).
     """
-    from .. import tuning
+    from ..sweep import tuning  # lazy: optuna only when the command runs
 
     cfg = load(config, profile, set_)
+    if storage:
+        cfg = cfg.with_values({"storage.url": storage})
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
-    target = _target(arch, rot_loss, population, fold, seed, pose_frame)
+    target = None
+    if arch is not None or rot_loss is not None or population is not None:
+        if arch is None or rot_loss is None or population is None:
+            raise BronchoError("tune needs all of --arch, --rot-loss and --population (or --show --study NAME)")
+        target = cells.make(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                            pose_frame=pose_frame, train_trajectories=train_trajectories)
     if show:
         if study is None and target is None:
-            names = tuning.list_studies(cfg, storage)
+            names = tuning.list_studies(cfg)
             raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
                                f"studies in the storage: {', '.join(names) or 'none'}")
-        _show(cfg, study or target.study_name(cfg), storage, fmt)
+        _show(cfg, study or tuning.study_name(cfg, target), fmt)
         return
     if target is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
+    from ..generation.sources import ensure_dataset
+
+    ensure_dataset(cfg)
     n = trials or cfg.tune.trials
-    where = redact_url(cfg.resolve_url(storage) if storage else cfg.storage_url)
-    name = study or target.study_name(cfg)
-    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {where}")
-    s = tuning.tune(cfg, target, n, storage=storage, study=study, timeout=timeout or cfg.tune.timeout,
-                    workers=workers, progress=not quiet)
+    name = study or tuning.study_name(cfg, target)
+    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
+    s = tuning.tune(cfg, target, n, study=study, timeout=timeout or cfg.tune.timeout, workers=workers,
+                    progress=not quiet)
     console.print(f"{tuning.finished(s)} finished trials in study {name}")
-    _show(cfg, name, storage, "table")
+    _show(cfg, name, "table")

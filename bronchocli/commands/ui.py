@@ -9,18 +9,19 @@ from pathlib import Path
 
 import typer
 
+from .. import urls
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..tracking import redact_url
+from ..tracking import redacted_uri
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
 def ui_command(cfg, host: str, port: int) -> list[str]:
     """The `mlflow ui` argv serving the config's store and artifact root."""
     exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    argv = [exe, "ui", "--backend-store-uri", cfg.tracking_uri, "--host", host, "--port", str(port)]
-    if not cfg.tracking_uri.startswith(("http://", "https://")):
-        argv += ["--default-artifact-root", cfg.resolve(cfg.tracking.artifacts).as_uri()]
+    argv = [exe, "ui", "--backend-store-uri", cfg.paths.tracking_uri, "--host", host, "--port", str(port)]
+    if not urls.is_server(cfg.paths.tracking_uri):
+        argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
 
 
@@ -37,12 +38,12 @@ def ui(
     `tags.arch = 'convlstm' and tags.population = 'personalized'`.
     """
     cfg = load(config, profile, set_)
-    if cfg.tracking_uri.startswith(("http://", "https://")):
-        raise BronchoError(f"tracking.uri {redact_url(cfg.tracking_uri)} is already a server: open it in a browser")
+    if urls.is_server(cfg.paths.tracking_uri):
+        raise BronchoError(f"tracking.uri {redacted_uri(cfg)} is already a server: open it in a browser")
     argv = ui_command(cfg, host, port)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
-    cfg.resolve(cfg.tracking.artifacts).mkdir(parents=True, exist_ok=True)
-    console.print(f"MLflow UI for {redact_url(cfg.tracking_uri)} at http://{host}:{port} (Ctrl-C to stop)")
+    cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
+    console.print(f"MLflow UI for {redacted_uri(cfg)} at http://{host}:{port} (Ctrl-C to stop)")
     sys.stdout.flush()
     os.execv(argv[0], argv)

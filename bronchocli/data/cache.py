@@ -21,9 +21,7 @@ cache wait and then reuse it instead of decoding again. Without the lock
 from __future__ import annotations
 
 import hashlib
-import json
 import os
-import uuid
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -32,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
 
 from ..config import Config
 from ..errors import DataError
-from ..locks import file_lock
+from ..io import atomic_path, file_lock, write_json
 from .reader import Dataset
 
 CACHE_VERSION = 1
@@ -73,8 +72,8 @@ def input_size(image_size: int | None, dataset: Dataset) -> int:
 
 def open_frame_cache(cfg: Config, dataset: Dataset, progress: bool = True) -> FrameCache:
     """The frame cache for a run: ``data.image_size`` (default: the dataset's) under ``data.cache_dir``."""
-    return FrameCache.open_or_build(dataset, input_size(cfg.data.image_size, dataset),
-                                    cfg.resolve(cfg.data.cache_dir), progress=progress)
+    return FrameCache.open_or_build(dataset, input_size(cfg.data.image_size, dataset), cfg.paths.cache,
+                                    progress=progress, threads=cfg.data.workers or None)
 
 
 def cache_key(dataset: Dataset, shape: tuple[int, int]) -> str:
@@ -162,9 +161,8 @@ def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | 
 
 def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, ...], path: Path,
            progress: bool, threads: int | None) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
     paths = dataset.frames["path"].to_numpy()
-    try:
+    with atomic_path(path) as tmp:
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
         pool = ThreadPoolExecutor(threads or min(8, os.cpu_count() or 1))
         try:
@@ -175,19 +173,9 @@ def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, .
             pool.shutdown(wait=True, cancel_futures=True)
         out.flush()
         del out  # closes the memory map before the rename
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    _write_info(path, dataset, shape)
-
-
-def _write_info(path: Path, dataset: Dataset, shape: tuple[int, ...]) -> None:
-    """A human-readable sidecar (which dataset a cache file belongs to), written atomically."""
-    info = {"dataset": str(dataset.root), "fingerprint": dataset.fingerprint, "shape": list(shape),
-            "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION}
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{uuid.uuid4().hex[:8]}.json.tmp")
-    tmp.write_text(json.dumps(info, indent=2))
-    os.replace(tmp, path.with_suffix(".json"))
+    write_json(path.with_suffix(".json"), {
+        "dataset": str(dataset.root), "fingerprint": dataset.fingerprint, "shape": list(shape),
+        "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION})
 
 
 @contextmanager
@@ -195,8 +183,6 @@ def _progress(enabled: bool, total: int, name: str):
     if not enabled:
         yield lambda n: None
         return
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn  # noqa: PLC0415
-
     with Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
                   TimeRemainingColumn(), transient=True) as bar:
         task = bar.add_task(f"decoding frames into {name}", total=total)

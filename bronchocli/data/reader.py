@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from ..config import LOBES, Config
+from ..cells import LOBES
 from ..errors import DataError
-from .naming import DATASET_JSON
+from .layout import DATASET_JSON
 
 POSE_COLUMNS: tuple[str, ...] = ("x", "y", "z", "rx", "ry", "rz")  # names in Dataset.frames
 DISK_POSE_COLUMNS: tuple[str, ...] = ("pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz")  # names in <patient>.csv
@@ -382,13 +382,3 @@ def open_dataset_dir(root: str | os.PathLike) -> Dataset:
     return Dataset(root=root, format="bronchopose", patients=patients, lobes=lobes,
                    frame_shape=_frame_shape(meta, meta_path), fingerprint=str(fingerprint), frames=frames,
                    trajectories=trajectories, spacing=_spacing(meta, meta_path), meta=meta)
-
-
-def open_dataset(cfg: Config) -> Dataset:
-    """The configured dataset: ``dataset.root`` read as ``dataset.format`` ('bronchopose' or 'csv')."""
-    root = cfg.resolve(cfg.dataset.root)
-    if cfg.dataset.format == "csv":
-        from .importer import import_csv  # noqa: PLC0415 (the importer builds on this module)
-
-        return import_csv(root, cfg.dataset.csv)
-    return open_dataset_dir(root)

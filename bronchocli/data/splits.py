@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,7 @@ import pandas as pd
 
 from ..config import Splits
 from ..errors import ConfigError, DataError
+from ..io import atomic_path
 from .reader import Dataset, Trajectory, natural_key
 
 PARTS: tuple[str, ...] = ("train", "val", "test")
@@ -63,16 +63,10 @@ class Split:
         return pd.DataFrame(rows, columns=list(MANIFEST_COLUMNS))
 
     def write_manifest(self, path: str | os.PathLike) -> Path:
-        """Write :meth:`manifest` as CSV, atomically (temporary file + rename)."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
-        try:
+        """Write :meth:`manifest` as CSV, atomically."""
+        with atomic_path(path) as tmp:
             self.manifest().to_csv(tmp, index=False)
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return path
+        return Path(path)
 
     def counts(self) -> pd.DataFrame:
         """Trajectories, frames and pairs per split."""
@@ -192,6 +186,31 @@ def make_split(dataset: Dataset, population: str, fold: str | None, splits: Spli
     except KeyError:
         raise ConfigError(f"population {population!r}: must be one of {', '.join(POPULATIONS)}") from None
     return builder(dataset, fold, splits)
+
+
+def limit_train(split: Split, per_group: int | None, seed: int) -> Split:
+    """The split with at most ``per_group`` training trajectories per (patient, lobe); val and test unchanged.
+
+    The kept ones are the first of a fixed random order per group, so smaller
+    limits are subsets of larger ones (nested training sets for a learning curve).
+    """
+    if per_group is None:
+        return split
+    by_group: dict[tuple[str, str], list[Trajectory]] = {}
+    for t in split.train:
+        by_group.setdefault((t.patient, t.lobe), []).append(t)
+    keep: set[int] = set()
+    short = []
+    for (patient, lobe), trajs in by_group.items():
+        order = shuffled(trajs, seed, patient, f"{lobe}/train-limit")
+        keep.update(id(t) for t in order[:per_group])
+        if len(trajs) < per_group:
+            short.append(f"{patient}/{lobe}")
+    notes = split.notes
+    if short:
+        notes += _notes({f"fewer than train_trajectories={per_group} training trajectories: all used": short})
+    train = [t for t in split.train if id(t) in keep]
+    return Split(split.population, split.fold, train, split.val, split.test, notes=notes)
 
 
 def read_manifest(path: str | os.PathLike) -> pd.DataFrame:

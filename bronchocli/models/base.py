@@ -139,13 +139,15 @@ FUSED_CHANNELS = 2 * 1280  # two EfficientNet-B0 feature maps, current frame fir
 def fusion(kernel: int, act: type[nn.Module], padding: int | None = None) -> nn.Sequential:
     """Conv2d 2560 -> 256 + BatchNorm2d + activation, applied to the concatenated pair features.
 
-    The conv has no bias: BatchNorm right after it makes a bias redundant, and
-    only the bias-free reading reproduces the paper's 13.967 M for the baseline
-    (with a bias it is 13,967,582, which rounds to 13.968 M).
+    The conv keeps PyTorch's default bias, as in the authors' code (BCJuan/BronchoTrack,
+    ``models/bronchonet.py``: ``nn.Conv2d(2560, 256, ...)`` in all four models), so the
+    parameter counts equal theirs exactly: baseline 13,967,582 (the paper prints 13.967 M,
+    truncated), lstm 14,164,446, convlstm 14,142,398, conv3d 13,983,486. The bias is
+    redundant before BatchNorm but costs 256 parameters and nothing else.
     """
     padding = (kernel - 1) // 2 if padding is None else padding
     return nn.Sequential(
-        nn.Conv2d(FUSED_CHANNELS, 256, kernel, padding=padding, bias=False),
+        nn.Conv2d(FUSED_CHANNELS, 256, kernel, padding=padding, bias=True),
         nn.BatchNorm2d(256),
         act(inplace=True),
     )

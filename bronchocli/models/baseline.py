@@ -1,7 +1,7 @@
 """``baseline``: two EfficientNet-B0 backbones, a fusion conv and two ShuffleNet blocks; pairs independent.
 
 Layers after the 2560-channel pair features (paper, 13.967 M parameters at 256x256):
-Conv2d 2560->256 3x3 pad 1 (no bias) + BN + ReLU -> IR(256->128, s2) -> IR(128->64, s2)
+Conv2d 2560->256 3x3 pad 1 + BN + ReLU -> IR(256->128, s2) -> IR(128->64, s2)
 -> flatten 64·2·2 = 256 -> Linear(256, 6).
 """
 

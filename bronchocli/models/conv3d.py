@@ -1,6 +1,6 @@
 """``conv3d``: per-pair fusion, then 3-D convolutions over (time, height, width) of the window.
 
-Per pair: Conv2d 2560->256 1x1 *padding 1* (no bias) + BN + ReLU (the padding grows the map
+Per pair: Conv2d 2560->256 1x1 *padding 1* + BN + ReLU (the padding grows the map
 by one pixel on each side, as in the authors' code) -> stack over time -> two residual
 blocks ``x + ReLU(BN3d(Conv3d 256->256 3x3x3 pad 1))`` -> Conv3d 256->256 3x3x3 pad (1, 0, 0)
 + BN3d + ReLU -> AdaptiveAvgPool3d((None, 1, 1)) -> Linear(256, 6) per step (paper:

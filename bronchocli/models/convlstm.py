@@ -1,6 +1,6 @@
 """``convlstm`` (the paper's "ConvRNN", BronchoTrack): a convolutional LSTM over the pair feature maps.
 
-Conv2d 2560->256 3x3 pad 1 (no bias) + BN + SiLU -> IR(256->128, s2) -> ConvLSTM(128->32,
+Conv2d 2560->256 3x3 pad 1 + BN + SiLU -> IR(256->128, s2) -> ConvLSTM(128->32,
 3x3, 1 layer) over the sequence -> flatten 32·4·4 = 512 -> Linear(512, 6) at every step
 (paper: 14.142 M parameters). State: ``(h, c)``, each ``[B, 32, h, w]`` at the map's own
 resolution (4x4 at 256x256 input).

@@ -1,6 +1,6 @@
 """``lstm``: the baseline's feature path (with SiLU) feeding an LSTM over the sequence of pairs.
 
-Conv2d 2560->256 3x3 pad 1 (no bias) + BN + SiLU -> IR(256->128, s2) -> IR(128->64, s2)
+Conv2d 2560->256 3x3 pad 1 + BN + SiLU -> IR(256->128, s2) -> IR(128->64, s2)
 -> flatten 256 -> LSTM(256, hidden 128, 1 layer) -> Linear(128, 6) at every step
 (paper: 14.164 M parameters). State: ``(h, c)``, each ``[1, B, 128]``.
 """

@@ -16,8 +16,8 @@ import numpy as np
 
 from ..config import Realism
 from . import configure_environment
+from .appearance import AIRWAY_RGB, split_blocks
 from .camera import FAR_MM, NEAR_MM, Intrinsics, intrinsics
-from .surface import AIRWAY_RGB, split_blocks
 
 configure_environment()
 

@@ -7,7 +7,7 @@ artifacts. See docs/reports.md.
 """
 
 from .collect import RunIndex, RunRecord, collect_runs, index_runs
-from .model import Table
+from .layout import Table
 from .report import ReportResult, make_report
 from .tables import TABLES, ReportContext
 

@@ -17,13 +17,14 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Iterable, Iterator, Mapping, Sequence
 
 from .. import tracking
+from ..cells import FIELDS
 from ..errors import BronchoError
 
 if TYPE_CHECKING:
     from mlflow.entities import Run
 
-IDENTITY = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")
-Identity = tuple[str, str, str, str, str, str]
+IDENTITY = FIELDS  # a run's cell coordinates, from its tags
+Identity = tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -52,8 +53,8 @@ class RunRecord:
 
     @property
     def label(self) -> str:
-        arch, loss, pop, fold, seed, frame = self.identity
-        return f"{arch}/{loss}/{pop}" + (f"/{fold}" if fold else "") + f"/s{seed}/{frame}"
+        arch, loss, pop, fold, seed, frame, size = self.identity
+        return f"{arch}/{loss}/{pop}" + (f"/{fold}" if fold else "") + f"/s{seed}/{frame}" + (f"/t{size}" if size else "")
 
 
 @dataclass
@@ -71,12 +72,12 @@ class RunIndex:
 
     def select(self, population: str, arch: str, rot_loss: str) -> list[RunRecord]:
         """Every kept run of one (population, arch, rot_loss), sorted by fold then seed."""
-        found = [r for (a, lo, p, _, _, _), r in self.runs.items() if (a, lo, p) == (arch, rot_loss, population)]
+        found = [r for (a, lo, p, *_), r in self.runs.items() if (a, lo, p) == (arch, rot_loss, population)]
         return sorted(found, key=lambda r: (r.tag("fold"), _seed_key(r.tag("seed"))))
 
     def replicas(self, population: str) -> list[tuple[str, str]]:
         """The (fold, seed) pairs any kept run of the population has: what every table cell should pool."""
-        pairs = {(fold, seed) for (_, _, p, fold, seed, _) in self.runs if p == population}
+        pairs = {(fold, seed) for (_, _, p, fold, seed, *_) in self.runs if p == population}
         return sorted(pairs, key=lambda fs: (fs[0], _seed_key(fs[1])))
 
     def not_finished(self, population: str, arch: str, rot_loss: str) -> list[RunRecord]:

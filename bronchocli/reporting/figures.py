@@ -22,8 +22,9 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from .. import metrics
-from ..config import LOBES
-from ..plots import error_curve_figure, save_figure, trajectory_figure
+from ..cells import LOBES
+from ..io import save_figure
+from ..plots import error_curve_figure, trajectory_figure
 from .collect import RunIndex, RunRecord
 from .tables import ABLATION_LOSS, ARCH_NAMES, BRONCHOTRACK, LOSSES, OFFSETNET
 

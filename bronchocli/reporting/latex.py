@@ -10,8 +10,8 @@ Warnings go into the file as comments.
 
 from __future__ import annotations
 
+from .layout import MISSING, Table, cell_texts, marks
 from .markdown import label_cells, run_lines
-from .model import MISSING, Table, cell_texts, marks
 
 _SPECIAL = {
     "\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",

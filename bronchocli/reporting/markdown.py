@@ -8,7 +8,7 @@ says so. The terminal rendering uses real bold/red/blue.
 
 from __future__ import annotations
 
-from .model import MISSING, Table, cell_texts, marks
+from .layout import MISSING, Table, cell_texts, marks
 
 BEST, SECOND = "†", "‡"
 

@@ -7,22 +7,20 @@
 from __future__ import annotations
 
 import json
-import os
-import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from .. import tracking
+from .. import tracking, urls
 from ..config import Config
-from ..errors import BronchoError
-from ..tracking import redact_url
+from ..errors import BronchoError, DataError
+from ..io import save_figure, write_text
+from . import dataset_figures as dataset_figs
 from .collect import RunIndex
 from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
+from .layout import Table
 from .markdown import to_markdown
-from .model import Table
 from .tables import TABLES, Profiler, ReportContext
 
 OUTPUT_FORMATS = {"md": ("md",), "latex": ("tex",), "both": ("md", "tex")}
@@ -42,37 +40,20 @@ def output_suffixes(fmt: str) -> tuple[str, ...]:
     return OUTPUT_FORMATS[fmt]
 
 
-def write_text_atomic(path: Path, text: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
-
-
 def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence[str]) -> list[Table]:
     """Every requested table, for every requested evaluation, in that order."""
     return [TABLES[name](ctx, ev) for name in names for ev in evaluations]
 
 
 def write_tables(tables: Sequence[Table], out: Path, suffixes: Sequence[str]) -> list[Path]:
-    return [write_text_atomic(Path(out) / f"{t.key}.{s}", RENDERERS[s](t)) for t in tables for s in suffixes]
+    return [write_text(Path(out) / f"{t.key}.{s}", RENDERERS[s](t)) for t in tables for s in suffixes]
 
 
 def dataset_figures(root: Path, out: Path, warnings: list[str]) -> list[Path]:
     """The dataset's sample-frame montage and positions plot (data preview); a missing dataset is a warning."""
-    from ..data import preview
-    from ..errors import DataError
-    from ..plots import save_figure
-
     try:
-        montage = preview.montage_figure(root)
-        positions = preview.positions_figure(root)
+        montage = dataset_figs.montage_figure(root)
+        positions = dataset_figs.positions_figure(root, warnings=warnings)
     except (DataError, OSError) as exc:
         warnings.append(f"figures: no dataset figures ({exc})")
         return []
@@ -116,9 +97,9 @@ def summary_index(index: RunIndex) -> str:
 
 def open_store(cfg: Config):
     """The config's MLflow client; a missing SQLite store is an error here (a report must not create one)."""
-    m = re.match(r"^sqlite(?:\+\w+)?:///(.+)$", cfg.tracking_uri)
-    if m and not Path(m.group(1)).is_file():
-        raise BronchoError(f"tracking.uri {redact_url(cfg.tracking_uri)}: no MLflow store there yet; "
+    db = urls.sqlite_file(cfg.paths.tracking_uri)
+    if db is not None and not db.is_file():
+        raise BronchoError(f"tracking.uri {tracking.redacted_uri(cfg)}: no MLflow store there yet; "
                            f"run `bronchopose sweep` or `bronchopose train` first")
     return tracking.client_for(cfg)
 
@@ -135,14 +116,14 @@ def profiles_from_json(path: Path) -> Profiler:
 
 
 def measuring_profiler(image_size: int, device: str, batch: int = 1, repeats: int = 5) -> Profiler:
-    """``profiling.profile_arch`` with fixed settings, imported only when the ablation table needs it.
+    """``models.profile.profile_arch`` with fixed settings, imported only when the ablation table needs it.
 
     The table shows batch-1 latency only, so batch N defaults to 1 (profile_arch times both).
     """
     def profile(arch: str):
-        from .. import profiling
+        from ..models.profile import profile_arch  # lazy: torch only when the ablation table is measured
 
-        return profiling.profile_arch(arch, image_size=image_size, device=device, batch=batch, repeats=repeats)
+        return profile_arch(arch, image_size=image_size, device=device, batch=batch, repeats=repeats)
     return profile
 
 

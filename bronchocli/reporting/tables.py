@@ -26,7 +26,7 @@ from ..errors import BronchoError
 from ..metrics import Stat
 from .aggregate import NOUN, PREFIX, CellValue, cell_value
 from .collect import RunIndex, RunRecord
-from .model import Column, Row, Table, Value, missing_cells
+from .layout import Column, Row, Table, Value, missing_cells
 
 ARCH_GROUPS = {"baseline": "Baseline", "lstm": "+LSTM", "conv3d": "+3D", "convlstm": "+ConvRNN"}
 ARCH_NAMES = {**ARCH_GROUPS, "offsetnet": "OffsetNet"}

@@ -4,14 +4,15 @@
 - ``worker``: the claim -> run -> record loop with its heartbeat and signal handling;
 - ``plan``: cell selection (``--only``) and the shared state prepared once before workers start;
 - ``pool``: local worker processes and the parent's live view;
-- ``status``: tables for the plan, the live view and ``bronchopose status``.
+- ``status``: tables for the plan, the live view and ``bronchopose status``;
+- ``tuning``: Optuna studies on the same storage, one MLflow run per trial.
 
 See docs/sweep.md for the model and the exactly-once argument.
 """
 
-from .plan import Plan, parse_only, plan_cells, prepare, read_plan, select_cells
-from .pool import PoolResult, resolve_runner, run_pool, spawn_worker, worker_config
-from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, Claim, StorageError, SweepStore, normalize_url
+from .plan import Plan, plan_cells, prepare, read_plan
+from .pool import PoolResult, run_pool, spawn_worker, worker_config
+from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, Claim, StorageError, SweepStore
 from .worker import TAG_ATTEMPT, TAG_CLAIM, TAG_WORKER, StopSignals, Worker, WorkerSpec, worker_process
 
 __all__ = [
@@ -31,14 +32,10 @@ __all__ = [
     "SweepStore",
     "Worker",
     "WorkerSpec",
-    "normalize_url",
-    "parse_only",
     "plan_cells",
     "prepare",
     "read_plan",
-    "resolve_runner",
     "run_pool",
-    "select_cells",
     "spawn_worker",
     "worker_config",
     "worker_process",

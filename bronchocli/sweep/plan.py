@@ -9,55 +9,19 @@ so several machines may plan the same sweep at once).
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from .. import tracking
-from ..config import Cell, Config, expand_grid
-from ..errors import BronchoError
+from ..cells import Cell, Selection, select
+from ..config import Config, expand_grid
+from ..generation.sources import ensure_dataset, planned_patients
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
-ONLY_KEYS = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")
 
-
-def parse_only(specs: Iterable[str] | None) -> dict[str, set[str]]:
-    """``["arch=lstm,conv3d;population=personalized", "seed=0"]`` -> ``{"arch": {...}, ...}`` (AND of keys)."""
-    out: dict[str, set[str]] = {}
-    for spec in specs or []:
-        for part in filter(None, (p.strip() for p in spec.split(";"))):
-            key, sep, values = part.partition("=")
-            key = key.strip().replace("-", "_")
-            if not sep or key not in ONLY_KEYS:
-                raise BronchoError(f"--only {part!r}: expected key=value[,value...] with key one of "
-                                   f"{', '.join(ONLY_KEYS)}")
-            vals = {v.strip() for v in values.split(",") if v.strip()}
-            if not vals:
-                raise BronchoError(f"--only {part!r}: no values given")
-            out[key] = out[key] & vals if key in out else vals
-    return out
-
-
-def _value(cell: Cell, key: str) -> str:
-    v = getattr(cell, key)
-    return "" if v is None else str(v)
-
-
-def select_cells(cells: Sequence[Cell], only: dict[str, set[str]]) -> list[Cell]:
-    """Cells matching every ``--only`` key; a value no cell has is an error (likely a typo)."""
-    for key, vals in only.items():
-        known = {_value(c, key) for c in cells}
-        unknown = sorted(vals - known)
-        if unknown:
-            shown = ", ".join(sorted(v for v in known if v)) or "none"
-            raise BronchoError(f"--only {key}={','.join(unknown)}: no cell of the grid has that {key} "
-                               f"(grid has: {shown})")
-    return [c for c in cells if all(_value(c, k) in v for k, v in only.items())]
-
-
-def plan_cells(cfg: Config, only: dict[str, set[str]] | None = None) -> list[Cell]:
-    from ..data.naming import patient_ids_for
-
-    return select_cells(expand_grid(cfg, patient_ids_for(cfg)), only or {})
+def plan_cells(cfg: Config, only: Selection | None = None) -> list[Cell]:
+    """The grid's cells (cross-subject folds from the dataset, or from what generation will make), filtered."""
+    return select(expand_grid(cfg, planned_patients(cfg)), only or {})
 
 
 @dataclass
@@ -83,14 +47,12 @@ def read_plan(store: SweepStore, sweep: str, cells: Sequence[Cell]) -> Plan:
     return Plan(sweep, list(cells), rows)
 
 
-def prepare(cfg: Config, store: SweepStore, only: dict[str, set[str]] | None = None, *, sweep: str | None = None,
+def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sweep: str | None = None,
             dataset: bool = True, retry_failed: bool = False) -> Plan:
     """Create the shared state once (MLflow store + experiment, dataset, cell rows) and return the plan."""
     sweep = sweep or cfg.name
     tracking.experiment_id(tracking.client_for(cfg), cfg)  # MLflow's first migration happens here, once
     if dataset:
-        from ..data.generate import ensure_dataset
-
         ensure_dataset(cfg)  # before expanding: cross-subject folds come from the dataset's patients
     cells = plan_cells(cfg, only)
     store.ensure_schema()

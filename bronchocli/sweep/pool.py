@@ -15,7 +15,6 @@ a checkpoint). Workers release their cells and exit 130; so does the parent.
 
 from __future__ import annotations
 
-import importlib
 import multiprocessing as mp
 import os
 import signal
@@ -30,9 +29,10 @@ from typing import Any
 from rich.console import Console
 from rich.live import Live
 
-from .. import tracking
+from .. import urls
 from ..config import Config
 from ..errors import BronchoError
+from ..runlayout import cpu_threads
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
 from .storage import FAILED, FINISHED, SweepStore
@@ -41,25 +41,11 @@ from .worker import EXIT_INTERRUPTED, Runner, WorkerSpec, default_runner, worker
 REFRESH_S = 0.5
 
 
-def resolve_runner(spec: str | None) -> Runner:
-    """``module:function`` -> the function (``None``: the real ``run_cell``)."""
-    if not spec:
-        return default_runner
-    module, sep, name = spec.partition(":")
-    try:
-        fn = getattr(importlib.import_module(module), name) if sep else None
-    except (ImportError, AttributeError) as exc:
-        raise BronchoError(f"--runner {spec!r}: {exc}") from None
-    if not callable(fn):
-        raise BronchoError(f"--runner {spec!r}: expected module:function")
-    return fn
-
-
 def worker_config(cfg: Config, workers: int) -> Config:
     """The config workers run with: CPU threads split between workers; no secrets in what MLflow logs."""
-    values: dict[str, Any] = {"storage.url": tracking.redact_url(cfg.storage.url)}
+    values: dict[str, Any] = {"storage.url": urls.redact(cfg.storage.url)}
     if cfg.train.threads is None:
-        values["train.threads"] = max(1, (os.cpu_count() or 1) // max(1, workers))
+        values["train.threads"] = cpu_threads(cfg, workers)
     return cfg.with_values(values)
 
 
@@ -103,7 +89,7 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
     t0 = time.perf_counter()
     sweep = sweep or plan.sweep
     console = console or Console()
-    log_dir = cfg.resolve(cfg.sweep.logs) / sweep
+    log_dir = cfg.paths.sweep_logs / sweep
     log_dir.mkdir(parents=True, exist_ok=True)
     wcfg = worker_config(cfg, workers)
     event = mp.get_context("spawn").Event()

@@ -17,13 +17,11 @@ See docs/sweep.md for why this gives exactly one FINISHED run per cell.
 from __future__ import annotations
 
 import json
-import re
 import time
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from sqlalchemy import (
@@ -47,15 +45,14 @@ from sqlalchemy import (
 )
 from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
-from ..config import Cell
+from .. import urls
+from ..cells import Cell
 from ..errors import BronchoError
-from ..tracking import redact_url
 
 TABLE = "bronchopose_sweep_cells"
 PENDING, RUNNING, FINISHED, FAILED = "pending", "running", "finished", "failed"
 STATES = (PENDING, RUNNING, FINISHED, FAILED)
 SQLITE_BUSY_MS = 60_000
-_SQLITE_FILE = re.compile(r"^sqlite(?:\+\w+)?:///(.+)$")
 
 metadata = MetaData()
 cells_table = Table(
@@ -78,11 +75,6 @@ cells_table = Table(
     Column("failure_reason", Text),
     Column("duration_s", Float),  # time inside the runner
 )
-
-
-def normalize_url(url: str) -> str:
-    """``postgres://`` and ``postgresql://`` use psycopg 3 (the installed driver)."""
-    return re.sub(r"^postgres(?:ql)?://", "postgresql+psycopg://", url)
 
 
 @dataclass(frozen=True)
@@ -132,8 +124,8 @@ class SweepStore:
     """The claims table of one storage URL (one engine per process)."""
 
     def __init__(self, url: str):
-        self.url = normalize_url(url)
-        self.redacted = redact_url(self.url)
+        self.url = urls.sqlalchemy(url)
+        self.redacted = urls.redact(self.url)
         if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
             raise BronchoError(f"storage.url {self.redacted}: an in-memory SQLite database cannot be shared by "
                                "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
@@ -162,8 +154,8 @@ class SweepStore:
 
     # -- schema ------------------------------------------------------------------
     def exists(self) -> bool:
-        m = _SQLITE_FILE.match(self.url)
-        if m and not Path(m.group(1)).exists():  # do not create an empty database just to look
+        db = urls.sqlite_file(self.url)
+        if db is not None and not db.exists():  # do not create an empty database just to look
             return False
         try:
             with self.engine.connect() as conn:
@@ -173,9 +165,9 @@ class SweepStore:
 
     def ensure_schema(self) -> None:
         """Create the table if missing; tolerate another machine creating it at the same moment."""
-        m = _SQLITE_FILE.match(self.url)
-        if m and m.group(1) != ":memory:":
-            Path(m.group(1)).parent.mkdir(parents=True, exist_ok=True)
+        db = urls.sqlite_file(self.url)
+        if db is not None:
+            db.parent.mkdir(parents=True, exist_ok=True)
         for attempt in range(5):
             try:
                 metadata.create_all(self.engine, checkfirst=True)
@@ -325,7 +317,7 @@ class StorageError(BronchoError):
 
 def _first_line(exc: BaseException) -> str:
     text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-    return redact_url(text[0] if text else type(exc).__name__)
+    return urls.redact(text[0] if text else type(exc).__name__)
 
 
 def _now_sql(dialect: str) -> str:

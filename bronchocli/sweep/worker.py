@@ -1,8 +1,10 @@
 """A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
 
 The cell runner is injectable: any function with ``run_cell``'s signature,
-``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> RunResult``
-(the real one trains; tests and benchmarks pass fast fakes). Workers are
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> RunResult``.
+The real one trains; tests and benchmarks pass fast fakes to ``Worker``, or
+name one in the test-only environment variable ``BRONCHOPOSE_TEST_RUNNER``
+(``module:function``), which spawned worker processes inherit. Workers are
 processes started by ``bronchopose sweep`` (multiprocessing ``spawn``; see
 ``pool.py``) or by anyone calling ``worker_process``.
 
@@ -17,6 +19,7 @@ run KILLED and goes on with another cell.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import signal
@@ -29,8 +32,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .. import tracking
-from ..config import Cell, Config
+from ..cells import Cell
+from ..config import Config
 from ..errors import BronchoError
+from ..runlayout import RunInterrupted, resume_file
 from .storage import CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -43,16 +48,18 @@ EXIT_OK, EXIT_INTERRUPTED = 0, 130
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
 
 
+TEST_RUNNER_ENV = "BRONCHOPOSE_TEST_RUNNER"  # test-only: module:function run instead of training
+
+
 def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
-    """The real runner (imported lazily: it pulls in torch and Lightning)."""
-    from ..training.run import run_cell
+    """Train the cell (``training.run.run_cell``), or the test runner named in ``$BRONCHOPOSE_TEST_RUNNER``."""
+    spec = os.environ.get(TEST_RUNNER_ENV)
+    if spec:
+        module, _, name = spec.partition(":")
+        return getattr(importlib.import_module(module), name)(cfg, cell, **kw)
+    from ..training.run import run_cell  # lazy: torch loads in worker processes only, not in the sweep's parent
 
     return run_cell(cfg, cell, **kw)
-
-
-def checkpoint_path(cfg: Config, run_id: str):
-    """Where the training engine leaves an interrupted run's checkpoint (training.engine.checkpoint_dir)."""
-    return cfg.resolve(cfg.tracking.checkpoints) / run_id / "last.ckpt"
 
 
 def worker_id() -> str:
@@ -64,8 +71,7 @@ class ClaimLost(BronchoError):
 
 
 def _is_interrupt(exc: BaseException) -> bool:
-    # RunInterrupted (training.engine) has exit code 130; matching on that avoids importing torch here.
-    return isinstance(exc, KeyboardInterrupt) or (isinstance(exc, BronchoError) and exc.exit_code == 130)
+    return isinstance(exc, (KeyboardInterrupt, RunInterrupted))
 
 
 def _reason(exc: BaseException) -> str:
@@ -304,7 +310,7 @@ class Worker:
     # -- MLflow side ---------------------------------------------------------------
     def _resumable(self, run_id: str | None, cell: Cell) -> str | None:
         """A run given back by Ctrl-C is resumed when it is KILLED and its checkpoint is on this machine."""
-        if not run_id or not checkpoint_path(self.cfg, run_id).is_file():
+        if not run_id or not resume_file(self.cfg, run_id).is_file():
             return None
         try:
             run = self.client.get_run(run_id)

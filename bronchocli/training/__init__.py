@@ -1,1 +1,1 @@
-"""Training and evaluation engine: one grid cell -> one Lightning run -> one MLflow run."""
+"""Training and evaluation of one cell: prepare -> loop (fit) -> evaluate, logged to one MLflow run by run.py."""

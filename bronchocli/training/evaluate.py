@@ -1,4 +1,4 @@
-"""Evaluation on whole test trajectories: per-pair, accumulated and trajectory metrics, predictions table.
+"""Evaluation on whole test trajectories: metrics, image-blind references, per-trajectory errors.
 
 Each test video is processed from its first frame to its last in chunks of
 ``chunk`` pairs (chunks overlap by one frame); a recurrent model carries its
@@ -11,28 +11,39 @@ Metric names are stable (MLflow keys and report columns):
 ``acc.<m>.{mean,std}`` over trajectories (endpoint after chaining the whole
 trajectory), ``traj.{ate,ate_mm,rpe_trans,rpe_rot}.{mean,std}``, with
 ``<m>`` in pos_l2, pos_l2_mm, rot_l2, de, ce, geodesic.
+
+Two image-blind references are scored on the same trajectories with the same
+metrics, under the prefixes ``zero_motion.`` (every relative pose is zero) and
+``train_mean.`` (every relative pose is the mean of the training labels, in the
+run's pose frame): a model must beat the better of them to have learnt anything
+from the images. ``pred.std.*`` says how much the predictions vary across test
+pairs (about 0 for a model that ignores its input).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Iterable
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
 import torch
 
 from .. import geometry, metrics
+from ..data.batches import FrameSource, relative_labels
+from ..data.reader import Trajectory
 
 POSE_COLS = ("x", "y", "z", "rx", "ry", "rz")
+REFERENCES = ("zero_motion", "train_mean")
+TRAJECTORY_METRICS = ("pos_l2", "pos_l2_mm", "rot_l2", "de", "ce", "geodesic")
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrajectoryPrediction:
     key: str
     patient: str
     lobe: str
-    traj_id: Any
+    traj_id: str
     gt_rel: np.ndarray  # (N-1, 6)
     pred_rel: np.ndarray  # (N-1, 6)
     gt_abs: np.ndarray  # (N, 6)
@@ -41,30 +52,34 @@ class TrajectoryPrediction:
 
 
 @torch.no_grad()
-def predict_relative(module, frames: torch.Tensor, chunk: int) -> np.ndarray:
-    """Relative poses ``(N-1, 6)`` for one video ``frames`` uint8 ``[N, 3, H, W]``."""
+def predict_relative(net, frames: torch.Tensor, chunk: int, autocast=None) -> np.ndarray:
+    """Relative poses ``(N-1, 6)`` for one video ``frames`` uint8 ``[N, 3, H, W]`` on the model's device."""
     n_pairs = frames.shape[0] - 1
     outputs, state = [], None
     for start in range(0, n_pairs, chunk):
-        clip = frames[start : start + chunk + 1].unsqueeze(0)
-        out, state = module(clip, state)
+        clip = frames[start: start + chunk + 1].unsqueeze(0)
+        if autocast is None:
+            out, state = net(clip, state)
+        else:
+            with autocast():
+                out, state = net(clip, state)
         outputs.append(out[0].double().cpu())
     return torch.cat(outputs).numpy()
 
 
-def predict_trajectories(module, items: Iterable[dict[str, Any]], frame: str, chunk: int) -> list[TrajectoryPrediction]:
-    """Run the model over every trajectory item (from the data layer's TrajectoryDataset)."""
-    module.eval()
+def predict_trajectories(net, trajectories: Sequence[Trajectory], source: FrameSource, frame: str, chunk: int,
+                         spacing: dict[str, np.ndarray], autocast=None) -> list[TrajectoryPrediction]:
+    """Run the model over every trajectory (eval mode) and chain its predictions."""
+    net.eval()
     preds = []
-    for item in items:
-        pred_rel = predict_relative(module, item["frames"], chunk)
-        start = np.asarray(item["start"], dtype=np.float64)
-        gt_abs = np.asarray(item["poses"], dtype=np.float64)
+    for t in trajectories:
+        pred_rel = predict_relative(net, source(np.asarray(t.frame_index)), chunk, autocast)
+        gt_abs = np.asarray(t.poses, dtype=np.float64)
         preds.append(TrajectoryPrediction(
-            key=item["key"], patient=item["patient"], lobe=item["lobe"], traj_id=item["traj_id"],
-            gt_rel=np.asarray(item["labels"], dtype=np.float64), pred_rel=pred_rel,
-            gt_abs=gt_abs, pred_abs=geometry.accumulate(start, pred_rel, frame),
-            spacing_mm=np.asarray(item["spacing_mm"], dtype=np.float64),
+            key=t.key, patient=t.patient, lobe=t.lobe, traj_id=str(t.traj_id),
+            gt_rel=relative_labels(t, frame), pred_rel=pred_rel, gt_abs=gt_abs,
+            pred_abs=geometry.accumulate(gt_abs[0], pred_rel, frame),
+            spacing_mm=np.asarray(spacing[t.patient], dtype=np.float64),
         ))
     return preds
 
@@ -77,7 +92,7 @@ def _stats(prefix: str, stats: dict[str, metrics.Stat]) -> dict[str, float]:
     return out
 
 
-def score(preds: list[TrajectoryPrediction], frame: str) -> dict[str, float]:
+def score(preds: list[TrajectoryPrediction]) -> dict[str, float]:
     """Every test metric of a set of predicted trajectories."""
     if not preds:
         raise ValueError("no test trajectories to score")
@@ -102,14 +117,70 @@ def score(preds: list[TrajectoryPrediction], frame: str) -> dict[str, float]:
     return out
 
 
-def zero_motion_score(preds: list[TrajectoryPrediction], frame: str) -> dict[str, float]:
-    """The same metrics for a predictor that always says "no motion" (a floor any model must beat)."""
-    zero = [
-        TrajectoryPrediction(**{**p.__dict__, "pred_rel": np.zeros_like(p.gt_rel),
-                                "pred_abs": geometry.accumulate(p.gt_abs[0], np.zeros_like(p.gt_rel), frame)})
-        for p in preds
-    ]
-    return score(zero, frame)
+def constant_predictions(preds: list[TrajectoryPrediction], constant: np.ndarray, frame: str
+                         ) -> list[TrajectoryPrediction]:
+    """The same trajectories predicted by an image-blind model that always outputs ``constant``."""
+    out = []
+    for p in preds:
+        rel = np.broadcast_to(np.asarray(constant, dtype=np.float64), p.gt_rel.shape).copy()
+        out.append(replace(p, pred_rel=rel, pred_abs=geometry.accumulate(p.gt_abs[0], rel, frame)))
+    return out
+
+
+def reference_predictions(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: str
+                          ) -> dict[str, list[TrajectoryPrediction]]:
+    return {"zero_motion": constant_predictions(preds, np.zeros(6), frame),
+            "train_mean": constant_predictions(preds, train_mean, frame)}
+
+
+def variability(preds: list[TrajectoryPrediction]) -> dict[str, float]:
+    """How much predictions vary across test pairs, against the ground truth's own variation.
+
+    ``pred.std.pos`` / ``pred.std.rot``: the std over test pairs of the predicted
+    position (voxels) / angle (degrees) components, averaged over the three axes;
+    ``pred.std_ratio.*``: the same divided by the ground truth's (0: the model
+    ignores its input; near 1: it varies as much as the truth).
+    """
+    pred = np.concatenate([p.pred_rel for p in preds])
+    gt = np.concatenate([p.gt_rel for p in preds])
+    out = {}
+    for name, cols in (("pos", slice(0, 3)), ("rot", slice(3, 6))):
+        ps, gs = float(pred[:, cols].std(0).mean()), float(gt[:, cols].std(0).mean())
+        out[f"pred.std.{name}"] = ps
+        out[f"pred.std_ratio.{name}"] = ps / gs if gs > 0 else float("nan")
+    return out
+
+
+def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, list[TrajectoryPrediction]]
+                     ) -> pd.DataFrame:
+    """One row per test trajectory: its mean per-pair error and its endpoint (accumulated) error per metric,
+    for the model and each reference (columns ``<source>.<pair|acc>.<metric>``). What ``report`` pairs
+    rows on to compare two models on the same trajectories."""
+    rows = []
+    sources = {"model": preds, **references}
+    for i, p in enumerate(preds):
+        row: dict[str, object] = {"patient": p.patient, "lobe": p.lobe, "trajectory": p.traj_id,
+                                  "n_pairs": len(p.gt_rel)}
+        for name, ps in sources.items():
+            q = ps[i]
+            pair = metrics.per_pose_errors(q.pred_rel, q.gt_rel, p.spacing_mm)
+            acc = metrics.per_pose_errors(q.pred_abs[-1:], q.gt_abs[-1:], p.spacing_mm)
+            for m in TRAJECTORY_METRICS:
+                row[f"{name}.pair.{m}"] = float(np.mean(pair[m]))
+                row[f"{name}.acc.{m}"] = float(acc[m][0])
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: str
+             ) -> tuple[dict[str, float], pd.DataFrame]:
+    """Metrics of the model and of both references, prediction variability, and the per-trajectory table."""
+    refs = reference_predictions(preds, train_mean, frame)
+    out = score(preds)
+    for name, ref in refs.items():
+        out |= {f"{name}.{k}": v for k, v in score(ref).items() if not k.startswith("test.")}
+    out |= variability(preds)
+    return out, trajectory_table(preds, refs)
 
 
 def predictions_table(preds: list[TrajectoryPrediction]) -> pd.DataFrame:

@@ -1,36 +1,43 @@
-"""One training run = one grid cell, tracked as one MLflow run from start to FINISHED/FAILED/KILLED.
+"""One training run = one cell, tracked as one MLflow run from start to FINISHED/FAILED/KILLED.
 
-``run_cell(cfg, cell)`` generates the dataset if it is missing, splits it for
-the cell's population and fold, decodes frames into the cache, trains with
-Lightning (early stopping on validation loss, best checkpoint kept), evaluates
-the best weights on the test trajectories and logs params, tags, per-epoch and
-test metrics and artifacts (resolved config, split manifest, predictions CSV,
-trajectory plot, best checkpoint).
+``run_cell(cfg, cell)`` prepares the data (split, frame cache, statistics; a
+bad frame fails before any MLflow run exists), opens the run, trains and
+evaluates (``engine``), logs everything (``artifacts``) and terminates the
+run. The dataset must exist: ``bronchopose train``/``sweep``/``tune``
+generate it first, as an explicit step of their start-up.
 
-Faults: SIGINT (Ctrl-C) or SIGTERM stops training at the next batch, saves a
-checkpoint and marks the run KILLED (``RunInterrupted`` is raised so callers
-stop too); ``resume=`` continues such a run from its checkpoint. An ``on_epoch``
-observer may raise ``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
+Faults: SIGINT (Ctrl-C) or SIGTERM stops training after the current
+optimiser step, saves a resumable checkpoint and marks the run KILLED
+(``RunInterrupted`` is raised so callers stop too); ``resume=`` continues
+such a run from its checkpoint. An ``on_validation`` observer may raise
+``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
 or any other error marks the run FAILED with the reason in the
-``failure_reason`` tag. Lightning writes checkpoints atomically (temp file +
-rename through fsspec transactions).
+``failure_reason`` tag. A signal that arrives during the test evaluation lets
+the run finish; ``RunResult.stop_requested`` passes it on.
 """
 
 from __future__ import annotations
 
 import logging
+import shutil
 import signal
-import tempfile
 import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any
+
+import torch
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from .. import tracking
-from ..config import Cell, Config
+from ..cells import Cell
+from ..config import Config
 from ..errors import BronchoError
-from .engine import RunInterrupted, RunPruned, RunStopped, prepare_data, train_and_evaluate
+from ..runlayout import RunInterrupted, RunPruned, RunStopped, checkpoint_dir, resume_file
+from . import artifacts
+from .engine import fit_and_evaluate
+from .prepare import prepare
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +53,8 @@ class RunResult:
     stop_requested: int | None = None  # a SIGINT/SIGTERM that arrived during evaluation: the caller should stop
 
 
-class _StopFlag:
-    """Turns the first SIGINT/SIGTERM into a request to stop at the next batch; a second SIGINT aborts."""
+class StopFlag:
+    """Turns the first SIGINT/SIGTERM into a request to stop after the current step; a second SIGINT aborts."""
 
     def __init__(self) -> None:
         self.signal: int | None = None
@@ -59,7 +66,7 @@ class _StopFlag:
 
 
 @contextmanager
-def _stop_on_signals(flag: _StopFlag) -> Iterator[None]:
+def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
     try:
         previous = {s: signal.signal(s, flag) for s in (signal.SIGINT, signal.SIGTERM)}
     except ValueError:  # not the main thread: leave signals alone
@@ -80,26 +87,52 @@ def _find_resumable(client, exp_id: str, cell: Cell) -> str:
 
 
 def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool | None,
-              extra_tags: dict[str, str]) -> tuple[str, bool]:
-    """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, resumed)."""
-    if resume:
-        run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)
+              extra_tags: dict[str, str]) -> tuple[str, dict[str, Any] | None]:
+    """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, its saved state)."""
+    if not resume:
+        run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags))
+        return run.info.run_id, None
+    run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)
+    try:
         run = client.get_run(run_id)
-        if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
-            raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
-                               f"{run.data.tags.get(tracking.TAG_CELL_KEY)} != {cell.key})")
-        client.update_run(run_id, "RUNNING")
-        client.set_tag(run_id, tracking.TAG_FAILURE, "")
-        return run_id, True
-    run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags))
-    return run.info.run_id, False
+    except Exception:  # noqa: BLE001 - MLflow raises its own exception types for a missing run
+        raise BronchoError(f"--run-id {run_id}: no such MLflow run in {tracking.redacted_uri(cfg)}") from None
+    if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
+        raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
+                           f"{run.data.tags.get(tracking.TAG_CELL_KEY)} != {cell.key})")
+    path = resume_file(cfg, run_id)
+    if not path.is_file():
+        raise BronchoError(f"--resume {run_id}: no checkpoint at {path} (it is kept on the machine that ran it)")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    client.update_run(run_id, "RUNNING")
+    client.set_tag(run_id, tracking.TAG_FAILURE, "")
+    return run_id, state
 
 
-def _log_text(client, run_id: str, name: str, text: str, artifact_path: str | None = None) -> None:
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / name
-        path.write_text(text)
-        client.log_artifact(run_id, str(path), artifact_path)
+class _StepBar:
+    """A rich progress bar over optimiser steps (nothing when ``show`` is False)."""
+
+    def __init__(self, show: bool, label: str) -> None:
+        self.bar = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("steps"),
+                            TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+                            transient=False) if show else None
+        self.task = None
+
+    def step(self, step: int, total: int) -> None:
+        if self.bar is None:
+            return
+        if self.task is None:
+            self.bar.start()
+            self.task = self.bar.add_task("train", total=total, completed=step, info="")
+        self.bar.update(self.task, completed=step)
+
+    def validated(self, step: int, values: dict[str, float]) -> None:
+        if self.bar is not None and self.task is not None:
+            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {values['best_val_loss']:.4g})")
+
+    def close(self) -> None:
+        if self.bar is not None and self.task is not None:
+            self.bar.stop()
 
 
 def run_cell(
@@ -109,33 +142,43 @@ def run_cell(
     resume: str | bool | None = None,
     extra_tags: dict[str, str] | None = None,
     progress: bool = True,
-    on_epoch: Callable[[int, dict[str, float]], None] | None = None,
+    on_validation: Callable[[int, dict[str, float]], None] | None = None,
     run_id_callback: Callable[[str], None] | None = None,
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
-    from ..data.generate import ensure_dataset
-
     t0 = time.perf_counter()
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
-    ensure_dataset(cfg)
-    data = prepare_data(cfg, cell, progress=progress)  # validates frames before any run exists
-    run_id, resumed = _open_run(client, exp_id, cfg, cell, resume, dict(extra_tags or {}))
+    data = prepare(cfg, cell, progress=progress)
+    run_id, state = _open_run(client, exp_id, cfg, cell, resume, dict(extra_tags or {}))
     if run_id_callback:
         run_id_callback(run_id)
-    flag = _StopFlag()
+    flag = StopFlag()
+    bar = _StepBar(progress, cell.label)
+    log_validation = artifacts.validation_logger(client, run_id)
+
+    def validated(step: int, values: dict[str, float]) -> None:
+        log_validation(step, values)
+        bar.validated(step, values)
+        if on_validation is not None:
+            on_validation(step, values)
+
+    ckpt = checkpoint_dir(cfg, run_id)
     try:
-        if not resumed:
-            client.set_tag(run_id, tracking.TAG_FINGERPRINT, data.fingerprint)
-            tracking.log_params(client, run_id, tracking.flatten(cfg.dump()))
-            _log_text(client, run_id, "config.yaml", tracking.redact_url(cfg.to_yaml()))
+        if state is None:
+            artifacts.log_start(client, run_id, cfg, data)
         with _stop_on_signals(flag):
-            outcome = train_and_evaluate(cfg, cell, data, client, run_id, stop=flag, resumed=resumed,
-                                         progress=progress, on_epoch=on_epoch)
+            try:
+                outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
+                                           on_validation=validated, on_step=bar.step)
+            finally:
+                bar.close()
+            artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
     except RunStopped as exc:
         client.set_tag(run_id, tracking.TAG_FAILURE, str(exc))
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
+            shutil.rmtree(ckpt, ignore_errors=True)  # a pruned trial is never resumed
         client.set_terminated(run_id, "KILLED")
         raise
     except KeyboardInterrupt:
@@ -150,8 +193,7 @@ def run_cell(
         if not isinstance(exc, BronchoError):
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
+    shutil.rmtree(ckpt, ignore_errors=True)  # resumable state is only needed while the run is unfinished
     client.set_terminated(run_id, "FINISHED")
-    # A signal after training (during evaluation) let the run finish; it is passed on, not lost.
     return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
-                     train_time_s=outcome.train_time_s, stop_requested=flag.signal)
-
+                     train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)

@@ -12,7 +12,7 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.config import Config, CsvImport
 from bronchocli.data.importer import import_csv
-from bronchocli.data.naming import patient_ids_for
+from bronchocli.data.layout import patient_ids_for
 from bronchocli.data.reader import open_dataset, open_dataset_dir
 from bronchocli.errors import DataError
 

@@ -7,7 +7,7 @@ import json
 import pytest
 import torch
 
-from bronchocli import profiling
+from bronchocli.models import profile as profiling
 from bronchocli.errors import BronchoError
 from bronchocli.models import build_model
 from bronchocli.models.backbones import EfficientNetB0Features, ResNet34

@@ -13,7 +13,7 @@ from bronchocli.config import Config
 
 def test_real_tree_renders_along_four_lobe_paths(real_tree, tmp_path):
     from bronchocli.anatomy import load_anatomy
-    from bronchocli.data.generate import generate_dataset
+    from bronchocli.generation.pipeline import generate_dataset
 
     tree = load_anatomy(real_tree, voxel_mm=1.0, lobe_generation=Config(name="x").dataset.generate.lobe_generation)
     assert set(tree.lobe_paths) == {"ur", "br", "ul", "bl"}

@@ -8,7 +8,7 @@ from generator_refs import tube_surface
 
 from bronchocli.config import Realism
 from bronchocli.render.scene import FrameRenderer, blur
-from bronchocli.render.surface import (
+from bronchocli.render.appearance import (
     mucosa_colours,
     prepare_surface,
     split_blocks,

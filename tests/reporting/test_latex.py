@@ -12,7 +12,7 @@ from report_fakes import EXPERIMENT, PROFILES, SWEEP
 from bronchocli.metrics import Stat
 from bronchocli.reporting import collect, tables
 from bronchocli.reporting.latex import escape, to_latex
-from bronchocli.reporting.model import Column, Row, Table
+from bronchocli.reporting.layout import Column, Row, Table
 
 def _strip_comments(text: str) -> str:
     return "\n".join(re.sub(r"(?<!\\)%.*", "", line) for line in text.splitlines())

@@ -6,7 +6,7 @@ rules: docs/generator.md):
 
 1. per patient (in parallel): load the anatomy, write its centreline graph
    (``<patient>/airway.vtp``) and its render-ready lumen surface (cached in
-   ``<root>/.work/``), and plan its trajectories (:mod:`.synth`);
+   ``<root>/.work/``), and plan its trajectories (:mod:`.trajectories`);
 2. render every trajectory's missing frames (one task per trajectory, in
    ``--workers`` processes, each with its own VTK context);
 3. write each patient's CSV once all its frames exist, then ``dataset.json``
@@ -31,21 +31,17 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..anatomy import centreline_distance, load_anatomy, lumen_surface, save_centreline
 from ..config import Config, Generate
+from ..data.layout import DATASET_JSON
 from ..errors import DataError
-from ..locks import file_lock
+from ..io import file_lock, remove_stale_temps, write_bytes, write_json, write_polydata
+from ..render.appearance import prepare_surface
 from ..render.camera import intrinsics
-from ..render.worker import (
-    Callback,
-    RenderProgress,
-    RenderTask,
-    close_renderer,
-    init_worker,
-    run_task,
-)
+from ..render.tasks import Callback, RenderProgress, RenderTask, close_renderer, init_worker, run_task
 from . import writer
-from .naming import DATASET_JSON, file_patient_id, procedural_patient_id
-from .synth import PathSampler, PlannedTrajectory, plan_lobe
+from .sources import PatientSource, patient_sources
+from .trajectories import PathSampler, PlannedTrajectory, plan_lobe
 
 GENERATOR_VERSION = 1  # bump when the same config would render different frames
 WORK_DIR = ".work"
@@ -53,15 +49,6 @@ MANIFEST = "manifest.json"
 LOCK = ".generate.lock"  # held while generating: concurrent generators of one root take turns
 OURS = (WORK_DIR, LOCK)
 IGNORED_KEYS = ("workers",)  # generator settings that do not change the dataset
-
-
-@dataclass(frozen=True)
-class PatientSource:
-    patient: str
-    index: int  # seeds trajectories (generate.seed + index for procedural anatomies)
-    anatomy: str  # 'procedural' or an absolute path
-    centreline: str | None
-    seed: int
 
 
 @dataclass
@@ -75,24 +62,6 @@ class PatientPlan:
 
 
 # -- config and sources -----------------------------------------------------------------
-
-
-def resolved_generate(cfg: Config) -> Generate:
-    """The generate section with anatomy/centreline paths made absolute (against the config's folder)."""
-    gen = cfg.dataset.generate
-    values = {}
-    if gen.anatomy != "procedural":
-        values["anatomy"] = str(cfg.resolve(gen.anatomy))
-    if gen.centreline:
-        values["centreline"] = str(cfg.resolve(gen.centreline))
-    return gen.model_copy(update=values)
-
-
-def patient_sources(gen: Generate) -> list[PatientSource]:
-    """One source per patient: ``patients`` seeded procedural trees, or the one anatomy file."""
-    if gen.anatomy == "procedural":
-        return [PatientSource(procedural_patient_id(i), i, "procedural", None, gen.seed + i) for i in range(gen.patients)]
-    return [PatientSource(file_patient_id(gen.anatomy), 0, gen.anatomy, gen.centreline, gen.seed)]
 
 
 def _signature(record: dict | None) -> dict:
@@ -154,8 +123,6 @@ def _check_root(root: Path, record: dict) -> str:
 
 def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientPlan:
     """Load one anatomy, write its centreline graph and render-ready surface, plan its trajectories."""
-    from ..anatomy import centreline_distance, load_anatomy, save_centreline  # noqa: PLC0415
-
     tree = load_anatomy(source.anatomy, seed=source.seed, voxel_mm=gen.voxel_mm, centreline=source.centreline,
                         lobe_generation=gen.lobe_generation)
     missing = [lb for lb in gen.lobes if lb not in tree.lobe_paths]
@@ -187,10 +154,6 @@ def _surface_path(root: str | Path, patient: str) -> Path:
 
 
 def _write_surface(tree, gen: Generate, source: PatientSource, path: Path) -> None:
-    from ..anatomy import lumen_surface  # noqa: PLC0415
-    from ..anatomy._vtk import write_polydata  # noqa: PLC0415
-    from ..render.surface import prepare_surface  # noqa: PLC0415
-
     surface = prepare_surface(lumen_surface(tree, voxel_mm=gen.voxel_mm), texture=gen.realism.texture,
                               seed=abs(gen.seed) * 1000 + source.index)
     write_polydata(surface, path)
@@ -223,11 +186,12 @@ class _Runner:
 
 def _tasks(plans: list[PatientPlan], root: Path, gen: Generate) -> list[RenderTask]:
     tasks = []
+    sink = writer.DatasetFrames(str(root))
     for pp in plans:
         surface = str(_surface_path(root, pp.source.patient))
         for t in pp.trajectories:
             names = [writer.frame_filename(t.patient, t.lobe, t.index, f) for f in range(len(t))]
-            tasks.append(RenderTask(t.patient, t.lobe, t.index, str(root), surface, names, t.position_mm,
+            tasks.append(RenderTask(t.patient, t.lobe, t.index, sink, surface, names, t.position_mm,
                                     t.rotation, t.radius_mm, gen.image_size, gen.fov_deg, gen.realism))
     return tasks
 
@@ -276,27 +240,28 @@ def generate_dataset(cfg: Config, *, root: Path | None = None, workers: int | No
     With ``workers > 1`` the renderers run in spawned processes, so a script
     calling this needs the usual ``if __name__ == "__main__":`` guard.
     """
-    root = Path(root) if root is not None else cfg.resolve(cfg.dataset.root)
-    gen = resolved_generate(cfg)
-    record = {**gen.model_dump(mode="json")}
+    root = Path(root) if root is not None else cfg.paths.dataset
+    gen = cfg.dataset.generate
+    sources = patient_sources(gen, cfg.paths.anatomy, cfg.paths.centreline)
+    record = {**gen.model_dump(mode="json"), "anatomy": sources[0].anatomy, "centreline": sources[0].centreline}
     if _check_root(root, record) == "complete":
         return root
     with _exclusive(root):
         state = _check_root(root, record)  # again: another process may have worked here while we waited
         if state != "complete":
-            _generate(root, gen, record, workers or gen.workers, progress, callback, fresh=state == "fresh")
+            _generate(root, gen, sources, record, workers or gen.workers, progress, callback,
+                      fresh=state == "fresh")
     return root
 
 
-def _generate(root: Path, gen: Generate, record: dict, workers: int, progress: bool, callback: Callback | None,
-              *, fresh: bool) -> None:
+def _generate(root: Path, gen: Generate, sources: list[PatientSource], record: dict, workers: int, progress: bool,
+              callback: Callback | None, *, fresh: bool) -> None:
     work = root / WORK_DIR
     if fresh:  # cached surfaces of another config must not be reused
         shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
-    writer.write_json(work / MANIFEST, {"generator_version": GENERATOR_VERSION, "generator": record})
-    writer.remove_stale_temps(root)
-    sources = patient_sources(gen)
+    write_json(work / MANIFEST, {"generator_version": GENERATOR_VERSION, "generator": record})
+    remove_stale_temps(root)
     runner = _Runner(workers)
     try:
         plans = runner.map(prepare_patient, sources, [gen] * len(sources), [str(root)] * len(sources))
@@ -312,14 +277,6 @@ def _exclusive(root: Path):
     return file_lock(root / LOCK)
 
 
-def ensure_dataset(cfg: Config) -> Path:
-    """The configured dataset root, generated first when it is a ``bronchopose`` dataset without dataset.json."""
-    root = cfg.resolve(cfg.dataset.root)
-    if cfg.dataset.format == "bronchopose" and not (root / DATASET_JSON).is_file():
-        generate_dataset(cfg, root=root)
-    return root
-
-
 def _finish(root: Path, gen: Generate, record: dict, plans: list[PatientPlan], tasks: list[RenderTask],
             digests: list[list[bytes]]) -> None:
     """Write the CSVs, then dataset.json (last), then drop the work folder."""
@@ -331,9 +288,9 @@ def _finish(root: Path, gen: Generate, record: dict, plans: list[PatientPlan], t
         path = root / f"{pp.source.patient}.csv"
         data = pp.csv_text.encode("utf-8")
         if not path.is_file() or path.read_bytes() != data:
-            writer.atomic_write_bytes(path, data)
+            write_bytes(path, data)
         parts.append((data, by_patient.get(pp.source.patient, [])))
-    writer.write_json(root / DATASET_JSON, _metadata(gen, record, plans, writer.fingerprint(parts)))
+    write_json(root / DATASET_JSON, _metadata(gen, record, plans, writer.fingerprint(parts)))
     shutil.rmtree(root / WORK_DIR, ignore_errors=True)
 
 

@@ -1,4 +1,4 @@
-"""Hyperparameter tuning with Optuna: one study per (arch, rot_loss, population, fold) on the shared storage.
+"""Hyperparameter tuning with Optuna: one study per cell on the sweep's shared storage.
 
 Each trial samples ``tune.space`` (dotted config paths -> distributions), trains
 the cell with those values as one MLflow run (tagged ``run_kind=trial``, the
@@ -17,13 +17,16 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
-from dataclasses import dataclass
 from functools import partial
 from typing import Any, Callable, Mapping, Sequence
 
-from .config import Cell, Config, TuneParam, make_cell
-from .errors import BronchoError, ConfigError
-from .locks import file_lock
+from .. import urls
+from ..cells import Cell
+from ..config import Config, TuneParam
+from ..errors import BronchoError, ConfigError
+from ..io import file_lock
+from ..runlayout import RunPruned, cpu_threads
+from .storage import StorageError
 
 log = logging.getLogger(__name__)
 
@@ -36,23 +39,11 @@ ATTR_RUN = "mlflow_run_id"
 ATTR_CELL = "cell"
 
 
-@dataclass(frozen=True)
-class Target:
-    """What a study tunes: everything of a cell except the hyperparameters being searched."""
-
-    arch: str
-    rot_loss: str
-    population: str
-    fold: str | None = None
-    seed: int = 0
-    pose_frame: str = "world"
-
-    def study_name(self, cfg: Config) -> str:
-        fold = f"-{self.fold}" if self.fold else ""
-        return f"{cfg.name}-{self.arch}-{self.rot_loss}-{self.population}{fold}-{self.pose_frame}-s{self.seed}"
-
-    def cell(self, cfg: Config) -> Cell:
-        return make_cell(cfg, self.arch, self.rot_loss, self.population, self.fold, self.seed, self.pose_frame)
+def study_name(cfg: Config, cell: Cell) -> str:
+    """The default study of a cell: everything of the cell except the hyperparameters being searched."""
+    fold = f"-{cell.fold}" if cell.fold else ""
+    size = f"-t{cell.train_trajectories}" if cell.train_trajectories else ""
+    return f"{cfg.name}-{cell.arch}-{cell.rot_loss}-{cell.population}{fold}-{cell.pose_frame}-s{cell.seed}{size}"
 
 
 def _optuna():
@@ -66,22 +57,29 @@ def _optuna():
     return optuna
 
 
-def storage_for(cfg: Config, url: str | None = None):
-    """Optuna RDB storage on ``url`` (default ``storage.url``) with heartbeats for dead trials."""
-    from .sweep.storage import normalize_url
+def storage_for(cfg: Config):
+    """Optuna RDB storage on ``storage.url`` with heartbeats for dead trials; StorageError (one line) if unreachable."""
+    from sqlalchemy.exc import SQLAlchemyError
 
     optuna = _optuna()
-    url = normalize_url(cfg.resolve_url(url) if url else cfg.storage_url)
+    url = urls.sqlalchemy(cfg.paths.storage_url)
     kwargs: dict[str, Any] = {}
     if url.startswith("sqlite"):
         kwargs = {"connect_args": {"timeout": 60}}
     beat = max(1, int(cfg.sweep.heartbeat_s))
     make = partial(optuna.storages.RDBStorage, url, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
-    if url.startswith("sqlite"):
-        with file_lock(url.split(":///", 1)[1] + ".lock"):  # table creation must not race
+    try:
+        db = urls.sqlite_file(url)
+        if db is None:
             return make()
-    return make()
+        db.parent.mkdir(parents=True, exist_ok=True)
+        with file_lock(f"{db}.lock"):  # table creation must not race
+            return make()
+    except (SQLAlchemyError, ImportError, ValueError) as exc:
+        text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+        raise StorageError(f"storage.url {urls.redact(url)}: {urls.redact(text[0] if text else type(exc).__name__)}"
+                           ) from None
 
 
 def check_space(cfg: Config) -> None:
@@ -129,9 +127,12 @@ def make_pruner(cfg: Config):
     optuna = _optuna()
     t = cfg.tune
     if t.pruner == "median":
-        return optuna.pruners.MedianPruner(n_startup_trials=t.startup_trials, n_warmup_steps=t.warmup_epochs)
+        # Trials report at optimiser steps (every train.val_every): warm-up and resources are in steps.
+        return optuna.pruners.MedianPruner(n_startup_trials=t.startup_trials,
+                                           n_warmup_steps=t.warmup_validations * cfg.train.val_every)
     if t.pruner == "hyperband":
-        return optuna.pruners.HyperbandPruner(min_resource=max(1, t.warmup_epochs), max_resource=cfg.train.max_epochs)
+        return optuna.pruners.HyperbandPruner(min_resource=max(1, t.warmup_validations) * cfg.train.val_every,
+                                              max_resource=cfg.train.steps)
     return optuna.pruners.NopPruner()
 
 
@@ -143,12 +144,12 @@ def make_sampler(cfg: Config, worker: int = 0):
     return optuna.samplers.TPESampler(seed=seed, n_startup_trials=cfg.tune.startup_trials)
 
 
-def open_study(cfg: Config, target: Target, *, storage: str | None = None, study: str | None = None, worker: int = 0):
+def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int = 0):
     optuna = _optuna()
-    name = study or target.study_name(cfg)
-    s = optuna.create_study(study_name=name, storage=storage_for(cfg, storage), direction="minimize",
+    name = study or study_name(cfg, cell)
+    s = optuna.create_study(study_name=name, storage=storage_for(cfg), direction="minimize",
                             sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg), load_if_exists=True)
-    s.set_user_attr("target", target.__dict__)
+    s.set_user_attr("target", cell.tags())
     return s
 
 
@@ -163,29 +164,28 @@ def _running(study) -> int:
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)))
 
 
-def objective(cfg: Config, target: Target, study_name: str, progress: bool = False) -> Callable:
+def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> Callable:
     """The function Optuna calls per trial: train one configured run, return its best validation loss."""
-    from .training.engine import RunPruned
-    from .training.run import run_cell
+    from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
     optuna = _optuna()
 
     def run(trial) -> float:
         values = suggest(trial, cfg.tune.space)
         trial_cfg = cfg.with_values(values)
-        cell = target.cell(trial_cfg)
+        cell = trial_cfg.cell(**target.coords())
         trial.set_user_attr(ATTR_CELL, cell.key)
 
-        def on_epoch(epoch: int, metrics: dict[str, float]) -> None:
-            trial.report(metrics["val_loss"], epoch)
+        def on_validation(step: int, metrics: dict[str, float]) -> None:
+            trial.report(metrics["val_loss"], step)
             if trial.should_prune():
-                raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at epoch {epoch} "
+                raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at step {step} "
                                 f"(val_loss {metrics['val_loss']:.4g})")
 
-        tags = {"run_kind": "trial", "study": study_name, "trial": str(trial.number),
-                "hparams_source": f"optuna:{study_name}#{trial.number}"}
+        tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
+                "hparams_source": f"optuna:{name}#{trial.number}"}
         try:
-            result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_epoch=on_epoch,
+            result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_validation=on_validation,
                               run_id_callback=lambda rid: trial.set_user_attr(ATTR_RUN, rid))
         except RunPruned as exc:
             raise optuna.TrialPruned(str(exc)) from None
@@ -199,13 +199,13 @@ def objective(cfg: Config, target: Target, study_name: str, progress: bool = Fal
     return run
 
 
-def tune_worker(cfg: Config, target: Target, trials: int, *, storage: str | None = None, study: str | None = None,
+def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
                 timeout: float | None = None, worker: int = 0, progress: bool = False,
                 enqueue: Sequence[Mapping[str, Any]] = ()) -> int:
     """Run trials of the study until it holds ``trials`` finished ones (or the timeout); returns trials run here."""
     import time
 
-    s = open_study(cfg, target, storage=storage, study=study, worker=worker)
+    s = open_study(cfg, target, study=study, worker=worker)
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
     fn = objective(cfg, target, s.study_name, progress)
@@ -224,27 +224,24 @@ def tune_worker(cfg: Config, target: Target, trials: int, *, storage: str | None
 
 
 def _worker_entry(args: tuple) -> None:
-    cfg, target, trials, storage, study, timeout, worker = args
-    tune_worker(cfg, target, trials, storage=storage, study=study, timeout=timeout, worker=worker)
+    cfg, target, trials, study, timeout, worker = args
+    tune_worker(cfg, target, trials, study=study, timeout=timeout, worker=worker)
 
 
-def tune(cfg: Config, target: Target, trials: int, *, storage: str | None = None, study: str | None = None,
+def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
          timeout: float | None = None, workers: int = 1, progress: bool = True,
          enqueue: Sequence[Mapping[str, Any]] = ()) -> Any:
     """Tune with ``workers`` local processes (1: in this process); returns the study."""
     check_space(cfg)
-    s = open_study(cfg, target, storage=storage, study=study)  # creates it once, before workers race
+    s = open_study(cfg, target, study=study)  # creates it once, before workers race
     if workers <= 1:
-        tune_worker(cfg, target, trials, storage=storage, study=study, timeout=timeout, progress=progress,
-                    enqueue=enqueue)
+        tune_worker(cfg, target, trials, study=study, timeout=timeout, progress=progress, enqueue=enqueue)
         return s
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
-    from .training.engine import cpu_threads
-
     per = cfg.with_values({"train.threads": cpu_threads(cfg, workers)})
     ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_worker_entry, args=((per, target, trials, storage, study, timeout, i),))
+    procs = [ctx.Process(target=_worker_entry, args=((per, target, trials, study, timeout, i),))
              for i in range(workers)]
     for p in procs:
         p.start()
@@ -253,37 +250,42 @@ def tune(cfg: Config, target: Target, trials: int, *, storage: str | None = None
     return s
 
 
-def best_values(cfg: Config, study_name: str, storage: str | None = None) -> tuple[dict[str, Any], str]:
-    """The best finished trial's parameters (dotted config paths) and a provenance string."""
+def load(cfg: Config, name: str):
+    """An existing study (BronchoError naming the studies there when it is not)."""
     optuna = _optuna()
+    storage = storage_for(cfg)
     try:
-        s = optuna.load_study(study_name=study_name, storage=storage_for(cfg, storage))
+        return optuna.load_study(study_name=name, storage=storage)
     except KeyError:
-        raise BronchoError(f"no Optuna study named {study_name!r} in the storage") from None
+        names = sorted(s.study_name for s in optuna.get_all_study_summaries(storage))
+        raise BronchoError(f"no Optuna study named {name!r} in storage {urls.redact(cfg.paths.storage_url)} "
+                           f"(studies there: {', '.join(names) or 'none'})") from None
+
+
+def best_values(cfg: Config, name: str) -> tuple[dict[str, Any], str]:
+    """The best finished trial's parameters (dotted config paths) and a provenance string."""
+    s = load(cfg, name)
     try:
         best = s.best_trial
     except ValueError:
-        raise BronchoError(f"study {study_name!r} has no completed trial yet") from None
-    return dict(best.params), f"optuna:{study_name}#{best.number}"
+        raise BronchoError(f"study {name!r} has no completed trial yet") from None
+    return dict(best.params), f"optuna:{name}#{best.number}"
 
 
-def apply_best(cfg: Config, study_name: str, storage: str | None = None) -> Config:
+def apply_best(cfg: Config, name: str) -> Config:
     """``cfg`` with the study's best parameters set and ``tune.applied`` recording where they came from."""
-    values, source = best_values(cfg, study_name, storage)
+    values, source = best_values(cfg, name)
     return cfg.with_values({**values, "tune.applied": source})
 
 
-def summary(cfg: Config, study_name: str, storage: str | None = None) -> dict[str, Any]:
+def summary(cfg: Config, name: str) -> dict[str, Any]:
     """Counts, best trial and parameter importances of a study (for ``tune --show``)."""
     optuna = _optuna()
-    try:
-        s = optuna.load_study(study_name=study_name, storage=storage_for(cfg, storage))
-    except KeyError:
-        raise BronchoError(f"no Optuna study named {study_name!r} in the storage") from None
+    s = load(cfg, name)
     states = optuna.trial.TrialState
     trials = s.get_trials(deepcopy=False)
     counts = {st.name.lower(): sum(t.state == st for t in trials) for st in states}
-    out: dict[str, Any] = {"study": study_name, "counts": counts, "best": None, "importances": {}}
+    out: dict[str, Any] = {"study": name, "counts": counts, "best": None, "importances": {}}
     complete = [t for t in trials if t.state == states.COMPLETE]
     if complete:
         b = s.best_trial
@@ -297,6 +299,6 @@ def summary(cfg: Config, study_name: str, storage: str | None = None) -> dict[st
     return out
 
 
-def list_studies(cfg: Config, storage: str | None = None) -> list[str]:
+def list_studies(cfg: Config) -> list[str]:
     optuna = _optuna()
-    return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg, storage)))
+    return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))

@@ -1,4 +1,4 @@
-"""Trajectory planning (bronchocli.data.synth) on a hand-made bent tube: walks, speeds, lumen rule, seeding."""
+"""Trajectory planning (bronchocli.generation.trajectories) on a hand-made bent tube: walks, speeds, lumen rule, seeding."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from generator_refs import (
 
 from bronchocli import geometry
 from bronchocli.config import Generate
-from bronchocli.data.synth import (
+from bronchocli.generation.trajectories import (
     PathSampler,
     plan_lobe,
     plan_trajectory,

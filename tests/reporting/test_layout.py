@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from bronchocli.metrics import Stat
-from bronchocli.reporting.model import Column, Row, Table, cell_texts, column_decimals, marks, missing_cells
+from bronchocli.reporting.layout import Column, Row, Table, cell_texts, column_decimals, marks, missing_cells
 
 
 def _table(values: list[list[float | None]], groups: list[str], highlight=True) -> Table:

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from ._vtk import poly_from_state, poly_state
+
 
 @dataclass
 class Branch:
@@ -89,7 +91,6 @@ class AirwayTree:
         state = dict(self.__dict__)
         state["cache"] = {}
         if self.surface is not None:
-            from ._vtk import poly_state  # noqa: PLC0415 (VTK only when there is a surface)
 
             state["surface"] = ("vtkPolyData", poly_state(self.surface))
         return state
@@ -97,7 +98,6 @@ class AirwayTree:
     def __setstate__(self, state: dict) -> None:
         surface = state.get("surface")
         if isinstance(surface, tuple) and surface[0] == "vtkPolyData":
-            from ._vtk import poly_from_state  # noqa: PLC0415
 
             state = {**state, "surface": poly_from_state(surface[1])}
         self.__dict__.update(state)

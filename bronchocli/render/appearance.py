@@ -1,4 +1,4 @@
-"""Lumen mesh preparation for rendering: normals, mucosa colours, spatial blocks, file I/O.
+"""How the lumen looks: normals, mucosa colours, and spatial blocks for fast culling.
 
 The anatomy package makes the watertight lumen surface (mm); this module
 readies it for the renderer. ``prepare_surface`` adds smooth point normals and,
@@ -10,8 +10,6 @@ airways behind and beside the camera.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 
@@ -27,7 +25,6 @@ from vtkmodules.util.numpy_support import (  # noqa: E402
 from vtkmodules.vtkCommonCore import vtkPoints  # noqa: E402
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData  # noqa: E402
 from vtkmodules.vtkFiltersCore import vtkPolyDataNormals, vtkTriangleFilter  # noqa: E402
-from vtkmodules.vtkIOXML import vtkXMLPolyDataReader  # noqa: E402
 
 AIRWAY_RGB = (0.96, 0.60, 0.48)  # diffuse mucosa colour (DESIGN §7)
 VESSEL_RGB = (0.62, 0.18, 0.20)  # darker red for the vessel network of the texture
@@ -165,13 +162,3 @@ def split_blocks(poly: vtkPolyData, blocks: int) -> list[vtkPolyData]:
         groups += [order[: len(order) // 2], order[len(order) // 2:]]
     groups.sort(key=lambda g: int(g.min()))  # stable actor order
     return [_subset(poly, pts, tris[np.sort(g)]) for g in groups]
-
-
-def read_polydata(path: Path) -> vtkPolyData:
-    reader = vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    out = reader.GetOutput()
-    if out is None or out.GetNumberOfPoints() == 0:
-        raise OSError(f"{path}: not a readable surface (.vtp)")
-    return out

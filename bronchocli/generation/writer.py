@@ -12,16 +12,17 @@ SHA-256 digest of every frame file listed in that CSV, in row order.
 from __future__ import annotations
 
 import hashlib
-import io
-import json
-import os
+import io as _bytes_io
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
+from PIL import Image
 
 from .. import geometry
-from .synth import PlannedTrajectory
+from ..io import write_bytes
+from .trajectories import PlannedTrajectory
 
 PNG_COMPRESSION = 1  # zlib level: the fastest level still shrinks frames ~2x; DESIGN §7
 CSV_COLUMNS: tuple[str, ...] = (
@@ -32,48 +33,12 @@ FORMAT_NAME = "bronchopose-dataset"
 FORMAT_VERSION = 1
 
 
-# -- atomic files ---------------------------------------------------------------------
-
-
-def _temp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same directory and ``os.replace``."""
-    path = Path(path)
-    tmp = _temp_name(path)
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
-
-
-def remove_stale_temps(folder: Path) -> int:
-    """Delete temp files an interrupted run left in ``folder`` (recursively); returns how many."""
-    n = 0
-    for tmp in Path(folder).rglob("*.tmp*"):
-        if tmp.is_file() and (tmp.name.startswith(".") or tmp.name.endswith(".tmp")):
-            tmp.unlink()
-            n += 1
-    return n
-
-
 # -- frames -----------------------------------------------------------------------------
 
 
 def encode_png(frame: np.ndarray) -> bytes:
     """An ``H x W x 3`` uint8 frame as PNG bytes (fast compression, deterministic)."""
-    from PIL import Image  # noqa: PLC0415
-
-    buf = io.BytesIO()
+    buf = _bytes_io.BytesIO()
     Image.fromarray(np.ascontiguousarray(frame), "RGB").save(buf, format="PNG", compress_level=PNG_COMPRESSION)
     return buf.getvalue()
 
@@ -81,12 +46,28 @@ def encode_png(frame: np.ndarray) -> bytes:
 def write_frame(path: Path, frame: np.ndarray) -> bytes:
     """Write one frame atomically; returns the SHA-256 digest of the file bytes."""
     data = encode_png(frame)
-    atomic_write_bytes(path, data)
+    write_bytes(path, data)
     return hashlib.sha256(data).digest()
 
 
 def file_digest(path: Path) -> bytes:
     return hashlib.sha256(Path(path).read_bytes()).digest()
+
+
+@dataclass(frozen=True)
+class DatasetFrames:
+    """The renderer's frame sink for a dataset root: PNG files written atomically, SHA-256 digests."""
+
+    root: str
+
+    def exists(self, name: str) -> bool:
+        return (Path(self.root) / name).exists()
+
+    def digest(self, name: str) -> bytes:
+        return file_digest(Path(self.root) / name)
+
+    def write(self, name: str, frame: np.ndarray) -> bytes:
+        return write_frame(Path(self.root) / name, frame)
 
 
 def frame_filename(patient: str, lobe: str, trajectory: int, frame: int) -> str:
@@ -157,8 +138,7 @@ def fingerprint_dir(root: Path, patients: Sequence[str]) -> str:
 
 def save_digests(path: Path, digests: Sequence[bytes]) -> None:
     """Keep a finished trajectory's frame digests (resumption reads them instead of the frames)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, b"".join(digests))
+    write_bytes(path, b"".join(digests))
 
 
 def load_digests(path: Path, n: int) -> list[bytes] | None:
@@ -169,7 +149,3 @@ def load_digests(path: Path, n: int) -> list[bytes] | None:
     if len(data) != 32 * n:
         return None
     return [data[i:i + 32] for i in range(0, len(data), 32)]
-
-
-def write_json(path: Path, data: dict) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")

@@ -49,7 +49,8 @@ from typing import Callable
 import numpy as np
 
 from .. import geometry
-from ..config import LOBES, Generate
+from ..cells import LOBES
+from ..config import Generate
 from ..errors import DataError
 
 MAX_TRIES = 20  # redraws of a variation step before clamping towards the centreline

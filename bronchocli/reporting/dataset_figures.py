@@ -5,34 +5,27 @@ along one trajectory (trachea on the left, distal on the right);
 ``positions_figure`` is the paper's Figure 1: every camera position of each
 patient in voxel coordinates, coloured by lobe, over the patient's centreline
 graph. Both return matplotlib figures (Agg) so the report command can reuse
-them; ``save_figure`` writes PNG and/or PDF atomically.
+them. The centreline overlay needs VTK (to read ``airway.vtp``); without it the
+positions are drawn alone and ``warnings`` says so once.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Sequence
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
+from PIL import Image
 
+from ..data.layout import DATASET_JSON
 from ..errors import DataError
-from .naming import DATASET_JSON
+from ..io import read_polydata, save_figure
 
 LOBE_COLOURS = {"ur": "tab:red", "br": "tab:purple", "ul": "tab:blue", "bl": "tab:cyan"}
 LOBE_NAMES = {"ur": "right upper", "br": "right lower", "ul": "left upper", "bl": "left lower"}
-
-
-def _pyplot():
-    os.environ.setdefault("MPLBACKEND", "Agg")
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
-    return plt
 
 
 def load_meta(root: Path) -> dict:
@@ -64,9 +57,7 @@ def _sample_rows(frames: pd.DataFrame, columns: int) -> list[pd.Series]:
 
 def montage_figure(root: Path, *, columns: int = 6, patients: Sequence[str] | None = None, max_rows: int = 20):
     """One row per (patient, lobe): frames along a trajectory, labelled with frame number and arc length."""
-    from PIL import Image  # noqa: PLC0415
 
-    plt = _pyplot()
     frames = load_frames(root, patients)
     groups = [g for _, g in frames.groupby(["patient", "lobe"], sort=False)][:max_rows]
     fig, axes = plt.subplots(len(groups), columns, figsize=(1.6 * columns, 1.7 * len(groups)), squeeze=False)
@@ -91,21 +82,19 @@ def montage_figure(root: Path, *, columns: int = 6, patients: Sequence[str] | No
     return fig
 
 
-def _centreline_voxels(root: Path, patient: str, meta: dict) -> list[np.ndarray]:
-    """Polylines of the patient's centreline graph in voxels (empty when airway.vtp is absent)."""
+def _centreline_voxels(root: Path, patient: str, meta: dict, warnings: list[str]) -> list[np.ndarray]:
+    """Polylines of the patient's centreline graph in voxels (empty when airway.vtp or VTK is absent)."""
     path = Path(root) / patient / "airway.vtp"
     if not path.is_file():
         return []
-    from ..render import configure_environment  # noqa: PLC0415
-
-    configure_environment()
-    from vtkmodules.util.numpy_support import vtk_to_numpy  # noqa: PLC0415
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader  # noqa: PLC0415
-
-    reader = vtkXMLPolyDataReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    poly = reader.GetOutput()
+    try:
+        from vtkmodules.util.numpy_support import vtk_to_numpy  # lazy: VTK is optional outside generation
+    except ImportError:
+        note = "figures: VTK is not installed here: the positions figure is drawn without the centreline graph"
+        if note not in warnings:
+            warnings.append(note)
+        return []
+    poly = read_polydata(path)
     pts = vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
     grid = meta["voxel_grid"][patient]
     pts = (pts - np.asarray(grid["origin_mm"])) / np.asarray(grid["spacing_mm"])
@@ -115,9 +104,10 @@ def _centreline_voxels(root: Path, patient: str, meta: dict) -> list[np.ndarray]
     return [pts[conn[a:b]] for a, b in zip(offsets[:-1], offsets[1:])]
 
 
-def positions_figure(root: Path, *, patients: Sequence[str] | None = None, max_points: int = 20000):
+def positions_figure(root: Path, *, patients: Sequence[str] | None = None, max_points: int = 20000,
+                     warnings: list[str] | None = None):
     """Camera positions visited per patient (3-D, voxel axes), coloured by lobe, over the centreline graph."""
-    plt = _pyplot()
+    warnings = [] if warnings is None else warnings
     meta = load_meta(root)
     patients = list(patients or meta["patients"])
     frames = load_frames(root, patients)
@@ -126,7 +116,7 @@ def positions_figure(root: Path, *, patients: Sequence[str] | None = None, max_p
     fig = plt.figure(figsize=(4.2 * cols, 4.0 * rows))
     for k, p in enumerate(patients):
         ax = fig.add_subplot(rows, cols, k + 1, projection="3d")
-        for line in _centreline_voxels(root, p, meta):
+        for line in _centreline_voxels(root, p, meta, warnings):
             ax.plot(line[:, 0], line[:, 1], line[:, 2], color="0.75", lw=0.6)
         sub = frames[frames["patient"] == p]
         step = max(1, len(sub) // max_points)
@@ -145,24 +135,10 @@ def positions_figure(root: Path, *, patients: Sequence[str] | None = None, max_p
     return fig
 
 
-def save_figure(fig, path: Path, formats: Sequence[str] = ("png",), dpi: int = 120) -> list[Path]:
-    """Save ``fig`` as ``path`` with each suffix in ``formats`` (atomically); returns the written paths."""
-    out = []
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for fmt in formats:
-        target = path.with_suffix(f".{fmt}")
-        tmp = target.with_name(f".{target.name}.tmp{os.getpid()}")
-        fig.savefig(tmp, format=fmt, dpi=dpi)
-        os.replace(tmp, target)
-        out.append(target)
-    _pyplot().close(fig)
-    return out
-
-
 def preview(root: Path, out: Path, *, columns: int = 6, formats: Sequence[str] = ("png",)) -> list[Path]:
     """Write the montage to ``out`` and the positions plot beside it (``<stem>-positions``)."""
     out = Path(out)
-    written = save_figure(montage_figure(root, columns=columns), out, formats)
-    written += save_figure(positions_figure(root), out.with_name(f"{out.stem}-positions{out.suffix}"), formats)
+    written = save_figure(montage_figure(root, columns=columns), out, formats, dpi=120)
+    written += save_figure(positions_figure(root), out.with_name(f"{out.stem}-positions{out.suffix}"), formats,
+                           dpi=120)
     return written

@@ -12,7 +12,7 @@ from PIL import Image
 
 from bronchocli.config import Config
 from bronchocli.data import writer
-from bronchocli.data.generate import ensure_dataset, generate_dataset
+from bronchocli.generation.pipeline import ensure_dataset, generate_dataset
 from bronchocli.errors import DataError
 
 TINY = {

@@ -47,8 +47,8 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 from torch.utils.flop_counter import FlopCounterMode
 
-from .errors import BronchoError
-from .models import ARCHITECTURES, PoseNet, build_model, n_params
+from ..errors import BronchoError
+from . import ARCHITECTURES, PoseNet, build_model, n_params
 
 PRECISIONS = ("32", "16-mixed", "bf16-mixed")
 DEVICES = ("cpu", "cuda")

@@ -1,11 +1,13 @@
-"""Rendering one trajectory's frames to disk; runs in the generator's process or in a worker process.
+"""Rendering one trajectory's frames; runs in the generator's process or in a worker process.
 
-Each process keeps one ``FrameRenderer`` (one OpenGL context) for the patient
-it last rendered and replaces it when a task for another patient arrives, so
-tasks sorted by patient load each surface about once per worker. Frames that
-already exist are not rendered again (resumption); their digests are read
-back from disk so the dataset fingerprint covers them too. ``RenderProgress``
-is the generator's progress bar.
+A ``RenderTask`` carries its camera poses and a ``FrameSink`` (the dataset
+writer the generator hands it: this package writes no files itself). Each
+process keeps one ``FrameRenderer`` (one OpenGL context) for the surface it
+last rendered and replaces it when a task for another patient arrives, so
+tasks sorted by patient load each surface about once per worker. Frames the
+sink already has are not rendered again (resumption); their digests are read
+back so the dataset fingerprint covers them too. ``RenderProgress`` is the
+generator's progress bar.
 """
 
 from __future__ import annotations
@@ -13,26 +15,39 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Protocol
 
 import numpy as np
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..config import Realism
+from ..io import read_polydata
 
 Callback = Callable[[int, int], None]  # (frames done, frames total)
 
 
+class FrameSink(Protocol):
+    """Where rendered frames go (picklable: it travels to worker processes with its task)."""
+
+    def exists(self, name: str) -> bool: ...
+
+    def digest(self, name: str) -> bytes: ...
+
+    def write(self, name: str, frame: np.ndarray) -> bytes:
+        """Store ``frame`` (H x W x 3 uint8) as ``name``; return its content digest."""
+        ...
+
+
 @dataclass
 class RenderTask:
-    """The frames of one trajectory: where to write them and the camera for each."""
+    """The frames of one trajectory: their names in the sink and the camera for each."""
 
     patient: str
     lobe: str
     trajectory: int
-    root: str  # dataset root
+    sink: FrameSink
     surface: str  # prepared lumen surface (.vtp), mm
-    filenames: list[str]  # relative to root
+    filenames: list[str]  # names in the sink
     position_mm: np.ndarray  # (N, 3)
     rotation: np.ndarray  # (N, 3, 3)
     radius_mm: np.ndarray  # (N,)
@@ -42,7 +57,7 @@ class RenderTask:
 
     def missing(self) -> int:
         """Frames of this task not on disk yet."""
-        return sum(not (Path(self.root) / f).exists() for f in self.filenames)
+        return sum(not self.sink.exists(f) for f in self.filenames)
 
 
 _CURRENT: dict = {}  # {"key": (surface, width, fov, realism), "renderer": FrameRenderer}
@@ -55,13 +70,12 @@ def init_worker(threads: int | None) -> None:
 
 
 def _renderer(task: RenderTask):
-    from .scene import FrameRenderer  # noqa: PLC0415 (VTK loads only in rendering processes)
-    from .surface import read_polydata  # noqa: PLC0415
+    from .scene import FrameRenderer  # the OpenGL context loads only in rendering processes
 
     key = (task.surface, task.width, task.fov_deg, task.realism)
     if _CURRENT.get("key") != key:
         close_renderer()
-        surface = read_polydata(Path(task.surface))
+        surface = read_polydata(task.surface)
         _CURRENT["renderer"] = FrameRenderer(surface, width=task.width, fov_deg=task.fov_deg, realism=task.realism)
         _CURRENT["key"] = key
     return _CURRENT["renderer"]
@@ -76,23 +90,18 @@ def close_renderer() -> None:
 
 
 def run_task(task: RenderTask, on_frame: Callable[[bool], None] | None = None) -> tuple[list[bytes], int]:
-    """Render and write the task's missing frames; returns (SHA-256 digest per frame, frames rendered).
+    """Render the task's missing frames into its sink; returns (digest per frame, frames rendered).
 
-    ``on_frame(rendered)`` is called after each frame (``rendered`` False when it was already on disk).
+    ``on_frame(rendered)`` is called after each frame (``rendered`` False when the sink already had it).
     """
-    from ..data.writer import file_digest, write_frame  # noqa: PLC0415
-
-    root = Path(task.root)
     digests, rendered = [], 0
     for i, name in enumerate(task.filenames):
-        path = root / name
-        rendered_now = not path.exists()
+        rendered_now = not task.sink.exists(name)
         if not rendered_now:
-            digests.append(file_digest(path))
+            digests.append(task.sink.digest(name))
         else:
-            path.parent.mkdir(parents=True, exist_ok=True)
             frame = _renderer(task).render(task.position_mm[i], task.rotation[i], task.radius_mm[i])
-            digests.append(write_frame(path, frame))
+            digests.append(task.sink.write(name, frame))
             rendered += 1
         if on_frame is not None:
             on_frame(rendered_now)
@@ -108,15 +117,6 @@ class RenderProgress:
         self.rendered, self.start = 0, time.perf_counter()
         self.callback, self.bar = callback, None
         if show:
-            from rich.progress import (  # noqa: PLC0415
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeElapsedColumn,
-                TimeRemainingColumn,
-            )
-
             self.bar = Progress(TextColumn("rendering"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
                                 TextColumn("{task.fields[fps]}"), TimeElapsedColumn(), TimeRemainingColumn())
             self.task = self.bar.add_task("render", total=self.total, completed=self.done, fps="")

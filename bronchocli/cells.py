@@ -1,0 +1,156 @@
+"""The one cell type: what a single training run is (architecture, loss, population, fold, seed, ...).
+
+A :class:`Cell` is validated where it is made, whether from the grid, a
+command's flags, MLflow tags or a ``--only`` filter, so a bad value is one
+line naming the field and the allowed values, before any work starts. Its
+``key`` (a hash of the coordinates and of the run-defining config, see
+``config.cell_key``) identifies it in the sweep table and in MLflow.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, Literal, get_args
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import ConfigError
+
+Arch = Literal["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
+RotLoss = Literal["mse", "de", "ce"]
+Population = Literal["personalized", "cross-subject"]
+PoseFrame = Literal["world", "camera"]
+Lobe = Literal["ur", "br", "ul", "bl"]
+
+ARCHS: tuple[str, ...] = get_args(Arch)
+ROT_LOSSES: tuple[str, ...] = get_args(RotLoss)
+POPULATIONS: tuple[str, ...] = get_args(Population)
+POSE_FRAMES: tuple[str, ...] = get_args(PoseFrame)
+LOBES: tuple[str, ...] = get_args(Lobe)
+
+# The coordinates of a cell, in label order; also its MLflow tags and the ``--only`` keys.
+FIELDS: tuple[str, ...] = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame", "train_trajectories")
+
+
+class Cell(BaseModel):
+    """One run of a sweep. ``train_trajectories`` None: the split's own training set (``splits.train``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    arch: Arch
+    rot_loss: RotLoss
+    population: Population
+    fold: str | None = None  # held-out patient (cross-subject only)
+    seed: int = 0
+    pose_frame: PoseFrame = "world"
+    train_trajectories: int | None = Field(None, ge=1)  # training trajectories per patient and lobe
+    key: str = ""  # set by config.Config.cell(); empty for a bare coordinate
+
+    @model_validator(mode="after")
+    def _fold(self) -> Cell:
+        if self.population == "cross-subject" and not self.fold:
+            raise ValueError("fold: cross-subject needs the held-out patient (e.g. fold p00)")
+        if self.population == "personalized" and self.fold:
+            raise ValueError(f"fold {self.fold!r}: only cross-subject cells have a held-out patient")
+        return self
+
+    @property
+    def label(self) -> str:
+        parts = [self.arch, self.rot_loss, self.population + (f"/{self.fold}" if self.fold else ""),
+                 f"s{self.seed}", self.pose_frame]
+        if self.train_trajectories is not None:
+            parts.append(f"t{self.train_trajectories}")
+        return "/".join(parts)
+
+    def coords(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in FIELDS}
+
+    def tags(self) -> dict[str, str]:
+        """The coordinates as MLflow tag values (None -> empty string)."""
+        return {k: "" if v is None else str(v) for k, v in self.coords().items()}
+
+    @classmethod
+    def from_tags(cls, tags: Mapping[str, str], key_tag: str = "cell_key") -> Cell:
+        """The cell an MLflow run was made for (ConfigError when its tags are not a valid cell)."""
+        raw: dict[str, Any] = {k: tags.get(k) or None for k in FIELDS}
+        return make(**raw, key=tags.get(key_tag, "") or "")
+
+
+def _problem(error: dict[str, Any]) -> str:
+    field = ".".join(str(p) for p in error["loc"]) or "cell"
+    value = error.get("input")
+    if error["type"] == "literal_error":
+        return f"{field} {value!r}: must be one of {error['ctx']['expected'].replace(chr(39), '')}"
+    msg = error["msg"].removeprefix("Value error, ")
+    if error["type"] == "value_error":
+        return msg
+    return f"{field} {value!r}: {msg[0].lower() + msg[1:]}"
+
+
+def make(**values: Any) -> Cell:
+    """A validated cell; ConfigError with one line per bad field otherwise."""
+    if values.get("train_trajectories") is not None:
+        values["train_trajectories"] = _int(values["train_trajectories"], "train_trajectories")
+    if values.get("seed") is not None:
+        values["seed"] = _int(values["seed"], "seed")
+    else:
+        values.pop("seed", None)
+    if values.get("pose_frame") is None:
+        values.pop("pose_frame", None)
+    try:
+        return Cell(**values)
+    except ValidationError as exc:
+        raise ConfigError("; ".join(dict.fromkeys(_problem(e) for e in exc.errors()))) from None
+
+
+def _int(value: Any, field: str) -> int:
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{field} {value!r}: must be an integer") from None
+
+
+# -- selecting cells (``--only``) ---------------------------------------------------------------
+
+Selection = dict[str, set[str]]
+
+
+def parse_only(specs: Iterable[str] | None) -> Selection:
+    """``["arch=lstm,conv3d;population=personalized", "seed=0"]`` -> ``{"arch": {...}, ...}`` (keys ANDed).
+
+    Each value is checked like a cell field, so a typo is caught before any cell is planned.
+    """
+    out: Selection = {}
+    for spec in specs or []:
+        for part in filter(None, (p.strip() for p in spec.split(";"))):
+            key, sep, values = part.partition("=")
+            key = key.strip().replace("-", "_")
+            if not sep or key not in FIELDS:
+                raise ConfigError(f"--only {part!r}: expected key=value[,value...] with key one of "
+                                  f"{', '.join(FIELDS)}")
+            vals = {v.strip() for v in values.split(",") if v.strip()}
+            if not vals:
+                raise ConfigError(f"--only {part!r}: no values given")
+            for v in vals:
+                _check_value(key, v, part)
+            out[key] = out[key] & vals if key in out else vals
+    return out
+
+
+def _check_value(key: str, value: str, part: str) -> None:
+    choices = {"arch": ARCHS, "rot_loss": ROT_LOSSES, "population": POPULATIONS, "pose_frame": POSE_FRAMES}
+    if key in choices and value not in choices[key]:
+        raise ConfigError(f"--only {part!r}: {key} {value!r} must be one of {', '.join(choices[key])}")
+    if key in ("seed", "train_trajectories"):
+        _int(value, key)
+
+
+def select(cells: Sequence[Cell], only: Selection) -> list[Cell]:
+    """Cells matching every key of ``only``; a value no cell has is an error (likely a typo)."""
+    for key, vals in only.items():
+        known = {c.tags()[key] for c in cells}
+        unknown = sorted(vals - known)
+        if unknown:
+            shown = ", ".join(sorted(v for v in known if v)) or "none"
+            raise ConfigError(f"--only {key}={','.join(unknown)}: no cell of the plan has that {key} (it has: {shown})")
+    return [c for c in cells if all(c.tags()[k] in v for k, v in only.items())]

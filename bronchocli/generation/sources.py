@@ -1,0 +1,59 @@
+"""Which patients a generator config makes, and generating the configured dataset when it is missing.
+
+Importable without VTK: ``ensure_dataset`` loads the renderer only when a
+dataset must actually be rendered, so training, sweeps and reports run on
+machines without VTK once the dataset exists.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..config import Config, Generate
+from ..data.layout import DATASET_JSON, file_patient_id
+from ..data.source import dataset_patients
+
+
+@dataclass(frozen=True)
+class PatientSource:
+    patient: str
+    index: int  # seeds trajectories (generate.seed + index for procedural anatomies)
+    anatomy: str  # 'procedural' or an absolute path
+    centreline: str | None
+    seed: int
+
+
+def procedural_patient_id(index: int) -> str:
+    """Procedural patient ``index`` (seed = generate.seed + index) -> ``p00``, ``p01``, ..."""
+    return f"p{index:02d}"
+
+
+def patient_sources(gen: Generate, anatomy: Path | None, centreline: Path | None) -> list[PatientSource]:
+    """One source per patient: ``patients`` seeded procedural trees, or the one anatomy file."""
+    if anatomy is None:
+        return [PatientSource(procedural_patient_id(i), i, "procedural", None, gen.seed + i)
+                for i in range(gen.patients)]
+    return [PatientSource(file_patient_id(anatomy), 0, str(anatomy), str(centreline) if centreline else None,
+                          gen.seed)]
+
+
+def planned_patients(cfg: Config) -> list[str]:
+    """The dataset's patients: read from it when it exists, else the ones generation will make."""
+    found = dataset_patients(cfg)
+    if found is not None:
+        return found
+    return [s.patient for s in patient_sources(cfg.dataset.generate, cfg.paths.anatomy, cfg.paths.centreline)]
+
+
+def needs_generation(cfg: Config) -> bool:
+    return cfg.dataset.format == "bronchopose" and not (cfg.paths.dataset / DATASET_JSON).is_file()
+
+
+def ensure_dataset(cfg: Config, progress: bool = True) -> Path:
+    """The configured dataset root, rendered first when it is a ``bronchopose`` dataset without dataset.json."""
+    if needs_generation(cfg):
+        from .pipeline import generate_dataset  # VTK and the renderer load only when there is rendering to do
+
+        generate_dataset(cfg, progress=progress)
+    return cfg.paths.dataset

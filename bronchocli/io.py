@@ -1,0 +1,138 @@
+"""Files: atomic writes, an inter-process lock, figures, VTK ``.vtp`` surfaces.
+
+Every finished file of the project is written through :func:`atomic_path`: to
+a unique temporary name in the target's own directory, then moved into place
+with ``os.replace``, so a reader (or a crash) never sees half a file.
+:func:`file_lock` serialises first-time set-up between processes of one
+machine (building a frame cache, generating a dataset, creating a SQLite
+store's tables).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from .errors import DataError
+
+TEMP_SUFFIX = ".tmp"
+
+
+def temp_name(path: Path) -> Path:
+    """A hidden name beside ``path``, unique per process and call."""
+    return path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}{TEMP_SUFFIX}")
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces ``path``, on error it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_name(path)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def write_json(path: str | os.PathLike, data: Any) -> Path:
+    return write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
+
+
+def remove_stale_temps(folder: Path) -> int:
+    """Delete the temporary files interrupted writers left under ``folder``; returns how many."""
+    n = 0
+    for p in Path(folder).rglob(f".*{TEMP_SUFFIX}"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
+@contextmanager
+def file_lock(path: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive advisory lock on ``path`` (created, never deleted) for the ``with`` block.
+
+    POSIX ``flock``; where the platform or file system has none the lock is a
+    no-op and callers rely on their atomic renames.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield
+        return
+    with open(path, "a+b") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        except OSError:  # a file system without locks
+            yield
+            return
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def save_figure(fig, path: str | os.PathLike, formats: Sequence[str] = ("png",), dpi: int = 130) -> list[Path]:
+    """Save a matplotlib figure as ``path`` with each suffix in ``formats``, atomically, and close it."""
+    import matplotlib.pyplot as plt  # matplotlib only where a figure is drawn (~0.5 s)
+
+    path = Path(path)
+    written = []
+    for fmt in formats:
+        target = path.with_suffix(f".{fmt}")
+        with atomic_path(target) as tmp:
+            fig.savefig(tmp, dpi=dpi, bbox_inches="tight", format=fmt)
+        written.append(target)
+    plt.close(fig)
+    return written
+
+
+# VTK is imported inside the two functions below: training, sweeps and reports
+# must run where VTK is not installed (GPU machines).
+
+
+def read_polydata(path: str | os.PathLike):
+    """A ``.vtp`` surface as ``vtkPolyData``; DataError when it is missing or empty."""
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    out = reader.GetOutput()
+    if out is None or out.GetNumberOfPoints() == 0:
+        raise DataError(f"{path}: not a readable surface (.vtp)")
+    return out
+
+
+def write_polydata(poly, path: str | os.PathLike, what: str = "surface") -> Path:
+    """Write ``poly`` as binary VTK XML (``.vtp``) atomically; DataError on failure."""
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        writer = vtkXMLPolyDataWriter()
+        writer.SetFileName(str(tmp))
+        writer.SetInputData(poly)
+        writer.SetDataModeToBinary()
+        if not writer.Write():
+            raise DataError(f"{path}: could not write the {what}")
+    return path

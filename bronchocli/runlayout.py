@@ -1,0 +1,43 @@
+"""What the sweep and the training engine agree on about a run, without importing torch.
+
+Where a run's checkpoints live, how many CPU threads it gets, and the
+exceptions that stop a run early (a sweep worker catches them by type).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .config import Config
+from .errors import BronchoError
+
+RESUME_FILE = "last.pt"  # full training state of an unfinished run (removed when the run FINISHED)
+BEST_FILE = "best.pt"  # weights of the best validation so far
+
+
+class RunStopped(BronchoError):
+    """Training stopped on purpose before the end; the MLflow run is marked KILLED with the reason."""
+
+
+class RunInterrupted(RunStopped):
+    """Training was stopped by SIGINT/SIGTERM; the run is KILLED and can be resumed."""
+
+    exit_code = 130
+
+
+class RunPruned(RunStopped):
+    """An observer (the Optuna pruner) stopped the run after a validation; KILLED, tagged ``pruned``."""
+
+
+def checkpoint_dir(cfg: Config, run_id: str) -> Path:
+    return cfg.paths.checkpoints / run_id
+
+
+def resume_file(cfg: Config, run_id: str) -> Path:
+    return checkpoint_dir(cfg, run_id) / RESUME_FILE
+
+
+def cpu_threads(cfg: Config, workers: int = 1) -> int:
+    """torch CPU threads of one run: ``train.threads``, else the cores shared by ``workers`` runs."""
+    return cfg.train.threads or max(1, (os.cpu_count() or 1) // max(1, workers))

@@ -1,0 +1,74 @@
+"""What a run leaves in MLflow: params, config, split manifest, metrics, predictions, errors, figure, weights.
+
+* at the start: the dataset fingerprint tag, the flattened config as params,
+  ``config.yaml`` (passwords redacted) and ``split_manifest.csv``;
+* per validation: ``train_loss``, ``val_loss``, ``val.*``, ``lr``, ``pairs_seen``,
+  ``epoch`` and ``best_val_loss`` at step = optimiser step;
+* at the end: every test metric (model, ``zero_motion.*``, ``train_mean.*``,
+  ``pred.std*``) and the budget (``train.steps``, ``train.pairs_seen``,
+  ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
+  per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
+  ``report`` pairs models on), ``trajectories.png`` and, per
+  ``tracking.model_artifact``, ``model/model.pt`` (fp32, fp16 or none).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import torch
+
+from .. import tracking
+from ..cells import Cell
+from ..config import Config
+from ..io import save_figure
+from ..plots import trajectory_figure
+from .engine import Outcome
+from .evaluate import predictions_table
+from .network import export
+from .prepare import RunData
+
+TAG_STOP = "stop_reason"
+
+
+def _log_file(client, run_id: str, path: Path, artifact_path: str | None = None) -> None:
+    client.log_artifact(run_id, str(path), artifact_path)
+
+
+def log_start(client, run_id: str, cfg: Config, data: RunData) -> None:
+    client.set_tag(run_id, tracking.TAG_FINGERPRINT, data.fingerprint)
+    tracking.log_params(client, run_id, tracking.flatten(cfg.dump()))
+    with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
+        out = Path(tmp)
+        (out / "config.yaml").write_text(cfg.to_yaml())
+        _log_file(client, run_id, out / "config.yaml")
+        data.split.write_manifest(out / "split_manifest.csv")
+        _log_file(client, run_id, out / "split_manifest.csv")
+
+
+def validation_logger(client, run_id: str):
+    """A ``Trainer.on_validation`` callback logging the validation's values at step = optimiser step."""
+    def log(step: int, values: dict[str, float]) -> None:
+        tracking.log_metrics(client, run_id, values, step=step)
+    return log
+
+
+def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
+    tracking.log_metrics(client, run_id, outcome.metrics)
+    client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
+    with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
+        out = Path(tmp)
+        predictions_table(outcome.predictions).to_csv(out / "predictions.csv", index=False)
+        _log_file(client, run_id, out / "predictions.csv")
+        outcome.trajectories.to_csv(out / "trajectory_errors.csv", index=False)
+        _log_file(client, run_id, out / "trajectory_errors.csv")
+        shown = outcome.predictions[:6]
+        fig = trajectory_figure([p.gt_abs for p in shown], {cell.arch: [p.pred_abs for p in shown]},
+                                titles=[p.key for p in shown])
+        for path in save_figure(fig, out / "trajectories"):
+            _log_file(client, run_id, path)
+        if cfg.tracking.model_artifact != "none":
+            torch.save(export(outcome.network, cell, data.image_size, cfg.tracking.model_artifact),
+                       out / "model.pt")
+            _log_file(client, run_id, out / "model.pt", "model")

@@ -1,0 +1,350 @@
+"""The training loop: a budget of optimiser steps, validation every N steps, the best weights kept.
+
+Plain PyTorch (no training framework: importing one cost 19 s of start-up on
+a GPU machine and a host sync per logged value). One optimiser step consumes
+``train.effective_batch`` image pairs for every architecture, so a budget of
+``train.steps`` steps is the same number of pairs seen whatever the model:
+
+* a micro-batch is ``train.batch_size`` pairs: that many independent pairs for
+  pairwise models, ``batch_size / L`` windows of L = ``data.window`` pairs for
+  temporal ones; gradients accumulate over ``effective_batch / batch_size``
+  micro-batches (one back-propagated chunk each) per step;
+* truncated BPTT (``train.tbptt_chunks`` = K): a temporal sample holds K·L
+  pairs, processed in K chunks of L whose recurrent state is carried but
+  detached; each chunk is back-propagated at once and counts as a micro-batch;
+* the learning rate warms up linearly over ``train.warmup`` of the steps, then
+  follows ``train.schedule`` (cosine decay to zero, or constant);
+* every ``train.val_every`` steps (and at the end) BatchNorm statistics are
+  re-estimated on ``train.bn_recalibrate`` training batches (running averages
+  after a few hundred steps describe weights that no longer exist, and
+  eval-mode outputs collapse), the validation loss is computed, the best
+  weights so far are kept and a resumable checkpoint is written; after
+  ``train.patience`` validations without improvement the run stops early. The
+  run ends on the best weights, whatever stopped it.
+
+Losses, metrics and non-finite checks stay on the device between validations:
+nothing forces a host sync per step on CUDA.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import signal
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from .. import io, metrics
+from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
+from ..errors import BronchoError
+from ..models import detach_state
+from ..runlayout import RESUME_FILE, RunInterrupted
+from .network import PoseRegressor
+
+VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
+CUDA_CHECK_EVERY = 25  # optimiser steps between non-finite checks on CUDA (each check is a host sync)
+
+
+class NonFiniteLoss(BronchoError):
+    """The training loss became NaN or infinite; the run fails with this reason."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the loop needs from ``train``/``data`` (see the module doc for the semantics)."""
+
+    steps: int
+    micro_pairs: int  # pairs per micro-batch (train.batch_size)
+    accum: int  # micro-batches per optimiser step
+    chunk: int  # pairs per back-propagated chunk (the whole sample unless TBPTT)
+    val_every: int
+    patience: int | None
+    min_delta: float
+    lr: float
+    weight_decay: float
+    warmup_steps: int
+    schedule: str
+    rot_loss: str
+    rot_weight: float
+    precision: str  # "32", "bf16-mixed" or "16-mixed"
+    bn_recalibrate: int
+    augment: bool
+    seed: int
+    eval_batch: int = 64  # pairs per validation forward
+
+    @property
+    def pairs_per_step(self) -> int:
+        return self.micro_pairs * self.accum
+
+
+@dataclass
+class FitResult:
+    steps: int
+    pairs_seen: int
+    epochs: float  # passes over the training samples
+    stop_reason: str  # budget, early_stop
+    best_step: int
+    best_val_loss: float
+    validations: int
+    train_time_s: float
+    val_time_s: float
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def lr_factor(step: int, s: Settings) -> float:
+    """Multiplier of ``lr`` for optimiser step ``step`` (0-based): linear warm-up, then cosine or constant."""
+    if s.warmup_steps and step < s.warmup_steps:
+        return (step + 1) / s.warmup_steps
+    if s.schedule == "constant":
+        return 1.0
+    span = max(1, s.steps - s.warmup_steps)
+    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - s.warmup_steps) / span)))
+
+
+def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
+    return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+
+
+@torch.no_grad()
+def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) -> int:
+    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``."""
+    bns = batchnorms(net)
+    if not bns:
+        return 0
+    momenta = [m.momentum for m in bns]
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # cumulative average
+    was_training = net.training
+    net.train()
+    n = 0
+    try:
+        for frames in batches:
+            with autocast():
+                net(frames)
+            n += 1
+    finally:
+        for m, mom in zip(bns, momenta):
+            m.momentum = mom
+        net.train(was_training)
+    return n
+
+
+class Trainer:
+    """Fits one :class:`PoseRegressor` on training samples, validating on validation samples."""
+
+    def __init__(self, net: PoseRegressor, train: Samples, val: Samples, source: FrameSource, s: Settings,
+                 *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
+                 on_validation: Callable[[int, dict[str, float]], None] | None = None,
+                 on_step: Callable[[int, int], None] | None = None) -> None:
+        self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
+        self.device, self.ckpt_dir, self.stop = device, ckpt_dir, stop
+        self.on_validation, self.on_step = on_validation, on_step
+        samples_per_micro = max(1, s.micro_pairs // train.n_pairs)
+        self.order = BatchOrder(len(train), samples_per_micro, s.seed)
+        self.photometric = Photometric() if s.augment else None
+        fused = device.type in ("cuda", "cpu")
+        self.opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
+            if s.weight_decay else torch.optim.Adam(net.parameters(), lr=s.lr, fused=fused)
+        self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
+        self.scaler = torch.amp.GradScaler(device.type, enabled=s.precision == "16-mixed")
+        self.step = 0  # optimiser steps taken
+        self.micro = 0  # training samples batches drawn
+        self.backwards = 0  # chunks back-propagated since the last optimiser step
+        self.best_val = math.inf
+        self.best_step = 0
+        self.best_state: dict[str, torch.Tensor] | None = None
+        self.bad = 0  # validations without improvement
+        self.history: list[dict[str, float]] = []
+        self.train_time = self.val_time = 0.0
+        self._loss_sum = torch.zeros((), device=device)
+        self._loss_n = 0
+        self._finite = torch.ones((), dtype=torch.bool, device=device)
+
+    # -- precision ------------------------------------------------------------------------------
+    def autocast(self):
+        if self.s.precision == "32":
+            return torch.autocast(self.device.type, enabled=False)
+        dtype = torch.bfloat16 if self.s.precision == "bf16-mixed" else torch.float16
+        return torch.autocast(self.device.type, dtype=dtype)
+
+    # -- one optimiser step -----------------------------------------------------------------------
+    def _batch(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        ids = self.order(i)
+        frames = self.source(self.train_set.frames[ids])
+        if self.photometric is not None:
+            gen = torch.Generator(device=self.device).manual_seed(self.s.seed * 1_000_003 + i)
+            frames = self.photometric(frames, gen)
+        labels = torch.from_numpy(self.train_set.labels[ids]).to(self.device, non_blocking=True)
+        return frames, labels
+
+    def _backward_chunks(self, frames: torch.Tensor, labels: torch.Tensor) -> Iterator[None]:
+        """Forward/backward each chunk of the sample; yields after each back-propagated chunk."""
+        state = None
+        n = labels.shape[1]
+        for start in range(0, n, self.s.chunk):
+            with self.autocast():
+                out, state = self.net(frames[:, start: start + self.s.chunk + 1], state)
+            loss = self.net.loss(out.float(), labels[:, start: start + self.s.chunk], self.s.rot_loss,
+                                 self.s.rot_weight)
+            self.scaler.scale(loss / self.s.accum).backward()
+            self._loss_sum += loss.detach()
+            self._loss_n += 1
+            self._finite &= torch.isfinite(loss.detach())
+            state = detach_state(state)
+            yield
+
+    def _optimiser_step(self) -> None:
+        self.scaler.step(self.opt)
+        self.scaler.update()
+        self.opt.zero_grad(set_to_none=True)
+        self.sched.step()
+        self.step += 1
+        self.backwards = 0
+
+    def _train_until(self, target: int) -> None:
+        self.net.train()
+        while self.step < target:
+            frames, labels = self._batch(self.micro)
+            self.micro += 1
+            for _ in self._backward_chunks(frames, labels):
+                self.backwards += 1
+                if self.backwards == self.s.accum:
+                    self._optimiser_step()
+                    self._after_step()
+                    if self.step >= target:
+                        break
+
+    def _after_step(self) -> None:
+        if self.device.type != "cuda" or self.step % CUDA_CHECK_EVERY == 0:
+            self._check_finite()
+        if self.on_step is not None:
+            self.on_step(self.step, self.s.steps)
+        if self.stop is not None and self.stop.signal is not None:
+            path = self.save_resume()
+            name = signal.Signals(self.stop.signal).name
+            raise RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}; checkpoint saved to {path}")
+
+    def _check_finite(self) -> None:
+        if not bool(self._finite):
+            raise NonFiniteLoss(f"non-finite training loss by step {self.step}: lower train.lr or check the data")
+
+    # -- validation ---------------------------------------------------------------------------------
+    def _recalibrate(self) -> None:
+        if self.s.bn_recalibrate <= 0:
+            return
+        # Batches far from the training stream's position, so recalibration does not re-use what was just seen.
+        start = 10_000_000 + self.step * 131
+        recalibrate_bn(self.net, (self._batch(start + k)[0] for k in range(self.s.bn_recalibrate)), self.autocast)
+
+    @torch.no_grad()
+    def validate(self, samples: Samples | None = None) -> dict[str, float]:
+        samples = samples or self.val_set
+        self.net.eval()
+        per = max(1, self.s.eval_batch // samples.n_pairs)
+        sums = torch.zeros(1 + len(VAL_METRICS), dtype=torch.float64, device=self.device)
+        n = 0
+        for k in range(0, len(samples), per):
+            frames = self.source(samples.frames[k: k + per])
+            labels = torch.from_numpy(samples.labels[k: k + per]).to(self.device)
+            with self.autocast():
+                out, _ = self.net(frames)
+            out = out.float()
+            loss = self.net.loss(out, labels, self.s.rot_loss, self.s.rot_weight)
+            pairs = labels.shape[0] * labels.shape[1]
+            vals = [loss] + [metrics.METRICS[m](out, labels).mean() for m in VAL_METRICS]
+            sums += torch.stack([v.double() for v in vals]) * pairs
+            n += pairs
+        means = (sums / max(n, 1)).tolist()  # the one host sync of a validation
+        return {"val_loss": means[0], **{f"val.{m}": v for m, v in zip(VAL_METRICS, means[1:])}}
+
+    def _validation(self) -> bool:
+        """Validate, keep the best weights, checkpoint; True when early stopping says stop."""
+        t0 = time.perf_counter()
+        self._recalibrate()
+        values = self.validate()
+        self._check_finite()
+        train_loss = (self._loss_sum / max(self._loss_n, 1)).item()
+        self._loss_sum.zero_()
+        self._loss_n = 0
+        values |= {"train_loss": train_loss, "lr": self.opt.param_groups[0]["lr"],
+                   "pairs_seen": float(self.step * self.s.pairs_per_step), "epoch": self.epochs}
+        improved = values["val_loss"] < self.best_val - self.s.min_delta
+        if improved or self.best_state is None:
+            self.best_val = min(self.best_val, values["val_loss"])
+            self.best_step = self.step
+            self.best_state = {k: v.detach().to("cpu", copy=True) for k, v in self.net.state_dict().items()}
+            self.bad = 0
+        else:
+            self.bad += 1
+        values["best_val_loss"] = self.best_val
+        self.history.append({"step": float(self.step), **values})
+        self.val_time += time.perf_counter() - t0
+        if self.on_validation is not None:
+            self.on_validation(self.step, values)
+        self.save_resume()
+        return self.s.patience is not None and self.bad >= self.s.patience
+
+    @property
+    def epochs(self) -> float:
+        return self.micro / self.order.per_epoch
+
+    # -- the run ----------------------------------------------------------------------------------------
+    def fit(self) -> FitResult:
+        reason = "budget"
+        while self.step < self.s.steps:
+            target = min(self.s.steps, (self.step // self.s.val_every + 1) * self.s.val_every)
+            t0 = time.perf_counter()
+            self._train_until(target)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            self.train_time += time.perf_counter() - t0
+            if self._validation():
+                reason = "early_stop"
+                break
+        if self.best_state is not None:
+            self.net.load_state_dict(self.best_state)
+        return FitResult(self.step, self.step * self.s.pairs_per_step, self.epochs, reason, self.best_step,
+                         self.best_val, len(self.history), self.train_time, self.val_time, list(self.history))
+
+    # -- checkpoints --------------------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        return {
+            "model": self.net.state_dict(), "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(),
+            "scaler": self.scaler.state_dict(), "step": self.step, "micro": self.micro, "best_val": self.best_val,
+            "best_step": self.best_step, "best_state": self.best_state, "bad": self.bad, "history": self.history,
+            "times": (self.train_time, self.val_time),
+            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+                    "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["model"])
+        self.opt.load_state_dict(state["optimizer"])
+        self.sched.load_state_dict(state["scheduler"])
+        self.scaler.load_state_dict(state["scaler"])
+        self.step, self.micro = int(state["step"]), int(state["micro"])
+        self.best_val, self.best_step, self.bad = state["best_val"], state["best_step"], state["bad"]
+        self.best_state, self.history = state["best_state"], list(state["history"])
+        self.train_time, self.val_time = state["times"]
+        rng = state["rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        if rng.get("cuda") is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+
+    def save_resume(self) -> Path | None:
+        if self.ckpt_dir is None:
+            return None
+        path = self.ckpt_dir / RESUME_FILE
+        with io.atomic_path(path) as tmp:
+            torch.save(self.state(), tmp)
+        return path
