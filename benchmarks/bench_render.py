@@ -33,6 +33,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from bronchocli.config import Generate, Realism, load_config  # noqa: E402
+from bronchocli.generation.writer import DatasetFrames  # noqa: E402
 from bronchocli.render.tasks import RenderTask, init_worker, run_task  # noqa: E402
 
 
@@ -40,7 +41,8 @@ def build(anatomy: str, work: Path) -> tuple[Path, list]:
     """The prepared lumen surface (.vtp) and one planned trajectory per lobe."""
     from bronchocli.anatomy import centreline_distance, load_anatomy, lumen_surface
     from bronchocli.generation.trajectories import PathSampler, plan_lobe
-    from bronchocli.render.appearance import prepare_surface, write_polydata
+    from bronchocli.io import write_polydata
+    from bronchocli.render.appearance import prepare_surface
 
     tree = load_anatomy(anatomy, seed=0, voxel_mm=0.5)
     surface = prepare_surface(lumen_surface(tree, voxel_mm=0.5), texture=True, seed=0)
@@ -57,8 +59,8 @@ def build(anatomy: str, work: Path) -> tuple[Path, list]:
 
 
 def render_only(surface: Path, plans: list, size: int) -> float:
+    from bronchocli.io import read_polydata
     from bronchocli.render.scene import FrameRenderer
-    from bronchocli.render.appearance import read_polydata
 
     with FrameRenderer(read_polydata(surface), width=size, realism=Realism()) as r:
         r.render(plans[0].position_mm[0], plans[0].rotation[0], plans[0].radius_mm[0])  # warm-up (shaders)
@@ -71,7 +73,7 @@ def render_only(surface: Path, plans: list, size: int) -> float:
 
 
 def _tasks(surface: Path, plans: list, size: int, out: Path) -> list[RenderTask]:
-    return [RenderTask("bench", p.lobe, p.index, str(out), str(surface),
+    return [RenderTask("bench", p.lobe, p.index, DatasetFrames(str(out)), str(surface),
                        [f"s{size}/{p.lobe}/f{f:05d}.png" for f in range(len(p))],
                        p.position_mm, p.rotation, p.radius_mm, size, 70.0, Realism()) for p in plans]
 
@@ -91,12 +93,12 @@ def _worker_pass(tasks: list[RenderTask], start_at: float) -> tuple[float, float
 def end_to_end(surface: Path, plans: list, size: int, workers: int, out: Path) -> float:
     tasks = _tasks(surface, plans, size, out / f"w{workers}")
     for t in tasks:
-        (Path(t.root) / t.filenames[0]).parent.mkdir(parents=True, exist_ok=True)
+        (Path(t.sink.root) / t.filenames[0]).parent.mkdir(parents=True, exist_ok=True)
     frames = [f for t in tasks for f in range(len(t.filenames))]
     shares = [[] for _ in range(workers)]
     for t in tasks:  # split every trajectory into contiguous halves so the workers get equal frame counts
         for w, idx in enumerate(np.array_split(np.arange(len(t.filenames)), workers)):
-            shares[w].append(RenderTask(t.patient, t.lobe, t.trajectory, t.root, t.surface,
+            shares[w].append(RenderTask(t.patient, t.lobe, t.trajectory, t.sink, t.surface,
                                         [t.filenames[i] for i in idx], t.position_mm[idx], t.rotation[idx],
                                         t.radius_mm[idx], t.width, t.fov_deg, t.realism))
     threads = max(1, (os.cpu_count() or 1) // workers)

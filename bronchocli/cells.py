@@ -76,11 +76,15 @@ class Cell(BaseModel):
         return make(**raw, key=tags.get(key_tag, "") or "")
 
 
+CHOICES: dict[str, tuple[str, ...]] = {"arch": ARCHS, "rot_loss": ROT_LOSSES, "population": POPULATIONS,
+                                       "pose_frame": POSE_FRAMES}
+
+
 def _problem(error: dict[str, Any]) -> str:
     field = ".".join(str(p) for p in error["loc"]) or "cell"
     value = error.get("input")
-    if error["type"] == "literal_error":
-        return f"{field} {value!r}: must be one of {error['ctx']['expected'].replace(chr(39), '')}"
+    if error["type"] == "literal_error" and field in CHOICES:
+        return f"{field} {value!r}: must be one of {', '.join(CHOICES[field])}"
     msg = error["msg"].removeprefix("Value error, ")
     if error["type"] == "value_error":
         return msg
@@ -138,9 +142,8 @@ def parse_only(specs: Iterable[str] | None) -> Selection:
 
 
 def _check_value(key: str, value: str, part: str) -> None:
-    choices = {"arch": ARCHS, "rot_loss": ROT_LOSSES, "population": POPULATIONS, "pose_frame": POSE_FRAMES}
-    if key in choices and value not in choices[key]:
-        raise ConfigError(f"--only {part!r}: {key} {value!r} must be one of {', '.join(choices[key])}")
+    if key in CHOICES and value not in CHOICES[key]:
+        raise ConfigError(f"--only {part!r}: {key} {value!r} must be one of {', '.join(CHOICES[key])}")
     if key in ("seed", "train_trajectories"):
         _int(value, key)
 

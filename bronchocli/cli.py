@@ -65,9 +65,14 @@ def _root(
     """Vision-based bronchoscopy pose estimation research platform."""
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
+    """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
-        app()
+        app(args=argv, prog_name="bronchopose")
     except BronchoError as exc:
         err_console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
         raise SystemExit(exc.exit_code) from None
+    except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
+        err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
+                                        "run the same command again to continue"), highlight=False)
+        raise SystemExit(130) from None

@@ -33,7 +33,7 @@ _GIMBAL_EPS = 1e-12
 def _xp(x: Any):
     """The array namespace of ``x`` (numpy or torch)."""
     if type(x).__module__.startswith("torch"):
-        import torch
+        import torch  # lazy: already loaded when a tensor is passed; numpy callers (generation) never load it
 
         return torch
     return np

@@ -20,6 +20,11 @@ from typing import Any
 
 from .errors import DataError
 
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - Windows
+    fcntl = None
+
 TEMP_SUFFIX = ".tmp"
 
 
@@ -74,9 +79,7 @@ def file_lock(path: str | os.PathLike) -> Iterator[None]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - Windows
+    if fcntl is None:  # pragma: no cover - Windows
         yield
         return
     with open(path, "a+b") as fh:
@@ -93,7 +96,7 @@ def file_lock(path: str | os.PathLike) -> Iterator[None]:
 
 def save_figure(fig, path: str | os.PathLike, formats: Sequence[str] = ("png",), dpi: int = 130) -> list[Path]:
     """Save a matplotlib figure as ``path`` with each suffix in ``formats``, atomically, and close it."""
-    import matplotlib.pyplot as plt  # matplotlib only where a figure is drawn (~0.5 s)
+    import matplotlib.pyplot as plt  # lazy: matplotlib (~0.5 s) only where a figure is drawn
 
     path = Path(path)
     written = []
@@ -106,13 +109,9 @@ def save_figure(fig, path: str | os.PathLike, formats: Sequence[str] = ("png",),
     return written
 
 
-# VTK is imported inside the two functions below: training, sweeps and reports
-# must run where VTK is not installed (GPU machines).
-
-
 def read_polydata(path: str | os.PathLike):
     """A ``.vtp`` surface as ``vtkPolyData``; DataError when it is missing or empty."""
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader  # lazy: VTK is optional outside generation
 
     reader = vtkXMLPolyDataReader()
     reader.SetFileName(str(path))
@@ -125,7 +124,7 @@ def read_polydata(path: str | os.PathLike):
 
 def write_polydata(poly, path: str | os.PathLike, what: str = "surface") -> Path:
     """Write ``poly`` as binary VTK XML (``.vtp``) atomically; DataError on failure."""
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter  # lazy: VTK is optional outside generation
 
     path = Path(path)
     with atomic_path(path) as tmp:

@@ -12,16 +12,19 @@ import os
 import subprocess
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping
+
+os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")  # before mlflow is imported
+os.environ.setdefault("DO_NOT_TRACK", "true")
+
+from mlflow.entities import Metric, Param, Run
+from mlflow.exceptions import MlflowException
+from mlflow.tracking import MlflowClient
 
 from . import __version__, urls
 from .cells import FIELDS, Cell
 from .config import Config
 from .io import file_lock
-
-if TYPE_CHECKING:  # mlflow is imported lazily: it costs ~1.5 s
-    from mlflow.entities import Run
-    from mlflow.tracking import MlflowClient
 
 # Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
 CELL_TAGS = FIELDS
@@ -38,8 +41,6 @@ _PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
 
 
 def _quiet() -> None:
-    os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
-    os.environ.setdefault("DO_NOT_TRACK", "true")
     for name in ("mlflow", "alembic", "urllib3"):
         logging.getLogger(name).setLevel(logging.WARNING)
 
@@ -49,11 +50,8 @@ def redacted_uri(cfg: Config) -> str:
     return urls.redact(cfg.paths.tracking_uri)
 
 
-def client_for(cfg: Config) -> "MlflowClient":
-    _quiet()
-    from mlflow.tracking import MlflowClient
-
-    _quiet()  # mlflow configures its own logger on import
+def client_for(cfg: Config) -> MlflowClient:
+    _quiet()  # mlflow configures its own loggers when it is first used
     uri = cfg.paths.tracking_uri
     db = urls.sqlite_file(uri)
     if db is None:
@@ -69,10 +67,8 @@ def _is_local_store(uri: str) -> bool:
     return uri.startswith(("sqlite:", "file:", "/", "postgresql", "mysql", "mssql")) or "://" not in uri
 
 
-def experiment_id(client: "MlflowClient", cfg: Config, name: str | None = None) -> str:
+def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) -> str:
     """Get or create the config's experiment; concurrent creators agree on one id."""
-    from mlflow.exceptions import MlflowException
-
     name = name or cfg.experiment_name
     exp = client.get_experiment_by_name(name)
     if exp is not None:
@@ -127,18 +123,14 @@ def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
-def log_params(client: "MlflowClient", run_id: str, params: Mapping[str, str]) -> None:
-    from mlflow.entities import Param
-
+def log_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> None:
     # URL-valued settings may carry a password: never store it in clear.
     items = [Param(k, urls.redact(v)[:6000]) for k, v in sorted(params.items())]
     for i in range(0, len(items), _PARAM_BATCH):
         client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
 
 
-def log_metrics(client: "MlflowClient", run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
-    from mlflow.entities import Metric
-
+def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
     now = int(time.time() * 1000)
     items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
     for i in range(0, len(items), 1000):
@@ -150,12 +142,12 @@ def _quote(value: str) -> str:
 
 
 def search_runs(
-    client: "MlflowClient",
+    client: MlflowClient,
     experiment_ids: Iterable[str],
     tags: Mapping[str, str] | None = None,
     statuses: Iterable[str] | None = None,
     max_results: int = 50000,
-) -> list["Run"]:
+) -> list[Run]:
     """Runs matching every tag (exact) and one of the statuses, newest first, in as few queries as possible."""
     clauses = [f"tags.{k} = {_quote(str(v))}" for k, v in (tags or {}).items()]
     statuses = list(statuses or [])

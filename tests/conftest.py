@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from pathlib import Path
 
@@ -28,19 +30,25 @@ def real_tree() -> Path:
 
 
 @pytest.fixture
-def cli():
-    """Run the CLI in-process (like the console script) and return (exit code, stdout, stderr)."""
-    from typer.testing import CliRunner
+def cli(monkeypatch):
+    """Run ``bronchocli.cli.main`` in-process, through the console script's own error and exit-code path.
 
-    from bronchocli.cli import app
-    from bronchocli.errors import BronchoError
+    Returns (exit code, stdout, stderr). An exception that ``main`` lets through
+    (a traceback for a user) fails the test.
+    """
+    from bronchocli.cli import main
+
+    monkeypatch.setenv("COLUMNS", "200")
+    monkeypatch.setenv("NO_COLOR", "1")
 
     def run(*args: str) -> tuple[int, str, str]:
-        result = CliRunner().invoke(app, list(args))
-        if isinstance(result.exception, BronchoError):
-            return 2, result.stdout, str(result.exception)
-        if result.exception is not None and not isinstance(result.exception, SystemExit):
-            raise result.exception
-        return result.exit_code, result.stdout, result.stderr
+        out, err = io.StringIO(), io.StringIO()
+        code = 0
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main([str(a) for a in args])
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        return code, out.getvalue(), err.getvalue()
 
     return run

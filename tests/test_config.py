@@ -40,18 +40,36 @@ def test_every_shipped_config_and_profile_loads_and_expands(repo):
 
 def test_defaults_and_relative_paths_resolve_against_the_config_dir(tmp_path):
     cfg = C.load_config(write(tmp_path, "name: t\n"))
-    assert cfg.tracking_uri == f"sqlite:///{tmp_path}/runs/mlflow.db"
-    assert cfg.storage_url.startswith(f"sqlite:///{tmp_path}/runs/")
-    assert cfg.resolve(cfg.dataset.root) == tmp_path / "data" / "synthetic"
+    assert cfg.paths.base == tmp_path
+    assert cfg.paths.tracking_uri == f"sqlite:///{tmp_path}/runs/mlflow.db"
+    assert cfg.paths.storage_url.startswith(f"sqlite:///{tmp_path}/runs/")
+    assert cfg.paths.dataset == tmp_path / "data" / "synthetic"
+    assert cfg.paths.cache == tmp_path / "runs" / "cache"
+    assert cfg.paths.checkpoints == tmp_path / "runs" / "checkpoints"
+    assert cfg.paths.artifacts == tmp_path / "runs" / "artifacts"
+    assert cfg.paths.sweep_logs == tmp_path / "runs" / "sweep-logs"
+    assert cfg.paths.anatomy is None and cfg.paths.centreline is None and cfg.paths.pretrained is None
     assert cfg.experiment_name == "t"
-    assert C.Config(name="x").resolve_url("postgresql://u@h/db") == "postgresql://u@h/db"
+    server = C.Config(name="x", tracking={"uri": "postgresql://u@h/db"})
+    assert server.paths.tracking_uri == "postgresql://u@h/db"
+
+
+def test_paths_are_resolved_once_at_load_not_against_the_working_directory(tmp_path, monkeypatch):
+    (tmp_path / "cfg").mkdir()
+    cfg = C.load_config(write(tmp_path / "cfg", "name: t\ndataset: {root: ../ds, generate: {anatomy: a.vtu}}\n"))
+    monkeypatch.chdir(tmp_path)
+    assert cfg.paths.dataset == tmp_path / "ds"
+    assert cfg.paths.anatomy == tmp_path / "cfg" / "a.vtu"
+    assert cfg.with_values({"train.lr": 5e-4}).paths.dataset == tmp_path / "ds"  # a copy keeps the config's folder
 
 
 def test_env_vars_expand_in_urls(tmp_path, monkeypatch):
     monkeypatch.setenv("PGPASS", "s3cret")
     cfg = C.load_config(write(tmp_path, "name: t\nstorage: {url: 'postgresql://u:${PGPASS}@h/db'}\n"))
-    assert cfg.storage_url == "postgresql://u:s3cret@h/db"
+    assert cfg.paths.storage_url == "postgresql://u:s3cret@h/db"
     assert "s3cret" not in cfg.to_yaml()
+    with_password = C.load_config(write(tmp_path, "name: t\nstorage: {url: 'postgresql://u:s3cret@h/db'}\n"))
+    assert "s3cret" not in with_password.to_yaml() and "postgresql://u:***@h/db" in with_password.to_yaml()
 
 
 def test_profile_and_set_overrides_apply_in_order(repo):
@@ -107,7 +125,7 @@ def test_missing_file_and_non_mapping(tmp_path):
 def test_cells_are_frozen_hashable_and_keyed_stably(tmp_path):
     path = write(tmp_path, "name: t\ngrid: {folds: [p01]}\n")
     cells = C.expand_grid(C.load_config(path), patients=["p00", "p01"])
-    assert len(cells) == 5 * 3 * 2
+    assert len(cells) == 5 * 3 * 2 * 3  # arch x rot_loss x (personalized, cross-subject p01) x seeds 0-2
     with pytest.raises(Exception):
         cells[0].arch = "lstm"  # type: ignore[misc]
     assert len(set(cells)) == len(cells)
@@ -123,12 +141,13 @@ def test_cells_are_frozen_hashable_and_keyed_stably(tmp_path):
 def test_a_run_relevant_change_changes_the_key_and_tracking_does_not(tmp_path):
     base = C.load_config(write(tmp_path, "name: t\ngrid: {folds: [p00]}\n"))
     key = C.expand_grid(base, ["p00"])[0].key
-    assert C.expand_grid(base.with_values({"train.lr": 1e-3}), ["p00"])[0].key != key
+    assert base.train.lr != 5e-4
+    assert C.expand_grid(base.with_values({"train.lr": 5e-4}), ["p00"])[0].key != key
     assert C.expand_grid(base.with_values({"tracking.uri": "http://x:5000"}), ["p00"])[0].key == key
 
 
 def test_cross_subject_folds(tmp_path):
-    cfg = C.load_config(write(tmp_path, "name: t\ngrid: {population: cross-subject, arch: lstm, rot_loss: ce}\n"))
+    cfg = C.load_config(write(tmp_path, "name: t\ngrid: {population: cross-subject, arch: lstm, rot_loss: ce, seed: 0}\n"))
     assert [c.fold for c in C.expand_grid(cfg, ["a", "b", "c"])] == ["a", "b", "c"]
     with pytest.raises(ConfigError, match="needs the dataset's patient list"):
         C.expand_grid(cfg)
@@ -142,3 +161,34 @@ def test_speed_only_settings_do_not_change_the_key(tmp_path):
     key = C.expand_grid(base, ["p00"])[0].key
     fast = base.with_values({"train.threads": 7, "data.workers": 0, "data.cache_dir": "/elsewhere"})
     assert C.expand_grid(fast, ["p00"])[0].key == key
+
+
+def test_empty_grid_axes_and_bad_training_sizes_are_rejected(tmp_path):
+    path = write(tmp_path, """\
+        name: t
+        grid:
+          arch: []
+          seed: [0, 0]
+          train_trajectories: [0, 2]
+        train:
+          batch_size: 4
+          effective_batch: 10
+        """)
+    with pytest.raises(ConfigError) as exc:
+        C.load_config(path)
+    msg = str(exc.value)
+    assert "4 problems" in msg
+    assert f"{path}:3: grid.arch: []: " in msg and "must list at least one value" in msg
+    assert f"{path}:4: grid.seed: " in msg and "lists a value twice" in msg
+    assert f"{path}:5: grid.train_trajectories: " in msg and "every value must be >= 1" in msg
+    assert "effective_batch (10) must be a multiple of batch_size (4)" in msg
+
+
+def test_the_train_trajectories_axis_multiplies_the_grid(tmp_path):
+    cfg = C.load_config(write(tmp_path, """\
+        name: t
+        grid: {arch: baseline, rot_loss: mse, population: personalized, seed: 0, train_trajectories: [2, null]}
+        """))
+    cells = C.expand_grid(cfg, ["p00"])
+    assert [c.label for c in cells] == ["baseline/mse/personalized/s0/world/t2", "baseline/mse/personalized/s0/world"]
+    assert cells[0].key != cells[1].key

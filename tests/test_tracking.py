@@ -3,23 +3,29 @@
 from __future__ import annotations
 
 from bronchocli import tracking
-from bronchocli.config import Config, make_cell
+from bronchocli.cells import FIELDS, Cell
+from bronchocli.config import Config
 
 
-def test_passwords_are_redacted_from_urls():
-    assert tracking.redact_url("postgresql+psycopg://bp:s3cret@db.example:5432/sweeps") == (
-        "postgresql+psycopg://bp:***@db.example:5432/sweeps")
-    assert tracking.redact_url("sqlite:////tmp/x.db") == "sqlite:////tmp/x.db"
-    assert tracking.redact_url("http://host:5000") == "http://host:5000"
+def test_the_printed_tracking_uri_hides_the_password():
+    cfg = Config(name="t", tracking={"uri": "postgresql+psycopg://bp:s3cret@db.example:5432/mlflow"})
+    assert tracking.redacted_uri(cfg) == "postgresql+psycopg://bp:***@db.example:5432/mlflow"
+    assert tracking.redacted_uri(Config(name="t", tracking={"uri": "http://host:5000"})) == "http://host:5000"
 
 
 def test_flatten_and_cell_tags():
     cfg = Config(name="t")
     flat = tracking.flatten(cfg.dump())
-    assert flat["train.lr"] == "0.0001" and flat["grid.arch"].startswith("['baseline'")
-    cell = make_cell(cfg, "lstm", "ce", "cross-subject", "p01", 3, "camera")
+    assert flat["train.lr"] == "0.001" and flat["grid.arch"].startswith("['baseline'")
+    cell = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", seed=3, pose_frame="camera")
     tags = tracking.cell_tags(cfg, cell)
     assert (tags["arch"], tags["fold"], tags["seed"], tags["pose_frame"]) == ("lstm", "p01", "3", "camera")
+    assert tags["train_trajectories"] == "" and set(FIELDS) <= set(tags) and tracking.CELL_TAGS == FIELDS
     assert tags["cell_key"] == cell.key and tags["run_kind"] == "cell" and tags["hparams_source"] == "config"
+    assert tags["mlflow.runName"] == "lstm-ce-cross-subject-p01-s3-camera"
+    assert Cell.from_tags(tags) == cell  # the run's tags give its cell back, key included
     tuned = cfg.with_values({"tune.applied": "optuna:s#4"})
     assert tracking.cell_tags(tuned, cell)["hparams_source"] == "optuna:s#4"
+    sized = cfg.cell(arch="lstm", rot_loss="ce", population="personalized", train_trajectories=4)
+    assert tracking.cell_tags(cfg, sized)["train_trajectories"] == "4"
+    assert Cell.from_tags(tracking.cell_tags(cfg, sized)) == sized

@@ -9,15 +9,16 @@ CONFIG = """\
     name: tiny
     dataset: {{root: tiny}}
     splits: {{train: 1, val: 1, test: 1, cross_subject_val: 1}}
-    grid: {{folds: [p01]}}
-    data: {{window: 3, workers: 0, image_size: 32}}
+    grid: {{folds: [p01], seed: [0]}}
+    data: {{window: 3, image_size: 32}}
     model: {{dropout: 0.1}}
-    train: {{batch_size: 8, max_epochs: {epochs}, min_epochs: 1, patience: 10, threads: 1}}
-    tracking: {{log_checkpoint: {log_checkpoint}}}
+    train: {{batch_size: 6, steps: {steps}, val_every: {val_every}, bn_recalibrate: 2, threads: 1}}
+    tracking: {{model_artifact: {model_artifact}}}
 """
 
 
-def write_config(root: Path, epochs: int = 1, log_checkpoint: bool = False, extra: str = "") -> Path:
+def write_config(root: Path, steps: int = 4, val_every: int = 2, model_artifact: str = "none", extra: str = "") -> Path:
     path = root / "experiments.yaml"
-    path.write_text(textwrap.dedent(CONFIG.format(epochs=epochs, log_checkpoint=str(log_checkpoint).lower())) + extra)
+    path.write_text(textwrap.dedent(CONFIG.format(steps=steps, val_every=val_every, model_artifact=model_artifact))
+                    + extra)
     return path

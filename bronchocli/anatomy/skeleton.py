@@ -44,7 +44,7 @@ def largest_component(mask: np.ndarray, source: str) -> np.ndarray:
 def graph_from_mask(mask: np.ndarray, spacing_xyz: np.ndarray, origin_xyz: np.ndarray,
                     source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points_mm (N, 3) xyz, radii_mm (N,), edges (E, 2)) of the skeleton of a ``[z, y, x]`` mask."""
-    from skimage.morphology import skeletonize  # noqa: PLC0415 (slow import, volumes only)
+    from skimage.morphology import skeletonize  # lazy: scikit-image takes ~1 s to import, volumes only
 
     spacing_zyx = np.asarray(spacing_xyz, dtype=np.float64)[::-1]
     mask = np.pad(largest_component(mask, source), 1)  # a closed border so ends are thinned, not cut

@@ -9,7 +9,6 @@ from rich.table import Table
 
 from ..cells import FIELDS
 from ..config import DEFAULT_CONFIG, expand_grid
-from ..generation.sources import planned_patients
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -27,6 +26,8 @@ def config(
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return
+    from ..generation.sources import planned_patients  # lazy: keeps `bronchopose --help` fast
+
     table = Table("key", *FIELDS, title=f"grid of {cfg.name}")
     grid_cells = expand_grid(cfg, planned_patients(cfg))  # a procedural dataset's patients are known beforehand
     for c in grid_cells:

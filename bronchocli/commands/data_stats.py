@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import pandas as pd
 import typer
 from rich.table import Table
 
@@ -23,7 +22,7 @@ def _config(config: Path, profile: str | None, set_: list[str] | None, dataset: 
     return cfg.with_values({"dataset.root": str(dataset.expanduser().resolve())}) if dataset is not None else cfg
 
 
-def _table(df: pd.DataFrame, title: str) -> Table:
+def _table(df, title: str) -> Table:
     table = Table(*map(str, df.columns), title=title)
     for row in df.itertuples(index=False):
         table.add_row(*(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row))

@@ -51,7 +51,7 @@ def report(
     (ground truth vs BronchoTrack vs OffsetNet), error vs frame per
     architecture, dataset frames and positions. See docs/reports.md.
     """
-    from ..reporting import collect
+    from ..reporting import collect  # lazy: keeps `bronchopose --help` fast
     from ..reporting import report as rep
     from ..reporting import tables as tbl
     from ..reporting.figures import mlflow_loader

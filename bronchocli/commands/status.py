@@ -10,9 +10,6 @@ import typer
 from .. import cells
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..sweep import SweepStore, plan_cells, read_plan
-from ..sweep.plan import Plan
-from ..sweep.status import failures, fetch_metrics, progress, status_table, summary_line, wide
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -32,6 +29,9 @@ def status(
     or another `--sweep` name lists every stored cell instead. Failed cells are listed
     with their reason.
     """
+    from ..sweep import SweepStore, plan_cells, read_plan  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.status import failures, fetch_metrics, progress, status_table, summary_line, wide
+
     console = wide(_console)
     cfg = load(config, profile, set_)
     if storage:
@@ -57,7 +57,9 @@ def status(
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
 
 
-def _stored_plan(store: SweepStore, name: str) -> Plan:
+def _stored_plan(store, name: str):
+    from ..sweep.plan import Plan  # lazy: keeps `bronchopose --help` fast
+
     rows = store.rows(name) if store.exists() else []
     if not rows:
         known = ", ".join(store.sweeps()) if store.exists() else ""

@@ -7,12 +7,9 @@ from typing import Optional
 
 import typer
 
+from .. import urls
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
-from ..sweep import SweepStore, plan_cells, prepare, read_plan, run_pool
-from ..sweep.pool import cells_left
-from ..sweep.status import failures, plan_table, progress, summary_line, wide
-from ..tracking import redacted_uri
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -46,6 +43,10 @@ def sweep(
     sweep.max_retries; a killed worker's cell is taken over after sweep.stale_after_s.
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
+    from .. import sweep as sw  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.pool import cells_left
+    from ..sweep.status import wide
+
     console = wide(_console)
     cfg = load(config, profile, set_)
     selection = parse_only(only)
@@ -55,21 +56,21 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
-    store = SweepStore(cfg.paths.storage_url)
-    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {redacted_uri(cfg)}"
+    store = sw.SweepStore(cfg.paths.storage_url)
+    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}" if use_tuned else ""))
     if dry_run:
-        plan = read_plan(store, cfg.name, plan_cells(cfg, selection))
+        plan = sw.read_plan(store, cfg.name, sw.plan_cells(cfg, selection))
         _print_plan(console, plan, cfg.sweep.max_retries, workers)
         console.print("[dim]dry run: nothing started[/]")
         return
-    plan = prepare(cfg, store, selection, retry_failed=retry_failed)
+    plan = sw.prepare(cfg, store, selection, retry_failed=retry_failed)
     left = cells_left(plan, cfg.sweep.max_retries)
     workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
     _print_plan(console, plan, cfg.sweep.max_retries, workers)
     if left == 0:
         raise typer.Exit(_final(console, plan, cfg.sweep.max_retries, 0 if plan.counts()["failed"] == 0 else 1))
-    result = run_pool(cfg, store, plan, workers=workers, console=console)
+    result = sw.run_pool(cfg, store, plan, workers=workers, console=console)
     if result.interrupted:
         console.print("[yellow]interrupted:[/] running cells were released; run the same command again to resume")
     bad = [c for c in result.worker_codes if c not in (0, 130)]
@@ -79,6 +80,8 @@ def sweep(
 
 
 def _print_plan(console, plan, max_retries: int, workers: int) -> None:
+    from ..sweep.status import plan_table  # lazy: keeps `bronchopose --help` fast
+
     console.print(plan_table(plan, max_retries))
     c = plan.counts()
     console.print(f"{len(plan.cells)} cells: {c['finished']} finished, {c['running']} running, {c['failed']} failed, "
@@ -86,6 +89,8 @@ def _print_plan(console, plan, max_retries: int, workers: int) -> None:
 
 
 def _final(console, plan, max_retries: int, code: int) -> int:
+    from ..sweep.status import failures, progress, summary_line  # lazy: keeps `bronchopose --help` fast
+
     console.print(summary_line(progress(plan, max_retries, 1)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)

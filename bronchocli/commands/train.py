@@ -10,7 +10,6 @@ import typer
 from ..cells import ARCHS, POPULATIONS, POSE_FRAMES, ROT_LOSSES
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..generation.sources import ensure_dataset
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -40,7 +39,8 @@ def train(
     (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
     marks the run KILLED; `--resume` continues it. Exit code 1 when the run FAILED.
     """
-    from ..training.run import run_cell  # lazy: torch loads after the flags are checked (fast --help)
+    from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
+    from ..training.run import run_cell
 
     cfg = load(config, profile, set_)
     if run_id and not resume:

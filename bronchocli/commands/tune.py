@@ -94,7 +94,7 @@ def tune(
         return
     if target is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
-    from ..generation.sources import ensure_dataset
+    from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
 
     ensure_dataset(cfg)
     n = trials or cfg.tune.trials

@@ -12,7 +12,6 @@ import typer
 from .. import urls
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..tracking import redacted_uri
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -39,11 +38,11 @@ def ui(
     """
     cfg = load(config, profile, set_)
     if urls.is_server(cfg.paths.tracking_uri):
-        raise BronchoError(f"tracking.uri {redacted_uri(cfg)} is already a server: open it in a browser")
+        raise BronchoError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)} is already a server: open it in a browser")
     argv = ui_command(cfg, host, port)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
-    console.print(f"MLflow UI for {redacted_uri(cfg)} at http://{host}:{port} (Ctrl-C to stop)")
+    console.print(f"MLflow UI for {urls.redact(cfg.paths.tracking_uri)} at http://{host}:{port} (Ctrl-C to stop)")
     sys.stdout.flush()
     os.execv(argv[0], argv)

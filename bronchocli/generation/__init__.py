@@ -1,7 +1,29 @@
 """Synthetic datasets: anatomy -> trajectories -> rendered frames and poses on disk.
 
 ``pipeline.generate_dataset`` renders a dataset (VTK); ``sources`` says which
-patients a config makes and generates the configured dataset when missing
-without importing VTK otherwise; ``trajectories`` plans camera paths;
-``writer`` writes frames, CSVs and the fingerprint atomically.
+patients a config makes; ``trajectories`` plans camera paths; ``writer``
+writes frames, CSVs and the fingerprint atomically. ``ensure_dataset`` (here)
+renders the configured dataset when it is missing and imports nothing of VTK
+otherwise, so training, sweeps and reports run on machines without VTK once
+the dataset exists.
 """
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..config import Config
+from ..data.layout import DATASET_JSON
+
+
+def needs_generation(cfg: Config) -> bool:
+    return cfg.dataset.format == "bronchopose" and not (cfg.paths.dataset / DATASET_JSON).is_file()
+
+
+def ensure_dataset(cfg: Config, progress: bool = True) -> Path:
+    """The configured dataset root, rendered first when it is a ``bronchopose`` dataset without dataset.json."""
+    if needs_generation(cfg):
+        from .pipeline import generate_dataset  # lazy: VTK loads only when there is rendering to do
+
+        generate_dataset(cfg, progress=progress)
+    return cfg.paths.dataset

@@ -1,9 +1,4 @@
-"""Which patients a generator config makes, and generating the configured dataset when it is missing.
-
-Importable without VTK: ``ensure_dataset`` loads the renderer only when a
-dataset must actually be rendered, so training, sweeps and reports run on
-machines without VTK once the dataset exists.
-"""
+"""Which patients a generator config makes (without rendering anything, or importing VTK)."""
 
 from __future__ import annotations
 
@@ -11,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import Config, Generate
-from ..data.layout import DATASET_JSON, file_patient_id
+from ..data.layout import file_patient_id
 from ..data.source import dataset_patients
 
 
@@ -44,16 +39,3 @@ def planned_patients(cfg: Config) -> list[str]:
     if found is not None:
         return found
     return [s.patient for s in patient_sources(cfg.dataset.generate, cfg.paths.anatomy, cfg.paths.centreline)]
-
-
-def needs_generation(cfg: Config) -> bool:
-    return cfg.dataset.format == "bronchopose" and not (cfg.paths.dataset / DATASET_JSON).is_file()
-
-
-def ensure_dataset(cfg: Config, progress: bool = True) -> Path:
-    """The configured dataset root, rendered first when it is a ``bronchopose`` dataset without dataset.json."""
-    if needs_generation(cfg):
-        from .pipeline import generate_dataset  # VTK and the renderer load only when there is rendering to do
-
-        generate_dataset(cfg, progress=progress)
-    return cfg.paths.dataset

@@ -13,6 +13,7 @@ frame (VTK reuses one buffer).
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from ..config import Realism
 from . import configure_environment
@@ -47,7 +48,6 @@ def blur(frame: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian blur of an ``H x W x 3`` uint8 frame by ``sigma`` pixels (0: unchanged)."""
     if sigma <= 0:
         return frame
-    from scipy.ndimage import gaussian_filter  # noqa: PLC0415
 
     out = gaussian_filter(frame.astype(np.float32), sigma=(sigma, sigma, 0), mode="nearest")
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)

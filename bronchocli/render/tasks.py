@@ -70,7 +70,7 @@ def init_worker(threads: int | None) -> None:
 
 
 def _renderer(task: RenderTask):
-    from .scene import FrameRenderer  # the OpenGL context loads only in rendering processes
+    from .scene import FrameRenderer  # lazy: the OpenGL context loads only in rendering processes
 
     key = (task.surface, task.width, task.fov_deg, task.realism)
     if _CURRENT.get("key") != key:

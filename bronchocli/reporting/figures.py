@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+import pandas as pd
 
 from .. import metrics
 from ..cells import LOBES
@@ -37,8 +38,6 @@ Loader = Callable[[RunRecord], "object | None"]  # run -> predictions DataFrame 
 
 def read_predictions(path: Path):
     """A predictions.csv as a DataFrame with string trajectory keys."""
-    import pandas as pd
-
     return pd.read_csv(path, dtype={k: str for k in KEY})
 
 

@@ -8,6 +8,9 @@ says so. The terminal rendering uses real bold/red/blue.
 
 from __future__ import annotations
 
+from rich.table import Table as RichTable
+from rich.text import Text
+
 from .layout import MISSING, Table, cell_texts, marks
 
 BEST, SECOND = "†", "‡"
@@ -83,9 +86,6 @@ def to_markdown(table: Table) -> str:
 
 def to_rich(table: Table):
     """A rich Table with the paper's marks in colour (red best, blue second, bold group best)."""
-    from rich.table import Table as RichTable
-    from rich.text import Text
-
     texts, mk = cell_texts(table), marks(table)
     out = RichTable(title=table.title, caption=table.caption, caption_justify="left", title_justify="left")
     for h in table.headers:

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 from .. import tracking
 from ..cells import Cell, Selection, select
 from ..config import Config, expand_grid
-from ..generation.sources import ensure_dataset, planned_patients
+from ..generation import ensure_dataset
+from ..generation.sources import planned_patients
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
 

@@ -17,8 +17,13 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
+import time
+import warnings
 from functools import partial
 from typing import Any, Callable, Mapping, Sequence
+
+import optuna
+from sqlalchemy.exc import SQLAlchemyError
 
 from .. import urls
 from ..cells import Cell
@@ -46,22 +51,14 @@ def study_name(cfg: Config, cell: Cell) -> str:
     return f"{cfg.name}-{cell.arch}-{cell.rot_loss}-{cell.population}{fold}-{cell.pose_frame}-s{cell.seed}{size}"
 
 
-def _optuna():
-    import warnings
-
-    import optuna
-
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    # heartbeats are "experimental" in Optuna's API but are what makes dead trials fail cleanly
-    warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
-    return optuna
+# Optuna logs a failed trial as a warning with a traceback; the reason is in the trial's MLflow run instead.
+optuna.logging.set_verbosity(optuna.logging.ERROR)
+# heartbeats are "experimental" in Optuna's API but are what makes dead trials fail cleanly
+warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
 
 
 def storage_for(cfg: Config):
     """Optuna RDB storage on ``storage.url`` with heartbeats for dead trials; StorageError (one line) if unreachable."""
-    from sqlalchemy.exc import SQLAlchemyError
-
-    optuna = _optuna()
     url = urls.sqlalchemy(cfg.paths.storage_url)
     kwargs: dict[str, Any] = {}
     if url.startswith("sqlite"):
@@ -124,7 +121,6 @@ def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
 
 
 def make_pruner(cfg: Config):
-    optuna = _optuna()
     t = cfg.tune
     if t.pruner == "median":
         # Trials report at optimiser steps (every train.val_every): warm-up and resources are in steps.
@@ -137,7 +133,6 @@ def make_pruner(cfg: Config):
 
 
 def make_sampler(cfg: Config, worker: int = 0):
-    optuna = _optuna()
     seed = cfg.tune.seed + worker  # workers of one study must not propose identical first trials
     if cfg.tune.sampler == "random":
         return optuna.samplers.RandomSampler(seed=seed)
@@ -145,7 +140,6 @@ def make_sampler(cfg: Config, worker: int = 0):
 
 
 def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int = 0):
-    optuna = _optuna()
     name = study or study_name(cfg, cell)
     s = optuna.create_study(study_name=name, storage=storage_for(cfg), direction="minimize",
                             sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg), load_if_exists=True)
@@ -154,13 +148,11 @@ def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int
 
 
 def finished(study) -> int:
-    optuna = _optuna()
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,
                                                          optuna.trial.TrialState.PRUNED)))
 
 
 def _running(study) -> int:
-    optuna = _optuna()
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)))
 
 
@@ -168,7 +160,6 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
     """The function Optuna calls per trial: train one configured run, return its best validation loss."""
     from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
-    optuna = _optuna()
 
     def run(trial) -> float:
         values = suggest(trial, cfg.tune.space)
@@ -203,8 +194,6 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
                 timeout: float | None = None, worker: int = 0, progress: bool = False,
                 enqueue: Sequence[Mapping[str, Any]] = ()) -> int:
     """Run trials of the study until it holds ``trials`` finished ones (or the timeout); returns trials run here."""
-    import time
-
     s = open_study(cfg, target, study=study, worker=worker)
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
@@ -218,6 +207,9 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
             break
         before = finished(s)
         s.optimize(fn, n_trials=1, catch=(TrialFailed,))
+        last = s.get_trials(deepcopy=False)[-1]
+        if last.state == optuna.trial.TrialState.FAIL:
+            log.warning("trial %d failed (its MLflow run %s says why)", last.number, last.user_attrs.get(ATTR_RUN))
         ran += 1
         failures = 0 if finished(s) > before else failures + 1
     return ran
@@ -252,7 +244,6 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
 
 def load(cfg: Config, name: str):
     """An existing study (BronchoError naming the studies there when it is not)."""
-    optuna = _optuna()
     storage = storage_for(cfg)
     try:
         return optuna.load_study(study_name=name, storage=storage)
@@ -280,7 +271,6 @@ def apply_best(cfg: Config, name: str) -> Config:
 
 def summary(cfg: Config, name: str) -> dict[str, Any]:
     """Counts, best trial and parameter importances of a study (for ``tune --show``)."""
-    optuna = _optuna()
     s = load(cfg, name)
     states = optuna.trial.TrialState
     trials = s.get_trials(deepcopy=False)
@@ -300,5 +290,4 @@ def summary(cfg: Config, name: str) -> dict[str, Any]:
 
 
 def list_studies(cfg: Config) -> list[str]:
-    optuna = _optuna()
     return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))

@@ -7,6 +7,7 @@ this module turns prepared data into a trained network and its test results.
 from __future__ import annotations
 
 import math
+import random
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,8 +62,6 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
 
 
 def seed_everything(seed: int) -> None:
-    import random
-
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)

@@ -12,8 +12,8 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.config import Config, CsvImport
 from bronchocli.data.importer import import_csv
-from bronchocli.data.layout import patient_ids_for
-from bronchocli.data.reader import open_dataset, open_dataset_dir
+from bronchocli.data.reader import open_dataset_dir
+from bronchocli.data.source import dataset_patients, open_dataset
 from bronchocli.errors import DataError
 
 SPACING = (0.5, 0.6, 0.7)
@@ -136,4 +136,4 @@ def test_config_dispatch_and_patient_ids(truth):
     cfg = Config(name="t", dataset={"root": str(root), "format": "csv",
                                     "csv": settings("ZYX", "rad", "mm").model_dump()})
     assert open_dataset(cfg).format == "csv"
-    assert patient_ids_for(cfg) == ["p00", "p01"]
+    assert dataset_patients(cfg) == ["p00", "p01"]

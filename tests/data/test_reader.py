@@ -13,8 +13,9 @@ from tinydata import write_tiny_dataset
 
 from bronchocli import geometry
 from bronchocli.config import Config
-from bronchocli.data.reader import open_dataset, open_dataset_dir
-from bronchocli.data.samples import relative_labels
+from bronchocli.data.batches import relative_labels
+from bronchocli.data.reader import open_dataset_dir
+from bronchocli.data.source import open_dataset
 from bronchocli.errors import DataError
 
 

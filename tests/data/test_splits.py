@@ -129,3 +129,27 @@ def test_same_split_in_another_process(ds, tmp_path):
         theirs = read_manifest(path)
         pd.testing.assert_frame_equal(theirs, split.manifest().astype(str))
     assert not list(tmp_path.glob(".*.tmp"))  # written atomically, nothing left behind
+
+
+@pytest.mark.parametrize("population, fold", [("personalized", None), ("cross-subject", "p01")])
+def test_limit_train_keeps_nested_subsets_per_group_and_leaves_val_and_test(ds, population, fold):
+    from bronchocli.data.splits import limit_train
+
+    split = make_split(ds, population, fold, CPU)
+    assert limit_train(split, None, 0) is split
+    full = per_group(split.train)
+    kept = {n: limit_train(split, n, 0) for n in (1, 2, 3)}
+    for n, small in kept.items():
+        assert per_group(small.train) == {g: min(n, c) for g, c in full.items()}
+        assert small.val == split.val and small.test == split.test and small.population == population
+        assert small.fold == fold
+        assert [t.key for t in small.train] == [t.key for t in split.train if t in small.train]  # order kept
+        assert_disjoint(small)
+    assert {t.key for t in kept[1].train} < {t.key for t in kept[2].train} < {t.key for t in kept[3].train}
+    again = limit_train(make_split(ds, population, fold, CPU), 2, 0)
+    assert [t.key for t in again.train] == [t.key for t in kept[2].train]  # deterministic
+    other = [limit_train(split, 2, s) for s in range(1, 6)]
+    assert any([t.key for t in o.train] != [t.key for t in kept[2].train] for o in other)  # the seed matters
+    many = limit_train(split, max(full.values()) + 1, 0)
+    assert per_group(many.train) == full and any("fewer than train_trajectories" in n for n in many.notes)
+    assert not any("fewer than train_trajectories" in n for n in kept[1].notes)

@@ -11,9 +11,9 @@ from generator_refs import check_ground_truth
 from PIL import Image
 
 from bronchocli.config import Config
-from bronchocli.data import writer
-from bronchocli.generation.pipeline import ensure_dataset, generate_dataset
 from bronchocli.errors import DataError
+from bronchocli.generation import ensure_dataset, writer
+from bronchocli.generation.pipeline import generate_dataset
 
 TINY = {
     "dataset.generate.patients": 1,

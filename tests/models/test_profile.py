@@ -65,10 +65,10 @@ def test_live_tensor_tracker_follows_allocations_and_frees():
 
 def test_profile_arch_row():
     row = profiling.profile_arch("conv3d", image_size=64, batch=2, repeats=1, warmup=0, window=2)
-    assert row["params"] == 13_983_230 and row["params_m"] == 13.983
+    assert row["params"] == 13_983_486 and row["params_m"] == 13.983
     assert row["window"] == 2 and row["batch"] == 2
     assert row["gmacs_per_pair"] > 0 and row["latency_ms_b1"] > 0 and row["latency_ms_bN"] > 0
-    assert row["peak_mem_mb"] > 0 and row["weights_mb"] > 13_983_230 * 4 / 2**20
+    assert row["peak_mem_mb"] > 0 and row["weights_mb"] > 13_983_486 * 4 / 2**20
     assert row["pairs_per_s_bN"] == pytest.approx(1e3 / row["latency_ms_bN"])
 
 
@@ -96,7 +96,7 @@ def test_profile_command_json(cli):
     assert code == 0
     rows = json.loads(out)
     assert [r["arch"] for r in rows] == ["baseline"]
-    assert rows[0]["params"] == 13_967_326 and rows[0]["image_size"] == 64
+    assert rows[0]["params"] == 13_967_582 and rows[0]["image_size"] == 64
     assert rows[0]["device"].startswith("cpu")
 
 

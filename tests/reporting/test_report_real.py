@@ -22,9 +22,9 @@ tracking: {{uri: "sqlite:///{tmp_path}/runs/mlflow.db", artifacts: {tmp_path}/ru
 storage: {{url: "sqlite:///{tmp_path}/runs/sweep.db"}}
 dataset: {{root: {data}}}
 splits: {{train: 2, val: 1, test: 1, cross_subject_val: 1}}
-grid: {{arch: [convlstm, offsetnet], rot_loss: [ce, mse], population: [personalized, cross-subject], folds: [p00]}}
+grid: {{arch: [convlstm, offsetnet], rot_loss: [ce, mse], population: [personalized, cross-subject], folds: [p00], seed: [0]}}
 data: {{window: 3, workers: 0, cache_dir: {tmp_path}/runs/cache}}
-train: {{max_epochs: 1, batch_size: 4, max_train_pairs: 8, threads: 1}}
+train: {{steps: 2, val_every: 2, batch_size: 6, threads: 1}}
 """)
     # The two models of Table 6 in both populations (4 cells); the other cells show as "—".
     for only in ("arch=convlstm;rot_loss=ce", "arch=offsetnet;rot_loss=mse"):

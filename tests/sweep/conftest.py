@@ -23,7 +23,6 @@ def mlflow_template(tmp_path_factory) -> Path:
     from bronchocli import tracking
 
     path = tmp_path_factory.mktemp("mlflow-template") / "mlflow.db"
-    tracking._quiet()
     from mlflow.tracking import MlflowClient
 
     MlflowClient(tracking_uri=f"sqlite:///{path}").search_experiments()
@@ -32,9 +31,11 @@ def mlflow_template(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def fake_dir(tmp_path, monkeypatch) -> Path:
+    """The fake runner's control folder; sweep workers (spawned processes too) run the fake instead of training."""
     d = tmp_path / "fake"
     d.mkdir()
     monkeypatch.setenv("SWEEP_FAKE_DIR", str(d))
+    monkeypatch.setenv("BRONCHOPOSE_TEST_RUNNER", "sweep_fakes:fake_runner")
     return d
 
 
@@ -54,7 +55,7 @@ def make_config(tmp_path, mlflow_template):
             "storage": {"url": storage or "sqlite:///sweep.db"},
             "dataset": {"root": "data/tiny"},
             "grid": {"arch": list(archs), "rot_loss": list(losses), "population": list(populations),
-                     "folds": ["p00"]},
+                     "folds": ["p00"], "seed": [0]},
             "sweep": {"max_retries": 1, "heartbeat_s": 0.3, "stale_after_s": 2.0, "poll_s": 0.1, **(sweep or {})},
             **sections,
         }

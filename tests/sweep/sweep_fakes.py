@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bronchocli import tracking
-from bronchocli.errors import BronchoError
+from bronchocli.runlayout import RunInterrupted, resume_file
 
 HERE = Path(__file__).resolve().parent
 
@@ -34,10 +34,6 @@ class FakeResult:
     duration_s: float = 0.0
     train_time_s: float = 0.0
     stop_requested: int | None = None
-
-
-class FakeInterrupted(BronchoError):
-    exit_code = 130
 
 
 def _dir() -> Path:
@@ -80,27 +76,15 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
             client.set_terminated(run_id, "FAILED")
             return FakeResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
     except KeyboardInterrupt:  # like run_cell: a checkpoint, then KILLED
-        ckpt = cfg.resolve(cfg.tracking.checkpoints) / run_id / "last.ckpt"
+        ckpt = resume_file(cfg, run_id)
         ckpt.parent.mkdir(parents=True, exist_ok=True)
         ckpt.write_text("fake checkpoint")
         client.set_terminated(run_id, "KILLED")
-        raise FakeInterrupted(f"run {run_id} interrupted") from None
+        raise RunInterrupted(f"run {run_id} interrupted") from None
     metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key)}
     tracking.log_metrics(client, run_id, metrics)
     client.set_terminated(run_id, "FINISHED")
     return FakeResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
-
-
-def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
-    """Creates and finishes an MLflow run, nothing else (the benchmark's zero-work cell)."""
-    t0 = time.perf_counter()
-    client = tracking.client_for(cfg)
-    run_id = client.create_run(tracking.experiment_id(client, cfg),
-                               tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
-    if run_id_callback:
-        run_id_callback(run_id)
-    client.set_terminated(run_id, "FINISHED")
-    return FakeResult(run_id, "FINISHED", duration_s=time.perf_counter() - t0)
 
 
 def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:

@@ -15,7 +15,7 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, prepare, worker_config
 
-FAKE = "sweep_fakes:fake_runner"
+
 
 
 @pytest.fixture
@@ -26,16 +26,16 @@ def project(make_config, tmp_path):
 
 
 def cells_of(cfg):
-    return {r.label.split("/")[0]: r for r in SweepStore(cfg.storage_url).rows(cfg.name)}
+    return {r.label.split("/")[0]: r for r in SweepStore(cfg.paths.storage_url).rows(cfg.name)}
 
 
 def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, project, fake_dir):
-    path = str(project.base_dir / "experiments.yaml")
+    path = str(project.paths.base / "experiments.yaml")
     (fake_dir / "fail-lstm").write_text("1")  # lstm fails its first run; max_retries=0: no automatic retry
     code, out, err = cli("sweep", "-c", path, "--dry-run")
     assert code == 0 and "2 cells: 0 finished" in out and "dry run" in out
-    assert not (project.base_dir / "sweep.db").exists()  # a dry run writes nothing
-    code, out, err = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--workers", "2", "--runner", FAKE)
+    assert not (project.paths.base / "sweep.db").exists()  # a dry run writes nothing
+    code, out, err = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--workers", "2")
     assert code == 1, out + err
     assert "done 1/2" in out and "failed lstm/mse/personalized/s0/world: fake failure" in out
     code, out, _ = cli("status", "-c", path, "--set", "sweep.max_retries=0")
@@ -44,35 +44,36 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     line = next(line for line in out.splitlines() if base.run_id in line)
     metric = int(base.cell_key[:6], 16) / 2**24  # what the fake logged as pair.pos_l2.mean
     assert "finished" in line and f"{metric:.3f}" in line and f"{10 * metric:.3f}" in line
-    code, out, _ = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--retry-failed", "--runner", FAKE)
+    code, out, _ = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--retry-failed")
     assert code == 0 and "done 2/2" in out
-    code, out, _ = cli("sweep", "-c", path, "--runner", FAKE)  # nothing left: no worker runs anything again
+    code, out, _ = cli("sweep", "-c", path)  # nothing left: no worker runs anything again
     assert code == 0 and "2 finished" in out
     assert calls(base.cell_key) == 1 and calls(cells_of(project)["lstm"].cell_key) == 2
     assert runs_by_cell(project) == {r.cell_key: 1 for r in cells_of(project).values()}
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--only", "arch=transformer"], "no cell of the grid has that arch"),
+    (["--only", "arch=transformer"], "arch 'transformer' must be one of"),
+    (["--only", "arch=offsetnet"], "no cell of the plan has that arch"),
     (["--only", "colour=red"], "key one of arch, rot_loss"),
     (["--workers", "0"], ""),
 ])
 def test_bad_input_exits_2(cli, project, args, message):
-    code, _, err = cli("sweep", "-c", str(project.base_dir / "experiments.yaml"), "--dry-run", *args)
+    code, _, err = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", *args)
     assert code == 2 and message in err
 
 
 def test_only_selects_cells(cli, project):
-    code, out, _ = cli("sweep", "-c", str(project.base_dir / "experiments.yaml"), "--dry-run", "--only", "arch=lstm")
+    code, out, _ = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", "--only", "arch=lstm")
     assert code == 0 and "1 cells" in out and "lstm/mse" in out and "baseline/mse" not in out
 
 
 def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, project, fake_dir, tmp_path):
-    path = str(project.base_dir / "experiments.yaml")
+    path = str(project.paths.base / "experiments.yaml")
     (fake_dir / "block-lstm").touch()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", path, "--runner", FAKE],
+    proc = subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", path],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     end = time.monotonic() + 120
     while not any(fake_dir.glob("started-*")):  # wait for the worker to be inside the lstm cell
@@ -85,7 +86,7 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
     assert cells_of(project)["lstm"].state == PENDING and cells_of(project)["baseline"].state == FINISHED
     assert runs_by_cell(project, "KILLED") == {cells_of(project)["lstm"].cell_key: 1}
     (fake_dir / "block-lstm").unlink()
-    store = SweepStore(project.storage_url)
+    store = SweepStore(project.paths.storage_url)
     assert Worker(project, prepare(project, store).cells, store, fake_runner).run() == 0  # the re-run
     assert calls(cells_of(project)["baseline"].cell_key) == 1 and calls(cells_of(project)["lstm"].cell_key) == 2
     assert runs_by_cell(project) == {r.cell_key: 1 for r in cells_of(project).values()}
@@ -94,22 +95,22 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
 @pytest.mark.postgres
 def test_storage_passwords_never_appear_in_output_logs_or_runs(cli, project, fake_dir, pg_url):
     url = pg_url.replace("postgresql+psycopg://postgres@", "postgresql://postgres:topsecret@")  # trust auth ignores it
-    path = str(project.base_dir / "experiments.yaml")
+    path = str(project.paths.base / "experiments.yaml")
     assert worker_config(project.with_values({"storage.url": url}), 2).storage.url.count("topsecret") == 0
     outputs = []
-    for args in (["sweep", "--dry-run"], ["sweep", "--runner", FAKE], ["status"]):
+    for args in (["sweep", "--dry-run"], ["sweep"], ["status"]):
         code, out, err = cli(*args, "-c", path, "--storage", url)
         assert code == 0, out + err
         outputs.append(out + err)
     text = "\n".join(outputs)
     assert "topsecret" not in text and "postgres:***@" in text
-    logs = [p.read_text() for p in (project.base_dir / "runs" / "sweep-logs").rglob("*.log")]
+    logs = [p.read_text() for p in (project.paths.base / "runs" / "sweep-logs").rglob("*.log")]
     markers = [p.read_text() for p in (fake_dir / "calls").iterdir()]  # storage.url of the runner's config
     assert logs and markers and not any("topsecret" in t for t in logs + markers)
     assert all("postgres:***@" in m for m in markers)
 
 
 def test_unreachable_storage_is_a_clear_error_without_the_password(cli, project):
-    code, _, err = cli("status", "-c", str(project.base_dir / "experiments.yaml"),
+    code, _, err = cli("status", "-c", str(project.paths.base / "experiments.yaml"),
                        "--storage", "postgresql://alice:hunter2@127.0.0.1:1/db")
     assert code == 2 and "hunter2" not in err and "alice:***@127.0.0.1:1" in err

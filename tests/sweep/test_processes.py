@@ -19,7 +19,7 @@ def start(cfg, plan, n: int, log_dir: Path, first: int = 0) -> list:
     procs = []
     for i in range(first, first + n):
         log = str(log_dir / f"w{i}.log")
-        spec = WorkerSpec(wcfg, cfg.storage_url, plan.cells, fake_runner, cfg.name, os.getpid(), log)
+        spec = WorkerSpec(wcfg, cfg.paths.storage_url, plan.cells, fake_runner, cfg.name, os.getpid(), log)
         procs.append(spawn_worker(spec))
     return procs
 
@@ -58,7 +58,7 @@ def assert_exactly_once(cfg, store, plan):
 
 def test_three_workers_on_sqlite_run_every_cell_exactly_once(make_config, fake_dir, tmp_path):
     cfg = make_config(archs=("baseline", "lstm", "convlstm", "conv3d", "offsetnet"), losses=("mse", "de", "ce"))
-    store = SweepStore(cfg.storage_url)
+    store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     procs = start(cfg, plan, 3, tmp_path)
     codes, logs = join(procs, tmp_path)
@@ -72,7 +72,7 @@ def test_four_workers_on_postgres_survive_a_sigkilled_worker(make_config, fake_d
     cfg = make_config(storage=pg_url, archs=("baseline", "lstm", "convlstm", "conv3d", "offsetnet"),
                       losses=("mse", "ce"), sweep={"heartbeat_s": 0.5, "stale_after_s": 2.5})
     (fake_dir / "block-conv3d").touch()  # both conv3d cells wait for the gate, with their runs RUNNING
-    store = SweepStore(cfg.storage_url)
+    store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     procs = start(cfg, plan, 4, tmp_path)
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two workers inside conv3d cells", procs)
@@ -97,7 +97,7 @@ def test_four_workers_on_postgres_survive_a_sigkilled_worker(make_config, fake_d
 def test_sigint_releases_the_cell_and_a_rerun_resumes_only_what_is_left(make_config, fake_dir, tmp_path):
     cfg = make_config(archs=("baseline", "lstm"))
     (fake_dir / "block-lstm").touch()
-    store = SweepStore(cfg.storage_url)
+    store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     base, lstm = plan.cells
     procs = start(cfg, plan, 1, tmp_path)

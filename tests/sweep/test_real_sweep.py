@@ -16,13 +16,13 @@ def test_a_real_two_worker_sweep_trains_each_cell_once(cli, make_config, tmp_pat
     cfg = make_config(
         archs=("baseline", "lstm"), sweep={"heartbeat_s": 1.0, "stale_after_s": 30.0},
         splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
-        data={"window": 3, "workers": 0, "cache_dir": "cache"},
-        train={"batch_size": 4, "max_epochs": 1, "max_train_pairs": 8},
+        data={"window": 3, "cache_dir": "cache"},
+        train={"batch_size": 3, "steps": 2, "val_every": 2, "bn_recalibrate": 1},
     )
-    path = str(cfg.base_dir / "experiments.yaml")
+    path = str(cfg.paths.base / "experiments.yaml")
     code, out, err = cli("sweep", "-c", path, "--workers", "2")
     assert code == 0, out + err
-    rows = SweepStore(cfg.storage_url).rows(cfg.name)
+    rows = SweepStore(cfg.paths.storage_url).rows(cfg.name)
     assert [r.state for r in rows] == [FINISHED, FINISHED]
     assert runs_by_cell(cfg) == {r.cell_key: 1 for r in rows}
     client = tracking.client_for(cfg)

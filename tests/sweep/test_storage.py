@@ -9,10 +9,11 @@ from sqlalchemy import update
 
 from bronchocli.config import Config, expand_grid
 from bronchocli.errors import BronchoError
-from bronchocli.sweep.storage import FAILED, FINISHED, PENDING, RUNNING, SweepStore, cells_table, normalize_url
+from bronchocli.sweep.storage import FAILED, FINISHED, PENDING, RUNNING, SweepStore, cells_table
+from bronchocli.urls import sqlalchemy as normalize_url
 
 CFG = Config.model_validate({"name": "t", "grid": {"arch": ["baseline", "lstm", "conv3d"], "rot_loss": ["mse"],
-                                                   "population": ["personalized"]}})
+                                                   "population": ["personalized"], "seed": [0]}})
 CELLS = expand_grid(CFG)
 KEYS = [c.key for c in CELLS]
 

@@ -13,8 +13,9 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import tracking, tuning
+from bronchocli import cells, tracking
 from bronchocli.config import load_config
+from bronchocli.sweep import tuning
 from bronchocli.errors import ConfigError
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -22,7 +23,7 @@ TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
 SPACE = """\
 tune:
   startup_trials: 1
-  warmup_epochs: 0
+  warmup_validations: 0
   space:
     train.lr: {type: float, low: 1.0e-5, high: 1.0e-3, log: true}
 """
@@ -31,7 +32,7 @@ tune:
 @pytest.fixture
 def project(tmp_path):
     write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
-    write_config(tmp_path, epochs=2, extra=SPACE)
+    write_config(tmp_path, steps=4, val_every=2, extra=SPACE)
     return tmp_path
 
 
@@ -43,7 +44,7 @@ def trial_states(cfg, name: str) -> list[str]:
 def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     cfg = load_config(project / "experiments.yaml", overrides=[
         "tune.space={train.rot_weight: {type: categorical, choices: [0.0, 1000000.0]}}"])
-    target = tuning.Target("baseline", "mse", "personalized")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
     # Trial 1's loss is 1e6 x the rotation error, far above trial 0's: the median pruner must prune it.
     study = tuning.tune(cfg, target, 4, progress=False,
                         enqueue=[{"train.rot_weight": 0.0}, {"train.rot_weight": 1000000.0}])
@@ -78,8 +79,9 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
 
 def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project):
     cfg = load_config(project / "experiments.yaml")
-    name = tuning.Target("baseline", "mse", "personalized").study_name(cfg)
-    tuning.open_study(cfg, tuning.Target("baseline", "mse", "personalized"))  # created once, as `tune` does
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    name = tuning.study_name(cfg, target)
+    tuning.open_study(cfg, target)  # created once, as `tune` does
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     cmd = [sys.executable, "-c", MAIN, "tune", *TARGET, "--trials", "4"]
     procs = [subprocess.Popen(cmd, cwd=project, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -89,17 +91,22 @@ def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project)
     states = trial_states(cfg, name)
     assert states.count("COMPLETE") + states.count("PRUNED") == 4, states
 
-    # Interrupt a third process mid-trial; the same study then resumes to 6 finished trials.
-    proc = subprocess.Popen([*cmd[:-1], "6"], cwd=project, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    # Interrupt a third process inside a trial that cannot finish first (a huge budget; the study name does not
+    # depend on it): exactly that trial fails, then the same study resumes to 6 finished trials.
+    ckpts = project / "runs" / "checkpoints"
+    before = set(ckpts.glob("*")) if ckpts.is_dir() else set()
+    proc = subprocess.Popen([*cmd[:-1], "6", "--set", "train.steps=100000", "--set", "train.val_every=1"],
+                            cwd=project, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 300
-    while "RUNNING" not in trial_states(cfg, name):
+    while not any((d / "last.pt").is_file() for d in (set(ckpts.glob("*")) if ckpts.is_dir() else set()) - before):
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
         time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=300)
     assert proc.returncode == 130, out
-    assert "FAIL" in trial_states(cfg, name) or trial_states(cfg, name).count("COMPLETE") >= 5
+    assert "Traceback" not in out
+    states = trial_states(cfg, name)
+    assert states.count("FAIL") == 1 and states.count("COMPLETE") + states.count("PRUNED") == 4, states
     again = subprocess.run([*cmd[:-1], "6"], cwd=project, env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stdout + again.stderr
     states = trial_states(cfg, name)

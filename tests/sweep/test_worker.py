@@ -12,7 +12,7 @@ from bronchocli.sweep.storage import cells_table
 
 
 def setup(cfg):
-    store = SweepStore(cfg.storage_url)
+    store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     return store, plan
 

@@ -1,21 +1,31 @@
-"""End to end on CPU: every architecture x rotation loss lands one FINISHED MLflow run with every metric."""
+"""End to end on CPU: a cell lands one FINISHED MLflow run with every metric, both references and its budget."""
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from bronchocli import tracking
-from bronchocli.config import ARCHS, ROT_LOSSES, make_cell
+from bronchocli.cells import ARCHS, ROT_LOSSES
+from bronchocli.config import load_config
+from bronchocli.training.network import load_exported
 from bronchocli.training.run import run_cell
 
 METRIC_NAMES = ("pos_l2", "pos_l2_mm", "rot_l2", "de", "ce", "geodesic")
+PER_SOURCE = [f"{scope}.{m}.{s}" for scope in ("pair", "acc") for m in METRIC_NAMES for s in ("mean", "std")]
 EXPECTED = (
-    [f"{scope}.{m}.{s}" for scope in ("pair", "acc") for m in METRIC_NAMES for s in ("mean", "std")]
+    PER_SOURCE
+    + [f"{ref}.{k}" for ref in ("zero_motion", "train_mean") for k in PER_SOURCE]
     + [f"traj.{m}.{s}" for m in ("ate", "ate_mm", "rpe_trans", "rpe_rot") for s in ("mean", "std")]
-    + ["test.n_pairs", "test.n_trajectories", "n_params", "train.pairs_per_s", "best_val_loss",
-       "zero_motion.pair.pos_l2.mean"]
+    + ["test.n_pairs", "test.n_trajectories", "n_params", "best_val_loss", "pred.std.pos", "pred.std.rot",
+       "pred.std_ratio.pos", "pred.std_ratio.rot", "train.steps", "train.pairs_seen", "train.epochs",
+       "train.best_step", "train.pairs_per_s", "train.train_pairs"]
 )
+# Every architecture once and every loss at least once in CI; the full grid is `slow`.
+QUICK = [("baseline", "mse"), ("lstm", "de"), ("convlstm", "ce"), ("conv3d", "mse"), ("offsetnet", "de")]
+FULL = [(a, lo) for a in ARCHS for lo in ROT_LOSSES if (a, lo) not in QUICK]
 
 
 def artifacts(client, run_id: str, path: str = "") -> set[str]:
@@ -25,29 +35,117 @@ def artifacts(client, run_id: str, path: str = "") -> set[str]:
     return out
 
 
-@pytest.mark.parametrize("rot_loss", ROT_LOSSES)
-@pytest.mark.parametrize("arch", ARCHS)
-def test_every_arch_and_loss_lands_a_finished_run(tiny_cfg, arch, rot_loss):
-    cell = make_cell(tiny_cfg, arch, rot_loss, "personalized", None, 0, "world")
-    result = run_cell(tiny_cfg, cell, progress=False)
+def _check_cell(cfg, arch: str, rot_loss: str) -> None:
+    cell = cfg.cell(arch=arch, rot_loss=rot_loss, population="personalized")
+    result = run_cell(cfg, cell, progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(tiny_cfg)
+    client = tracking.client_for(cfg)
     run = client.get_run(result.run_id)
     assert run.info.status == "FINISHED"
     missing = [m for m in EXPECTED if m not in run.data.metrics]
     assert not missing, missing
+    m = run.data.metrics
+    # The budget: 4 optimiser steps of 6 image pairs each, whatever the architecture.
+    assert m["train.steps"] == 4 and m["train.pairs_seen"] == 24 and run.data.tags["stop_reason"] == "budget"
     tags = run.data.tags
     assert (tags["arch"], tags["rot_loss"], tags["population"], tags["fold"]) == (arch, rot_loss, "personalized", "")
     assert tags["cell_key"] == cell.key and tags["sweep"] == "tiny" and len(tags["dataset_fingerprint"]) == 64
     assert tags["pose_frame"] == "world" and tags["seed"] == "0" and tags["bronchocli_version"]
-    assert run.data.params["train.lr"] == "0.0001" and run.data.params["grid.arch"]
+    assert run.data.params["train.steps"] == "4" and run.data.params["grid.arch"]
     history = client.get_metric_history(result.run_id, "val_loss")
-    assert len(history) == 1 and history[0].step == 0
+    assert sorted(h.step for h in history) == [2, 4]  # step = optimiser step of each validation
     files = artifacts(client, result.run_id)
-    assert {"config.yaml", "split_manifest.csv", "predictions.csv", "trajectories.png"} <= files
+    assert {"config.yaml", "split_manifest.csv", "predictions.csv", "trajectory_errors.csv",
+            "trajectories.png"} <= files
+    assert not any(f.startswith("model/") for f in files)  # tracking.model_artifact: none
     table = pd.read_csv(client.download_artifacts(result.run_id, "predictions.csv"))
     # 2 patients x 2 lobes x 1 test trajectory of 8 frames
-    assert len(table) == 2 * 2 * 8 and run.data.metrics["test.n_pairs"] == 2 * 2 * 7
+    assert len(table) == 2 * 2 * 8 and m["test.n_pairs"] == 2 * 2 * 7
     first = table[table.frame == 0]
     assert first.filter(like="pred_rel_").isna().all().all()
     assert (first.filter(like="pred_abs_").values == first.filter(like="gt_abs_").values).all()
+    assert not (cfg.paths.checkpoints / result.run_id).exists()  # resumable state removed once FINISHED
+
+
+@pytest.mark.parametrize("arch, rot_loss", QUICK)
+def test_every_arch_lands_a_finished_run_with_every_metric(tiny_cfg, arch, rot_loss):
+    _check_cell(tiny_cfg, arch, rot_loss)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("arch, rot_loss", FULL)
+def test_every_arch_and_loss_lands_a_finished_run_with_every_metric(tiny_cfg, arch, rot_loss):
+    _check_cell(tiny_cfg, arch, rot_loss)
+
+
+def _world_deltas(frames: pd.DataFrame) -> np.ndarray:
+    """World-frame relative poses of every trajectory, straight from the dataset CSVs (the paper's differences)."""
+    out = []
+    for _, t in frames.sort_values("frame").groupby(["patient", "lobe", "trajectory"]):
+        d = np.diff(t[["pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz"]].to_numpy(float), axis=0)
+        d[:, 3:] = (d[:, 3:] + 180.0) % 360.0 - 180.0
+        out.append(d)
+    return np.concatenate(out)
+
+
+def test_references_and_per_trajectory_errors_match_an_independent_computation(tiny_project, tiny_cfg):
+    result = run_cell(tiny_cfg, tiny_cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=1),
+                      progress=False)
+    assert result.status == "FINISHED", result.failure_reason
+    client = tracking.client_for(tiny_cfg)
+    manifest = pd.read_csv(client.download_artifacts(result.run_id, "split_manifest.csv"), dtype=str)
+    csvs = pd.concat([pd.read_csv(p, dtype={"patient": str, "lobe": str, "trajectory": str})
+                      for p in sorted((tiny_project / "tiny").glob("p*.csv"))])
+    keyed = csvs.merge(manifest, on=["patient", "lobe", "trajectory"])
+    train_mean = _world_deltas(keyed[keyed.split == "train"]).mean(0)
+    test = _world_deltas(keyed[keyed.split == "test"])
+    m = result.metrics
+    assert m["train_mean.pair.pos_l2.mean"] == pytest.approx(np.linalg.norm(test[:, :3] - train_mean[:3], axis=1).mean(),
+                                                             rel=1e-6)
+    assert m["zero_motion.pair.pos_l2.mean"] == pytest.approx(np.linalg.norm(test[:, :3], axis=1).mean(), rel=1e-6)
+    assert m["zero_motion.pair.rot_l2.mean"] == pytest.approx(np.linalg.norm(test[:, 3:], axis=1).mean(), rel=1e-6)
+    errors = pd.read_csv(client.download_artifacts(result.run_id, "trajectory_errors.csv"))
+    assert len(errors) == m["test.n_trajectories"]
+    for source, prefix in (("model", ""), ("train_mean", "train_mean."), ("zero_motion", "zero_motion.")):
+        weighted = (errors[f"{source}.pair.pos_l2"] * errors.n_pairs).sum() / errors.n_pairs.sum()
+        assert weighted == pytest.approx(m[f"{prefix}pair.pos_l2.mean"], rel=1e-6)
+        assert errors[f"{source}.acc.pos_l2"].mean() == pytest.approx(m[f"{prefix}acc.pos_l2.mean"], rel=1e-6)
+
+
+def test_temporal_and_pairwise_models_see_the_same_pairs_per_step(tiny_cfg):
+    a = run_cell(tiny_cfg, tiny_cfg.cell(arch="lstm", rot_loss="ce", population="personalized", seed=2),
+                 progress=False)
+    b = run_cell(tiny_cfg, tiny_cfg.cell(arch="offsetnet", rot_loss="ce", population="personalized", seed=2),
+                 progress=False)
+    assert a.metrics["train.pairs_seen"] == b.metrics["train.pairs_seen"] == 4 * 6
+    assert a.metrics["train.steps"] == b.metrics["train.steps"] == 4
+
+
+def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_cfg):
+    cfg = tiny_cfg.with_values({"tracking.model_artifact": "fp16"})
+    result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="ce", population="personalized", seed=3),
+                      progress=False)
+    client = tracking.client_for(cfg)
+    payload = torch.load(client.download_artifacts(result.run_id, "model/model.pt"), weights_only=False)
+    assert payload["arch"] == "baseline" and payload["image_size"] == 32
+    assert {v.dtype for v in payload["state_dict"].values() if v.is_floating_point()} == {torch.float16}
+    net = load_exported(payload)
+    frames = torch.randint(0, 256, (1, 5, 3, 32, 32), dtype=torch.uint8)
+    with torch.no_grad():
+        pred, _ = net(frames)
+    assert pred.shape == (1, 4, 6) and torch.isfinite(pred).all()
+
+
+def test_budget_fields_reject_a_batch_that_does_not_hold_whole_windows(tiny_cfg):
+    from bronchocli.errors import ConfigError
+
+    cfg = tiny_cfg.with_values({"train.batch_size": 4})  # windows of 3 pairs
+    with pytest.raises(ConfigError, match="must be a multiple of 3"):
+        run_cell(cfg, cfg.cell(arch="convlstm", rot_loss="ce", population="personalized"), progress=False)
+
+
+def test_config_rejects_an_effective_batch_that_is_not_whole_micro_batches(tiny_project):
+    from bronchocli.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="effective_batch"):
+        load_config(tiny_project / "experiments.yaml", overrides=["train.effective_batch=10"])

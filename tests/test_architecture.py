@@ -1,0 +1,174 @@
+"""The package's shape (docs/architecture.md): layers in order, no import circle, lazy imports justified."""
+
+from __future__ import annotations
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "bronchocli"
+
+# Lowest first. A module may import modules of its own layer or of a lower one, never of a higher one.
+LAYERS: list[set[str]] = [
+    {"errors"},
+    {"urls", "io"},
+    {"cells"},
+    {"config"},
+    {"geometry", "metrics", "runlayout", "tracking", "plots"},
+    {"anatomy", "data"},
+    {"render"},
+    {"generation"},
+    {"models"},
+    {"training"},
+    {"sweep"},
+    {"reporting"},
+    {"commands"},
+    {"cli"},
+]
+RANK = {name: i for i, layer in enumerate(LAYERS) for name in layer}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(p): p for p in PACKAGE.rglob("*.py")}
+
+
+def _resolve(current: str, is_package: bool, node: ast.ImportFrom | ast.Import) -> list[str]:
+    """The bronchocli modules an import statement loads."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names if a.name.startswith("bronchocli")]
+    if node.level:
+        base = current.split(".") if is_package else current.split(".")[:-1]
+        base = base[: len(base) - node.level + 1]
+        target = ".".join(base + ([node.module] if node.module else []))
+    else:
+        target = node.module or ""
+    if not target.startswith("bronchocli"):
+        return []
+    out = []
+    for alias in node.names:  # ``from . import x`` may name a submodule
+        sub = f"{target}.{alias.name}"
+        out.append(sub if sub in MODULES else target)
+    return out
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    return isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
+
+
+def imports(name: str) -> list[tuple[str, int, bool]]:
+    """(imported module, line, nested in a function) for every bronchocli import of module ``name``."""
+    path = MODULES[name]
+    tree = ast.parse(path.read_text())
+    out: list[tuple[str, int, bool]] = []
+
+    def visit(node: ast.AST, nested: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and _is_type_checking(child):
+                continue  # never executed
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                for target in _resolve(name, path.name == "__init__.py", child):
+                    out.append((target, child.lineno, nested))
+            visit(child, nested or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    visit(tree, False)
+    return out
+
+
+def top_package(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "cli"
+
+
+def test_every_package_is_in_a_layer():
+    missing = sorted({top_package(m) for m in MODULES if m != "bronchocli"} - set(RANK))
+    assert not missing, f"add these to LAYERS and docs/architecture.md: {missing}"
+
+
+def test_no_import_from_a_lower_layer_to_a_higher_one():
+    upward = []
+    for name in MODULES:
+        if name == "bronchocli":
+            continue
+        for target, line, _ in imports(name):
+            if target == "bronchocli":
+                continue
+            src, dst = top_package(name), top_package(target)
+            if RANK[dst] > RANK[src]:
+                upward.append(f"{MODULES[name].relative_to(PACKAGE.parent)}:{line}: {src} imports {dst}")
+    assert not upward, "imports from a lower layer to a higher one:\n" + "\n".join(upward)
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    found: list[list[str]] = []
+    counter = [0]
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return found
+
+
+def test_no_import_circle_between_modules():
+    graph: dict[str, set[str]] = defaultdict(set)
+    for name in MODULES:
+        for target, _, _ in imports(name):
+            if target != name:
+                graph[name].add(target)
+    assert _cycles(graph) == []
+
+
+def test_the_circle_check_finds_a_circle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+@pytest.mark.parametrize("name", sorted(MODULES))
+def test_an_import_inside_a_function_says_why_it_is_lazy(name):
+    """Imports inside functions hide the dependency graph: each group of them carries a ``# lazy:`` reason."""
+    path = MODULES[name]
+    lines = path.read_text().splitlines()
+    tree = ast.parse("\n".join(lines))
+    bad = []
+    for func in ast.walk(tree):
+        if not isinstance(func, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        previous = None
+        for node in ast.walk(func):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                first_of_group = previous is None or node.lineno > previous + 1
+                if first_of_group and "# lazy:" not in lines[node.lineno - 1]:
+                    bad.append(f"{path.name}:{node.lineno}: {lines[node.lineno - 1].strip()}")
+                previous = node.end_lineno
+    assert not bad, "imports inside functions without a '# lazy: <reason>' comment:\n" + "\n".join(bad)

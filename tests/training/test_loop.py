@@ -1,0 +1,153 @@
+"""The training loop on synthetic tensors: budget, schedule, accumulation, BatchNorm, best weights, resume."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from bronchocli.data.batches import Samples
+from bronchocli.training.loop import NonFiniteLoss, Settings, Trainer, lr_factor, recalibrate_bn
+from bronchocli.training.network import PoseRegressor
+
+
+class TinyNet(nn.Module):
+    """A pair network small enough for unit tests: conv + BN on both frames, linear head."""
+
+    temporal = False
+    recurrent = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(6, 4, 3, padding=1)
+        self.bn = nn.BatchNorm2d(4)
+        self.head = nn.Linear(4, 6)
+
+    def forward(self, x, state=None):
+        b, t = x.shape[:2]
+        pairs = torch.cat([x[:, 1:], x[:, :-1]], dim=2).reshape(b * (t - 1), 6, *x.shape[-2:])
+        z = torch.relu(self.bn(self.conv(pairs))).mean((2, 3))
+        return self.head(z).view(b, t - 1, 6), None
+
+
+class FakeSource:
+    """Frames of a fixed random uint8 bank, indexed like FrameSource."""
+
+    def __init__(self, n: int = 40, size: int = 8, seed: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.bank = torch.from_numpy(rng.integers(0, 256, (n, 3, size, size), dtype=np.uint8))
+
+    def __call__(self, idx):
+        idx = torch.as_tensor(np.asarray(idx, dtype=np.int64))
+        return self.bank[idx.reshape(-1)].view(*idx.shape, *self.bank.shape[1:])
+
+
+def samples(n: int, seed: int = 1, scale: float = 1.0) -> Samples:
+    rng = np.random.default_rng(seed)
+    frames = np.stack([np.arange(i, i + 2) % 40 for i in range(n)])
+    labels = (rng.normal(0, 1, (n, 1, 6)) * scale).astype(np.float32)
+    return Samples(frames, labels, np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), ("t",))
+
+
+def settings(**kw) -> Settings:
+    base = dict(steps=6, micro_pairs=4, accum=1, chunk=1, val_every=2, patience=None, min_delta=0.0, lr=1e-2,
+                weight_decay=0.0, warmup_steps=0, schedule="constant", rot_loss="mse", rot_weight=1.0,
+                precision="32", bn_recalibrate=0, augment=False, seed=0)
+    return Settings(**{**base, **kw})
+
+
+def trainer(s: Settings, seed: int = 0, train: Samples | None = None, **kw) -> Trainer:
+    torch.manual_seed(seed)
+    net = PoseRegressor(TinyNet(), (0.5,) * 3, (0.25,) * 3)
+    return Trainer(net, train or samples(20), samples(8, seed=2), FakeSource(), s, device=torch.device("cpu"), **kw)
+
+
+def test_learning_rate_warms_up_linearly_then_decays_to_zero_on_a_cosine():
+    s = settings(steps=100, warmup_steps=10, schedule="cosine")
+    assert [lr_factor(k, s) for k in (0, 4, 9)] == pytest.approx([0.1, 0.5, 1.0])
+    assert lr_factor(10, s) == pytest.approx(1.0)
+    assert lr_factor(55, s) == pytest.approx(0.5)  # half-way through the decay
+    assert lr_factor(99, s) == pytest.approx(0.5 * (1 + math.cos(math.pi * 89 / 90)))
+    assert lr_factor(50, settings(steps=100, schedule="constant")) == 1.0
+
+
+def test_the_budget_is_optimiser_steps_and_every_step_sees_the_same_number_of_pairs():
+    t = trainer(settings(steps=6, micro_pairs=4, accum=3, val_every=3))
+    fit = t.fit()
+    assert fit.steps == 6 and t.micro == 18  # 3 micro-batches per step
+    assert fit.pairs_seen == 6 * 4 * 3
+    assert fit.validations == 2 and [h["step"] for h in fit.history] == [3.0, 6.0]
+    assert fit.stop_reason == "budget"
+    assert fit.epochs == pytest.approx(18 / 5)  # 20 samples in batches of 4 = 5 per epoch
+
+
+def test_early_stopping_ends_on_the_best_weights(monkeypatch):
+    t = trainer(settings(steps=20, val_every=2, patience=2))
+    losses = iter([3.0, 2.0, 2.5, 2.6, 1.0])
+    snapshots = {}
+
+    def validate(samples=None):
+        snapshots[t.step] = {k: v.clone() for k, v in t.net.state_dict().items()}
+        return {"val_loss": next(losses), **{f"val.{m}": 0.0 for m in ("pos_l2", "rot_l2", "de", "ce")}}
+
+    monkeypatch.setattr(t, "validate", validate)
+    fit = t.fit()
+    assert fit.stop_reason == "early_stop" and fit.steps == 8  # 2.5 and 2.6 do not improve on 2.0
+    assert fit.best_step == 4 and fit.best_val_loss == 2.0
+    final = t.net.state_dict()
+    assert all(torch.equal(final[k], snapshots[4][k]) for k in final)
+    assert not all(torch.equal(final[k], snapshots[8][k]) for k in final)
+
+
+def test_batchnorm_recalibration_sets_the_plain_average_of_the_batch_statistics():
+    bn_net = nn.Sequential(nn.BatchNorm1d(3))
+    bn_net[0].running_mean.fill_(100.0)  # stale statistics from "earlier weights"
+    batches = [torch.randn(8, 3) + i for i in range(4)]
+    n = recalibrate_bn(bn_net, iter(batches), lambda: torch.autocast("cpu", enabled=False))
+    assert n == 4
+    expected = torch.stack([b.mean(0) for b in batches]).mean(0)
+    assert torch.allclose(bn_net[0].running_mean, expected, atol=1e-6)
+    expected_var = torch.stack([b.var(0, unbiased=True) for b in batches]).mean(0)
+    assert torch.allclose(bn_net[0].running_var, expected_var, atol=1e-5)
+    assert bn_net[0].momentum == 0.1 and bn_net.training  # restored
+
+
+def test_a_resumed_run_continues_exactly_where_it_stopped(tmp_path):
+    straight = trainer(settings(steps=8, val_every=4, bn_recalibrate=2, augment=True))
+    straight.fit()
+
+    first = trainer(settings(steps=8, val_every=4, bn_recalibrate=2, augment=True), ckpt_dir=tmp_path)
+    first.s = settings(steps=4, val_every=4, bn_recalibrate=2, augment=True)  # stop half-way, as an interrupt would
+    first.fit()
+    state = torch.load(tmp_path / "last.pt", weights_only=False)
+    second = trainer(settings(steps=8, val_every=4, bn_recalibrate=2, augment=True), seed=123)
+    second.load_state(state)
+    second.best_state = None  # the half-way "best" must not decide the end: compare the weights as trained
+    second.fit()
+    a, b = straight.net.state_dict(), second.net.state_dict()
+    assert all(torch.allclose(a[k].float(), b[k].float(), atol=1e-6) for k in a)
+    assert second.micro == straight.micro
+
+
+def test_a_non_finite_loss_stops_the_run_with_the_reason():
+    bad = samples(20)
+    bad.labels[3, 0, 0] = np.inf
+    t = trainer(settings(steps=20, val_every=10), train=bad)
+    with pytest.raises(NonFiniteLoss, match="non-finite training loss by step"):
+        t.fit()
+
+
+def test_standardised_labels_are_undone_at_prediction():
+    net = PoseRegressor(TinyNet(), (0.5,) * 3, (0.25,) * 3, label_mean=(5, 0, 0, 0, 0, 1),
+                        label_std=(2, 1, 1, 10, 1, 1), standardized=True).eval()
+    frames = FakeSource()(np.array([[0, 1], [2, 3]]))
+    with torch.no_grad():
+        z, _ = net.model((frames.float() / 255 - 0.5) / 0.25)
+        pred, _ = net(frames)
+    expected = z * torch.tensor([2, 1, 1, 10, 1, 1.0]) + torch.tensor([5, 0, 0, 0, 0, 1.0])
+    assert torch.allclose(pred, expected, atol=1e-5)
+    gt = pred + torch.tensor([2.0, 0, 0, 10.0, 0, 0])  # one std off in x and in alpha
+    assert net.loss(pred, gt, "mse", 1.0).item() == pytest.approx(1 / 3 + 1 / 3, rel=1e-5)
