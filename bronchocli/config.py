@@ -183,6 +183,69 @@ class Grid(Section):
         return v
 
 
+SELECTABLE = ("arch", "rot_loss", "pose_frame", "train_trajectories")  # what a stage's "combination" can be
+
+
+class Select(Section):
+    """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
+
+    top: int = Field(3, ge=1)
+    by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss> or best_val_loss
+    over: list[Literal["arch", "rot_loss", "pose_frame", "train_trajectories"]] = ["arch", "rot_loss"]
+
+    @field_validator("by")
+    @classmethod
+    def _validation_only(cls, v: str) -> str:
+        if not (v.startswith("val_best.") or v == "best_val_loss"):
+            raise ValueError("must be a validation metric (val_best.pos_l2, val_best.rot_l2, val_best.de, "
+                             "val_best.ce, val_best.loss or best_val_loss): selection never looks at test results")
+        return v
+
+    @field_validator("over")
+    @classmethod
+    def _over(cls, v: list) -> list:
+        if not v or len(set(v)) != len(v):
+            raise ValueError("must list one or more distinct cell fields")
+        return v
+
+
+class Stage(Section):
+    """One step of a staged sweep (the paper's three experiments); docs/sweep.md."""
+
+    name: str
+    grid: dict[str, Any] = {}  # overrides of the top-level grid for this stage
+    select: Select | None = None  # keep the top combinations of ``source`` (their other axes from this grid)
+    source: str | None = None  # the stage ``select`` ranks (default: the previous stage)
+    add: list[dict[str, Any]] = []  # extra combinations, e.g. {arch: offsetnet, rot_loss: mse}
+
+    @field_validator("name")
+    @classmethod
+    def _stage_name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", v):
+            raise ValueError("must start with a letter or digit and use only letters, digits, '_', '-'")
+        return v
+
+    @field_validator("grid")
+    @classmethod
+    def _grid(cls, v: dict[str, Any]) -> dict[str, Any]:
+        unknown = sorted(set(v) - set(Grid.model_fields))
+        if unknown:
+            raise ValueError(f"unknown grid key(s) {unknown} (allowed: {', '.join(Grid.model_fields)})")
+        return v
+
+    @field_validator("add")
+    @classmethod
+    def _add(cls, v: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        for entry in v:
+            unknown = sorted(set(entry) - set(SELECTABLE))
+            if unknown:
+                raise ValueError(f"{entry}: unknown field(s) {unknown} (allowed: {', '.join(SELECTABLE)})")
+        return v
+
+    def stage_grid(self, base: "Grid") -> "Grid":
+        return Grid.model_validate({**base.model_dump(), **self.grid})
+
+
 class DataCfg(Section):
     image_size: int | None = Field(None, ge=16, le=1024)  # network input; None = the dataset's
     window: int = Field(10, ge=1)  # L image pairs per training window of temporal models
@@ -318,6 +381,7 @@ class Config(Section):
     dataset: DatasetCfg = DatasetCfg()
     splits: Splits = Splits()
     grid: Grid = Grid()
+    stages: list[Stage] = []  # a staged plan (the paper's protocol); empty: run ``grid`` as one stage
     data: DataCfg = DataCfg()
     model: ModelCfg = ModelCfg()
     train: Train = Train()
@@ -335,6 +399,26 @@ class Config(Section):
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", v):
             raise ValueError("must start with a letter or digit and use only letters, digits, '.', '_', '-'")
         return v
+
+    @model_validator(mode="after")
+    def _stages(self) -> "Config":
+        names = [st.name for st in self.stages]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"stages: stage name(s) {dupes} used twice")
+        for i, st in enumerate(self.stages):
+            try:
+                st.stage_grid(self.grid)
+            except ValidationError as exc:
+                first = exc.errors()[0]
+                raise ValueError(f"stages[{i}] ({st.name}).grid.{'.'.join(map(str, first['loc']))}: {first['msg']}"
+                                 ) from None
+            if st.source is not None and st.source not in names[:i]:
+                raise ValueError(f"stages[{i}] ({st.name}).source {st.source!r}: must name an earlier stage "
+                                 f"({', '.join(names[:i]) or 'none before it'})")
+            if st.select is not None and i == 0:
+                raise ValueError(f"stages[0] ({st.name}).select: the first stage has no earlier stage to select from")
+        return self
 
     @property
     def paths(self) -> Paths:
@@ -539,13 +623,13 @@ def cell_key(cfg: Config, coords: dict[str, Any]) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def expand_grid(cfg: Config, patients: Sequence[str] | None = None) -> list[Cell]:
-    """Every cell of ``cfg.grid``, in a stable order.
+def expand_grid(cfg: Config, patients: Sequence[str] | None = None, grid: Grid | None = None) -> list[Cell]:
+    """Every cell of ``grid`` (default ``cfg.grid``), in a stable order.
 
     ``patients`` (the dataset's patient ids) is needed when cross-subject folds
     are ``all``; listed folds must be among them when it is given.
     """
-    g = cfg.grid
+    g = grid or cfg.grid
     folds: list[str] = []
     if "cross-subject" in g.population:
         if g.folds == "all":

@@ -7,9 +7,7 @@ from typing import Optional
 
 import typer
 
-from .. import cells
 from ..config import DEFAULT_CONFIG
-from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -29,40 +27,10 @@ def status(
     or another `--sweep` name lists every stored cell instead. Failed cells are listed
     with their reason.
     """
-    from ..sweep import SweepStore, plan_cells, read_plan  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.status import failures, fetch_metrics, progress, status_table, summary_line, wide
+    from ..sweep import SweepStore  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.status import show_status, wide
 
-    console = wide(_console)
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    store = SweepStore(cfg.paths.storage_url)
-    name = sweep or cfg.name
-    if not store.exists():
-        console.print(f"no sweep has used storage {store.redacted} yet")
-        if sweep:
-            return
-    if show_all or name != cfg.name:
-        plan = _stored_plan(store, name)
-    else:
-        plan = read_plan(store, name, plan_cells(cfg))
-        stale = len(store.rows(name)) - len(plan.rows) if store.exists() else 0
-        if stale > 0:
-            console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
-                          f"(--all shows them)[/]")
-    finished = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
-    console.print(status_table(plan, fetch_metrics(cfg, finished), cfg.sweep.max_retries))
-    console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
-    for label, reason in failures(plan):
-        console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
-
-
-def _stored_plan(store, name: str):
-    from ..sweep.plan import Plan  # lazy: keeps `bronchopose --help` fast
-
-    rows = store.rows(name) if store.exists() else []
-    if not rows:
-        known = ", ".join(store.sweeps()) if store.exists() else ""
-        raise BronchoError(f"--sweep {name}: no such sweep in storage {store.redacted} (stored: {known or 'none'})")
-    stored = [cells.make(**r.coords, key=r.cell_key) for r in rows]
-    return Plan(name, stored, {r.cell_key: r for r in rows})
+    show_status(cfg, SweepStore(cfg.paths.storage_url), sweep or cfg.name, show_all, wide(_console))

@@ -1,4 +1,4 @@
-"""`bronchopose sweep`: run every cell of the grid exactly once with local workers over shared storage."""
+"""`bronchopose sweep`: run every cell of the plan exactly once with local workers over shared storage."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ from typing import Optional
 
 import typer
 
-from .. import urls
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
@@ -33,18 +32,19 @@ def sweep(
     profile: ProfileOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Run the grid of the config (arch x rot_loss x population x folds x seed x pose_frame), each cell once.
+    """Run the config's plan, each cell once: its grid, or its stages in order (the paper's protocol).
 
     Prints the plan, generates the dataset if missing, then runs every cell that is
-    not FINISHED with N local worker processes and shows live progress. Any number of
+    not FINISHED with N local worker processes and shows live progress. A stage that
+    selects from an earlier one (top-k combinations by a validation metric) starts
+    once that stage is done; the selection is recorded and printed. Any number of
     `bronchopose sweep` processes, on any machines, pointed at the same storage
     cooperate: each cell is claimed by one worker and yields one FINISHED MLflow run.
     Re-running resumes (FINISHED cells are skipped); FAILED cells are retried up to
     sweep.max_retries; a killed worker's cell is taken over after sweep.stale_after_s.
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
-    from .. import sweep as sw  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.pool import cells_left
+    from ..sweep import SweepStore, staged  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import wide
 
     console = wide(_console)
@@ -56,42 +56,9 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
-    store = sw.SweepStore(cfg.paths.storage_url)
-    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
-                  f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}" if use_tuned else ""))
+    store = SweepStore(cfg.paths.storage_url)
     if dry_run:
-        plan = sw.read_plan(store, cfg.name, sw.plan_cells(cfg, selection))
-        _print_plan(console, plan, cfg.sweep.max_retries, workers)
-        console.print("[dim]dry run: nothing started[/]")
+        staged.dry_run(cfg, store, selection, workers, console)
         return
-    plan = sw.prepare(cfg, store, selection, retry_failed=retry_failed)
-    left = cells_left(plan, cfg.sweep.max_retries)
-    workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
-    _print_plan(console, plan, cfg.sweep.max_retries, workers)
-    if left == 0:
-        raise typer.Exit(_final(console, plan, cfg.sweep.max_retries, 0 if plan.counts()["failed"] == 0 else 1))
-    result = sw.run_pool(cfg, store, plan, workers=workers, console=console)
-    if result.interrupted:
-        console.print("[yellow]interrupted:[/] running cells were released; run the same command again to resume")
-    bad = [c for c in result.worker_codes if c not in (0, 130)]
-    if bad and not result.interrupted:
-        console.print(f"[red]{len(bad)} worker(s) crashed[/] (exit codes {bad}); logs in {result.log_dir}")
-    raise typer.Exit(_final(console, result.plan, cfg.sweep.max_retries, result.exit_code))
-
-
-def _print_plan(console, plan, max_retries: int, workers: int) -> None:
-    from ..sweep.status import plan_table  # lazy: keeps `bronchopose --help` fast
-
-    console.print(plan_table(plan, max_retries))
-    c = plan.counts()
-    console.print(f"{len(plan.cells)} cells: {c['finished']} finished, {c['running']} running, {c['failed']} failed, "
-                  f"{c['pending']} pending; workers here: {workers}")
-
-
-def _final(console, plan, max_retries: int, code: int) -> int:
-    from ..sweep.status import failures, progress, summary_line  # lazy: keeps `bronchopose --help` fast
-
-    console.print(summary_line(progress(plan, max_retries, 1)))
-    for label, reason in failures(plan):
-        console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
-    return code
+    raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
+                                      retry_failed=retry_failed))

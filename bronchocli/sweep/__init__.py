@@ -2,7 +2,8 @@
 
 - ``storage``: the claims table (SQLite on one machine, PostgreSQL for many) and its atomic transitions;
 - ``worker``: the claim -> run -> record loop with its heartbeat and signal handling;
-- ``plan``: cell selection (``--only``) and the shared state prepared once before workers start;
+- ``plan``: the stages, their cells and selections, and the shared state prepared once before workers start;
+- ``staged``: ``bronchopose sweep`` as a library call (stages in order, each with the worker pool);
 - ``pool``: local worker processes and the parent's live view;
 - ``status``: tables for the plan, the live view and ``bronchopose status``;
 - ``tuning``: Optuna studies on the same storage, one MLflow run per trial.

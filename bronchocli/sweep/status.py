@@ -17,10 +17,11 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from .. import tracking
+from .. import cells, tracking
 from ..config import Config
-from .plan import Plan
-from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow
+from ..errors import BronchoError
+from .plan import Plan, describe_selection, plan_cells, plan_stages, read_plan, source_of
+from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
 HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
@@ -79,8 +80,9 @@ def wide(console: Console) -> Console:
                                                        no_color=console.no_color)
 
 
-def plan_table(plan: Plan, max_retries: int) -> Table:
-    table = Table(title=f"sweep {plan.sweep}: {len(plan.cells)} cells", title_justify="left", box=box.SIMPLE_HEAD)
+def plan_table(plan: Plan, max_retries: int, title: str = "") -> Table:
+    heading = f"sweep {plan.sweep}" + (f", {title}" if title else "") + f": {len(plan.cells)} cells"
+    table = Table(title=heading, title_justify="left", box=box.SIMPLE_HEAD)
     for col in ("#", "cell", "key", "state", "attempts"):
         table.add_column(col, justify="right" if col in ("#", "attempts") else "left",
                          no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
@@ -159,3 +161,39 @@ def _num(v: float | None) -> str:
 def failures(plan: Plan) -> list[tuple[str, str]]:
     return [(c.label, plan.rows[c.key].failure_reason or "unknown") for c in plan.cells
             if c.key in plan.rows and plan.rows[c.key].state == FAILED]
+
+
+def _stored_plan(store: SweepStore, name: str) -> Plan:
+    rows = store.rows(name) if store.exists() else []
+    if not rows:
+        known = ", ".join(store.sweeps()) if store.exists() else ""
+        raise BronchoError(f"--sweep {name}: no such sweep in storage {store.redacted} (stored: {known or 'none'})")
+    stored = [cells.make(**r.coords, key=r.cell_key) for r in rows]
+    return Plan(name, stored, {r.cell_key: r for r in rows})
+
+
+def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> None:
+    """``bronchopose status``: the plan's cells (or every stored cell) with state, run, duration, metrics."""
+    if not store.exists():
+        console.print(f"no sweep has used storage {store.redacted} yet")
+        if name != cfg.name:
+            return
+    if show_all or name != cfg.name:
+        plan = _stored_plan(store, name)
+    else:
+        stages = plan_stages(cfg, store)
+        for sp in stages:
+            if sp.selection is not None:
+                console.print(describe_selection(sp.selection), highlight=False)
+            elif sp.cells is None:
+                console.print(f"stage {sp.stage.name}: waits for stage {source_of(cfg, sp.stage).name}")
+        plan = read_plan(store, name, plan_cells(cfg, store=store))
+        stale = len(store.rows(name)) - len(plan.rows) if store.exists() else 0
+        if stale > 0:
+            console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
+                          f"(--all shows them)[/]")
+    finished = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
+    console.print(status_table(plan, fetch_metrics(cfg, finished), cfg.sweep.max_retries))
+    console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
+    for label, reason in failures(plan):
+        console.print(f"[red]failed[/] {label}: {reason}", highlight=False)

@@ -50,6 +50,7 @@ from ..cells import Cell
 from ..errors import BronchoError
 
 TABLE = "bronchopose_sweep_cells"
+SELECTIONS = "bronchopose_sweep_selections"
 PENDING, RUNNING, FINISHED, FAILED = "pending", "running", "finished", "failed"
 STATES = (PENDING, RUNNING, FINISHED, FAILED)
 SQLITE_BUSY_MS = 60_000
@@ -74,6 +75,15 @@ cells_table = Table(
     Column("run_id", String(64)),  # MLflow run of the current/last attempt
     Column("failure_reason", Text),
     Column("duration_s", Float),  # time inside the runner
+)
+# A staged sweep's selections: written once per (sweep, plan, stage) by whichever process gets there first.
+selections_table = Table(
+    SELECTIONS, metadata,
+    Column("sweep", String(200), primary_key=True),
+    Column("plan_key", String(64), primary_key=True),  # hash of the config's run settings and stages
+    Column("stage", String(200), primary_key=True),
+    Column("selection", Text, nullable=False),  # JSON: by, top, over, source, ranked, selected
+    Column("created_at", Float),
 )
 
 
@@ -299,6 +309,29 @@ class SweepStore:
         with self._tx(write=True) as conn:
             return self._by_token(conn, token, state=PENDING, token=None, worker=None, heartbeat=None,
                                   attempts=c.attempts - 1, version=c.version + 1)
+
+    # -- staged sweeps -------------------------------------------------------------
+    def record_selection(self, sweep: str, plan_key: str, stage: str, selection: dict[str, Any]) -> bool:
+        """Store a stage's selection unless one is there already; True when this call wrote it."""
+        try:
+            with self._tx(write=True) as conn:
+                conn.execute(selections_table.insert().values(sweep=sweep, plan_key=plan_key, stage=stage,
+                                                              selection=json.dumps(selection), created_at=self._now))
+            return True
+        except IntegrityError:  # another process recorded it first: theirs is the selection
+            return False
+
+    def selection(self, sweep: str, plan_key: str, stage: str) -> dict[str, Any] | None:
+        if not self.exists():
+            return None
+        with self.engine.connect() as conn:
+            if not inspect(conn).has_table(SELECTIONS):
+                return None
+        c = selections_table.c
+        q = select(c.selection).where(c.sweep == sweep, c.plan_key == plan_key, c.stage == stage)
+        with self._tx() as conn:
+            text = conn.execute(q).scalar_one_or_none()
+        return None if text is None else json.loads(text)
 
     def all_done(self, sweep: str, keys: Sequence[str], max_retries: int) -> bool:
         """True when every cell is finished or failed with no retry left (nothing left to run or wait for)."""

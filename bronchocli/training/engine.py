@@ -109,6 +109,10 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     preds = evaluate.predict_trajectories(net, data.split.test, source, cell.pose_frame, chunk, spacing,
                                           trainer.autocast)
     metrics, table = evaluate.evaluate(preds, data.label_mean, cell.pose_frame)
+    best = next((h for h in fit.history if h["step"] == fit.best_step), None)
+    if best is not None:  # validation metrics of the weights that were tested: what a staged sweep selects by
+        metrics |= {"val_best.loss": best["val_loss"],
+                    **{f"val_best.{k[4:]}": v for k, v in best.items() if k.startswith("val.")}}
     n_params = sum(p.numel() for p in net.model.parameters())
     metrics |= {
         "n_params": float(n_params), "eval.time_s": time.perf_counter() - t0,

@@ -7,6 +7,9 @@ Behaviour is driven by files in the directory named by ``$SWEEP_FAKE_DIR``:
 - ``fail-<arch>`` containing N: the first N runs of each such cell end FAILED;
 - ``block-<arch>``: the run writes ``started-<cell key>-<pid>`` and waits until
   ``release`` exists (a gate the test controls; interrupting it ends the run KILLED);
+- ``val-<arch>-<rot_loss>`` containing a number: the run's validation metric
+  ``val_best.pos_l2``; its test metric ``pair.pos_l2.mean`` is ``10 - val``, so a
+  selection that looked at test results would pick the worst (poisoned on purpose);
 - every call leaves ``calls/<cell key>-<pid>-<n>`` behind.
 """
 
@@ -81,7 +84,13 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
         ckpt.write_text("fake checkpoint")
         client.set_terminated(run_id, "KILLED")
         raise RunInterrupted(f"run {run_id} interrupted") from None
-    metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key)}
+    val_file = d / f"val-{cell.arch}-{cell.rot_loss}"
+    if val_file.exists():
+        val = float(val_file.read_text())
+        metrics = {"val_best.pos_l2": val, "pair.pos_l2.mean": 10.0 - val, "acc.pos_l2.mean": 10.0 - val}
+    else:
+        metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key),
+                   "val_best.pos_l2": _metric(cell.key)}
     tracking.log_metrics(client, run_id, metrics)
     client.set_terminated(run_id, "FINISHED")
     return FakeResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
@@ -95,6 +104,6 @@ def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
     exp = client.get_experiment_by_name(cfg.experiment_name)
     if exp is None:
         return Counter()
-    runs = tracking.search_runs(client, [exp.experiment_id], {tracking.TAG_SWEEP: cfg.name},
+    runs = tracking.search_runs(client, [exp.experiment_id], {tracking.TAG_SWEEP: cfg.name, tracking.TAG_KIND: "cell"},
                                 [status] if status else None)
     return Counter(r.data.tags[tracking.TAG_CELL_KEY] for r in runs)

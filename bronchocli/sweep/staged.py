@@ -1,0 +1,111 @@
+"""``bronchopose sweep`` as a library call: run the plan's stages in order, each with the local worker pool.
+
+Every stage's cells are claimed exactly once across all processes and machines
+(the claims table); a stage that selects from an earlier one waits until all
+of that stage's cells are done (FINISHED, or FAILED with no retry left), then
+settles its selection (``plan.settle_selection``) and runs the chosen cells.
+Cells already FINISHED (in any stage) are never run again.
+"""
+
+from __future__ import annotations
+
+from rich.console import Console
+
+from .. import urls
+from ..cells import Selection
+from ..config import Config
+from . import plan as planning
+from .pool import EXIT_INTERRUPTED, cells_left, run_pool
+from .status import failures, plan_table, progress, summary_line
+from .storage import FINISHED, SweepStore
+
+
+def _print_plan(console: Console, plan: planning.Plan, max_retries: int, workers: int, title: str) -> None:
+    console.print(plan_table(plan, max_retries, title))
+    c = plan.counts()
+    console.print(f"{len(plan.cells)} cells: {c['finished']} finished, {c['running']} running, {c['failed']} failed, "
+                  f"{c['pending']} pending; workers here: {workers}")
+
+
+def _stage_title(sp: planning.StagePlan, n_stages: int) -> str:
+    if n_stages == 1 and sp.stage.name == "grid":
+        return ""
+    how = f"top {sp.stage.select.top} of {sp.stage.source or 'the previous stage'} by {sp.stage.select.by}" \
+        if sp.stage.select else "grid"
+    return f"stage {sp.stage.name} ({how})"
+
+
+def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, console: Console) -> None:
+    stages = planning.plan_stages(cfg, store, only)
+    for sp in stages:
+        if sp.cells is None:
+            console.print(f"[bold]{_stage_title(sp, len(stages))}[/]: cells known once stage "
+                          f"{planning.source_of(cfg, sp.stage).name} is done")
+            continue
+        if sp.selection is not None:
+            console.print(planning.describe_selection(sp.selection), highlight=False)
+        _print_plan(console, planning.read_plan(store, cfg.name, sp.cells), cfg.sweep.max_retries, workers,
+                    _stage_title(sp, len(stages)))
+    console.print("[dim]dry run: nothing started[/]")
+
+
+def _source_done(cfg: Config, store: SweepStore, source_cells) -> int:
+    """How many cells of the source stage are not done yet (0: its selection can be settled)."""
+    plan = planning.read_plan(store, cfg.name, source_cells)
+    return cells_left(plan, cfg.sweep.max_retries)
+
+
+def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
+              retry_failed: bool = False) -> int:
+    """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted)."""
+    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
+                  f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
+                                                           if cfg.tune.applied else ""))
+    planning.prepare(cfg, store, only, retry_failed=retry_failed)
+    stages = planning.stages_of(cfg)
+    full = {sp.stage.name: sp for sp in planning.plan_stages(cfg, store)}  # unfiltered: what selections wait for
+    code, ran_any = 0, False
+    for stage in stages:
+        sp = planning.plan_stages(cfg, store, only)[stages.index(stage)]
+        if sp.cells is None:
+            source = planning.source_of(cfg, stage)
+            source_cells = full[source.name].cells or []
+            missing = _source_done(cfg, store, source_cells)
+            if missing:
+                console.print(f"[yellow]stage {stage.name} waits:[/] {missing} cell(s) of stage {source.name} are "
+                              "not done (excluded by --only, or running elsewhere); run the sweep again later")
+                break
+            selection = planning.settle_selection(cfg, store, stage, source_cells)
+            console.print(planning.describe_selection(selection), highlight=False)
+            sp = planning.plan_stages(cfg, store, only)[stages.index(stage)]
+            full = {s.stage.name: s for s in planning.plan_stages(cfg, store)}
+        cells = sp.cells or []
+        if not cells:
+            continue
+        plan = planning.add_cells(cfg, store, cells)
+        left = cells_left(plan, cfg.sweep.max_retries)
+        n_workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
+        _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(sp, len(stages)))
+        if left:
+            ran_any = True
+            result = run_pool(cfg, store, plan, workers=n_workers, console=console)
+            if result.interrupted:
+                console.print("[yellow]interrupted:[/] running cells were released; run the same command again "
+                              "to resume")
+                return EXIT_INTERRUPTED
+            bad = [c for c in result.worker_codes if c not in (0, EXIT_INTERRUPTED)]
+            if bad:
+                console.print(f"[red]{len(bad)} worker(s) crashed[/] (exit codes {bad}); logs in {result.log_dir}")
+            plan = result.plan
+        code = max(code, _final(console, plan, cfg.sweep.max_retries))
+    if not ran_any:
+        console.print("nothing left to run")
+    return code
+
+
+def _final(console: Console, plan: planning.Plan, max_retries: int) -> int:
+    console.print(summary_line(progress(plan, max_retries, 1)))
+    for label, reason in failures(plan):
+        console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
+    states = [plan.state(c) for c in plan.cells]
+    return 0 if all(s == FINISHED for s in states) else 1

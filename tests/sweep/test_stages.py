@@ -1,0 +1,105 @@
+"""A staged sweep (the paper's protocol): stage 2 and 3 take the top combinations of stage 1 by a validation
+metric, never a test one; every cell runs exactly once, across stages; the selection is recorded and shown."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from sweep_fakes import calls, runs_by_cell
+from tinydata import write_tiny_dataset
+
+from bronchocli import tracking
+from bronchocli.config import Config
+from bronchocli.sweep import SweepStore
+from bronchocli.sweep.plan import plan_key, plan_stages
+
+STAGES = [
+    {"name": "personalized", "grid": {"arch": ["baseline", "lstm", "convlstm"], "rot_loss": ["mse", "ce"],
+                                      "population": ["personalized"]}},
+    {"name": "cross-subject", "select": {"top": 2, "by": "val_best.pos_l2"},
+     "grid": {"population": ["cross-subject"], "folds": ["p00"]}},
+    {"name": "sota", "source": "personalized", "select": {"top": 1},
+     "grid": {"population": ["personalized"]}, "add": [{"arch": "offsetnet", "rot_loss": "mse"}]},
+]
+VALIDATION = {("lstm", "ce"): 0.1, ("convlstm", "mse"): 0.2, ("baseline", "mse"): 0.6, ("baseline", "ce"): 0.7,
+              ("lstm", "mse"): 0.8, ("convlstm", "ce"): 0.9}
+
+
+@pytest.fixture
+def project(make_config, tmp_path, fake_dir):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    for (arch, loss), value in VALIDATION.items():
+        (fake_dir / f"val-{arch}-{loss}").write_text(str(value))
+    return make_config(stages=STAGES, grid={"seed": [0, 1], "folds": ["p00"]})
+
+
+def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_dir):
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, _ = cli("sweep", "-c", path, "--dry-run")
+    assert code == 0 and "12 cells" in out and "cells known once stage personalized is done" in out
+
+    code, out, err = cli("sweep", "-c", path, "--workers", "2")
+    assert code == 0, out + err
+    # Poisoned on purpose: the test metric ranks these two last; the validation metric ranks them first.
+    assert "top 2 of stage personalized by val_best.pos_l2" in out and "lstm/ce 0.1" in out and "convlstm/mse 0.2" in out
+    store = SweepStore(project.paths.storage_url)
+    stages = {sp.stage.name: sp for sp in plan_stages(project, store)}
+    assert {(c.arch, c.rot_loss, c.fold) for c in stages["cross-subject"].cells} == {
+        ("lstm", "ce", "p00"), ("convlstm", "mse", "p00")}
+    assert {(c.arch, c.rot_loss) for c in stages["sota"].cells} == {("lstm", "ce"), ("offsetnet", "mse")}
+    assert len(stages["cross-subject"].cells) == 4 and len(stages["sota"].cells) == 4  # x 2 seeds
+    # Exactly once: the sota stage reuses stage 1's lstm/ce runs; 12 + 4 + 2 distinct cells, one run each.
+    finished = runs_by_cell(project)
+    assert len(finished) == 18 and set(finished.values()) == {1}
+    assert all(calls(c.key) == 1 for c in stages["sota"].cells)
+
+    client = tracking.client_for(project)
+    exp = tracking.experiment_id(client, project)
+    selections = tracking.search_runs(client, [exp], {"run_kind": "selection"})
+    assert sorted(r.data.tags["stage"] for r in selections) == ["cross-subject", "sota"]
+    rec = next(r for r in selections if r.data.tags["stage"] == "cross-subject")
+    assert rec.data.tags["plan_key"] == plan_key(project)
+    payload = json.loads(open(client.download_artifacts(rec.info.run_id, "selection.json")).read())
+    assert payload["selected"] == [{"arch": "lstm", "rot_loss": "ce"}, {"arch": "convlstm", "rot_loss": "mse"}]
+    assert [e["runs"] for e in payload["ranked"]] == [2] * 6  # every combination, both seeds, with its value
+
+    code, out, _ = cli("status", "-c", path)
+    assert code == 0 and "stage cross-subject: top 2 of stage personalized by val_best.pos_l2" in out
+    code, out, _ = cli("sweep", "-c", path)  # all done: nothing runs again
+    assert code == 0 and "nothing left to run" in out and len(runs_by_cell(project)) == 18
+
+
+def test_a_later_stage_waits_while_its_source_is_incomplete(cli, project):
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "-c", path, "--only", "arch=baseline")
+    assert code == 0, out + err
+    assert "stage cross-subject waits: 8 cell(s) of stage personalized are not done" in out
+    assert SweepStore(project.paths.storage_url).selection(project.name, plan_key(project), "cross-subject") is None
+
+
+@pytest.mark.parametrize("stages, message", [
+    ([{"name": "a", "select": {"top": 1}}], "the first stage has no earlier stage"),
+    ([{"name": "a"}, {"name": "b", "select": {"by": "pair.pos_l2.mean"}}], "must be a validation metric"),
+    ([{"name": "a"}, {"name": "a"}], "used twice"),
+    ([{"name": "a"}, {"name": "b", "source": "c", "select": {}}], "must name an earlier stage"),
+    ([{"name": "a", "grid": {"colour": ["red"]}}], "unknown grid key"),
+    ([{"name": "a", "grid": {"arch": ["resnet"]}}], "stages[0] (a).grid.arch"),
+])
+def test_bad_stages_are_rejected_with_the_reason(stages, message):
+    with pytest.raises(Exception) as exc:
+        Config.model_validate({"name": "t", "stages": stages})
+    assert message in str(exc.value)
+
+
+def test_the_paper_profile_encodes_the_three_experiments(repo):
+    from bronchocli.config import load_config
+
+    cfg = load_config(repo / "experiments.yaml", profile="paper")
+    names = [s.name for s in cfg.stages]
+    assert names == ["personalized", "cross-subject", "sota"]
+    first, second, third = cfg.stages
+    assert set(first.stage_grid(cfg.grid).arch) == {"baseline", "lstm", "convlstm", "conv3d"}
+    assert second.select.top == 3 and second.stage_grid(cfg.grid).population == ["cross-subject"]
+    assert third.select.top == 1 and third.add == [{"arch": "offsetnet", "rot_loss": "mse"}]
+    assert second.select.by.startswith("val_best.") and third.source == "personalized"
