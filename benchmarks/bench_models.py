@@ -14,8 +14,8 @@ import time
 
 import torch
 
-from bronchocli.models import profile as profiling
 from bronchocli.models import ARCHITECTURES
+from bronchocli.models import profile as profiling
 
 
 def main() -> None:

@@ -65,14 +65,37 @@ def _root(
     """Vision-based bronchoscopy pose estimation research platform."""
 
 
+def _error(message: str) -> None:
+    err_console.print(Text.assemble(("error: ", "bold red"), message), highlight=False, soft_wrap=True)
+
+
+def _usage_error(exc: Exception) -> int:
+    """A bad flag or argument (click's UsageError): one line naming it and where help is, exit code 2."""
+    if type(exc).__name__ == "NoArgsIsHelpError":  # the help was printed already
+        return int(getattr(exc, "exit_code", 2))
+    ctx = getattr(exc, "ctx", None)
+    message = " ".join(exc.format_message().split())  # type: ignore[attr-defined]
+    hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+    _error(f"{message}{hint}")
+    return int(getattr(exc, "exit_code", 2))
+
+
 def main(argv: list[str] | None = None) -> None:
     """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
-        app(args=argv, prog_name="bronchopose")
+        code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
     except BronchoError as exc:
-        err_console.print(Text.assemble(("error: ", "bold red"), str(exc)), highlight=False, soft_wrap=True)
+        _error(str(exc))
         raise SystemExit(exc.exit_code) from None
+    except typer.Abort:  # click's Ctrl-C at a prompt
+        code = 130
+    except typer.TyperException as exc:
+        if not hasattr(exc, "format_message"):
+            raise
+        raise SystemExit(_usage_error(exc)) from None
     except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
         err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
                                         "run the same command again to continue"), highlight=False)
         raise SystemExit(130) from None
+    if isinstance(code, int) and not isinstance(code, bool) and code:  # typer.Exit(n) of a command
+        raise SystemExit(code)

@@ -52,6 +52,7 @@ class Tracking(Section):
     artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
     checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
     model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
+    timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for tracking servers and databases
 
 
 class Storage(Section):
@@ -289,6 +290,7 @@ class Train(Section):
     rot_weight: float = Field(1.0, ge=0)
     precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
+    compile: bool = False  # torch.compile the network (CUDA: pays off on long runs; see benchmarks/README.md)
     max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs (evenly spread, the same every time)
     threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
 
@@ -607,7 +609,8 @@ RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 
 
 # Settings that change how fast a run goes, not what it computes.
-NOT_IN_KEY = (("train", "threads"), ("data", "workers"), ("data", "cache_dir"), ("data", "frames_on_device"))
+NOT_IN_KEY = (("train", "threads"), ("train", "compile"), ("data", "workers"), ("data", "cache_dir"),
+              ("data", "frames_on_device"))
 
 
 def run_signature(cfg: Config) -> dict[str, Any]:

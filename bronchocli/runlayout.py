@@ -41,3 +41,14 @@ def resume_file(cfg: Config, run_id: str) -> Path:
 def cpu_threads(cfg: Config, workers: int = 1) -> int:
     """torch CPU threads of one run: ``train.threads``, else the cores shared by ``workers`` runs."""
     return cfg.train.threads or max(1, (os.cpu_count() or 1) // max(1, workers))
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process started (Linux ``/proc``; None elsewhere): the start-up a user waits through."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        start_ticks = int(fields[19])  # field 22 of stat(5), counted after the command name
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None

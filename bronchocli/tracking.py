@@ -8,9 +8,15 @@ One MLflow run per grid cell. Runs are found again by their tags (``cell_key``,
 from __future__ import annotations
 
 import logging
+import math
 import os
 import subprocess
 import time
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -20,10 +26,14 @@ os.environ.setdefault("DO_NOT_TRACK", "true")
 from mlflow.entities import Metric, Param, Run
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
+from sqlalchemy import create_engine, text
+from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy.pool import NullPool
 
 from . import __version__, urls
 from .cells import FIELDS, Cell
 from .config import Config
+from .errors import BronchoError
 from .io import file_lock
 
 # Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
@@ -38,6 +48,15 @@ TAG_HPARAMS = "hparams_source"  # where hyperparameters came from ("config" or "
 TAG_KIND = "run_kind"  # "cell" (train/sweep) or "trial" (tune)
 
 _PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
+# pg_advisory_lock key under which MLflow's first-time table creation runs (any fixed 64-bit number will do;
+# every bronchopose process on every machine must use the same one).
+MIGRATION_LOCK_KEY = 0x62726F6E63686F  # "broncho"
+HTTP_RETRIES = 2  # MLflow's HTTP client: retries of a failed request (each waits up to tracking.timeout_s)
+_probed: set[str] = set()  # tracking servers found answering by this process
+
+
+class TrackingUnreachable(BronchoError):
+    """The tracking server or database did not answer within ``tracking.timeout_s``."""
 
 
 def _quiet() -> None:
@@ -51,16 +70,101 @@ def redacted_uri(cfg: Config) -> str:
 
 
 def client_for(cfg: Config) -> MlflowClient:
+    """An MLflow client on the config's store, its tables created; a dead server fails within tracking.timeout_s.
+
+    MLflow creates (migrates) its tables when it first opens a store, and two
+    processes doing that at once collide: on SQLite a file lock, on PostgreSQL
+    a database advisory lock (machines share nothing else) serialise it.
+    """
     _quiet()  # mlflow configures its own loggers when it is first used
-    uri = cfg.paths.tracking_uri
+    uri, timeout_s = cfg.paths.tracking_uri, cfg.tracking.timeout_s
+    set_http_limits(timeout_s)
     db = urls.sqlite_file(uri)
-    if db is None:
+    if db is not None:
+        with file_lock(f"{db}.lock"):
+            return _open(uri)
+    if urls.is_server(uri):
+        probe_server(uri, timeout_s)
+        return _client(uri)
+    if urls.is_postgres(uri):
+        with database_lock(uri, timeout_s, what="tracking.uri"):  # also the reachability check
+            return _open(uri)
+    return _client(uri)
+
+
+def _client(uri: str) -> MlflowClient:
+    try:
         return MlflowClient(tracking_uri=uri)
-    # MLflow creates (migrates) its tables when it opens a store; two processes doing that at once collide.
-    with file_lock(f"{db}.lock"):
-        client = MlflowClient(tracking_uri=uri)
-        client.search_experiments(max_results=1)
+    except MlflowException as exc:
+        raise BronchoError(f"tracking.uri {urls.redact(uri)}: {urls.redact(_first_line(exc))}") from None
+
+
+def _open(uri: str) -> MlflowClient:
+    """A client whose store exists: the first request creates MLflow's tables."""
+    client = _client(uri)
+    client.search_experiments(max_results=1)
     return client
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
+
+
+def set_http_limits(timeout_s: float) -> None:
+    """MLflow's HTTP client reads these at each request: a dead server costs seconds, not minutes of retries."""
+    os.environ["MLFLOW_HTTP_REQUEST_TIMEOUT"] = str(max(1, math.ceil(timeout_s)))
+    os.environ["MLFLOW_HTTP_REQUEST_MAX_RETRIES"] = str(HTTP_RETRIES)
+    os.environ["MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR"] = "1"
+
+
+def probe_server(uri: str, timeout_s: float) -> None:
+    """One request to an ``http(s)://`` tracking server; TrackingUnreachable (one line) if it does not answer."""
+    if uri in _probed or not uri.startswith(("http://", "https://")):
+        return
+    parts = urllib.parse.urlsplit(uri)
+    netloc = parts.netloc.rpartition("@")[2]  # credentials go through MLflow's own settings, not the probe
+    url = urllib.parse.urlunsplit((parts.scheme, netloc, parts.path.rstrip("/") + "/health", "", ""))
+    try:
+        urllib.request.urlopen(url, timeout=timeout_s).close()
+    except urllib.error.HTTPError:
+        pass  # it answered (an error status still means a live server)
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "reason", None) or exc or type(exc).__name__
+        raise TrackingUnreachable(
+            f"tracking.uri {urls.redact(uri)}: no answer within {timeout_s:g} s ({reason}); check that the MLflow "
+            "server is running and reachable from this machine (the limit is tracking.timeout_s)") from None
+    _probed.add(uri)
+
+
+def connect_timeout(timeout_s: float) -> int:
+    """libpq's ``connect_timeout`` for tracking.timeout_s: whole seconds, at least 2 (libpq's own minimum)."""
+    return max(2, math.ceil(timeout_s))
+
+
+@contextmanager
+def database_lock(url: str, timeout_s: float, what: str = "database", key: int = MIGRATION_LOCK_KEY
+                  ) -> Iterator[None]:
+    """Hold a PostgreSQL session advisory lock on ``key`` for the block, on a short-lived connection of its own.
+
+    Serialises first-time schema creation across machines. Connecting gives up
+    after ``timeout_s`` with one line naming the (redacted) URL: the
+    reachability check of a database before a library with long retries opens it.
+    """
+    shown, limit = urls.redact(url), connect_timeout(timeout_s)
+    try:
+        engine = create_engine(urls.sqlalchemy(url), poolclass=NullPool, connect_args={"connect_timeout": limit})
+        conn = engine.connect()
+    except (SQLAlchemyError, ImportError, ValueError) as exc:
+        raise TrackingUnreachable(
+            f"{what} {shown}: cannot connect within {limit} s ({urls.redact(_first_line(exc))}); check the "
+            "host, port, database name and credentials, and that the server is running") from None
+    try:
+        conn.execute(text("SELECT pg_advisory_lock(:key)"), {"key": key})
+        yield
+    finally:  # closing the session releases the lock too (also when the block failed)
+        conn.close()
+        engine.dispose()
 
 
 def _is_local_store(uri: str) -> bool:
@@ -76,13 +180,18 @@ def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) ->
     location = None
     if _is_local_store(cfg.paths.tracking_uri):
         location = cfg.paths.artifacts.as_uri()
-    try:
-        return client.create_experiment(name, artifact_location=location)
-    except MlflowException:  # another worker created it first
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            raise
-        return exp.experiment_id
+    attempt = 0
+    while True:
+        try:
+            return client.create_experiment(name, artifact_location=location)
+        except (MlflowException, SQLAlchemyError):  # another worker created it first (or is committing it)
+            exp = client.get_experiment_by_name(name)
+            if exp is not None:
+                return exp.experiment_id
+            attempt += 1
+            if attempt == 3:
+                raise
+            time.sleep(0.2 * attempt)
 
 
 def git_commit(cwd: Path | None = None) -> str:

@@ -40,3 +40,8 @@ def sqlalchemy(url: str) -> str:
 def is_server(url: str) -> bool:
     """True for an MLflow tracking server (``http(s)://``), False for a database or local store."""
     return url.startswith(("http://", "https://", "databricks"))
+
+
+def is_postgres(url: str) -> bool:
+    """True for a PostgreSQL URL (``postgres://``, ``postgresql://``, ``postgresql+driver://``)."""
+    return re.match(r"^postgres(?:ql)?(?:\+\w+)?://", url) is not None

@@ -52,3 +52,17 @@ def cli(monkeypatch):
         return code, out.getvalue(), err.getvalue()
 
     return run
+
+
+def pytest_collection_modifyitems(config, items):
+    """``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
+    if not any("gpu" in item.keywords for item in items):
+        return
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA device (run `pytest -m gpu` in a GPU session)")
+    for item in items:
+        if "gpu" in item.keywords:
+            item.add_marker(skip)

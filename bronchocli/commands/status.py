@@ -33,4 +33,4 @@ def status(
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    show_status(cfg, SweepStore(cfg.paths.storage_url), sweep or cfg.name, show_all, wide(_console))
+    show_status(cfg, SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s), sweep or cfg.name, show_all, wide(_console))

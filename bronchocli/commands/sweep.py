@@ -19,8 +19,13 @@ STORAGE_HELP = ("Claims database URL, overriding storage.url (sqlite:///runs/swe
 
 
 def sweep(
-    workers: int = typer.Option(1, "--workers", "-w", min=1,
-                                help="Local worker processes (torch threads = cores / N)."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1,
+                                          help="Local worker processes (torch threads = cores / N). Default: "
+                                          "GPUs x --per-gpu on a GPU machine, else 1."),
+    gpus: str = typer.Option("auto", "--gpus", help="GPUs for the workers, round-robin: auto (every visible "
+                             "one, honouring CUDA_VISIBLE_DEVICES), none, or a list such as 0,1."),
+    per_gpu: int = typer.Option(1, "--per-gpu", min=1, help="Cells run at once on each GPU (small cells leave "
+                                "a GPU idle; packing several raises throughput)."),
     storage: Optional[str] = typer.Option(None, "--storage", help=STORAGE_HELP),
     only: Optional[list[str]] = typer.Option(None, "--only", help=ONLY_HELP),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit."),
@@ -44,7 +49,7 @@ def sweep(
     sweep.max_retries; a killed worker's cell is taken over after sweep.stale_after_s.
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
-    from ..sweep import SweepStore, staged  # lazy: keeps `bronchopose --help` fast
+    from ..sweep import SweepStore, placement, staged  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import wide
 
     console = wide(_console)
@@ -56,9 +61,11 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
-    store = SweepStore(cfg.paths.storage_url)
+    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    devices = placement.parse_gpus(gpus, placement.visible_gpus())
+    workers = workers or placement.default_workers(devices, per_gpu)
     if dry_run:
         staged.dry_run(cfg, store, selection, workers, console)
         return
     raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
-                                      retry_failed=retry_failed))
+                                      retry_failed=retry_failed, gpus=devices))

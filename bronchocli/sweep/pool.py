@@ -20,7 +20,7 @@ import os
 import signal
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
@@ -33,6 +33,7 @@ from .. import urls
 from ..config import Config
 from ..errors import BronchoError
 from ..runlayout import cpu_threads
+from .placement import assign
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
 from .storage import FAILED, FINISHED, SweepStore
@@ -83,9 +84,10 @@ class _ParentSignals:
 
 
 def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner: Runner = default_runner,
-             console: Console | None = None, sweep: str | None = None,
+             console: Console | None = None, sweep: str | None = None, gpus: Sequence[str] = (),
              on_refresh: Callable[[Plan], None] | None = None) -> PoolResult:
-    """Run every cell of ``plan`` with ``workers`` local processes; returns when none is left to run here."""
+    """Run every cell of ``plan`` with ``workers`` local processes (pinned round-robin to ``gpus``); returns when
+    none is left to run here."""
     t0 = time.perf_counter()
     sweep = sweep or plan.sweep
     console = console or Console()
@@ -97,9 +99,9 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
     handler = _ParentSignals(procs, event)
     previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        for i in range(workers):
+        for i, gpu in enumerate(assign(workers, gpus)):
             log_path = log_dir / f"{socket.gethostname()}-{os.getpid()}-w{i}.log"
-            spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path))
+            spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path), gpu)
             procs.append(spawn_worker(spec, event))
         plan = _watch(store, plan, procs, cfg, workers, console, on_refresh)
     except BaseException:  # the parent is failing: stop the workers (they release their cells) before waiting

@@ -9,6 +9,8 @@ Cells already FINISHED (in any stage) are never run again.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from rich.console import Console
 
 from .. import urls
@@ -56,11 +58,12 @@ def _source_done(cfg: Config, store: SweepStore, source_cells) -> int:
 
 
 def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
-              retry_failed: bool = False) -> int:
+              retry_failed: bool = False, gpus: Sequence[str] = ()) -> int:
     """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted)."""
     console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
-                                                           if cfg.tune.applied else ""))
+                                                           if cfg.tune.applied else "")
+                  + (f"  GPUs {','.join(gpus)} ({workers} workers)" if gpus else ""))
     planning.prepare(cfg, store, only, retry_failed=retry_failed)
     stages = planning.stages_of(cfg)
     full = {sp.stage.name: sp for sp in planning.plan_stages(cfg, store)}  # unfiltered: what selections wait for
@@ -88,7 +91,7 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
         _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(sp, len(stages)))
         if left:
             ran_any = True
-            result = run_pool(cfg, store, plan, workers=n_workers, console=console)
+            result = run_pool(cfg, store, plan, workers=n_workers, console=console, gpus=gpus)
             if result.interrupted:
                 console.print("[yellow]interrupted:[/] running cells were released; run the same command again "
                               "to resume")

@@ -139,7 +139,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
 def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int) -> Table:
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
-                      ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
+                      ("worker", "left"), ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
     for cell in plan.cells:
         row = plan.rows.get(cell.key)
@@ -148,7 +148,8 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
         dur = row.duration_s if dur is None and row else dur
         table.add_row(
             cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
-            str(row.attempts if row else 0), (row.run_id or "-") if row else "-", fmt_duration(dur),
+            str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
+            (row.worker or "-") if row and row.state == RUNNING else "", fmt_duration(dur),
             _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
         )
     return table

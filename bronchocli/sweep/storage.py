@@ -17,6 +17,7 @@ See docs/sweep.md for why this gives exactly one FINISHED run per cell.
 from __future__ import annotations
 
 import json
+import math
 import time
 import uuid
 from collections.abc import Iterator, Sequence
@@ -133,14 +134,15 @@ class Claim:
 class SweepStore:
     """The claims table of one storage URL (one engine per process)."""
 
-    def __init__(self, url: str):
+    def __init__(self, url: str, timeout_s: float = 10.0):
+        """``timeout_s``: connecting to a database server gives up after this long (tracking.timeout_s)."""
         self.url = urls.sqlalchemy(url)
         self.redacted = urls.redact(self.url)
         if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
             raise BronchoError(f"storage.url {self.redacted}: an in-memory SQLite database cannot be shared by "
                                "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
         try:
-            self.engine: Engine = _make_engine(self.url)
+            self.engine: Engine = _make_engine(self.url, timeout_s)
         except (SQLAlchemyError, ImportError, ValueError) as exc:
             raise BronchoError(f"storage.url {self.redacted}: {_first_line(exc)}") from None
         self.dialect = self.engine.dialect.name
@@ -157,10 +159,16 @@ class SweepStore:
         except (OperationalError, ProgrammingError, DBAPIError) as exc:
             if isinstance(exc, IntegrityError):
                 raise
-            raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+            raise StorageError(self._problem(exc)) from None
 
     def close(self) -> None:
         self.engine.dispose()
+
+    def _problem(self, exc: BaseException) -> str:
+        text = f"sweep storage {self.redacted}: {_first_line(exc)}"
+        if self.dialect != "sqlite" and "connect" in text.lower():  # a server that is down, elsewhere or misnamed
+            text += "; check the host, port, database name and credentials, and that the server is running"
+        return text
 
     # -- schema ------------------------------------------------------------------
     def exists(self) -> bool:
@@ -171,7 +179,7 @@ class SweepStore:
             with self.engine.connect() as conn:
                 return inspect(conn).has_table(TABLE)
         except SQLAlchemyError as exc:
-            raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+            raise StorageError(self._problem(exc)) from None
 
     def ensure_schema(self) -> None:
         """Create the table if missing; tolerate another machine creating it at the same moment."""
@@ -186,7 +194,7 @@ class SweepStore:
                 if self.exists():
                     return
                 if attempt == 4:
-                    raise StorageError(f"sweep storage {self.redacted}: {_first_line(exc)}") from None
+                    raise StorageError(self._problem(exc)) from None
                 time.sleep(0.2 * (attempt + 1))
 
     def db_now(self) -> float:
@@ -364,12 +372,13 @@ def _now_sql(dialect: str) -> str:
     raise BronchoError(f"storage.url: database {dialect!r} is not supported for sweeps (use sqlite or postgresql)")
 
 
-def _make_engine(url: str) -> Engine:
+def _make_engine(url: str, timeout_s: float) -> Engine:
     if url.startswith("sqlite"):
         engine = create_engine(url, connect_args={"timeout": SQLITE_BUSY_MS / 1000})
         _sqlite_events(engine)
         return engine
-    return create_engine(url, pool_pre_ping=True)
+    args = {"connect_timeout": max(2, math.ceil(timeout_s))} if urls.is_postgres(url) else {}
+    return create_engine(url, pool_pre_ping=True, connect_args=args)
 
 
 def _sqlite_events(engine: Engine) -> None:

@@ -25,7 +25,7 @@ from typing import Any, Callable, Mapping, Sequence
 import optuna
 from sqlalchemy.exc import SQLAlchemyError
 
-from .. import urls
+from .. import tracking, urls
 from ..cells import Cell
 from ..config import Config, TuneParam
 from ..errors import BronchoError, ConfigError
@@ -40,6 +40,7 @@ class TrialFailed(BronchoError):
     """A trial's run FAILED (e.g. a non-finite loss); the study records it and goes on."""
 
 
+OPTUNA_LOCK_KEY = tracking.MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation
 ATTR_RUN = "mlflow_run_id"
 ATTR_CELL = "cell"
 
@@ -63,11 +64,16 @@ def storage_for(cfg: Config):
     kwargs: dict[str, Any] = {}
     if url.startswith("sqlite"):
         kwargs = {"connect_args": {"timeout": 60}}
+    elif urls.is_postgres(url):  # an unreachable server fails within tracking.timeout_s
+        kwargs = {"connect_args": {"connect_timeout": tracking.connect_timeout(cfg.tracking.timeout_s)}}
     beat = max(1, int(cfg.sweep.heartbeat_s))
     make = partial(optuna.storages.RDBStorage, url, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
     try:
         db = urls.sqlite_file(url)
+        if urls.is_postgres(url):  # table creation must not race between machines either
+            with tracking.database_lock(url, cfg.tracking.timeout_s, "storage.url", key=OPTUNA_LOCK_KEY):
+                return make()
         if db is None:
             return make()
         db.parent.mkdir(parents=True, exist_ok=True)

@@ -63,7 +63,9 @@ def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
 
 
 def worker_id() -> str:
-    return f"{socket.gethostname()}:{os.getpid()}"
+    """``host:pid``, and the GPU the worker is pinned to (``host:pid gpu1``), as claims and status show it."""
+    gpu = os.environ.get("BRONCHOPOSE_WORKER_GPU")
+    return f"{socket.gethostname()}:{os.getpid()}" + (f" gpu{gpu}" if gpu else "")
 
 
 class ClaimLost(BronchoError):
@@ -360,6 +362,7 @@ class WorkerSpec:
     sweep: str | None = None
     parent_pid: int | None = None
     log_path: str | None = None
+    gpu: str | None = None  # this worker's GPU (its CUDA_VISIBLE_DEVICES); None: leave the environment alone
 
 
 def _redirect_output(path: str | None) -> None:
@@ -375,6 +378,9 @@ def _redirect_output(path: str | None) -> None:
 
 def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
     """Entry point of a worker process: run the loop, exit 0 (nothing left) or 130 (stopped)."""
+    if spec.gpu is not None:  # before anything imports torch: the run sees one device, cuda:0
+        os.environ["CUDA_VISIBLE_DEVICES"] = spec.gpu
+        os.environ["BRONCHOPOSE_WORKER_GPU"] = spec.gpu
     if spec.parent_pid is not None:
         os.setpgrp()  # a terminal Ctrl-C reaches the parent only; it stops the workers once, with SIGTERM
     _redirect_output(spec.log_path)
@@ -384,7 +390,7 @@ def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
     signals.install()
     code = EXIT_INTERRUPTED
     try:
-        store = SweepStore(spec.storage_url)
+        store = SweepStore(spec.storage_url, spec.cfg.tracking.timeout_s)
         code = Worker(spec.cfg, spec.cells, store, spec.runner, signals=signals, sweep=spec.sweep).run()
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED

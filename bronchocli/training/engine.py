@@ -21,7 +21,7 @@ from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
 from ..models import build_model
-from ..runlayout import cpu_threads
+from ..runlayout import cpu_threads, process_age_s
 from . import evaluate
 from .loop import FitResult, Settings, Trainer
 from .network import PoseRegressor
@@ -93,13 +93,26 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
                      on_validation: Callable[[int, dict[str, float]], None] | None = None,
                      on_step: Callable[[int, int], None] | None = None) -> Outcome:
     """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split."""
+    t_start = time.perf_counter()
     torch.set_num_threads(cpu_threads(cfg))
     device = device_for(cfg)
     seed_everything(cell.seed)
     net = build_network(cfg, cell, data, device)
     source = FrameSource(data.cache, device, cfg.data.frames_on_device)
+    first_step: dict[str, float] = {}
+
+    def stepped(step: int, total: int) -> None:
+        if not first_step:  # start-up as a user waits through it: imports, data, model, compilation, one step
+            first_step["run"] = time.perf_counter() - t_start
+            age = process_age_s()
+            if age is not None:
+                first_step["process"] = age
+        if on_step is not None:
+            on_step(step, total)
+
     trainer = Trainer(net, data.train, data.val, source, settings(cfg, cell, device), device=device,
-                      ckpt_dir=ckpt_dir, stop=stop, on_validation=on_validation, on_step=on_step)
+                      ckpt_dir=ckpt_dir, stop=stop, on_validation=on_validation, on_step=stepped,
+                      compile=cfg.train.compile)
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()
@@ -123,5 +136,10 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         "train.train_pairs": float(len(data.train) * data.train.n_pairs),
         "train.train_trajectories": float(len(data.split.train)),
         "best_val_loss": fit.best_val_loss if math.isfinite(fit.best_val_loss) else float("nan"),
+        "train.frames_on_device": float(source.resident),
     }
+    if "run" in first_step:
+        metrics["train.first_step_s"] = first_step["run"]  # from the engine's start (data already prepared)
+    if "process" in first_step:
+        metrics["train.process_first_step_s"] = first_step["process"]  # from the process's start
     return Outcome(metrics, fit, preds, table, net)

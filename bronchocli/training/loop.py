@@ -143,8 +143,10 @@ class Trainer:
     def __init__(self, net: PoseRegressor, train: Samples, val: Samples, source: FrameSource, s: Settings,
                  *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
                  on_validation: Callable[[int, dict[str, float]], None] | None = None,
-                 on_step: Callable[[int, int], None] | None = None) -> None:
+                 on_step: Callable[[int, int], None] | None = None, compile: bool = False) -> None:
         self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
+        # The compiled module shares the network's parameters; state dicts and checkpoints use ``net``.
+        self.forward = torch.compile(net) if compile else net
         self.device, self.ckpt_dir, self.stop = device, ckpt_dir, stop
         self.on_validation, self.on_step = on_validation, on_step
         samples_per_micro = max(1, s.micro_pairs // train.n_pairs)
@@ -191,7 +193,7 @@ class Trainer:
         n = labels.shape[1]
         for start in range(0, n, self.s.chunk):
             with self.autocast():
-                out, state = self.net(frames[:, start: start + self.s.chunk + 1], state)
+                out, state = self.forward(frames[:, start: start + self.s.chunk + 1], state)
             loss = self.net.loss(out.float(), labels[:, start: start + self.s.chunk], self.s.rot_loss,
                                  self.s.rot_weight)
             self.scaler.scale(loss / self.s.accum).backward()

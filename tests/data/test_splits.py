@@ -14,7 +14,7 @@ from tinydata import write_tiny_dataset
 from bronchocli import config
 from bronchocli.config import Splits
 from bronchocli.data.reader import open_dataset_dir
-from bronchocli.data.splits import POPULATIONS, make_split, personalized_counts, read_manifest
+from bronchocli.data.splits import POPULATIONS, limit_train, make_split, personalized_counts, read_manifest
 from bronchocli.errors import ConfigError, DataError
 
 CPU = Splits(train=4, val=1, test=1, cross_subject_val=1)
@@ -133,8 +133,6 @@ def test_same_split_in_another_process(ds, tmp_path):
 
 @pytest.mark.parametrize("population, fold", [("personalized", None), ("cross-subject", "p01")])
 def test_limit_train_keeps_nested_subsets_per_group_and_leaves_val_and_test(ds, population, fold):
-    from bronchocli.data.splits import limit_train
-
     split = make_split(ds, population, fold, CPU)
     assert limit_train(split, None, 0) is split
     full = per_group(split.train)

@@ -8,7 +8,7 @@ import sys
 from tinydata import write_tiny_dataset
 
 from bronchocli.config import Config, Generate
-from bronchocli.generation import ensure_dataset, needs_generation
+from bronchocli.generation import needs_generation
 from bronchocli.generation.sources import PatientSource, patient_sources, planned_patients, procedural_patient_id
 
 

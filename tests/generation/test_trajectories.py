@@ -13,6 +13,7 @@ from generator_refs import (
 
 from bronchocli import geometry
 from bronchocli.config import Generate
+from bronchocli.errors import DataError
 from bronchocli.generation.trajectories import (
     PathSampler,
     plan_lobe,
@@ -20,7 +21,6 @@ from bronchocli.generation.trajectories import (
     trajectory_rng,
     transported_ups,
 )
-from bronchocli.errors import DataError
 
 
 @pytest.fixture(scope="module")

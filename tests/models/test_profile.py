@@ -7,9 +7,9 @@ import json
 import pytest
 import torch
 
-from bronchocli.models import profile as profiling
 from bronchocli.errors import BronchoError
 from bronchocli.models import build_model
+from bronchocli.models import profile as profiling
 from bronchocli.models.backbones import EfficientNetB0Features, ResNet34
 
 CPU = torch.device("cpu")

@@ -14,6 +14,7 @@ from bronchocli.reporting import collect, tables
 from bronchocli.reporting.latex import escape, to_latex
 from bronchocli.reporting.layout import Column, Row, Table
 
+
 def _strip_comments(text: str) -> str:
     return "\n".join(re.sub(r"(?<!\\)%.*", "", line) for line in text.splitlines())
 

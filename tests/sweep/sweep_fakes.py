@@ -59,6 +59,7 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
     n_calls = len(list((d / "calls").glob(f"{cell.key}-*")))
     # The marker holds the storage URL the runner's config carries (tests check it has no password).
     (d / "calls" / f"{cell.key}-{os.getpid()}-{uuid.uuid4().hex[:6]}").write_text(cfg.storage.url)
+    (d / f"gpu-{cell.key}").write_text(os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
     client = tracking.client_for(cfg)
     exp = tracking.experiment_id(client, cfg)
     if resume:  # like run_cell: reopen the KILLED run

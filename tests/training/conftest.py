@@ -10,6 +10,7 @@ from tinyproject import write_config
 
 from bronchocli.config import load_config
 
+
 @pytest.fixture(scope="module")
 def tiny_project(tmp_path_factory) -> Path:
     """A folder with a 2-patient, 2-lobe, 3-trajectory dataset of 8 frames at 32 px and its config."""

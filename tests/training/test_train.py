@@ -6,6 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from run_metrics import EXPECTED
 
 from bronchocli import tracking
 from bronchocli.cells import ARCHS, ROT_LOSSES
@@ -13,16 +14,6 @@ from bronchocli.config import load_config
 from bronchocli.training.network import load_exported
 from bronchocli.training.run import run_cell
 
-METRIC_NAMES = ("pos_l2", "pos_l2_mm", "rot_l2", "de", "ce", "geodesic")
-PER_SOURCE = [f"{scope}.{m}.{s}" for scope in ("pair", "acc") for m in METRIC_NAMES for s in ("mean", "std")]
-EXPECTED = (
-    PER_SOURCE
-    + [f"{ref}.{k}" for ref in ("zero_motion", "train_mean") for k in PER_SOURCE]
-    + [f"traj.{m}.{s}" for m in ("ate", "ate_mm", "rpe_trans", "rpe_rot") for s in ("mean", "std")]
-    + ["test.n_pairs", "test.n_trajectories", "n_params", "best_val_loss", "pred.std.pos", "pred.std.rot",
-       "pred.std_ratio.pos", "pred.std_ratio.rot", "train.steps", "train.pairs_seen", "train.epochs",
-       "train.best_step", "train.pairs_per_s", "train.train_pairs"]
-)
 # Every architecture once and every loss at least once in CI; the full grid is `slow`.
 QUICK = [("baseline", "mse"), ("lstm", "de"), ("convlstm", "ce"), ("conv3d", "mse"), ("offsetnet", "de")]
 FULL = [(a, lo) for a in ARCHS for lo in ROT_LOSSES if (a, lo) not in QUICK]
