@@ -7,7 +7,7 @@ from typing import Optional
 import typer
 from rich.text import Text
 
-from . import __version__
+from . import __version__, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -18,7 +18,7 @@ from .commands import train as train_cmd
 from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
 from .commands.common import err_console
-from .errors import BronchoError
+from .errors import BronchoError, Interrupted
 
 app = typer.Typer(
     name="bronchopose",
@@ -66,7 +66,8 @@ def _root(
 
 
 def _error(message: str) -> None:
-    err_console.print(Text.assemble(("error: ", "bold red"), message), highlight=False, soft_wrap=True)
+    # Every message may quote a setting, and a URL setting may carry a password: never print it.
+    err_console.print(Text.assemble(("error: ", "bold red"), urls.redact(message)), highlight=False, soft_wrap=True)
 
 
 def _usage_error(exc: Exception) -> int:
@@ -84,6 +85,10 @@ def main(argv: list[str] | None = None) -> None:
     """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
         code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
+    except Interrupted as exc:
+        err_console.print(Text.assemble(("interrupted: ", "bold yellow"), urls.redact(str(exc))), highlight=False,
+                          soft_wrap=True)
+        raise SystemExit(exc.exit_code) from None
     except BronchoError as exc:
         _error(str(exc))
         raise SystemExit(exc.exit_code) from None

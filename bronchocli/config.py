@@ -106,12 +106,15 @@ class Generate(Section):
         return v
 
 
+CameraAxis = Literal["x", "y", "z", "-x", "-y", "-z"]
+
+
 class CsvColumns(Section):
     """Column names of a foreign pose CSV (``dataset.format: csv``)."""
 
     patient: str | None = "patient"  # None: one patient named after the file
     lobe: str | None = "lobe"  # None: a single lobe for every row
-    trajectory: str = "trajectory"
+    trajectory: str | None = "trajectory"  # None: one trajectory per patient and lobe
     frame: str | None = "frame"  # None: row order within the trajectory
     x: str = "x"
     y: str = "y"
@@ -119,7 +122,7 @@ class CsvColumns(Section):
     rx: str = "rx"  # the three angle columns, in the order of the axes in dataset.csv.euler
     ry: str = "ry"  # (e.g. euler ZYX: rx holds the Z angle, rz the X angle)
     rz: str = "rz"
-    filename: str = "filename"
+    filename: str | None = "filename"  # None: poses only (evaluating trajectories; training needs frames)
 
 
 class CsvImport(Section):
@@ -130,6 +133,15 @@ class CsvImport(Section):
     euler: str = "XYZ"  # SciPy convention of the angle columns (e.g. 'xyz' extrinsic, 'ZYX' intrinsic)
     position_units: Literal["voxel", "mm"] = "voxel"
     spacing_mm: tuple[float, float, float] = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
+    camera_forward: CameraAxis = "x"  # the imported camera's optical axis (OpenCV-style cameras: z)
+    camera_up: CameraAxis = "z"  # its image-up axis (OpenCV-style cameras, y pointing down: -y)
+
+    @model_validator(mode="after")
+    def _camera_axes(self) -> "CsvImport":
+        if self.camera_forward[-1] == self.camera_up[-1]:
+            raise ValueError(f"camera_forward ({self.camera_forward}) and camera_up ({self.camera_up}) must be "
+                             "different axes")
+        return self
 
     @field_validator("euler")
     @classmethod
@@ -480,7 +492,7 @@ def parse_override(text: str) -> tuple[str, Any]:
     """``key.path=value`` -> (path, YAML-parsed value)."""
     key, sep, raw = text.partition("=")
     if not sep or not re.fullmatch(r"[A-Za-z_][\w-]*(\.[\w-]+)*", key.strip()):
-        raise ConfigError(f"--set {text!r}: expected key.path=value, e.g. --set train.lr=3e-4")
+        raise ConfigError(urls.redact(f"--set {text!r}: expected key.path=value, e.g. --set train.lr=3e-4"))
     try:
         value = yaml.safe_load(raw) if raw.strip() else None
     except yaml.YAMLError:
@@ -508,13 +520,53 @@ def _line_index(node: yaml.Node, source: str, prefix: tuple = ()) -> dict[tuple,
     return where
 
 
-def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple, str]]:
+class _DuplicateKey(yaml.YAMLError):
+    def __init__(self, key: Any, line: int, first: int):
+        super().__init__(f"duplicate key {key!r}")
+        self.key, self.line, self.first = key, line, first
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, except that a key written twice in one mapping is an error (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: dict[Any, int] = {}
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # ``<<: *anchor`` may repeat and is overridden by design
+                continue
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node.start_mark.line + 1)
+            except TypeError:  # an unhashable key: the base class reports it
+                continue
+            if first != key_node.start_mark.line + 1:
+                raise _DuplicateKey(key, key_node.start_mark.line + 1, first)
+        return super().construct_mapping(node, deep)
+
+
+def _read_text(path: Path) -> str:
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
-    text = path.read_text(encoding="utf-8")
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the config ({exc.strerror or exc})") from None
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"{path}:{line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); save the config as "
+                          "UTF-8") from None
+
+
+def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple, str]]:
+    text = _read_text(path)
     try:
         node = yaml.compose(text)
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except _DuplicateKey as exc:
+        raise ConfigError(f"{path}:{exc.line}: duplicate key {exc.key!r} (first written at line {exc.first}); "
+                          "each key may appear once per section") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark else str(path)
@@ -561,8 +613,10 @@ def _format_errors(exc: ValidationError, source: str, lines: dict[tuple, str]) -
         where = next((lines[loc[:n]] for n in range(len(loc), -1, -1) if loc[:n] in lines), source)
         problems.append(f"{where}: {path}: {_describe(error)}")
     unique = list(dict.fromkeys(problems))
-    head = f"invalid config ({len(unique)} problem{'s' if len(unique) > 1 else ''}):"
-    return "\n".join([head, *("  " + p for p in unique)])
+    if len(unique) == 1:  # one problem, one line
+        return urls.redact(f"invalid config: {unique[0]}")  # a bad value may hold a URL password
+    head = f"invalid config ({len(unique)} problems):"
+    return urls.redact("\n".join([head, *("  " + p for p in unique)]))
 
 
 def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None) -> Config:
@@ -573,6 +627,15 @@ def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: P
     cfg._source, cfg._profile = source, profile
     cfg._paths = Paths.of(cfg, base)
     return cfg
+
+
+def _blame_override(lines: dict[tuple, str], key: tuple, where: str) -> None:
+    """Problems at or under an overridden key, and at sections it created, are the override's, not the file's."""
+    for k in [k for k in lines if k[: len(key)] == key]:
+        del lines[k]
+    lines[key] = where
+    for n in range(1, len(key)):
+        lines.setdefault(key[:n], where)
 
 
 def load_config(
@@ -596,7 +659,7 @@ def load_config(
     for text in overrides:
         key, value = parse_override(text)
         _set_path(raw, key, value, where=f"--set {text}")
-        lines[tuple(key.split("."))] = f"--set {text}"
+        _blame_override(lines, tuple(key.split(".")), f"--set {text}")
     return _validate(raw, str(path), lines, path.resolve().parent, profile)
 
 

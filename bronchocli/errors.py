@@ -15,3 +15,9 @@ class ConfigError(BronchoError):
 
 class DataError(BronchoError):
     """A dataset on disk is missing, malformed or inconsistent."""
+
+
+class Interrupted(BronchoError):
+    """Ctrl-C stopped a command cleanly; the message says how to continue (exit code 130)."""
+
+    exit_code = 130

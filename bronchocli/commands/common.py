@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -9,6 +10,7 @@ import typer
 from rich.console import Console
 
 from ..config import DEFAULT_CONFIG, Config, load_config
+from ..errors import BronchoError
 
 console = Console()
 err_console = Console(stderr=True)
@@ -27,3 +29,21 @@ SetOpt = Annotated[
 
 def load(config: Path = Path(DEFAULT_CONFIG), profile: str | None = None, overrides: list[str] | None = None) -> Config:
     return load_config(config, profile, overrides or ())
+
+
+def output_folder(path: Path, flag: str) -> Path:
+    """``path`` checked as a folder to write into (existing, or creatable); creates nothing.
+
+    BronchoError (one line) when it is a file, lies under a file, or its nearest existing folder is not writable.
+    """
+    path = path.expanduser()
+    if path.exists() and not path.is_dir():
+        raise BronchoError(f"{flag} {path}: is a file, not a folder; choose a folder path")
+    nearest = path
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise BronchoError(f"{flag} {path}: {nearest} is a file, so no folder can be created there")
+    if not os.access(nearest, os.W_OK | os.X_OK):
+        raise BronchoError(f"{flag} {path}: {nearest} is not writable by this user")
+    return path

@@ -11,7 +11,7 @@ import typer
 from rich.table import Table
 
 from ..config import DEFAULT_CONFIG, Config, parse_override
-from ..errors import BronchoError
+from ..errors import BronchoError, Interrupted
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -78,5 +78,9 @@ def generate(
         raise BronchoError(f"--out {root}: is a file, not a dataset folder; choose a folder path")
     already = (root / "dataset.json").is_file()
     start = time.perf_counter()
-    generate_dataset(cfg, root=root, workers=workers, progress=progress)
+    try:
+        generate_dataset(cfg, root=root, workers=workers, progress=progress)
+    except KeyboardInterrupt:
+        raise Interrupted(f"data generate stopped; the frames rendered so far are kept in {root}: run the same "
+                          "command again to resume") from None
     console.print(_summary(root, time.perf_counter() - start, already))

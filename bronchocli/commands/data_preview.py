@@ -7,7 +7,8 @@ from typing import Optional
 
 import typer
 
-from .common import console
+from ..errors import BronchoError
+from .common import console, output_folder
 
 
 def preview(
@@ -24,8 +25,11 @@ def preview(
 
     root = dataset.expanduser().resolve()
     target = out if out is not None else Path("reports") / f"{root.name}-montage.png"
+    if target.is_dir():
+        raise BronchoError(f"--out {target}: is a folder; give the montage's file name, e.g. {target / 'montage.png'}")
     if target.suffix.lower() not in (".png", ".pdf"):
         target = target.with_suffix(".png")
+    output_folder(target.parent, "--out")
     formats = ["png", "pdf"] if pdf else [target.suffix.lstrip(".").lower()]
     for path in draw(root, target, columns=columns, formats=formats):
         console.print(f"wrote {path}")

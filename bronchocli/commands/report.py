@@ -1,4 +1,4 @@
-"""`bronchopose report`: the paper's tables (Markdown + LaTeX) and figures from a sweep's MLflow runs."""
+"""`bronchopose report`: the paper's tables (Markdown + LaTeX) and figures from the config's MLflow runs."""
 
 from __future__ import annotations
 
@@ -10,14 +10,18 @@ import typer
 from ..cells import POSE_FRAMES
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load, output_folder
 
 
 def report(
-    table: str = typer.Option("all", "--table", "-t", help="personalized, cross-subject, sota, ablation or all."),
+    table: str = typer.Option("all", "--table", "-t", help="personalized, cross-subject, sota, ablation, frames "
+                              "or all."),
     evaluation: str = typer.Option("both", "--eval", "-e", help="accumulated, pair or both."),
     fmt: str = typer.Option("both", "--format", "-f", help="md, latex or both."),
-    sweep: Optional[str] = typer.Option(None, "--sweep", help="Sweep name (tag `sweep`); default: the config's name."),
+    sweep: Optional[str] = typer.Option(None, "--sweep", help="Report a stored sweep by name (tag `sweep`): all its "
+                                        "cell runs, not tied to the config's cells. Default: the config's cells."),
+    include_other_configs: bool = typer.Option(False, "--include-other-configs", help="Also use runs of the "
+                                               "config's sweep made under another config (other cell keys)."),
     out: Path = typer.Option(Path("reports"), "--out", "-o", help="Output directory."),
     pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"Only runs in this pose frame "
                                              f"({', '.join(POSE_FRAMES)}); needed when the sweep mixes them."),
@@ -38,23 +42,25 @@ def report(
     profile: ProfileOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Build the paper's tables and figures from the sweep's FINISHED runs and write them to --out.
+    """Build the paper's tables and figures from the FINISHED runs of the config's cells; write them to --out.
 
     Tables: personalized (Tables 2 accumulated / 3 per pair), cross-subject
-    (Tables 4/5, pooled over the pairs/trajectories of every held-out patient),
-    sota (Table 6, BronchoTrack vs OffsetNet) and ablation (params, latency,
-    GMAC, position L2, CE per architecture). Cells are "mean ± population std";
-    bold = best of its architecture group, red = best of the column, blue =
-    second best (Markdown: bold, italic † / ‡). A cell without a FINISHED run
-    shows "—" and is listed in a warning; of duplicate runs of one cell the
-    latest FINISHED is used, with a warning. Figures (PNG + PDF): trajectories
-    (ground truth vs BronchoTrack vs OffsetNet), error vs frame per
-    architecture, dataset frames and positions. See docs/reports.md.
+    (Tables 4/5), sota (Table 6, BronchoTrack vs OffsetNet), ablation (params,
+    latency, GMAC, position L2, CE per architecture) and frames (skill with
+    world vs camera labels, when the runs have both). Cells are "mean [95%
+    interval]" over seeds (two-level bootstrap over seeds and test
+    trajectories); bold = significantly best of its column (paired bootstrap
+    test, Holm, alpha 0.05), bold≈ = tied for best, † = no better than an
+    image-blind reference (the "Zero motion" and "Training mean" rows),
+    ‡ = the model ignores its input. Only runs whose cell_key is a cell of the
+    config count (--sweep NAME: a stored sweep without the config). Figures
+    (PNG + PDF): trajectories, error vs frame, skill per table, the learning
+    curve (several train_trajectories), dataset frames and positions.
+    See docs/reports.md.
     """
-    from ..reporting import collect  # lazy: keeps `bronchopose --help` fast
-    from ..reporting import report as rep
+    from ..reporting import report as rep  # lazy: keeps `bronchopose --help` fast
     from ..reporting import tables as tbl
-    from ..reporting.figures import mlflow_loader
+    from ..reporting.figures import errors_loader, mlflow_loader
     from ..reporting.markdown import to_rich
 
     names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
@@ -62,13 +68,16 @@ def report(
         raise BronchoError(f"--pose-frame {pose_frame!r}: must be one of {', '.join(POSE_FRAMES)}")
     if best < 0 or trajectories < 1:
         raise BronchoError("--best must be >= 0 and --trajectories >= 1")
+    output_folder(out, "--out")  # before minutes of work, not after
+    given_profiles = rep.profiles_from_json(latency_from) if latency_from is not None else None
     cfg = load(config, profile, set_)
     client = rep.open_store(cfg)
-    index = collect.collect_runs(client, cfg.experiment_name, sweep or cfg.name, pose_frame)
+    index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
     console.print(rep.summary_index(index))
-    ctx = tbl.ReportContext(index, best=best)
-    if latency_from is not None:
-        ctx.profiler = rep.profiles_from_json(latency_from)
+    ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client),
+                            default_train_trajectories=None if sweep else cfg.splits.train)
+    if given_profiles is not None:
+        ctx.profiler = given_profiles
     elif latency:
         measure = rep.measuring_profiler(image_size or rep.default_image_size(cfg), latency_device)
 
@@ -80,11 +89,15 @@ def report(
         ctx.profiler_note = "--no-latency"
     with_figures = table == "all" if figures is None else figures
     warnings: list[str] = []
-    result = rep.make_report(
-        ctx, names, evals, suffixes, out, loader=mlflow_loader(client, warnings) if with_figures else None,
-        n_trajectories=trajectories, dataset_root=cfg.paths.dataset if with_figures else None,
-        warnings=warnings,
-    )
+    try:
+        result = rep.make_report(
+            ctx, names, evals, suffixes, out, loader=mlflow_loader(client, warnings) if with_figures else None,
+            n_trajectories=trajectories, dataset_root=cfg.paths.dataset if with_figures else None,
+            warnings=warnings,
+        )
+    except OSError as exc:  # e.g. the disk filled up: each file is written atomically, none is left half-written
+        raise BronchoError(f"--out {out}: cannot write {exc.filename or 'the report'} ({exc.strerror or exc})"
+                           ) from None
     if not quiet:
         for t in result.tables:
             console.print(to_rich(t))

@@ -62,6 +62,7 @@ def sweep(
 
         cfg = apply_best(cfg, use_tuned)
     store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
     devices = placement.parse_gpus(gpus, placement.visible_gpus())
     workers = workers or placement.default_workers(devices, per_gpu)
     if dry_run:

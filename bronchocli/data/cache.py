@@ -8,6 +8,12 @@ fingerprint, the output size, the ordered frame file names and the cache
 format version, so a changed dataset or size gets a new file and an unchanged
 one is reused by every later epoch, run and process: PNGs are decoded once.
 
+A frame rewritten in place (same name, new pixels) does not change a recorded
+content fingerprint, so the sidecar ``.json`` also records every frame file's
+size and ``mtime_ns`` as they were before it was decoded; opening the cache
+stats every frame (about a second per 800k frames) and rebuilds it, with one
+warning naming the first changed file, when any differs.
+
 Building decodes with Pillow on a thread pool (Pillow releases the GIL while
 decoding), converts to RGB and, when the size differs from the dataset's,
 resizes with Pillow's antialiased bilinear filter. The array is written under
@@ -20,8 +26,12 @@ cache wait and then reuse it instead of decoding again. Without the lock
 
 from __future__ import annotations
 
+import base64
 import hashlib
+import json
+import logging
 import os
+import zlib
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -37,8 +47,9 @@ from ..errors import DataError
 from ..io import atomic_path, file_lock, write_json
 from .reader import Dataset
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: the sidecar records each frame file's size and mtime
 _CHUNK = 256  # frames per thread task
+log = logging.getLogger(__name__)
 
 
 def decode_frame(path: str, shape: tuple[int, int] | None) -> np.ndarray:
@@ -72,6 +83,9 @@ def input_size(image_size: int | None, dataset: Dataset) -> int:
 
 def open_frame_cache(cfg: Config, dataset: Dataset, progress: bool = True) -> FrameCache:
     """The frame cache for a run: ``data.image_size`` (default: the dataset's) under ``data.cache_dir``."""
+    if not dataset.has_frames:
+        raise DataError(f"{dataset.root}: a poses-only dataset (dataset.csv.columns.filename is null) has no frames "
+                        "to train on; name the image column in dataset.csv.columns.filename")
     return FrameCache.open_or_build(dataset, input_size(cfg.data.image_size, dataset), cfg.paths.cache,
                                     progress=progress, threads=cfg.data.workers or None)
 
@@ -131,19 +145,66 @@ class FrameCache:
         return arr.dtype == np.uint8 and tuple(arr.shape) == tuple(shape)
 
     @classmethod
+    def _stale(cls, path: Path, shape: tuple[int, ...], paths: Sequence[str]) -> str | None:
+        """None when the cache file is whole and every frame is as it was decoded; else why it must be built."""
+        if not cls._valid(path, shape):
+            return "missing"
+        recorded = _recorded_stats(path.with_suffix(".json"), len(paths))
+        if recorded is None:
+            return "unverifiable"
+        return first_changed(paths, recorded)
+
+    @classmethod
     def open_or_build(cls, dataset: Dataset, image_size: int | None, cache_dir: str | os.PathLike,
                       progress: bool = True, threads: int | None = None) -> FrameCache:
-        """The cache of ``dataset`` at ``image_size`` (None: the dataset's own size), built if missing."""
+        """The cache of ``dataset`` at ``image_size`` (None: the dataset's own size), built if missing or stale."""
         hw = resolve_image_size(image_size, dataset)
         shape = (dataset.n_frames, 3, *hw)
         cache_dir = Path(cache_dir)
         cache_dir.mkdir(parents=True, exist_ok=True)
         path = cache_dir / f"frames-{dataset.fingerprint[:12]}-{cache_key(dataset, hw)}-{hw[0]}x{hw[1]}.npy"
-        if not cls._valid(path, shape):
+        paths = dataset.frames["path"].tolist()
+        if cls._stale(path, shape, paths) is not None:
             with file_lock(path.with_suffix(".lock")):
-                if not cls._valid(path, shape):  # another process may have built it while we waited
+                why = cls._stale(path, shape, paths)  # another process may have built it while we waited
+                if why is not None:
+                    if why not in ("missing", "unverifiable"):
+                        log.warning("frame cache %s: %s changed since the cache was built; rebuilding it",
+                                    path.name, why)
                     _build(dataset, hw if image_size is not None else None, shape, path, progress, threads)
         return cls(path, shape)
+
+
+def frame_stats(paths: Sequence[str]) -> np.ndarray:
+    """``int64[n, 2]``: size and mtime_ns of each frame file (-1, -1 for a missing one)."""
+    out = np.full((len(paths), 2), -1, dtype=np.int64)
+    for i, p in enumerate(paths):
+        try:
+            st = os.stat(p)
+        except OSError:
+            continue
+        out[i] = st.st_size, st.st_mtime_ns
+    return out
+
+
+def first_changed(paths: Sequence[str], recorded: np.ndarray) -> str | None:
+    """The first frame whose size or mtime differs from ``recorded`` (or that is gone), or None."""
+    now = frame_stats(paths)
+    bad = np.flatnonzero((now != recorded).any(1))
+    return None if not len(bad) else str(paths[int(bad[0])])
+
+
+def _pack(stats: np.ndarray) -> str:
+    return base64.b64encode(zlib.compress(stats.astype("<i8").tobytes(), 1)).decode("ascii")
+
+
+def _recorded_stats(sidecar: Path, n: int) -> np.ndarray | None:
+    try:
+        meta = json.loads(sidecar.read_text(encoding="utf-8"))
+        raw = zlib.decompress(base64.b64decode(meta["frame_stats"]))
+        return np.frombuffer(raw, dtype="<i8").reshape(n, 2)
+    except (OSError, ValueError, KeyError, TypeError, zlib.error):  # absent, older format or damaged
+        return None
 
 
 def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | None, start: int) -> int:
@@ -162,6 +223,7 @@ def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | 
 def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, ...], path: Path,
            progress: bool, threads: int | None) -> None:
     paths = dataset.frames["path"].to_numpy()
+    stats = frame_stats(paths)  # before decoding: a frame rewritten during the build is caught next time
     with atomic_path(path) as tmp:
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
         pool = ThreadPoolExecutor(threads or min(8, os.cpu_count() or 1))
@@ -175,7 +237,9 @@ def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, .
         del out  # closes the memory map before the rename
     write_json(path.with_suffix(".json"), {
         "dataset": str(dataset.root), "fingerprint": dataset.fingerprint, "shape": list(shape),
-        "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION})
+        "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION,
+        "frame_stats_layout": "zlib + base64 of little-endian int64[n_frames, 2]: file size, mtime_ns",
+        "frame_stats": _pack(stats)})
 
 
 @contextmanager

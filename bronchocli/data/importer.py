@@ -41,6 +41,7 @@ from .reader import (
 )
 
 SINGLE_LOBE = "all"  # lobe name when dataset.csv.columns.lobe is null
+SINGLE_TRAJECTORY = "0"  # trajectory id when dataset.csv.columns.trajectory is null
 
 
 def csv_files(root: Path, cfg: CsvImport) -> list[Path]:
@@ -84,12 +85,32 @@ def _finite(raw: pd.DataFrame, names: list[str], path: Path) -> np.ndarray:
     return values
 
 
+def _axis(name: str) -> np.ndarray:
+    v = np.zeros(3)
+    v["xyz".index(name[-1])] = -1.0 if name.startswith("-") else 1.0
+    return v
+
+
+def camera_axes(forward: str, up: str) -> np.ndarray:
+    """``P``: our camera axes (x forward, y left, z up) as columns, in the imported camera's frame.
+
+    An imported orientation ``R_imp`` (columns: the imported camera's axes in the
+    world) becomes ours as ``R_imp @ P``; P is a rotation (y = z × x keeps it right-handed).
+    """
+    f, u = _axis(forward), _axis(up)
+    return np.column_stack([f, np.cross(u, f), u])
+
+
 def convert_angles(angles: np.ndarray, cfg: CsvImport) -> np.ndarray:
-    """Angles ``(N, 3)`` in ``cfg.euler`` / ``cfg.angle_units`` -> intrinsic XYZ Euler degrees."""
+    """Angles ``(N, 3)`` in ``cfg.euler`` / ``cfg.angle_units`` of a camera whose axes are
+    ``cfg.camera_forward`` / ``cfg.camera_up`` -> our camera's intrinsic XYZ Euler degrees."""
     degrees = cfg.angle_units == "deg"
-    if cfg.euler == "XYZ":  # already our convention: only the units may differ
+    same_axes = (cfg.camera_forward, cfg.camera_up) == ("x", "z")
+    if cfg.euler == "XYZ" and same_axes:  # already our convention: only the units may differ
         return angles if degrees else np.degrees(angles)
     matrices = Rotation.from_euler(cfg.euler, angles, degrees=degrees).as_matrix()
+    if not same_axes:
+        matrices = matrices @ camera_axes(cfg.camera_forward, cfg.camera_up)
     return geometry.matrix_to_euler(matrices)
 
 
@@ -117,7 +138,7 @@ def read_table(path: Path, root: Path, cfg: CsvImport) -> pd.DataFrame:
     table = pd.DataFrame({
         "patient": _ids(raw, c.patient, file_patient_id(path.stem), path, "patient"),
         "lobe": _ids(raw, c.lobe, SINGLE_LOBE, path, "lobe"),
-        "trajectory": _ids(raw, c.trajectory, "", path, "trajectory"),
+        "trajectory": _ids(raw, c.trajectory, SINGLE_TRAJECTORY, path, "trajectory"),
     })
     if c.frame is None:  # row order within each trajectory
         table["frame"] = table.groupby(["patient", "lobe", "trajectory"], sort=False).cumcount().astype(np.int64)
@@ -127,9 +148,11 @@ def read_table(path: Path, root: Path, cfg: CsvImport) -> pd.DataFrame:
     ang = convert_angles(_finite(raw, [c.rx, c.ry, c.rz], path), cfg)
     for name, values in zip(POSE_COLUMNS, np.column_stack([pos, ang]).T):
         table[name] = values
-    table["filename"] = _ids(raw, c.filename, "", path, "filename")
-    frames_dir = (root / cfg.frames).resolve()
-    table["path"] = join_paths(frames_dir, table["filename"])
+    if c.filename is None:  # poses only: no frame files
+        table["filename"] = table["path"] = ""
+    else:
+        table["filename"] = _ids(raw, c.filename, "", path, "filename")
+        table["path"] = join_paths((root / cfg.frames).resolve(), table["filename"])
     table["source"], table["line"] = str(path), np.arange(len(raw)) + 2  # line 1 is the header
     return table
 
@@ -160,10 +183,13 @@ def import_csv(root: str | os.PathLike, cfg: CsvImport) -> Dataset:
     files = csv_files(root, cfg)
     table = pd.concat([read_table(f, root, cfg) for f in files], ignore_index=True)
     patients = sorted(table["patient"].unique(), key=natural_key)
-    frames, trajectories = assemble(table, patients)
+    has_frames = cfg.columns.filename is not None
+    frames, trajectories = assemble(table, patients, check_files=has_frames)
     settings = json.dumps(cfg.model_dump(mode="json"), sort_keys=True).encode()
-    fingerprint = stat_fingerprint([settings, *(f.read_bytes() for f in files)], frames["path"], root)
+    fingerprint = stat_fingerprint([settings, *(f.read_bytes() for f in files)],
+                                   frames["path"] if has_frames else [], root)
     meta = {"format": "csv", "files": [str(f) for f in files], "import": cfg.model_dump(mode="json")}
     return Dataset(root=root, format="csv", patients=patients, lobes=lobe_order(frames["lobe"].unique()),
-                   frame_shape=_frame_shape(frames["path"].iat[0]), fingerprint=fingerprint, frames=frames,
-                   trajectories=trajectories, spacing={p: tuple(cfg.spacing_mm) for p in patients}, meta=meta)
+                   frame_shape=_frame_shape(frames["path"].iat[0]) if has_frames else (0, 0),
+                   fingerprint=fingerprint, frames=frames, trajectories=trajectories,
+                   spacing={p: tuple(cfg.spacing_mm) for p in patients}, meta=meta, has_frames=has_frames)

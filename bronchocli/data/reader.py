@@ -82,6 +82,7 @@ class Dataset:
     trajectories: list[Trajectory]
     spacing: dict[str, tuple[float, float, float]]  # patient -> voxel size in mm
     meta: dict[str, Any] = field(default_factory=dict)  # dataset.json (or what the importer knows)
+    has_frames: bool = True  # False: an imported poses-only dataset (trajectories to evaluate, nothing to train on)
 
     @property
     def image_size(self) -> int | None:
@@ -231,7 +232,8 @@ def join_paths(base: Path, names: pd.Series) -> list[str]:
     return out
 
 
-def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None) -> tuple[pd.DataFrame, list[Trajectory]]:
+def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None,
+             check_files: bool = True) -> tuple[pd.DataFrame, list[Trajectory]]:
     """Validate a normalised frames table and cut it into trajectories.
 
     ``table`` has FRAME_COLUMNS plus ``source`` (file) and ``line`` (1-based
@@ -245,7 +247,8 @@ def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None) -> tupl
     table = _sort(table, patients)
     starts = _group_starts(table)
     _check_groups(table, starts)
-    _check_files(table)
+    if check_files:
+        _check_files(table)
     poses = table[list(POSE_COLUMNS)].to_numpy(np.float64)
     paths = table["path"].to_numpy()
     ids = {c: table[c].to_numpy(object)[starts[:-1]] for c in ("patient", "lobe", "trajectory")}

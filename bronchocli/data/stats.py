@@ -43,7 +43,7 @@ def overview(dataset: Dataset) -> dict[str, str]:
         "lobes": ", ".join(dataset.lobes),
         "trajectories": str(len(dataset.trajectories)),
         "frames": str(dataset.n_frames),
-        "image size": f"{w}x{h}",
+        "image size": f"{w}x{h}" if dataset.has_frames else "none (poses only)",
         "fingerprint": dataset.fingerprint,
     }
 

@@ -10,6 +10,8 @@ the dataset exists.
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from ..config import Config
@@ -20,10 +22,21 @@ def needs_generation(cfg: Config) -> bool:
     return cfg.dataset.format == "bronchopose" and not (cfg.paths.dataset / DATASET_JSON).is_file()
 
 
-def ensure_dataset(cfg: Config, progress: bool = True) -> Path:
-    """The configured dataset root, rendered first when it is a ``bronchopose`` dataset without dataset.json."""
+def ensure_dataset(cfg: Config, progress: bool = True, note: Callable[[str], None] | None = None) -> Path:
+    """The configured dataset root, rendered first when it is a ``bronchopose`` dataset without dataset.json.
+
+    When the folder does not exist at all, ``note`` (default: stderr) is told first, in one line: a mistyped
+    ``dataset.root`` would otherwise silently start a long generation.
+    """
     if needs_generation(cfg):
         from .pipeline import generate_dataset  # lazy: VTK loads only when there is rendering to do
 
+        if not cfg.paths.dataset.exists():
+            (note or _stderr)(f"dataset.root {cfg.paths.dataset} does not exist: generating a new dataset there "
+                              "from dataset.generate (if you meant an existing dataset, fix dataset.root)")
         generate_dataset(cfg, progress=progress)
     return cfg.paths.dataset
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)

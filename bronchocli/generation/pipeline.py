@@ -23,7 +23,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -162,6 +166,21 @@ def _write_surface(tree, gen: Generate, source: PatientSource, path: Path) -> No
 # -- execution: in-process or a pool of spawned workers -------------------------------------
 
 
+@contextmanager
+def _children_ignore_sigint() -> Iterator[None]:
+    """Workers spawned in this block ignore SIGINT from their first instruction (an ignored signal stays ignored
+    across exec, and Python then installs no KeyboardInterrupt handler): a terminal's Ctrl-C reaches the whole
+    process group, and only the parent should act on it."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class _Runner:
     """Runs tasks in this process (workers=1) or in spawned processes, each with its own VTK context."""
 
@@ -176,10 +195,21 @@ class _Runner:
     def map(self, fn, *iterables) -> list:
         if self.pool is None:
             return [fn(*args) for args in zip(*iterables)]
-        return list(self.pool.map(fn, *iterables))
+        with _children_ignore_sigint():
+            results = self.pool.map(fn, *iterables)  # submits (and spawns workers) now, results come later
+        return list(results)
 
-    def close(self) -> None:
+    def submit(self, fn, *args):
+        with _children_ignore_sigint():
+            return self.pool.submit(fn, *args)
+
+    def close(self, abort: bool = False) -> None:
+        """Stop the pool; with ``abort`` (Ctrl-C, an error) without waiting for the trajectories being rendered:
+        their finished frames are on disk (written atomically) and a re-run renders the rest."""
         if self.pool is not None:
+            if abort:
+                for proc in list((self.pool._processes or {}).values()):  # noqa: SLF001 - no public way to stop them
+                    proc.terminate()
             self.pool.shutdown(wait=True, cancel_futures=True)
         close_renderer()
 
@@ -215,7 +245,7 @@ def _render_all(runner: _Runner, tasks: list[RenderTask], work: Path, progress: 
             for i in pending:
                 finish(i, run_task(tasks[i], on_frame=lambda rendered: bar.advance(int(rendered)))[0])
         else:
-            futures = {runner.pool.submit(run_task, tasks[i]): i for i in pending}
+            futures = {runner.submit(run_task, tasks[i]): i for i in pending}
             for fut in as_completed(futures):
                 digests, rendered = fut.result()
                 finish(futures[fut], digests)
@@ -246,12 +276,24 @@ def generate_dataset(cfg: Config, *, root: Path | None = None, workers: int | No
     record = {**gen.model_dump(mode="json"), "anatomy": sources[0].anatomy, "centreline": sources[0].centreline}
     if _check_root(root, record) == "complete":
         return root
+    created = not root.exists()
     with _exclusive(root):
         state = _check_root(root, record)  # again: another process may have worked here while we waited
         if state != "complete":
-            _generate(root, gen, sources, record, workers or gen.workers, progress, callback,
-                      fresh=state == "fresh")
+            try:
+                _generate(root, gen, sources, record, workers or gen.workers, progress, callback,
+                          fresh=state == "fresh")
+            except BaseException:
+                if created:
+                    _remove_stub(root)
+                raise
     return root
+
+
+def _remove_stub(root: Path) -> None:
+    """A generation that failed before rendering any frame leaves no folder behind (nothing to resume)."""
+    if not any(root.rglob("*.png")):
+        shutil.rmtree(root, ignore_errors=True)
 
 
 def _generate(root: Path, gen: Generate, sources: list[PatientSource], record: dict, workers: int, progress: bool,
@@ -263,12 +305,14 @@ def _generate(root: Path, gen: Generate, sources: list[PatientSource], record: d
     write_json(work / MANIFEST, {"generator_version": GENERATOR_VERSION, "generator": record})
     remove_stale_temps(root)
     runner = _Runner(workers)
+    done = False
     try:
         plans = runner.map(prepare_patient, sources, [gen] * len(sources), [str(root)] * len(sources))
         tasks = _tasks(plans, root, gen)
         digests = _render_all(runner, tasks, work, progress, callback)
+        done = True
     finally:
-        runner.close()
+        runner.close(abort=not done)
     _finish(root, gen, record, plans, tasks, digests)
 
 

@@ -13,6 +13,7 @@ generator's progress bar.
 from __future__ import annotations
 
 import os
+import signal
 import time
 from dataclasses import dataclass
 from typing import Callable, Iterable, Protocol
@@ -64,7 +65,12 @@ _CURRENT: dict = {}  # {"key": (surface, width, fov, realism), "renderer": Frame
 
 
 def init_worker(threads: int | None) -> None:
-    """Process-pool initializer: bound the software rasteriser's threads so workers do not oversubscribe."""
+    """Process-pool initializer: bound the software rasteriser's threads so workers do not oversubscribe.
+
+    A terminal's Ctrl-C reaches the whole process group: workers ignore it and
+    the parent stops them (no traceback from every worker).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if threads:
         os.environ.setdefault("LP_NUM_THREADS", str(threads))
 

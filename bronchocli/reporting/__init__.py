@@ -1,15 +1,17 @@
-"""The paper's tables and figures from a sweep's MLflow runs (`bronchopose report`).
+"""The paper's tables and figures from the MLflow runs of a config's cells (`bronchopose report`).
 
-collect (one batched MLflow query, one run per cell) -> aggregate (pooling over
-folds/seeds) -> tables (name -> builder registry) -> model (formatting,
-highlighting) -> markdown / latex renderers; figures from predictions.csv
-artifacts. See docs/reports.md.
+scope (the config's cells, stages and recorded selections) -> collect (one
+batched MLflow query, one run per cell) -> aggregate (replicates and
+per-trajectory samples) -> stats (two-level bootstrap, paired tests, Holm) ->
+judge (intervals, reference rows, marks, skill) -> tables (name -> builder
+registry) -> markdown / latex renderers; figures from predictions.csv and the
+tables (skill, learning curve). See docs/reports.md.
 """
 
 from .collect import RunIndex, RunRecord, collect_runs, index_runs
-from .layout import Table
-from .report import ReportResult, make_report
+from .layout import Estimate, Table
+from .report import ReportResult, collect_index, make_report
 from .tables import TABLES, ReportContext
 
-__all__ = ["RunIndex", "RunRecord", "collect_runs", "index_runs", "Table", "ReportResult", "make_report",
-           "TABLES", "ReportContext"]
+__all__ = ["RunIndex", "RunRecord", "collect_runs", "index_runs", "Estimate", "Table", "ReportResult",
+           "collect_index", "make_report", "TABLES", "ReportContext"]

@@ -21,6 +21,7 @@ import pandas as pd
 from PIL import Image
 
 from ..data.layout import DATASET_JSON
+from ..data.reader import open_dataset_dir
 from ..errors import DataError
 from ..io import read_polydata, save_figure
 
@@ -136,8 +137,12 @@ def positions_figure(root: Path, *, patients: Sequence[str] | None = None, max_p
 
 
 def preview(root: Path, out: Path, *, columns: int = 6, formats: Sequence[str] = ("png",)) -> list[Path]:
-    """Write the montage to ``out`` and the positions plot beside it (``<stem>-positions``)."""
+    """Write the montage to ``out`` and the positions plot beside it (``<stem>-positions``).
+
+    The dataset is validated first, as training reads it: a bad row is one DataError naming its file and line.
+    """
     out = Path(out)
+    open_dataset_dir(root)
     written = save_figure(montage_figure(root, columns=columns), out, formats, dpi=120)
     written += save_figure(positions_figure(root), out.with_name(f"{out.stem}-positions{out.suffix}"), formats,
                            dpi=120)

@@ -1,6 +1,7 @@
 """Report figures from the runs' ``predictions.csv`` artifacts (PNG + PDF, written atomically).
 
-* ``fig5-trajectories``: ground truth vs BronchoTrack (ConvLSTM + MSE+CE) vs
+* ``fig5-trajectories``: ground truth vs BronchoTrack (the sota stage's
+  selection, else ConvLSTM + MSE+CE) vs
   OffsetNet (MSE+MSE), 3-D in voxel axes, for chosen test trajectories (the
   paper's Figure 5); personalized runs.
 * ``fig-error-position`` / ``fig-error-rotation``: per architecture (its
@@ -17,6 +18,8 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from urllib.parse import urlparse
+from urllib.request import url2pathname
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
@@ -26,8 +29,9 @@ from .. import metrics
 from ..cells import LOBES
 from ..io import save_figure
 from ..plots import error_curve_figure, trajectory_figure
+from .aggregate import ERRORS_CSV, read_errors
 from .collect import RunIndex, RunRecord
-from .tables import ABLATION_LOSS, ARCH_NAMES, BRONCHOTRACK, LOSSES, OFFSETNET
+from .context import ABLATION_LOSS, ARCH_NAMES, LOSSES, OFFSETNET, bronchotrack
 
 POSE = ("x", "y", "z", "rx", "ry", "rz")
 KEY = ("patient", "lobe", "trajectory")
@@ -41,20 +45,50 @@ def read_predictions(path: Path):
     return pd.read_csv(path, dtype={k: str for k in KEY})
 
 
-def mlflow_loader(client, warnings: list[str]) -> Loader:
-    """Loader downloading each run's ``predictions.csv`` artifact; a missing one becomes a warning."""
+def local_artifact(run: RunRecord, name: str) -> Path | None:
+    """Where a run's artifact ``name`` lies when its artifact store is a local folder (None otherwise)."""
+    uri = run.artifact_uri
+    if uri.startswith("file:"):
+        return Path(url2pathname(urlparse(uri).path)) / name
+    if uri and "://" not in uri:
+        return Path(uri) / name
+    return None
+
+
+def artifact_loader(client, name: str, read: Callable[[Path], object], warnings: list[str] | None,
+                    what: str = "figures") -> Loader:
+    """Loader downloading one artifact of each run and reading it; a missing one is None (and a warning when
+    ``warnings`` is given)."""
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # no tqdm bar per download
 
     def load(run: RunRecord):
+        local = local_artifact(run, name)
+        if local is not None:  # a file store: read in place (a download costs ~30 ms a run)
+            if local.is_file():
+                return read(local)
+            if warnings is not None:
+                warnings.append(f"{what}: run {run.run_id} ({run.label}) has no {name} artifact")
+            return None
         with tempfile.TemporaryDirectory() as tmp:
             try:
-                path = client.download_artifacts(run.run_id, "predictions.csv", tmp)
-            except Exception as exc:  # noqa: BLE001 - any store error means "no predictions for this run"
-                warnings.append(f"figures: run {run.run_id} ({run.label}) has no predictions.csv artifact "
-                                f"({type(exc).__name__})")
+                path = client.download_artifacts(run.run_id, name, tmp)
+            except Exception as exc:  # noqa: BLE001 - any store error means "no such artifact for this run"
+                if warnings is not None:
+                    warnings.append(f"{what}: run {run.run_id} ({run.label}) has no {name} artifact "
+                                    f"({type(exc).__name__})")
                 return None
-            return read_predictions(Path(path))
+            return read(Path(path))
     return load
+
+
+def mlflow_loader(client, warnings: list[str]) -> Loader:
+    """Loader of each run's ``predictions.csv`` artifact; a missing one becomes a warning."""
+    return artifact_loader(client, "predictions.csv", read_predictions, warnings)
+
+
+def errors_loader(client) -> Loader:
+    """Loader of each run's ``trajectory_errors.csv`` (the tables say which rows lack it, once per table)."""
+    return artifact_loader(client, ERRORS_CSV, read_errors, None)
 
 
 def trajectory_keys(df) -> list[Key]:
@@ -127,7 +161,8 @@ def make_figures(index: RunIndex, load: Loader, out: Path, n_trajectories: int, 
     written: list[Path] = []
     cache: dict[str, object] = {}
     load = _cached(load, cache)
-    chosen = {"BronchoTrack": _first_run(index, *BRONCHOTRACK), "OffsetNet": _first_run(index, *OFFSETNET)}
+    arch, loss, _ = bronchotrack(index)
+    chosen = {"BronchoTrack": _first_run(index, arch, loss), "OffsetNet": _first_run(index, *OFFSETNET)}
     models = {name: df for name, run in chosen.items() if run is not None and (df := load(run)) is not None}
     for name in chosen.keys() - models.keys():
         warnings.append(f"figures: fig5-trajectories has no {name} curve (no FINISHED personalized run with "

@@ -1,17 +1,18 @@
-"""LaTeX rendering of a ``model.Table``: a standalone document that compiles with pdflatex.
+"""LaTeX rendering of a ``layout.Table``: a standalone document that compiles with pdflatex.
 
 The document needs only packages of Debian's texlive-latex-base and
 texlive-latex-recommended (booktabs, xcolor, geometry). The ``table``
 environment between the ``% --- table`` markers can be pasted into a paper that
-loads booktabs and xcolor. Marks: \\textbf = best of its architecture group,
-\\textcolor{red} = best of the column, \\textcolor{blue} = second best.
-Warnings go into the file as comments.
+loads booktabs. Marks: \\textbf = the column's significant best; \\textbf with
+$\\approx$ = tied for best; $\\dagger$ = does not beat the better image-blind
+reference; $\\ddagger$ after a label = ignores its input. Warnings go into the
+file as comments.
 """
 
 from __future__ import annotations
 
 from .layout import MISSING, Table, cell_texts, marks
-from .markdown import label_cells, run_lines
+from .markdown import label_cells, legend_parts, run_lines
 
 _SPECIAL = {
     "\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
@@ -21,7 +22,8 @@ _UNICODE = {
     "±": r"\ensuremath{\pm}", "°": r"\ensuremath{^\circ}", "—": "---", "–": "--", "−": r"\ensuremath{-}",
     "σ": r"\ensuremath{\sigma}", "μ": r"\ensuremath{\mu}", "Σ": r"\ensuremath{\Sigma}", "²": r"\ensuremath{^{2}}",
     "×": r"\ensuremath{\times}", "†": r"\ensuremath{^\dagger}", "‡": r"\ensuremath{^\ddagger}",
-    "’": "'", "‘": "`", "“": "``", "”": "''",
+    "≈": r"\ensuremath{\approx}", "≥": r"\ensuremath{\geq}", "≤": r"\ensuremath{\leq}", "·": r"\ensuremath{\cdot}",
+    "Δ": r"\ensuremath{\Delta}", "’": "'", "‘": "`", "“": "``", "”": "''",
 }
 
 PREAMBLE = r"""\documentclass{article}
@@ -43,30 +45,25 @@ def _cell(text: str, mark: set[str]) -> str:
     out = escape(text)
     if text == MISSING:
         return out
-    if "group" in mark:
+    if mark & {"best", "tie"}:
         out = rf"\textbf{{{out}}}"
-    if "best" in mark:
-        out = rf"\textcolor{{red}}{{{out}}}"
-    elif "second" in mark:
-        out = rf"\textcolor{{blue}}{{{out}}}"
+    if "tie" in mark:
+        out += escape("≈")
+    if "noskill" in mark:
+        out += escape("†")
     return out
 
 
 def _legend(table: Table) -> str:
-    parts = []
-    if table.grouped:
-        parts.append(r"\textbf{bold}: best of its architecture group")
-    if any(c.highlight for c in table.columns):
-        parts += [r"\textcolor{red}{red}: best of the column", r"\textcolor{blue}{blue}: second best"]
-    parts.append("---: no FINISHED run")
-    return "; ".join(parts) + "."
+    return "; ".join(escape(p).replace(escape("**bold**"), r"\textbf{bold}")
+                     for p in legend_parts(table, "**bold**")) + "."
 
 
 def _body(table: Table) -> list[str]:
     texts, mk = cell_texts(table), marks(table)
     lines = []
     for i, (labels, row_texts, row_marks) in enumerate(zip(label_cells(table), texts, mk)):
-        if table.grouped and i > 0 and labels[0]:
+        if i > 0 and ((table.grouped and labels[0]) or (table.rows[i].kind != table.rows[i - 1].kind)):
             lines.append(r"\midrule")
         cells = [escape(x) for x in labels] + [_cell(t, m) for t, m in zip(row_texts, row_marks)]
         lines.append(" & ".join(cells) + r" \\")
@@ -82,7 +79,7 @@ def _runs(table: Table) -> str:
 
 
 def table_environment(table: Table) -> str:
-    """The ``table`` float alone (booktabs + xcolor), ready to paste into a paper."""
+    """The ``table`` float alone (booktabs), ready to paste into a paper."""
     spec = "l" * len(table.headers) + "r" * len(table.columns)
     head = [escape(h) for h in table.headers] + [escape(c.heading) for c in table.columns]
     lines = [r"\begin{table}[ht]", r"\centering", r"\small", r"\setlength{\tabcolsep}{4pt}",
@@ -100,7 +97,7 @@ def table_environment(table: Table) -> str:
 def to_latex(table: Table) -> str:
     """A standalone document holding ``table_environment(table)``; warnings as comments."""
     head = [f"% {escape(table.title)} -- written by `bronchopose report`; compile with pdflatex.",
-            "% Needs booktabs and xcolor; the table environment between the markers can be pasted into a paper."]
+            "% Needs booktabs; the table environment between the markers can be pasted into a paper."]
     head += [f"% warning: {' '.join(w.splitlines())}" for w in table.warnings]
     return "\n".join(head) + "\n" + PREAMBLE + "% --- table begins\n" + table_environment(table) + \
         "\n% --- table ends\n\\end{document}\n"

@@ -1,35 +1,37 @@
-"""The table model every renderer shares: columns, grouped rows, number formatting, highlighting.
+"""The table model every renderer shares: columns, grouped rows, number formatting, marks.
 
-Highlighting follows the paper. Within a column marked ``highlight`` (the
-error metrics; lower is better for all of them):
+A value cell is an :class:`Estimate` (mean with its 95 % interval), a plain
+number (params, latency), a text, or ``None`` (missing: shown as ``—``).
+The statistical marks are decided by the table builders (``judge.py``) and
+stored on the table; renderers only style them:
 
-* ``group``: best value of its architecture group (bold), only where the group
-  has at least two values in that column;
-* ``best``: best value of the whole column (red), ``second``: the next best
-  distinct value (blue), only where the column has at least two values.
+* ``best``: the column's best row, significantly better than every other row;
+* ``tie``: one of the rows not significantly different from the column's best
+  (the tied-best group; no single best is claimed);
+* ``noskill``: the row does not beat the better image-blind reference.
 
-Values are ranked as displayed (after rounding to the column's decimals), so
-cells that print the same number get the same mark.
+A row flag ``ignores`` marks a model whose predictions hardly vary (it ignores
+its input). Reference rows (``kind="reference"``) are never ranked.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
-
-from ..metrics import Stat
+from typing import Any, Sequence
 
 MISSING = "—"
-SIGNIFICANT = 3  # significant digits of the column's smallest |mean|; mean and std share its decimals
+TIE, NOSKILL, IGNORES = "≈", "†", "‡"
+SIGNIFICANT = 3  # significant digits of the column's smallest |mean|; interval bounds share its decimals
 MAX_DECIMALS = 8
+MARKS = ("best", "tie", "noskill")
 
 
 @dataclass(frozen=True)
 class Column:
     title: str
     unit: str = ""  # shown after the title, e.g. "vox"
-    highlight: bool = True  # rank this column (lower is better)
+    highlight: bool = True  # an error column: judged (lower is better)
     decimals: int | None = None  # fixed decimals; None: from the values (SIGNIFICANT digits)
 
     @property
@@ -37,7 +39,20 @@ class Column:
         return f"{self.title} ({self.unit})" if self.unit else self.title
 
 
-Value = Stat | float | None  # Stat: "mean ± std"; float: a plain number; None: missing
+@dataclass(frozen=True)
+class Estimate:
+    """A table value: mean and its interval (None: no interval, e.g. a run without per-trajectory errors)."""
+
+    mean: float
+    lo: float | None = None
+    hi: float | None = None
+
+    @property
+    def has_interval(self) -> bool:
+        return self.lo is not None and self.hi is not None
+
+
+Value = Estimate | float | str | None
 
 
 @dataclass
@@ -46,6 +61,13 @@ class Row:
     label: str  # e.g. the loss "MSE+CE"
     values: list[Value]
     runs: list[str] = field(default_factory=list)  # MLflow run ids behind the row
+    kind: str = "model"  # "model" or "reference" (image-blind; never ranked)
+    flags: set[str] = field(default_factory=set)  # {"ignores"}
+    info: dict[str, Any] = field(default_factory=dict)  # what the builder knows (n, samples), not rendered
+
+    @property
+    def name(self) -> str:
+        return f"{self.group} {self.label}".strip()
 
 
 @dataclass
@@ -57,6 +79,9 @@ class Table:
     rows: list[Row]
     caption: str = ""
     warnings: list[str] = field(default_factory=list)
+    marks: list[list[set[str]]] | None = None  # rows x columns, from the builder
+    skill: dict[str, dict[str, Any]] = field(default_factory=dict)  # row name -> metric -> stats.Derived
+    judged: bool = False  # the statistical legend applies
 
     @property
     def grouped(self) -> bool:
@@ -73,10 +98,10 @@ class Table:
         return out
 
 
-def _center(value: Value) -> float | None:
-    if value is None:
+def center(value: Value) -> float | None:
+    if value is None or isinstance(value, str):
         return None
-    v = value.mean if isinstance(value, Stat) else float(value)
+    v = value.mean if isinstance(value, Estimate) else float(value)
     return None if math.isnan(v) else v
 
 
@@ -84,70 +109,52 @@ def column_decimals(table: Table, j: int) -> int:
     col = table.columns[j]
     if col.decimals is not None:
         return col.decimals
-    values = [abs(v) for r in table.rows if (v := _center(r.values[j])) is not None and v != 0]
+    values = [abs(v) for r in table.rows if (v := center(r.values[j])) is not None and v != 0]
     if not values:
         return 2
     return max(0, min(MAX_DECIMALS, SIGNIFICANT - 1 - math.floor(math.log10(min(values)))))
 
 
-def format_value(value: Value, decimals: int, pm: str = "±") -> str:
-    if _center(value) is None:
+def format_value(value: Value, decimals: int) -> str:
+    if isinstance(value, str):
+        return value
+    if center(value) is None:
         return MISSING
-    if isinstance(value, Stat):
-        return f"{value.mean:.{decimals}f} {pm} {value.std:.{decimals}f}"
-    return f"{float(value):.{decimals}f}"
+    if isinstance(value, Estimate):
+        text = f"{value.mean:.{decimals}f}"
+        if value.has_interval:
+            text += f" [{value.lo:.{decimals}f}, {value.hi:.{decimals}f}]"
+        return text
+    return f"{float(value):.{decimals}f}"  # type: ignore[arg-type]
 
 
-def cell_texts(table: Table, pm: str = "±") -> list[list[str]]:
+def cell_texts(table: Table) -> list[list[str]]:
     """Every value cell as plain text (``MISSING`` for no value), rows x columns."""
     decimals = [column_decimals(table, j) for j in range(len(table.columns))]
-    return [[format_value(v, decimals[j], pm) for j, v in enumerate(row.values)] for row in table.rows]
-
-
-def _ranked(table: Table, j: int, rows: Sequence[int], decimals: int) -> list[tuple[float, int]]:
-    out = []
-    for i in rows:
-        v = _center(table.rows[i].values[j])
-        if v is not None:
-            out.append((round(v, decimals), i))
-    return sorted(out)
+    return [[format_value(v, decimals[j]) for j, v in enumerate(row.values)] for row in table.rows]
 
 
 def marks(table: Table) -> list[list[set[str]]]:
-    """Highlight marks per cell (rows x columns): subsets of {"group", "best", "second"}."""
-    out: list[list[set[str]]] = [[set() for _ in table.columns] for _ in table.rows]
-    every = list(range(len(table.rows)))
-    for j, col in enumerate(table.columns):
-        if not col.highlight:
-            continue
-        d = column_decimals(table, j)
-        ranked = _ranked(table, j, every, d)
-        distinct = sorted({v for v, _ in ranked})
-        if len(ranked) >= 2:
-            for v, i in ranked:
-                if v == distinct[0]:
-                    out[i][j].add("best")
-                elif len(distinct) > 1 and v == distinct[1]:
-                    out[i][j].add("second")
-        if table.grouped:
-            for _, rows in table.groups():
-                in_group = _ranked(table, j, rows, d)
-                if len(in_group) >= 2:
-                    for v, i in in_group:
-                        if v == in_group[0][0]:
-                            out[i][j].add("group")
-    return out
+    """The builder's marks per cell (rows x columns); empty sets when it set none."""
+    if table.marks is not None:
+        return table.marks
+    return [[set() for _ in table.columns] for _ in table.rows]
+
+
+def row_label(row: Row) -> str:
+    return row.label + (f" {IGNORES}" if "ignores" in row.flags else "")
 
 
 def missing_cells(table: Table, ignore: Sequence[str] = ()) -> list[str]:
-    """Rows with empty value cells: 'group label (all columns)' or 'group label: col, col' (``ignore``: headings)."""
+    """Model rows with empty value cells: 'name (all columns)' or 'name: col, col' (``ignore``: headings)."""
     out = []
     for row in table.rows:
-        name = f"{row.group} {row.label}".strip()
+        if row.kind != "model":
+            continue
         empty = [col.heading for col, v in zip(table.columns, row.values)
-                 if _center(v) is None and col.heading not in ignore]
+                 if center(v) is None and not isinstance(v, str) and col.heading not in ignore]
         if empty and len(empty) == sum(col.heading not in ignore for col in table.columns):
-            out.append(f"{name} (all columns)")
+            out.append(f"{row.name} (all columns)")
         elif empty:
-            out.append(f"{name}: {', '.join(empty)}")
+            out.append(f"{row.name}: {', '.join(empty)}")
     return out

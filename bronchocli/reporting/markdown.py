@@ -1,9 +1,10 @@
-"""Markdown and terminal (rich) renderings of a ``model.Table``.
+"""Markdown and terminal (rich) renderings of a ``layout.Table``.
 
-Markdown has no colours, so the paper's marks become: **bold** = best of its
-architecture group, _italic_ with † = best of the column (red in LaTeX and on
-the terminal), _italic_ with ‡ = second best (blue). A legend under each table
-says so. The terminal rendering uses real bold/red/blue.
+Marks: **bold** = the column's best, significantly better than every other
+row; **bold**≈ = tied for best (not significantly different from the lowest
+mean); † = does not beat the better image-blind reference; ‡ after a label =
+the model ignores its input. A legend under each table says so, with the
+test and alpha; the terminal rendering uses bold and dim text.
 """
 
 from __future__ import annotations
@@ -11,9 +12,8 @@ from __future__ import annotations
 from rich.table import Table as RichTable
 from rich.text import Text
 
-from .layout import MISSING, Table, cell_texts, marks
-
-BEST, SECOND = "†", "‡"
+from .layout import IGNORES, MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
+from .stats import ALPHA
 
 
 def _md_escape(text: str) -> str:
@@ -23,26 +23,33 @@ def _md_escape(text: str) -> str:
 def _md_cell(text: str, mark: set[str]) -> str:
     if text == MISSING:
         return text
-    if mark & {"best", "second"}:
-        text = f"_{text}_"
-    if "group" in mark:
+    text = _md_escape(text)
+    if mark & {"best", "tie"}:
         text = f"**{text}**"
-    if "best" in mark:
-        text += BEST
-    elif "second" in mark:
-        text += SECOND
+    if "tie" in mark:
+        text += TIE
+    if "noskill" in mark:
+        text += f" {NOSKILL}"
     return text
 
 
-def legend(table: Table) -> str:
+def legend_parts(table: Table, bold: str) -> list[str]:
+    """The legend's items with ``bold`` as the example of bold text (format-specific)."""
     parts = []
-    if table.grouped:
-        parts.append("**bold** = best of its architecture group")
-    if any(c.highlight for c in table.columns):
-        parts += [f"_italic_{BEST} = best of the column (red in LaTeX)",
-                  f"_italic_{SECOND} = second best (blue in LaTeX)"]
+    if table.judged:
+        parts += [f"{bold} = best of its column, significantly better than every other row (paired two-level "
+                  f"bootstrap, Holm-adjusted p < {ALPHA:g})",
+                  f"{bold}{TIE} = tied for best: not significantly different from the row with the lowest mean",
+                  f"{NOSKILL} = does not beat the better image-blind reference (its interval does not lie below "
+                  f"the reference's mean)"]
+        if any("ignores" in r.flags for r in table.rows):
+            parts.append(f"{IGNORES} = ignores its input (prediction std < 5% of the ground truth's)")
     parts.append(f"{MISSING} = no FINISHED run (see warnings)")
-    return "Legend: " + "; ".join(parts) + "."
+    return parts
+
+
+def legend(table: Table) -> str:
+    return "Legend: " + "; ".join(legend_parts(table, "**bold**")) + "."
 
 
 def label_cells(table: Table) -> list[list[str]]:
@@ -50,21 +57,16 @@ def label_cells(table: Table) -> list[list[str]]:
     out, previous = [], None
     for row in table.rows:
         if table.grouped:
-            out.append([row.group if row.group != previous else "", row.label])
+            out.append([row.group if row.group != previous else "", row_label(row)])
             previous = row.group
         else:
-            out.append([row.label])
+            out.append([row_label(row)])
     return out
 
 
 def run_lines(table: Table) -> list[str]:
     """'name: id, id' for every row that has runs."""
-    out = []
-    for row in table.rows:
-        if row.runs:
-            name = f"{row.group} {row.label}".strip()
-            out.append(f"{name}: {', '.join(row.runs)}")
-    return out
+    return [f"{row.name}: {', '.join(row.runs)}" for row in table.rows if row.runs]
 
 
 def to_markdown(table: Table) -> str:
@@ -78,14 +80,14 @@ def to_markdown(table: Table) -> str:
     lines += ["", table.caption, "", legend(table)]
     runs = run_lines(table)
     if runs:
-        lines += ["", "Runs (MLflow run ids): " + "; ".join(f"{r}" for r in runs) + "."]
+        lines += ["", "Runs (MLflow run ids): " + "; ".join(runs) + "."]
     for w in table.warnings:
         lines += ["", f"> **Warning:** {w}"]
     return "\n".join(lines) + "\n"
 
 
 def to_rich(table: Table):
-    """A rich Table with the paper's marks in colour (red best, blue second, bold group best)."""
+    """A rich Table: bold best, bold + ≈ tied group, dim + † no better than the reference."""
     texts, mk = cell_texts(table), marks(table)
     out = RichTable(title=table.title, caption=table.caption, caption_justify="left", title_justify="left")
     for h in table.headers:
@@ -95,9 +97,9 @@ def to_rich(table: Table):
     for i, (labels, row_texts, row_marks) in enumerate(zip(label_cells(table), texts, mk)):
         cells = [Text(x) for x in labels]
         for t, m in zip(row_texts, row_marks):
-            style = " ".join(s for s, on in (("bold", "group" in m), ("red", "best" in m),
-                                             ("blue", "second" in m)) if on)
-            cells.append(Text(t, style=style))
+            style = " ".join(s for s, on in (("bold", bool(m & {"best", "tie"})), ("dim", "noskill" in m)) if on)
+            suffix = (TIE if "tie" in m else "") + (f" {NOSKILL}" if "noskill" in m else "")
+            cells.append(Text(t + suffix, style=style))
         end = table.grouped and i + 1 < len(table.rows) and table.rows[i + 1].group != table.rows[i].group
         out.add_row(*cells, end_section=end)
     return out

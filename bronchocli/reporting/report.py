@@ -1,5 +1,6 @@
 """`bronchopose report` in library form: collect runs once, build tables, write Markdown/LaTeX and figures.
 
+``collect_index`` finds the runs (the config's cells, or a stored sweep),
 ``make_report`` is what the command calls; ``build_tables`` and
 ``write_tables`` are usable on their own (tests, notebooks).
 """
@@ -16,12 +17,15 @@ from ..config import Config
 from ..errors import BronchoError, DataError
 from ..io import save_figure, write_text
 from . import dataset_figures as dataset_figs
-from .collect import RunIndex
+from .collect import RunIndex, collect_runs
+from .context import NoData, Profiler
 from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
 from .layout import Table
 from .markdown import to_markdown
-from .tables import TABLES, Profiler, ReportContext
+from .scope import config_plan
+from .skill_figures import learning_curve, skill_figures
+from .tables import TABLES, ReportContext
 
 OUTPUT_FORMATS = {"md": ("md",), "latex": ("tex",), "both": ("md", "tex")}
 RENDERERS = {"md": to_markdown, "tex": to_latex}
@@ -40,9 +44,31 @@ def output_suffixes(fmt: str) -> tuple[str, ...]:
     return OUTPUT_FORMATS[fmt]
 
 
-def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence[str]) -> list[Table]:
-    """Every requested table, for every requested evaluation, in that order."""
-    return [TABLES[name](ctx, ev) for name in names for ev in evaluations]
+def collect_index(client, cfg: Config, sweep: str | None = None, pose_frame: str | None = None,
+                  include_other_configs: bool = False) -> RunIndex:
+    """The runs of the config's cells (``sweep`` None) or of the stored sweep ``sweep`` (no config cells)."""
+    if sweep is not None:
+        return collect_runs(client, cfg.experiment_name, sweep, pose_frame)
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    plan = config_plan(client, [exp.experiment_id], cfg) if exp is not None else None
+    return collect_runs(client, cfg.experiment_name, cfg.name, pose_frame, plan=plan,
+                        include_other_configs=include_other_configs)
+
+
+def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence[str],
+                 warnings: list[str] | None = None) -> list[Table]:
+    """Every requested table, for every requested evaluation, in that order; a table that does not apply to
+    these runs (``NoData``) is skipped with one line in ``warnings``."""
+    out = []
+    for name in names:
+        for ev in evaluations:
+            try:
+                out.append(TABLES[name](ctx, ev))
+            except NoData as exc:
+                if warnings is not None:
+                    warnings.append(str(exc))
+                break
+    return out
 
 
 def write_tables(tables: Sequence[Table], out: Path, suffixes: Sequence[str]) -> list[Path]:
@@ -54,8 +80,8 @@ def dataset_figures(root: Path, out: Path, warnings: list[str]) -> list[Path]:
     try:
         montage = dataset_figs.montage_figure(root)
         positions = dataset_figs.positions_figure(root, warnings=warnings)
-    except (DataError, OSError) as exc:
-        warnings.append(f"figures: no dataset figures ({exc})")
+    except (DataError, OSError, ImportError) as exc:
+        warnings.append(f"figures: no dataset figures ({type(exc).__name__}: {exc})")
         return []
     return save_figure(montage, out / "fig-dataset-frames", FORMATS) + \
         save_figure(positions, out / "fig-dataset-positions", FORMATS)
@@ -73,14 +99,21 @@ def make_report(
     dataset_root: Path | None = None,
     warnings: list[str] | None = None,
 ) -> ReportResult:
-    """Tables (and, with a ``loader``, the run figures; with ``dataset_root``, the dataset figures) under ``out``.
+    """Tables (and, with a ``loader``, the run figures, skill figures and learning curve; with
+    ``dataset_root``, the dataset figures) under ``out``.
 
-    ``warnings`` (the list a loader reports into, if any) becomes ``result.warnings``.
+    ``warnings`` (the list a loader reports into, if any) becomes ``result.warnings``, after the index's
+    notes and the skipped tables.
     """
-    tables = build_tables(ctx, names, evaluations)
-    result = ReportResult(tables, write_tables(tables, out, suffixes), warnings if warnings is not None else [])
+    warnings = warnings if warnings is not None else []
+    notes: list[str] = list(ctx.index.notes)
+    tables = build_tables(ctx, names, evaluations, notes)
+    result = ReportResult(tables, write_tables(tables, out, suffixes), warnings)
+    result.warnings[:0] = notes
     if loader is not None:
         result.files += make_figures(ctx.index, loader, Path(out), n_trajectories, result.warnings)
+        result.files += skill_figures(tables, Path(out), result.warnings)
+        result.files += learning_curve(ctx, Path(out), result.warnings)
     if dataset_root is not None:
         result.files += dataset_figures(Path(dataset_root), Path(out), result.warnings)
     return result
@@ -90,9 +123,14 @@ def summary_index(index: RunIndex) -> str:
     """One line: how many runs the report sees and how many were set aside."""
     dup = sum(len(v) for v in index.duplicates.values())
     unfinished = sum(len(v) for v in index.unfinished.values())
-    return (f"sweep {index.sweep!r} (experiment {index.experiment!r}, pose frame {index.pose_frame!r}): "
-            f"{len(index.runs)} cells with a FINISHED run, {dup} superseded duplicate(s), "
+    scope = (f"{len(index.runs)} of the config's {len(index.plan.keys)} cells have a FINISHED run"
+             if index.plan is not None else f"{len(index.runs)} cells with a FINISHED run")
+    text = (f"sweep {index.sweep!r} (experiment {index.experiment!r}, pose frame {index.pose_frame!r}): "
+            f"{scope}, {dup} superseded duplicate(s), "
             f"{len(index.unfinished)} cell(s) with only unfinished runs ({unfinished} run(s))")
+    if index.other_configs:
+        text += f", {index.other_configs} run(s) of other configs left out"
+    return text
 
 
 def open_store(cfg: Config):

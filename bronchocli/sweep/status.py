@@ -6,9 +6,11 @@ rows point at); nothing writes.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from rich import box
@@ -198,3 +200,42 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
     console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
+    console.print(disk_line(cfg), highlight=False, soft_wrap=True)
+
+
+def folder_size(folder: Path) -> int | None:
+    """Bytes of the files under ``folder`` (links not followed); None when it does not exist."""
+    if not folder.is_dir():
+        return None
+    total = 0
+    for dirpath, _, files in os.walk(folder):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(dirpath, name)).st_size
+            except OSError:  # removed while we walked
+                pass
+    return total
+
+
+def fmt_bytes(n: int | None) -> str:
+    if n is None:
+        return "none"
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"  # pragma: no cover
+
+
+def disk_line(cfg: Config) -> str:
+    """One line: the size of this machine's local stores (docs/sweep.md, "Disk")."""
+    folders = (("MLflow artifacts", cfg.paths.artifacts), ("checkpoints", cfg.paths.checkpoints),
+               ("frame caches", cfg.paths.cache))
+    return "disk: " + ", ".join(f"{name} {fmt_bytes(folder_size(path))} ({_short(path)})" for name, path in folders)
+
+
+def _short(path: Path) -> str:
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)

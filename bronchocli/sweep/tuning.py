@@ -95,7 +95,7 @@ def check_space(cfg: Config) -> None:
         try:
             cfg.with_values({path: _probe(p)})
         except ConfigError as exc:
-            problems.append(f"tune.space.{path}: {str(exc).splitlines()[-1].strip()}")
+            problems.append(f"tune.space.{path}: {str(exc).splitlines()[-1].strip().removeprefix('invalid config: ')}")
             continue
         if p.type == "categorical" and not p.choices:
             problems.append(f"tune.space.{path}: categorical needs a non-empty 'choices' list")

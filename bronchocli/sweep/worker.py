@@ -22,6 +22,7 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -35,7 +36,7 @@ from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import RunInterrupted, resume_file
+from ..runlayout import RunInterrupted, checkpoint_dir, resume_file
 from .storage import CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -346,6 +347,15 @@ class Worker:
                   f"cell taken over by {self.ident}")
         for run_id in sorted(run_ids):
             self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
+            _remove_checkpoint(self.cfg, run_id)
+
+
+def _remove_checkpoint(cfg: Config, run_id: str) -> None:
+    """Free the disk of an orphaned run's checkpoint: only a Ctrl-C release resumes a run, never a takeover."""
+    folder = checkpoint_dir(cfg, run_id)
+    if folder.is_dir():
+        shutil.rmtree(folder, ignore_errors=True)
+        log.info("removed the checkpoint folder %s of orphaned run %s", folder, run_id)
 
 
 # -- process entry point -----------------------------------------------------------

@@ -33,6 +33,10 @@ EVAL_CHUNK = 64  # pairs per forward when evaluating pairwise models
 def device_for(cfg: Config) -> torch.device:
     want = cfg.train.device
     if want in ("auto", "cuda") and torch.cuda.is_available():
+        # Fixed input shapes: let cuDNN pick the fastest kernels once; TF32 for fp32 matmuls and convolutions.
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
         return torch.device("cuda")
     if want == "mps" or (want == "auto" and getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
         return torch.device("mps")

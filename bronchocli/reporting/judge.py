@@ -1,0 +1,165 @@
+"""Metric rows of a table with their intervals, reference rows, significance marks and skill.
+
+``metric_rows`` turns table lines (a row label and its runs) into rows whose
+error cells are ``mean [95 % interval]`` over the row's replicates (seeds),
+adds the two image-blind reference rows, and decides the marks of every error
+column (``judge_column``):
+
+1. the row with the lowest mean is the candidate best;
+2. it is compared with every other row of the column by the paired two-level
+   bootstrap test (``stats.paired_p``), and the p-values are Holm-adjusted
+   over those comparisons;
+3. the rows whose adjusted p is >= alpha are tied with it. Alone, it is the
+   ``best``; otherwise every row of the tied group is marked ``tie``.
+
+A row whose interval does not lie entirely below the better reference's mean
+is marked ``noskill``; a row whose predictions vary less than
+``IGNORES_RATIO`` of the ground truth's (``pred.std_ratio.pos``) is flagged
+``ignores``. Skill = 1 - error / better-reference error, with its interval
+from the same joint resampling.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from . import stats
+from .aggregate import REFERENCES, Frames, logged_mean, model_sample, reference_sample, replicates
+from .collect import RunRecord
+from .layout import Estimate, Row, Value
+
+IGNORES_RATIO = 0.05
+REFERENCE_GROUP = "Image-blind"
+
+
+@dataclass
+class Settings:
+    alpha: float = stats.ALPHA
+    resamples: int = stats.RESAMPLES
+    seed: int = stats.SEED
+
+
+@dataclass
+class Line:
+    """A model row to build: its labels, its runs (complete replicates only) and leading non-metric values."""
+
+    group: str
+    label: str
+    runs: list[RunRecord]
+    extra: list[Value] = field(default_factory=list)
+
+
+@dataclass
+class Built:
+    rows: list[Row]
+    marks: list[list[set[str]]]
+    skill: dict[str, dict[str, stats.Derived]]
+    references: dict[str, list[stats.Sample | None]]  # source -> per metric
+    fallback: list[str]  # rows shown from logged means (no trajectory_errors.csv)
+
+
+def estimate(sample: stats.Sample | None, fallback: float | None, s: Settings) -> Estimate | None:
+    if sample is not None:
+        return Estimate(sample.mean, *stats.interval(sample, s.resamples, s.seed))
+    return None if fallback is None else Estimate(fallback)
+
+
+def ignores_input(runs: Sequence[RunRecord]) -> bool:
+    ratios = [r.metrics.get("pred.std_ratio.pos") for r in runs]
+    ratios = [v for v in ratios if v is not None and not math.isnan(v)]
+    return bool(ratios) and float(np.mean(ratios)) < IGNORES_RATIO
+
+
+def _model_row(line: Line, frames: Frames, metrics: Sequence[str], evaluation: str, s: Settings) -> Row:
+    reps = replicates(line.runs)
+    samples = [model_sample(reps, frames, evaluation, m) if reps else None for m in metrics]
+    values: list[Value] = list(line.extra)
+    for m, sample in zip(metrics, samples):
+        values.append(estimate(sample, logged_mean(reps, evaluation, m) if reps else None, s) if reps else None)
+    first = next((x for x in samples if x is not None), None)
+    info = {"samples": samples, "replicates": len(reps), "runs": line.runs,
+            "trajectories": first.trajectories if first else None, "pairs": first.pairs if first else None}
+    flags = {"ignores"} if line.runs and ignores_input(line.runs) else set()
+    return Row(line.group, line.label, values, [r.run_id for r in line.runs], flags=flags, info=info)
+
+
+def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence[str], evaluation: str,
+                    n_extra: int, grouped: bool, s: Settings) -> tuple[list[Row], dict[str, list]]:
+    rows, samples = [], {}
+    reps = replicates(runs)
+    for source, name in REFERENCES.items():
+        per_metric = [reference_sample(runs, frames, source, evaluation, m) for m in metrics]
+        values: list[Value] = [""] * n_extra
+        values += [estimate(x, logged_mean(reps, evaluation, m, source) if reps else None, s)
+                   for x, m in zip(per_metric, metrics)]
+        rows.append(Row(REFERENCE_GROUP if grouped else "", name, values, kind="reference"))
+        samples[source] = per_metric
+    return rows, samples
+
+
+def judge_column(samples: Sequence[stats.Sample | None], s: Settings) -> tuple[list[set[str]], dict[int, float]]:
+    """Marks of one error column (per row) and the Holm-adjusted p of each row against the best."""
+    out: list[set[str]] = [set() for _ in samples]
+    cand = [i for i, x in enumerate(samples) if x is not None]
+    if len(cand) < 2:
+        return out, {}
+    best = min(cand, key=lambda i: samples[i].mean)  # type: ignore[union-attr]
+    others = [i for i in cand if i != best]
+    raw = [stats.paired_p(samples[best], samples[i], s.resamples, s.seed)  # type: ignore[arg-type]
+           for i in others]
+    adjusted = dict(zip(others, stats.holm(raw)))
+    tied = [best] + [i for i in others if adjusted[i] >= s.alpha]
+    for i in tied:
+        out[i].add("best" if len(tied) == 1 else "tie")
+    return out, adjusted
+
+
+def better_reference(refs: dict[str, list], j: int) -> stats.Sample | None:
+    found = [x[j] for x in refs.values() if x[j] is not None]
+    return min(found, key=lambda x: x.mean) if found else None
+
+
+def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], evaluation: str, *,
+                grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = ()) -> Built:
+    """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones)."""
+    s = settings or Settings()
+    n_extra = len(lines[0].extra) if lines else 0
+    rows = [_model_row(line, frames, metrics, evaluation, s) for line in lines]
+    every = [r for line in lines for r in line.runs]
+    ref_rows, refs = _reference_rows(every, frames, metrics, evaluation, n_extra, grouped, s)
+    marks: list[list[set[str]]] = [[set() for _ in range(n_extra + len(metrics))] for _ in rows + ref_rows]
+    skill: dict[str, dict[str, stats.Derived]] = {}
+    for j, metric in enumerate(metrics):
+        col = [r.info["samples"][j] for r in rows]
+        column_marks, _ = judge_column(col, s)
+        ref_values = [r.values[n_extra + j] for r in ref_rows]
+        ref_means = [v.mean for v in ref_values if isinstance(v, Estimate)]
+        bar = min(ref_means) if ref_means else None
+        best_ref = better_reference(refs, j)
+        for i, row in enumerate(rows):
+            marks[i][n_extra + j] |= column_marks[i]
+            v = row.values[n_extra + j]
+            if bar is not None and isinstance(v, Estimate) and (v.hi if v.has_interval else v.mean) >= bar:
+                marks[i][n_extra + j].add("noskill")
+            if metric in skill_metrics and col[i] is not None and best_ref is not None:
+                try:
+                    skill.setdefault(row.name, {})[metric] = stats.skill(col[i], best_ref, s.resamples, s.seed)
+                except ValueError:  # no shared trajectory with the reference
+                    pass
+    fallback = [r.name for r in rows if r.runs and all(x is None for x in r.info["samples"])]
+    return Built(rows + ref_rows, marks, skill, refs, fallback)
+
+
+def method_text(s: Settings) -> str:
+    """The caption's statement of the interval, the test, the correction and alpha."""
+    return (f"Cells: mean over seeds of the run-level metric [95% interval: two-level percentile bootstrap, "
+            f"{s.resamples} resamples of seeds and, jointly, test trajectories; fixed RNG seed]. Best: the row "
+            f"with the lowest mean, compared with every other row of its column by a paired two-level bootstrap "
+            f"test on the shared test trajectories (trajectories resampled jointly, seeds independently per row; "
+            f"two-sided), Holm-corrected over those comparisons; bold = significantly better than every other "
+            f"row (adjusted p < {s.alpha:g}); bold with ≈ = tied group, not significantly different from the "
+            f"lowest mean (adjusted p >= {s.alpha:g}).")

@@ -1,0 +1,53 @@
+"""Disk: a dead worker's checkpoint is removed when its cell is taken over; `status` shows the local stores' sizes."""
+
+from __future__ import annotations
+
+import re
+
+from sqlalchemy import update
+from sweep_fakes import fake_runner
+from tinydata import write_tiny_dataset
+
+from bronchocli import tracking
+from bronchocli.runlayout import checkpoint_dir, resume_file
+from bronchocli.sweep import FINISHED, TAG_CLAIM, SweepStore, Worker, prepare
+from bronchocli.sweep.storage import cells_table
+
+
+def test_taking_over_a_dead_workers_cell_removes_its_orphaned_checkpoint(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",))
+    store = SweepStore(cfg.paths.storage_url)
+    plan = prepare(cfg, store, dataset=False)
+    (cell,) = plan.cells
+    client = tracking.client_for(cfg)
+    exp = tracking.experiment_id(client, cfg)
+    claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
+    orphan = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
+    store.set_run_id(claim.token, orphan)
+    resume_file(cfg, orphan).parent.mkdir(parents=True)
+    resume_file(cfg, orphan).write_bytes(b"x" * 1000)  # the dead worker's last checkpoint
+    other = checkpoint_dir(cfg, "someone-elses-run")
+    other.mkdir(parents=True)
+    with store.engine.begin() as conn:  # the worker died: its heartbeat is long gone
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
+    assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
+    assert client.get_run(orphan).info.status == "KILLED"
+    assert not checkpoint_dir(cfg, orphan).exists()
+    assert other.is_dir()  # only the orphan's folder goes
+    assert store.rows(cfg.name)[0].state == FINISHED
+
+
+def test_status_shows_the_size_of_the_local_stores_in_one_line(cli, make_config, tmp_path):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    cfg = make_config()
+    (cfg.paths.checkpoints / "run1").mkdir(parents=True)
+    (cfg.paths.checkpoints / "run1" / "last.pt").write_bytes(b"x" * 2_500_000)
+    (cfg.paths.artifacts / "1" / "a").mkdir(parents=True)
+    (cfg.paths.artifacts / "1" / "a" / "w.bin").write_bytes(b"x" * 1500)
+    code, out, err = cli("status", "-c", str(tmp_path / "experiments.yaml"))
+    assert code == 0, err
+    lines = [line for line in out.splitlines() if line.startswith("disk:")]
+    assert len(lines) == 1
+    assert re.search(r"MLflow artifacts 1\.5 KB \(\S*artifacts\)", lines[0])
+    assert re.search(r"checkpoints 2\.5 MB \(\S*checkpoints\)", lines[0])
+    assert "frame caches none" in lines[0]
