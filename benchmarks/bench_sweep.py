@@ -2,8 +2,8 @@
 
     python benchmarks/bench_sweep.py [--cells 5 40] [--workers 1 2] [--storage URL] [--real]
 
-Runs the real command (`bronchopose sweep --runner sweep_fakes:noop_runner`, the tests' no-op runner) in a
-subprocess on a fresh sweep, with a no-op runner that only creates and finishes
+Runs the real command (`bronchopose sweep`) in a subprocess on a fresh sweep, with the no-op runner of
+sweep_noop.py (named in the test/benchmark-only ``BRONCHOPOSE_TEST_RUNNER``) that only creates and finishes
 an MLflow run (inside-runner time, recorded per cell in the claims table). For
 each worker count it runs two sweep sizes and reports
 
@@ -14,9 +14,9 @@ each worker count it runs two sweep sizes and reports
   cell (goal: < 1 s on SQLite).
 
 The MLflow store's one-time creation (its schema migration) is done before the
-timings and reported apart. With ``--real`` it also runs two tiny real
-training cells (tests/tinydata.py dataset) with one worker and reports
-(wall − Σ run time) / cells, fixed costs included.
+timings and reported apart, and so is rendering the tiny dataset. With
+``--real`` it also runs two tiny real training cells with one worker and
+reports (wall − Σ run time) / cells, fixed costs included.
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-FAKES = HERE.parent / "tests" / "sweep"  # sweep_fakes.noop_runner: the zero-work cell the tests use too
-sys.path.insert(0, str(HERE.parent / "tests"))
 ARCHS = ["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
 
 
@@ -42,14 +40,15 @@ def write_config(root: Path, storage: str, real: bool) -> Path:
         "name": "bench",
         "tracking": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts", "checkpoints": "ckpt"},
         "storage": {"url": storage},
-        "dataset": {"root": "data/tiny"},
+        "dataset": {"root": "data/tiny", "generate": {"patients": 2, "lobes": ["ur"], "trajectories": 4,
+                                                      "image_size": 32, "max_frames": 8, "workers": 1}},
         "grid": {"arch": ARCHS, "rot_loss": ["mse"], "population": ["personalized"]},
         "sweep": {"heartbeat_s": 2, "stale_after_s": 30, "poll_s": 0.5},
     }
     if real:
         cfg.update(splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
-                   data={"window": 3, "workers": 0, "cache_dir": "cache"},
-                   train={"batch_size": 4, "max_epochs": 1, "max_train_pairs": 8})
+                   data={"window": 3, "cache_dir": "cache"},
+                   train={"batch_size": 3, "steps": 2, "val_every": 2, "bn_recalibrate": 1})
     path = root / "experiments.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
@@ -63,9 +62,9 @@ def sweep(config: Path, name: str, cells: int, workers: int, runner: str | None,
 
     seeds = list(range(max(1, cells // len(ARCHS))))
     args = ["--set", f"name={name}", "--set", f"grid.seed={seeds}", "--workers", str(workers), *extra]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     if runner:
-        args += ["--runner", runner]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(FAKES), os.environ.get("PYTHONPATH", "")])}
+        env["BRONCHOPOSE_TEST_RUNNER"] = runner
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code, "sweep", "-c", str(config), *args], capture_output=True,
@@ -74,7 +73,7 @@ def sweep(config: Path, name: str, cells: int, workers: int, runner: str | None,
     if out.returncode != 0:
         raise SystemExit(f"sweep failed ({out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}")
     cfg = load_config(config, overrides=[f"name={name}"])
-    rows = SweepStore(cfg.storage_url).rows(name)
+    rows = SweepStore(cfg.paths.storage_url).rows(name)
     assert len(rows) == (expect or len(seeds) * len(ARCHS)) and all(r.state == "finished" for r in rows)
     return wall, sum(r.duration_s or 0.0 for r in rows)
 
@@ -89,12 +88,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         config = write_config(root, args.storage, real=False)
-        from tinydata import write_tiny_dataset
-
         from bronchocli.config import load_config
+        from bronchocli.generation import ensure_dataset
         from bronchocli.tracking import client_for, experiment_id
 
-        write_tiny_dataset(root / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+        ensure_dataset(load_config(config), progress=False)  # rendered once, not timed
         t0 = time.perf_counter()
         experiment_id(client_for(load_config(config)), load_config(config))
         print(f"MLflow store creation (once per store, not timed below): {time.perf_counter() - t0:.1f} s")
@@ -106,7 +104,7 @@ def main() -> None:
             points = []
             for cells in args.cells:
                 n += 1
-                wall, inside = sweep(config, f"bench{n}", cells, workers, "sweep_fakes:noop_runner", [])
+                wall, inside = sweep(config, f"bench{n}", cells, workers, "sweep_noop:noop_runner", [])
                 points.append((cells, wall, inside, wall - inside / workers))
             (c1, _, _, o1), (c2, _, _, o2) = points
             per_cell = (o2 - o1) / (c2 - c1)
@@ -116,6 +114,7 @@ def main() -> None:
                       f"| {fixed:.1f} |")
         if args.real:
             real_cfg = write_config(root, args.storage, real=True)
+            ensure_dataset(load_config(real_cfg), progress=False)
             wall, inside = sweep(real_cfg, "bench-real", 5, 1, None, ["--only", "arch=baseline,lstm"], expect=2)
             print(f"\nreal tiny runs (baseline + lstm, 1 worker): wall {wall:.1f} s, Σ run_cell {inside:.1f} s, "
                   f"(wall − runs) / cell {(wall - inside) / 2:.1f} s (fixed costs included)")

@@ -92,6 +92,16 @@ def client_for(cfg: Config) -> MlflowClient:
     return _client(uri)
 
 
+def check_reachable(cfg: Config) -> None:
+    """Fail within tracking.timeout_s (one line) when the config's tracking server or database does not answer."""
+    uri, timeout_s = cfg.paths.tracking_uri, cfg.tracking.timeout_s
+    if urls.is_server(uri):
+        probe_server(uri, timeout_s)
+    elif urls.is_postgres(uri):
+        with database_lock(uri, timeout_s, what="tracking.uri"):
+            pass
+
+
 def _client(uri: str) -> MlflowClient:
     try:
         return MlflowClient(tracking_uri=uri)

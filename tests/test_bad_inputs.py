@@ -25,6 +25,7 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.config import Config, load_config, parse_override
 from bronchocli.errors import ConfigError
+from bronchocli.generation import ensure_dataset
 
 REPO = Path(__file__).resolve().parents[1]
 TINY_GENERATE = ["--set", "dataset.generate.max_frames=3", "--set", "dataset.generate.voxel_mm=1.0",
@@ -79,6 +80,12 @@ def edit_csv_row(p: Project) -> Path:
 
 def C(p: Project) -> list[str]:
     return ["-c", str(p.config)]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def hung(p: Project, scheme: str = "http") -> str:
@@ -172,6 +179,10 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "missing tune database": (lambda p: ["tune", *C(p), "--show", "--study", "s", "--storage",
                                          "postgresql://postgres:hunter2@127.0.0.1:5432/no_such_db_here"], 2,
                               "storage.url postgresql+psycopg://postgres:***@127.0.0.1:5432/no_such_db_here"),
+    "ui on a hung PostgreSQL store": (lambda p: ["ui", *C(p), "--port", str(free_port()), "--set",
+                                                 f"tracking.uri={hung(p, 'postgresql')}"], 2, "cannot connect"),
+    "ui on a refused PostgreSQL store": (lambda p: ["ui", *C(p), "--set", "tracking.uri=postgresql://bob:hunter2@"
+                                                    "127.0.0.1:1/db"], 2, "tracking.uri postgresql://bob:***@"),
     "ui for a remote server": (lambda p: ["ui", *C(p), "--set", f"tracking.uri={hung(p)}"], 2, "already a server"),
 }
 
@@ -221,8 +232,6 @@ def test_sigint_during_data_generate_exits_130_with_how_to_resume(tmp_path):
 
 
 def test_a_missing_dataset_root_says_a_new_dataset_will_be_generated_there(tmp_path):
-    from bronchocli.generation import ensure_dataset
-
     cfg = Config(name="t").with_values({
         "dataset.root": str(tmp_path / "dta" / "synthetic"), "dataset.generate.patients": 1,
         "dataset.generate.trajectories": 1, "dataset.generate.image_size": 16, "dataset.generate.max_frames": 2,
@@ -326,3 +335,14 @@ def test_random_set_overrides_never_escape_as_anything_but_a_config_error(projec
         load_config(project.config, overrides=overrides)
     except ConfigError:
         pass
+
+
+@pytest.mark.parametrize("args", [["config"], ["config", "--grid"], ["sweep", "--dry-run"]])
+def test_no_printed_form_of_the_config_shows_a_password(cli, project, args, monkeypatch):
+    monkeypatch.setenv("BP_SECRET", "hunter2")
+    code, out, err = cli(*args, *C(project), "--set", "tracking.uri=http://alice:${BP_SECRET}@127.0.0.1:9/mlflow",
+                         "--set", "storage.url=sqlite:///runs/sweep.db",
+                         "--set", "dataset.csv.frames=postgresql://bob:hunter2@db/x")
+    assert "hunter2" not in out + err
+    if args == ["config"]:
+        assert code == 0 and "http://alice:***@127.0.0.1:9/mlflow" in out and "bob:***@db" in out

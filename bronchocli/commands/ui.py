@@ -58,6 +58,9 @@ def ui(
     if urls.is_server(cfg.paths.tracking_uri):
         raise BronchoError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)} is already a server: open it in a browser")
     check_port(host, port)
+    from .. import tracking  # lazy: mlflow loads only when the UI starts
+
+    tracking.check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
     argv = ui_command(cfg, host, port)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")

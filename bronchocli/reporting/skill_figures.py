@@ -132,9 +132,12 @@ def learning_curve_figure(ctx: ReportContext):
         skill_ax.set_ylabel(f"skill, {title}")
         for ax in (err_ax, skill_ax):
             ax.set_xscale("log")
+            ax.minorticks_off()
+            ax.set_xticks(xs, [f"{x:,.0f}" for x in xs])
             ax.set_xlabel("training pairs")
             ax.grid(alpha=0.3)
             top = ax.secondary_xaxis("top")
+            top.minorticks_off()
             top.set_xticks(xs, [points[s]["label"] for s in sizes], fontsize=7)
             top.set_xlabel("training trajectories per patient and lobe", fontsize=7)
         if j == 0:

@@ -147,9 +147,9 @@ def run_cell(
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
+    data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
-    data = prepare(cfg, cell, progress=progress)
     run_id, state = _open_run(client, exp_id, cfg, cell, resume, dict(extra_tags or {}))
     if run_id_callback:
         run_id_callback(run_id)

@@ -9,7 +9,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from bronchocli import geometry
-from bronchocli.config import CsvImport
+from bronchocli.config import CsvImport, load_config
 from bronchocli.data.cache import open_frame_cache
 from bronchocli.data.importer import import_csv
 from bronchocli.errors import ConfigError, DataError
@@ -117,8 +117,6 @@ def test_training_on_a_poses_only_dataset_is_one_clear_error(cli, tmp_path):
 
 
 def test_the_frame_cache_refuses_a_poses_only_dataset(tmp_path):
-    from bronchocli.config import load_config
-
     cfg = load_config(poses_only_project(tmp_path, trajectories=False))
     ds = import_csv(cfg.paths.dataset, cfg.dataset.csv)
     with pytest.raises(DataError, match="no frames to train on"):
@@ -126,8 +124,6 @@ def test_the_frame_cache_refuses_a_poses_only_dataset(tmp_path):
 
 
 def test_bad_camera_axis_in_the_config_names_the_key(tmp_path):
-    from bronchocli.config import load_config
-
     (tmp_path / "e.yaml").write_text("name: t\ndataset:\n  csv:\n    camera_forward: w\n")
     with pytest.raises(ConfigError, match=r"e.yaml:4: dataset.csv.camera_forward"):
         load_config(tmp_path / "e.yaml")

@@ -110,17 +110,18 @@ def difficulty(keys: Sequence[tuple[str, str, str]], seed: int = 7, spread: floa
 def errors_frame(keys: Sequence[tuple[str, str, str]], acc: Sequence[float], rng: np.random.Generator, *,
                  refs: Mapping[str, Sequence[float]] = REFS, noise: float = 0.05, hard: dict | None = None,
                  scale: float = 1.0) -> pd.DataFrame:
-    """A trajectory_errors.csv: per trajectory the model's and both references' errors, planted (module doc)."""
+    """A trajectory_errors.csv: per trajectory the model's (x ``scale``) and both references' errors, planted
+    (module doc)."""
     hard = hard or difficulty(keys)
     rows = []
     for k in keys:
         h = hard[k]
         row: dict[str, object] = {"patient": k[0], "lobe": k[1], "trajectory": k[2], "n_pairs": h["n_pairs"]}
         for source, means in (("model", acc), *refs.items()):
-            jitter = noise if source == "model" else 0.0
+            jitter, level = (noise, scale) if source == "model" else (0.0, 1.0)
             for scope, factor in (("acc", 1.0), ("pair", 0.01)):
                 for name, mu in zip(METRIC_NAMES, means):
-                    value = mu * scale * factor * h[scope] * (1.0 + jitter * rng.standard_normal())
+                    value = mu * level * factor * h[scope] * (1.0 + jitter * rng.standard_normal())
                     row[f"{source}.{scope}.{name}"] = value
                 row[f"{source}.{scope}.pos_l2_mm"] = row[f"{source}.{scope}.pos_l2"] * 0.5  # type: ignore[operator]
                 row[f"{source}.{scope}.geodesic"] = row[f"{source}.{scope}.rot_l2"]
@@ -324,3 +325,53 @@ def fast_sqlite(root: Path) -> None:
         files = [row[2] or "" for row in dbapi_connection.execute("PRAGMA database_list").fetchall()]
         if any(f.startswith(prefix) for f in files):
             dbapi_connection.execute("PRAGMA synchronous=OFF")
+
+
+# -- in-memory runs (no MLflow): RunRecords plus a trajectory-errors loader --------------------------------
+
+
+class MemRuns:
+    """Hand-made RunRecords and their trajectory errors, for table tests that need no MLflow store."""
+
+    def __init__(self, seed: int = 0, keys: Sequence[tuple[str, str, str]] | None = None):
+        self.rng = np.random.default_rng(seed)
+        self.keys = list(keys or trajectory_keys())
+        self.hard = difficulty(self.keys)
+        self.records: list = []
+        self.errors: dict[str, object] = {}
+
+    def add(self, arch: str, loss: str, acc: Sequence[float] | None = (1.0, 10.0, 0.1, 0.01), *,
+            population: str = "personalized", fold: str = "", seed: int = 0, frame: str = "world", size: str = "",
+            status: str = "FINISHED", start: int = 0, key: str | None = None, noise: float = 0.05,
+            refs: Mapping[str, Sequence[float]] | None = None, ratio: float = 0.5, with_errors: bool = True,
+            scale: float = 1.0, train_pairs: float | None = None, **extra: float):
+        from bronchocli.reporting.aggregate import RunErrors
+        from bronchocli.reporting.collect import RunRecord
+
+        keys = [k for k in self.keys if not fold or k[0] == fold]
+        run_id = f"r{len(self.records):03d}"
+        tags = {"arch": arch, "rot_loss": loss, "population": population, "fold": fold, "seed": str(seed),
+                "pose_frame": frame, "train_trajectories": size, "cell_key": key or f"k-{run_id}",
+                "stop_reason": "budget" if status == "FINISHED" else ""}
+        metrics: dict[str, float] = {}
+        if acc is not None and status == "FINISHED":
+            df = errors_frame(keys, acc, self.rng, hard=self.hard, noise=noise, refs=refs or REFS, scale=scale)
+            metrics = metrics_from_errors(df, ratio=ratio)
+            if train_pairs is not None:
+                metrics["train.train_pairs"] = train_pairs
+            if with_errors:
+                self.errors[run_id] = RunErrors.from_frame(df)
+        metrics |= extra
+        rec = RunRecord(run_id, status, start, tags, metrics)
+        self.records.append(rec)
+        return rec
+
+    def load(self, run):
+        return self.errors.get(run.run_id)
+
+    def context(self, plan=None, pose_frame: str | None = None, **kw):
+        from bronchocli.reporting.collect import index_runs
+        from bronchocli.reporting.tables import ReportContext
+
+        index = index_runs(self.records, "s", "e", pose_frame, plan=plan)
+        return ReportContext(index, errors=self.load, **kw)

@@ -1,4 +1,4 @@
-"""Run collection: one query, latest FINISHED per cell, unfinished and duplicate bookkeeping, clear errors."""
+"""Run collection: one query, the config's cells only, latest FINISHED per cell, clear errors."""
 
 from __future__ import annotations
 
@@ -7,12 +7,18 @@ from report_fakes import EXPERIMENT, SWEEP
 
 from bronchocli.errors import BronchoError
 from bronchocli.reporting.collect import RunRecord, collect_runs, index_runs
+from bronchocli.reporting.scope import PlanView
+
+BASE = {"arch": "lstm", "rot_loss": "ce", "population": "personalized", "fold": "", "seed": "0",
+        "pose_frame": "world", "train_trajectories": ""}
 
 
-def _rec(run_id: str, status: str = "FINISHED", start: int = 0, **tags: str) -> RunRecord:
-    base = {"arch": "lstm", "rot_loss": "ce", "population": "personalized", "fold": "", "seed": "0",
-            "pose_frame": "world"}
-    return RunRecord(run_id, status, start, {**base, **tags}, {})
+def _rec(run_id: str, status: str = "FINISHED", start: int = 0, key: str = "k0", **tags: str) -> RunRecord:
+    return RunRecord(run_id, status, start, {**BASE, "cell_key": key, **tags}, {})
+
+
+def _ident(**tags: str) -> tuple[str, ...]:
+    return tuple({**BASE, **tags}[k] for k in BASE)
 
 
 def test_latest_finished_run_wins_and_the_others_are_duplicates():
@@ -26,16 +32,47 @@ def test_latest_finished_run_wins_and_the_others_are_duplicates():
 def test_cells_with_only_unfinished_runs_are_remembered():
     index = index_runs([_rec("k", "KILLED"), _rec("f", "FAILED", arch="conv3d")], "s", "e")
     assert index.runs == {}
-    assert sorted(r.run_id for rs in index.unfinished.values() for r in rs) == ["f", "k"]
-    assert [r.run_id for r in index.not_finished("personalized", "conv3d", "ce")] == ["f"]
+    assert [r.run_id for r in index.not_finished(_ident(arch="conv3d"))] == ["f"]
 
 
-def test_mixed_pose_frames_need_a_choice():
+def test_config_mode_keeps_only_the_config_keys_and_counts_the_rest():
+    plan = PlanView({"grid": [_ident(), _ident(arch="conv3d")]}, {_ident(): "k0", _ident(arch="conv3d"): "k1"})
+    runs = [_rec("mine", key="k0", start=1), _rec("stale", key="old-key", start=5),
+            _rec("stale-conv3d", key="old-key-2", arch="conv3d", start=5)]
+    index = index_runs(runs, "s", "e", plan=plan)
+    assert {i: r.run_id for i, r in index.runs.items()} == {_ident(): "mine"}
+    assert index.other_configs == 2
+    assert index.notes == ["config: left out 2 run(s) of sweep 's' (2 FINISHED) whose cell_key is not a cell of "
+                           "this config (made under another config); --include-other-configs uses them"]
+    both = index_runs(runs, "s", "e", plan=plan, include_other_configs=True)
+    assert {r.run_id for r in both.runs.values()} == {"stale", "stale-conv3d"}  # the latest per identity
+    assert any("mixes configs" in n for n in both.notes)
+
+
+def test_sweep_mode_warns_when_one_cell_has_runs_of_several_configs():
+    index = index_runs([_rec("a", key="k0", start=1), _rec("b", key="k9", start=2)], "s", "e")
+    assert [r.run_id for r in index.runs.values()] == ["b"]
+    assert len(index.notes) == 1 and "mixes configs: 1 cell(s)" in index.notes[0]
+
+
+def test_mixed_pose_frames_default_to_world_and_say_so():
     runs = [_rec("w"), _rec("c", pose_frame="camera")]
-    with pytest.raises(BronchoError, match="several pose frames .*--pose-frame"):
-        index_runs(runs, "s", "e")
-    index = index_runs(runs, "s", "e", pose_frame="camera")
-    assert [r.run_id for r in index.runs.values()] == ["c"] and index.pose_frame == "camera"
+    index = index_runs(runs, "s", "e")
+    assert index.pose_frame == "world" and {r.run_id for r in index.runs.values()} == {"w", "c"}
+    assert index.notes == ["pose frame: the runs span camera, world; the main tables use world (--pose-frame "
+                           "chooses; the frames table compares both)"]
+    assert [r.run_id for r in index.select("personalized", "lstm", "ce")] == ["w"]
+    chosen = index_runs(runs, "s", "e", pose_frame="camera")
+    assert [r.run_id for r in chosen.select("personalized", "lstm", "ce")] == ["c"] and chosen.notes == []
+
+
+def test_several_training_set_sizes_use_the_default_one_in_the_tables():
+    runs = [_rec("t2", train_trajectories="2"), _rec("t8", train_trajectories="8"), _rec("full")]
+    index = index_runs(runs, "s", "e")
+    assert index.train_size == "" and index.sizes() == ["2", "8", ""]
+    assert [r.run_id for r in index.select("personalized", "lstm", "ce")] == ["full"]
+    no_default = index_runs(runs[:2], "s", "e")
+    assert no_default.train_size == "8"  # else the largest
 
 
 def test_replicas_and_select_cover_folds_and_seeds():
@@ -59,19 +96,20 @@ class CountingClient:
         return getattr(self.client, name)
 
 
-def test_collect_runs_makes_one_query_and_ignores_trials_and_other_sweeps(golden_store):
-    client, _, ids = golden_store
-    counting = CountingClient(client)
-    index = collect_runs(counting, EXPERIMENT, SWEEP)
+def test_collect_runs_makes_one_query_for_the_runs_and_ignores_trials_and_other_sweeps(golden_store):
+    counting = CountingClient(golden_store.client)
+    index = collect_runs(counting, EXPERIMENT, SWEEP, selections=False)
     assert counting.searches == 1
-    kept = {r.run_id for r in index.runs.values()}
-    assert kept == {v for k, v in ids.items() if not k.endswith(("-old", "-failed"))}
-    assert {r.run_id for rs in index.duplicates.values() for r in rs} == {ids["personalized/lstm/ce-old"]}
+    ids = golden_store.ids
+    assert {r.run_id for r in index.runs.values()} == {
+        v for k, v in ids.items() if not k.endswith(("-old", "-failed")) and k not in ("personalized/lstm/mse/s0",
+                                                                                       "personalized/lstm/mse/s1")}
+    assert {r.run_id for rs in index.duplicates.values() for r in rs} == {
+        ids["personalized/lstm/ce/s0-old"], ids["personalized/lstm/mse/s0"], ids["personalized/lstm/mse/s1"]}
 
 
 def test_collect_runs_errors_name_the_experiment_and_sweep(golden_store):
-    client, _, _ = golden_store
     with pytest.raises(BronchoError, match="experiment 'nope' not found"):
-        collect_runs(client, "nope", SWEEP)
+        collect_runs(golden_store.client, "nope", SWEEP)
     with pytest.raises(BronchoError, match="no runs of sweep 'nope'.*--sweep"):
-        collect_runs(client, EXPERIMENT, "nope")
+        collect_runs(golden_store.client, EXPERIMENT, "nope")

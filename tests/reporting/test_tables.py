@@ -1,68 +1,94 @@
-"""Table builders on hand-made run records: layout, pooling over seeds, best-N selection, missing pieces."""
+"""Table builders on in-memory runs: layout, staged plans (which cells each table takes), sota, ablation."""
 
 from __future__ import annotations
 
 import pytest
-from report_fakes import metrics_from
+from report_fakes import MemRuns
 
-from bronchocli.reporting.collect import RunRecord, index_runs
-from bronchocli.reporting.tables import ReportContext, ablation, cross_subject, personalized, sota
-
-
-def _rec(run_id: str, arch: str, loss: str, pop: str = "personalized", fold: str = "", seed: int = 0,
-         acc=(1.0, 2.0, 0.1, 0.01), n=(10, 100), std_div=2.0, status="FINISHED", **extra) -> RunRecord:
-    tags = {"arch": arch, "rot_loss": loss, "population": pop, "fold": fold, "seed": str(seed), "pose_frame": "world"}
-    return RunRecord(run_id, status, 0, tags, metrics_from(acc, *n, std_div=std_div) | extra)
+from bronchocli.reporting.scope import PlanView
+from bronchocli.reporting.tables import ablation, cross_subject, personalized, sota
 
 
-def _ctx(*records: RunRecord, **kw) -> ReportContext:
-    return ReportContext(index_runs(records, "s", "e"), **kw)
+def _ident(arch, loss, pop="personalized", fold="", seed="0"):
+    return (arch, loss, pop, fold, seed, "world", "")
 
 
 def test_rows_follow_the_paper_order_restricted_to_what_the_sweep_ran():
-    t = personalized(_ctx(_rec("a", "offsetnet", "mse"), _rec("b", "convlstm", "ce"), _rec("c", "lstm", "ce",
-                                                                                             status="FAILED")),
-                     "accumulated")
-    assert [(r.group, r.label) for r in t.rows] == [("+LSTM", "MSE+MSE"), ("+LSTM", "MSE+CE"),
-                                                    ("+ConvRNN", "MSE+MSE"), ("+ConvRNN", "MSE+CE")]
-    assert any("personalized lstm MSE+CE: no FINISHED run (c FAILED)" in w for w in t.warnings)
+    m = MemRuns()
+    m.add("offsetnet", "mse")
+    m.add("convlstm", "ce")
+    m.add("lstm", "ce", status="FAILED")
+    t = personalized(m.context(), "accumulated")
+    assert [(r.group, r.label) for r in t.rows] == [
+        ("+LSTM", "MSE+MSE"), ("+LSTM", "MSE+CE"), ("+ConvRNN", "MSE+MSE"), ("+ConvRNN", "MSE+CE"),
+        ("Image-blind", "Zero motion"), ("Image-blind", "Training mean")]
+    lacks = [w for w in t.warnings if "lacks" in w]
+    assert len(lacks) == 1 and "lstm/ce/personalized/s0/world (FAILED r002)" in lacks[0]
 
 
-def test_several_seeds_are_pooled_and_said_so():
-    t = personalized(_ctx(_rec("s0", "lstm", "ce", seed=0, acc=(1.0, 2, 0.1, 0.01)),
-                          _rec("s1", "lstm", "ce", seed=1, acc=(3.0, 2, 0.1, 0.01))), "accumulated")
-    (row,) = t.rows
-    assert row.runs == ["s0", "s1"] and row.values[0].mean == pytest.approx(2.0) and row.values[0].n == 20
-    assert "seeds 0, 1 (pooled like folds)" in t.caption and "20 test trajectories per cell" in t.caption
+def _plan(cells_by_stage: dict) -> PlanView:
+    keys = {i: f"k{n}" for n, i in enumerate(i for cells in cells_by_stage.values() for i in cells or [])}
+    return PlanView(cells_by_stage, keys, staged=True, selections={})
 
 
-def test_a_cell_missing_one_seed_is_left_empty():
-    t = personalized(_ctx(_rec("a0", "lstm", "ce", seed=0), _rec("a1", "lstm", "ce", seed=1),
-                          _rec("b0", "lstm", "mse", seed=0)), "pair")
-    mse = next(r for r in t.rows if r.label == "MSE+MSE")
-    assert mse.values == [None] * 4
-    assert any("lstm MSE+MSE: no FINISHED run for fold - seed 1" in w for w in t.warnings)
+def test_staged_plan_each_table_takes_its_own_stage():
+    m = MemRuns()
+    runs = {("lstm", "ce"): m.add("lstm", "ce", key="k0"), ("lstm", "mse"): m.add("lstm", "mse", key="k1"),
+            ("convlstm", "ce"): m.add("convlstm", "ce", key="k2")}
+    plan = _plan({"personalized": [_ident("lstm", "ce"), _ident("lstm", "mse")],
+                  "sota": [_ident("convlstm", "ce"), _ident("offsetnet", "mse")]})
+    plan.keys[_ident("convlstm", "ce")] = "k2"
+    ctx = m.context(plan=plan)
+    t = personalized(ctx, "pair")
+    assert [r.label for r in t.rows if r.kind == "model"] == ["MSE+MSE", "MSE+CE"]  # convlstm is sota-only
+    s = sota(ctx, "pair")
+    assert s.rows[0].runs == [runs[("convlstm", "ce")].run_id]
+    assert any("lacks 1 cell(s)" in w and "offsetnet/mse/personalized/s0/world" in w for w in s.warnings)
+
+
+def test_sota_follows_the_recorded_selection():
+    m = MemRuns()
+    chosen = m.add("lstm", "de", key="k0")
+    m.add("offsetnet", "mse", key="k1")
+    plan = _plan({"sota": [_ident("lstm", "de"), _ident("offsetnet", "mse")]})
+    plan.selections = {"sota": {"selected": [{"arch": "lstm", "rot_loss": "de"}], "by": "val_best.ce"}}
+    t = sota(m.context(plan=plan), "accumulated")
+    assert t.rows[0].label == "BronchoTrack (LSTM, MSE+DE)" and t.rows[0].runs == [chosen.run_id]
+    assert "sota stage's selection (top 1 by val_best.ce" in t.caption
+
+
+def test_a_pending_selection_is_said_once():
+    m = MemRuns()
+    m.add("lstm", "ce", key="k0")
+    plan = _plan({"personalized": [_ident("lstm", "ce")], "cross-subject": None})
+    ctx = m.context(plan=plan)
+    assert ctx.index.notes == ["plan: stage 'cross-subject' has no recorded selection yet (its cells are not "
+                               "known; run `bronchopose sweep` to finish the earlier stage)"]
+    t = cross_subject(ctx, "pair")
+    assert [r.kind for r in t.rows] == ["reference", "reference"]
 
 
 def test_cross_subject_best_n_keeps_the_lowest_mean_rank():
-    runs = []
-    # (arch, loss) -> acc means; ranks per column: A best everywhere, B second except DE, C last.
-    means = {("lstm", "ce"): (1.0, 1.0, 1.0, 1.0), ("conv3d", "ce"): (2.0, 2.0, 9.0, 2.0),
-             ("baseline", "mse"): (3.0, 3.0, 3.0, 3.0), ("convlstm", "de"): (9.0, 9.0, 2.0, 9.0)}
+    m = MemRuns()
+    means = {("lstm", "ce"): (1.0, 1.0, 0.1, 0.01), ("conv3d", "ce"): (2.0, 2.0, 0.9, 0.02),
+             ("baseline", "mse"): (3.0, 3.0, 0.3, 0.03), ("convlstm", "de"): (9.0, 9.0, 0.2, 0.09)}
     for (arch, loss), acc in means.items():
-        runs += [_rec(f"{arch}{loss}{f}", arch, loss, "cross-subject", f, acc=acc) for f in ("p00", "p01")]
-    t = cross_subject(_ctx(*runs, best=2), "accumulated")
-    assert [(r.group, r.label) for r in t.rows] == [("+LSTM", "MSE+CE"), ("+3D", "MSE+CE")]
+        for fold in ("p00", "p01"):
+            m.add(arch, loss, acc, population="cross-subject", fold=fold)
+    t = cross_subject(m.context(best=2), "accumulated")
+    assert [(r.group, r.label) for r in t.rows if r.kind == "model"] == [("+LSTM", "MSE+CE"), ("+3D", "MSE+CE")]
+    assert len(t.marks) == len(t.rows)
     assert "best 2 of 4 complete network/loss combinations" in t.caption
-    assert "held-out patients: p00, p01" in t.caption
 
 
 def test_sota_without_offsetnet_and_without_n_params():
-    t = sota(_ctx(_rec("bt", "convlstm", "ce")), "accumulated")
-    assert [r.label for r in t.rows] == ["BronchoTrack (ConvLSTM, MSE+CE)", "OffsetNet (MSE+MSE)"]
+    m = MemRuns()
+    m.add("convlstm", "ce")
+    t = sota(m.context(), "accumulated")
+    assert [r.label for r in t.rows if r.kind == "model"] == ["BronchoTrack (ConvLSTM, MSE+CE)", "OffsetNet (MSE+MSE)"]
     assert t.rows[0].values[0] is None and t.rows[1].values == [None] * 5
     assert any("no run logged n_params" in w for w in t.warnings)
-    assert any("offsetnet MSE+MSE: no FINISHED run" in w for w in t.warnings)
+    assert any("offsetnet/mse/personalized/s0/world" in w for w in t.warnings)
 
 
 def test_ablation_takes_cost_from_the_injected_profiler_and_params_from_the_run():
@@ -73,18 +99,33 @@ def test_ablation_takes_cost_from_the_injected_profiler_and_params_from_the_run(
         return {"params": 1.0e6, "latency_ms_b1": 2.5, "gmacs_per_pair": 0.25, "device": "cpu (2 threads)",
                 "image_size": 64, "window": 10, "precision": "32"}
 
-    ctx = _ctx(_rec("a", "lstm", "ce", n_params=14_164_000), _rec("b", "conv3d", "ce"), profiler=profiler)
+    m = MemRuns()
+    m.add("lstm", "ce", n_params=14_164_000)
+    m.add("conv3d", "ce")
+    ctx = m.context(profiler=profiler)
     t = ablation(ctx, "accumulated")
     ablation(ctx, "pair")
     assert calls == ["lstm", "conv3d"]  # each architecture profiled once for both tables
-    lstm, conv3d = t.rows  # paper order: +LSTM before +3D
+    lstm, conv3d = t.rows[:2]  # paper order: +LSTM before +3D
     assert lstm.values[:3] == [pytest.approx(14.164), 2.5, 0.25]
     assert conv3d.values[0] == pytest.approx(1.0)  # no n_params logged: the profiler's count
     assert "on cpu (2 threads), 64x64 input" in t.caption
+    assert t.rows[2].values[:3] == ["", "", ""]  # the reference rows have no cost
 
 
 def test_ablation_without_a_profiler_does_not_warn_about_latency():
-    t = ablation(_ctx(_rec("a", "lstm", "ce", n_params=5), profiler_note="--no-latency"), "pair")
+    m = MemRuns()
+    m.add("lstm", "ce", n_params=5)
+    t = ablation(m.context(profiler_note="--no-latency"), "pair")
     assert t.rows[0].values[1:3] == [None, None]
     assert not any("Latency" in w for w in t.warnings)
     assert "Latency and GMAC not measured (--no-latency)" in t.caption
+
+
+def test_budget_and_stop_reasons_in_every_caption():
+    m = MemRuns()
+    m.add("lstm", "ce", seed=0, **{"train.steps": 250.0, "train.pairs_seen": 5000.0, "train.epochs": 2.5})
+    m.add("lstm", "ce", seed=1)
+    t = personalized(m.context(), "pair")
+    assert ("Budget per run: 250–300 optimiser steps, 5,000–6,000 pairs seen (batch × steps), 2.5–3.0 epochs; "
+            "stop reasons: budget 2.") in t.caption

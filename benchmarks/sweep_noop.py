@@ -1,0 +1,34 @@
+"""A zero-work cell runner for bench_sweep.py: creates and finishes an MLflow run, nothing else.
+
+Named in ``BRONCHOPOSE_TEST_RUNNER=sweep_noop:noop_runner`` (test/benchmark-only), with this folder on
+PYTHONPATH, so the sweep's spawned workers run it instead of training.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+from bronchocli import tracking
+
+
+@dataclass
+class NoopResult:
+    run_id: str
+    status: str
+    metrics: dict = field(default_factory=dict)
+    failure_reason: str | None = None
+    duration_s: float = 0.0
+    train_time_s: float = 0.0
+    stop_requested: int | None = None
+
+
+def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
+    t0 = time.perf_counter()
+    client = tracking.client_for(cfg)
+    run_id = client.create_run(tracking.experiment_id(client, cfg),
+                               tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+    if run_id_callback:
+        run_id_callback(run_id)
+    client.set_terminated(run_id, "FINISHED")
+    return NoopResult(run_id, "FINISHED", duration_s=time.perf_counter() - t0)
