@@ -2,8 +2,8 @@
 
     python benchmarks/bench_data.py [--sizes 64 128] [--batch 16] [--seconds 10] [--no-model] [--augment]
 
-Writes a tiny synthetic dataset (tests/tinydata.py; 2 patients x 4 lobes x 6
-trajectories x 41 frames at 128x128) to a temporary directory, builds the
+Renders a small dataset (2 procedural patients x 4 lobes x 6 trajectories x
+up to 41 frames at the largest size) to a temporary directory, builds the
 frame cache at each size (not timed: it happens once per dataset and size),
 then times what the training loop does per batch (bronchocli.data.batches):
 ``BatchOrder`` picks a shuffled batch of samples and ``FrameSource`` gathers
@@ -20,20 +20,18 @@ the model consumes.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from tinydata import write_tiny_dataset  # noqa: E402
-
-from bronchocli.data.batches import BatchOrder, FrameSource, Photometric, Samples, windows  # noqa: E402
-from bronchocli.data.cache import FrameCache  # noqa: E402
-from bronchocli.data.reader import open_dataset_dir  # noqa: E402
+from bronchocli.config import Config
+from bronchocli.data.batches import BatchOrder, FrameSource, Photometric, Samples, windows
+from bronchocli.data.cache import FrameCache
+from bronchocli.data.reader import open_dataset_dir
+from bronchocli.generation.pipeline import generate_dataset
+from bronchocli.models import build_model
 
 
 def pipeline_rate(samples: Samples, source: FrameSource, batch_pairs: int, seconds: float,
@@ -57,8 +55,6 @@ def pipeline_rate(samples: Samples, source: FrameSource, batch_pairs: int, secon
 
 def model_rate(size: int, batch: int, seconds: float) -> float:
     """Training pairs per second of the baseline model (Adam, forward + backward, float32)."""
-    from bronchocli.models import build_model  # noqa: PLC0415
-
     model = build_model("baseline", image_size=size).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     frames = torch.rand(batch, 2, 3, size, size)
@@ -87,7 +83,9 @@ def main() -> None:
     ap.add_argument("--augment", action="store_true", help="include the photometric augmentation")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        root = write_tiny_dataset(Path(tmp) / "ds", patients=2, trajectories=6, frames=41, image_size=max(args.sizes))
+        cfg = Config(name="bench-data").with_values({"dataset.generate": {
+            "patients": 2, "trajectories": 6, "image_size": max(args.sizes), "max_frames": 41, "workers": 2}})
+        root = generate_dataset(cfg, root=Path(tmp) / "ds", progress=False)
         ds = open_dataset_dir(root)
         print(f"dataset: {ds.n_frames} frames, {len(ds.trajectories)} trajectories; batch {args.batch} pairs, "
               f"main process, torch threads {torch.get_num_threads()}")

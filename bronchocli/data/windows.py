@@ -1,4 +1,4 @@
-"""Where the training windows of a trajectory start (shared by samples.py and the stats command, no torch).
+"""Where the training windows of a trajectory start (shared by batches.py and the stats command, no torch).
 
 A trajectory of N frames has N-1 image pairs. A window is ``n_pairs``
 consecutive pairs (``n_pairs + 1`` frames); consecutive windows start

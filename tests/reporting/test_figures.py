@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from PIL import Image
-from report_fakes import EXPERIMENT, SWEEP, predictions_frame
+from report_fakes import predictions_frame
 
-from bronchocli.reporting import collect
-from bronchocli.reporting.figures import choose_trajectories, frame_errors, make_figures, mlflow_loader
+from bronchocli.reporting.figures import choose_trajectories, frame_errors, local_artifact, make_figures, mlflow_loader
+from bronchocli.reporting.report import collect_index
 
 
 def test_frame_errors_match_the_planted_drift():
@@ -36,8 +36,8 @@ def test_trajectories_are_chosen_one_per_lobe_and_common_to_every_model():
 
 
 def test_make_figures_writes_png_and_pdf_from_mlflow_artifacts(golden_store, tmp_path):
-    client, _, _ = golden_store
-    index = collect.collect_runs(client, EXPERIMENT, SWEEP)
+    client = golden_store.client
+    index = collect_index(client, golden_store.cfg)
     warnings: list[str] = []
     files = make_figures(index, mlflow_loader(client, warnings), tmp_path, 3, warnings)
     names = sorted(p.name for p in files)
@@ -45,6 +45,7 @@ def test_make_figures_writes_png_and_pdf_from_mlflow_artifacts(golden_store, tmp
                                                           "fig-error-rotation") for ext in ("png", "pdf"))
     # conv3d's MSE+CE run FAILED: no curve for it, and nothing else is missing.
     assert warnings == []
+    assert local_artifact(next(iter(index.runs.values())), "x.csv") is not None  # read in place, no download
     for p in files:
         assert p.stat().st_size > 2000
         if p.suffix == ".png":
@@ -55,21 +56,21 @@ def test_make_figures_writes_png_and_pdf_from_mlflow_artifacts(golden_store, tmp
 
 
 def test_a_model_without_predictions_is_left_out_with_a_warning(golden_store, tmp_path):
-    client, _, ids = golden_store
-    index = collect.collect_runs(client, EXPERIMENT, SWEEP)
+    client, ids = golden_store.client, golden_store.ids
+    index = collect_index(client, golden_store.cfg)
     warnings: list[str] = []
     real = mlflow_loader(client, warnings)
-    offsetnet = {ids["personalized/offsetnet/mse"], ids["personalized/offsetnet/ce"]}
+    offsetnet = {ids["personalized/offsetnet/mse/s0"], ids["personalized/offsetnet/mse/s1"]}
     files = make_figures(index, lambda run: None if run.run_id in offsetnet else real(run), tmp_path, 2, warnings)
     assert (tmp_path / "fig5-trajectories.png") in files
     assert any("no OffsetNet curve" in w for w in warnings)
 
 
 def test_a_run_without_the_artifact_is_a_warning_not_a_crash(golden_store, tmp_path):
-    client, _, ids = golden_store
-    index = collect.collect_runs(client, EXPERIMENT, SWEEP)
+    client, ids = golden_store.client, golden_store.ids
+    index = collect_index(client, golden_store.cfg)
     warnings: list[str] = []
-    run = index.runs[next(k for k, r in index.runs.items() if r.run_id == ids["personalized/lstm/mse"])]
+    run = next(r for r in index.runs.values() if r.run_id == ids["personalized/lstm/mse/s0"])
     assert mlflow_loader(client, warnings)(run) is None
     assert len(warnings) == 1 and "no predictions.csv artifact" in warnings[0]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 from PIL import Image
-from report_fakes import MemRuns
+from report_fakes import MemRuns, frames_runs
 
 from bronchocli.reporting.context import NoData
 from bronchocli.reporting.layout import Estimate
@@ -14,21 +14,8 @@ from bronchocli.reporting.skill_figures import curve_points
 from bronchocli.reporting.tables import frames
 
 
-def _frames_runs() -> MemRuns:
-    m = MemRuns(seed=11)
-    for seed in (0, 1):
-        # lstm: much better skill with camera labels (error 20 % of the references vs 60 % in world);
-        # convlstm: the same skill in both frames. Each frame has its own references (camera ones smaller).
-        camera_refs = {"zero_motion": (3.1, 12.0, 0.18, 0.037), "train_mean": (2.9, 11.5, 0.17, 0.036)}
-        m.add("lstm", "ce", (3.48, 13.8, 0.20, 0.04), seed=seed, frame="world")
-        m.add("lstm", "ce", (0.58, 2.3, 0.03, 0.007), seed=seed, frame="camera", refs=camera_refs)
-        m.add("convlstm", "ce", (2.9, 11.5, 0.17, 0.036), seed=seed, frame="world")
-        m.add("convlstm", "ce", (1.45, 5.75, 0.085, 0.018), seed=seed, frame="camera", refs=camera_refs)
-    return m
-
-
 def test_frames_table_compares_skill_in_each_frames_own_terms():
-    t = frames(_frames_runs().context(), "pair")
+    t = frames(frames_runs().context(), "pair")
     assert t.key == "table8-frames-pair"
     assert [r.label for r in t.rows] == ["+LSTM", "+ConvRNN"]
     lstm, convlstm = t.rows
@@ -52,7 +39,7 @@ def test_frames_table_needs_both_frames_and_is_skipped_with_one_line():
 
 
 def test_main_tables_use_one_frame_when_runs_span_both():
-    ctx = _frames_runs().context()
+    ctx = frames_runs().context()
     t = build_tables(ctx, ["personalized"], ["pair"])[0]
     assert "pose frame 'world'" in t.caption
     assert any("the main tables use world" in n for n in ctx.index.notes)

@@ -7,12 +7,12 @@ import shutil
 import subprocess
 
 import pytest
-from report_fakes import EXPERIMENT, PROFILES, SWEEP
+from report_fakes import PROFILES, frames_runs
 
-from bronchocli.metrics import Stat
-from bronchocli.reporting import collect, tables
+from bronchocli.reporting import report, tables
+from bronchocli.reporting.figures import errors_loader
 from bronchocli.reporting.latex import escape, to_latex
-from bronchocli.reporting.layout import Column, Row, Table
+from bronchocli.reporting.layout import Column, Estimate, Row, Table
 
 
 def _strip_comments(text: str) -> str:
@@ -81,23 +81,25 @@ def test_the_checker_catches_broken_latex(bad, problem):
 
 @pytest.fixture(scope="module")
 def documents(golden_store) -> dict[str, str]:
-    client, _, _ = golden_store
-    ctx = tables.ReportContext(collect.collect_runs(client, EXPERIMENT, SWEEP), profiler=PROFILES.get)
-    docs = {}
-    for build in tables.TABLES.values():
-        for ev in ("accumulated", "pair"):
-            t = build(ctx, ev)
-            docs[t.key] = to_latex(t)
+    g = golden_store
+    ctx = tables.ReportContext(report.collect_index(g.client, g.cfg), profiler=PROFILES.get,
+                               errors=errors_loader(g.client))
+    built = report.build_tables(ctx, list(tables.TABLES), ["accumulated", "pair"])
+    built += report.build_tables(frames_runs().context(), ["frames"], ["accumulated", "pair"])
+    docs = {t.key: to_latex(t) for t in built}
+    assert {"table2-personalized-accumulated", "table8-frames-pair"} <= docs.keys()
     docs["hostile"] = to_latex(_hostile_table())
     return docs
 
 
 def _hostile_table() -> Table:
     """Every special character LaTeX has, in titles, labels, headings and caption."""
-    nasty = r"a_b & c% d#e $f ^g ~h {i} \j σ² ± — ° ×"
+    nasty = r"a_b & c% d#e $f ^g ~h {i} \j σ² ± — ° × ≈ ≥ † ‡"
     return Table("hostile", nasty, ("Net_work", "Lo&ss"), [Column("C#1", "100%"), Column("x_y", "°")],
-                 [Row("G_1", "MSE+CE", [Stat(1.0, 0.5, 3), None]), Row("G_1", "a&b", [Stat(2.0, 0.1, 3), 3.5])],
-                 caption=nasty, warnings=["line\nbreak % in a warning"])
+                 [Row("G_1", "MSE+CE", [Estimate(1.0, 0.5, 3), None], flags={"ignores"}),
+                  Row("G_1", "a&b", [Estimate(2.0, 0.1, 3), 3.5]), Row("R", "ref", ["", nasty], kind="reference")],
+                 caption=nasty, warnings=["line\nbreak % in a warning"], judged=True,
+                 marks=[[{"best"}, set()], [{"tie", "noskill"}, set()], [set(), set()]])
 
 
 def test_every_generated_document_passes_the_syntax_check(documents):
@@ -109,6 +111,7 @@ def test_escape_covers_specials_and_symbols():
     assert escape("a_b&c%d#e$f{g}") == r"a\_b\&c\%d\#e\$f\{g\}"
     assert escape("~^\\") == r"\textasciitilde{}\textasciicircum{}\textbackslash{}"
     assert escape("± — °") == r"\ensuremath{\pm} --- \ensuremath{^\circ}"
+    assert escape("≈ ≥ ×") == r"\ensuremath{\approx} \ensuremath{\geq} \ensuremath{\times}"
 
 
 @pytest.mark.skipif(shutil.which("pdflatex") is None, reason="pdflatex not installed (texlive-latex-recommended)")

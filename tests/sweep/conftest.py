@@ -20,7 +20,6 @@ if str(HERE) not in sys.path:  # spawned workers inherit sys.path: they can impo
 @pytest.fixture(scope="session")
 def mlflow_template(tmp_path_factory) -> Path:
     """An initialised MLflow SQLite store, made once: MLflow's first migration takes seconds."""
-    from bronchocli import tracking
 
     path = tmp_path_factory.mktemp("mlflow-template") / "mlflow.db"
     from mlflow.tracking import MlflowClient
@@ -66,19 +65,37 @@ def make_config(tmp_path, mlflow_template):
     return make
 
 
-@pytest.fixture
-def pg_url():
-    """A fresh schema in the PostgreSQL database ``test`` (dropped afterwards); skips if no server."""
+def _pg_admin():
+    """An autocommit connection to the database ``test`` of the local PostgreSQL server; skips without one."""
     psycopg = pytest.importorskip("psycopg")
     try:
-        conn = psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
+        return psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
                                autocommit=True)
     except psycopg.Error as exc:
         pytest.skip(f"PostgreSQL at 127.0.0.1:5432/test unreachable: {exc}")
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh schema in the PostgreSQL database ``test`` (dropped afterwards); skips if no server."""
+    conn = _pg_admin()
     schema = f"sweep_{uuid.uuid4().hex[:10]}"
     conn.execute(f"CREATE SCHEMA {schema}")
     try:
         yield f"{PG_BASE}?options=-csearch_path%3D{schema}"
     finally:
         conn.execute(f"DROP SCHEMA {schema} CASCADE")
+        conn.close()
+
+
+@pytest.fixture
+def fresh_db():
+    """A new, empty PostgreSQL database (dropped afterwards): nothing of MLflow's schema exists yet."""
+    conn = _pg_admin()
+    name = f"fresh_{uuid.uuid4().hex[:10]}"
+    conn.execute(f"CREATE DATABASE {name}")
+    try:
+        yield f"postgresql://postgres@127.0.0.1:5432/{name}"
+    finally:
+        conn.execute(f"DROP DATABASE {name} WITH (FORCE)")
         conn.close()

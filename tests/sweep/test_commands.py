@@ -16,8 +16,6 @@ from tinydata import write_tiny_dataset
 from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, prepare, worker_config
 
 
-
-
 @pytest.fixture
 def project(make_config, tmp_path):
     """A config with a (tiny, already present) dataset: `sweep` generates nothing."""

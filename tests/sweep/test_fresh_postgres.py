@@ -10,7 +10,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import uuid
 
 import pytest
 import yaml
@@ -19,26 +18,6 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.config import load_config
 from bronchocli.sweep import SweepStore
-
-SERVER = "postgresql://postgres@127.0.0.1:5432"
-
-
-@pytest.fixture
-def fresh_db():
-    """A new, empty PostgreSQL database (dropped afterwards): nothing of MLflow's schema exists yet."""
-    psycopg = pytest.importorskip("psycopg")
-    try:
-        conn = psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
-                               autocommit=True)
-    except psycopg.Error as exc:
-        pytest.skip(f"PostgreSQL at 127.0.0.1:5432/test unreachable: {exc}")
-    name = f"fresh_{uuid.uuid4().hex[:10]}"
-    conn.execute(f"CREATE DATABASE {name}")
-    try:
-        yield f"{SERVER}/{name}"
-    finally:
-        conn.execute(f"DROP DATABASE {name} WITH (FORCE)")
-        conn.close()
 
 
 @pytest.mark.slow  # ~40 s: MLflow's first migration of a PostgreSQL database alone takes most of it

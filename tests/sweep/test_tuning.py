@@ -15,8 +15,8 @@ from tinyproject import write_config
 
 from bronchocli import cells, tracking
 from bronchocli.config import load_config
-from bronchocli.sweep import tuning
 from bronchocli.errors import ConfigError
+from bronchocli.sweep import tuning
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
