@@ -112,8 +112,9 @@ def time_cli(uri: str, out: Path) -> float:
     env = {**os.environ, "NO_COLOR": "1"}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-c", code, "report", "-c", str(cfg), "--table", "all", "--no-figures",
-                    "--no-latency", "-q", "--out", str(out / "cli")], check=True, capture_output=True, env=env)
+    subprocess.run([sys.executable, "-c", code, "report", "-c", str(cfg), "--sweep", SWEEP, "--table", "all",
+                    "--no-figures", "--no-latency", "-q", "--out", str(out / "cli")], check=True, capture_output=True,
+                   env=env)
     return time.perf_counter() - t0
 
 

@@ -23,8 +23,9 @@ def report(
     include_other_configs: bool = typer.Option(False, "--include-other-configs", help="Also use runs of the "
                                                "config's sweep made under another config (other cell keys)."),
     out: Path = typer.Option(Path("reports"), "--out", "-o", help="Output directory."),
-    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"Only runs in this pose frame "
-                                             f"({', '.join(POSE_FRAMES)}); needed when the sweep mixes them."),
+    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"The main tables' pose frame "
+                                             f"({', '.join(POSE_FRAMES)}); default: the runs' only one, else "
+                                             f"world (the frames table compares both)."),
     best: int = typer.Option(0, "--best", help="Cross-subject tables: keep the best N network/loss combinations "
                              "by mean rank over the metrics (the paper shows 3); 0 = all."),
     figures: Optional[bool] = typer.Option(None, "--figures/--no-figures", help="Write the figures "

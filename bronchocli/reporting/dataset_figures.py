@@ -78,7 +78,8 @@ def montage_figure(root: Path, *, columns: int = 6, patients: Sequence[str] | No
         patient = str(g["patient"].iat[0])
         patient = patient if len(patient) <= 12 else patient[:11] + "…"
         axes[r][0].set_ylabel(f"{patient}\n{g['lobe'].iat[0]}", fontsize=8)
-    fig.suptitle("sample frames per patient and lobe, along the trajectory with most frames (frame, arc length)", fontsize=9)
+    fig.suptitle("sample frames per patient and lobe, along the trajectory with most frames (frame, arc length)",
+                 fontsize=9)
     fig.tight_layout()
     return fig
 
@@ -90,12 +91,13 @@ def _centreline_voxels(root: Path, patient: str, meta: dict, warnings: list[str]
         return []
     try:
         from vtkmodules.util.numpy_support import vtk_to_numpy  # lazy: VTK is optional outside generation
+
+        poly = read_polydata(path)  # imports VTK's XML reader
     except ImportError:
         note = "figures: VTK is not installed here: the positions figure is drawn without the centreline graph"
         if note not in warnings:
             warnings.append(note)
         return []
-    poly = read_polydata(path)
     pts = vtk_to_numpy(poly.GetPoints().GetData()).astype(np.float64)
     grid = meta["voxel_grid"][patient]
     pts = (pts - np.asarray(grid["origin_mm"])) / np.asarray(grid["spacing_mm"])

@@ -18,9 +18,9 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import Callable, Mapping, Sequence
 from urllib.parse import urlparse
 from urllib.request import url2pathname
-from typing import Callable, Mapping, Sequence
 
 import numpy as np
 import pandas as pd

@@ -27,9 +27,27 @@ from typing import Callable, Sequence
 
 from ..errors import BronchoError
 from .aggregate import PREFIX
-from .context import (ABLATION_LOSS, ARCH_GROUPS, ARCH_NAMES, EVAL_TEXT, IGNORES_TEXT, LOSSES, METRICS, OFFSETNET,
-                      SKILL_METRICS, UNITS, Collector, NoData, ReportContext, bronchotrack, budget_text, finish,
-                      n_text, provenance, references_text)
+from .context import (
+    ABLATION_LOSS,
+    ARCH_GROUPS,
+    ARCH_NAMES,
+    EVAL_TEXT,
+    IGNORES_TEXT,
+    LOSSES,
+    METRICS,
+    OFFSETNET,
+    SKILL_METRICS,
+    UNITS,
+    Collector,
+    NoData,
+    ReportContext,
+    bronchotrack,
+    budget_text,
+    finish,
+    n_text,
+    provenance,
+    references_text,
+)
 from .frames_table import frames
 from .judge import Line, method_text, metric_rows
 from .layout import Column, Row, Table, Value

@@ -389,3 +389,20 @@ def frames_runs() -> MemRuns:
         m.add("convlstm", "ce", (2.9, 11.5, 0.17, 0.036), seed=seed, frame="world")
         m.add("convlstm", "ce", (1.45, 5.75, 0.085, 0.018), seed=seed, frame="camera", refs=camera_refs)
     return m
+
+
+def worked_example():
+    """docs/reports.md's worked example: Table 3 (per pair) from 4 fabricated networks x 3 seeds, in memory.
+
+    Planted: ConvLSTM 20 % below LSTM in position (a single best), LSTM and ConvLSTM 0.4 % apart in rotation
+    (a tie), 3D conv at the references' level with constant predictions (†, ‡).
+    """
+    from bronchocli.reporting.tables import personalized
+
+    m = MemRuns(seed=21)
+    planted = {("baseline", "ce"): (4.5, 16.0, 0.28, 0.040), ("lstm", "ce"): (2.50, 12.0, 0.21, 0.030),
+               ("convlstm", "ce"): (2.00, 12.05, 0.17, 0.025), ("conv3d", "ce"): (5.9, 22.5, 0.35, 0.071)}
+    for (arch, loss), acc in planted.items():
+        for seed in (0, 1, 2):
+            m.add(arch, loss, acc, seed=seed, ratio=0.01 if arch == "conv3d" else 0.5)
+    return personalized(m.context(), "pair")

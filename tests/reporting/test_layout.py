@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 from bronchocli.reporting.latex import to_latex
-from bronchocli.reporting.layout import (Column, Estimate, Row, Table, cell_texts, column_decimals, marks,
-                                         missing_cells)
+from bronchocli.reporting.layout import Column, Estimate, Row, Table, cell_texts, column_decimals, marks, missing_cells
 from bronchocli.reporting.markdown import to_markdown
 
 

@@ -1,64 +1,48 @@
-"""`bronchopose report` end to end on the fabricated sweep: files written, terminal output, flag errors."""
+"""`bronchopose report` end to end on the fabricated sweep: files written, terminal output, flag errors, no VTK."""
 
 from __future__ import annotations
 
+import builtins
 import json
+import sys
 
 import pytest
-from report_fakes import EXPERIMENT, PROFILES, SWEEP
-from tinydata import write_tiny_dataset
+from report_fakes import PROFILES
 
 TABLE_FILES = [f"{key}.{ext}" for key in (
     "table2-personalized-accumulated", "table3-personalized-pair", "table4-cross-subject-accumulated",
     "table5-cross-subject-pair", "table6-sota-accumulated", "table6-sota-pair", "table7-ablation-accumulated",
     "table7-ablation-pair") for ext in ("md", "tex")]
-FIGURE_FILES = [f"{stem}.{ext}" for stem in ("fig5-trajectories", "fig-error-position", "fig-error-rotation",
-                                             "fig-dataset-frames", "fig-dataset-positions") for ext in ("png", "pdf")]
+FIGURE_STEMS = ["fig5-trajectories", "fig-error-position", "fig-error-rotation"] + [
+    f"fig-skill-{k}" for k in dict.fromkeys(f.rsplit(".", 1)[0] for f in TABLE_FILES)]
+DATASET_STEMS = ["fig-dataset-frames", "fig-dataset-positions"]
 
 
-@pytest.fixture
-def config(golden_store, tmp_path):
-    _, uri, _ = golden_store
-    data = write_tiny_dataset(tmp_path / "data", patients=2, trajectories=1, frames=6)
-    path = tmp_path / "experiments.yaml"
-    path.write_text(f"name: {SWEEP}\ntracking:\n  uri: {uri}\n  experiment: {EXPERIMENT}\n"
-                    f"dataset:\n  root: {data}\n")
-    return path
+def _files(stems):
+    return [f"{s}.{ext}" for s in stems for ext in ("png", "pdf")]
 
 
-def test_report_all_writes_every_table_and_figure(cli, config, tmp_path):
-    out = tmp_path / "reports"
-    code, stdout, stderr = cli("report", "-c", str(config), "--table", "all", "--no-latency", "--out", str(out))
-    assert code == 0, stderr
-    assert sorted(p.name for p in out.iterdir()) == sorted(TABLE_FILES + FIGURE_FILES)
-    assert "Table 2. Personalized population, accumulated evaluation" in stdout
-    flat = " ".join(stdout.split())  # rich wraps at the terminal width
-    assert "22 cells with a FINISHED run, 1 superseded duplicate(s), 1 cell(s) with only unfinished runs" in flat
-    assert "duplicate: lstm/ce/personalized/s0/world has 2 FINISHED runs" in stderr
-    assert stderr.count("duplicate: lstm/ce") == 1  # each warning once, not once per table
-    assert "Latency and GMAC not measured (--no-latency)" in (out / "table7-ablation-pair.md").read_text()
-
-
-def test_one_table_one_evaluation_one_format_and_latency_from_json(cli, config, tmp_path):
+def test_one_table_one_evaluation_one_format_and_latency_from_json(cli, golden_store, tmp_path):
     prof = tmp_path / "profile.json"
     prof.write_text(json.dumps(list(PROFILES.values())))
     out = tmp_path / "r"
-    code, _, stderr = cli("report", "-c", str(config), "-t", "ablation", "--eval", "pair", "--format", "latex",
-                          "--latency-from", str(prof), "--out", str(out), "-q")
+    code, _, stderr = cli("report", "-c", str(golden_store.config), "-t", "ablation", "--eval", "pair",
+                          "--format", "latex", "--latency-from", str(prof), "--out", str(out), "-q")
     assert code == 0, stderr
     assert [p.name for p in out.iterdir()] == ["table7-ablation-pair.tex"]  # no figures unless --table all
     assert r"+LSTM & 14.164 & 3.90 & 0.420 &" in (out / "table7-ablation-pair.tex").read_text()
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--table", "table9"], "--table 'table9': must be one of all, personalized, cross-subject, sota, ablation"),
+    (["--table", "table9"], "--table 'table9': must be one of all, personalized, cross-subject, sota, ablation, "
+                            "frames"),
     (["--eval", "final"], "--eval 'final': must be one of accumulated, pair, both"),
     (["--format", "html"], "--format 'html': must be one of md, latex, both"),
     (["--pose-frame", "body"], "--pose-frame 'body'"),
     (["--sweep", "nope"], "no runs of sweep 'nope'"),
 ])
-def test_bad_flags_exit_2_with_one_line(cli, config, args, message):
-    code, _, stderr = cli("report", "-c", str(config), *args)
+def test_bad_flags_exit_2_with_one_line(cli, golden_store, args, message):
+    code, _, stderr = cli("report", "-c", str(golden_store.config), *args)
     assert code == 2 and message in stderr
 
 
@@ -68,3 +52,43 @@ def test_a_missing_store_is_not_created(cli, tmp_path):
     code, _, stderr = cli("report", "-c", str(path))
     assert code == 2 and "no MLflow store there yet" in stderr
     assert not (tmp_path / "none" / "mlflow.db").exists()
+
+
+@pytest.fixture
+def without_vtk(monkeypatch):
+    """Make every VTK import fail, as on a machine without VTK (modules already imported included)."""
+    for name in [m for m in sys.modules if m == "vtk" or m.startswith(("vtk.", "vtkmodules"))]:
+        monkeypatch.setitem(sys.modules, name, None)
+    real_import = builtins.__import__
+
+    def no_vtk(name, *args, **kwargs):
+        if name == "vtk" or name.startswith(("vtk.", "vtkmodules")):
+            raise ImportError(f"No module named {name!r} (VTK hidden by the test)")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_vtk)
+
+
+def test_report_all_writes_every_table_and_figure_even_without_vtk(cli, golden_store, tmp_path, without_vtk):
+    data = golden_store.cfg.paths.dataset
+    vtp = data / "p00" / "airway.vtp"  # a centreline for the positions figure: reading it needs VTK
+    vtp.parent.mkdir(exist_ok=True)
+    vtp.write_text("<VTKFile/>")
+    out = tmp_path / "reports"
+    try:
+        code, stdout, stderr = cli("report", "-c", str(golden_store.config), "--table", "all", "--no-latency",
+                                   "--out", str(out))
+    finally:
+        vtp.unlink()
+    assert code == 0, stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(TABLE_FILES + _files(FIGURE_STEMS + DATASET_STEMS))
+    assert "Table 2. Personalized population, accumulated evaluation" in stdout
+    flat = " ".join(stdout.split())  # rich wraps at the terminal width
+    assert ("35 of the config's 38 cells have a FINISHED run, 1 superseded duplicate(s), 1 cell(s) with only "
+            "unfinished runs (1 run(s)), 2 run(s) of other configs left out") in flat
+    err = " ".join(stderr.split())
+    assert err.count("duplicate: lstm/ce/personalized/s0/world has 2 FINISHED runs") == 1  # once, not per table
+    assert err.count("frames table skipped") == 1
+    assert err.count("left out 2 run(s) of sweep 'golden'") == 1
+    assert err.count("VTK is not installed here") == 1  # the positions figure is drawn without the centreline
+    assert "Latency and GMAC not measured (--no-latency)" in (out / "table7-ablation-pair.md").read_text()
