@@ -151,3 +151,35 @@ def test_standardised_labels_are_undone_at_prediction():
     assert torch.allclose(pred, expected, atol=1e-5)
     gt = pred + torch.tensor([2.0, 0, 0, 10.0, 0, 0])  # one std off in x and in alpha
     assert net.loss(pred, gt, "mse", 1.0).item() == pytest.approx(1 / 3 + 1 / 3, rel=1e-5)
+
+
+def shifted_samples(n: int, seed: int) -> tuple[Samples, FakeSource]:
+    """Pairs whose label is a visible function of the images: frame t+1 is frame t brightened by 8 x label."""
+    rng = np.random.default_rng(seed)
+    base = rng.integers(0, 120, (n, 3, 8, 8))
+    labels = rng.uniform(-1, 1, (n, 1, 6)).astype(np.float32)
+    labels[..., 1:] = 0.0
+    nxt = np.clip(base + 8.0 * (labels[:, 0, 0] + 1.0)[:, None, None, None] * 4, 0, 255)
+    source = FakeSource(n=2 * n)
+    source.bank = torch.from_numpy(np.concatenate([base, nxt]).astype(np.uint8))
+    frames = np.stack([np.arange(n), np.arange(n) + n], 1)
+    return Samples(frames, labels, np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), ("t",)), source
+
+
+def test_the_loop_learns_what_the_images_show_and_beats_the_training_mean():
+    train, source = shifted_samples(64, seed=0)
+    torch.manual_seed(0)
+    mean = train.labels.reshape(-1, 6).mean(0)
+    std = np.maximum(train.labels.reshape(-1, 6).std(0), 1e-3)
+    net = PoseRegressor(TinyNet(), (0.5,) * 3, (0.25,) * 3, mean, std, standardized=True)
+    s = settings(steps=150, micro_pairs=16, val_every=50, lr=3e-3, bn_recalibrate=4, warmup_steps=10,
+                 schedule="cosine")
+    t = Trainer(net, train, train.subset(range(32)), source, s, device=torch.device("cpu"))
+    t.fit()
+    net.eval()
+    with torch.no_grad():
+        pred, _ = net(source(train.frames))
+    err = (pred[:, 0, 0] - torch.from_numpy(train.labels[:, 0, 0])).abs().mean().item()
+    blind = np.abs(train.labels[:, 0, 0] - mean[0]).mean()
+    assert err < 0.5 * blind  # far better than the image-blind constant
+    assert pred[:, 0, 0].std().item() > 0.5 * train.labels[:, 0, 0].std()  # varies with the input

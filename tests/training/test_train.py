@@ -38,6 +38,8 @@ def _check_cell(cfg, arch: str, rot_loss: str) -> None:
     m = run.data.metrics
     # The budget: 4 optimiser steps of 6 image pairs each, whatever the architecture.
     assert m["train.steps"] == 4 and m["train.pairs_seen"] == 24 and run.data.tags["stop_reason"] == "budget"
+    # BatchNorm statistics are re-estimated before testing: eval-mode outputs must not collapse to a constant.
+    assert m["pred.std.pos"] > 1e-4 and m["pred.std.rot"] > 1e-4, m
     tags = run.data.tags
     assert (tags["arch"], tags["rot_loss"], tags["population"], tags["fold"]) == (arch, rot_loss, "personalized", "")
     assert tags["cell_key"] == cell.key and tags["sweep"] == "tiny" and len(tags["dataset_fingerprint"]) == 64
