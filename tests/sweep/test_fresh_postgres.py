@@ -20,7 +20,7 @@ from bronchocli.config import load_config
 from bronchocli.sweep import SweepStore
 
 
-@pytest.mark.slow  # ~40 s: MLflow's first migration of a PostgreSQL database alone takes most of it
+# ~40 s (MLflow's first migration of a PostgreSQL database is most of it): in CI, the acceptance test
 @pytest.mark.postgres
 def test_three_sweeps_starting_together_on_a_fresh_database_all_succeed(tmp_path, fake_dir, fresh_db):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
