@@ -214,10 +214,11 @@ def test_sigint_during_data_generate_exits_130_with_how_to_resume(tmp_path):
     out = tmp_path / "gen"
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     args = ["data", "generate", "-c", str(REPO / "experiments.yaml"), "--anatomy", "procedural", "--out", str(out),
-            *TINY_GENERATE, "--set", "dataset.generate.max_frames=400", "--workers", "2"]
+            *TINY_GENERATE, "--set", "dataset.generate.max_frames=400", "--trajectories", "60", "--workers", "2"]
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, start_new_session=True, env={**os.environ, "COLUMNS": "200"})
     end = time.monotonic() + 120
+    # ~4,000 frames: seconds of rendering left when the first frame appears, so the signal lands mid-way
     while not any(out.rglob("*.png")):  # wait until frames are being rendered
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < end, "no frame rendered"

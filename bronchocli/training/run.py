@@ -147,6 +147,7 @@ def run_cell(
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
+    tracking.check_reachable(cfg)  # a dead server fails within tracking.timeout_s, before any work
     data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
