@@ -83,19 +83,19 @@ def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project)
     name = tuning.study_name(cfg, target)
     tuning.open_study(cfg, target)  # created once, as `tune` does
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    cmd = [sys.executable, "-c", MAIN, "tune", *TARGET, "--trials", "4"]
+    cmd = [sys.executable, "-c", MAIN, "tune", *TARGET, "--trials", "3"]
     procs = [subprocess.Popen(cmd, cwd=project, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
              for _ in range(2)]
     outs = [p.communicate(timeout=600)[0] for p in procs]
     assert [p.returncode for p in procs] == [0, 0], outs
     states = trial_states(cfg, name)
-    assert states.count("COMPLETE") + states.count("PRUNED") == 4, states
+    assert states.count("COMPLETE") + states.count("PRUNED") == 3, states
 
     # Interrupt a third process inside a trial that cannot finish first (a huge budget; the study name does not
-    # depend on it): exactly that trial fails, then the same study resumes to 6 finished trials.
+    # depend on it): exactly that trial fails, then the same study resumes to 4 finished trials.
     ckpts = project / "runs" / "checkpoints"
     before = set(ckpts.glob("*")) if ckpts.is_dir() else set()
-    proc = subprocess.Popen([*cmd[:-1], "6", "--set", "train.steps=100000", "--set", "train.val_every=1"],
+    proc = subprocess.Popen([*cmd[:-1], "4", "--set", "train.steps=100000", "--set", "train.val_every=1"],
                             cwd=project, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 300
     while not any((d / "last.pt").is_file() for d in (set(ckpts.glob("*")) if ckpts.is_dir() else set()) - before):
@@ -106,11 +106,11 @@ def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project)
     assert proc.returncode == 130, out
     assert "Traceback" not in out
     states = trial_states(cfg, name)
-    assert states.count("FAIL") == 1 and states.count("COMPLETE") + states.count("PRUNED") == 4, states
-    again = subprocess.run([*cmd[:-1], "6"], cwd=project, env=env, capture_output=True, text=True, timeout=600)
+    assert states.count("FAIL") == 1 and states.count("COMPLETE") + states.count("PRUNED") == 3, states
+    again = subprocess.run([*cmd[:-1], "4"], cwd=project, env=env, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stdout + again.stderr
     states = trial_states(cfg, name)
-    assert states.count("COMPLETE") + states.count("PRUNED") == 6, states
+    assert states.count("COMPLETE") + states.count("PRUNED") == 4, states
 
 
 def test_bad_tune_space_is_one_clear_error(project):

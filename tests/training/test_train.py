@@ -36,7 +36,8 @@ def _check_cell(cfg, arch: str, rot_loss: str) -> None:
     missing = [m for m in EXPECTED if m not in run.data.metrics]
     assert not missing, missing
     m = run.data.metrics
-    # The budget: 4 optimiser steps of 6 image pairs each, whatever the architecture.
+    # The budget: 4 optimiser steps of 6 image pairs each, whatever the architecture (pairwise models: 6 pairs;
+    # temporal ones: 2 windows of 3).
     assert m["train.steps"] == 4 and m["train.pairs_seen"] == 24 and run.data.tags["stop_reason"] == "budget"
     # BatchNorm statistics are re-estimated before testing: eval-mode outputs must not collapse to a constant.
     assert m["pred.std.pos"] > 1e-4 and m["pred.std.rot"] > 1e-4, m
@@ -103,15 +104,6 @@ def test_references_and_per_trajectory_errors_match_an_independent_computation(t
         weighted = (errors[f"{source}.pair.pos_l2"] * errors.n_pairs).sum() / errors.n_pairs.sum()
         assert weighted == pytest.approx(m[f"{prefix}pair.pos_l2.mean"], rel=1e-6)
         assert errors[f"{source}.acc.pos_l2"].mean() == pytest.approx(m[f"{prefix}acc.pos_l2.mean"], rel=1e-6)
-
-
-def test_temporal_and_pairwise_models_see_the_same_pairs_per_step(tiny_cfg):
-    a = run_cell(tiny_cfg, tiny_cfg.cell(arch="lstm", rot_loss="ce", population="personalized", seed=2),
-                 progress=False)
-    b = run_cell(tiny_cfg, tiny_cfg.cell(arch="offsetnet", rot_loss="ce", population="personalized", seed=2),
-                 progress=False)
-    assert a.metrics["train.pairs_seen"] == b.metrics["train.pairs_seen"] == 4 * 6
-    assert a.metrics["train.steps"] == b.metrics["train.steps"] == 4
 
 
 def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_cfg):
