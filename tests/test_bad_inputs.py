@@ -215,8 +215,11 @@ def test_sigint_during_data_generate_exits_130_with_how_to_resume(tmp_path):
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     args = ["data", "generate", "-c", str(REPO / "experiments.yaml"), "--anatomy", "procedural", "--out", str(out),
             *TINY_GENERATE, "--set", "dataset.generate.max_frames=400", "--trajectories", "60", "--workers", "2"]
+    # A shell that starts jobs in the background hands them SIGINT ignored (as CI may run us): restore the
+    # default, as in a terminal, so the interpreter turns Ctrl-C into KeyboardInterrupt.
     proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True, env={**os.environ, "COLUMNS": "200"})
+                            text=True, start_new_session=True, env={**os.environ, "COLUMNS": "200"},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     end = time.monotonic() + 120
     # ~4,000 frames: seconds of rendering left when the first frame appears, so the signal lands mid-way
     while not any(out.rglob("*.png")):  # wait until frames are being rendered
