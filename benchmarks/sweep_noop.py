@@ -7,20 +7,9 @@ PYTHONPATH, so the sweep's spawned workers run it instead of training.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 from bronchocli import tracking
-
-
-@dataclass
-class NoopResult:
-    run_id: str
-    status: str
-    metrics: dict = field(default_factory=dict)
-    failure_reason: str | None = None
-    duration_s: float = 0.0
-    train_time_s: float = 0.0
-    stop_requested: int | None = None
+from bronchocli.runlayout import RunResult
 
 
 def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
@@ -31,4 +20,4 @@ def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=No
     if run_id_callback:
         run_id_callback(run_id)
     client.set_terminated(run_id, "FINISHED")
-    return NoopResult(run_id, "FINISHED", duration_s=time.perf_counter() - t0)
+    return RunResult(run_id, "FINISHED", duration_s=time.perf_counter() - t0)

@@ -1,12 +1,14 @@
 """What the sweep and the training engine agree on about a run, without importing torch.
 
-Where a run's checkpoints live, how many CPU threads it gets, and the
-exceptions that stop a run early (a sweep worker catches them by type).
+Where a run's checkpoints live, how many CPU threads it gets, what a run
+returns, and the exceptions that stop a run early (a sweep worker catches
+them by type).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from .config import Config
@@ -14,6 +16,19 @@ from .errors import BronchoError
 
 RESUME_FILE = "last.pt"  # full training state of an unfinished run (removed when the run FINISHED)
 BEST_FILE = "best.pt"  # weights of the best validation so far
+
+
+@dataclass
+class RunResult:
+    """What a cell runner (``training.run.run_cell`` or a test/benchmark stand-in) returns to the sweep."""
+
+    run_id: str
+    status: str  # FINISHED, FAILED or KILLED
+    metrics: dict[str, float] = field(default_factory=dict)
+    failure_reason: str | None = None
+    duration_s: float = 0.0
+    train_time_s: float = 0.0
+    stop_requested: int | None = None  # a SIGINT/SIGTERM that arrived during evaluation: the caller should stop
 
 
 class RunStopped(BronchoError):

@@ -1,7 +1,7 @@
 """A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
 
 The cell runner is injectable: any function with ``run_cell``'s signature,
-``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> RunResult``.
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runlayout.RunResult``.
 The real one trains; tests and benchmarks pass fast fakes to ``Worker``, or
 name one in the test-only environment variable ``BRONCHOPOSE_TEST_RUNNER``
 (``module:function``), which spawned worker processes inherit. Workers are

@@ -24,7 +24,6 @@ import signal
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -34,23 +33,12 @@ from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import RunInterrupted, RunPruned, RunStopped, checkpoint_dir, resume_file
+from ..runlayout import RunInterrupted, RunPruned, RunResult, RunStopped, checkpoint_dir, resume_file
 from . import artifacts
 from .engine import fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RunResult:
-    run_id: str
-    status: str  # FINISHED, FAILED or KILLED
-    metrics: dict[str, float] = field(default_factory=dict)
-    failure_reason: str | None = None
-    duration_s: float = 0.0
-    train_time_s: float = 0.0
-    stop_requested: int | None = None  # a SIGINT/SIGTERM that arrived during evaluation: the caller should stop
 
 
 class StopFlag:

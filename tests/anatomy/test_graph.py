@@ -11,7 +11,6 @@ from synthetic_airway import synthetic_tree, tree_graph, write_graph
 from bronchocli.anatomy import load_anatomy, main_bronchi, save_centreline, up_vector
 from bronchocli.anatomy.graph import tree_from_graph
 
-
 REAL_TREE = Path(__file__).resolve().parents[1] / "fixtures" / "airways" / "TestSubject002MajorAirways.vtu"
 
 

@@ -48,8 +48,8 @@ def _sphere(centre, radius=1.0):
 def test_rendered_blob_lands_where_the_intrinsics_say(offset):
     """A small sphere at a known camera-frame direction appears at project(direction): orientation, flip, fx."""
     from bronchocli.config import Realism
-    from bronchocli.render.scene import FrameRenderer
     from bronchocli.render.appearance import prepare_surface
+    from bronchocli.render.scene import FrameRenderer
 
     R = Rotation.from_euler("XYZ", [30, -20, 75], degrees=True).as_matrix()
     cam_pos = np.array([3.0, -7.0, 11.0])

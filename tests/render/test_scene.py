@@ -7,13 +7,13 @@ import pytest
 from generator_refs import tube_surface
 
 from bronchocli.config import Realism
-from bronchocli.render.scene import FrameRenderer, blur
 from bronchocli.render.appearance import (
     mucosa_colours,
     prepare_surface,
     split_blocks,
     triangles,
 )
+from bronchocli.render.scene import FrameRenderer, blur
 
 
 def _rot_down() -> np.ndarray:

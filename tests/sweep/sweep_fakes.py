@@ -19,24 +19,12 @@ import os
 import time
 import uuid
 from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from bronchocli import tracking
-from bronchocli.runlayout import RunInterrupted, resume_file
+from bronchocli.runlayout import RunInterrupted, RunResult, resume_file
 
 HERE = Path(__file__).resolve().parent
-
-
-@dataclass
-class FakeResult:
-    run_id: str
-    status: str
-    metrics: dict = field(default_factory=dict)
-    failure_reason: str | None = None
-    duration_s: float = 0.0
-    train_time_s: float = 0.0
-    stop_requested: int | None = None
 
 
 def _dir() -> Path:
@@ -78,7 +66,7 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
         if fail.exists() and n_calls < int(fail.read_text() or 1):
             client.set_tag(run_id, tracking.TAG_FAILURE, "fake failure")
             client.set_terminated(run_id, "FAILED")
-            return FakeResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
+            return RunResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
     except KeyboardInterrupt:  # like run_cell: a checkpoint, then KILLED
         ckpt = resume_file(cfg, run_id)
         ckpt.parent.mkdir(parents=True, exist_ok=True)
@@ -94,7 +82,7 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
                    "val_best.pos_l2": _metric(cell.key)}
     tracking.log_metrics(client, run_id, metrics)
     client.set_terminated(run_id, "FINISHED")
-    return FakeResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
+    return RunResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
 
 
 def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
