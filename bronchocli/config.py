@@ -450,7 +450,12 @@ class Config(Section):
         return self.tracking.experiment or self.name
 
     def cell(self, **coords: Any) -> Cell:
-        """A validated cell of this config, with its key (ConfigError naming the bad field otherwise)."""
+        """A validated cell of this config, with its key (ConfigError naming the bad field otherwise).
+
+        No ``pose_frame`` (or None): the first of ``grid.pose_frame``, the frame the config's plan trains in.
+        """
+        if coords.get("pose_frame") is None:
+            coords["pose_frame"] = self.grid.pose_frame[0]
         bare = cells.make(**coords)
         return bare.model_copy(update={"key": cell_key(self, bare.coords())})
 

@@ -32,6 +32,15 @@ def test_a_bad_cell_is_one_line_naming_the_field(values, message):
     assert message in str(exc.value) and "\n" not in str(exc.value)
 
 
+def test_a_cell_without_a_pose_frame_takes_the_configs_first_one():
+    camera_first = Config.model_validate({"name": "t", "grid": {"pose_frame": ["camera", "world"]}})
+    coords = {"arch": "lstm", "rot_loss": "ce", "population": "personalized"}
+    assert camera_first.cell(**coords).pose_frame == "camera"
+    assert camera_first.cell(**coords, pose_frame=None).pose_frame == "camera"
+    assert camera_first.cell(**coords, pose_frame="world").pose_frame == "world"
+    assert CFG.cell(**coords).pose_frame == "world"  # the schema's default grid
+
+
 def test_tags_round_trip_and_label():
     cell = CFG.cell(arch="convlstm", rot_loss="ce", population="cross-subject", fold="p01", seed=3,
                     pose_frame="camera", train_trajectories=4)

@@ -19,7 +19,8 @@ def train(
     population: str = typer.Option(..., "--population", "-P", help=f"Population: {', '.join(POPULATIONS)}."),
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the run."),
-    pose_frame: str = typer.Option("world", "--pose-frame", help=f"Relative-pose frame: {', '.join(POSE_FRAMES)}."),
+    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"Relative-pose frame: {', '.join(POSE_FRAMES)} "
+                                             "(default: the first of the config's grid.pose_frame)."),
     train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories", help="Training trajectories per "
                                                      "patient and lobe (default: splits.train)."),
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),

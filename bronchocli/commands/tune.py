@@ -47,7 +47,8 @@ def tune(
     population: Optional[str] = typer.Option(None, "--population", "-P", help=f"{', '.join(POPULATIONS)}."),
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Training seed of every trial."),
-    pose_frame: str = typer.Option("world", "--pose-frame", help="world or camera."),
+    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help="world or camera (default: the first of "
+                                             "the config's grid.pose_frame)."),
     train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories",
                                                      help="Training trajectories per patient and lobe."),
     trials: Optional[int] = typer.Option(None, "--trials", "-n", min=1,
@@ -67,8 +68,8 @@ def tune(
     """Tune one cell's hyperparameters over `tune.space` with Optuna (TPE, seeded), minimising validation loss.
 
     Every trial is an MLflow run (tags run_kind=trial, study, trial); the pruner
-    (`tune.pruner`: median or hyperband) stops poor trials from their per-epoch
-    validation loss. The study lives in the shared storage, so several processes
+    (`tune.pruner`: median or hyperband) stops poor trials from their validation loss
+    (every train.val_every steps). The study lives in the shared storage, so several processes
     or machines can tune it together and an interrupted study resumes. With
     --show, print the best trial and parameter importances (no training).
     """
@@ -84,7 +85,7 @@ def tune(
         if arch is None or rot_loss is None or population is None:
             raise BronchoError("tune needs all of --arch, --rot-loss and --population (or --show --study NAME)")
         target = cells.make(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
-                            pose_frame=pose_frame, train_trajectories=train_trajectories)
+                            pose_frame=pose_frame or cfg.grid.pose_frame[0], train_trajectories=train_trajectories)
     if show:
         if study is None and target is None:
             names = tuning.list_studies(cfg)
