@@ -133,12 +133,17 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
         out[run_id] = {
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
+            "pairs_seen": run.data.metrics.get("pairs_seen"),  # logged at every validation of a running run
             **{k: run.data.metrics.get(k) for k in HEADLINE},
         }
     return out
 
 
-def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int) -> Table:
+def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int, budget_pairs: int | None = None,
+                 now: float | None = None) -> Table:
+    """One row per cell. A running cell's duration is the time since it was claimed, with the share of its
+    training budget (``budget_pairs`` image pairs) done at its last validation."""
+    now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
                       ("worker", "left"), ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
@@ -148,10 +153,15 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
         m = metrics.get(row.run_id, {}) if row and row.run_id else {}
         dur = m.get("duration_s") if row and row.state == FINISHED else None
         dur = row.duration_s if dur is None and row else dur
+        shown = fmt_duration(dur)
+        if row and row.state == RUNNING and row.claimed_at:
+            shown = fmt_duration(now - row.claimed_at)
+            if budget_pairs and m.get("pairs_seen") is not None:
+                shown += f", {min(1.0, m['pairs_seen'] / budget_pairs):.0%} trained"
         table.add_row(
             cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
-            (row.worker or "-") if row and row.state == RUNNING else "", fmt_duration(dur),
+            (row.worker or "-") if row and row.state == RUNNING else "", shown,
             _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
         )
     return table
@@ -195,8 +205,9 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         if stale > 0:
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
-    finished = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
-    console.print(status_table(plan, fetch_metrics(cfg, finished), cfg.sweep.max_retries))
+    with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
+    budget = cfg.train.steps * (cfg.train.effective_batch or cfg.train.batch_size)
+    console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries, budget))
     console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
