@@ -66,7 +66,14 @@ def _metric_columns(names: Sequence[str] = tuple(METRICS)) -> list[Column]:
 
 def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line], metrics: Sequence[str],
            evaluation: str, extra: str = "", expected_empty: Sequence[str] = ()) -> Table:
-    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings."""
+    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings.
+
+    No line at all (none of the config's cells belongs to this table, e.g. Table 4 of a sweep without
+    cross-subject cells): ``NoData``, so the report skips it with one warning instead of printing a table of
+    reference rows only."""
+    if not lines:
+        raise NoData(f"{table.key.rsplit('-', 1)[0]} skipped: none of the runs' cells belongs to it "
+                     f"({table.title.split('. ', 1)[-1]})")
     every = [r for line in lines for r in line.runs]
     built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=table.grouped,
                         settings=ctx.settings, skill_metrics=SKILL_METRICS)

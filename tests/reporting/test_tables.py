@@ -6,7 +6,7 @@ import pytest
 from report_fakes import MemRuns
 
 from bronchocli.reporting.scope import PlanView
-from bronchocli.reporting.tables import ablation, cross_subject, personalized, sota
+from bronchocli.reporting.tables import NoData, ablation, cross_subject, personalized, sota
 
 
 def _ident(arch, loss, pop="personalized", fold="", seed="0"):
@@ -64,8 +64,19 @@ def test_a_pending_selection_is_said_once():
     ctx = m.context(plan=plan)
     assert ctx.index.notes == ["plan: stage 'cross-subject' has no recorded selection yet (its cells are not "
                                "known; run `bronchopose sweep` to finish the earlier stage)"]
-    t = cross_subject(ctx, "pair")
-    assert [r.kind for r in t.rows] == ["reference", "reference"]
+    with pytest.raises(NoData, match="table5-cross-subject skipped: none of the runs' cells belongs to it"):
+        cross_subject(ctx, "pair")  # a table of reference rows only says nothing: the report skips it
+
+
+def test_a_table_none_of_whose_cells_ran_is_skipped_not_broken():
+    m = MemRuns()
+    m.add("offsetnet", "mse", key="k0")  # OffsetNet only: no architecture of Tables 2-5 or the ablation's loss
+    plan = _plan({"sota": [_ident("offsetnet", "mse")]})
+    ctx = m.context(plan=plan)
+    for build in (personalized, ablation):
+        with pytest.raises(NoData, match="skipped: none of the runs' cells belongs to it"):
+            build(ctx, "pair")
+    assert [r.label for r in sota(ctx, "pair").rows if r.kind == "model" and r.runs] == ["OffsetNet (MSE+MSE)"]
 
 
 def test_cross_subject_best_n_keeps_the_lowest_mean_rank():
