@@ -313,6 +313,11 @@ class Train(Section):
                              f"({self.batch_size}): each optimiser step sums whole micro-batches")
         return self
 
+    @property
+    def pairs_per_step(self) -> int:
+        """Image pairs behind each optimiser step (micro-batch x accumulation)."""
+        return self.effective_batch or self.batch_size
+
 
 class TuneParam(Section):
     type: Literal["float", "int", "categorical"]

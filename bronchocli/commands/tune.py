@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
-from .. import cells, urls
+from .. import urls
 from ..cells import ARCHS, POPULATIONS, ROT_LOSSES
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
@@ -84,8 +84,8 @@ def tune(
     if arch is not None or rot_loss is not None or population is not None:
         if arch is None or rot_loss is None or population is None:
             raise BronchoError("tune needs all of --arch, --rot-loss and --population (or --show --study NAME)")
-        target = cells.make(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
-                            pose_frame=pose_frame or cfg.grid.pose_frame[0], train_trajectories=train_trajectories)
+        target = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                          pose_frame=pose_frame, train_trajectories=train_trajectories)
     if show:
         if study is None and target is None:
             names = tuning.list_studies(cfg)

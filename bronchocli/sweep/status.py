@@ -206,8 +206,8 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
-    budget = cfg.train.steps * (cfg.train.effective_batch or cfg.train.batch_size)
-    console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries, budget))
+    console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,
+                               cfg.train.steps * cfg.train.pairs_per_step))
     console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)

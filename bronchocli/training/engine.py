@@ -55,9 +55,8 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
     t = cfg.train
     n = sample_pairs(cfg, cell.arch)
     chunk = cfg.data.window if t.tbptt_chunks > 1 and n > 1 else n
-    effective = t.effective_batch or t.batch_size
     return Settings(
-        steps=t.steps, micro_pairs=t.batch_size, accum=effective // t.batch_size, chunk=chunk,
+        steps=t.steps, micro_pairs=t.batch_size, accum=t.pairs_per_step // t.batch_size, chunk=chunk,
         val_every=min(t.val_every, t.steps), patience=t.patience, min_delta=t.min_delta, lr=t.lr,
         weight_decay=t.weight_decay, warmup_steps=int(round(t.warmup * t.steps)), schedule=t.schedule,
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device),
