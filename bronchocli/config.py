@@ -53,6 +53,7 @@ class Tracking(Section):
     checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
     model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
     timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for tracking servers and databases
+    busy_timeout_s: float = Field(60.0, gt=0, le=86400)  # how long a locked/briefly-down database is waited for
 
 
 class Storage(Section):

@@ -16,6 +16,7 @@ from .errors import BronchoError
 
 RESUME_FILE = "last.pt"  # full training state of an unfinished run (removed when the run FINISHED)
 BEST_FILE = "best.pt"  # weights of the best validation so far
+REJECTED_SUFFIX = ".rejected"  # a checkpoint refused on resume is renamed last.pt.rejected (kept, never loaded)
 
 
 @dataclass

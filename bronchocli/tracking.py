@@ -7,15 +7,18 @@ One MLflow run per grid cell. Runs are found again by their tags (``cell_key``,
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
+import socket
+import sqlite3
 import subprocess
 import time
 import urllib.error
 import urllib.parse
 import urllib.request
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -26,9 +29,9 @@ os.environ.setdefault("DO_NOT_TRACK", "true")
 from mlflow.entities import Metric, Param, Run
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from sqlalchemy import create_engine, text
+from sqlalchemy import create_engine, event, text
 from sqlalchemy.exc import SQLAlchemyError
-from sqlalchemy.pool import NullPool
+from sqlalchemy.pool import NullPool, Pool
 
 from . import __version__, urls
 from .cells import FIELDS, Cell
@@ -59,6 +62,146 @@ class TrackingUnreachable(BronchoError):
     """The tracking server or database did not answer within ``tracking.timeout_s``."""
 
 
+class TrackingBusy(BronchoError):
+    """The tracking database stayed locked or unavailable for longer than ``tracking.busy_timeout_s``."""
+
+
+# -- busy databases: bounded retry with backoff ------------------------------------------------------------------
+
+# Error texts of a database that is busy or briefly away (SQLite locks; PostgreSQL restarts, failovers,
+# dropped connections, serialisation failures): worth retrying. Anything else fails at once.
+TRANSIENT = ("database is locked", "database table is locked", "database schema is locked", "could not connect",
+             "connection refused", "server closed the connection", "terminating connection",
+             "the database system is", "could not serialize access", "deadlock detected", "connection timed out",
+             "connection reset", "ssl syscall error", "timeout expired", "connection is closed",
+             "too many connections", "remaining connection slots")
+_sqlite_busy_ms: dict[str, int] = {}  # MLflow SQLite files of this process -> their busy timeout
+
+
+def is_transient(exc: BaseException) -> bool:
+    """True for a busy or briefly unavailable database (the error, or one it was raised from)."""
+    seen, e = 0, exc
+    while e is not None and seen < 6:
+        text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
+        if any(t in text for t in TRANSIENT):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
+
+
+def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> Any:
+    """``fn()``, retried with backoff while the database is busy, for at most ``bound_s``; then TrackingBusy."""
+    deadline, delay = time.monotonic() + bound_s, 0.05
+    while True:
+        try:
+            return fn()
+        except Exception as exc:  # noqa: BLE001 - re-raised unless transient
+            if isinstance(exc, BronchoError) or not is_transient(exc):  # e.g. unreachable: tracking.timeout_s rules
+                raise
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TrackingBusy(
+                    f"tracking.uri {shown}: the database stayed busy or unavailable for {bound_s:g} s "
+                    f"({urls.redact(_first_line(exc))}, during {what}); another process holds it: try again, or raise "
+                    "tracking.busy_timeout_s") from None
+            logging.getLogger(__name__).warning("tracking database busy (%s), retrying", what)
+            time.sleep(min(delay, left))
+            delay = min(2 * delay, 2.0)
+
+
+class BusyRetryClient:
+    """An ``MlflowClient`` whose every call is retried through a busy database (``retry_busy``)."""
+
+    def __init__(self, client: MlflowClient, bound_s: float, shown: str) -> None:
+        self.raw, self._bound, self._shown = client, bound_s, shown
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self.raw, name)
+        if not callable(attr):
+            return attr
+
+        @functools.wraps(attr)
+        def call(*args: Any, **kw: Any) -> Any:
+            return retry_busy(lambda: attr(*args, **kw), name, self._bound, self._shown)
+
+        return call
+
+
+def _set_sqlite_busy(dbapi_conn: Any, _record: Any) -> None:
+    """Every new SQLite connection to one of this process's MLflow stores waits tracking.busy_timeout_s on a lock.
+
+    MLflow opens its own engine; SQLite's busy handler is itself a bounded retry, so one attempt waits the bound.
+    """
+    if not _sqlite_busy_ms or not isinstance(dbapi_conn, sqlite3.Connection):
+        return
+    try:
+        files = {row[2] for row in dbapi_conn.execute("PRAGMA database_list").fetchall()}
+        ms = max((_sqlite_busy_ms.get(str(Path(f).resolve()), 0) for f in files if f), default=0)
+        if ms:
+            dbapi_conn.execute(f"PRAGMA busy_timeout = {int(ms)}")
+    except sqlite3.Error:  # the database is locked even for this: the store's own timeout applies
+        pass
+
+
+event.listen(Pool, "connect", _set_sqlite_busy)
+
+
+# -- zombies: runs left RUNNING by a process that died -----------------------------------------------------------
+
+TAG_HOST, TAG_PID, TAG_PSTART = "process.host", "process.pid", "process.start"
+
+
+def _process_start(pid: int) -> str | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def process_tags() -> dict[str, str]:
+    """Which process runs a run (host, pid, start tick): lets the next process tell a live run from a dead one."""
+    pid = os.getpid()
+    return {TAG_HOST: socket.gethostname(), TAG_PID: str(pid), TAG_PSTART: _process_start(pid) or "?"}
+
+
+def process_alive(tags: Mapping[str, str]) -> bool | None:
+    """Whether the process a run's tags name is alive: True/False on this host, None when it cannot be told."""
+    if tags.get(TAG_HOST) != socket.gethostname() or not str(tags.get(TAG_PID, "")).isdigit():
+        return None
+    pid = int(tags[TAG_PID])
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # another user's live process
+    start = _process_start(pid)
+    want = tags.get(TAG_PSTART)
+    return not (start is not None and want not in (None, "?") and start != want)  # pid reused by another process
+
+
+def repair_zombie(client: Any, run: Run, who: str) -> bool:
+    """End a RUNNING run whose process died (FAILED, with the reason); True when it did.
+
+    A run still alive is refused (one line); one on another host is left alone (the sweep's heartbeat
+    takeover settles those).
+    """
+    if run.info.status != "RUNNING":
+        return False
+    alive = process_alive(run.data.tags)
+    if alive:
+        raise BronchoError(f"run {run.info.run_id} is still running (process {run.data.tags.get(TAG_PID)} on this "
+                           "host); stop it first (Ctrl-C or kill -TERM), then resume")
+    if alive is None:
+        return False
+    reason = (f"process {run.data.tags.get(TAG_HOST)}:{run.data.tags.get(TAG_PID)} ended without closing the run "
+              f"(killed, or the store was unwritable); marked FAILED by {who}")
+    client.set_tag(run.info.run_id, TAG_FAILURE, reason)
+    client.set_terminated(run.info.run_id, "FAILED")
+    logging.getLogger(__name__).warning("run %s: %s", run.info.run_id, reason)
+    return True
+
+
 def _quiet() -> None:
     for name in ("mlflow", "alembic", "urllib3"):
         logging.getLogger(name).setLevel(logging.WARNING)
@@ -74,22 +217,31 @@ def client_for(cfg: Config) -> MlflowClient:
 
     MLflow creates (migrates) its tables when it first opens a store, and two
     processes doing that at once collide: on SQLite a file lock, on PostgreSQL
-    a database advisory lock (machines share nothing else) serialise it.
+    a database advisory lock (machines share nothing else) serialise it. Every
+    call of the returned client is retried while the database is busy, for at
+    most ``tracking.busy_timeout_s`` (then ``TrackingBusy``, one line).
     """
     _quiet()  # mlflow configures its own loggers when it is first used
-    uri, timeout_s = cfg.paths.tracking_uri, cfg.tracking.timeout_s
+    uri, timeout_s, bound = cfg.paths.tracking_uri, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s
+    shown = urls.redact(uri)
     set_http_limits(timeout_s)
     db = urls.sqlite_file(uri)
     if db is not None:
+        _sqlite_busy_ms[str(Path(db).resolve())] = max(1, int(bound * 1000))
         with file_lock(f"{db}.lock"):
-            return _open(uri)
-    if urls.is_server(uri):
+            client = retry_busy(lambda: _open(uri), "opening the store", bound, shown)
+    elif urls.is_server(uri):
         probe_server(uri, timeout_s)
-        return _client(uri)
-    if urls.is_postgres(uri):
-        with database_lock(uri, timeout_s, what="tracking.uri"):  # also the reachability check
-            return _open(uri)
-    return _client(uri)
+        client = _client(uri)
+    elif urls.is_postgres(uri):
+        def opened() -> MlflowClient:
+            with database_lock(uri, timeout_s, what="tracking.uri"):  # also the reachability check
+                return _open(uri)
+
+        client = retry_busy(opened, "opening the store", bound, shown)
+    else:
+        client = _client(uri)
+    return BusyRetryClient(client, bound, shown)
 
 
 def check_reachable(cfg: Config) -> None:

@@ -115,7 +115,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
 
     trainer = Trainer(net, data.train, data.val, source, settings(cfg, cell, device), device=device,
                       ckpt_dir=ckpt_dir, stop=stop, on_validation=on_validation, on_step=stepped,
-                      compile=cfg.train.compile)
+                      compile=cfg.train.compile, cell_key=cell.key)
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()

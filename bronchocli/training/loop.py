@@ -29,7 +29,6 @@ nothing forces a host sync per step on CUDA.
 from __future__ import annotations
 
 import math
-import random
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -37,15 +36,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from torch import nn
 
-from .. import io, metrics
+from .. import metrics
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
 from ..runlayout import RESUME_FILE, RunInterrupted
+from . import checkpoint
 from .network import PoseRegressor
 
 VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
@@ -143,7 +142,9 @@ class Trainer:
     def __init__(self, net: PoseRegressor, train: Samples, val: Samples, source: FrameSource, s: Settings,
                  *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
                  on_validation: Callable[[int, dict[str, float]], None] | None = None,
-                 on_step: Callable[[int, int], None] | None = None, compile: bool = False) -> None:
+                 on_step: Callable[[int, int], None] | None = None, compile: bool = False,
+                 cell_key: str | None = None) -> None:
+        self.cell_key = cell_key  # written into checkpoints: a resume checks the file is this cell's
         self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
         # The compiled module shares the network's parameters; state dicts and checkpoints use ``net``.
         self.forward = torch.compile(net) if compile else net
@@ -301,6 +302,7 @@ class Trainer:
     # -- the run ----------------------------------------------------------------------------------------
     def fit(self) -> FitResult:
         reason = "budget"
+        self.check_space()  # a full disk fails the run now, not at its first validation
         while self.step < self.s.steps:
             target = min(self.s.steps, (self.step // self.s.val_every + 1) * self.s.val_every)
             t0 = time.perf_counter()
@@ -318,13 +320,14 @@ class Trainer:
 
     # -- checkpoints --------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
+        """The resumable training state as plain data (see ``checkpoint``); loadable with weights_only=True."""
         return {
+            "run_id": self.ckpt_dir.name if self.ckpt_dir is not None else None, "cell_key": self.cell_key,
             "model": self.net.state_dict(), "optimizer": self.opt.state_dict(), "scheduler": self.sched.state_dict(),
-            "scaler": self.scaler.state_dict(), "step": self.step, "micro": self.micro, "best_val": self.best_val,
-            "best_step": self.best_step, "best_state": self.best_state, "bad": self.bad, "history": self.history,
-            "times": (self.train_time, self.val_time),
-            "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
-                    "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None},
+            "scaler": self.scaler.state_dict(), "step": self.step, "micro": self.micro,
+            "best_val": float(self.best_val), "best_step": int(self.best_step), "best_state": self.best_state,
+            "bad": int(self.bad), "history": [dict(h) for h in self.history],
+            "times": (float(self.train_time), float(self.val_time)), "rng": checkpoint.rng_state(),
         }
 
     def load_state(self, state: dict[str, Any]) -> None:
@@ -333,20 +336,21 @@ class Trainer:
         self.sched.load_state_dict(state["scheduler"])
         self.scaler.load_state_dict(state["scaler"])
         self.step, self.micro = int(state["step"]), int(state["micro"])
-        self.best_val, self.best_step, self.bad = state["best_val"], state["best_step"], state["bad"]
+        self.best_val, self.best_step, self.bad = float(state["best_val"]), int(state["best_step"]), int(state["bad"])
         self.best_state, self.history = state["best_state"], list(state["history"])
-        self.train_time, self.val_time = state["times"]
-        rng = state["rng"]
-        torch.set_rng_state(rng["torch"])
-        np.random.set_state(rng["numpy"])
-        random.setstate(rng["python"])
-        if rng.get("cuda") is not None and torch.cuda.is_available():
-            torch.cuda.set_rng_state_all(rng["cuda"])
+        self.train_time, self.val_time = (float(t) for t in state["times"])
+        checkpoint.set_rng_state(state["rng"])
+
+    def expected_checkpoint_bytes(self) -> int:
+        """A checkpoint's size once training runs: weights, best weights and two Adam moments (4x the weights)."""
+        return 4 * checkpoint.nbytes(self.net.state_dict())
+
+    def check_space(self) -> None:
+        """Before training: CheckpointWriteError (one line) when the checkpoint folder cannot hold a checkpoint."""
+        if self.ckpt_dir is not None:
+            checkpoint.check_space(self.ckpt_dir / RESUME_FILE, checkpoint.SPACE_FACTOR * self.expected_checkpoint_bytes())
 
     def save_resume(self) -> Path | None:
         if self.ckpt_dir is None:
             return None
-        path = self.ckpt_dir / RESUME_FILE
-        with io.atomic_path(path) as tmp:
-            torch.save(self.state(), tmp)
-        return path
+        return checkpoint.save(self.ckpt_dir / RESUME_FILE, self.state())

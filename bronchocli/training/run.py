@@ -26,15 +26,22 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
-import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import RunInterrupted, RunPruned, RunResult, RunStopped, checkpoint_dir, resume_file
-from . import artifacts
+from ..runlayout import (
+    REJECTED_SUFFIX,
+    RunInterrupted,
+    RunPruned,
+    RunResult,
+    RunStopped,
+    checkpoint_dir,
+    resume_file,
+)
+from . import artifacts, checkpoint
 from .engine import fit_and_evaluate
 from .prepare import prepare
 
@@ -78,7 +85,7 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
               extra_tags: dict[str, str]) -> tuple[str, dict[str, Any] | None]:
     """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, its saved state)."""
     if not resume:
-        run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags))
+        run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags, **tracking.process_tags()))
         return run.info.run_id, None
     run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)
     try:
@@ -88,12 +95,22 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
     if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
         raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
                            f"{run.data.tags.get(tracking.TAG_CELL_KEY)} != {cell.key})")
+    tracking.repair_zombie(client, run, "train --resume")
     path = resume_file(cfg, run_id)
     if not path.is_file():
         raise BronchoError(f"--resume {run_id}: no checkpoint at {path} (it is kept on the machine that ran it)")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        state = checkpoint.load(path, run_id=run_id, cell_key=cell.key)
+    except checkpoint.BadCheckpoint as exc:  # never loaded: set aside (kept for inspection) and fail the run
+        rejected = path.with_name(path.name + REJECTED_SUFFIX)
+        path.replace(rejected)
+        exc = checkpoint.BadCheckpoint(f"{exc}; moved to {rejected.name}, the next run of the cell starts afresh")
+        _end_run(client, run_id, "FAILED", _reason(exc))
+        raise exc from None
     client.update_run(run_id, "RUNNING")
     client.set_tag(run_id, tracking.TAG_FAILURE, "")
+    for key, value in tracking.process_tags().items():
+        client.set_tag(run_id, key, value)
     return run_id, state
 
 
@@ -164,21 +181,21 @@ def run_cell(
                 bar.close()
             artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
     except RunStopped as exc:
-        client.set_tag(run_id, tracking.TAG_FAILURE, str(exc))
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
             shutil.rmtree(ckpt, ignore_errors=True)  # a pruned trial is never resumed
-        client.set_terminated(run_id, "KILLED")
+        _end_run(client, run_id, "KILLED", str(exc))
         raise
     except KeyboardInterrupt:
-        client.set_tag(run_id, tracking.TAG_FAILURE, "interrupted (second Ctrl-C)")
-        client.set_terminated(run_id, "KILLED")
+        _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        reason = f"{type(exc).__name__}: {reason}"[:4000]
-        client.set_tag(run_id, tracking.TAG_FAILURE, reason)
-        client.set_terminated(run_id, "FAILED")
+        reason = _reason(exc)
+        _end_run(client, run_id, "FAILED", reason)
+        if not isinstance(exc, KEEP_CHECKPOINT_ON):  # only a failure of the environment is worth resuming
+            shutil.rmtree(ckpt, ignore_errors=True)
+        if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
+            raise
         if not isinstance(exc, BronchoError):
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
@@ -186,3 +203,28 @@ def run_cell(
     client.set_terminated(run_id, "FINISHED")
     return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)
+
+
+# Failures of the machine, not of the run: the run ends FAILED, keeps its checkpoint, and a retry resumes it.
+KEEP_CHECKPOINT_ON = (checkpoint.CheckpointWriteError, tracking.TrackingBusy)
+# Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
+RAISE_AFTER_FAILED = (checkpoint.CheckpointWriteError, checkpoint.BadCheckpoint, tracking.TrackingBusy)
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return f"{type(exc).__name__}: {text}"[:4000]
+
+
+def _end_run(client, run_id: str, status: str, reason: str) -> None:
+    """Terminate the run with its reason, best effort: a store that is busy or full must not hide the reason.
+
+    A run this cannot end stays RUNNING with its process tags; whoever touches it next (``train --resume``,
+    the sweep's takeover, ``status --repair``) finds its process gone and ends it (``runlayout.repair_zombie``).
+    """
+    try:
+        client.set_tag(run_id, tracking.TAG_FAILURE, reason)
+        client.set_terminated(run_id, status)
+    except Exception as exc:  # noqa: BLE001 - logged; the caller reports the original failure
+        log.warning("could not mark run %s %s (%s); it will be repaired when next touched", run_id, status,
+                    str(exc).splitlines()[0] if str(exc) else type(exc).__name__)

@@ -1,0 +1,191 @@
+"""Resumable training checkpoints: plain data only, loaded without running code, written only when they fit.
+
+A checkpoint (``runlayout.resume_file``: ``<tracking.checkpoints>/<run_id>/last.pt``)
+holds tensors, dicts, lists, tuples, strings, numbers, booleans and None: nothing
+else. It is read with ``torch.load(weights_only=True)``, whose unpickler refuses
+every other object, so a file planted on shared storage cannot run code in the
+process that resumes from it. The RNG states that are not tensors (numpy's
+``MT19937`` tuple, Python's ``random`` state) are converted to tensors and ints.
+CUDA's RNG state is that of the *current* device only, restored onto the current
+device, so a run checkpointed on an 8-GPU node resumes on a worker that sees one
+GPU (a Slurm requeue), or on the CPU.
+
+``load`` checks the format version, the keys, and that the file belongs to the
+run and cell that resume it; anything else is :class:`BadCheckpoint` (one line
+naming the file). ``save`` checks the free space first (a checkpoint needs
+about twice its size: the temporary copy is written beside the old file) and
+writes atomically; a failed write removes the temporary file and raises
+:class:`CheckpointWriteError` naming the path and the space needed.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import random
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .. import io
+from ..errors import BronchoError
+
+FORMAT = 2
+KEYS = ("format", "run_id", "cell_key", "model", "optimizer", "scheduler", "scaler", "step", "micro", "best_val",
+        "best_step", "best_state", "bad", "history", "times", "rng")
+SPACE_FACTOR = 2  # free space a checkpoint needs, in multiples of its size (temporary copy beside the old file)
+OVERHEAD = 1 << 20  # bytes added to the tensors' size for the zip container and the non-tensor entries
+
+
+class BadCheckpoint(BronchoError):
+    """A checkpoint file that is not a valid checkpoint of this run (refused, never executed)."""
+
+
+class CheckpointWriteError(BronchoError):
+    """A checkpoint could not be written (disk full, I/O error); nothing half-written is left."""
+
+
+# -- RNG states as plain data -------------------------------------------------------------------------------
+
+
+def rng_state() -> dict[str, Any]:
+    """Every RNG the loop draws from, as tensors and plain numbers (CUDA: the current device only)."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64).copy()),
+                  "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+        "python": (int(version), tuple(int(v) for v in internal), None if gauss_next is None else float(gauss_next)),
+        "cuda": torch.cuda.get_rng_state() if torch.cuda.is_available() else None,
+    }
+
+
+def set_rng_state(rng: dict[str, Any]) -> None:
+    """Restore :func:`rng_state`'s output; the CUDA state goes to the current device (if there is one)."""
+    torch.set_rng_state(rng["torch"])
+    n = rng["numpy"]
+    keys = n["keys"].numpy().astype(np.uint32)
+    np.random.set_state((n["kind"], keys, int(n["pos"]), int(n["has_gauss"]), float(n["cached_gaussian"])))
+    version, internal, gauss_next = rng["python"]
+    random.setstate((int(version), tuple(int(v) for v in internal), gauss_next))
+    if rng.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state(rng["cuda"])
+
+
+# -- size and space -----------------------------------------------------------------------------------------
+
+
+def nbytes(obj: Any) -> int:
+    """Bytes the tensors of ``obj`` occupy (shared storages counted once), plus the container's overhead."""
+    seen: dict[int, int] = {}
+
+    def walk(x: Any) -> None:
+        if isinstance(x, torch.Tensor):
+            st = x.untyped_storage()
+            seen[st.data_ptr() or id(st)] = st.nbytes()
+        elif isinstance(x, dict):
+            for v in x.values():
+                walk(v)
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                walk(v)
+
+    walk(obj)
+    return sum(seen.values()) + OVERHEAD
+
+
+def human(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if abs(n) < 1024 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TB"  # pragma: no cover
+
+
+def existing_folder(path: Path) -> Path:
+    """``path`` or its nearest existing ancestor (where the file system's free space is measured)."""
+    p = Path(path)
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
+    """CheckpointWriteError (one line) unless the file system of ``path`` has ``need`` bytes free."""
+    try:
+        free = shutil.disk_usage(existing_folder(path.parent)).free
+    except OSError:  # cannot tell (e.g. a file system without statvfs): let the write itself decide
+        return
+    if free < need:
+        raise CheckpointWriteError(
+            f"{path}: not enough disk space for the {what}: needs {human(need)} free ({SPACE_FACTOR}x its size), "
+            f"{human(free)} available; free space there or point tracking.checkpoints elsewhere")
+
+
+def check_space_for(path: Path, state: dict[str, Any]) -> int:
+    """Check there is room for ``state`` at ``path``; returns the bytes needed."""
+    need = SPACE_FACTOR * nbytes(state)
+    check_space(path, need)
+    return need
+
+
+# -- save / load ----------------------------------------------------------------------------------------------
+
+
+def _is_write_failure(exc: BaseException) -> bool:
+    if isinstance(exc, OSError):
+        return True
+    text = str(exc)
+    return isinstance(exc, RuntimeError) and ("inline_container" in text or "PytorchStreamWriter" in text
+                                              or "file write failed" in text or "unexpected pos" in text)
+
+
+def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
+    """Write ``state`` (plain data, see the module doc) atomically after checking the free space."""
+    path = Path(path)
+    state = {"format": FORMAT, **state}
+    need = check_space_for(path, state)
+    try:
+        with io.atomic_path(path) as tmp:
+            torch.save(state, tmp)
+    except (OSError, RuntimeError) as exc:
+        if not _is_write_failure(exc):
+            raise
+        code = getattr(exc, "errno", None)
+        why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else _first_line(exc)
+        raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about {human(need)} "
+                                   "free there; free space or point tracking.checkpoints elsewhere") from None
+    return path
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [s for s in str(exc).strip().splitlines() if s.strip()]
+    return (lines[0] if lines else type(exc).__name__)[:200]
+
+
+def load(path: str | os.PathLike, *, run_id: str | None = None, cell_key: str | None = None) -> dict[str, Any]:
+    """The checkpoint at ``path``, refused (BadCheckpoint, one line) unless it is a valid one of this run and cell."""
+    path = Path(path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - unpickling refused, truncated, not a zip, I/O error: all mean "bad"
+        why = "it holds objects other than tensors and plain data (refused unloaded)" \
+            if "weights_only" in str(exc) or "Unsupported global" in str(exc) else _first_line(exc)
+        raise BadCheckpoint(f"checkpoint {path}: not a valid checkpoint: {why}; delete it to start the cell "
+                            "afresh") from None
+    if not isinstance(state, dict):
+        raise BadCheckpoint(f"checkpoint {path}: not a valid checkpoint (a {type(state).__name__}, not a dict)")
+    if state.get("format") != FORMAT:
+        raise BadCheckpoint(f"checkpoint {path}: format {state.get('format')!r}, this version reads format "
+                            f"{FORMAT}; delete it to start the cell afresh")
+    missing = [k for k in KEYS if k not in state]
+    if missing:
+        raise BadCheckpoint(f"checkpoint {path}: not a valid checkpoint (missing {', '.join(missing)})")
+    for key, want in (("run_id", run_id), ("cell_key", cell_key)):
+        if want is not None and state[key] != want:
+            raise BadCheckpoint(f"checkpoint {path}: belongs to {key} {state[key]!r}, not {want!r}; refused")
+    return state
