@@ -54,6 +54,22 @@ def cli(monkeypatch):
     return run
 
 
+@pytest.fixture
+def small_fs(tmp_path):
+    """A 1 MB tmpfs mounted at ``tmp_path/small`` (needs root and a kernel that allows it; skipped otherwise)."""
+    import subprocess
+
+    mount = tmp_path / "small"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip() or done.returncode}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
 def pytest_collection_modifyitems(config, items):
     """``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
     if not any("gpu" in item.keywords for item in items):

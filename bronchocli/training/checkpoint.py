@@ -37,7 +37,7 @@ FORMAT = 2
 KEYS = ("format", "run_id", "cell_key", "model", "optimizer", "scheduler", "scaler", "step", "micro", "best_val",
         "best_step", "best_state", "bad", "history", "times", "rng")
 SPACE_FACTOR = 2  # free space a checkpoint needs, in multiples of its size (temporary copy beside the old file)
-OVERHEAD = 1 << 20  # bytes added to the tensors' size for the zip container and the non-tensor entries
+OVERHEAD = 1 << 16  # bytes added to the tensors' size for the zip container and the non-tensor entries
 
 
 class BadCheckpoint(BronchoError):
