@@ -8,15 +8,19 @@ import subprocess
 import sys
 import time
 
+from pathlib import Path
+
 import pandas as pd
 import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
+from training.test_checkpoint import plant
 
 from bronchocli import tracking
 from bronchocli.config import load_config
 from bronchocli.errors import DataError
 from bronchocli.runlayout import RunInterrupted
+from bronchocli.training import checkpoint
 from bronchocli.training.run import run_cell
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -137,3 +141,73 @@ def test_train_command_cross_subject_camera_frame(tiny_project, cli):
 def test_bad_flags_are_one_clear_error(tiny_project, cli, args, message):
     code, _, err = cli("train", "-c", str(tiny_project / "experiments.yaml"), *args)
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1
+
+
+# -- checkpoints that are not ours, and full disks (issue 22, items 1 and 2) ------------------------------------
+
+
+def killed_run_of(cfg, cell) -> str:
+    """A KILLED run of ``cell`` as an interrupted `train` leaves it (without spending a training run on it)."""
+    client = tracking.client_for(cfg)
+    run = client.create_run(tracking.experiment_id(client, cfg), tags=tracking.cell_tags(cfg, cell))
+    client.set_terminated(run.info.run_id, "KILLED")
+    return run.info.run_id
+
+
+def test_a_planted_checkpoint_is_refused_on_resume_and_its_code_never_runs(tmp_path, cli):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path))
+    cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
+    run_id = killed_run_of(cfg, cell)
+    marker = tmp_path / "pwned"
+    planted = cfg.paths.checkpoints / run_id / "last.pt"
+    plant(planted, marker, "torch")
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:], "--resume")
+    assert code == 2, out + err
+    assert not marker.exists()  # the payload never ran
+    assert len(err.strip().splitlines()) == 1 and str(planted) in err and "Traceback" not in err
+    run = tracking.client_for(cfg).get_run(run_id)
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("BadCheckpoint:")
+    assert not planted.exists() and planted.with_name("last.pt.rejected").is_file()  # kept aside, never loaded again
+
+
+def test_train_on_a_full_disk_is_one_line_and_its_run_ends_failed_not_running(tmp_path, cli, monkeypatch):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path))
+    real = checkpoint.shutil.disk_usage
+    monkeypatch.setattr(checkpoint.shutil, "disk_usage", lambda p: real(p)._replace(free=10_000_000))
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
+    assert code == 2, out + err
+    assert len(err.strip().splitlines()) == 1 and "not enough disk space" in err and str(cfg.paths.checkpoints) in err
+    client = tracking.client_for(cfg)
+    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("CheckpointWriteError:")
+
+
+def test_a_checkpoint_write_failing_mid_run_leaves_no_partial_file(tmp_path, cli, monkeypatch):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path))
+
+    def full(obj, f):
+        Path(f).write_bytes(b"PK half a checkpoint")
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . PytorchStreamWriter failed writing file")
+
+    monkeypatch.setattr(checkpoint.torch, "save", full)
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "could not write the checkpoint" in err, out + err
+    assert [p for p in cfg.paths.checkpoints.rglob("*") if p.is_file()] == []
+    client = tracking.client_for(cfg)
+    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    assert run.info.status == "FAILED"
+
+
+def test_train_with_checkpoints_on_a_small_file_system(tmp_path, cli, small_fs):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path))
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:],
+                         "--set", f"tracking.checkpoints={small_fs}")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and str(small_fs) in err, out + err
+    client = tracking.client_for(cfg)
+    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    assert run.info.status == "FAILED" and "disk space" in run.data.tags["failure_reason"]
+    assert list(small_fs.rglob("*.tmp")) == []
