@@ -122,7 +122,8 @@ class CellRow:
 class Claim:
     """A won claim. ``previous`` is the row as it was when it was taken from a lost worker;
     ``exhausted`` means that cell used up its attempts: settle it and mark it failed, do not run it;
-    ``released_run`` is the KILLED run of a cell given back by Ctrl-C (a candidate for resuming)."""
+    ``released_run`` is the last run of a cell given back (Ctrl-C, busy database) or failed with retries left
+    (a candidate for resuming: the worker decides from the run's status and reason)."""
 
     row: CellRow
     token: str
@@ -280,7 +281,7 @@ class SweepStore:
                 if res.rowcount == 1:
                     won = CellRow(**{**row.__dict__, "state": RUNNING, "token": token, "worker": worker,
                                      "attempts": row.attempts + (0 if exhausted else 1), "version": row.version + 1})
-                    released = row.run_id if row.state == PENDING else None
+                    released = row.run_id if row.state in (PENDING, FAILED) else None
                     return Claim(won, token, previous, exhausted, released)
             # lost the race for that row (optimistic path): look again
         return None
@@ -311,12 +312,13 @@ class SweepStore:
             return self._by_token(conn, token, state=FAILED, run_id=run_id, duration_s=duration_s,
                                   finished_at=self._now, failure_reason=reason[:4000], version=c.version + 1)
 
-    def release(self, token: str) -> bool:
-        """Give the cell back (Ctrl-C): pending again, and the attempt is not counted."""
+    def release(self, token: str, reason: str | None = None) -> bool:
+        """Give the cell back (Ctrl-C, a busy database): pending again, the attempt not counted, ``reason`` kept."""
         c = cells_table.c
         with self._tx(write=True) as conn:
             return self._by_token(conn, token, state=PENDING, token=None, worker=None, heartbeat=None,
-                                  attempts=c.attempts - 1, version=c.version + 1)
+                                  attempts=c.attempts - 1, version=c.version + 1,
+                                  failure_reason=reason[:4000] if reason else None)
 
     # -- staged sweeps -------------------------------------------------------------
     def record_selection(self, sweep: str, plan_key: str, stage: str, selection: dict[str, Any]) -> bool:

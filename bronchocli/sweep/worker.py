@@ -45,6 +45,8 @@ TAG_CLAIM = "sweep_claim"  # the claim token the run was made under (finds orpha
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
 EXIT_OK, EXIT_INTERRUPTED = 0, 130
+# Failure reasons (``Type: ...``) of the machine rather than the run: a retry resumes their checkpoint.
+RESUMABLE_FAILURES = ("CheckpointWriteError:", "TrackingBusy:")
 
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
 
@@ -280,6 +282,8 @@ class Worker:
             self._db(self.store.release, claim.token)
             log.info("interrupted %s: released", cell.label)
             return "stop"
+        if isinstance(error, tracking.TrackingBusy):  # the database, not the cell: back without using an attempt
+            return self._release_busy(claim, cell, _reason(error), run_id)
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
                 log.error("runner failed on %s", cell.label, exc_info=error)
@@ -301,7 +305,18 @@ class Worker:
             return self._lost(cell, run_id)
         self.stats.failed += 1
         log.warning("failed %s: %s", cell.label, reason)
+        if run_id and claim.row.attempts > self.cfg.sweep.max_retries:  # no retry will resume it: free the disk
+            _remove_checkpoint(self.cfg, run_id, "failed on its last attempt")
         return "failed"
+
+    def _release_busy(self, claim: Claim, cell: Cell, reason: str, run_id: str | None) -> str:
+        """A run failed by a busy tracking database: the cell goes back (attempt not counted) with the reason."""
+        self._terminate(run_id, "FAILED", reason, ("RUNNING",))
+        self._db(self.store.release, claim.token, reason)
+        self.stats.failed += 1
+        log.warning("released %s (tracking database busy; attempt not counted): %s", cell.label, reason)
+        self.signals.wait(self.cfg.sweep.poll_s)  # give the database a moment before claiming again
+        return "released"
 
     def _lost(self, cell: Cell, run_id: str | None) -> str:
         self.stats.lost += 1
@@ -312,14 +327,26 @@ class Worker:
 
     # -- MLflow side ---------------------------------------------------------------
     def _resumable(self, run_id: str | None, cell: Cell) -> str | None:
-        """A run given back by Ctrl-C is resumed when it is KILLED and its checkpoint is on this machine."""
+        """The cell's last run, resumed when its checkpoint is on this machine and it ended resumably.
+
+        Resumable: KILLED (given back by Ctrl-C/SIGTERM), FAILED by the machine (disk full, busy
+        database; ``RESUMABLE_FAILURES``), or left RUNNING by a worker that released the cell without
+        being able to close its run (the busy database again): that zombie is marked KILLED first.
+        """
         if not run_id or not resume_file(self.cfg, run_id).is_file():
             return None
         try:
             run = self.client.get_run(run_id)
+            if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
+                return None
+            if run.info.status == "RUNNING":  # its cell was released, so no worker runs it any more
+                self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; resumed by "
+                                f"{self.ident}", ("RUNNING",))
+                return run_id
         except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
             return None
-        ok = run.info.status == "KILLED" and run.data.tags.get(tracking.TAG_CELL_KEY) == cell.key
+        reason = run.data.tags.get(tracking.TAG_FAILURE, "")
+        ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and reason.startswith(RESUMABLE_FAILURES))
         return run_id if ok else None
 
     def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:
@@ -347,15 +374,15 @@ class Worker:
                   f"cell taken over by {self.ident}")
         for run_id in sorted(run_ids):
             self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
-            _remove_checkpoint(self.cfg, run_id)
+            _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
 
 
-def _remove_checkpoint(cfg: Config, run_id: str) -> None:
-    """Free the disk of an orphaned run's checkpoint: only a Ctrl-C release resumes a run, never a takeover."""
+def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:
+    """Free the disk of a checkpoint no cell will resume (a takeover starts afresh; a last failure is final)."""
     folder = checkpoint_dir(cfg, run_id)
     if folder.is_dir():
         shutil.rmtree(folder, ignore_errors=True)
-        log.info("removed the checkpoint folder %s of orphaned run %s", folder, run_id)
+        log.info("removed the checkpoint folder %s of run %s (%s)", folder, run_id, why)
 
 
 # -- process entry point -----------------------------------------------------------

@@ -122,7 +122,10 @@ def test_release_gives_the_cell_back_without_using_an_attempt(store):
     assert again.row.attempts == 1 and state(store, KEYS[0]).state == RUNNING
     assert again.released_run == "killed-run"  # the worker may resume that run
     assert store.fail(again.token, "boom", "failed-run")
-    assert claim(store, keys=KEYS[:1], max_retries=1).released_run is None  # failed runs are not resumed
+    # A failed run is offered too: the worker resumes it only when the machine failed it (disk full, busy database).
+    assert claim(store, keys=KEYS[:1], max_retries=1).released_run == "failed-run"
+    assert store.release(claim(store, keys=KEYS[1:2]).token, "TrackingBusy: database is locked")
+    assert state(store, KEYS[1]).failure_reason == "TrackingBusy: database is locked"  # the reason stays visible
 
 
 def test_database_clock_is_epoch_seconds(store):

@@ -141,3 +141,68 @@ def test_a_stop_that_arrived_while_the_run_was_evaluating_is_obeyed_after_record
     states = sorted(r.state for r in store.rows(cfg.name))
     assert states.count(FINISHED) == 1  # the finished run is recorded, and no further cell is started
     assert len(runs_by_cell(cfg)) == 1
+
+
+# -- the machine failed the run: busy database, full disk (issue 22, items 2, 3, 6) ------------------------------
+
+
+def machine_failure(error_type, ckpt: bool = True):
+    """A runner whose run fails with ``error_type`` (after writing a checkpoint), and succeeds when resumed."""
+    from bronchocli.runlayout import RunResult, resume_file
+
+    seen = []
+
+    def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        client = tracking.client_for(cfg)
+        if resume:
+            seen.append(("resumed", resume))
+            client.update_run(resume, "RUNNING")
+            run_id_callback(resume)
+            client.set_terminated(resume, "FINISHED")
+            return RunResult(resume, "FINISHED", {"pair.pos_l2.mean": 1.0})
+        exp = tracking.experiment_id(client, cfg)
+        run_id = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+        run_id_callback(run_id)
+        if ckpt:
+            resume_file(cfg, run_id).parent.mkdir(parents=True, exist_ok=True)
+            resume_file(cfg, run_id).write_text("checkpoint")
+        seen.append(("failed", run_id))
+        client.set_tag(run_id, tracking.TAG_FAILURE, f"{error_type.__name__}: the machine")
+        client.set_terminated(run_id, "FAILED")
+        raise error_type("the machine")
+
+    return runner, seen
+
+
+def test_a_busy_database_releases_the_cell_without_using_an_attempt_and_the_retry_resumes(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
+    store, plan = setup(cfg)
+    runner, seen = machine_failure(tracking.TrackingBusy)
+    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    row = rows(store, cfg)["baseline"]
+    assert (row.state, row.attempts) == (FINISHED, 1)  # with max_retries 0: the busy attempt did not count
+    assert [s[0] for s in seen] == ["failed", "resumed"] and seen[0][1] == seen[1][1]
+
+
+def test_a_full_disk_fails_the_cell_with_its_reason_and_the_retry_resumes_the_checkpoint(make_config, fake_dir):
+    from bronchocli.training.checkpoint import CheckpointWriteError
+
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1})
+    store, plan = setup(cfg)
+    runner, seen = machine_failure(CheckpointWriteError)
+    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    row = rows(store, cfg)["baseline"]
+    assert (row.state, row.attempts) == (FINISHED, 2)
+    assert [s[0] for s in seen] == ["failed", "resumed"] and seen[0][1] == seen[1][1]
+
+
+def test_a_failed_run_keeps_its_checkpoint_only_while_its_cell_can_be_retried(make_config, fake_dir):
+    from bronchocli.training.checkpoint import CheckpointWriteError
+
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
+    store, plan = setup(cfg)
+    runner, seen = machine_failure(CheckpointWriteError)
+    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    row = rows(store, cfg)["baseline"]
+    assert row.state == FAILED and row.failure_reason == "CheckpointWriteError: the machine"
+    assert not (cfg.paths.checkpoints / seen[0][1]).exists()  # last attempt: nothing will resume it
