@@ -29,7 +29,7 @@ os.environ.setdefault("DO_NOT_TRACK", "true")
 from mlflow.entities import Metric, Param, Run
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
-from sqlalchemy import create_engine, event, text
+from sqlalchemy import Engine, create_engine, event, text
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.pool import NullPool, Pool
 
@@ -127,7 +127,7 @@ class BusyRetryClient:
         return call
 
 
-def _set_sqlite_busy(dbapi_conn: Any, _record: Any) -> None:
+def _set_sqlite_busy(dbapi_conn: Any, _record: Any, *_proxy: Any) -> None:
     """Every new SQLite connection to one of this process's MLflow stores waits tracking.busy_timeout_s on a lock.
 
     MLflow opens its own engine; SQLite's busy handler is itself a bounded retry, so one attempt waits the bound.
@@ -143,7 +143,19 @@ def _set_sqlite_busy(dbapi_conn: Any, _record: Any) -> None:
         pass
 
 
+def _rewrite_busy_pragma(conn: Any, _cursor: Any, statement: str, parameters: Any, *_rest: Any) -> tuple[str, Any]:
+    """MLflow sets ``PRAGMA busy_timeout = 20000`` on every session: ours (tracking.busy_timeout_s) replaces it."""
+    if _sqlite_busy_ms and statement.lstrip().upper().startswith("PRAGMA BUSY_TIMEOUT"):
+        db = conn.engine.url.database
+        ms = _sqlite_busy_ms.get(str(Path(db).resolve())) if db else None
+        if ms:
+            return f"PRAGMA busy_timeout = {int(ms)}", parameters
+    return statement, parameters
+
+
 event.listen(Pool, "connect", _set_sqlite_busy)
+event.listen(Pool, "checkout", _set_sqlite_busy)  # pooled connections follow the bound of the current config
+event.listen(Engine, "before_cursor_execute", _rewrite_busy_pragma, retval=True)
 
 
 # -- zombies: runs left RUNNING by a process that died -----------------------------------------------------------
@@ -205,6 +217,8 @@ def repair_zombie(client: Any, run: Run, who: str) -> bool:
 def _quiet() -> None:
     for name in ("mlflow", "alembic", "urllib3"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # MLflow logs every database error with its traceback before raising it; we report it in one line.
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 
 
 def redacted_uri(cfg: Config) -> str:

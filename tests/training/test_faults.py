@@ -211,3 +211,25 @@ def test_train_with_checkpoints_on_a_small_file_system(tmp_path, cli, small_fs):
     (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
     assert run.info.status == "FAILED" and "disk space" in run.data.tags["failure_reason"]
     assert list(small_fs.rglob("*.tmp")) == []
+
+
+def test_a_sweep_worker_refuses_a_planted_checkpoint_and_fails_the_cell_with_the_reason(tmp_path, caplog):
+    from bronchocli.sweep import FAILED, SweepStore, Worker
+
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path)).with_values({"sweep.max_retries": 0})
+    cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
+    store = SweepStore(cfg.paths.storage_url)
+    store.ensure_schema()
+    store.add_cells(cfg.name, [cell])
+    claim = store.claim(cfg.name, [cell.key], "interrupted-worker", max_retries=0, stale_after_s=60)
+    run_id = killed_run_of(cfg, cell)  # the worker was stopped: its cell given back with its KILLED run
+    assert store.set_run_id(claim.token, run_id) and store.release(claim.token)
+    marker = tmp_path / "pwned"
+    plant(cfg.paths.checkpoints / run_id / "last.pt", marker, "torch")
+    assert Worker(cfg, [cell], store).run() == 0
+    (row,) = store.rows(cfg.name)
+    assert row.state == FAILED and row.failure_reason.startswith("BadCheckpoint: checkpoint ")
+    assert str(cfg.paths.checkpoints / run_id / "last.pt") in row.failure_reason
+    assert not marker.exists() and "Traceback" not in caplog.text
+    assert tracking.client_for(cfg).get_run(run_id).info.status == "FAILED"

@@ -1,0 +1,103 @@
+"""A busy MLflow database (issue 22, item 3): `status`, `report` and `sweep` wait tracking.busy_timeout_s for a
+lock, then print one line and exit 2; a lock released within the bound lets them succeed."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+
+import pytest
+from tinydata import write_tiny_dataset
+
+from bronchocli import tracking
+
+
+@pytest.fixture
+def project(make_config, tmp_path):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    return make_config(archs=("baseline",))
+
+
+class Lock:
+    """An exclusive lock on a SQLite file, held by another connection (what a long writer elsewhere does)."""
+
+    def __init__(self, db) -> None:
+        self.conn = sqlite3.connect(db, isolation_level=None, check_same_thread=False)
+        self.conn.execute("BEGIN EXCLUSIVE")
+        self.held = True
+
+    def release(self) -> None:
+        if self.held:
+            self.conn.execute("ROLLBACK")
+            self.held = False
+        self.conn.close()
+
+
+def release_when_the_command_reaches_the_store(monkeypatch, lock: Lock) -> list[bool]:
+    """Release ``lock`` from a thread as the command starts its first store request (still locked then)."""
+    real, seen = tracking._open, []
+
+    def opening(uri):
+        seen.append(lock.held)
+        threading.Timer(0.2, lock.release).start()
+        return real(uri)
+
+    monkeypatch.setattr(tracking, "_open", opening)
+    return seen
+
+
+COMMANDS = {
+    "status": ["status"],
+    "report": ["report", "--table", "personalized", "-q", "--out", "{out}"],
+    "sweep": ["sweep", "--workers", "1"],
+}
+
+
+def args(command, project) -> list[str]:
+    return [a.format(out=project.paths.base / "reports") for a in COMMANDS[command]]
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir, command):
+    path = str(project.paths.base / "experiments.yaml")
+    if command != "sweep":
+        assert cli("sweep", "-c", path)[0] == 0  # something to show
+    lock = Lock(project.paths.base / "mlflow.db")
+    try:
+        code, out, err = cli(*args(command, project), "-c", path, "--set", "tracking.busy_timeout_s=0.5")
+    finally:
+        lock.release()
+    assert code == 2, out + err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err + out
+    assert "busy or unavailable for 0.5 s" in err and "database is locked" in err and "busy_timeout_s" in err
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_a_lock_released_within_the_bound_lets_the_command_succeed(cli, project, fake_dir, monkeypatch, command):
+    path = str(project.paths.base / "experiments.yaml")
+    if command != "sweep":
+        assert cli("sweep", "-c", path)[0] == 0
+    lock = Lock(project.paths.base / "mlflow.db")
+    seen = release_when_the_command_reaches_the_store(monkeypatch, lock)
+    try:
+        code, out, err = cli(*args(command, project), "-c", path, "--set", "tracking.busy_timeout_s=60")
+    finally:
+        lock.release()
+    assert code == 0, out + err
+    assert seen and seen[0] is True  # the store was locked when the command first reached it
+
+
+def test_transient_errors_are_retried_and_others_are_not():
+    calls = []
+
+    def flaky():
+        calls.append(1)
+        if len(calls) < 3:
+            raise RuntimeError("(psycopg.OperationalError) server closed the connection unexpectedly")
+        return "ok"
+
+    assert tracking.retry_busy(flaky, "test", 30, "db") == "ok" and len(calls) == 3
+    with pytest.raises(ValueError):
+        tracking.retry_busy(lambda: (_ for _ in ()).throw(ValueError("no such column")), "test", 30, "db")
+    with pytest.raises(tracking.TrackingBusy, match="during test"):
+        tracking.retry_busy(lambda: (_ for _ in ()).throw(RuntimeError("database is locked")), "test", 0.01, "db")
