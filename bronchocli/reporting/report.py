@@ -8,6 +8,11 @@
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -15,7 +20,7 @@ from typing import Sequence
 from .. import tracking, urls
 from ..config import Config
 from ..errors import BronchoError, DataError
-from ..io import save_figure, write_text
+from ..io import TEMP_SUFFIX, save_figure, write_text
 from . import dataset_figures as dataset_figs
 from .collect import RunIndex, collect_runs
 from .context import NoData, Profiler
@@ -108,15 +113,40 @@ def make_report(
     warnings = warnings if warnings is not None else []
     notes: list[str] = list(ctx.index.notes)
     tables = build_tables(ctx, names, evaluations, notes)
-    result = ReportResult(tables, write_tables(tables, out, suffixes), warnings)
-    result.warnings[:0] = notes
-    if loader is not None:
-        result.files += make_figures(ctx.index, loader, Path(out), n_trajectories, result.warnings)
-        result.files += skill_figures(tables, Path(out), result.warnings)
-        result.files += learning_curve(ctx, Path(out), result.warnings)
-    if dataset_root is not None:
-        result.files += dataset_figures(Path(dataset_root), Path(out), result.warnings)
+    with staged_outputs(Path(out)) as stage:  # all files, or none: a failure half-way leaves ``out`` as it was
+        result = ReportResult(tables, write_tables(tables, stage, suffixes), warnings)
+        result.warnings[:0] = notes
+        if loader is not None:
+            result.files += make_figures(ctx.index, loader, stage, n_trajectories, result.warnings)
+            result.files += skill_figures(tables, stage, result.warnings)
+            result.files += learning_curve(ctx, stage, result.warnings)
+        if dataset_root is not None:
+            result.files += dataset_figures(Path(dataset_root), stage, result.warnings)
+        result.files = publish(stage, Path(out), result.files)
     return result
+
+
+def publish(stage: Path, out: Path, files: Sequence[Path]) -> list[Path]:
+    """Move the staged files into ``out`` (renames within one file system: no file is ever half-written)."""
+    moved = []
+    for f in files:
+        final = out / Path(f).relative_to(stage)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(f, final)
+        moved.append(final)
+    return moved
+
+
+@contextmanager
+def staged_outputs(out: Path) -> Iterator[Path]:
+    """A hidden staging folder inside ``out``, removed afterwards (with whatever a failed report left in it)."""
+    out.mkdir(parents=True, exist_ok=True)
+    stage = out / f".report-{os.getpid()}-{uuid.uuid4().hex[:8]}{TEMP_SUFFIX}"
+    stage.mkdir()
+    try:
+        yield stage
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def summary_index(index: RunIndex) -> str:

@@ -1,0 +1,38 @@
+"""A report that fails half-way (a full disk) leaves its output folder as it was: all files or none (issue 22, 2)."""
+
+from __future__ import annotations
+
+import errno
+
+from bronchocli import io
+from bronchocli.reporting import report
+
+
+def test_a_report_failing_half_way_writes_nothing_and_says_so_in_one_line(cli, golden_store, tmp_path, monkeypatch):
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")  # what was there stays untouched
+    real, written = io.write_bytes, []
+
+    def fills_up(path, data):
+        if len(written) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        written.append(path)
+        return real(path, data)
+
+    monkeypatch.setattr(report, "write_text", lambda path, text: fills_up(path, text.encode()))
+    code, _, err = cli("report", "-c", str(golden_store.config), "--no-latency", "--out", str(out), "-q",
+                       "--table", "personalized")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, err
+    assert len(written) == 3  # three files had been written when the disk filled up...
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # ...and none of them is left
+
+
+def test_a_successful_report_moves_every_file_into_place(cli, golden_store, tmp_path):
+    out = tmp_path / "r"
+    code, out_text, err = cli("report", "-c", str(golden_store.config), "--no-latency", "--out", str(out), "-q",
+                              "--table", "personalized")
+    assert code == 0, err
+    names = sorted(p.name for p in out.iterdir())
+    assert names and all(not n.startswith(".") for n in names) and "table2-personalized-accumulated.md" in names
+    assert f"wrote {len(names)} file(s)" in out_text
