@@ -17,6 +17,8 @@ def status(
     show_all: bool = typer.Option(False, "--all",
                                   help="Every stored cell of the sweep, also those of earlier configs."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Claims database URL, overriding storage.url."),
+    repair: bool = typer.Option(False, "--repair", help="First end the runs left RUNNING by a process that died "
+                                "(FAILED) or by a sweep worker that lost its claim (KILLED)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -25,7 +27,9 @@ def status(
 
     Cells are those of the config's grid (a changed config means new cells); `--all`
     or another `--sweep` name lists every stored cell instead. Failed cells are listed
-    with their reason.
+    with their reason. The checkpoint column and line show the disk each cell's
+    resumable state takes on this machine, and how much no live cell needs
+    (`bronchopose sweep --gc` frees it).
     """
     from ..sweep import SweepStore  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import show_status, wide
@@ -33,4 +37,12 @@ def status(
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    show_status(cfg, SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s), sweep or cfg.name, show_all, wide(_console))
+    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    if repair:
+        from ..sweep.checkpoints import repair_zombies  # lazy: keeps `bronchopose --help` fast
+
+        done = repair_zombies(cfg, store if store.exists() else None)
+        for run_id, what in done:
+            _console.print(f"repaired run {run_id}: {what}", highlight=False)
+        _console.print(f"--repair: {len(done)} run(s) left RUNNING by a dead process were ended")
+    show_status(cfg, store, sweep or cfg.name, show_all, wide(_console))

@@ -31,6 +31,8 @@ def sweep(
     dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit."),
     retry_failed: bool = typer.Option(False, "--retry-failed",
                                       help="Reset FAILED cells (and their retry budget) first."),
+    gc: bool = typer.Option(False, "--gc", help="Remove the checkpoints no live cell needs (finished, orphaned, "
+                            "failed for good), print what was freed, and exit."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned",
                                             help="Apply the best trial of this Optuna study to every cell."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
@@ -63,6 +65,16 @@ def sweep(
         cfg = apply_best(cfg, use_tuned)
     store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
     store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
+    if gc:
+        from ..sweep.checkpoints import collect_garbage  # lazy: keeps `bronchopose --help` fast
+        from ..sweep.status import fmt_bytes
+
+        freed = collect_garbage(cfg, store if store.exists() else None)
+        for ck, n in freed:
+            what = "rejected/temporary files" if ck.needed else ck.why
+            console.print(f"freed {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
+        console.print(f"--gc: freed {fmt_bytes(sum(n for _, n in freed))} in {len(freed)} checkpoint folder(s)")
+        return
     devices = placement.parse_gpus(gpus, placement.visible_gpus())
     workers = workers or placement.default_workers(devices, per_gpu)
     if dry_run:

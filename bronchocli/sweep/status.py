@@ -22,6 +22,7 @@ from rich.text import Text
 from .. import cells, tracking
 from ..config import Config
 from ..errors import BronchoError
+from .checkpoints import Checkpoint, inventory
 from .plan import Plan, describe_selection, plan_cells, plan_stages, read_plan, source_of
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
@@ -140,14 +141,17 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
 
 
 def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int, budget_pairs: int | None = None,
-                 now: float | None = None) -> Table:
+                 now: float | None = None, ckpt_bytes: dict[str, int] | None = None) -> Table:
     """One row per cell. A running cell's duration is the time since it was claimed, with the share of its
-    training budget (``budget_pairs`` image pairs) done at its last validation."""
+    training budget (``budget_pairs`` image pairs) done at its last validation; ``ckpt_bytes`` (run id ->
+    bytes of its checkpoint folder on this machine) adds a checkpoint column."""
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
                       ("worker", "left"), ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
+    if ckpt_bytes is not None:
+        table.add_column("checkpoint", justify="right", no_wrap=True)
     for cell in plan.cells:
         row = plan.rows.get(cell.key)
         m = metrics.get(row.run_id, {}) if row and row.run_id else {}
@@ -158,12 +162,16 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             shown = fmt_duration(now - row.claimed_at)
             if budget_pairs and m.get("pairs_seen") is not None:
                 shown += f", {min(1.0, m['pairs_seen'] / budget_pairs):.0%} trained"
-        table.add_row(
+        cols = [
             cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
             (row.worker or "-") if row and row.state == RUNNING else "", shown,
             _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
-        )
+        ]
+        if ckpt_bytes is not None:
+            size = ckpt_bytes.get(row.run_id) if row and row.run_id else None
+            cols.append(fmt_bytes(size) if size is not None else "-")
+        table.add_row(*cols)
     return table
 
 
@@ -206,12 +214,36 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
+    held = inventory(cfg, store if store.exists() else None)
     console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,
-                               cfg.train.steps * cfg.train.pairs_per_step))
+                               cfg.train.steps * cfg.train.pairs_per_step,
+                               ckpt_bytes={c.run_id: c.bytes for c in held}))
     console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
+    for label, reason in given_back(plan):
+        console.print(f"[yellow]given back[/] {label}: {reason}", highlight=False)
+    console.print(checkpoint_line(held), highlight=False, soft_wrap=True)
     console.print(disk_line(cfg), highlight=False, soft_wrap=True)
+
+
+def given_back(plan: Plan) -> list[tuple[str, str]]:
+    """Pending cells that carry a reason: released by a worker (e.g. the tracking database was busy)."""
+    return [(c.label, plan.rows[c.key].failure_reason) for c in plan.cells
+            if c.key in plan.rows and plan.rows[c.key].state == PENDING and plan.rows[c.key].failure_reason]
+
+
+def checkpoint_line(held: Sequence[Checkpoint]) -> str:
+    """One line: checkpoint folders on this machine, their total, and what no live cell needs."""
+    if not held:
+        return "checkpoints: none on this machine"
+    spare = [c for c in held if not c.needed]
+    waste = sum(c.bytes for c in spare) + sum(c.waste for c in held)
+    text = f"checkpoints: {len(held)} folder(s), {fmt_bytes(sum(c.bytes for c in held))} in all"
+    if waste:
+        text += (f"; {fmt_bytes(waste)} ({len(spare)} folder(s)) needed by no live cell: "
+                 "`bronchopose sweep --gc` frees it")
+    return text
 
 
 def folder_size(folder: Path) -> int | None:

@@ -37,6 +37,7 @@ from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
 from ..runlayout import RunInterrupted, checkpoint_dir, resume_file
+from .checkpoints import RESUMABLE_FAILURES
 from .storage import CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -45,8 +46,6 @@ TAG_CLAIM = "sweep_claim"  # the claim token the run was made under (finds orpha
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
 EXIT_OK, EXIT_INTERRUPTED = 0, 130
-# Failure reasons (``Type: ...``) of the machine rather than the run: a retry resumes their checkpoint.
-RESUMABLE_FAILURES = ("CheckpointWriteError:", "TrackingBusy:")
 
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
 

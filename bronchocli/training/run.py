@@ -85,6 +85,9 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
               extra_tags: dict[str, str]) -> tuple[str, dict[str, Any] | None]:
     """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, its saved state)."""
     if not resume:
+        for zombie in tracking.search_runs(client, [exp_id], {tracking.TAG_CELL_KEY: cell.key}, ["RUNNING"]):
+            if tracking.process_alive(zombie.data.tags) is False:  # this cell's earlier run, its process died
+                tracking.repair_zombie(client, zombie, "a new run of its cell")
         run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags, **tracking.process_tags()))
         return run.info.run_id, None
     run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)

@@ -1,0 +1,115 @@
+"""Orphan checkpoints (issue 22, item 6): status shows their disk per cell and in all, `sweep --gc` removes what no
+live cell needs; zombie runs (left RUNNING by a dead process) are repaired by `status --repair` and by the next
+run of their cell."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from bronchocli import tracking
+from bronchocli.runlayout import resume_file
+from bronchocli.sweep import SweepStore, prepare
+
+
+@pytest.fixture
+def project(make_config):
+    cfg = make_config(sweep={"max_retries": 1})
+    store = SweepStore(cfg.paths.storage_url)
+    plan = prepare(cfg, store, dataset=False)
+    return cfg, store, plan
+
+
+def new_run(cfg, cell, status, ckpt_bytes=1000, **tags):
+    client = tracking.client_for(cfg)
+    run_id = client.create_run(tracking.experiment_id(client, cfg),
+                               tags=tracking.cell_tags(cfg, cell, **tags)).info.run_id
+    if status != "RUNNING":
+        client.set_terminated(run_id, status)
+    if ckpt_bytes:
+        path = resume_file(cfg, run_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"x" * ckpt_bytes)
+    return run_id
+
+
+def test_status_shows_checkpoint_disk_and_gc_removes_only_what_no_live_cell_needs(cli, project):
+    cfg, store, plan = project
+    base, lstm = plan.cells
+    path = str(cfg.paths.base / "experiments.yaml")
+    finished = new_run(cfg, base, "FINISHED", 1000)
+    # a cell given back by Ctrl-C: its KILLED run is resumed by the next worker
+    c = store.claim(cfg.name, [base.key], "w1", max_retries=1, stale_after_s=60)
+    released = new_run(cfg, base, "KILLED", 3000, sweep_claim=c.token)
+    store.set_run_id(c.token, released)
+    store.release(c.token)
+    # a cell failed for good (2 attempts, max_retries 1): nothing will resume its run
+    for _ in range(2):
+        c = store.claim(cfg.name, [lstm.key], "w1", max_retries=1, stale_after_s=60)
+        failed = new_run(cfg, lstm, "FAILED", 5000, sweep_claim=c.token)
+        store.fail(c.token, "CheckpointWriteError: full", failed)
+    taken_over = new_run(cfg, lstm, "KILLED", 7000, sweep_claim="a-lost-claim")
+    by_train = new_run(cfg, base, "KILLED", 11000)  # `train --resume` continues it
+    (resume_file(cfg, by_train).parent / "last.pt.rejected").write_bytes(b"y" * 13000)
+    missing = cfg.paths.checkpoints / "0123456789abcdef"
+    missing.mkdir(parents=True)
+    (missing / "last.pt").write_bytes(b"z" * 17000)
+
+    code, out, err = cli("status", "-c", path)
+    assert code == 0, err
+    assert "checkpoint" in out and "3.0 KB" in out  # the released cell's checkpoint, on its row
+    # finished, both failed runs, the taken-over one, the missing one, and the rejected file
+    spare = 1000 + 5000 + 5000 + 7000 + 17000 + 13000
+    assert "7 folder(s)" in out and f"needed by no live cell" in out and "sweep --gc" in out
+
+    code, out, err = cli("sweep", "-c", path, "--gc")
+    assert code == 0, err
+    left = sorted(p.name for p in cfg.paths.checkpoints.iterdir())
+    assert left == sorted([released, by_train])
+    assert not (resume_file(cfg, by_train).parent / "last.pt.rejected").exists()
+    assert resume_file(cfg, by_train).is_file() and resume_file(cfg, released).is_file()
+    assert f"--gc: freed {spare / 1000:.1f} KB" in out and finished in out and "no such MLflow run" in out
+    code, out, _ = cli("sweep", "-c", path, "--gc")
+    assert code == 0 and "--gc: freed 0 B in 0 checkpoint folder(s)" in out
+
+
+def dead_pid() -> int:
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def test_status_repair_ends_runs_whose_process_died_or_whose_claim_is_gone(cli, project):
+    cfg, store, plan = project
+    base, lstm = plan.cells
+    host = tracking.process_tags()[tracking.TAG_HOST]
+    dead = new_run(cfg, base, "RUNNING", 0, **{tracking.TAG_HOST: host, tracking.TAG_PID: str(dead_pid()),
+                                                tracking.TAG_PSTART: "?"})
+    alive = new_run(cfg, base, "RUNNING", 0, **tracking.process_tags())
+    elsewhere = new_run(cfg, base, "RUNNING", 0, **{tracking.TAG_HOST: "another-node", tracking.TAG_PID: "1"})
+    orphan = new_run(cfg, lstm, "RUNNING", 0, sweep_claim="a-lost-claim")
+    c = store.claim(cfg.name, [lstm.key], "w1", max_retries=1, stale_after_s=60)
+    claimed = new_run(cfg, lstm, "RUNNING", 0, sweep_claim=c.token)
+    code, out, err = cli("status", "-c", str(cfg.paths.base / "experiments.yaml"), "--repair")
+    assert code == 0, err
+    client = tracking.client_for(cfg)
+    status = {r: client.get_run(r).info.status for r in (dead, alive, elsewhere, orphan, claimed)}
+    assert status == {dead: "FAILED", alive: "RUNNING", elsewhere: "RUNNING", orphan: "KILLED", claimed: "RUNNING"}
+    assert "ended without closing the run" in client.get_run(dead).data.tags["failure_reason"]
+    assert "--repair: 2 run(s)" in out
+
+
+def test_resuming_a_run_whose_process_is_alive_is_refused_in_one_line(cli, project, tmp_path):
+    from tinydata import write_tiny_dataset
+
+    cfg, store, plan = project
+    write_tiny_dataset(cfg.paths.dataset, patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    base = cfg.cell(arch="baseline", rot_loss="mse", population="personalized")
+    run_id = new_run(cfg, base, "RUNNING", 100, **tracking.process_tags())
+    code, out, err = cli("train", "-c", str(cfg.paths.base / "experiments.yaml"), "-a", "baseline", "-l", "mse",
+                         "-P", "personalized", "--resume", "--run-id", run_id, "-q")
+    assert code == 2 and len(err.strip().splitlines()) == 1 and f"process {os.getpid()}" in err, out + err
+    assert tracking.client_for(cfg).get_run(run_id).info.status == "RUNNING"
