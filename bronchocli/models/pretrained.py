@@ -38,7 +38,8 @@ def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
-        reason = f"{type(exc).__name__}: {exc}"
+        lines = str(exc).strip().splitlines()  # torch's refusal of pickled objects is a page of advice: one line
+        reason = f"{type(exc).__name__}: {lines[0] if lines else ''}"
         raise ModelError(f"model.pretrained: {path}: not a readable torch state dict ({reason})") from None
     for wrapper in ("state_dict", "model"):
         if isinstance(obj, Mapping) and isinstance(obj.get(wrapper), Mapping):

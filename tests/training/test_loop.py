@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from bronchocli.data.batches import Samples
+from bronchocli.training import checkpoint
 from bronchocli.training.loop import NonFiniteLoss, Settings, Trainer, lr_factor, recalibrate_bn
 from bronchocli.training.network import PoseRegressor
 
@@ -122,7 +123,7 @@ def test_a_resumed_run_continues_exactly_where_it_stopped(tmp_path):
     first = trainer(settings(steps=8, val_every=4, bn_recalibrate=2, augment=True), ckpt_dir=tmp_path)
     first.s = settings(steps=4, val_every=4, bn_recalibrate=2, augment=True)  # stop half-way, as an interrupt would
     first.fit()
-    state = torch.load(tmp_path / "last.pt", weights_only=False)
+    state = checkpoint.load(tmp_path / "last.pt")
     second = trainer(settings(steps=8, val_every=4, bn_recalibrate=2, augment=True), seed=123)
     second.load_state(state)
     second.best_state = None  # the half-way "best" must not decide the end: compare the weights as trained

@@ -111,7 +111,7 @@ def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_c
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="ce", population="personalized", seed=3),
                       progress=False)
     client = tracking.client_for(cfg)
-    payload = torch.load(client.download_artifacts(result.run_id, "model/model.pt"), weights_only=False)
+    payload = torch.load(client.download_artifacts(result.run_id, "model/model.pt"), weights_only=True)  # plain data
     assert payload["arch"] == "baseline" and payload["image_size"] == 32
     assert {v.dtype for v in payload["state_dict"].values() if v.is_floating_point()} == {torch.float16}
     net = load_exported(payload)
