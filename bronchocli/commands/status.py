@@ -37,7 +37,7 @@ def status(
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
     if repair:
         from ..sweep.checkpoints import repair_zombies  # lazy: keeps `bronchopose --help` fast
 

@@ -63,7 +63,7 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
-    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
     store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
     if gc:
         from ..sweep.checkpoints import collect_garbage  # lazy: keeps `bronchopose --help` fast

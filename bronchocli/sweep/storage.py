@@ -135,15 +135,16 @@ class Claim:
 class SweepStore:
     """The claims table of one storage URL (one engine per process)."""
 
-    def __init__(self, url: str, timeout_s: float = 10.0):
-        """``timeout_s``: connecting to a database server gives up after this long (tracking.timeout_s)."""
+    def __init__(self, url: str, timeout_s: float = 10.0, busy_timeout_s: float = SQLITE_BUSY_MS / 1000):
+        """``timeout_s``: connecting to a database server gives up after this long (tracking.timeout_s);
+        ``busy_timeout_s``: how long a locked SQLite database is waited for (tracking.busy_timeout_s)."""
         self.url = urls.sqlalchemy(url)
         self.redacted = urls.redact(self.url)
         if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
             raise BronchoError(f"storage.url {self.redacted}: an in-memory SQLite database cannot be shared by "
                                "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
         try:
-            self.engine: Engine = _make_engine(self.url, timeout_s)
+            self.engine: Engine = _make_engine(self.url, timeout_s, busy_timeout_s)
         except (SQLAlchemyError, ImportError, ValueError) as exc:
             raise BronchoError(f"storage.url {self.redacted}: {_first_line(exc)}") from None
         self.dialect = self.engine.dialect.name
@@ -374,21 +375,21 @@ def _now_sql(dialect: str) -> str:
     raise BronchoError(f"storage.url: database {dialect!r} is not supported for sweeps (use sqlite or postgresql)")
 
 
-def _make_engine(url: str, timeout_s: float) -> Engine:
+def _make_engine(url: str, timeout_s: float, busy_timeout_s: float = SQLITE_BUSY_MS / 1000) -> Engine:
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"timeout": SQLITE_BUSY_MS / 1000})
-        _sqlite_events(engine)
+        engine = create_engine(url, connect_args={"timeout": busy_timeout_s})
+        _sqlite_events(engine, max(1, int(busy_timeout_s * 1000)))
         return engine
     args = {"connect_timeout": max(2, math.ceil(timeout_s))} if urls.is_postgres(url) else {}
     return create_engine(url, pool_pre_ping=True, connect_args=args)
 
 
-def _sqlite_events(engine: Engine) -> None:
+def _sqlite_events(engine: Engine, busy_ms: int = SQLITE_BUSY_MS) -> None:
     @event.listens_for(engine, "connect")
     def _connect(dbapi_conn, _record) -> None:
         dbapi_conn.isolation_level = None  # we issue BEGIN ourselves (pysqlite's own is deferred)
         cur = dbapi_conn.cursor()
-        cur.execute(f"PRAGMA busy_timeout = {SQLITE_BUSY_MS}")
+        cur.execute(f"PRAGMA busy_timeout = {busy_ms}")
         cur.execute("PRAGMA journal_mode = WAL")  # readers (status, monitors) never block the writer
         cur.execute("PRAGMA synchronous = NORMAL")
         cur.close()

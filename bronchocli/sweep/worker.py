@@ -426,7 +426,7 @@ def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
     signals.install()
     code = EXIT_INTERRUPTED
     try:
-        store = SweepStore(spec.storage_url, spec.cfg.tracking.timeout_s)
+        store = SweepStore(spec.storage_url, spec.cfg.tracking.timeout_s, spec.cfg.tracking.busy_timeout_s)
         code = Worker(spec.cfg, spec.cells, store, spec.runner, signals=signals, sweep=spec.sweep).run()
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED

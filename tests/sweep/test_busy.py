@@ -101,3 +101,15 @@ def test_transient_errors_are_retried_and_others_are_not():
         tracking.retry_busy(lambda: (_ for _ in ()).throw(ValueError("no such column")), "test", 30, "db")
     with pytest.raises(tracking.TrackingBusy, match="during test"):
         tracking.retry_busy(lambda: (_ for _ in ()).throw(RuntimeError("database is locked")), "test", 0.01, "db")
+
+
+def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir):
+    path = str(project.paths.base / "experiments.yaml")
+    assert cli("sweep", "-c", path)[0] == 0  # the claims table exists (WAL: readers pass, writers wait)
+    lock = Lock(project.paths.base / "sweep.db")
+    try:
+        code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "tracking.busy_timeout_s=0.5")
+    finally:
+        lock.release()
+    assert code == 2 and len(err.strip().splitlines()) == 1, out + err
+    assert "sweep storage" in err and "database is locked" in err and "Traceback" not in out + err
