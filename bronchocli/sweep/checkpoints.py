@@ -32,7 +32,7 @@ from ..runlayout import REJECTED_SUFFIX
 from .storage import FAILED, PENDING, RUNNING, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
-RESUMABLE_FAILURES = ("CheckpointWriteError:", "TrackingBusy:")  # failures of the machine: a retry resumes them
+RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "TrackingBusy:")  # failures of the machine: a retry resumes them
 
 
 @dataclass(frozen=True)

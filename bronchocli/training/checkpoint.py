@@ -44,8 +44,33 @@ class BadCheckpoint(BronchoError):
     """A checkpoint file that is not a valid checkpoint of this run (refused, never executed)."""
 
 
-class CheckpointWriteError(BronchoError):
+class WriteFailed(BronchoError):
+    """A file of the run (artifact, store, checkpoint) could not be written: disk full, I/O error, read-only."""
+
+
+class CheckpointWriteError(WriteFailed):
     """A checkpoint could not be written (disk full, I/O error); nothing half-written is left."""
+
+
+DISK_ERRNOS = (errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS)
+DISK_TEXTS = ("database or disk is full", "disk i/o error", "no space left on device", "read-only file system")
+
+
+def as_write_failure(exc: BaseException) -> WriteFailed | None:
+    """A WriteFailed (one line) for an error of the disk under the run (its own or one it was raised from)."""
+    seen, e = 0, exc
+    while e is not None and seen < 6:
+        if isinstance(e, WriteFailed):
+            return e
+        if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
+            where = f"{e.filename}: " if e.filename else ""
+            return WriteFailed(f"{where}{os.strerror(e.errno)}; free space there (or fix the file system) and "
+                               "resume the run")
+        text = str(e).lower()
+        if any(t in text for t in DISK_TEXTS):
+            return WriteFailed(f"{_first_line(e)}; free space under the MLflow store and resume the run")
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return None
 
 
 # -- RNG states as plain data -------------------------------------------------------------------------------

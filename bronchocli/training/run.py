@@ -193,12 +193,13 @@ def run_cell(
         _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
+        exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
         reason = _reason(exc)
         _end_run(client, run_id, "FAILED", reason)
         if not isinstance(exc, KEEP_CHECKPOINT_ON):  # only a failure of the environment is worth resuming
             shutil.rmtree(ckpt, ignore_errors=True)
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
-            raise
+            raise exc from None
         if not isinstance(exc, BronchoError):
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
@@ -209,9 +210,9 @@ def run_cell(
 
 
 # Failures of the machine, not of the run: the run ends FAILED, keeps its checkpoint, and a retry resumes it.
-KEEP_CHECKPOINT_ON = (checkpoint.CheckpointWriteError, tracking.TrackingBusy)
+KEEP_CHECKPOINT_ON = (checkpoint.WriteFailed, tracking.TrackingBusy)
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
-RAISE_AFTER_FAILED = (checkpoint.CheckpointWriteError, checkpoint.BadCheckpoint, tracking.TrackingBusy)
+RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, tracking.TrackingBusy)
 
 
 def _reason(exc: BaseException) -> str:

@@ -233,3 +233,98 @@ def test_a_sweep_worker_refuses_a_planted_checkpoint_and_fails_the_cell_with_the
     assert str(cfg.paths.checkpoints / run_id / "last.pt") in row.failure_reason
     assert not marker.exists() and "Traceback" not in caplog.text
     assert tracking.client_for(cfg).get_run(run_id).info.status == "FAILED"
+
+
+def test_a_full_disk_under_the_artifacts_is_one_line_and_the_run_ends_failed(tmp_path, cli, monkeypatch):
+    import errno
+
+    from bronchocli.training import artifacts
+
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path))
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device", str(cfg.paths.artifacts / "x" / "predictions.csv"))
+
+    monkeypatch.setattr(artifacts, "log_outcome", full)
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, out + err
+    assert "predictions.csv" in err and "Traceback" not in out + err
+    client = tracking.client_for(cfg)
+    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("WriteFailed:")
+    assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()  # kept: `train --resume` continues
+
+
+class StoreLock:
+    """An exclusive lock on the MLflow SQLite store, taken from a training callback (another writer, mid-run)."""
+
+    def __init__(self, db) -> None:
+        import sqlite3
+
+        self.db, self.conn = db, None
+        self.sqlite3 = sqlite3
+
+    def take(self) -> None:
+        self.conn = self.sqlite3.connect(self.db, isolation_level=None, check_same_thread=False)
+        self.conn.execute("BEGIN EXCLUSIVE")
+
+    def release(self) -> None:
+        if self.conn is not None:
+            self.conn.execute("ROLLBACK")
+            self.conn.close()
+            self.conn = None
+
+
+def test_a_store_locked_mid_run_is_waited_for_and_the_run_finishes(tmp_path, monkeypatch):
+    import threading
+
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path)).with_values({"tracking.busy_timeout_s": 60})
+    lock, waited = StoreLock(cfg.paths.base / "runs" / "mlflow.db"), []
+    real = tracking.retry_busy
+
+    def retry(fn, what, bound, shown):  # the first MLflow call after the lock: release it from a thread, later
+        if lock.conn is not None and not waited:
+            waited.append(what)
+            threading.Timer(0.3, lock.release).start()
+        return real(fn, what, bound, shown)
+
+    monkeypatch.setattr(tracking, "retry_busy", retry)
+
+    def locked_after_step_2(step, values):
+        if step == 2:
+            lock.take()
+
+    cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
+    try:
+        result = run_cell(cfg, cell, progress=False, on_validation=locked_after_step_2)
+    finally:
+        lock.release()
+    assert result.status == "FINISHED" and waited  # an MLflow call met the lock, waited, and went on
+    history = tracking.client_for(cfg).get_metric_history(result.run_id, "val_loss")
+    assert sorted(m.step for m in history) == [2, 4]
+
+
+def test_a_store_locked_beyond_the_bound_fails_the_run_in_one_line_and_keeps_its_checkpoint(tmp_path):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path)).with_values({"tracking.busy_timeout_s": 0.3})
+    lock = StoreLock(cfg.paths.base / "runs" / "mlflow.db")
+    cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
+
+    def locked_after_step_2(step, values):
+        if step == 2:
+            lock.take()
+
+    try:
+        with pytest.raises(tracking.TrackingBusy) as err:
+            run_cell(cfg, cell, progress=False, on_validation=locked_after_step_2)
+    finally:
+        lock.release()
+    assert "\n" not in str(err.value) and "database is locked" in str(err.value)
+    client = tracking.client_for(cfg)
+    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    # the store stayed locked, so the run could not be ended: RUNNING, tagged with its (this) process, which
+    # `status --repair` or the next run of the cell ends once that process is gone; its checkpoint is kept
+    assert run.info.status == "RUNNING" and run.data.tags[tracking.TAG_PID] == str(os.getpid())
+    assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()
