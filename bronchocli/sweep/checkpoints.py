@@ -32,7 +32,8 @@ from ..runlayout import REJECTED_SUFFIX
 from .storage import FAILED, PENDING, RUNNING, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
-RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "TrackingBusy:")  # failures of the machine: a retry resumes them
+# Failures of the machine, not of the run (``failure_reason`` prefixes): a retry resumes their checkpoint.
+RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "TrackingBusy:")
 
 
 @dataclass(frozen=True)

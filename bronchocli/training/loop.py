@@ -348,7 +348,8 @@ class Trainer:
     def check_space(self) -> None:
         """Before training: CheckpointWriteError (one line) when the checkpoint folder cannot hold a checkpoint."""
         if self.ckpt_dir is not None:
-            checkpoint.check_space(self.ckpt_dir / RESUME_FILE, checkpoint.SPACE_FACTOR * self.expected_checkpoint_bytes())
+            need = checkpoint.SPACE_FACTOR * self.expected_checkpoint_bytes()
+            checkpoint.check_space(self.ckpt_dir / RESUME_FILE, need)
 
     def save_resume(self) -> Path | None:
         if self.ckpt_dir is None:
