@@ -319,8 +319,9 @@ def _plan(cfg: Config, store: SweepStore, only: Selection) -> planning.Plan:
     return planning.read_plan(store, cfg.name, planning.plan_cells(cfg, only, store))
 
 
-def _done(plan: planning.Plan, max_retries: int) -> int:
-    return len(plan.cells) - cells_left(plan, max_retries)
+def _table_state(plan: planning.Plan) -> tuple:
+    """What changes whenever a worker claims, releases, finishes or fails a cell (row versions)."""
+    return tuple(sorted((k, r.version) for k, r in plan.rows.items()))
 
 
 def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], console: Console) -> int:
@@ -329,7 +330,7 @@ def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], 
     retries = cfg.sweep.max_retries
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
     last_line, plan = "", _plan(cfg, store, only)
-    done_at_submit = _done(plan, retries)
+    seen_at_submit = _table_state(plan)
     if live is not None:
         live.start()
     try:
@@ -348,15 +349,19 @@ def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], 
                 console.print(line, highlight=False)
                 last_line = line
             if not tasks:
-                left, done = cells_left(plan, retries), _done(plan, retries)
+                left = cells_left(plan, retries)
                 stages_known = all(sp.cells is not None for sp in planning.plan_stages(cfg, store, only))
                 if not left and stages_known:
                     break
-                if done <= done_at_submit or not submit_missing(cfg, store, only, argv, console):
+                # tasks ended with cells left (a cancelled task gave its cell back, a stage was selected): submit
+                # again, but only when the table moved since the last submission (tasks that crash at start
+                # would otherwise be resubmitted for ever)
+                now_seen = _table_state(plan)
+                if now_seen == seen_at_submit or not submit_missing(cfg, store, only, argv, console):
                     console.print(f"[yellow]no Slurm task of sweep {cfg.name} is left and {left} cell(s) are not "
-                                  f"done[/]; see {logs_dir(cfg)} and run the command again to submit them")
+                                  f"done[/]; see the task logs in {logs_dir(cfg)} and run the command again")
                     return 1
-                done_at_submit = done
+                seen_at_submit = _table_state(_plan(cfg, store, only))
             time.sleep(REFRESH_S)
     except KeyboardInterrupt:
         console.print("stopped watching: the Slurm jobs go on (`bronchopose sweep --cancel` stops them)")
