@@ -56,6 +56,7 @@ NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node s
 ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
           "SUSPENDED", "STOPPED", "SIGNALING")
 REFRESH_S = 1.0
+MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 
 
 class SlurmError(BronchoError):
@@ -164,7 +165,7 @@ def sweep_tasks(cfg: Config) -> list[Task]:
 def worker_command(cfg: Config, argv: Sequence[str]) -> list[str]:
     """What each array task runs: this bronchopose, same config/profile/overrides/selection, one worker."""
     python = cfg.slurm.python or sys.executable
-    return [python, "-m", "bronchocli.cli", "sweep", "--worker-only", *argv]
+    return [python, "-c", MAIN, "sweep", "--worker-only", *argv]
 
 
 def batch_script(cfg: Config, argv: Sequence[str]) -> str:

@@ -24,7 +24,7 @@ from sweep_fakes import HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli import tracking
-from bronchocli.config import load_config
+from bronchocli.sweep.slurm import MAIN
 from bronchocli.sweep import FINISHED, PENDING, SweepStore
 
 pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
@@ -211,7 +211,7 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
                       data={"window": 3, "cache_dir": "cache"},
                       train={"batch_size": 3, "steps": 60, "val_every": 4, "bn_recalibrate": 1, "threads": 1})
     path = str(cfg.paths.base / "experiments.yaml")
-    submitter = subprocess.Popen([sys.executable, "-m", "bronchocli.cli", "sweep", "-c", path, "--launcher", "slurm"],
+    submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"],
                                  cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=180)
