@@ -297,7 +297,7 @@ class Worker:
         if error is not None and _is_interrupt(error):
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
             self._db(self.store.release, claim.token)
-            log.info("interrupted %s: released", cell.label)
+            log.info("interrupted %s: released (%s)", cell.label, _reason(error))
             return "stop"
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
