@@ -234,3 +234,24 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
     steps = [m.step for m in client.get_metric_history(row.run_id, "val_loss")]
     assert sorted(steps) == list(range(4, 25, 4)), steps  # continued from the checkpoint, no step trained twice
     assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1} and runs_by_cell(cfg, None) == {row.cell_key: 1}
+
+
+def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, cli, make_config, tmp_path, pg_url,
+                                                                      fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline",), losses=("mse",))
+    path = str(cfg.paths.base / "experiments.yaml")
+    (fake_dir / "block-baseline").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    (row,) = rows(cfg)
+    task = row.worker.split()[2]
+    slurm.run("scancel", "--signal=USR1", "--batch", task)  # what --signal=B:USR1@<s> sends before the time limit
+    wait_for(lambda: calls(row.cell_key) == 2, "the requeued task to take the cell again", cluster=slurm)
+    (fake_dir / "release").touch()
+    wait_for(all_finished(cfg, 1), "the cell finished", cluster=slurm)
+    (row,) = rows(cfg)
+    assert row.attempts == 1 and runs_by_cell(cfg, None) == {row.cell_key: 1}
+    assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
+    log = task_logs(cfg)
+    assert f"time limit near: requeueing Slurm task {task}" in log and log.count(f"Slurm task {task},") == 2, log
