@@ -64,11 +64,12 @@ def project(folder: Path, schema: str, cells: int, real: bool) -> Path:
     return path
 
 
-def submit(path: Path, env: dict) -> float:
+def submit(path: Path, env: dict) -> tuple[float, float]:
+    """Run the submit command; returns when it started and when it returned (its jobs are queued by then)."""
     t0 = time.time()
     subprocess.run([sys.executable, "-c", MAIN, "sweep", "-c", str(path), "--launcher", "slurm", "--detach"],
                    cwd=path.parent, env=env, check=True, capture_output=True, timeout=300)
-    return t0
+    return t0, time.time()
 
 
 def wait(predicate, limit: float = 600.0) -> None:
@@ -98,7 +99,7 @@ def main() -> None:
             (fake / "x").mkdir(parents=True)
             path = project(Path(tmp) / "x", schema, args.cells, real=False)
             fenv = {**env, "SWEEP_FAKE_DIR": str(fake / "x"), "BRONCHOPOSE_TEST_RUNNER": "sweep_fakes:fake_runner"}
-            t0 = submit(path, fenv)
+            t0, queued = submit(path, fenv)
             cfg = load_config(path)
             store = SweepStore(cfg.paths.storage_url)
             wait(lambda: any(r.claimed_at for r in store.rows(cfg.name)))
@@ -120,13 +121,14 @@ def main() -> None:
             schemas.append(schema)
             admin.execute(f"CREATE SCHEMA {schema}")
             path = project(Path(tmp) / "real", schema, 1, real=True)
-            t1 = submit(path, env)
+            t1, _ = submit(path, env)
             rcfg = load_config(path)
             wait(lambda: any(rcfg.paths.checkpoints.glob("*/last.pt")))
             first_step = time.time() - t1
             cluster.wait_idle_queue(300)
         print(f"cells {len(rows)} (fake runner) in {len(by_worker)} tasks")
-        print(f"submit -> first claim      {first_claim:6.1f} s")
+        print(f"submit -> first claim       {first_claim:6.1f} s  (of which the submit command "
+              f"{queued - t0:.1f} s, queued -> first claim {first_claim - (queued - t0):.1f} s)")
         print(f"submit -> first step (real) {first_step:6.1f} s  (first checkpoint after step 1 and one validation)")
         print(f"per-cell overhead           {statistics.mean(per_cell):6.2f} s  (per task: "
               + ", ".join(f"{v:.2f}" for v in per_cell) + ")")

@@ -84,17 +84,18 @@ def task_logs(cfg) -> str:
 
 def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_adds_nothing(
         slurm, cli, make_config, tmp_path, pg_url, fake_dir):
-    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm", "convlstm"), losses=("mse", "ce"))
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm", "convlstm"), losses=("mse", "ce"),
+                  slurm={"tasks": 2})  # two workers for six cells: each task runs several
     path = str(cfg.paths.base / "experiments.yaml")
     for arch in ("baseline", "lstm", "convlstm"):
         (fake_dir / f"block-{arch}").touch()  # every cell waits at the gate: two tasks hold cells at once
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 0, out + err
-    assert re.search(r"submitted Slurm array job \d+: 6 task\(s\)", out), out
+    assert re.search(r"submitted Slurm array job \d+: 2 task\(s\)", out), out
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm)
     queued = sorted(j["id"] for j in slurm.jobs())
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")  # again, while queued/running
-    assert code == 0 and "nothing new to submit: 6 task(s)" in out and "submitted" not in out, out + err
+    assert code == 0 and "nothing new to submit: 2 task(s)" in out and "submitted" not in out, out + err
     assert sorted(j["id"] for j in slurm.jobs()) == queued
     started = sorted(fake_dir.glob("started-*"))
     gpus = {(fake_dir / f"gpu-{f.name.split('-')[1]}").read_text() for f in started}
@@ -209,7 +210,8 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
                       slurm={"cpus_per_task": 1, "shared_filesystem": True},
                       splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
                       data={"window": 3, "cache_dir": "cache"},
-                      train={"batch_size": 3, "steps": 24, "val_every": 4, "bn_recalibrate": 1, "threads": 1})
+                      train={"batch_size": 3, "steps": 12, "val_every": 3, "bn_recalibrate": 1, "threads": 1,
+                             "max_val_pairs": 6})
     path = str(cfg.paths.base / "experiments.yaml")
     submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"],
                                  cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -227,12 +229,12 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
     (row,) = rows(cfg)
     assert row.state == FINISHED and row.attempts == 1 and row.worker.split()[2] != first_task
     log = task_logs(cfg)
-    stopped = re.search(r"SIGTERM received at step (\d+)/24", log)
-    assert stopped and 0 < int(stopped.group(1)) < 24, log
+    stopped = re.search(r"SIGTERM received at step (\d+)/12", log)
+    assert stopped and 0 < int(stopped.group(1)) < 12, log
     assert f"resuming run {row.run_id}" in log
     client = tracking.client_for(cfg)
     steps = [m.step for m in client.get_metric_history(row.run_id, "val_loss")]
-    assert sorted(steps) == list(range(4, 25, 4)), steps  # continued from the checkpoint, no step trained twice
+    assert sorted(steps) == [3, 6, 9, 12], steps  # continued from the checkpoint, no step trained twice
     assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1} and runs_by_cell(cfg, None) == {row.cell_key: 1}
 
 
