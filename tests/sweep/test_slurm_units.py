@@ -78,3 +78,16 @@ def test_a_worker_that_exits_when_idle_does_not_wait_for_cells_held_elsewhere(ma
     worker = Worker(cfg, plan.cells, store, fake_runner, exit_when_idle=True)
     assert worker.run() == 0 and worker.idle  # returned at once: poll_s of 30 s was never waited
     assert store.rows(cfg.name)[0].worker == "elsewhere:1"
+
+
+def test_launcher_flags_are_checked_and_the_config_can_choose_slurm(cli, make_config, tmp_path, monkeypatch):
+    cfg = make_config(sweep={"launcher": "slurm"})
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "local", "--detach")
+    assert code == 2 and "--detach: only with --launcher slurm" in out + err
+    code, out, err = cli("sweep", "-c", path, "--launcher", "pbs")
+    assert code == 2 and "--launcher pbs: must be local or slurm" in out + err
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    code, out, err = cli("sweep", "-c", path)  # sweep.launcher: slurm, and no sbatch here
+    assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1
+    assert not (tmp_path / "sweep.db").exists()
