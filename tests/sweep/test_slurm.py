@@ -24,7 +24,9 @@ from sweep_fakes import HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli import tracking
+from bronchocli.sweep.plan import plan_key
 from bronchocli.sweep.slurm import MAIN
+from bronchocli.sweep.storage import selections_table
 from bronchocli.sweep import FINISHED, PENDING, SweepStore
 
 pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
@@ -157,9 +159,6 @@ def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(sl
     assert f"after job(s) {jobs[0][0]}" in out
     wait_for(all_finished(cfg, 4), "both stages finished", cluster=slurm)
     store = SweepStore(cfg.paths.storage_url)
-    from bronchocli.sweep.plan import plan_key
-    from bronchocli.sweep.storage import selections_table
-
     assert store.selection(cfg.name, plan_key(cfg), "second")["selected"] == [{"arch": "lstm"}]
     with store.engine.connect() as conn:
         recorded_at = conn.execute(selections_table.select()).mappings().one()["created_at"]
@@ -257,3 +256,20 @@ def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, c
     assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
     log = task_logs(cfg)
     assert f"time limit near: requeueing Slurm task {task}" in log and log.count(f"Slurm task {task},") == 2, log
+
+
+def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli, make_config, tmp_path, pg_url,
+                                                                     fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm"), losses=("mse",), slurm={"tasks": 1})
+    path = str(cfg.paths.base / "experiments.yaml")
+    (fake_dir / "block-baseline").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    assert code == 0 and "cancelled Slurm job(s)" in out, out + err
+    slurm.wait_idle_queue(LIMIT)
+    assert [r.state for r in rows(cfg)] == [PENDING, PENDING]  # released, not failed; the other never started
+    assert runs_by_cell(cfg, "KILLED") == {rows(cfg)[0].cell_key: 1}
+    code, out, _ = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    assert code == 0 and "no Slurm job of sweep t is queued or running" in out
