@@ -97,8 +97,14 @@ def check(cfg: Config) -> None:
     """Everything that would make array tasks fail or disagree, before anything is submitted (one line each)."""
     if shutil.which("sbatch") is None:
         raise SlurmError("--launcher slurm: sbatch not found on PATH; run on a Slurm login node (or install Slurm)")
-    if cfg.slurm.shared_filesystem:
-        return
+    if not cfg.slurm.shared_filesystem:
+        _check_shared(cfg)
+    # the cluster's own verdict on partition, account, qos, GPUs, memory, time: nothing is queued
+    args = [a for a in sbatch_args(cfg, "check", 1) if a != "--parsable"]
+    _run([*args, "--test-only", "--wrap", "true"], "slurm: the cluster refuses the slurm section")
+
+
+def _check_shared(cfg: Config) -> None:
     hint = "or set slurm.shared_filesystem: true if every node sees this path (docs/cluster.md)"
     if _local_store(cfg.paths.storage_url):
         raise SlurmError(f"storage.url {urls.redact(cfg.paths.storage_url)}: a SQLite claims table cannot be shared "

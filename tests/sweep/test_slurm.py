@@ -184,6 +184,7 @@ def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm
                               "a node-local folder"),
         "bad slurm value": ({"slurm": {"timeout_min": 0}}, "slurm.timeout_min"),
         "sbatch option the launcher sets": ({"slurm": {"additional": {"array": "0-9"}}}, "slurm.additional"),
+        "partition the cluster lacks": ({"slurm": {"partition": "nosuch"}}, "sbatch failed"),
     }
     for name, (over, expected) in cases.items():
         bad = tmp_path / f"bad-{len(name)}.yaml"

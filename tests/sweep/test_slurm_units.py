@@ -56,12 +56,18 @@ def test_bad_slurm_values_are_refused_at_load(make_config, section, message):
     assert message in str(info.value) and len(str(info.value).splitlines()) == 1
 
 
-def test_the_checks_refuse_local_stores_unless_the_shared_filesystem_opt_in(make_config, monkeypatch, tmp_path):
+def test_the_checks_refuse_stores_and_folders_compute_nodes_cannot_share(make_config, monkeypatch, tmp_path):
     monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/" + name)
     cfg = make_config()
     with pytest.raises(Exception, match="storage.url sqlite.*SQLite claims table"):
         check(cfg)
-    check(make_config(slurm={"shared_filesystem": True}))  # no error
+    with pytest.raises(Exception, match="tracking.uri sqlite.*MLflow store"):
+        check(make_config(storage="postgresql://u@db.example/sweeps"))
+    with pytest.raises(Exception, match="tracking.checkpoints /tmp/ck: a node-local folder"):
+        check(make_config(storage="postgresql://u@db.example/sweeps",
+                          tracking={"uri": "postgresql://u@db.example/mlflow", "artifacts": "/srv/a",
+                                    "checkpoints": "/tmp/ck"}, dataset={"root": "/srv/data"}))
+    # with slurm.shared_filesystem: true the same configs pass these checks (tests/sweep/test_slurm.py submits them)
 
 
 def test_status_reads_the_slurm_task_from_the_worker_id():
