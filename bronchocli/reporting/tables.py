@@ -49,7 +49,7 @@ from .context import (
     references_text,
 )
 from .frames_table import frames
-from .judge import Line, method_text, metric_rows
+from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
 from .layout import Column, Row, Table, Value
 
 MODEL_NAMES = {"baseline": "Baseline", "lstm": "LSTM", "conv3d": "3D conv", "convlstm": "ConvLSTM",
@@ -82,6 +82,8 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
                                                                            sorted(c.folds))]
     if extra:
         parts.append(extra)
+    parts.append(unsettled_text(built.unsettled, {m: METRICS[m][0] for m in metrics}, table.rows))
+    parts.append(one_seed_text(table.rows))
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
