@@ -103,13 +103,16 @@ def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence
     return rows, samples
 
 
-def judge_column(samples: Sequence[stats.Sample | None], s: Settings) -> tuple[list[set[str]], dict[int, float]]:
-    """Marks of one error column (per row) and the Holm-adjusted p of each row against the best."""
+def judge_column(samples: Sequence[stats.Sample | None], s: Settings, higher: bool = False
+                 ) -> tuple[list[set[str]], dict[int, float]]:
+    """Marks of one column (per row) and the Holm-adjusted p of each row against the best (the lowest mean;
+    the highest where ``higher`` is better, e.g. CTF)."""
     out: list[set[str]] = [set() for _ in samples]
     cand = [i for i, x in enumerate(samples) if x is not None]
     if len(cand) < 2:
         return out, {}
-    best = min(cand, key=lambda i: samples[i].mean)  # type: ignore[union-attr]
+    sign = -1.0 if higher else 1.0
+    best = min(cand, key=lambda i: sign * samples[i].mean)  # type: ignore[union-attr]
     others = [i for i in cand if i != best]
     raw = [stats.paired_p(samples[best], samples[i]) for i in others]  # type: ignore[arg-type]
     adjusted = dict(zip(others, stats.holm(raw)))
@@ -119,14 +122,24 @@ def judge_column(samples: Sequence[stats.Sample | None], s: Settings) -> tuple[l
     return out, adjusted
 
 
-def better_reference(refs: dict[str, list], j: int) -> stats.Sample | None:
+def better_reference(refs: dict[str, list], j: int, higher: bool = False) -> stats.Sample | None:
     found = [x[j] for x in refs.values() if x[j] is not None]
-    return min(found, key=lambda x: x.mean) if found else None
+    sign = -1.0 if higher else 1.0
+    return min(found, key=lambda x: sign * x.mean) if found else None
+
+
+def _no_skill(v: Estimate, bar: float, higher: bool) -> bool:
+    """The row's interval does not lie beyond the better reference's mean (below it; above it if higher)."""
+    if higher:
+        return (v.lo if v.has_interval else v.mean) <= bar  # type: ignore[operator]
+    return (v.hi if v.has_interval else v.mean) >= bar  # type: ignore[operator]
 
 
 def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], evaluation: str, *,
-                grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = ()) -> Built:
-    """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones)."""
+                grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = (),
+                higher: Sequence[str] = ()) -> Built:
+    """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones).
+    ``higher``: the metrics where higher is better (CTF); the others are errors (lower is better)."""
     s = settings or Settings()
     n_extra = len(lines[0].extra) if lines else 0
     rows = [_model_row(line, frames, metrics, evaluation, s) for line in lines]
@@ -137,17 +150,18 @@ def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], e
     unsettled: list[str] = []
     for j, metric in enumerate(metrics):
         col = [r.info["samples"][j] for r in rows]
-        column_marks, _ = judge_column(col, s)
+        up = metric in higher
+        column_marks, _ = judge_column(col, s, up)
         if any("tie" in mk for mk in column_marks):
             unsettled.append(metric)
         ref_values = [r.values[n_extra + j] for r in ref_rows]
         ref_means = [v.mean for v in ref_values if isinstance(v, Estimate)]
-        bar = min(ref_means) if ref_means else None
-        best_ref = better_reference(refs, j)
+        bar = (max(ref_means) if up else min(ref_means)) if ref_means else None
+        best_ref = better_reference(refs, j, up)
         for i, row in enumerate(rows):
             marks[i][n_extra + j] |= column_marks[i]
             v = row.values[n_extra + j]
-            if bar is not None and isinstance(v, Estimate) and (v.hi if v.has_interval else v.mean) >= bar:
+            if bar is not None and isinstance(v, Estimate) and _no_skill(v, bar, up):
                 marks[i][n_extra + j].add("noskill")
             if metric in skill_metrics and col[i] is not None and best_ref is not None:
                 try:
