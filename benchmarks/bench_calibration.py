@@ -1,6 +1,7 @@
 """Calibration of the report's intervals and paired test at few seeds, by simulation with known true means.
 
     python benchmarks/bench_calibration.py [--experiments 2000] [--trajectories 12] [--seeds 3 5] [--baseline 400]
+                                           [--pair-weights]
 
 Each simulated experiment is one table cell (and, for the test, two rows on the
 same test trajectories): ``error[r, t] = mu + seed_r + shared_t + own_t + noise_rt``
@@ -21,6 +22,8 @@ and seed count, with the report's own functions (``stats.combine``, which
   different at alpha 0.05 (both rows the same mu);
 * power: the same when the second row's mean is one seed-SD higher.
 
+``--pair-weights`` weights the trajectories by unequal pair counts (10-59, as
+the per-pair tables do) instead of equally (the accumulated tables).
 ``--baseline N`` (default 400 experiments; 0 skips it) also measures the procedure the report used
 before (two-level percentile bootstrap, 2,000 resamples, reimplemented here)
 and a seed-level t interval on per-seed means (2 df at 3 seeds), for
@@ -106,9 +109,13 @@ def old_bootstrap(a: np.ndarray, b: np.ndarray, w: np.ndarray, resamples: int = 
     return lo, hi, p
 
 
+def pair_counts(trajectories: int) -> np.ndarray:
+    return np.random.default_rng(0).integers(10, 60, trajectories).astype(float)
+
+
 def measure(procedure, rng: np.random.Generator, n: int, seeds: int, trajectories: int,
-            sd: tuple[float, float, float]) -> dict[str, float]:
-    w = np.ones(trajectories)
+            sd: tuple[float, float, float], w: np.ndarray | None = None) -> dict[str, float]:
+    w = np.ones(trajectories) if w is None else w
     a, b = simulate(rng, n, seeds, trajectories, sd)
     lo, hi, p = procedure(a, b, w)
     a2, b2 = simulate(rng, n, seeds, trajectories, sd, shift=sd[0])
@@ -117,8 +124,10 @@ def measure(procedure, rng: np.random.Generator, n: int, seeds: int, trajectorie
             "power": float(np.mean(p_power < ALPHA)), "width": float(np.median(hi - lo))}
 
 
-def run(experiments: int, trajectories: int, seed_counts, baseline: int = 0, seed: int = 1) -> dict:
+def run(experiments: int, trajectories: int, seed_counts, baseline: int = 0, seed: int = 1,
+        pair_weights: bool = False) -> dict:
     """{(procedure, seeds, regime): measures}; ``baseline`` > 0: also the two alternatives, on that many."""
+    w = pair_counts(trajectories) if pair_weights else None
     procedures = {"report": (report_procedure, experiments)}
     if baseline:
         procedures |= {"seed-level t": (seed_t, baseline), "old bootstrap": (old_bootstrap, baseline)}
@@ -127,7 +136,7 @@ def run(experiments: int, trajectories: int, seed_counts, baseline: int = 0, see
         for seeds in seed_counts:
             for regime, sd in REGIMES.items():
                 rng = np.random.default_rng([seed, seeds, list(REGIMES).index(regime)])
-                results[(name, seeds, regime)] = measure(proc, rng, n, seeds, trajectories, sd)
+                results[(name, seeds, regime)] = measure(proc, rng, n, seeds, trajectories, sd, w)
     return results
 
 
@@ -139,11 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, nargs="+", default=[3, 5])
     ap.add_argument("--baseline", type=int, default=400, metavar="N",
                     help="experiments for the two alternatives (old bootstrap, seed-level t); 0 skips them")
+    ap.add_argument("--pair-weights", action="store_true",
+                    help="weight the trajectories by unequal pair counts (the per-pair tables)")
     args = ap.parse_args(argv)
     start = time.perf_counter()
-    results = run(args.experiments, args.trajectories, args.seeds, args.baseline)
+    results = run(args.experiments, args.trajectories, args.seeds, args.baseline, pair_weights=args.pair_weights)
     print(f"{args.experiments} experiments per row of the report's procedure ({args.baseline} for the others), "
-          f"{args.trajectories} test trajectories, alpha {ALPHA:g}; "
+          f"{args.trajectories} test trajectories ({'weighted by pairs' if args.pair_weights else 'equal weights'}), "
+          f"alpha {ALPHA:g}; "
           f"power = detection of a difference of one seed-SD")
     print("| procedure | seeds | regime | coverage | false-positive rate | power | median width |")
     print("|---|---:|---|---:|---:|---:|---:|")

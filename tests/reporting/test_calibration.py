@@ -31,8 +31,9 @@ def test_small_simulation_coverage_stays_above_090_in_every_regime(bench):
         assert m["fpr"] <= 0.08, (seeds, regime, m)
 
 
-def test_full_simulation_meets_the_acceptance_bounds(bench):
-    results = bench.run(2000, 12, [3, 5], baseline=0)
+@pytest.mark.parametrize("pair_weights", [False, True], ids=["accumulated", "per-pair"])
+def test_full_simulation_meets_the_acceptance_bounds(bench, pair_weights):
+    results = bench.run(2000, 12, [3, 5], baseline=0, pair_weights=pair_weights)
     for (_, seeds, regime), m in results.items():
         assert m["coverage"] >= 0.93 and m["fpr"] <= 0.06, (seeds, regime, m)
     # power for one seed-SD grows with seeds where seeds dominate
