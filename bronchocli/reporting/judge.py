@@ -66,7 +66,8 @@ class Built:
 
 def estimate(sample: stats.Sample | None, fallback: float | None, s: Settings) -> Estimate | None:
     if sample is not None:
-        return Estimate(sample.mean, *stats.interval(sample, s.level))
+        lo, hi = stats.interval(sample, s.level)
+        return Estimate(sample.mean, lo, hi) if lo == lo else Estimate(sample.mean)  # NaN: no interval
     return None if fallback is None else Estimate(fallback)
 
 

@@ -109,11 +109,12 @@ class Inference:
 
     @property
     def p(self) -> np.ndarray:
-        """Two-sided p of 'the combination is 0' (1 when the standard error is 0 and the value too)."""
+        """Two-sided p of 'the combination is 0' (1 when the value and its standard error are 0, or when no
+        variation can be measured at all: one seed and one trajectory)."""
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.abs(self.value) / self.se
         t = np.where(self.se > 0, t, np.where(self.value == 0, 0.0, np.inf))
-        return 2.0 * sps.t.sf(t, self.df)
+        return np.where(np.isnan(self.se), 1.0, 2.0 * sps.t.sf(t, np.nan_to_num(self.df, nan=1.0)))
 
 
 def _satterthwaite(terms: Sequence[tuple[np.ndarray, float]], for_df: Sequence[np.ndarray]
@@ -181,9 +182,9 @@ def combine(errors: Sequence[np.ndarray], weights: np.ndarray, coefs: Sequence) 
         if part is not None:
             terms.append(part)  # type: ignore[arg-type]
             for_df.append(_median_unbiased(*part))
-    if not terms:
-        zero = np.zeros_like(np.asarray(value, dtype=np.float64))
-        return Inference(np.asarray(value), zero, zero + np.inf)
+    if not terms:  # one replicate of one trajectory: no variation to measure
+        nan = np.full_like(np.asarray(value, dtype=np.float64), np.nan)
+        return Inference(np.asarray(value), nan, nan)
     total, df = _satterthwaite(terms, for_df)
     return Inference(np.asarray(value), np.sqrt(np.maximum(total, 0.0)), df)
 
@@ -204,7 +205,8 @@ def linear(samples: Sequence[Sample], coefs: Sequence[float]) -> Inference:
 
 
 def interval(sample: Sample, level: float = LEVEL) -> tuple[float, float]:
-    """The t interval of the sample's mean (seed and trajectory variation, Satterthwaite df)."""
+    """The t interval of the sample's mean (seed and trajectory variation, Satterthwaite df); NaN bounds when
+    nothing varies that could be measured (one replicate, one trajectory)."""
     inf = combine([sample.errors], sample.weights, [1.0])
     lo, hi = inf.interval(level)
     return float(lo), float(hi)

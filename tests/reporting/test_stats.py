@@ -129,3 +129,10 @@ def test_skill_against_the_reference():
     lin = -(x - (model.mean / ref.mean) * y) / ref.mean
     half = sps.t.ppf(0.975, len(x) - 1) * lin.std(ddof=1) / math.sqrt(len(x))
     assert (d.lo, d.hi) == pytest.approx((d.value - half, d.value + half), rel=1e-6)
+
+
+def test_one_seed_of_one_trajectory_has_no_interval_and_no_significance():
+    a, b = _sample([[1.0]]), _sample([[2.0]])
+    lo, hi = stats.interval(a)
+    assert math.isnan(lo) and math.isnan(hi)
+    assert stats.paired_p(a, b) == 1.0  # nothing to measure the noise with: no claim
