@@ -104,7 +104,8 @@ def old_bootstrap(a: np.ndarray, b: np.ndarray, w: np.ndarray, resamples: int = 
             boot.append((counts(r) * per_rep).sum(1) / r)
         lo[i], hi[i] = np.percentile(boot[0], [2.5, 97.5])
         d = boot[0] - boot[1]
-        below, above = (np.count_nonzero(d <= 0) + 1) / (resamples + 1), (np.count_nonzero(d >= 0) + 1) / (resamples + 1)
+        below = (np.count_nonzero(d <= 0) + 1) / (resamples + 1)
+        above = (np.count_nonzero(d >= 0) + 1) / (resamples + 1)
         p[i] = min(1.0, 2.0 * min(below, above))
     return lo, hi, p
 

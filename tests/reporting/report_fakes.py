@@ -162,7 +162,8 @@ def metrics_from_errors(df: pd.DataFrame, n_params: int | None = None, *, ratio:
         for name in TRACKING:
             if f"{source}.traj.{name}" in df:
                 values = df[f"{source}.traj.{name}"].to_numpy(dtype=float)
-                out[f"{prefix}traj.{name}.mean"], out[f"{prefix}traj.{name}.std"] = float(values.mean()), float(values.std())
+                out[f"{prefix}traj.{name}.mean"] = float(values.mean())
+                out[f"{prefix}traj.{name}.std"] = float(values.std())
     out |= THRESHOLDS
     out |= {"pred.std.pos": ratio * 2.0, "pred.std.rot": ratio * 3.0, "pred.std_ratio.pos": ratio,
             "pred.std_ratio.rot": ratio, "train.steps": float(steps), "train.pairs_seen": float(steps * 20),
