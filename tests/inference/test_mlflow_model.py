@@ -1,0 +1,91 @@
+"""Every FINISHED run logs an MLflow Model that MLflow itself loads and runs on the CPU."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from bronchocli import tracking
+from bronchocli.inference.loading import resolve
+from bronchocli.inference.mlflow_model import FrameSizeWarning, ModelInputError
+from bronchocli.training.evaluate import POSE_COLS
+
+TOL = dict(rtol=1e-4, atol=1e-4)  # the run tested its fp16-rounded weights: the same numbers, up to op order
+
+
+def frames_of(run, key: str) -> np.ndarray:
+    patient, lobe, traj = key.split("/")
+    names = sorted((run.dataset / patient / lobe).glob(f"t{int(traj):03d}_f*.png"))
+    return np.stack([np.asarray(Image.open(p).convert("RGB")) for p in names])
+
+
+def logged_relative(run, key: str) -> np.ndarray:
+    patient, lobe, traj = key.split("/")
+    p = run.predictions
+    rows = p[(p.patient == patient) & (p.lobe == lobe) & (p.trajectory == traj)].sort_values("frame")
+    return rows[[f"pred_rel_{c}" for c in POSE_COLS]].to_numpy()[1:]
+
+
+@pytest.fixture(scope="module")
+def pyfunc(tiny_run):
+    mlflow.set_tracking_uri(tiny_run.cfg.paths.tracking_uri)
+    try:
+        yield mlflow.pyfunc.load_model(f"runs:/{tiny_run.run_id}/model")
+    finally:
+        mlflow.set_tracking_uri(None)
+
+
+def test_pyfunc_predicts_the_runs_logged_predictions_of_every_test_trajectory(tiny_run, pyfunc):
+    for key in tiny_run.test_keys():
+        frames = frames_of(tiny_run, key)
+        out = pyfunc.predict(frames)
+        assert out.shape == (len(frames) - 1, 6) and out.dtype == np.float64
+        np.testing.assert_allclose(out, logged_relative(tiny_run, key), **TOL)
+
+
+def test_the_model_has_a_signature_an_input_example_fp16_weights_and_its_spec(tiny_run, pyfunc):
+    sig = pyfunc.metadata.signature
+    spec_in, spec_out = sig.inputs.inputs[0], sig.outputs.inputs[0]
+    assert spec_in.type == np.dtype(np.uint8) and spec_in.shape == (-1, -1, -1, 3)
+    assert spec_out.type == np.dtype(np.float64) and spec_out.shape == (-1, 6)
+    client = tracking.client_for(tiny_run.cfg)
+    local = Path(mlflow.artifacts.download_artifacts(resolve(client, tiny_run.run_id).location))
+    example = json.loads((local / "input_example.json").read_text())
+    assert np.asarray(example).shape == (2, 32, 32, 3)  # the first two frames of a test trajectory
+    weights = torch.load(local / "data" / "bronchopose" / "weights.pt", weights_only=True)
+    floats = {v.dtype for v in weights["state_dict"].values() if v.is_floating_point()}
+    assert floats == {torch.float16}
+    spec = json.loads((local / "data" / "bronchopose" / "spec.json").read_text())
+    assert (spec["arch"], spec["image_size"], spec["pose_frame"], spec["run_id"]) == ("baseline", 32, "world",
+                                                                                      tiny_run.run_id)
+    size = sum(p.stat().st_size for p in local.rglob("*") if p.is_file())
+    n_params = sum(v.numel() for v in weights["state_dict"].values())
+    assert size < 2 * n_params + 2_000_000  # fp16: two bytes a value, plus the small files
+    # The model is an MLflow 3 logged model of the run: registrable from runs:/<id>/model.
+    models = client.search_logged_models(experiment_ids=[client.get_run(tiny_run.run_id).info.experiment_id])
+    assert [m.source_run_id for m in models if m.name == "model"].count(tiny_run.run_id) == 1
+
+
+def test_frames_of_another_size_are_resized_with_one_warning(tiny_run, pyfunc):
+    key = tiny_run.test_keys()[0]
+    frames = frames_of(tiny_run, key)
+    big = np.stack([np.asarray(Image.fromarray(f).resize((64, 64), Image.Resampling.BILINEAR)) for f in frames])
+    with pytest.warns(FrameSizeWarning, match="64x64 pixels, the network takes 32x32"):
+        out = pyfunc.predict(big)
+    assert out.shape == (len(frames) - 1, 6) and np.isfinite(out).all()
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((1, 32, 32, 3), np.uint8), "at least 2"),
+    (np.zeros((4, 32, 32), np.uint8), r"does not match expected shape \(-1, -1, -1, 3\)"),  # MLflow's schema check
+    (np.zeros((4, 32, 32, 3), np.float32), r"uint8"),
+])
+def test_bad_frames_are_one_clear_error(pyfunc, bad, match):
+    with pytest.raises((ModelInputError, mlflow.exceptions.MlflowException), match=match):
+        pyfunc.predict(bad)
