@@ -172,6 +172,6 @@ def register(client, ref: ModelRef, name: str) -> str:
     except MlflowException as exc:
         if "already exists" not in str(exc).lower() and "RESOURCE_ALREADY_EXISTS" not in str(exc):
             raise BronchoError(f"--register {name}: {str(exc).splitlines()[0]}") from None
-    source = f"models:/{ref.model_id}" if ref.model_id else ref.location
-    mv = client.create_model_version(name, source, run_id=ref.run_id, model_id=ref.model_id)
+    # The artifact location, not models:/<model_id>: MLflow resolves the latter through its global tracking URI.
+    mv = client.create_model_version(name, ref.location, run_id=ref.run_id, model_id=ref.model_id)
     return str(mv.version)
