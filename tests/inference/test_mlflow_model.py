@@ -89,3 +89,13 @@ def test_frames_of_another_size_are_resized_with_one_warning(tiny_run, pyfunc):
 def test_bad_frames_are_one_clear_error(pyfunc, bad, match):
     with pytest.raises((ModelInputError, mlflow.exceptions.MlflowException), match=match):
         pyfunc.predict(bad)
+
+
+def test_the_docs_registration_recipe_registers_a_loadable_version(tiny_run, pyfunc):
+    """docs/api.md: mlflow.register_model("runs:/<id>/model", name), then models:/name/version and @alias load."""
+    version = mlflow.register_model(f"runs:/{tiny_run.run_id}/model", "recipe-pose")
+    mlflow.MlflowClient().set_registered_model_alias("recipe-pose", "champion", version.version)
+    frames = frames_of(tiny_run, tiny_run.test_keys()[0])
+    expected = pyfunc.predict(frames)
+    for uri in (f"models:/recipe-pose/{version.version}", "models:/recipe-pose@champion"):
+        np.testing.assert_array_equal(mlflow.pyfunc.load_model(uri).predict(frames), expected)
