@@ -107,7 +107,14 @@ def save_model_dir(path: Path, spec: dict[str, Any], weights: dict[str, Any], ex
             metadata={"bronchopose": {k: spec[k] for k in ("arch", "image_size", "pose_frame", "input", "output")},
                       "requires": "the bronchocli package installed (the loader module lives in it)"},
         )
+    _compact_json(path / "serving_input_example.json")
     return path
+
+
+def _compact_json(path: Path) -> None:
+    """MLflow indents the serving example one number per line (8 MB for two 256 px frames): rewrite it compact."""
+    if path.is_file():
+        path.write_text(json.dumps(json.loads(path.read_text()), separators=(",", ":")))
 
 
 def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> str:

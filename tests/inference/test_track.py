@@ -17,6 +17,7 @@ from bronchocli.data.reader import DISK_POSE_COLUMNS
 REF_COLUMNS = [f"{s}.{ev}.{m}" for s in ("zero_motion", "train_mean") for ev in ("pair", "acc")
                for m in ("pos_l2", "pos_l2_mm", "rot_l2", "de", "ce", "geodesic")]
 MODEL_COLUMNS = [c.replace("zero_motion.", "model.") for c in REF_COLUMNS if c.startswith("zero_motion.")]
+FP16 = 5e-3  # relative tolerance of the model's errors (see test_mlflow_model.TOL); references are exact
 
 
 def trajectory_path(run, key: str) -> Path:
@@ -72,12 +73,12 @@ def test_track_a_test_trajectory_writes_csv_png_and_the_runs_logged_errors(cli, 
     logged = logged_row(tiny_run, key)
     errors = pd.read_csv(tmp_path / "errors.csv").iloc[0]
     np.testing.assert_allclose(errors[REF_COLUMNS].astype(float), logged[REF_COLUMNS].astype(float), rtol=1e-9)
-    np.testing.assert_allclose(errors[MODEL_COLUMNS].astype(float), logged[MODEL_COLUMNS].astype(float), rtol=1e-4)
+    np.testing.assert_allclose(errors[MODEL_COLUMNS].astype(float), logged[MODEL_COLUMNS].astype(float), rtol=FP16)
     # The printed table shows the same numbers (model, zero motion, training mean).
     line = next(ln for ln in out.splitlines() if ln.lstrip("│ ").startswith("pos_l2 (vox)") and "per pair" in ln)
     shown = [float(v) for v in line.replace("│", " ").split()[-3:]]
     np.testing.assert_allclose(shown, [logged[f"{s}.pair.pos_l2"] for s in ("model", "zero_motion", "train_mean")],
-                               rtol=1e-4)
+                               rtol=FP16)
     # The chained poses are the relative predictions accumulated in the run's pose frame.
     rel = table[["d_x", "d_y", "d_z", "d_rx", "d_ry", "d_rz"]].to_numpy()[1:]
     np.testing.assert_allclose(table[list(DISK_POSE_COLUMNS)].to_numpy(), geometry.accumulate(gt[0], rel, "world"),
@@ -96,7 +97,7 @@ def test_a_lossless_video_of_the_frames_gives_the_same_trajectory_and_errors(cli
     np.testing.assert_allclose(b[list(DISK_POSE_COLUMNS)], a[list(DISK_POSE_COLUMNS)], atol=1e-6)
     assert list(b.source) == list(range(len(b)))  # video frames are numbered
     np.testing.assert_allclose(pd.read_csv(from_video / "errors.csv")[MODEL_COLUMNS].iloc[0].astype(float),
-                               logged_row(tiny_run, key)[MODEL_COLUMNS].astype(float), rtol=1e-4)
+                               logged_row(tiny_run, key)[MODEL_COLUMNS].astype(float), rtol=FP16)
 
 
 def test_a_folder_of_frames_without_ground_truth_starts_at_the_given_or_identity_pose(cli, tiny_run, tmp_path):
