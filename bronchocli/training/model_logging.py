@@ -30,6 +30,8 @@ from typing import Any
 
 import mlflow
 import numpy as np
+import pandas
+import PIL
 import torch
 from mlflow.entities import LoggedModelOutput
 from mlflow.models import Model, ModelSignature
@@ -86,9 +88,6 @@ def input_example(data: RunData) -> np.ndarray:
 
 def requirements() -> list[str]:
     """What loading needs from PyPI; bronchocli itself (not on PyPI) must be installed too (docs/api.md)."""
-    import pandas  # lazy: only for its version string
-    import PIL
-
     return [f"mlflow=={mlflow.__version__}", f"torch=={torch.__version__.split('+')[0]}",
             f"numpy=={np.__version__}", f"pandas=={pandas.__version__}", f"pillow=={PIL.__version__}"]
 

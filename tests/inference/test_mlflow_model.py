@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import mlflow
@@ -104,9 +107,6 @@ def test_the_docs_registration_recipe_registers_a_loadable_version(tiny_run, pyf
 
 def test_loading_and_predicting_needs_neither_vtk_nor_a_gpu(tiny_run, tmp_path):
     """A fresh process with VTK made unimportable and CUDA hidden loads runs:/<id>/model and predicts."""
-    import subprocess
-    import sys
-
     frames = frames_of(tiny_run, tiny_run.test_keys()[0])
     np.save(tmp_path / "frames.npy", frames)
     code = f"""
@@ -122,7 +122,7 @@ np.save({str(tmp_path / "out.npy")!r}, out)
 assert not any(m.startswith(("vtk", "bronchocli.render", "bronchocli.generation", "bronchocli.anatomy"))
                for m in sys.modules if sys.modules[m] is not None)
 """
-    env = {**__import__("os").environ, "CUDA_VISIBLE_DEVICES": ""}
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     np.testing.assert_allclose(np.load(tmp_path / "out.npy"), logged_relative(tiny_run, tiny_run.test_keys()[0]),
