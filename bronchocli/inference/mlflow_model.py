@@ -137,6 +137,10 @@ class PoseModel:
         outputs.append(out[0].double())
         return state
 
+    def get_raw_model(self) -> PoseModel:
+        """What ``PyFuncModel.get_raw_model()`` returns: this object (``.net`` is the torch module, ``.spec`` the JSON)."""
+        return self
+
     def predict(self, model_input: Any, params: dict[str, Any] | None = None) -> np.ndarray:
         """pyfunc entry point: uint8 ``[T, H, W, 3]`` -> ``float64 [T-1, 6]`` (see the module doc)."""
         if isinstance(model_input, dict) and len(model_input) == 1:  # a named tensor

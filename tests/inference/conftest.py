@@ -33,8 +33,9 @@ class TinyRun:
 
 
 def train_tiny(root: Path, arch: str = "baseline") -> TinyRun:
-    write_tiny_dataset(root / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
-    write_config(root, model_artifact="fp16")
+    if not (root / "tiny").exists():
+        write_tiny_dataset(root / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+        write_config(root, model_artifact="fp16")
     cfg = load_config(root / "experiments.yaml")
     result = run_cell(cfg, cfg.cell(arch=arch, rot_loss="mse", population="personalized", seed=0), progress=False)
     assert result.status == "FINISHED", result.failure_reason
@@ -49,3 +50,9 @@ def train_tiny(root: Path, arch: str = "baseline") -> TinyRun:
 def tiny_run(tmp_path_factory) -> TinyRun:
     """A FINISHED baseline run (4 steps on a 32-px dataset) that logged its fp16 MLflow Model."""
     return train_tiny(tmp_path_factory.mktemp("inference-project"))
+
+
+@pytest.fixture(scope="session")
+def tiny_temporal_run(tmp_path_factory) -> TinyRun:
+    """A FINISHED conv3d run: predicted in chunks of data.window pairs, whose borders change its output."""
+    return train_tiny(tmp_path_factory.mktemp("inference-temporal"), arch="conv3d")

@@ -53,6 +53,19 @@ def test_pyfunc_predicts_the_runs_logged_predictions_of_every_test_trajectory(ti
         np.testing.assert_allclose(out, logged_relative(tiny_run, key), **TOL)
 
 
+def test_a_temporal_model_predicts_in_the_chunks_evaluation_used(tiny_temporal_run):
+    """conv3d pads in time at each chunk's borders: the model must chunk as evaluation did (data.window pairs)."""
+    run = tiny_temporal_run
+    model = mlflow.pyfunc.load_model(mlflow.artifacts.download_artifacts(
+        resolve(tracking.client_for(run.cfg), run.run_id).location))
+    assert model.get_raw_model().chunk == 3
+    for key in run.test_keys():
+        frames = frames_of(run, key)
+        np.testing.assert_allclose(model.predict(frames), logged_relative(run, key), **TOL)
+    whole = model.get_raw_model().net(torch.from_numpy(frames.transpose(0, 3, 1, 2)).unsqueeze(0))[0][0]
+    assert not np.allclose(whole.detach().double().numpy(), logged_relative(run, key), **TOL)  # chunks matter
+
+
 def test_the_model_has_a_signature_an_input_example_fp16_weights_and_its_spec(tiny_run, pyfunc):
     sig = pyfunc.metadata.signature
     spec_in, spec_out = sig.inputs.inputs[0], sig.outputs.inputs[0]

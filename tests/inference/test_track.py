@@ -173,3 +173,14 @@ def test_bad_inputs_are_one_line_and_exit_2(cli, tiny_run, tmp_path, bare_run):
         code, out, err = track(cli, tiny_run, *args, "-o", tmp_path / "out")
         assert code == 2, (args, out, err)
         assert message in " ".join(err.split()) and len(err.strip().splitlines()) == 1, (args, err)
+
+
+def test_frames_of_another_size_are_resized_with_a_printed_warning(cli, tiny_run, tmp_path):
+    folder = tmp_path / "big"
+    folder.mkdir()
+    for f in frame_files(tiny_run, tiny_run.test_keys()[0]):
+        Image.open(f).resize((48, 48), Image.Resampling.BILINEAR).save(folder / f.name)
+    code, out, err = track(cli, tiny_run, "--run", tiny_run.run_id, folder, "-o", tmp_path / "out")
+    assert code == 0, err
+    assert "warning:" in out and "48x48 pixels, the network takes 32x32" in " ".join(out.split())
+    assert np.isfinite(pd.read_csv(tmp_path / "out" / "trajectory.csv")[list(DISK_POSE_COLUMNS)].to_numpy()).all()
