@@ -46,7 +46,8 @@ def track(
                                              "(voxels, degrees); default: the ground truth's, else all zeros."),
     ground_truth: Optional[Path] = typer.Option(None, "--ground-truth", help="Poses to score against (a pose CSV, "
                                                 "or <dataset root>/<patient>/<lobe>/<trajectory>)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default: track/<input name>)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default: track/<input name>, "
+                                       "track/<patient>-<lobe>-<trajectory> for a dataset trajectory)."),
     register: Optional[str] = typer.Option(None, "--register", help="Also register the model in the MLflow Model "
                                            "Registry under this name (a new version)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
@@ -70,8 +71,9 @@ def track(
     if len(chosen) != 1:
         raise BronchoError(f"give exactly one of --run, --model, --best (got {', '.join(chosen) or 'none'})")
     first = odometry.parse_pose(first_pose) if first_pose is not None else None
-    out = output_folder(out or Path("track") / (input_path.stem or "input"), "--out")
     inp = reader.open_input(input_path)
+    name = "-".join(input_path.parts[-3:]) if inp.kind == "trajectory" else (input_path.stem or "input")
+    out = output_folder(out or Path("track") / name, "--out")
     truth = reader.read_ground_truth(ground_truth) if ground_truth is not None else None
     cfg = load(config, profile, set_)
     client = tracking.client_for(cfg)
