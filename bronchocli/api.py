@@ -25,7 +25,7 @@ from mlflow.tracking import MlflowClient
 
 from . import geometry, tracking
 from .config import DEFAULT_CONFIG, load_config
-from .inference import loading, odometry, reader
+from .inference import loading, reader, trajectory
 from .inference.mlflow_model import PoseModel, check_frames, warn_resize
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score"]
@@ -86,11 +86,12 @@ def score(model: PoseModel, relative: np.ndarray, ground_truth: np.ndarray,
     image-blind references, the latter the run's training-mean relative pose); ``pair`` is the mean over the
     ``T-1`` pairs, ``acc`` the endpoint error after chaining from the true first pose; ``metric`` is one of
     ``pos_l2`` (voxels), ``pos_l2_mm`` (NaN without ``spacing_mm``), ``rot_l2`` (degrees), ``de`` (radians),
-    ``ce``, ``geodesic`` (degrees).
+    ``ce``, ``geodesic`` (degrees); plus ``<source>.traj.<t>`` trajectory metrics (CTF, ATE, RPE, drift) with
+    the run's ``eval:`` thresholds.
     """
     gt = np.asarray(ground_truth, dtype=np.float64)
     spacing = np.full(3, np.nan) if spacing_mm is None else np.asarray(spacing_mm, dtype=np.float64)
     if len(gt) != len(relative) + 1:
         raise ValueError(f"ground truth has {len(gt)} poses for {len(relative)} relative poses; need one more")
-    row = odometry.score(model, relative, reader.GroundTruth(gt, spacing)).iloc[0]
+    row = trajectory.score(model, relative, reader.GroundTruth(gt, spacing)).iloc[0]
     return {k: float(v) for k, v in row.items() if "." in str(k)}

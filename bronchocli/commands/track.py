@@ -65,12 +65,12 @@ def track(
     references. Frames of another size than the model's are resized with a warning.
     """
     from .. import tracking  # lazy: MLflow (~1 s) only once the flags are valid
-    from ..inference import loading, odometry, reader
+    from ..inference import loading, reader, trajectory
 
     chosen = [f for f, v in (("--run", run), ("--model", model), ("--best", best)) if v]
     if len(chosen) != 1:
         raise BronchoError(f"give exactly one of --run, --model, --best (got {', '.join(chosen) or 'none'})")
-    first = odometry.parse_pose(first_pose) if first_pose is not None else None
+    first = trajectory.parse_pose(first_pose) if first_pose is not None else None
     inp = reader.open_input(input_path)
     name = "-".join(input_path.parts[-3:]) if inp.kind == "trajectory" else (input_path.stem or "input")
     out = output_folder(out or Path("track") / name, "--out")
@@ -93,11 +93,11 @@ def track(
                   f"pose frame, {spec['image_size']} px)")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = odometry.track(loaded.model, inp, first, truth, progress=not quiet)
+        result = trajectory.track(loaded.model, inp, first, truth, progress=not quiet)
     for w in caught:
         console.print(f"[yellow]warning:[/] {w.message}")
     title = result.truth.key if result.truth is not None and result.truth.key else Path(inp.name).name
-    files = odometry.write(result, out, title=title, model_label=loaded.label)
+    files = trajectory.write(result, out, title=title, model_label=loaded.label)
     console.print(f"{len(result.poses)} poses chained in the {result.pose_frame} frame from "
                   f"({', '.join(f'{v:g}' for v in result.first_pose)})")
     if result.errors is not None:

@@ -25,6 +25,7 @@ import torch
 from PIL import Image
 
 from ..errors import BronchoError
+from ..odometry import Thresholds
 from ..training.model_logging import SPEC_FILE, SPEC_FORMAT, SPEC_VERSION, WEIGHTS_FILE
 from ..training.network import PoseRegressor, load_exported
 
@@ -96,6 +97,11 @@ class PoseModel:
     @property
     def chunk(self) -> int:
         return int(self.spec["chunk"])
+
+    @property
+    def thresholds(self) -> Thresholds:
+        """The run's ``eval:`` settings of its trajectory metrics (CTF, RPE); the defaults for older models."""
+        return Thresholds(**self.spec.get("eval_thresholds", {}))
 
     @property
     def train_mean(self) -> np.ndarray:

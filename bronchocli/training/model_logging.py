@@ -23,6 +23,7 @@ does when ``data.image_size`` differs from the dataset's) with one warning.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import tempfile
 from pathlib import Path
@@ -40,6 +41,7 @@ from mlflow.types import Schema, TensorSpec
 from .. import __version__
 from ..cells import Cell
 from ..config import Config
+from . import evaluate
 from .engine import EVAL_CHUNK, Outcome
 from .network import export
 from .prepare import RunData
@@ -69,6 +71,7 @@ def model_spec(cfg: Config, cell: Cell, data: RunData, outcome: Outcome, run_id:
         "standardized": bool(net.standardized),
         "label_mean": [float(v) for v in net.label_mean.cpu()], "label_std": [float(v) for v in net.label_std.cpu()],
         "train_mean": [float(v) for v in data.label_mean],  # the training-mean reference's relative pose
+        "eval_thresholds": dataclasses.asdict(evaluate.thresholds(cfg.eval)),  # CTF/RPE settings of its traj.* metrics
         "run_id": run_id, "cell_key": cell.key, "cell": cell.label, "dataset_fingerprint": data.fingerprint,
         "bronchocli_version": __version__,
     }

@@ -6,8 +6,9 @@ frames (the model's pose frame, voxels and degrees), chains them from a first
 pose (given, else the ground truth's first pose, else the identity pose
 0,0,0,0,0,0) with the geometry core, and, with ground truth, scores them with
 evaluation's own functions (``training.evaluate``): the per-pair mean and the
-accumulated (endpoint) error of each metric for the model and for both
-image-blind references (zero motion, and the run's training-mean relative
+accumulated (endpoint) error of each metric, and the trajectory metrics
+(``traj.*``: CTF, ATE, RPE, drift, with the run's ``eval:`` thresholds), for
+the model and for both image-blind references (zero motion, and the run's training-mean relative
 pose). Errors are always chained from the ground truth's first pose, as the
 run's evaluation does, so they equal the run's logged per-trajectory errors
 for one of its test trajectories (up to the fp16 rounding of the weights).
@@ -94,7 +95,8 @@ def score(model: PoseModel, relative: np.ndarray, truth: GroundTruth, key: str =
         gt_rel=geometry.relative_trajectory(gt_abs, frame), pred_rel=np.asarray(relative, dtype=np.float64),
         gt_abs=gt_abs, pred_abs=geometry.accumulate(gt_abs[0], relative, frame),
         spacing_mm=np.asarray(truth.spacing_mm, dtype=np.float64))
-    return evaluate.trajectory_table([pred], evaluate.reference_predictions([pred], model.train_mean, frame))
+    return evaluate.trajectory_table([pred], evaluate.reference_predictions([pred], model.train_mean, frame),
+                                     model.thresholds)
 
 
 def track(model: PoseModel, inp: FrameInput, first_pose: np.ndarray | None = None,
