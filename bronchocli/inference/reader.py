@@ -19,6 +19,7 @@ fewer than two, mixed sizes, an unreadable image or video.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,7 @@ import pandas as pd
 from PIL import Image
 
 from ..data.layout import DATASET_JSON
-from ..data.reader import DISK_POSE_COLUMNS, POSE_COLUMNS, natural_key, open_dataset_dir
+from ..data.reader import DISK_POSE_COLUMNS, POSE_COLUMNS, open_dataset_dir
 from ..errors import BronchoError, DataError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -51,6 +52,11 @@ class FrameInput:
     frames: Callable[[], Iterator[np.ndarray]]  # a fresh iterator of uint8 [H, W, 3] frames each call
     labels: tuple[str, ...] = ()  # per frame: its file name (folders, trajectories)
     ground_truth: GroundTruth | None = None
+
+
+def natural_order(name: str) -> tuple:
+    """Sort key putting ``f2`` before ``f10``: runs of digits compare as numbers."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name) if part)
 
 
 def decode_image(path: str | Path) -> np.ndarray:
@@ -88,7 +94,7 @@ def _images(paths: list[Path]) -> Callable[[], Iterator[np.ndarray]]:
 
 def open_folder(path: Path) -> FrameInput:
     paths = sorted((p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
-                   key=lambda p: natural_key(p.name))
+                   key=lambda p: natural_order(p.name))
     if not paths:
         raise DataError(f"{path}: no frames (image files {' '.join(IMAGE_SUFFIXES)}) in this folder")
     shape = _same_size(paths, str(path))
