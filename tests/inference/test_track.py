@@ -14,6 +14,7 @@ from PIL import Image
 from bronchocli import geometry, tracking
 from bronchocli.data.reader import DISK_POSE_COLUMNS
 
+
 def columns(errors: pd.DataFrame, source: str) -> list[str]:
     """Every error column of one source: <source>.pair.*, <source>.acc.* and <source>.traj.* (CTF, ATE, RPE...)."""
     return [c for c in errors.columns if c.startswith(f"{source}.")]
