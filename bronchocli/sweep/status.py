@@ -7,6 +7,7 @@ rows point at); nothing writes.
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -147,8 +148,11 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     bytes of its checkpoint folder on this machine) adds a checkpoint column."""
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
-    for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
-                      ("worker", "left"), ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
+    on_slurm = any(slurm_job(r.worker) for r in plan.rows.values())
+    cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
+            *((("Slurm task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
+            ("acc pos L2", "right"))
+    for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
     if ckpt_bytes is not None:
         table.add_column("checkpoint", justify="right", no_wrap=True)
@@ -162,17 +166,25 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             shown = fmt_duration(now - row.claimed_at)
             if budget_pairs and m.get("pairs_seen") is not None:
                 shown += f", {min(1.0, m['pairs_seen'] / budget_pairs):.0%} trained"
-        cols = [
+        values = [
             cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
-            (row.worker or "-") if row and row.state == RUNNING else "", shown,
-            _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
+            (row.worker or "-") if row and row.state == RUNNING else "",
+            *(((slurm_job(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
+              if on_slurm else ()),
+            shown, _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
         ]
         if ckpt_bytes is not None:
             size = ckpt_bytes.get(row.run_id) if row and row.run_id else None
-            cols.append(fmt_bytes(size) if size is not None else "-")
-        table.add_row(*cols)
+            values.append(fmt_bytes(size) if size is not None else "-")
+        table.add_row(*values)
     return table
+
+
+def slurm_job(worker: str | None) -> str | None:
+    """The Slurm array job and task (``812_3``) in a worker id written by an array task, else None."""
+    m = re.search(r" slurm (\S+)", worker or "")
+    return m.group(1) if m else None
 
 
 def _num(v: float | None) -> str:
