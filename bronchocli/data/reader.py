@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .. import geometry
 from ..cells import LOBES
 from ..errors import DataError
 from .layout import DATASET_JSON
@@ -249,7 +250,11 @@ def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None,
     _check_groups(table, starts)
     if check_files:
         _check_files(table)
-    poses = table[list(POSE_COLUMNS)].to_numpy(np.float64)
+    poses = table[list(POSE_COLUMNS)].to_numpy(np.float64, copy=True)
+    # One XYZ triple per rotation (beta in [-90, 90]), whatever form the file wrote: canonical ones stay bit for
+    # bit, the others' world-frame labels would otherwise jump by ~180° (geometry.canonical_euler).
+    poses[:, 3:] = geometry.canonical_euler(poses[:, 3:])
+    table = table.assign(**{c: poses[:, 3 + i] for i, c in enumerate(POSE_COLUMNS[3:])})
     paths = table["path"].to_numpy()
     ids = {c: table[c].to_numpy(object)[starts[:-1]] for c in ("patient", "lobe", "trajectory")}
     trajectories = []
