@@ -279,7 +279,7 @@ class DataCfg(Section):
 
 class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
-    pretrained: str | None = None  # torchvision-format backbone state dict (local file)
+    pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
     channels_last: bool = True
 
 
@@ -369,7 +369,7 @@ class Paths:
     checkpoints: Path
     artifacts: Path
     sweep_logs: Path
-    pretrained: Path | None
+    pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
     tracking_uri: str
@@ -387,7 +387,8 @@ class Paths:
         return cls(
             base=base, dataset=path(cfg.dataset.root), cache=path(cfg.data.cache_dir),
             checkpoints=path(cfg.tracking.checkpoints), artifacts=path(cfg.tracking.artifacts),
-            sweep_logs=path(cfg.sweep.logs), pretrained=path(cfg.model.pretrained),
+            sweep_logs=path(cfg.sweep.logs),
+            pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained),
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy), centreline=path(gen.centreline),
             tracking_uri=urls.resolve(cfg.tracking.uri, base), storage_url=urls.resolve(cfg.storage.url, base),
         )

@@ -46,6 +46,7 @@ TAG_VERSION = "bronchocli_version"
 TAG_FAILURE = "failure_reason"
 TAG_HPARAMS = "hparams_source"  # where hyperparameters came from ("config" or "optuna:<study>#<trial>")
 TAG_KIND = "run_kind"  # "cell" (train/sweep) or "trial" (tune)
+TAG_INIT = "init"  # backbone initialisation: "random", "imagenet:<torchvision file>", "file:<name>#<sha256>"
 
 _PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
 # pg_advisory_lock key under which MLflow's first-time table creation runs (any fixed 64-bit number will do;

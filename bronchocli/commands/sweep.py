@@ -68,5 +68,10 @@ def sweep(
     if dry_run:
         staged.dry_run(cfg, store, selection, workers, console)
         return
+    if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
+        from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
+
+        initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
+                                                                          for st in cfg.stages)] for a in g.arch}))
     raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
                                       retry_failed=retry_failed, gpus=devices))
