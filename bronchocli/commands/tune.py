@@ -98,6 +98,10 @@ def tune(
     from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
 
     ensure_dataset(cfg)
+    if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
+        from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
+
+        initialisation(cfg.paths.pretrained, [target.arch])
     n = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
     console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
