@@ -44,6 +44,7 @@ from .context import (
     bronchotrack,
     budget_text,
     finish,
+    init_text,
     n_text,
     provenance,
     references_text,
@@ -85,7 +86,7 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
-    parts += [budget_text(every), UNITS, provenance(ctx, c)]
+    parts += [budget_text(every), init_text(every), UNITS, provenance(ctx, c)]
     table.caption = " ".join(p for p in parts if p)
     finish(table, c, expected_empty)
     if built.fallback:
