@@ -66,3 +66,12 @@ def test_offline_without_cached_weights_is_one_line_exit_2_and_no_run(tiny_proje
     client = tracking.client_for(cfg)
     exp = client.get_experiment_by_name("offline-init")
     assert exp is None or not client.search_runs([exp.experiment_id])
+
+
+def test_paper_profile_starts_from_imagenet_and_the_cpu_default_from_random(repo):
+    paper = load_config(repo / "experiments.yaml", profile="paper")
+    assert paper.paths.pretrained == "imagenet"
+    assert paper.train.pairs_per_step == 512 * paper.data.window  # the authors' 512 windows per step
+    assert (paper.train.lr, paper.train.schedule, paper.train.warmup) == (1e-4, "constant", 0.0)
+    assert (paper.train.patience, paper.train.min_delta) == (25, 0.005)
+    assert load_config(repo / "experiments.yaml").paths.pretrained is None  # offline-reproducible default
