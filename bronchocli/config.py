@@ -486,7 +486,45 @@ class Config(Section):
         raw = self.model_dump(mode="json")
         for key, value in values.items():
             _set_path(raw, key, value, where=f"override {key}")
-        return _validate(raw, self._source, {}, self.paths.base, self._profile)
+        space = any(k == "tune" or k.startswith("tune.space") for k in values)  # else checked when it loaded
+        return _validate(raw, self._source, {}, self.paths.base, self._profile, space=space)
+
+
+TUNABLE = ("data", "model", "train", "splits", "dataset")  # the sections ``tune.space`` may search
+
+
+def space_problems(cfg: Config) -> list[str]:
+    """What is wrong with ``tune.space``: each key a settable run setting, each distribution well formed."""
+    problems = []
+    for path, p in cfg.tune.space.items():
+        where = f"tune.space.{path}"
+        if path.split(".")[0] not in TUNABLE:
+            problems.append(f"{where}: only run settings can be tuned ({', '.join(TUNABLE)})")
+            continue
+        if p.type == "categorical" and not p.choices:
+            problems.append(f"{where}: categorical needs a non-empty 'choices' list")
+            continue
+        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
+            problems.append(f"{where}: {p.type} needs low < high (got low={p.low}, high={p.high})")
+            continue
+        if p.log and p.type != "categorical" and p.low <= 0:
+            problems.append(f"{where}: log scale needs low > 0 (got {p.low})")
+            continue
+        if p.step is not None and p.step <= 0:
+            problems.append(f"{where}: step must be > 0 (got {p.step})")
+            continue
+        probes = p.choices if p.type == "categorical" else [p.low, p.high]
+        for value in probes:  # every choice (and both ends of a range) must be a valid value of the setting
+            value = int(value) if p.type == "int" else value
+            raw = cfg.model_dump(mode="json")
+            try:
+                _set_path(raw, path, value, where=where)
+                _validate(raw, cfg._source, {}, cfg.paths.base, cfg._profile, space=False)
+            except ConfigError as exc:
+                last = str(exc).splitlines()[-1].strip().removeprefix("invalid config: ")
+                problems.append(f"{where}: {last.partition(': ')[2] or last}")
+                break
+    return problems
 
 
 # -- loading ------------------------------------------------------------------
@@ -676,13 +714,21 @@ def _format_errors(exc: ValidationError, source: str, lines: dict[tuple, str]) -
     return urls.redact("\n".join([head, *("  " + p for p in unique)]))
 
 
-def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None) -> Config:
+def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None,
+              space: bool = True) -> Config:
     try:
         cfg = Config.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(_format_errors(exc, source, lines)) from None
     cfg._source, cfg._profile = source, profile
     cfg._paths = Paths.of(cfg, base)
+    problems = space_problems(cfg) if space else []
+    if problems:  # the same check as `tune`, so `config` never calls a space valid that tune refuses
+        where = next((v for k, v in lines.items() if k[:2] == ("tune", "space")), source)
+        shown = [f"{where}: {p}" for p in problems]
+        raise ConfigError(urls.redact(f"invalid config: {shown[0]}" if len(shown) == 1 else
+                                      "\n".join([f"invalid config ({len(shown)} problems):",
+                                                  *("  " + p for p in shown)])))
     return cfg
 
 

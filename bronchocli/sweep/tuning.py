@@ -30,7 +30,7 @@ from sqlalchemy.pool import NullPool
 
 from .. import tracking, urls
 from ..cells import Cell
-from ..config import Config, TuneParam
+from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
 from ..runlayout import RunPruned, cpu_threads
@@ -173,32 +173,11 @@ def storage_for(cfg: Config):
 
 
 def check_space(cfg: Config) -> None:
-    """Every ``tune.space`` key must be a settable config path and every distribution well formed."""
-    problems = []
-    for path, p in cfg.tune.space.items():
-        if path.split(".")[0] in ("grid", "tune", "profiles", "tracking", "storage", "sweep", "name"):
-            problems.append(f"tune.space.{path}: only run settings can be tuned (data, model, train, splits, dataset)")
-            continue
-        try:
-            cfg.with_values({path: _probe(p)})
-        except ConfigError as exc:
-            problems.append(f"tune.space.{path}: {str(exc).splitlines()[-1].strip().removeprefix('invalid config: ')}")
-            continue
-        if p.type == "categorical" and not p.choices:
-            problems.append(f"tune.space.{path}: categorical needs a non-empty 'choices' list")
-        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
-            problems.append(f"tune.space.{path}: {p.type} needs low < high (got low={p.low}, high={p.high})")
-        elif p.log and p.type != "categorical" and p.low <= 0:
-            problems.append(f"tune.space.{path}: log scale needs low > 0 (got {p.low})")
+    """Every ``tune.space`` key must be a settable config path and every distribution well formed
+    (``config.space_problems``, which loading a config already runs)."""
+    problems = space_problems(cfg)
     if problems:
         raise ConfigError("invalid tune.space:\n  " + "\n  ".join(problems))
-
-
-def _probe(p: TuneParam) -> Any:
-    if p.type == "categorical":
-        return (p.choices or [None])[0]
-    value = p.low if p.low is not None else 0
-    return int(value) if p.type == "int" else value
 
 
 def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
