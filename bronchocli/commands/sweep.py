@@ -9,6 +9,7 @@ import typer
 
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -61,6 +62,7 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
+    check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
     store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
     store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
     devices = placement.parse_gpus(gpus, placement.visible_gpus())

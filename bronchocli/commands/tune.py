@@ -13,6 +13,7 @@ from .. import urls
 from ..cells import ARCHS, POPULATIONS, ROT_LOSSES
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -97,6 +98,7 @@ def tune(
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
 
+    check_paths(cfg, storage=True)  # one line before anything is created
     ensure_dataset(cfg)
     n = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)

@@ -60,8 +60,9 @@ def decode_frame(path: str, shape: tuple[int, int] | None) -> np.ndarray:
             if shape is not None and im.size != (shape[1], shape[0]):
                 im = im.resize((shape[1], shape[0]), Image.Resampling.BILINEAR)
             return np.asarray(im).transpose(2, 0, 1)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot decode frame ({exc})") from None
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:  # Pillow's parse errors
+        raise DataError(f"{path}: cannot decode frame ({exc or type(exc).__name__}); re-render or replace the file"
+                        ) from None
 
 
 def resolve_image_size(image_size: int | None, dataset: Dataset) -> tuple[int, int]:
