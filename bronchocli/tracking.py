@@ -70,8 +70,11 @@ def redacted_uri(cfg: Config) -> str:
     return urls.redact(cfg.paths.tracking_uri)
 
 
-def client_for(cfg: Config) -> MlflowClient:
+def client_for(cfg: Config, *, reading: bool = False) -> MlflowClient:
     """An MLflow client on the config's store, its tables created; a dead server fails within tracking.timeout_s.
+
+    ``reading`` (report, status): an experiment whose artifacts live outside ``tracking.artifacts`` is read
+    where they are instead of refused (``relocate_artifacts``); a run is never written there.
 
     MLflow creates (migrates) its tables when it first opens a store, and two
     processes doing that at once collide: on SQLite a file lock, on PostgreSQL
@@ -84,7 +87,7 @@ def client_for(cfg: Config) -> MlflowClient:
     if db is not None:
         with file_lock(f"{db}.lock"):
             client = _open(uri)
-            relocate_artifacts(client, cfg, rewrite=True)
+            relocate_artifacts(client, cfg, rewrite=True, reading=reading)
             return client
     if urls.is_server(uri):
         probe_server(uri, timeout_s)
@@ -92,7 +95,7 @@ def client_for(cfg: Config) -> MlflowClient:
     if urls.is_postgres(uri):
         with database_lock(uri, timeout_s, what="tracking.uri"):  # also the reachability check
             client = _open(uri)
-        relocate_artifacts(client, cfg, rewrite=False)
+        relocate_artifacts(client, cfg, rewrite=False, reading=reading)
         return client
     return _client(uri)
 
@@ -110,7 +113,7 @@ def _local_path(location: str) -> Path | None:
     return None
 
 
-def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool) -> None:
+def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool, reading: bool = False) -> None:
     """Point the config's experiment (and its runs and models) at ``tracking.artifacts`` when it points elsewhere.
 
     MLflow stores absolute artifact locations, so a copied (``cp -a``) or moved
@@ -120,7 +123,8 @@ def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool) -> N
     configured folder (a copy or a move), or nowhere any more, or there are no
     runs, the locations are rewritten. Otherwise (a database shared with
     another folder, or artifacts that still live only in the old place) it
-    refuses in one line naming both folders and the fix, before anything runs.
+    refuses in one line naming both folders and the fix, before anything runs
+    (``reading``: reports and status read the artifacts where they are instead).
     """
     uri = cfg.paths.tracking_uri
     if urls.is_server(uri) or not _is_local_store(uri):
@@ -135,6 +139,8 @@ def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool) -> N
     gone = not any((have / r.info.run_id).exists() for r in runs)
     if rewrite and (not runs or moved or gone):
         _rewrite_locations(uri, exp.experiment_id, exp.artifact_location, want.as_uri())
+        return
+    if reading:
         return
     fix = ("this copy shares the tracking database with the original: set tracking.experiment to a new name here, "
            f"or tracking.artifacts={have}" if not rewrite else
