@@ -15,6 +15,7 @@ from .commands import profile as profile_cmd
 from .commands import report as report_cmd
 from .commands import status as status_cmd
 from .commands import sweep as sweep_cmd
+from .commands import track as track_cmd
 from .commands import train as train_cmd
 from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
@@ -41,6 +42,7 @@ COMMANDS = {
     "profile": profile_cmd.profile,
     "sweep": sweep_cmd.sweep,
     "status": status_cmd.status,
+    "track": track_cmd.track,
 }
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app}

@@ -326,6 +326,15 @@ class Train(Section):
         return self.effective_batch or self.batch_size
 
 
+class EvalCfg(Section):
+    """Camera-tracking metrics of the test evaluation (odometry.py; docs/reports.md, tracking table)."""
+
+    ctf_position: float = Field(5.0, gt=0)  # voxels: a frame is tracked below this position error ...
+    ctf_position_mm: float = Field(5.0, gt=0)  # ... (ctf_mm: the same in mm, from the dataset's voxel spacing)
+    ctf_angle: float = Field(10.0, gt=0, le=180)  # ... and below this rotation error (degrees, geodesic)
+    rpe_gap: int = Field(10, ge=1)  # frames between the two poses of a relative pose error
+
+
 class TuneParam(Section):
     type: Literal["float", "int", "categorical"]
     low: float | None = None
@@ -356,6 +365,7 @@ class SweepCfg(Section):
     stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
     poll_s: float = Field(2.0, gt=0)  # an idle worker looks again this often (cells held elsewhere)
     logs: str = "runs/sweep-logs"  # one log file per worker process
+    launcher: Literal["local", "slurm"] = "local"  # slurm: submit array tasks as workers (slurm section)
 
     @field_validator("stale_after_s")
     @classmethod
@@ -363,6 +373,61 @@ class SweepCfg(Section):
         beat = info.data.get("heartbeat_s")
         if beat is not None and v < 2 * beat:
             raise ValueError(f"must be at least twice sweep.heartbeat_s ({beat:g}): a live worker must never look stale")
+        return v
+
+
+# sbatch options the Slurm launcher sets itself: ``slurm.additional`` may not override them (docs/cluster.md)
+SLURM_MANAGED = ("array", "job-name", "comment", "output", "error", "open-mode", "signal", "requeue", "no-requeue",
+                 "gres", "gpus-per-task", "cpus-per-task", "mem", "time", "partition", "account", "qos",
+                 "dependency", "parsable", "wrap", "export", "chdir")
+
+
+class SlurmCfg(Section):
+    """``bronchopose sweep --launcher slurm``: every array task is one sweep worker (docs/cluster.md).
+
+    Names follow Hydra's submitit launcher where one exists (timeout_min, cpus_per_task, mem_gb,
+    array_parallelism, setup, additional, signal_delay_s)."""
+
+    partition: str | None = None
+    account: str | None = None
+    qos: str | None = None
+    timeout_min: int = Field(60, ge=1)  # --time of every array task
+    gpus_per_task: int = Field(1, ge=0)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
+    cpus_per_task: int = Field(2, ge=1)  # also the worker's torch threads (train.threads unset)
+    mem_gb: float | None = Field(None, gt=0)  # --mem per task; None: the cluster's DefMemPerCPU
+    tasks: int | None = Field(None, ge=1)  # array tasks (workers) at most per stage; None: one per cell left
+    array_parallelism: int = Field(256, ge=1)  # tasks of one array running at once (--array=0-N%K)
+    signal_delay_s: int = Field(120, ge=1)  # SIGUSR1 this long before the time limit: checkpoint, requeue
+    setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
+    additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
+    python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
+    logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
+    shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
+    exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+
+    @field_validator("partition", "account", "qos")
+    @classmethod
+    def _slurm_name(cls, v: str | None) -> str | None:
+        if v is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._,-]*", v):
+            raise ValueError("must be a Slurm name: letters, digits, '.', '_', '-' (',' separates several)")
+        return v
+
+    @field_validator("setup")
+    @classmethod
+    def _setup(cls, v: list[str]) -> list[str]:
+        if any("\n" in line for line in v):
+            raise ValueError("each entry is one shell line (no newline inside); list several lines instead")
+        return v
+
+    @field_validator("additional")
+    @classmethod
+    def _additional(cls, v: dict[str, Any]) -> dict[str, Any]:
+        for key in v:
+            name = key.replace("_", "-")
+            if not re.fullmatch(r"[a-z][a-z0-9-]*", name):
+                raise ValueError(f"{key!r}: must be an sbatch long option name without dashes, e.g. constraint")
+            if name in SLURM_MANAGED:
+                raise ValueError(f"{key!r}: set by the launcher itself (or by its own slurm key); not allowed here")
         return v
 
 
@@ -411,8 +476,10 @@ class Config(Section):
     data: DataCfg = DataCfg()
     model: ModelCfg = ModelCfg()
     train: Train = Train()
+    eval: EvalCfg = EvalCfg()
     tune: Tune = Tune()
     sweep: SweepCfg = SweepCfg()
+    slurm: SlurmCfg = SlurmCfg()
     profiles: dict[str, dict[str, Any]] = {}
 
     _paths: Paths | None = PrivateAttr(default=None)
@@ -769,7 +836,7 @@ def load_config(
 # -- grid ---------------------------------------------------------------------
 
 
-# Sections that change what a run computes; tracking, storage, tune, sweep and
+# Sections that change what a run computes; tracking, storage, tune, sweep, slurm and
 # profiles do not, so moving the MLflow store never invalidates finished cells.
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 
