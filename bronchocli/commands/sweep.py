@@ -10,6 +10,7 @@ import typer
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -78,6 +79,8 @@ def sweep(
     if (detach or cancel) and not use_slurm:
         raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
                            "(or sweep.launcher: slurm)")
+    if not cancel:
+        check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
     store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
     if worker_only:
         from ..sweep import slurm  # lazy: only array tasks need it

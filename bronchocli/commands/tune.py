@@ -13,6 +13,7 @@ from .. import urls
 from ..cells import ARCHS, POPULATIONS, ROT_LOSSES
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -97,6 +98,7 @@ def tune(
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
 
+    check_paths(cfg, storage=True)  # one line before anything is created
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
