@@ -10,6 +10,7 @@ import typer
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -80,9 +81,12 @@ def sweep(
     if (detach or cancel) and not use_slurm:
         raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
                            "(or sweep.launcher: slurm)")
-    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
     if gc:
+        store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
         raise typer.Exit(_collect_garbage(cfg, store, console))
+    if not cancel:
+        check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
+    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
     if worker_only:
         from ..sweep import slurm  # lazy: only array tasks need it
 
@@ -105,6 +109,11 @@ def sweep(
     if dry_run:
         staged.dry_run(cfg, store, selection, workers, console)
         return
+    if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
+        from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
+
+        initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
+                                                                          for st in cfg.stages)] for a in g.arch}))
     raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
                                       retry_failed=retry_failed, gpus=devices))
 

@@ -87,14 +87,14 @@ def _check_length(inp: FrameInput, n: int, truth: GroundTruth) -> None:
 def score(model: PoseModel, relative: np.ndarray, truth: GroundTruth, key: str = "") -> pd.DataFrame:
     """Evaluation's per-trajectory table (model and both references) for one predicted trajectory."""
     frame = model.pose_frame
-    gt_abs = np.asarray(truth.poses, dtype=np.float64)
+    gt_abs = geometry.canonical_pose(np.asarray(truth.poses, dtype=np.float64))  # one triple per rotation
     key = key or truth.key
     patient, lobe, traj = (key.split("/", 2) + ["", ""])[:3] if key else ("", "", "")
     pred = evaluate.TrajectoryPrediction(
         key=key, patient=patient, lobe=lobe, traj_id=traj,
         gt_rel=geometry.relative_trajectory(gt_abs, frame), pred_rel=np.asarray(relative, dtype=np.float64),
         gt_abs=gt_abs, pred_abs=geometry.accumulate(gt_abs[0], relative, frame),
-        spacing_mm=np.asarray(truth.spacing_mm, dtype=np.float64))
+        spacing_mm=np.asarray(truth.spacing_mm, dtype=np.float64), frame=frame)
     return evaluate.trajectory_table([pred], evaluate.reference_predictions([pred], model.train_mean, frame),
                                      model.thresholds)
 

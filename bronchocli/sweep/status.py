@@ -124,7 +124,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
     """Headline metrics and timing of each MLflow run (missing runs are skipped)."""
     if not run_ids:
         return {}
-    client = tracking.client_for(cfg)
+    client = tracking.client_for(cfg, reading=True)
     out: dict[str, dict[str, Any]] = {}
     for run_id in run_ids:
         try:
