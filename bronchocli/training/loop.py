@@ -28,6 +28,7 @@ nothing forces a host sync per step on CUDA.
 
 from __future__ import annotations
 
+import logging
 import math
 import random
 import signal
@@ -48,12 +49,24 @@ from ..models import detach_state
 from ..runlayout import RESUME_FILE, RunInterrupted
 from .network import PoseRegressor
 
+log = logging.getLogger(__name__)
+
 VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
 CUDA_CHECK_EVERY = 25  # optimiser steps between non-finite checks on CUDA (each check is a host sync)
+# 16-mixed loss scaling. Unscaled fp16 gradients of these networks at initialisation reach ~1.5e4 (conv3d,
+# lstm: measured on the CPU), so PyTorch's default first scale of 2^16 overflows and halves for ~16 steps
+# that are all skipped: a 4-step run trained nothing. Start at 1 and let the scale grow after every
+# AMP_GROWTH_INTERVAL clean steps (default 2000: never within the budgets of this project).
+AMP_INIT_SCALE = 1.0
+AMP_GROWTH_INTERVAL = 100
 
 
 class NonFiniteLoss(BronchoError):
     """The training loss became NaN or infinite; the run fails with this reason."""
+
+
+class NothingTrained(NonFiniteLoss):
+    """16-mixed: every optimiser step so far had inf/NaN gradients and was skipped by the loss scaler."""
 
 
 @dataclass(frozen=True)
@@ -114,19 +127,26 @@ def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
 
 @torch.no_grad()
 def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) -> int:
-    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``."""
+    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``.
+
+    The average is built with an explicit momentum of ``1 / (k + 1)`` for batch ``k`` (``r <- (1 - m) r + m x``
+    gives the running mean of the ``k + 1`` batch statistics), computed on the host from a counter kept here:
+    PyTorch's own cumulative mode (``momentum=None``) reads ``num_batches_tracked`` back from the device in
+    every BatchNorm of every batch (a host sync each: 1,744 per validation for the baseline on CUDA).
+    """
     bns = batchnorms(net)
     if not bns:
         return 0
     momenta = [m.momentum for m in bns]
     for m in bns:
         m.reset_running_stats()
-        m.momentum = None  # cumulative average
     was_training = net.training
     net.train()
     n = 0
     try:
         for frames in batches:
+            for m in bns:
+                m.momentum = 1.0 / (n + 1)
             with autocast():
                 net(frames)
             n += 1
@@ -156,7 +176,10 @@ class Trainer:
         self.opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
             if s.weight_decay else torch.optim.Adam(net.parameters(), lr=s.lr, fused=fused)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
-        self.scaler = torch.amp.GradScaler(device.type, enabled=s.precision == "16-mixed")
+        self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,
+                                           growth_interval=AMP_GROWTH_INTERVAL, enabled=s.precision == "16-mixed")
+        self.check_every = CUDA_CHECK_EVERY if device.type == "cuda" else 1  # non-finite checks (host syncs)
+        self.skipped_steps = 0  # optimiser steps the loss scaler skipped (inf/NaN gradients), as of the last validation
         self.step = 0  # optimiser steps taken
         self.micro = 0  # training samples batches drawn
         self.backwards = 0  # chunks back-propagated since the last optimiser step
@@ -169,6 +192,7 @@ class Trainer:
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
         self._finite = torch.ones((), dtype=torch.bool, device=device)
+        self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
 
     # -- precision ------------------------------------------------------------------------------
     def autocast(self):
@@ -205,6 +229,9 @@ class Trainer:
 
     def _optimiser_step(self) -> None:
         self.scaler.step(self.opt)
+        if self.scaler.is_enabled():  # counted on the device: fused Adam takes found_inf without a host sync
+            for found in self.scaler._found_inf_per_device(self.opt).values():
+                self._skipped += found
         self.scaler.update()
         self.opt.zero_grad(set_to_none=True)
         self.sched.step()
@@ -225,7 +252,7 @@ class Trainer:
                         break
 
     def _after_step(self) -> None:
-        if self.device.type != "cuda" or self.step % CUDA_CHECK_EVERY == 0:
+        if self.step % self.check_every == 0:
             self._check_finite()
         if self.on_step is not None:
             self.on_step(self.step, self.s.steps)
@@ -273,9 +300,11 @@ class Trainer:
         self._recalibrate()
         values = self.validate()
         self._check_finite()
-        train_loss = (self._loss_sum / max(self._loss_n, 1)).item()
+        train_loss, skipped = torch.stack([self._loss_sum / max(self._loss_n, 1), self._skipped]).tolist()
         self._loss_sum.zero_()
+        self._skipped.zero_()
         self._loss_n = 0
+        self._count_skipped(int(skipped))
         values |= {"train_loss": train_loss, "lr": self.opt.param_groups[0]["lr"],
                    "pairs_seen": float(self.step * self.s.pairs_per_step), "epoch": self.epochs}
         improved = values["val_loss"] < self.best_val - self.s.min_delta
@@ -293,6 +322,17 @@ class Trainer:
             self.on_validation(self.step, values)
         self.save_resume()
         return self.s.patience is not None and self.bad >= self.s.patience
+
+    def _count_skipped(self, skipped: int) -> None:
+        """Skipped steps are said, never silent; a run whose every step so far was skipped has trained nothing."""
+        if not skipped:
+            return
+        self.skipped_steps += skipped
+        log.warning("16-mixed: the loss scaler skipped %d of the last optimiser steps (inf/NaN gradients); "
+                    "%d of %d so far", skipped, self.skipped_steps, self.step)
+        if self.skipped_steps >= self.step:
+            raise NothingTrained(f"16-mixed: all {self.step} optimiser steps so far had inf/NaN gradients and were "
+                                 f"skipped (nothing was trained); use train.precision: bf16-mixed or 32")
 
     @property
     def epochs(self) -> float:
