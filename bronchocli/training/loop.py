@@ -330,7 +330,9 @@ class Trainer:
         self.skipped_steps += skipped
         log.warning("16-mixed: the loss scaler skipped %d of the last optimiser steps (inf/NaN gradients); "
                     "%d of %d so far", skipped, self.skipped_steps, self.step)
-        if self.skipped_steps >= self.step:
+        # The first steps may be skipped while the scale settles; a run whose every step was skipped by its end,
+        # or by the second validation, trained nothing.
+        if self.skipped_steps >= self.step and (self.step >= self.s.steps or len(self.history) >= 1):
             raise NothingTrained(f"16-mixed: all {self.step} optimiser steps so far had inf/NaN gradients and were "
                                  f"skipped (nothing was trained); use train.precision: bf16-mixed or 32")
 

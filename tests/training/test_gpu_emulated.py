@@ -1,0 +1,114 @@
+"""Every CUDA branch of the loop, run on the CPU: each architecture in each precision, resident frames,
+accumulation, truncated BPTT, non-finite losses, checkpoint and bitwise resume, host syncs, compilation.
+
+What differs on CUDA is the device type; what the loop does in each precision (autocast dtype, the loss
+scaler, skipped-step counting, the device-side loss and non-finite bookkeeping, frames gathered from a
+device-resident bank) runs here on the CPU with the same code. Inputs are tiny (16 px, 2-4 steps).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bronchocli.data.batches import FrameSource
+from bronchocli.diagnostics import selftest
+from bronchocli.diagnostics.dispatch import OpCounter
+from bronchocli.models import ARCHITECTURES
+from bronchocli.training.loop import AMP_GROWTH_INTERVAL, NonFiniteLoss, Settings, Trainer
+
+PRECISIONS = ("32", "bf16-mixed", "16-mixed")
+SIZE = 16  # the smallest input the models take: every check here is about the loop, not the pixels
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return selftest.synthetic_cache(tmp_path_factory.mktemp("frames"), frames=16, size=SIZE)
+
+
+_PRISTINE: dict[str, torch.nn.Module] = {}
+
+
+def loop_trainer(arch: str, precision: str, cache, steps: int, ckpt: Path | None = None,
+                 bad_label: bool = False) -> Trainer:
+    """2 micro-batches per step (accumulation); temporal models: samples of 2 pairs in 2 TBPTT chunks of 1."""
+    if arch not in _PRISTINE:  # one initialisation per architecture: building the backbones is the slow part
+        torch.manual_seed(0)
+        _PRISTINE[arch] = selftest.network(arch, torch.device("cpu"), SIZE)
+    net = copy.deepcopy(_PRISTINE[arch])
+    temporal = ARCHITECTURES[arch].temporal
+    pairs = 2 if temporal else 1
+    train = selftest.synthetic_samples(4, pairs, len(cache), seed=1)
+    val = selftest.synthetic_samples(2, pairs, len(cache), seed=2)
+    if bad_label:
+        train.labels[:, 0, 0] = np.inf
+    s = Settings(steps=steps, micro_pairs=2 * pairs if temporal else 2, accum=2, chunk=1, val_every=1,
+                 patience=None, min_delta=0.0, lr=1e-3, weight_decay=0.0, warmup_steps=0, schedule="constant",
+                 rot_loss="ce", rot_weight=1.0, precision=precision, bn_recalibrate=1, augment=True, seed=0)
+    source = FrameSource(cache, "cpu", "yes")
+    assert source.resident  # the device-resident gather path, as on CUDA
+    t = Trainer(net, train, val, source, s, device=torch.device("cpu"), ckpt_dir=ckpt)
+    if precision == "16-mixed":
+        # CPU fp16 convolutions accumulate weight gradients in fp16: the first conv's reaches ~7e4 (> 65504)
+        # at any scale >= 1, where CUDA accumulates in fp32. Start below it so the short run takes steps.
+        t.scaler = torch.amp.GradScaler("cpu", init_scale=2.0**-6, growth_interval=AMP_GROWTH_INTERVAL)
+    return t
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("arch", list(ARCHITECTURES))
+def test_the_loop_trains_checkpoints_and_resumes_bitwise_in_every_precision(arch, precision, cache, tmp_path):
+    straight = loop_trainer(arch, precision, cache, steps=2, ckpt=tmp_path)
+    straight._train_until(1)
+    straight._validation()  # what fit() does after each interval: here it writes last.pt at step 1
+    straight.ckpt_dir = None
+    fit = straight.fit()  # ... and carries on, uninterrupted, to step 2
+    assert fit.steps == 2 and straight.micro == (2 if ARCHITECTURES[arch].temporal else 4)  # accumulation, TBPTT
+    assert fit.pairs_seen == 2 * straight.s.pairs_per_step
+    assert straight.skipped_steps < 2  # 16-mixed on the CPU: the scale may still be settling at step 1
+
+    resumed = loop_trainer(arch, precision, cache, steps=2)
+    with torch.no_grad():
+        for p in resumed.net.parameters():
+            p.add_(1.0)  # load_state must replace everything
+    torch.manual_seed(99)
+    resumed.load_state(torch.load(tmp_path / "last.pt", weights_only=False))
+    resumed.fit()
+    a, b = straight.net.state_dict(), resumed.net.state_dict()
+    assert [k for k in a if not torch.equal(a[k], b[k])] == []
+    assert resumed.history[-1]["train_loss"] == straight.history[-1]["train_loss"]
+    assert resumed.micro == straight.micro
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+@pytest.mark.parametrize("arch", ["baseline", "convlstm"])
+def test_a_non_finite_loss_fails_the_run_in_every_precision(arch, precision, cache):
+    t = loop_trainer(arch, precision, cache, steps=2, bad_label=True)
+    with pytest.raises(NonFiniteLoss, match="non-finite training loss by step 1"):
+        t.fit()
+
+
+@pytest.mark.parametrize("arch", ["baseline", "lstm"])
+def test_a_steady_state_step_makes_no_host_sync_and_a_validation_few(arch, cache):
+    t = loop_trainer(arch, "bf16-mixed", cache, steps=6)
+    t.check_every = 25  # as on CUDA: the non-finite check is a host sync every 25 steps
+    t._train_until(1)  # warm-up: lazy optimiser state
+    with OpCounter() as steps:
+        t._train_until(3)
+    assert steps.syncs == 0, steps.by_name
+    with OpCounter() as validation:
+        t._validation()
+    # validate's one .tolist(), the train-loss/skipped read, the non-finite check, and lr/epoch (host floats)
+    assert 0 < validation.syncs <= 4, validation.by_name
