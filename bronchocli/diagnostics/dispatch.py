@@ -71,3 +71,12 @@ class OpCounter(TorchDispatchMode):
     def summary(self) -> dict[str, int]:
         return {"ops": self.total, "casts": self.casts, "views": self.views, "copies": self.copies,
                 "syncs": self.syncs}
+
+
+def count_step(trainer, steps: int = 1) -> OpCounter:
+    """Operations dispatched by ``steps`` optimiser steps of ``trainer`` (``training.loop.Trainer``), after one
+    warm-up step (lazy optimiser state, the first batch's one-off work), with the validation outside."""
+    trainer._train_until(trainer.step + 1)
+    with OpCounter() as counter:
+        trainer._train_until(trainer.step + steps)
+    return counter

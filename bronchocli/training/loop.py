@@ -157,16 +157,38 @@ def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) ->
     return n
 
 
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def compile_network(net: nn.Module, mode: bool | str, backend: str | None = None) -> nn.Module:
+    """``net`` compiled by ``torch.compile`` in ``mode`` (True: ``default``; False: ``net`` itself).
+
+    ``reduce-overhead`` replays the compiled forward and backward as CUDA graphs (one launch per graph
+    instead of one per operation: what a launch-bound step needs; shapes are fixed and the step makes no
+    host sync, so capture holds). ``backend`` (tests): a backend that needs no code generation, e.g.
+    ``eager`` or ``aot_eager``, in which case the mode (an inductor option) does not apply.
+    """
+    if mode is False or mode is None:
+        return net
+    mode = "default" if mode is True else mode
+    if mode not in COMPILE_MODES:
+        raise BronchoError(f"train.compile {mode!r}: must be false, true or one of {', '.join(COMPILE_MODES)}")
+    if backend is not None:
+        return torch.compile(net, backend=backend)
+    return torch.compile(net, mode=mode)
+
+
 class Trainer:
     """Fits one :class:`PoseRegressor` on training samples, validating on validation samples."""
 
     def __init__(self, net: PoseRegressor, train: Samples, val: Samples, source: FrameSource, s: Settings,
                  *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
                  on_validation: Callable[[int, dict[str, float]], None] | None = None,
-                 on_step: Callable[[int, int], None] | None = None, compile: bool = False) -> None:
+                 on_step: Callable[[int, int], None] | None = None, compile: bool | str = False) -> None:
         self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
         # The compiled module shares the network's parameters; state dicts and checkpoints use ``net``.
-        self.forward = torch.compile(net) if compile else net
+        self.forward = compile_network(net, compile)
+        self.cuda_graphs = compile == "reduce-overhead" and device.type == "cuda"
         self.device, self.ckpt_dir, self.stop = device, ckpt_dir, stop
         self.on_validation, self.on_step = on_validation, on_step
         samples_per_micro = max(1, s.micro_pairs // train.n_pairs)
@@ -191,7 +213,6 @@ class Trainer:
         self.train_time = self.val_time = 0.0
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
-        self._finite = torch.ones((), dtype=torch.bool, device=device)
         self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
 
     # -- precision ------------------------------------------------------------------------------
@@ -216,14 +237,15 @@ class Trainer:
         state = None
         n = labels.shape[1]
         for start in range(0, n, self.s.chunk):
+            if self.cuda_graphs:  # a new iteration: the graphs' previous outputs may be overwritten
+                torch.compiler.cudagraph_mark_step_begin()
             with self.autocast():
                 out, state = self.forward(frames[:, start: start + self.s.chunk + 1], state)
             loss = self.net.loss(out.float(), labels[:, start: start + self.s.chunk], self.s.rot_loss,
                                  self.s.rot_weight)
             self.scaler.scale(loss / self.s.accum).backward()
-            self._loss_sum += loss.detach()
+            self._loss_sum += loss.detach()  # a NaN/inf loss makes the sum non-finite: checked in _check_finite
             self._loss_n += 1
-            self._finite &= torch.isfinite(loss.detach())
             state = detach_state(state)
             yield
 
@@ -262,7 +284,7 @@ class Trainer:
             raise RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}; checkpoint saved to {path}")
 
     def _check_finite(self) -> None:
-        if not bool(self._finite):
+        if not bool(torch.isfinite(self._loss_sum)):
             raise NonFiniteLoss(f"non-finite training loss by step {self.step}: lower train.lr or check the data")
 
     # -- validation ---------------------------------------------------------------------------------
