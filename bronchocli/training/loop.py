@@ -201,7 +201,6 @@ class Trainer:
         self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,
                                            growth_interval=AMP_GROWTH_INTERVAL, enabled=s.precision == "16-mixed")
         self.check_every = CUDA_CHECK_EVERY if device.type == "cuda" else 1  # non-finite checks (host syncs)
-        self.skipped_steps = 0  # optimiser steps the loss scaler skipped (inf/NaN gradients), as of the last validation
         self.step = 0  # optimiser steps taken
         self.micro = 0  # training samples batches drawn
         self.backwards = 0  # chunks back-propagated since the last optimiser step
@@ -326,8 +325,8 @@ class Trainer:
         self._loss_sum.zero_()
         self._skipped.zero_()
         self._loss_n = 0
-        self._count_skipped(int(skipped))
-        values |= {"train_loss": train_loss, "lr": self.opt.param_groups[0]["lr"],
+        values |= {"train_loss": train_loss, "skipped_steps": float(self._count_skipped(int(skipped))),
+                   "lr": self.opt.param_groups[0]["lr"],
                    "pairs_seen": float(self.step * self.s.pairs_per_step), "epoch": self.epochs}
         improved = values["val_loss"] < self.best_val - self.s.min_delta
         if improved or self.best_state is None:
@@ -345,18 +344,25 @@ class Trainer:
         self.save_resume()
         return self.s.patience is not None and self.bad >= self.s.patience
 
-    def _count_skipped(self, skipped: int) -> None:
-        """Skipped steps are said, never silent; a run whose every step so far was skipped has trained nothing."""
+    @property
+    def skipped_steps(self) -> int:
+        """Optimiser steps the loss scaler skipped (inf/NaN gradients) as of the last validation; kept in the
+        history, so a resumed run counts the steps skipped before its checkpoint too."""
+        return int(self.history[-1].get("skipped_steps", 0)) if self.history else 0
+
+    def _count_skipped(self, skipped: int) -> int:
+        """The run's skipped steps so far. Said, never silent; a run whose every step was skipped trained nothing."""
+        total = self.skipped_steps + skipped
         if not skipped:
-            return
-        self.skipped_steps += skipped
+            return total
         log.warning("16-mixed: the loss scaler skipped %d of the last optimiser steps (inf/NaN gradients); "
-                    "%d of %d so far", skipped, self.skipped_steps, self.step)
+                    "%d of %d so far", skipped, total, self.step)
         # The first steps may be skipped while the scale settles; a run whose every step was skipped by its end,
         # or by the second validation, trained nothing.
-        if self.skipped_steps >= self.step and (self.step >= self.s.steps or len(self.history) >= 1):
+        if total >= self.step and (self.step >= self.s.steps or len(self.history) >= 1):
             raise NothingTrained(f"16-mixed: all {self.step} optimiser steps so far had inf/NaN gradients and were "
                                  f"skipped (nothing was trained); use train.precision: bf16-mixed or 32")
+        return total
 
     @property
     def epochs(self) -> float:

@@ -103,14 +103,12 @@ def test_the_loop_trains_checkpoints_and_resumes_bitwise_in_every_precision(arch
     resumed.load_state(torch.load(tmp_path / "last.pt", weights_only=False))
     assert _fit(resumed) == outcome
     a, b = straight.net.state_dict(), resumed.net.state_dict()
-    differ = {k: (a[k].double() - b[k].double()).abs().max().item() for k in a if not torch.equal(a[k], b[k])}
-    if precision == "32":
-        assert differ == {}
-        assert resumed.history[-1]["train_loss"] == straight.history[-1]["train_loss"]
-    else:
-        # oneDNN's reduced-precision CPU convolution backward is not always bitwise reproducible (seen once in
-        # 23 runs, one weight tensor of offsetnet in bf16): at most one tensor off by at most one Adam step.
-        assert len(differ) <= 1 and all(d <= 2 * resumed.s.lr for d in differ.values()), differ
+    # Bitwise, NaN equal to NaN: at 16 px the deepest 3x3 convolutions see 1x1 maps, and oneDNN's reduced-
+    # precision CPU backward leaves NaN in their never-used outer taps (the same NaN in both runs).
+    differ = [k for k in a if not torch.allclose(a[k], b[k], rtol=0.0, atol=0.0, equal_nan=True)]
+    assert differ == []
+    assert resumed.history[-1] == straight.history[-1] or precision != "32"
+    assert resumed.history[-1]["train_loss"] == straight.history[-1]["train_loss"] or outcome != "trained"
     assert resumed.micro == straight.micro and resumed.skipped_steps == straight.skipped_steps
 
 
