@@ -16,7 +16,7 @@ LAYERS: list[set[str]] = [
     {"urls", "io"},
     {"cells"},
     {"config"},
-    {"geometry", "metrics", "runlayout", "tracking", "plots"},
+    {"geometry", "metrics", "odometry", "runlayout", "tracking", "plots"},
     {"anatomy", "data"},
     {"render"},
     {"generation"},
