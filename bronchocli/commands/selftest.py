@@ -8,6 +8,7 @@ import typer
 from rich import box
 from rich.table import Table
 
+from ..errors import BronchoError
 from .common import console
 
 
@@ -32,8 +33,7 @@ def selftest(
     docs/training.md ("GPU") explains how to read it.
     """
     from ..diagnostics import selftest as st  # lazy: torch loads only when the command runs
-    from ..errors import BronchoError
-    from ..models import ARCHITECTURES
+    from ..models import ARCHITECTURES  # lazy: torch loads only when the command runs
 
     unknown = [a for a in arch or [] if a not in ARCHITECTURES]
     if unknown:

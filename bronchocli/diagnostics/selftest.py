@@ -283,7 +283,8 @@ def check_throughput(arch: str, device: torch.device, precision: str, cache: Fra
     t._train_until(6)
     _sync(device)
     engine = 5 * PAIRS / (time.perf_counter() - t0)
-    return True, f"{arch}: engine {engine:.0f} pairs/s, bare step {bare:.0f} pairs/s ({engine / bare:.0%} of the bare step)"
+    return True, (f"{arch}: engine {engine:.0f} pairs/s, bare step {bare:.0f} pairs/s "
+                  f"({engine / bare:.0%} of the bare step)")
 
 
 def run(device: torch.device, precision: str, archs: Sequence[str] | None = None,
@@ -304,7 +305,8 @@ def run(device: torch.device, precision: str, archs: Sequence[str] | None = None
             add(_timed(f"train {arch}", lambda a=arch: check_training(a, device, precision, cache)))
         ckpt = root / "ckpt"
         ckpt.mkdir()
-        resumed = "convlstm" if "convlstm" in archs else archs[0]  # recurrent state and TBPTT chunks: the most to restore
+        # convlstm: recurrent state and a ConvLSTM cell, the most to restore
+        resumed = "convlstm" if "convlstm" in archs else archs[0]
         add(_timed(f"resume {resumed}", lambda: check_resume(resumed, device, precision, cache, ckpt)))
         if device.type == "cuda":
             for arch in archs:
