@@ -75,7 +75,9 @@ class OpCounter(TorchDispatchMode):
 
 def count_step(trainer, steps: int = 1) -> OpCounter:
     """Operations dispatched by ``steps`` optimiser steps of ``trainer`` (``training.loop.Trainer``), after one
-    warm-up step (lazy optimiser state, the first batch's one-off work), with the validation outside."""
+    warm-up step (lazy optimiser state, the first batch's one-off work), with the validation outside and the
+    non-finite check at its CUDA interval."""
+    trainer.check_every = max(trainer.check_every, 25)  # the non-finite check at its CUDA interval
     trainer._train_until(trainer.step + 1)
     with OpCounter() as counter:
         trainer._train_until(trainer.step + steps)

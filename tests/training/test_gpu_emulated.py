@@ -163,3 +163,38 @@ def test_compile_modes_are_checked_and_a_codegen_free_backend_runs_the_step():
     compiled(x).sum().backward()
     compiled(x)
     assert len(graphs) == 1 and net.weight.grad is not None  # one capture, replayed
+
+
+def test_the_uncounted_batchnorm_matches_pytorchs_without_the_per_batch_counter():
+    from torch import nn
+
+    from bronchocli.models.backbones import BatchNorm2d
+
+    torch.manual_seed(0)
+    ours, theirs = BatchNorm2d(4), nn.BatchNorm2d(4)
+    theirs.load_state_dict(ours.state_dict())  # same keys: torchvision checkpoints load
+    x = torch.randn(6, 4, 5, 5)
+    assert torch.equal(ours(x), theirs(x))
+    assert torch.equal(ours.running_mean, theirs.running_mean) and torch.equal(ours.running_var, theirs.running_var)
+    assert int(ours.num_batches_tracked) == 0 and int(theirs.num_batches_tracked) == 1
+    ours.eval(), theirs.eval()
+    assert torch.equal(ours(x), theirs(x))
+    ours.train()
+    ours.momentum = None  # PyTorch's cumulative mode needs the counter: then the layer is PyTorch's own
+    ours(x)
+    assert int(ours.num_batches_tracked) == 1
+
+
+# Operations one steady-state bf16 optimiser step of 4 pairs dispatched before issue 21 (benchmarks/README.md).
+OPS_BEFORE = {"baseline": 2807, "offsetnet": 1267}
+
+
+@pytest.mark.parametrize(("arch", "cut"), [("baseline", 0.10), ("offsetnet", 0.05)])
+def test_a_step_dispatches_fewer_operations_than_before(arch, cut, cache):
+    from bronchocli.diagnostics.dispatch import count_step
+
+    t = selftest.trainer(arch, torch.device("cpu"), "bf16-mixed", cache, steps=6)
+    t.check_every = 25
+    ops = count_step(t)
+    assert ops.syncs == 0
+    assert ops.total <= (1 - cut) * OPS_BEFORE[arch], ops.summary()
