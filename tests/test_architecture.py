@@ -23,6 +23,8 @@ LAYERS: list[set[str]] = [
     {"models"},
     {"training"},
     {"diagnostics"},  # op counting and `bronchopose selftest`: trains, so above training
+    {"inference"},
+    {"api"},
     {"sweep"},
     {"reporting"},
     {"commands"},

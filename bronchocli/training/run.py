@@ -33,6 +33,7 @@ from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
+from ..models import initialisation
 from ..runlayout import RunInterrupted, RunPruned, RunResult, RunStopped, checkpoint_dir, resume_file
 from . import artifacts
 from .engine import device_for, env_tags, fit_and_evaluate
@@ -137,10 +138,13 @@ def run_cell(
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
     tracking.check_reachable(cfg)  # a dead server fails within tracking.timeout_s, before any work
+    tags = dict(extra_tags or {})
+    if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
+        tags[tracking.TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch])[cell.arch]
     data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
-    run_id, state = _open_run(client, exp_id, cfg, cell, resume, dict(extra_tags or {}))
+    run_id, state = _open_run(client, exp_id, cfg, cell, resume, tags)
     for key, value in env_tags(cfg, device).items():  # on a resume too: the device may have changed
         client.set_tag(run_id, key, value)
     if run_id_callback:
