@@ -16,7 +16,7 @@ LAYERS: list[set[str]] = [
     {"urls", "io"},
     {"cells"},
     {"config"},
-    {"geometry", "metrics", "runlayout", "tracking", "plots"},
+    {"geometry", "metrics", "runlayout", "tracking", "runview", "plots"},
     {"anatomy", "data"},
     {"render"},
     {"generation"},

@@ -93,7 +93,8 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
         raise BronchoError(f"--resume {run_id}: no checkpoint at {path} (it is kept on the machine that ran it)")
     state = torch.load(path, map_location="cpu", weights_only=False)
     client.update_run(run_id, "RUNNING")
-    client.set_tag(run_id, tracking.TAG_FAILURE, "")
+    if tracking.TAG_FAILURE in run.data.tags:  # a resumed run has no failure (and no empty tag)
+        client.delete_tag(run_id, tracking.TAG_FAILURE)
     return run_id, state
 
 
@@ -155,7 +156,7 @@ def run_cell(
     ckpt = checkpoint_dir(cfg, run_id)
     try:
         if state is None:
-            artifacts.log_start(client, run_id, cfg, data)
+            artifacts.log_start(client, run_id, cfg, data, cell)
         with _stop_on_signals(flag):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
