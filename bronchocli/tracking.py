@@ -242,12 +242,14 @@ def source_name(argv: list[str] | None = None) -> str:
 def source_tags(cfg: Config) -> dict[str, str]:
     """MLflow's standard source fields; one that cannot be known (no git checkout) is left out, never empty."""
     tags = {TAG_SOURCE_NAME: source_name(), TAG_SOURCE_TYPE: "LOCAL"}
-    commit = git_commit(cfg.paths.base)
-    if commit != "unknown":
-        tags[TAG_SOURCE_GIT] = commit
-        branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], cfg.paths.base)
-        if branch and branch != "HEAD":
-            tags[TAG_SOURCE_BRANCH] = branch
+    for where in (cfg.paths.base, None):  # the config's checkout, else the code's own (an editable install)
+        commit = git_commit(where)
+        if commit != "unknown":
+            tags[TAG_SOURCE_GIT] = commit
+            branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], where)
+            if branch and branch != "HEAD":
+                tags[TAG_SOURCE_BRANCH] = branch
+            break
     return tags
 
 
