@@ -32,7 +32,7 @@ from sqlalchemy import create_engine, text
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
-from . import __version__, urls
+from . import __version__, extras, urls
 from .cells import FIELDS, Cell
 from .config import Config
 from .errors import BronchoError
@@ -173,6 +173,7 @@ def database_lock(url: str, timeout_s: float, what: str = "database", key: int =
     reachability check of a database before a library with long retries opens it.
     """
     shown, limit = urls.redact(url), connect_timeout(timeout_s)
+    extras.require("postgres", f"{what} {shown}")
     try:
         engine = create_engine(urls.sqlalchemy(url), poolclass=NullPool, connect_args={"connect_timeout": limit})
         conn = engine.connect()
@@ -222,6 +223,14 @@ def _git(args: list[str], cwd: Path | None) -> str:
         return out.stdout.strip() if out.returncode == 0 else ""
     except (OSError, subprocess.SubprocessError):
         return ""
+
+
+def mark_training_experiment(client: MlflowClient, exp_id: str) -> None:
+    """Tag an experiment made before EXPERIMENT_TAGS existed, so MLflow 3's UI opens it on its runs table."""
+    exp = client.get_experiment(exp_id)
+    for key, value in EXPERIMENT_TAGS.items():
+        if key not in exp.tags:
+            client.set_experiment_tag(exp_id, key, value)
 
 
 def git_commit(cwd: Path | None = None) -> str:

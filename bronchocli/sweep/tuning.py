@@ -25,7 +25,7 @@ from typing import Any, Callable, Mapping, Sequence
 import optuna
 from sqlalchemy.exc import SQLAlchemyError
 
-from .. import runview, tracking, urls
+from .. import extras, runview, tracking, urls
 from ..cells import Cell
 from ..config import Config, TuneParam
 from ..errors import BronchoError, ConfigError
@@ -69,6 +69,8 @@ def storage_for(cfg: Config):
     beat = max(1, int(cfg.sweep.heartbeat_s))
     make = partial(optuna.storages.RDBStorage, url, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
+    if urls.is_postgres(url):
+        extras.require("postgres", f"storage.url {urls.redact(url)}")
     try:
         db = urls.sqlite_file(url)
         if urls.is_postgres(url):  # table creation must not race between machines either
