@@ -8,7 +8,6 @@ import typer
 from rich.text import Text
 
 from . import __version__, extras, urls
-from .cells import FIELDS
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -72,7 +71,7 @@ def _error(message: str) -> None:
 
 
 def _choice_error(exc: Exception) -> str | None:
-    """A bad value of a choice option, worded like every other bad value: ``arch 'x': must be one of a, b``.
+    """A bad value of a choice option, worded like every other bad value: ``--arch 'x': must be one of a, b``.
 
     Typer (pinned < 0.30 in pyproject) checks Literal choices itself; its message is rebuilt from the option's
     choices and the rejected value. None when ``exc`` is something else (then Typer's own message is shown).
@@ -85,9 +84,8 @@ def _choice_error(exc: Exception) -> str | None:
     errors = cause.errors() if hasattr(cause, "errors") else []
     if not errors or "input" not in errors[0]:
         return None
-    value = errors[0]["input"]
-    name = param.name if param.name in FIELDS else max(param.opts, key=len)
-    return f"{name} {value!r}: must be one of {', '.join(str(c) for c in choices)}"
+    flag = max(param.opts, key=len)  # what the user typed, e.g. --pose-frame
+    return f"{flag} {errors[0]['input']!r}: must be one of {', '.join(str(c) for c in choices)}"
 
 
 def _usage_error(exc: Exception) -> int:

@@ -208,6 +208,7 @@ class Worker:
     def run(self) -> int:
         s = self.cfg.sweep
         keys = list(self.cells)
+        self.parent_run()  # looked up once, before any claim: never while a claim waits for its heartbeat
         while not self.signals.stop:
             claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
                              stale_after_s=s.stale_after_s)
@@ -249,8 +250,8 @@ class Worker:
                 os.kill(os.getpid(), signal.SIGTERM)
 
         tags = {TAG_CLAIM: claim.token, TAG_WORKER: self.ident, TAG_ATTEMPT: str(claim.row.attempts)}
-        if (parent := self.parent_run()) is not None:
-            tags[tracking.TAG_PARENT] = parent
+        if self._parent is not None:
+            tags[tracking.TAG_PARENT] = self._parent
         hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
         resume = self._resumable(claim.released_run, cell)
         kw = {"resume": resume} if resume else {}

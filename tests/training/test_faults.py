@@ -132,7 +132,7 @@ def test_train_command_cross_subject_camera_frame(tiny_project, cli):
     (["-a", "resnet", "-l", "ce", "-P", "personalized"], "arch 'resnet': must be one of baseline, lstm"),
     (["-a", "lstm", "-l", "ce", "-P", "cross-subject"], "fold: cross-subject needs the held-out patient"),
     (["-a", "lstm", "-l", "ce", "-P", "personalized", "--fold", "p00"], "only cross-subject cells"),
-    (["-a", "lstm", "-l", "ce", "-P", "personalized", "--pose-frame", "foo"], "pose_frame 'foo': must be one of"),
+    (["-a", "lstm", "-l", "ce", "-P", "personalized", "--pose-frame", "foo"], "--pose-frame 'foo': must be one of world, camera"),
 ])
 def test_bad_flags_are_one_clear_error(tiny_project, cli, args, message):
     code, _, err = cli("train", "-c", str(tiny_project / "experiments.yaml"), *args)
