@@ -52,7 +52,8 @@ def _extra_metrics(i: int) -> dict[str, float]:
     """The rest of what a training run logs at step 0 (traj.*, mm metrics, geodesic, timings)."""
     out = {f"{p}.{m}.{s}": 0.1 * (i % 7 + 1) for p in ("pair", "acc") for m in ("pos_l2_mm", "geodesic")
            for s in ("mean", "std")}
-    out |= {f"traj.{m}.{s}": 1.0 + i % 5 for m in ("ate", "ate_mm", "rpe_trans", "rpe_rot") for s in ("mean", "std")}
+    out |= {f"traj.{m}.{s}": 1.0 + i % 5 for m in ("ctf", "ctf_mm", "ate", "ate_mm", "rpe_trans", "rpe_rot", "drift")
+            for s in ("mean", "std")}
     out |= {"train.time_s": 100.0, "train.epochs": 10.0, "train.pairs_per_s": 300.0, "best_val_loss": 0.5,
             "eval.time_s": 5.0, "zero_motion.pair.pos_l2.mean": 1.0, "zero_motion.acc.pos_l2.mean": 9.0}
     return out

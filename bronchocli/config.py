@@ -319,6 +319,15 @@ class Train(Section):
         return self.effective_batch or self.batch_size
 
 
+class EvalCfg(Section):
+    """Camera-tracking metrics of the test evaluation (odometry.py; docs/reports.md, tracking table)."""
+
+    ctf_position: float = Field(5.0, gt=0)  # voxels: a frame is tracked below this position error ...
+    ctf_position_mm: float = Field(5.0, gt=0)  # ... (ctf_mm: the same in mm, from the dataset's voxel spacing)
+    ctf_angle: float = Field(10.0, gt=0, le=180)  # ... and below this rotation error (degrees, geodesic)
+    rpe_gap: int = Field(10, ge=1)  # frames between the two poses of a relative pose error
+
+
 class TuneParam(Section):
     type: Literal["float", "int", "categorical"]
     low: float | None = None
@@ -404,6 +413,7 @@ class Config(Section):
     data: DataCfg = DataCfg()
     model: ModelCfg = ModelCfg()
     train: Train = Train()
+    eval: EvalCfg = EvalCfg()
     tune: Tune = Tune()
     sweep: SweepCfg = SweepCfg()
     profiles: dict[str, dict[str, Any]] = {}

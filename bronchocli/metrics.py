@@ -196,28 +196,3 @@ def accumulated_metrics(
     """Accumulated evaluation: chain whole trajectories, score the last pose only; stats over trajectories."""
     pred_end, gt_end = accumulated_endpoints(trajectories, frame)
     return pair_metrics(pred_end, gt_end, spacing_mm)
-
-
-def trajectory_errors(pred_abs, gt_abs) -> dict[str, np.ndarray]:
-    """Whole-trajectory errors of accumulated poses ``(N, 6)`` vs ground truth ``(N, 6)``.
-
-    ``ate``: absolute trajectory error, RMSE of the position error over all N
-    frames (no alignment: both start at the true first pose), one value.
-    ``rpe_trans`` / ``rpe_rot``: relative pose error between consecutive frames
-    (TUM definition, SE(3) in the camera frame): the translation norm (voxels)
-    and rotation angle (degrees) of ``(Q_i^-1 Q_i+1)^-1 (P_i^-1 P_i+1)``, N-1 values.
-    """
-    pred_abs, gt_abs = np.asarray(pred_abs, dtype=np.float64), np.asarray(gt_abs, dtype=np.float64)
-    ate = np.sqrt(np.mean(np.sum((pred_abs[:, :3] - gt_abs[:, :3]) ** 2, axis=1)))
-    d_pred = geometry.relative_trajectory(pred_abs, "camera")
-    d_gt = geometry.relative_trajectory(gt_abs, "camera")
-    R_gt_T = np.swapaxes(geometry.euler_to_matrix(d_gt[:, 3:]), -1, -2)
-    # E = inv(D_gt) D_pred: translation R_gt^T (t_pred - t_gt), rotation R_gt^T R_pred
-    trans = np.einsum("nij,nj->ni", R_gt_T, d_pred[:, :3] - d_gt[:, :3])
-    R_err = R_gt_T @ geometry.euler_to_matrix(d_pred[:, 3:])
-    cos = np.clip((np.trace(R_err, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    return {
-        "ate": np.array([ate]),
-        "rpe_trans": np.linalg.norm(trans, axis=1),
-        "rpe_rot": np.degrees(np.arccos(cos)),
-    }

@@ -16,7 +16,7 @@ LAYERS: list[set[str]] = [
     {"urls", "io", "extras"},
     {"cells"},
     {"config"},
-    {"geometry", "metrics", "runlayout", "tracking", "runview", "plots"},
+    {"geometry", "metrics", "odometry", "runlayout", "tracking", "runview", "plots"},
     {"anatomy", "data"},
     {"render"},
     {"generation"},

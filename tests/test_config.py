@@ -192,3 +192,20 @@ def test_the_train_trajectories_axis_multiplies_the_grid(tmp_path):
     cells = C.expand_grid(cfg, ["p00"])
     assert [c.label for c in cells] == ["baseline/mse/personalized/s0/world/t2", "baseline/mse/personalized/s0/world"]
     assert cells[0].key != cells[1].key
+
+
+def test_eval_thresholds_are_validated_and_reach_the_evaluation(tmp_path):
+    from bronchocli.training.evaluate import thresholds
+
+    path = write(tmp_path, "name: t\neval:\n  ctf_angle: 200\n  rpe_gap: 0\n  ctf_pos: 3\n")
+    with pytest.raises(ConfigError) as exc:
+        C.load_config(path)
+    msg = str(exc.value)
+    assert "3 problems" in msg
+    assert f"{path}:3: eval.ctf_angle: 200" in msg and f"{path}:4: eval.rpe_gap: 0" in msg
+    assert "eval.ctf_pos: unknown key 'ctf_pos' (allowed: ctf_angle, ctf_position, ctf_position_mm, rpe_gap)" in msg
+    cfg = C.load_config(write(tmp_path, "name: t\n"), overrides=["eval.ctf_position=2.5", "eval.rpe_gap=4"])
+    t = thresholds(cfg.eval)
+    assert (t.position, t.position_mm, t.angle, t.gap) == (2.5, 5.0, 10.0, 4)
+    assert C.cell_key(cfg, {"arch": "lstm"}) == C.cell_key(C.load_config(write(tmp_path, "name: t\n")),
+                                                          {"arch": "lstm"})  # thresholds do not retrain

@@ -24,8 +24,8 @@ def complete_tables(incomplete: str) -> list[str]:
 
 
 def report(
-    table: str = typer.Option("all", "--table", "-t", help="personalized, cross-subject, sota, ablation, frames "
-                              "or all.", autocompletion=complete_tables),
+    table: str = typer.Option("all", "--table", "-t", help="personalized, cross-subject, sota, ablation, frames, "
+                              "tracking or all.", autocompletion=complete_tables),
     evaluation: Evaluation = typer.Option("both", "--eval", "-e", help="Per pair, accumulated, or both."),
     fmt: Literal["md", "latex", "both"] = typer.Option("both", "--format", "-f", help="Markdown, LaTeX or both."),
     sweep: Optional[str] = typer.Option(None, "--sweep", help="Report a stored sweep by name (tag `sweep`): all its "
@@ -57,11 +57,12 @@ def report(
 
     Tables: personalized (Tables 2 accumulated / 3 per pair), cross-subject
     (Tables 4/5), sota (Table 6, BronchoTrack vs OffsetNet), ablation (params,
-    latency, GMAC, position L2, CE per architecture) and frames (skill with
-    world vs camera labels, when the runs have both). Cells are "mean [95%
-    interval]" over seeds (two-level bootstrap over seeds and test
-    trajectories); bold = significantly best of its column (paired bootstrap
-    test, Holm, alpha 0.05), bold≈ = tied for best, † = no better than an
+    latency, GMAC, position L2, CE per architecture), frames (skill with
+    world vs camera labels, when the runs have both) and tracking (CTF, ATE,
+    RPE, drift per network/loss). Cells are "mean [95% interval]" over seeds
+    (t interval on variance components over seeds and test trajectories);
+    bold = significantly best of its column (paired t test, Holm, alpha
+    0.05), bold≈ = tied for best, † = no better than an
     image-blind reference (the "Zero motion" and "Training mean" rows),
     ‡ = the model ignores its input. Only runs whose cell_key is a cell of the
     config count (--sweep NAME: a stored sweep without the config). Figures

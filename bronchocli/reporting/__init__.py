@@ -2,7 +2,7 @@
 
 scope (the config's cells, stages and recorded selections) -> collect (one
 batched MLflow query, one run per cell) -> aggregate (replicates and
-per-trajectory samples) -> stats (two-level bootstrap, paired tests, Holm) ->
+per-trajectory samples) -> stats (variance-component t intervals, paired t tests, Holm) ->
 judge (intervals, reference rows, marks, skill) -> tables (name -> builder
 registry) -> markdown / latex renderers; figures from predictions.csv and the
 tables (skill, learning curve). See docs/reports.md.

@@ -3,7 +3,8 @@
 Every run logs ``trajectory_errors.csv``: one row per test trajectory
 (patient, lobe, trajectory, n_pairs) with ``<source>.<scope>.<metric>`` for
 source in model / zero_motion / train_mean and scope in pair (the
-trajectory's mean per-pair error) / acc (its endpoint error after chaining).
+trajectory's mean per-pair error) / acc (its endpoint error after chaining) /
+traj (its camera-tracking metrics: CTF, ATE, RPE, drift; odometry.py).
 
 * A **replicate** is one seed: one run (personalized), or the fold runs of one
   seed together (cross-subject: their test trajectories are those of the
@@ -32,11 +33,11 @@ import pandas as pd
 from .collect import RunRecord, seed_key
 from .stats import Key, Sample
 
-EVALS = ("accumulated", "pair")
-SCOPE = {"accumulated": "acc", "pair": "pair"}
+EVALS = ("accumulated", "pair")  # what --eval chooses; "trajectory" is the tracking table's own scope
+SCOPE = {"accumulated": "acc", "pair": "pair", "trajectory": "traj"}
 PREFIX = SCOPE
-COUNT = {"accumulated": "test.n_trajectories", "pair": "test.n_pairs"}
-NOUN = {"accumulated": "test trajectories", "pair": "test image pairs"}
+COUNT = {"accumulated": "test.n_trajectories", "pair": "test.n_pairs", "trajectory": "test.n_trajectories"}
+NOUN = {"accumulated": "test trajectories", "pair": "test image pairs", "trajectory": "test trajectories"}
 KEY = ["patient", "lobe", "trajectory"]
 REFERENCES = {"zero_motion": "Zero motion", "train_mean": "Training mean"}
 ERRORS_CSV = "trajectory_errors.csv"

@@ -33,6 +33,8 @@ EVAL_TEXT = {
     "accumulated": "Accumulated evaluation: the predicted relative poses of each test trajectory are chained from "
                    "its true first pose and only the last pose is scored",
     "pair": "Per-pair evaluation: the error of each predicted relative pose between consecutive frames",
+    "trajectory": "Camera tracking: the predicted relative poses of each test trajectory are chained from its true "
+                  "first pose and every frame is scored (per trajectory, then mean over trajectories)",
 }
 
 Profiler = Callable[[str], Mapping[str, Any]]

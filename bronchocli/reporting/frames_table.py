@@ -5,9 +5,10 @@ Errors in the ``world`` and ``camera`` parameterisations are not comparable
 references: skill = 1 - error / error of the better reference *of that frame*
 (on the same test trajectories). Rows are the architectures (x loss when the
 runs have several), columns the skill of each frame for position and rotation
-L2 and the p of their difference: a paired two-level bootstrap (the test
-trajectories resampled jointly for the two frames and both references, seeds
-independently), Holm-corrected over the rows of each metric.
+L2 and the p of their difference: a delta-method t test on the variance
+components of the four cells (the test trajectories are shared by the two
+frames and their references, seeds independent; stats.derived),
+Holm-corrected over the rows of each metric.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from .collect import FRAME, LOSS, POP
 from .context import ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish
 from .judge import better_reference, metric_rows
 from .layout import Column, Estimate, Row, Table, Value
-from .stats import derived, holm, two_sided_p
+from .stats import derived, holm
 
 FRAMES = ("world", "camera")
 FRAME_METRICS = {"pos_l2": "Position", "rot_l2": "Rotation"}
@@ -29,11 +30,10 @@ def _population(ctx: ReportContext) -> str:
 
 
 def _frame_skill(row_w, ref_w, row_c, ref_c, s) -> tuple[Estimate, Estimate, float]:
-    w = derived([row_w, ref_w], lambda m, r: 1.0 - m / r, s.resamples, s.seed)
-    c = derived([row_c, ref_c], lambda m, r: 1.0 - m / r, s.resamples, s.seed)
-    diff = derived([row_w, ref_w, row_c, ref_c], lambda a, b, c_, d: (1.0 - a / b) - (1.0 - c_ / d),
-                   s.resamples, s.seed)
-    return Estimate(w.value, w.lo, w.hi), Estimate(c.value, c.lo, c.hi), two_sided_p(diff.boot)
+    w = derived([row_w, ref_w], lambda m, r: 1.0 - m / r, s.level)
+    c = derived([row_c, ref_c], lambda m, r: 1.0 - m / r, s.level)
+    diff = derived([row_w, ref_w, row_c, ref_c], lambda a, b, c_, d: (1.0 - a / b) - (1.0 - c_ / d), s.level)
+    return Estimate(w.value, w.lo, w.hi), Estimate(c.value, c.lo, c.hi), diff.p
 
 
 def frames(ctx: ReportContext, evaluation: str) -> Table:
@@ -107,10 +107,10 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         f"{EVAL_TEXT[evaluation]}.",
         "Skill = 1 − error / error of the better image-blind reference (zero motion or training mean) of the same "
         "pose frame, on the same test trajectories: 0 = no better than an image-blind model, 1 = perfect; higher is "
-        "better. Cells: skill [95% interval: two-level percentile bootstrap over seeds and, jointly, test "
-        f"trajectories, {s.resamples} resamples, fixed RNG seed]. p: paired two-level bootstrap test of equal skill "
-        "in the two frames (test trajectories resampled jointly for both frames and their references, seeds "
-        f"independently; two-sided), Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
+        "better. Cells: skill [95% interval: delta-method t interval, variance components over seeds and test "
+        "trajectories, Satterthwaite df]. p: t test of equal skill in the two frames (the test trajectories "
+        "shared by both frames and their references, seeds independent; delta method, two-sided), "
+        f"Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
         budget_text(every),
         f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
     ])

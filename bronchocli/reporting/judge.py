@@ -6,17 +6,19 @@ adds the two image-blind reference rows, and decides the marks of every error
 column (``judge_column``):
 
 1. the row with the lowest mean is the candidate best;
-2. it is compared with every other row of the column by the paired two-level
-   bootstrap test (``stats.paired_p``), and the p-values are Holm-adjusted
-   over those comparisons;
+2. it is compared with every other row of the column by the paired t test
+   (``stats.paired_p``: variance components over seeds and the shared test
+   trajectories, Satterthwaite df), and the p-values are Holm-adjusted over
+   those comparisons;
 3. the rows whose adjusted p is >= alpha are tied with it. Alone, it is the
-   ``best``; otherwise every row of the tied group is marked ``tie``.
+   ``best``; otherwise every row of the tied group is marked ``tie`` and the
+   caption says that no row is significantly best at that number of seeds.
 
 A row whose interval does not lie entirely below the better reference's mean
 is marked ``noskill``; a row whose predictions vary less than
 ``IGNORES_RATIO`` of the ground truth's (``pred.std_ratio.pos``) is flagged
 ``ignores``. Skill = 1 - error / better-reference error, with its interval
-from the same joint resampling.
+from the same variance components (delta method, ``stats.skill``).
 """
 
 from __future__ import annotations
@@ -39,8 +41,7 @@ REFERENCE_GROUP = "Image-blind"
 @dataclass
 class Settings:
     alpha: float = stats.ALPHA
-    resamples: int = stats.RESAMPLES
-    seed: int = stats.SEED
+    level: float = stats.LEVEL
 
 
 @dataclass
@@ -60,11 +61,13 @@ class Built:
     skill: dict[str, dict[str, stats.Derived]]
     references: dict[str, list[stats.Sample | None]]  # source -> per metric
     fallback: list[str]  # rows shown from logged means (no trajectory_errors.csv)
+    unsettled: list[str] = field(default_factory=list)  # metrics whose column has no significant best
 
 
 def estimate(sample: stats.Sample | None, fallback: float | None, s: Settings) -> Estimate | None:
     if sample is not None:
-        return Estimate(sample.mean, *stats.interval(sample, s.resamples, s.seed))
+        lo, hi = stats.interval(sample, s.level)
+        return Estimate(sample.mean, lo, hi) if lo == lo else Estimate(sample.mean)  # NaN: no interval
     return None if fallback is None else Estimate(fallback)
 
 
@@ -101,16 +104,18 @@ def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence
     return rows, samples
 
 
-def judge_column(samples: Sequence[stats.Sample | None], s: Settings) -> tuple[list[set[str]], dict[int, float]]:
-    """Marks of one error column (per row) and the Holm-adjusted p of each row against the best."""
+def judge_column(samples: Sequence[stats.Sample | None], s: Settings, higher: bool = False
+                 ) -> tuple[list[set[str]], dict[int, float]]:
+    """Marks of one column (per row) and the Holm-adjusted p of each row against the best (the lowest mean;
+    the highest where ``higher`` is better, e.g. CTF)."""
     out: list[set[str]] = [set() for _ in samples]
     cand = [i for i, x in enumerate(samples) if x is not None]
     if len(cand) < 2:
         return out, {}
-    best = min(cand, key=lambda i: samples[i].mean)  # type: ignore[union-attr]
+    sign = -1.0 if higher else 1.0
+    best = min(cand, key=lambda i: sign * samples[i].mean)  # type: ignore[union-attr]
     others = [i for i in cand if i != best]
-    raw = [stats.paired_p(samples[best], samples[i], s.resamples, s.seed)  # type: ignore[arg-type]
-           for i in others]
+    raw = [stats.paired_p(samples[best], samples[i]) for i in others]  # type: ignore[arg-type]
     adjusted = dict(zip(others, stats.holm(raw)))
     tied = [best] + [i for i in others if adjusted[i] >= s.alpha]
     for i in tied:
@@ -118,14 +123,24 @@ def judge_column(samples: Sequence[stats.Sample | None], s: Settings) -> tuple[l
     return out, adjusted
 
 
-def better_reference(refs: dict[str, list], j: int) -> stats.Sample | None:
+def better_reference(refs: dict[str, list], j: int, higher: bool = False) -> stats.Sample | None:
     found = [x[j] for x in refs.values() if x[j] is not None]
-    return min(found, key=lambda x: x.mean) if found else None
+    sign = -1.0 if higher else 1.0
+    return min(found, key=lambda x: sign * x.mean) if found else None
+
+
+def _no_skill(v: Estimate, bar: float, higher: bool) -> bool:
+    """The row's interval does not lie beyond the better reference's mean (below it; above it if higher)."""
+    if higher:
+        return (v.lo if v.has_interval else v.mean) <= bar  # type: ignore[operator]
+    return (v.hi if v.has_interval else v.mean) >= bar  # type: ignore[operator]
 
 
 def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], evaluation: str, *,
-                grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = ()) -> Built:
-    """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones)."""
+                grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = (),
+                higher: Sequence[str] = ()) -> Built:
+    """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones).
+    ``higher``: the metrics where higher is better (CTF); the others are errors (lower is better)."""
     s = settings or Settings()
     n_extra = len(lines[0].extra) if lines else 0
     rows = [_model_row(line, frames, metrics, evaluation, s) for line in lines]
@@ -133,33 +148,55 @@ def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], e
     ref_rows, refs = _reference_rows(every, frames, metrics, evaluation, n_extra, grouped, s)
     marks: list[list[set[str]]] = [[set() for _ in range(n_extra + len(metrics))] for _ in rows + ref_rows]
     skill: dict[str, dict[str, stats.Derived]] = {}
+    unsettled: list[str] = []
     for j, metric in enumerate(metrics):
         col = [r.info["samples"][j] for r in rows]
-        column_marks, _ = judge_column(col, s)
+        up = metric in higher
+        column_marks, _ = judge_column(col, s, up)
+        if any("tie" in mk for mk in column_marks):
+            unsettled.append(metric)
         ref_values = [r.values[n_extra + j] for r in ref_rows]
         ref_means = [v.mean for v in ref_values if isinstance(v, Estimate)]
-        bar = min(ref_means) if ref_means else None
-        best_ref = better_reference(refs, j)
+        bar = (max(ref_means) if up else min(ref_means)) if ref_means else None
+        best_ref = better_reference(refs, j, up)
         for i, row in enumerate(rows):
             marks[i][n_extra + j] |= column_marks[i]
             v = row.values[n_extra + j]
-            if bar is not None and isinstance(v, Estimate) and (v.hi if v.has_interval else v.mean) >= bar:
+            if bar is not None and isinstance(v, Estimate) and _no_skill(v, bar, up):
                 marks[i][n_extra + j].add("noskill")
             if metric in skill_metrics and col[i] is not None and best_ref is not None:
                 try:
-                    skill.setdefault(row.name, {})[metric] = stats.skill(col[i], best_ref, s.resamples, s.seed)
+                    skill.setdefault(row.name, {})[metric] = stats.skill(col[i], best_ref, s.level)
                 except ValueError:  # no shared trajectory with the reference
                     pass
     fallback = [r.name for r in rows if r.runs and all(x is None for x in r.info["samples"])]
-    return Built(rows + ref_rows, marks, skill, refs, fallback)
+    return Built(rows + ref_rows, marks, skill, refs, fallback, unsettled)
 
 
 def method_text(s: Settings) -> str:
     """The caption's statement of the interval, the test, the correction and alpha."""
-    return (f"Cells: mean over seeds of the run-level metric [95% interval: two-level percentile bootstrap, "
-            f"{s.resamples} resamples of seeds and, jointly, test trajectories; fixed RNG seed]. Best: the row "
-            f"with the lowest mean, compared with every other row of its column by a paired two-level bootstrap "
-            f"test on the shared test trajectories (trajectories resampled jointly, seeds independently per row; "
-            f"two-sided), Holm-corrected over those comparisons; bold = significantly better than every other "
-            f"row (adjusted p < {s.alpha:g}); bold with ≈ = tied group, not significantly different from the "
-            f"lowest mean (adjusted p >= {s.alpha:g}).")
+    return (f"Cells: mean over seeds of the run-level metric [{s.level:.0%} interval: t interval whose variance "
+            f"adds the seed-to-seed and the test-trajectory variation (variance components, Satterthwaite df; "
+            f"calibrated by simulation at 3 and 5 seeds, docs/reports.md)]. Best: the row with the lowest mean, "
+            f"compared with every other row of its column by a paired t test on the shared test trajectories "
+            f"(seeds independent per row; two-sided), Holm-corrected over those comparisons; bold = significantly "
+            f"better than every other row (adjusted p < {s.alpha:g}); bold with ≈ = tied group, not significantly "
+            f"different from the lowest mean (adjusted p >= {s.alpha:g}).")
+
+
+def unsettled_text(metrics: Sequence[str], names: dict[str, str], rows: Sequence[Row]) -> str:
+    """'No significant best at 3 seeds: Rotation L2, DE.' for the columns whose best is not significant."""
+    if not metrics:
+        return ""
+    reps = sorted({r.info["replicates"] for r in rows if r.kind == "model" and r.info.get("replicates")})
+    seeds = "/".join(str(n) for n in reps) or "?"
+    return (f"No significant best at {seeds} seed{'s' if reps != [1] else ''} (n.s.): "
+            f"{', '.join(names.get(m, m) for m in metrics)}; the bold ≈ rows are the tied group, no winner is "
+            f"claimed.")
+
+
+def one_seed_text(rows: Sequence[Row]) -> str:
+    if any(r.kind == "model" and r.info.get("replicates") == 1 for r in rows):
+        return ("A row with one seed: its interval and tests cover the test-trajectory variation only "
+                "(seed-to-seed variation is not measured).")
+    return ""

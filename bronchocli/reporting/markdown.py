@@ -37,8 +37,8 @@ def legend_parts(table: Table, bold: str) -> list[str]:
     """The legend's items with ``bold`` as the example of bold text (format-specific)."""
     parts = []
     if table.judged:
-        parts += [f"{bold} = best of its column, significantly better than every other row (paired two-level "
-                  f"bootstrap, Holm-adjusted p < {ALPHA:g})",
+        parts += [f"{bold} = best of its column, significantly better than every other row (paired t test, "
+                  f"Holm-adjusted p < {ALPHA:g})",
                   f"{bold}{TIE} = tied for best: not significantly different from the row with the lowest mean",
                   f"{NOSKILL} = does not beat the better image-blind reference (its interval does not lie below "
                   f"the reference's mean)"]

@@ -25,7 +25,7 @@ from .layout import Table
 from .markdown import to_markdown
 from .scope import config_plan
 from .skill_figures import learning_curve, skill_figures
-from .tables import TABLES, ReportContext
+from .tables import ONCE, TABLES, ReportContext
 
 OUTPUT_FORMATS = {"md": ("md",), "latex": ("tex",), "both": ("md", "tex")}
 RENDERERS = {"md": to_markdown, "tex": to_latex}
@@ -61,7 +61,7 @@ def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence
     these runs (``NoData``) is skipped with one line in ``warnings``."""
     out = []
     for name in names:
-        for ev in evaluations:
+        for ev in (evaluations[:1] if name in ONCE else evaluations):
             try:
                 out.append(TABLES[name](ctx, ev))
             except NoData as exc:

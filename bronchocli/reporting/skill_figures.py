@@ -1,8 +1,8 @@
 """Skill figures (one per table) and the learning curve (error and skill against training-set size).
 
 * ``fig-skill-<table>``: skill = 1 - error / error of the better image-blind
-  reference, one bar per model row with its 95 % interval (two-level
-  bootstrap, the same draws for the row and the reference), for position and
+  reference, one bar per model row with its 95 % interval (t interval
+  on variance components over seeds and test trajectories, delta method), for position and
   rotation L2 in the table's evaluation. 0 = no better than an image-blind
   model; below 0 = worse.
 * ``fig-learning-curve``: when the runs span several ``train_trajectories``
@@ -51,7 +51,7 @@ def skill_figure(table: Table):
         ax.set_ylabel(f"skill, {METRICS[m][0]}")
         ax.set_title(f"{METRICS[m][0]}: 1 − error / better reference", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
-    fig.suptitle(f"{table.title}\nbars: skill with 95% two-level bootstrap interval; blue = interval above 0",
+    fig.suptitle(f"{table.title}\nbars: skill with 95% t interval (seeds and trajectories); blue = interval above 0",
                  fontsize=8)
     fig.tight_layout()
     return fig
@@ -143,8 +143,8 @@ def learning_curve_figure(ctx: ReportContext):
         if j == 0:
             err_ax.legend(fontsize=6)
             skill_ax.legend(fontsize=6)
-    fig.suptitle(f"Learning curve, {data['population']} population, per-pair evaluation: mean with 95% two-level "
-                 f"bootstrap interval; skill = 1 − error / better image-blind reference", fontsize=8)
+    fig.suptitle(f"Learning curve, {data['population']} population, per-pair evaluation: mean with 95% t interval "
+                 f"(seeds and trajectories); skill = 1 − error / better image-blind reference", fontsize=8)
     fig.tight_layout()
     return fig
 

@@ -14,7 +14,10 @@ table holds is documented in docs/reports.md; in short:
   ConvLSTM + MSE+CE) vs OffsetNet trained with MSE+MSE, with parameter counts;
 * ``ablation``: params, latency and GMAC per architecture next to position L2
   and CE of its MSE+CE personalized runs;
-* ``frames``: skill of world vs camera labels per architecture (frames_table).
+* ``frames``: skill of world vs camera labels per architecture (frames_table);
+* ``tracking``: the literature's camera-tracking metrics per network/loss
+  (CTF, ATE, RPE over a frame gap, drift; odometry.py), personalized runs,
+  built once whatever ``--eval`` says (its scope is the whole trajectory).
 
 Every error cell is ``mean [95 % interval]`` with significance marks and two
 image-blind reference rows (judge.py).
@@ -25,8 +28,9 @@ from __future__ import annotations
 import math
 from typing import Callable, Sequence
 
+from .. import odometry
 from ..errors import BronchoError
-from .aggregate import PREFIX
+from .aggregate import EVALS
 from .context import (
     ABLATION_LOSS,
     ARCH_GROUPS,
@@ -49,7 +53,7 @@ from .context import (
     references_text,
 )
 from .frames_table import frames
-from .judge import Line, method_text, metric_rows
+from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
 from .layout import Column, Row, Table, Value
 
 MODEL_NAMES = {"baseline": "Baseline", "lstm": "LSTM", "conv3d": "3D conv", "convlstm": "ConvLSTM",
@@ -65,7 +69,8 @@ def _metric_columns(names: Sequence[str] = tuple(METRICS)) -> list[Column]:
 
 
 def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line], metrics: Sequence[str],
-           evaluation: str, extra: str = "", expected_empty: Sequence[str] = ()) -> Table:
+           evaluation: str, extra: str = "", expected_empty: Sequence[str] = (), units: str = UNITS,
+           higher: Sequence[str] = ()) -> Table:
     """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings.
 
     No line at all (none of the config's cells belongs to this table, e.g. Table 4 of a sweep without
@@ -76,16 +81,19 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
                      f"({table.title.split('. ', 1)[-1]})")
     every = [r for line in lines for r in line.runs]
     built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=table.grouped,
-                        settings=ctx.settings, skill_metrics=SKILL_METRICS)
+                        settings=ctx.settings, skill_metrics=SKILL_METRICS, higher=higher)
     table.rows, table.marks, table.skill, table.judged = built.rows, built.marks, built.skill, True
     parts = [f"{EVAL_TEXT[evaluation]}.", method_text(ctx.settings), n_text(table.rows, evaluation,
                                                                            sorted(c.folds))]
     if extra:
         parts.append(extra)
+    names = {m: (METRICS.get(m) or TRACKING_METRICS[m])[0] for m in metrics}
+    parts.append(unsettled_text(built.unsettled, names, table.rows))
+    parts.append(one_seed_text(table.rows))
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
-    parts += [budget_text(every), UNITS, provenance(ctx, c)]
+    parts += [budget_text(every), units, provenance(ctx, c)]
     table.caption = " ".join(p for p in parts if p)
     finish(table, c, expected_empty)
     if built.fallback:
@@ -216,12 +224,58 @@ def ablation(ctx: ReportContext, evaluation: str) -> Table:
     return _build(ctx, c, table, lines, ["pos_l2", "ce"], evaluation, extra, unmeasured)
 
 
+TRACKING_METRICS = {"ctf": ("CTF", "%"), "ctf_mm": ("CTF mm", "%"), "ate": ("ATE", "vox"), "ate_mm": ("ATE", "mm"),
+                    "rpe_trans": ("RPE trans.", "vox"), "rpe_rot": ("RPE rot.", "°"), "drift": ("Drift", "% path")}
+TRACKING_UNITS = ("CTF: share of frames 1..N-1 (the first pose is given) whose position error is below the position "
+                  "threshold and whose rotation error (geodesic angle) is below the angle threshold, %, higher is "
+                  "better (CTF mm: the position threshold in mm, from the dataset's voxel spacing); ATE: RMSE of the "
+                  "position error over every frame, no alignment, voxels and mm; RPE: RMSE over every frame i of "
+                  "the error of the relative motion from frame i to i + gap (translation in voxels, rotation in "
+                  "degrees; TUM definition); Drift: final position error / ground-truth path length, %. Lower is "
+                  "better except CTF: in the CTF columns the best is the highest mean and † means the interval does "
+                  "not lie above the better reference's mean.")
+
+
+def _thresholds_text(c: Collector, runs) -> str:
+    """The thresholds the runs logged (eval.*); a warning when they differ."""
+    names = {"eval.ctf_position": "{:g} voxels", "eval.ctf_position_mm": "{:g} mm", "eval.ctf_angle": "{:g}°",
+             "eval.rpe_gap": "{:g} frames"}
+    seen = {k: sorted({r.metrics[k] for r in runs if k in r.metrics}) for k in names}
+    if not any(seen.values()):
+        return "Thresholds: not logged by these runs."
+    for k, values in seen.items():
+        if len(values) > 1:
+            c.warn(f"tracking: the runs used different {k} ({', '.join(f'{v:g}' for v in values)}); their CTF/RPE "
+                   f"are not comparable")
+    text = {k: "/".join(fmt.format(v) for v in seen[k]) or "?" for k, fmt in names.items()}
+    return (f"Thresholds (config eval:): position {text['eval.ctf_position']} (CTF mm: "
+            f"{text['eval.ctf_position_mm']}), angle {text['eval.ctf_angle']}; RPE gap {text['eval.rpe_gap']} "
+            f"(a test trajectory shorter than the gap has no RPE and is left out of those columns).")
+
+
+def tracking(ctx: ReportContext, evaluation: str) -> Table:
+    """The literature's camera-tracking metrics (the paper's Table 1 and the visual-odometry benchmarks)."""
+    del evaluation  # whole-trajectory metrics: one table
+    c = Collector(ctx, "tracking", "personalized")
+    lines = [c.line(ARCH_NAMES[arch], LOSSES[loss], arch, loss)
+             for arch in ARCH_NAMES for loss in LOSSES if c.has(arch, loss)]
+    table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
+                  ("Network", "Loss"), [Column(*TRACKING_METRICS[m]) for m in odometry.METRICS], [])
+    every = [r for line in lines for r in line.runs]
+    return _build(ctx, c, table, lines, list(odometry.METRICS), "trajectory", _thresholds_text(c, every),
+                  units=TRACKING_UNITS, higher=sorted(odometry.HIGHER_IS_BETTER))
+
+
+ONCE = {"tracking"}  # tables built once, not per evaluation
+
+
 TABLES: dict[str, Callable[[ReportContext, str], Table]] = {
     "personalized": personalized,
     "cross-subject": cross_subject,
     "sota": sota,
     "ablation": ablation,
     "frames": frames,
+    "tracking": tracking,
 }
 
 
@@ -236,7 +290,7 @@ def table_names(name: str) -> list[str]:
 
 def evaluations(name: str) -> list[str]:
     if name == "both":
-        return list(PREFIX)
-    if name not in PREFIX:
+        return list(EVALS)
+    if name not in EVALS:
         raise BronchoError(f"--eval {name!r}: must be one of accumulated, pair, both")
     return [name]

@@ -124,7 +124,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     spacing = {p: data.dataset.spacing_mm(p) for p in data.dataset.patients}
     preds = evaluate.predict_trajectories(net, data.split.test, source, cell.pose_frame, chunk, spacing,
                                           trainer.autocast)
-    metrics, table = evaluate.evaluate(preds, data.label_mean, cell.pose_frame)
+    metrics, table = evaluate.evaluate(preds, data.label_mean, cell.pose_frame, evaluate.thresholds(cfg.eval))
     best = next((h for h in fit.history if h["step"] == fit.best_step), None)
     if best is not None:  # validation metrics of the weights that were tested: what a staged sweep selects by
         metrics |= {"val_best.loss": best["val_loss"],

@@ -9,8 +9,11 @@ pose frame, composition in ``camera``).
 Metric names are stable (MLflow keys and report columns):
 ``pair.<m>.{mean,std}`` over all pairs of all test trajectories,
 ``acc.<m>.{mean,std}`` over trajectories (endpoint after chaining the whole
-trajectory), ``traj.{ate,ate_mm,rpe_trans,rpe_rot}.{mean,std}``, with
-``<m>`` in pos_l2, pos_l2_mm, rot_l2, de, ce, geodesic.
+trajectory), with ``<m>`` in pos_l2, pos_l2_mm, rot_l2, de, ce, geodesic, and
+the camera-tracking metrics of the literature (odometry.py: CTF, ATE, RPE over
+a frame gap, drift; thresholds from the config's ``eval:`` section)
+``traj.<t>.{mean,std}`` over trajectories, ``<t>`` in ctf, ctf_mm, ate,
+ate_mm, rpe_trans, rpe_rot, drift.
 
 Two image-blind references are scored on the same trajectories with the same
 metrics, under the prefixes ``zero_motion.`` (every relative pose is zero) and
@@ -29,7 +32,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import geometry, metrics
+from .. import geometry, metrics, odometry
 from ..data.batches import FrameSource, relative_labels
 from ..data.reader import Trajectory
 
@@ -49,6 +52,12 @@ class TrajectoryPrediction:
     gt_abs: np.ndarray  # (N, 6)
     pred_abs: np.ndarray  # (N, 6)
     spacing_mm: np.ndarray  # (3,)
+
+
+def thresholds(section) -> odometry.Thresholds:
+    """The config's ``eval:`` section (config.EvalCfg) as odometry thresholds."""
+    return odometry.Thresholds(position=section.ctf_position, position_mm=section.ctf_position_mm,
+                               angle=section.ctf_angle, gap=section.rpe_gap)
 
 
 @torch.no_grad()
@@ -92,7 +101,12 @@ def _stats(prefix: str, stats: dict[str, metrics.Stat]) -> dict[str, float]:
     return out
 
 
-def score(preds: list[TrajectoryPrediction]) -> dict[str, float]:
+def odometry_metrics(p: TrajectoryPrediction, thresholds: odometry.Thresholds) -> dict[str, float]:
+    return odometry.trajectory_metrics(p.pred_abs, p.gt_abs, p.spacing_mm, thresholds)
+
+
+def score(preds: list[TrajectoryPrediction], thresholds: odometry.Thresholds = odometry.Thresholds()
+          ) -> dict[str, float]:
     """Every test metric of a set of predicted trajectories."""
     if not preds:
         raise ValueError("no test trajectories to score")
@@ -103,15 +117,9 @@ def score(preds: list[TrajectoryPrediction]) -> dict[str, float]:
     ends_pred = np.stack([p.pred_abs[-1] for p in preds])
     ends_gt = np.stack([p.gt_abs[-1] for p in preds])
     out |= _stats("acc", metrics.pair_metrics(ends_pred, ends_gt, np.stack([p.spacing_mm for p in preds])))
-    errs = [metrics.trajectory_errors(p.pred_abs, p.gt_abs) for p in preds]
-    mean_spacing = np.array([float(np.mean(p.spacing_mm)) for p in preds])
-    traj = {
-        "ate": np.concatenate([e["ate"] for e in errs]),
-        "rpe_trans": np.concatenate([e["rpe_trans"] for e in errs]),
-        "rpe_rot": np.concatenate([e["rpe_rot"] for e in errs]),
-    }
-    traj["ate_mm"] = traj["ate"] * mean_spacing
-    out |= _stats("traj", {k: metrics.Stat.of(v) for k, v in traj.items()})
+    per_traj = [odometry_metrics(p, thresholds) for p in preds]
+    traj = {k: np.array([m[k] for m in per_traj]) for k in odometry.METRICS}
+    out |= _stats("traj", {k: metrics.Stat.of(v[np.isfinite(v)]) for k, v in traj.items()})
     out["test.n_pairs"] = float(len(gt))
     out["test.n_trajectories"] = float(len(preds))
     return out
@@ -151,11 +159,11 @@ def variability(preds: list[TrajectoryPrediction]) -> dict[str, float]:
     return out
 
 
-def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, list[TrajectoryPrediction]]
-                     ) -> pd.DataFrame:
+def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, list[TrajectoryPrediction]],
+                     thresholds: odometry.Thresholds = odometry.Thresholds()) -> pd.DataFrame:
     """One row per test trajectory: its mean per-pair error and its endpoint (accumulated) error per metric,
-    for the model and each reference (columns ``<source>.<pair|acc>.<metric>``). What ``report`` pairs
-    rows on to compare two models on the same trajectories."""
+    and its camera-tracking metrics, for the model and each reference (columns ``<source>.<pair|acc>.<metric>``
+    and ``<source>.traj.<t>``). What ``report`` pairs rows on to compare two models on the same trajectories."""
     rows = []
     sources = {"model": preds, **references}
     for i, p in enumerate(preds):
@@ -168,19 +176,23 @@ def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, li
             for m in TRAJECTORY_METRICS:
                 row[f"{name}.pair.{m}"] = float(np.mean(pair[m]))
                 row[f"{name}.acc.{m}"] = float(acc[m][0])
+            for m, v in odometry_metrics(q, thresholds).items():
+                row[f"{name}.traj.{m}"] = v
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: str
-             ) -> tuple[dict[str, float], pd.DataFrame]:
+def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: str,
+             thresholds: odometry.Thresholds = odometry.Thresholds()) -> tuple[dict[str, float], pd.DataFrame]:
     """Metrics of the model and of both references, prediction variability, and the per-trajectory table."""
     refs = reference_predictions(preds, train_mean, frame)
-    out = score(preds)
+    out = score(preds, thresholds)
     for name, ref in refs.items():
-        out |= {f"{name}.{k}": v for k, v in score(ref).items() if not k.startswith("test.")}
+        out |= {f"{name}.{k}": v for k, v in score(ref, thresholds).items() if not k.startswith("test.")}
     out |= variability(preds)
-    return out, trajectory_table(preds, refs)
+    out |= {"eval.ctf_position": thresholds.position, "eval.ctf_position_mm": thresholds.position_mm,
+            "eval.ctf_angle": thresholds.angle, "eval.rpe_gap": float(thresholds.gap)}  # what the report states
+    return out, trajectory_table(preds, refs, thresholds)
 
 
 def predictions_table(preds: list[TrajectoryPrediction]) -> pd.DataFrame:

@@ -125,8 +125,24 @@ def errors_frame(keys: Sequence[tuple[str, str, str]], acc: Sequence[float], rng
                     row[f"{source}.{scope}.{name}"] = value
                 row[f"{source}.{scope}.pos_l2_mm"] = row[f"{source}.{scope}.pos_l2"] * 0.5  # type: ignore[operator]
                 row[f"{source}.{scope}.geodesic"] = row[f"{source}.{scope}.rot_l2"]
+            row |= tracking_columns(source, float(row[f"{source}.acc.pos_l2"]),  # type: ignore[arg-type]
+                                    float(row[f"{source}.acc.rot_l2"]))  # type: ignore[arg-type]
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+TRACKING = ("ctf", "ctf_mm", "ate", "ate_mm", "rpe_trans", "rpe_rot", "drift")
+THRESHOLDS = {"eval.ctf_position": 5.0, "eval.ctf_position_mm": 5.0, "eval.ctf_angle": 10.0, "eval.rpe_gap": 10.0}
+
+
+def tracking_columns(source: str, pos: float, rot: float) -> dict[str, float]:
+    """A trajectory's camera-tracking metrics, planted as functions of its endpoint errors (no random draw, so
+    the other planted columns stay what they were): larger errors, lower CTF."""
+    return {f"{source}.traj.ctf": 100.0 * float(np.exp(-pos / 4.0 - rot / 40.0)),
+            f"{source}.traj.ctf_mm": 100.0 * float(np.exp(-pos / 8.0 - rot / 40.0)),
+            f"{source}.traj.ate": 0.6 * pos, f"{source}.traj.ate_mm": 0.3 * pos,
+            f"{source}.traj.rpe_trans": 0.2 * pos, f"{source}.traj.rpe_rot": 0.3 * rot,
+            f"{source}.traj.drift": 2.0 * pos}
 
 
 def metrics_from_errors(df: pd.DataFrame, n_params: int | None = None, *, ratio: float = 0.5, steps: int = 300,
@@ -143,6 +159,12 @@ def metrics_from_errors(df: pd.DataFrame, n_params: int | None = None, *, ratio:
             out[f"{prefix}pair.{name}.std"] = float(pair.std())
             out[f"{prefix}acc.{name}.mean"] = float(acc.mean())
             out[f"{prefix}acc.{name}.std"] = float(acc.std())
+        for name in TRACKING:
+            if f"{source}.traj.{name}" in df:
+                values = df[f"{source}.traj.{name}"].to_numpy(dtype=float)
+                out[f"{prefix}traj.{name}.mean"] = float(values.mean())
+                out[f"{prefix}traj.{name}.std"] = float(values.std())
+    out |= THRESHOLDS
     out |= {"pred.std.pos": ratio * 2.0, "pred.std.rot": ratio * 3.0, "pred.std_ratio.pos": ratio,
             "pred.std_ratio.rot": ratio, "train.steps": float(steps), "train.pairs_seen": float(steps * 20),
             "train.epochs": epochs, "train.best_step": float(steps), "train.train_pairs": 400.0,

@@ -47,7 +47,7 @@ def normalise(text: str, names: dict[str, str]) -> str:
 KEYS = [f"table{n}-{kind}-{ev}" for n, kind, evs in (
     (2, "personalized", ["accumulated"]), (3, "personalized", ["pair"]), (4, "cross-subject", ["accumulated"]),
     (5, "cross-subject", ["pair"]), (6, "sota", ["accumulated", "pair"]), (7, "ablation", ["accumulated", "pair"]),
-    (8, "frames", ["accumulated", "pair"])) for ev in evs]
+    (8, "frames", ["accumulated", "pair"])) for ev in evs] + ["table9-tracking"]
 
 
 @pytest.mark.parametrize("key", KEYS)
@@ -135,3 +135,17 @@ def test_the_worked_example_of_the_docs_is_what_the_report_makes(repo):
     rows = [line for line in to_markdown(worked_example()).splitlines() if line.startswith("|")]
     docs = (repo / "docs" / "reports.md").read_text(encoding="utf-8")
     assert "\n".join(rows) in docs, "docs/reports.md: paste the table of report_fakes.worked_example() again"
+
+
+def test_tracking_table_marks_ctf_higher_is_better(built):
+    tabs, _, _ = built
+    t = tabs["table9-tracking"]
+    row = {r.name: i for i, r in enumerate(t.rows)}
+    ctf, ate = 0, 2
+    best = row["+ConvRNN MSE+CE"]  # the lowest planted errors: the highest CTF and the lowest ATE
+    assert t.marks[best][ctf] == {"best"} and t.marks[best][ate] == {"best"}
+    offsetnet = row["OffsetNet MSE+MSE"]  # CTF below the better reference's (training mean): no skill
+    assert "noskill" in t.marks[offsetnet][ctf] and "noskill" in t.marks[offsetnet][ate]
+    assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]
+    assert "position 5 voxels (CTF mm: 5 mm), angle 10°; RPE gap 10 frames" in t.caption
+

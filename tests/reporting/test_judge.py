@@ -141,3 +141,34 @@ def test_skill_is_one_minus_error_over_the_better_reference():
     d = t.skill["+LSTM MSE+CE"]["pos_l2"]
     assert d.value == pytest.approx(1 - t.rows[0].values[0].mean / min(refs.values()))
     assert d.lo < d.value < d.hi
+
+
+def test_a_higher_is_better_column_marks_the_highest_mean_and_no_skill_from_above():
+    def sample(values):
+        return stats.Sample(tuple(("p", "l", f"t{i}") for i in range(len(values))), np.ones(len(values)),
+                            np.array([values]))
+    rng = np.random.default_rng(12)
+    hard = rng.uniform(40, 60, 20)
+    high, low = sample(hard + 10 + rng.normal(0, 0.5, 20)), sample(hard + rng.normal(0, 0.5, 20))
+    marks, _ = judge.judge_column([low, high], judge.Settings(), higher=True)
+    assert marks == [set(), {"best"}]
+    marks, _ = judge.judge_column([low, high], judge.Settings())
+    assert marks == [{"best"}, set()]
+
+
+def test_the_tracking_table_is_built_once_with_both_references():
+    from bronchocli.reporting import report, tables
+
+    m = MemRuns(seed=11)
+    for seed in (0, 1, 2):
+        m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
+        m.add("convlstm", "ce", (4.0, 14.0, 0.12, 0.012), seed=seed)
+    built = report.build_tables(m.context(), ["tracking"], ["accumulated", "pair"])
+    assert [t.key for t in built] == ["table9-tracking"]
+    t = built[0]
+    lstm, conv = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE")
+    assert t.marks[lstm][0] == {"best"} and t.rows[lstm].values[0].mean > t.rows[conv].values[0].mean  # CTF
+    assert t.marks[lstm][2] == {"best"} and t.rows[lstm].values[2].mean < t.rows[conv].values[2].mean  # ATE
+    assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]
+    assert all(isinstance(v, Estimate) and v.has_interval for r in t.rows for v in r.values)
+    assert tables.evaluations("both") == ["accumulated", "pair"]

@@ -12,9 +12,10 @@ from report_fakes import PROFILES
 TABLE_FILES = [f"{key}.{ext}" for key in (
     "table2-personalized-accumulated", "table3-personalized-pair", "table4-cross-subject-accumulated",
     "table5-cross-subject-pair", "table6-sota-accumulated", "table6-sota-pair", "table7-ablation-accumulated",
-    "table7-ablation-pair") for ext in ("md", "tex")]
+    "table7-ablation-pair", "table9-tracking") for ext in ("md", "tex")]
 FIGURE_STEMS = ["fig5-trajectories", "fig-error-position", "fig-error-rotation"] + [
-    f"fig-skill-{k}" for k in dict.fromkeys(f.rsplit(".", 1)[0] for f in TABLE_FILES)]
+    f"fig-skill-{k}" for k in dict.fromkeys(f.rsplit(".", 1)[0] for f in TABLE_FILES)
+    if k != "table9-tracking"]  # no skill figure: the tracking table has no position/rotation L2 skill
 DATASET_STEMS = ["fig-dataset-frames", "fig-dataset-positions"]
 
 

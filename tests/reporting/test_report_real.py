@@ -35,6 +35,7 @@ grid: {{arch: [convlstm], rot_loss: [ce], population: [personalized], seed: [0]}
 stages: [{{name: sota, add: [{{arch: offsetnet, rot_loss: mse}}]}}]
 data: {{window: 3, workers: 0, cache_dir: {tmp_path}/runs/cache}}
 train: {{steps: 2, val_every: 2, batch_size: 6, threads: 1}}
+eval: {{rpe_gap: 3}}
 """)
     code, _, stderr = cli("sweep", "-c", str(cfg))
     assert code == 0, stderr
@@ -52,3 +53,11 @@ train: {{steps: 2, val_every: 2, batch_size: 6, threads: 1}}
         assert "—" not in row and row.count("[") == 4, row  # every metric with its interval
     assert "no trajectory_errors.csv" not in stderr and "lacks" not in stderr
     assert "Budget per run: 2 optimiser steps, 12 pairs seen" in sota
+    code, _, stderr = cli("report", "-c", str(cfg), "--table", "tracking", "-q", "--out", str(out))
+    assert code == 0, stderr
+    tracking = (out / "table9-tracking.md").read_text()
+    for model in ("| +ConvRNN | MSE+CE |", "| OffsetNet | MSE+MSE |", "| Image-blind | Zero motion |",
+                  "|  | Training mean |"):
+        row = next((line for line in tracking.splitlines() if line.startswith(model)), tracking)
+        assert "—" not in row and row.count("[") == 7, row  # CTF, CTF mm, ATE vox/mm, RPE trans/rot, drift
+    assert "RPE gap 3 frames" in tracking and not (out / "table9-tracking-pair.md").exists()

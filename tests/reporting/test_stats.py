@@ -1,4 +1,4 @@
-"""The bootstrap, the paired test and Holm's correction, against independent references."""
+"""Intervals, the paired test, skill and Holm's correction, against independent references (SciPy, ANOVA by hand)."""
 
 from __future__ import annotations
 
@@ -19,22 +19,12 @@ def _sample(errors: np.ndarray, weights: np.ndarray | None = None, prefix: str =
     return Sample(keys, np.ones(t) if weights is None else np.asarray(weights, float), errors)
 
 
-def test_one_seed_many_trajectories_interval_matches_the_normal_approximation():
+def test_one_seed_interval_is_the_t_interval_over_trajectories():
     rng = np.random.default_rng(1)
-    x = rng.gamma(4.0, 0.5, 400)
+    x = rng.gamma(4.0, 0.5, 40)
     lo, hi = stats.interval(_sample(x))
-    half = 1.96 * x.std(ddof=1) / math.sqrt(len(x))
-    assert lo == pytest.approx(x.mean() - half, abs=0.1 * half)
-    assert hi == pytest.approx(x.mean() + half, abs=0.1 * half)
-
-
-def test_one_seed_interval_matches_scipy_percentile_bootstrap():
-    rng = np.random.default_rng(2)
-    x = rng.lognormal(0.0, 0.5, 60)
-    lo, hi = stats.interval(_sample(x))
-    ref = sps.bootstrap((x,), np.mean, n_resamples=20000, method="percentile", random_state=3).confidence_interval
-    half = (ref.high - ref.low) / 2
-    assert lo == pytest.approx(ref.low, abs=0.08 * half) and hi == pytest.approx(ref.high, abs=0.08 * half)
+    ref = sps.t.interval(0.95, len(x) - 1, loc=x.mean(), scale=sps.sem(x))
+    assert (lo, hi) == pytest.approx(ref, rel=1e-12)
 
 
 def test_weighted_mean_is_the_mean_over_pairs():
@@ -44,38 +34,54 @@ def test_weighted_mean_is_the_mean_over_pairs():
     assert s.mean == pytest.approx(np.concatenate(pairs).mean())
 
 
-def _naive_two_level(errors: np.ndarray, weights: np.ndarray, draws: int, seed: int) -> np.ndarray:
-    """A loop implementation of the two-level bootstrap (seeds and trajectories with replacement)."""
-    rng = np.random.default_rng(seed)
-    r, t = errors.shape
-    out = np.empty(draws)
-    for b in range(draws):
-        traj = rng.integers(0, t, t)
-        reps = rng.integers(0, r, r)
-        out[b] = np.mean([np.sum(weights[traj] * errors[k, traj]) / weights[traj].sum() for k in reps])
-    return out
+def _anova_variance(y: np.ndarray) -> float:
+    """Two-way random-effects ANOVA by sums of squares: var(grand mean) = (MS_seed + MS_traj - MS_res) / (R T)."""
+    r, t = y.shape
+    g = y.mean()
+    ms_seed = t * ((y.mean(1) - g) ** 2).sum() / (r - 1)
+    ms_traj = r * ((y.mean(0) - g) ** 2).sum() / (t - 1)
+    res = y - y.mean(1, keepdims=True) - y.mean(0, keepdims=True) + g
+    ms_res = (res ** 2).sum() / ((r - 1) * (t - 1))
+    return (ms_seed + ms_traj - ms_res) / (r * t)
 
 
-def test_two_level_spread_matches_a_loop_implementation():
+def test_balanced_variance_is_the_two_way_anova_estimate():
     rng = np.random.default_rng(4)
-    t, r = 30, 3
-    hard = rng.lognormal(0, 0.3, t)
-    errors = hard * (1 + 0.2 * rng.standard_normal((r, t))) + 0.3 * rng.standard_normal((r, 1))
-    weights = rng.integers(5, 30, t).astype(float)
-    _, boot = stats.joint_means([_sample(errors, weights)], resamples=4000)
-    naive = _naive_two_level(errors, weights, 4000, 5)
-    assert boot[:, 0].std() == pytest.approx(naive.std(), rel=0.08)
-    assert boot[:, 0].mean() == pytest.approx(naive.mean(), abs=0.1 * naive.std())
+    r, t = 4, 15
+    y = 2.0 + rng.standard_normal((r, 1)) + 0.7 * rng.standard_normal((1, t)) + 0.3 * rng.standard_normal((r, t))
+    inf = stats.linear([_sample(y)], [1.0])
+    assert inf.se ** 2 == pytest.approx(_anova_variance(y), rel=1e-10)
+    assert float(inf.value) == pytest.approx(y.mean())
+    assert 3.0 <= float(inf.df) <= t - 1 + r - 1  # between the seed part's df and the total
 
 
-def test_seed_resampling_widens_the_interval():
+def test_seed_variation_widens_the_interval_to_the_seed_level_t():
     rng = np.random.default_rng(6)
     base = rng.lognormal(0, 0.2, 40)
     calm = np.stack([base * 1.0, base * 1.0, base * 1.0])
-    shaky = np.stack([base * 0.8, base * 1.0, base * 1.2])  # same mean, seeds disagree
+    shifts = np.array([[-0.3], [0.0], [0.4]])  # the seeds disagree by a constant: only the seed part grows
     lo_c, hi_c = stats.interval(_sample(calm))
-    lo_s, hi_s = stats.interval(_sample(shaky))
-    assert (hi_s - lo_s) > 1.5 * (hi_c - lo_c)
+    lo_s, hi_s = stats.interval(_sample(calm + shifts))
+    assert (hi_s - lo_s) > 3 * (hi_c - lo_c)
+    # dominated by 3 seed means: close to their t interval with 2 df
+    ref = sps.t.interval(0.95, 2, loc=(calm + shifts).mean(), scale=sps.sem((calm + shifts).mean(1)))
+    assert hi_s - lo_s == pytest.approx(ref[1] - ref[0], rel=0.1)
+
+
+def test_one_seed_paired_test_is_scipys_paired_t_test():
+    rng = np.random.default_rng(7)
+    hard = rng.lognormal(0, 0.5, 25)
+    a, b = hard * (1 + 0.05 * rng.standard_normal(25)), hard * 1.03 * (1 + 0.05 * rng.standard_normal(25))
+    assert stats.paired_p(_sample(a), _sample(b)) == pytest.approx(sps.ttest_rel(a, b).pvalue, rel=1e-9)
+
+
+def test_paired_test_without_trajectory_variation_is_welchs_test_on_seed_means():
+    rng = np.random.default_rng(8)
+    base = np.full(10, 3.0)
+    a = base + rng.standard_normal((3, 1))
+    b = base + 0.5 + 2.0 * rng.standard_normal((3, 1))
+    ref = sps.ttest_ind(a.mean(1), b.mean(1), equal_var=False).pvalue
+    assert stats.paired_p(_sample(a), _sample(b)) == pytest.approx(ref, rel=1e-9)
 
 
 def test_paired_test_sees_a_small_shift_that_the_intervals_do_not():
@@ -103,11 +109,6 @@ def test_paired_test_uses_only_the_shared_trajectories():
     assert stats.paired_p(a, b) == 1.0  # identical on the 3 shared ones; a's 4th trajectory is ignored
 
 
-def test_two_sided_p_counts_both_tails():
-    assert stats.two_sided_p(np.full(999, 1.0)) == pytest.approx(2 / 1000)
-    assert stats.two_sided_p(np.r_[np.full(900, 1.0), np.full(99, -1.0)]) == pytest.approx(2 * 100 / 1000)
-
-
 def test_holm_by_hand_on_three_comparisons():
     # Sorted 0.01, 0.03, 0.04: 3*0.01 = 0.03; 2*0.03 = 0.06; max(0.06, 1*0.04) = 0.06.
     assert stats.holm([0.04, 0.01, 0.03]) == pytest.approx([0.06, 0.03, 0.06])
@@ -123,3 +124,15 @@ def test_skill_against_the_reference():
     d = stats.skill(model, ref)
     assert d.value == pytest.approx(1 - model.mean / ref.mean)
     assert d.lo < d.value < d.hi and d.lo > 0.7  # the shared difficulty cancels: a narrow interval
+    # delta method by hand (one seed): 1 - m/r linearised is -(x_t - (m/r) y_t) / r per trajectory
+    x, y = model.errors[0], ref.errors[0]
+    lin = -(x - (model.mean / ref.mean) * y) / ref.mean
+    half = sps.t.ppf(0.975, len(x) - 1) * lin.std(ddof=1) / math.sqrt(len(x))
+    assert (d.lo, d.hi) == pytest.approx((d.value - half, d.value + half), rel=1e-6)
+
+
+def test_one_seed_of_one_trajectory_has_no_interval_and_no_significance():
+    a, b = _sample([[1.0]]), _sample([[2.0]])
+    lo, hi = stats.interval(a)
+    assert math.isnan(lo) and math.isnan(hi)
+    assert stats.paired_p(a, b) == 1.0  # nothing to measure the noise with: no claim

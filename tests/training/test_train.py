@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 from run_metrics import EXPECTED
 
 from bronchocli import tracking
@@ -107,6 +110,40 @@ def test_references_and_per_trajectory_errors_match_an_independent_computation(t
         weighted = (errors[f"{source}.pair.pos_l2"] * errors.n_pairs).sum() / errors.n_pairs.sum()
         assert weighted == pytest.approx(m[f"{prefix}pair.pos_l2.mean"], rel=1e-6)
         assert errors[f"{source}.acc.pos_l2"].mean() == pytest.approx(m[f"{prefix}acc.pos_l2.mean"], rel=1e-6)
+        for t in ("ctf", "ate", "drift"):
+            assert errors[f"{source}.traj.{t}"].mean() == pytest.approx(m[f"{prefix}traj.{t}.mean"], rel=1e-6)
+
+
+def _zero_motion_odometry(t: pd.DataFrame, gap: int, position: float, angle: float) -> dict[str, float]:
+    """Camera-tracking metrics of the zero-motion reference (it never leaves the first pose), from the CSV alone."""
+    p = t[["pos_x", "pos_y", "pos_z"]].to_numpy(float)
+    R = Rotation.from_euler("XYZ", t[["Rx", "Ry", "Rz"]].to_numpy(float), degrees=True)
+    pos_err = np.linalg.norm(p - p[0], axis=1)
+    rot_err = np.degrees((R[0].inv() * R).magnitude())
+    trans = np.linalg.norm(p[gap:] - p[:-gap], axis=1)  # the true motion is all error
+    rot = np.degrees((R[:-gap].inv() * R[gap:]).magnitude())
+    return {"ate": math.sqrt(np.mean(pos_err ** 2)),
+            "drift": 100 * pos_err[-1] / np.linalg.norm(np.diff(p, axis=0), axis=1).sum(),
+            "ctf": 100 * np.mean((pos_err[1:] < position) & (rot_err[1:] < angle)),
+            "rpe_trans": math.sqrt(np.mean(trans ** 2)), "rpe_rot": math.sqrt(np.mean(rot ** 2))}
+
+
+def test_camera_tracking_metrics_of_the_zero_motion_reference_match_the_dataset(tiny_project, tiny_cfg):
+    cfg = tiny_cfg.with_values({"eval.rpe_gap": 3, "eval.ctf_position": 1.5, "eval.ctf_angle": 4.0})
+    result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=2),
+                      progress=False)
+    assert result.status == "FINISHED", result.failure_reason
+    client = tracking.client_for(cfg)
+    errors = pd.read_csv(client.download_artifacts(result.run_id, "trajectory_errors.csv"),
+                         dtype={"patient": str, "lobe": str, "trajectory": str})
+    csvs = pd.concat([pd.read_csv(p, dtype={"patient": str, "lobe": str, "trajectory": str})
+                      for p in sorted((tiny_project / "tiny").glob("p*.csv"))])
+    assert result.metrics["eval.rpe_gap"] == 3 and result.metrics["eval.ctf_angle"] == 4.0
+    for _, row in errors.iterrows():
+        t = csvs[(csvs.patient == row.patient) & (csvs.lobe == row.lobe) & (csvs.trajectory == row.trajectory)]
+        want = _zero_motion_odometry(t.sort_values("frame"), 3, 1.5, 4.0)
+        for k, v in want.items():
+            assert row[f"zero_motion.traj.{k}"] == pytest.approx(v, rel=1e-6, abs=1e-9), k
 
 
 def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_cfg):
