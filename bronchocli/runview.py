@@ -31,7 +31,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
-from typing import Any
+from contextlib import nullcontext
 
 from mlflow.tracking import MlflowClient
 
@@ -154,19 +154,12 @@ def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: 
         if found:
             return found[0].info.run_id
         run = client.create_run(exp_id, tags=tracking.non_empty({
-            **tags, "mlflow.runName": f"{kind}-{name}", tracking.TAG_NOTE: description, **tracking.source_tags(cfg), **tracking.python_tags(),
+            **tags, "mlflow.runName": f"{kind}-{name}", tracking.TAG_NOTE: description,
+            **tracking.source_tags(cfg), **tracking.python_tags(),
         }))
         if params:
             tracking.log_params(client, run.info.run_id, params)
         return run.info.run_id
-
-
-class _NoLock:
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: Any) -> None:
-        return None
 
 
 def _creation_lock(cfg: Config):
@@ -176,7 +169,7 @@ def _creation_lock(cfg: Config):
         return file_lock(f"{db}.parent.lock")
     if urls.is_postgres(uri):
         return tracking.database_lock(uri, cfg.tracking.timeout_s, "tracking.uri", key=PARENT_LOCK_KEY)
-    return _NoLock()
+    return nullcontext()
 
 
 PARENT_LOCK_KEY = tracking.MIGRATION_LOCK_KEY + 2  # pg_advisory_lock key of parent-run creation
