@@ -44,7 +44,7 @@ def test_a_signal_at_a_known_step_kills_the_run_and_resume_continues_it_exactly(
     result = run_cell(cfg, cell, progress=False, resume=True)
     assert result.status == "FINISHED" and result.run_id == run_id
     run = client.get_run(run_id)
-    assert run.data.tags["failure_reason"] == ""
+    assert "failure_reason" not in run.data.tags  # a resumed, finished run has no failure (and no empty tag)
     assert sorted(m.step for m in client.get_metric_history(run_id, "val_loss")) == [2, 4, 6, 8]  # continued
     assert run.data.metrics["train.steps"] == 8 and run.data.metrics["train.pairs_seen"] == 8 * 6
     assert not checkpoint.exists()
