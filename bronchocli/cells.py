@@ -10,7 +10,7 @@ line naming the field and the allowed values, before any work starts. Its
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any, Literal, get_args
+from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -28,6 +28,10 @@ POPULATIONS: tuple[str, ...] = get_args(Population)
 POSE_FRAMES: tuple[str, ...] = get_args(PoseFrame)
 LOBES: tuple[str, ...] = get_args(Lobe)
 
+# A random seed: numpy's legacy seeding (and so the whole stack) takes 0 .. 2**32 - 1.
+SEED_MAX = 2**32 - 1
+Seed = Annotated[int, Field(ge=0, le=SEED_MAX)]
+
 # The coordinates of a cell, in label order; also its MLflow tags and the ``--only`` keys.
 FIELDS: tuple[str, ...] = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame", "train_trajectories")
 
@@ -41,7 +45,7 @@ class Cell(BaseModel):
     rot_loss: RotLoss
     population: Population
     fold: str | None = None  # held-out patient (cross-subject only)
-    seed: int = 0
+    seed: Seed = 0
     pose_frame: PoseFrame = "world"
     train_trajectories: int | None = Field(None, ge=1)  # training trajectories per patient and lobe
     key: str = ""  # set by config.Config.cell(); empty for a bare coordinate

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 from typing import Optional
 
 import typer
@@ -14,6 +15,7 @@ from .commands import profile as profile_cmd
 from .commands import report as report_cmd
 from .commands import status as status_cmd
 from .commands import sweep as sweep_cmd
+from .commands import track as track_cmd
 from .commands import train as train_cmd
 from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
@@ -40,6 +42,7 @@ COMMANDS = {
     "profile": profile_cmd.profile,
     "sweep": sweep_cmd.sweep,
     "status": status_cmd.status,
+    "track": track_cmd.track,
 }
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app}
@@ -102,6 +105,11 @@ def _usage_error(exc: Exception) -> int:
     return int(getattr(exc, "exit_code", 2))
 
 
+# errno values of an OSError that are the user's path or file system, not a bug: one line and exit 2.
+PATH_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR, errno.ENAMETOOLONG,
+               errno.ELOOP, errno.ENOSPC, errno.EDQUOT, errno.EEXIST}
+
+
 def main(argv: list[str] | None = None) -> None:
     """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
@@ -125,6 +133,11 @@ def main(argv: list[str] | None = None) -> None:
             raise
         _error(str(missing))
         raise SystemExit(missing.exit_code) from None
+    except OSError as exc:  # a path problem no check caught (read-only, missing, a file for a folder): one line
+        if exc.errno not in PATH_ERRNOS or not getattr(exc, "filename", None):
+            raise
+        _error(f"{exc.filename}: {exc.strerror or exc}; check the path and its permissions")
+        raise SystemExit(2) from None
     except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
         err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
                                         "run the same command again to continue"), highlight=False)

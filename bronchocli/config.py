@@ -25,20 +25,27 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Sequence
+from typing import Annotated, Any, Literal, Sequence
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from . import cells, urls
-from .cells import ARCHS, LOBES, POPULATIONS, ROT_LOSSES, Arch, Cell, Lobe, Population, PoseFrame, RotLoss
+from .cells import ARCHS, LOBES, POPULATIONS, ROT_LOSSES, Arch, Cell, Lobe, Population, PoseFrame, RotLoss, Seed
 from .errors import ConfigError
 
 DEFAULT_CONFIG = "experiments.yaml"
 
 
 class Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: no silent coercion (``steps: true`` is not 1, ``lr: "0.1"`` is not 0.1; ints still fill floats);
+    # allow_inf_nan off: ``.inf``/``.nan`` are refused for every float setting.
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+
+# A YAML list for a fixed-length tuple (strict mode alone wants a tuple, which YAML cannot write).
+def _pair(kind: Any, n: int) -> Any:
+    return Annotated[tuple[(kind,) * n], Field(strict=False)]  # type: ignore[misc]
 
 
 def _listify(value: Any) -> Any:
@@ -72,7 +79,7 @@ class Generate(Section):
     anatomy: str = "procedural"  # 'procedural' or a path to a .vtu/.vtp/.nii/.nii.gz/.mhd/.nrrd/.stl/.obj file
     centreline: str | None = None  # centreline graph for a surface-mesh anatomy (computed when absent)
     patients: int = Field(3, ge=1)  # procedural patients (seeds seed, seed+1, ...)
-    seed: int = 0
+    seed: Seed = 0
     lobes: list[Lobe] = list(LOBES)
     lobe_generation: int | None = Field(6, ge=2)  # lobe paths end at this generation (paper: 4-6); None: deepest
     trajectories: int = Field(6, ge=1)  # per patient and lobe
@@ -83,7 +90,7 @@ class Generate(Section):
     roll_deg: float = Field(45.0, ge=0, le=180)  # roll variations in [-r, r] ...
     roll_step_deg: float = Field(15.0, gt=0)  # ... in steps of this
     look_ahead_mm: float = Field(10.0, gt=0)  # the camera looks at the centreline this far ahead
-    step_mm: tuple[float, float] = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
+    step_mm: _pair(float, 2) = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
     base_step_mm: float = Field(0.5, gt=0)  # arc-length grid of base points; increments are multiples of it
     wall_margin_mm: float = Field(0.4, ge=0)  # camera stays this far inside the local lumen radius
     max_frames: int | None = Field(None, ge=2)  # cap on frames per trajectory
@@ -132,7 +139,7 @@ class CsvImport(Section):
     angle_units: Literal["deg", "rad"] = "deg"
     euler: str = "XYZ"  # SciPy convention of the angle columns (e.g. 'xyz' extrinsic, 'ZYX' intrinsic)
     position_units: Literal["voxel", "mm"] = "voxel"
-    spacing_mm: tuple[float, float, float] = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
+    spacing_mm: _pair(float, 3) = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
     camera_forward: CameraAxis = "x"  # the imported camera's optical axis (OpenCV-style cameras: z)
     camera_up: CameraAxis = "z"  # its image-up axis (OpenCV-style cameras, y pointing down: -y)
 
@@ -164,7 +171,7 @@ class Splits(Section):
     val: int = Field(3, ge=1)
     test: int = Field(3, ge=1)
     cross_subject_val: int = Field(3, ge=1)  # cross-subject: val trajectories per training patient and lobe
-    seed: int = 0
+    seed: Seed = 0
 
 
 class Grid(Section):
@@ -172,7 +179,7 @@ class Grid(Section):
     rot_loss: list[RotLoss] = list(ROT_LOSSES)
     population: list[Population] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
-    seed: list[int] = [0, 1, 2]
+    seed: list[Seed] = [0, 1, 2]
     pose_frame: list[PoseFrame] = ["world"]
     train_trajectories: list[int | None] = [None]  # training trajectories per patient and lobe (None: splits.train)
 
@@ -279,7 +286,7 @@ class DataCfg(Section):
 
 class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
-    pretrained: str | None = None  # torchvision-format backbone state dict (local file)
+    pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
     channels_last: bool = True
 
 
@@ -341,7 +348,7 @@ class Tune(Section):
     trials: int = Field(20, ge=1)
     timeout: float | None = Field(None, gt=0)
     sampler: Literal["tpe", "random"] = "tpe"
-    seed: int = 0
+    seed: Seed = 0
     pruner: Literal["median", "hyperband", "none"] = "median"
     warmup_validations: int = Field(1, ge=0)  # validations a trial always runs before it may be pruned
     startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
@@ -358,6 +365,7 @@ class SweepCfg(Section):
     stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
     poll_s: float = Field(2.0, gt=0)  # an idle worker looks again this often (cells held elsewhere)
     logs: str = "runs/sweep-logs"  # one log file per worker process
+    launcher: Literal["local", "slurm"] = "local"  # slurm: submit array tasks as workers (slurm section)
 
     @field_validator("stale_after_s")
     @classmethod
@@ -365,6 +373,61 @@ class SweepCfg(Section):
         beat = info.data.get("heartbeat_s")
         if beat is not None and v < 2 * beat:
             raise ValueError(f"must be at least twice sweep.heartbeat_s ({beat:g}): a live worker must never look stale")
+        return v
+
+
+# sbatch options the Slurm launcher sets itself: ``slurm.additional`` may not override them (docs/cluster.md)
+SLURM_MANAGED = ("array", "job-name", "comment", "output", "error", "open-mode", "signal", "requeue", "no-requeue",
+                 "gres", "gpus-per-task", "cpus-per-task", "mem", "time", "partition", "account", "qos",
+                 "dependency", "parsable", "wrap", "export", "chdir")
+
+
+class SlurmCfg(Section):
+    """``bronchopose sweep --launcher slurm``: every array task is one sweep worker (docs/cluster.md).
+
+    Names follow Hydra's submitit launcher where one exists (timeout_min, cpus_per_task, mem_gb,
+    array_parallelism, setup, additional, signal_delay_s)."""
+
+    partition: str | None = None
+    account: str | None = None
+    qos: str | None = None
+    timeout_min: int = Field(60, ge=1)  # --time of every array task
+    gpus_per_task: int = Field(1, ge=0)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
+    cpus_per_task: int = Field(2, ge=1)  # also the worker's torch threads (train.threads unset)
+    mem_gb: float | None = Field(None, gt=0)  # --mem per task; None: the cluster's DefMemPerCPU
+    tasks: int | None = Field(None, ge=1)  # array tasks (workers) at most per stage; None: one per cell left
+    array_parallelism: int = Field(256, ge=1)  # tasks of one array running at once (--array=0-N%K)
+    signal_delay_s: int = Field(120, ge=1)  # SIGUSR1 this long before the time limit: checkpoint, requeue
+    setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
+    additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
+    python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
+    logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
+    shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
+    exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+
+    @field_validator("partition", "account", "qos")
+    @classmethod
+    def _slurm_name(cls, v: str | None) -> str | None:
+        if v is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._,-]*", v):
+            raise ValueError("must be a Slurm name: letters, digits, '.', '_', '-' (',' separates several)")
+        return v
+
+    @field_validator("setup")
+    @classmethod
+    def _setup(cls, v: list[str]) -> list[str]:
+        if any("\n" in line for line in v):
+            raise ValueError("each entry is one shell line (no newline inside); list several lines instead")
+        return v
+
+    @field_validator("additional")
+    @classmethod
+    def _additional(cls, v: dict[str, Any]) -> dict[str, Any]:
+        for key in v:
+            name = key.replace("_", "-")
+            if not re.fullmatch(r"[a-z][a-z0-9-]*", name):
+                raise ValueError(f"{key!r}: must be an sbatch long option name without dashes, e.g. constraint")
+            if name in SLURM_MANAGED:
+                raise ValueError(f"{key!r}: set by the launcher itself (or by its own slurm key); not allowed here")
         return v
 
 
@@ -378,7 +441,7 @@ class Paths:
     checkpoints: Path
     artifacts: Path
     sweep_logs: Path
-    pretrained: Path | None
+    pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
     tracking_uri: str
@@ -396,7 +459,8 @@ class Paths:
         return cls(
             base=base, dataset=path(cfg.dataset.root), cache=path(cfg.data.cache_dir),
             checkpoints=path(cfg.tracking.checkpoints), artifacts=path(cfg.tracking.artifacts),
-            sweep_logs=path(cfg.sweep.logs), pretrained=path(cfg.model.pretrained),
+            sweep_logs=path(cfg.sweep.logs),
+            pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained),
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy), centreline=path(gen.centreline),
             tracking_uri=urls.resolve(cfg.tracking.uri, base), storage_url=urls.resolve(cfg.storage.url, base),
         )
@@ -416,6 +480,7 @@ class Config(Section):
     eval: EvalCfg = EvalCfg()
     tune: Tune = Tune()
     sweep: SweepCfg = SweepCfg()
+    slurm: SlurmCfg = SlurmCfg()
     profiles: dict[str, dict[str, Any]] = {}
 
     _paths: Paths | None = PrivateAttr(default=None)
@@ -489,7 +554,45 @@ class Config(Section):
         raw = self.model_dump(mode="json")
         for key, value in values.items():
             _set_path(raw, key, value, where=f"override {key}")
-        return _validate(raw, self._source, {}, self.paths.base, self._profile)
+        space = any(k == "tune" or k.startswith("tune.space") for k in values)  # else checked when it loaded
+        return _validate(raw, self._source, {}, self.paths.base, self._profile, space=space)
+
+
+TUNABLE = ("data", "model", "train", "splits", "dataset")  # the sections ``tune.space`` may search
+
+
+def space_problems(cfg: Config) -> list[str]:
+    """What is wrong with ``tune.space``: each key a settable run setting, each distribution well formed."""
+    problems = []
+    for path, p in cfg.tune.space.items():
+        where = f"tune.space.{path}"
+        if path.split(".")[0] not in TUNABLE:
+            problems.append(f"{where}: only run settings can be tuned ({', '.join(TUNABLE)})")
+            continue
+        if p.type == "categorical" and not p.choices:
+            problems.append(f"{where}: categorical needs a non-empty 'choices' list")
+            continue
+        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
+            problems.append(f"{where}: {p.type} needs low < high (got low={p.low}, high={p.high})")
+            continue
+        if p.log and p.type != "categorical" and p.low <= 0:
+            problems.append(f"{where}: log scale needs low > 0 (got {p.low})")
+            continue
+        if p.step is not None and p.step <= 0:
+            problems.append(f"{where}: step must be > 0 (got {p.step})")
+            continue
+        probes = p.choices if p.type == "categorical" else [p.low, p.high]
+        for value in probes:  # every choice (and both ends of a range) must be a valid value of the setting
+            value = int(value) if p.type == "int" else value
+            raw = cfg.model_dump(mode="json")
+            try:
+                _set_path(raw, path, value, where=where)
+                _validate(raw, cfg._source, {}, cfg.paths.base, cfg._profile, space=False)
+            except ConfigError as exc:
+                last = str(exc).splitlines()[-1].strip().removeprefix("invalid config: ")
+                problems.append(f"{where}: {last.partition(': ')[2] or last}")
+                break
+    return problems
 
 
 # -- loading ------------------------------------------------------------------
@@ -514,7 +617,10 @@ def parse_override(text: str) -> tuple[str, Any]:
     if not sep or not re.fullmatch(r"[A-Za-z_][\w-]*(\.[\w-]+)*", key.strip()):
         raise ConfigError(urls.redact(f"--set {text!r}: expected key.path=value, e.g. --set train.lr=3e-4"))
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        _check_structure(yaml.compose(raw, Loader=_UniqueKeyLoader), f"--set {key.strip()}")  # noqa: S506
+        value = yaml.load(raw, Loader=_UniqueKeyLoader) if raw.strip() else None  # noqa: S506 - SafeLoader
+    except _DuplicateKey as exc:
+        raise ConfigError(urls.redact(f"--set {text!r}: duplicate key {exc.key!r}")) from None
     except yaml.YAMLError:
         value = raw
     return key.strip(), value
@@ -547,21 +653,57 @@ class _DuplicateKey(yaml.YAMLError):
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, except that a key written twice in one mapping is an error (PyYAML keeps the last)."""
+    """PyYAML's safe loader, except that a key written twice in one mapping is an error (PyYAML keeps the last),
+    in block and flow style alike, and ``1e-5`` is a number (YAML 1.2; PyYAML's 1.1 rules read it as text)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: dict[Any, int] = {}
+        seen: dict[Any, tuple[int, int]] = {}
         for key_node, _ in node.value:
             if key_node.tag == "tag:yaml.org,2002:merge":  # ``<<: *anchor`` may repeat and is overridden by design
                 continue
             key = self.construct_object(key_node, deep=True)
+            mark = key_node.start_mark
             try:
-                first = seen.setdefault(key, key_node.start_mark.line + 1)
+                first = seen.setdefault(key, (mark.index, mark.line + 1))
             except TypeError:  # an unhashable key: the base class reports it
                 continue
-            if first != key_node.start_mark.line + 1:
-                raise _DuplicateKey(key, key_node.start_mark.line + 1, first)
+            if first[0] != mark.index:  # the position, not the line: ``{lr: 1, lr: 2}`` is one line
+                raise _DuplicateKey(key, mark.line + 1, first[1])
         return super().construct_mapping(node, deep)
+
+
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+MAX_YAML_VALUES = 100_000  # a config past this many values (after aliases expand) is an alias bomb, not a config
+
+
+def _check_structure(node: yaml.Node | None, source: str) -> None:
+    """Refuse a recursive alias (an anchor used inside itself) and an alias bomb, naming the line."""
+    sizes: dict[int, int] = {}
+    active: set[int] = set()
+
+    def size(n: yaml.Node) -> int:
+        if id(n) in sizes:
+            return sizes[id(n)]
+        if id(n) in active:
+            raise ConfigError(f"{source}:{n.start_mark.line + 1}: recursive YAML alias (an anchor used inside "
+                              "itself); write the values out instead")
+        active.add(id(n))
+        children = ([c for pair in n.value for c in pair] if isinstance(n, yaml.MappingNode) else
+                    list(n.value) if isinstance(n, yaml.SequenceNode) else [])
+        total = 1 + sum(size(c) for c in children)
+        active.discard(id(n))
+        if total > MAX_YAML_VALUES:
+            raise ConfigError(f"{source}:{n.start_mark.line + 1}: YAML aliases expand to more than "
+                              f"{MAX_YAML_VALUES:,} values; a config this large is not a config")
+        sizes[id(n)] = total
+        return total
+
+    if node is not None:
+        size(node)
 
 
 def _read_text(path: Path) -> str:
@@ -582,7 +724,8 @@ def _read_text(path: Path) -> str:
 def _read_yaml(path: Path) -> tuple[dict[str, Any], dict[tuple, str]]:
     text = _read_text(path)
     try:
-        node = yaml.compose(text)
+        node = yaml.compose(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+        _check_structure(node, str(path))
         data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except _DuplicateKey as exc:
         raise ConfigError(f"{path}:{exc.line}: duplicate key {exc.key!r} (first written at line {exc.first}); "
@@ -639,13 +782,21 @@ def _format_errors(exc: ValidationError, source: str, lines: dict[tuple, str]) -
     return urls.redact("\n".join([head, *("  " + p for p in unique)]))
 
 
-def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None) -> Config:
+def _validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None,
+              space: bool = True) -> Config:
     try:
         cfg = Config.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(_format_errors(exc, source, lines)) from None
     cfg._source, cfg._profile = source, profile
     cfg._paths = Paths.of(cfg, base)
+    problems = space_problems(cfg) if space else []
+    if problems:  # the same check as `tune`, so `config` never calls a space valid that tune refuses
+        where = next((v for k, v in lines.items() if k[:2] == ("tune", "space")), source)
+        shown = [f"{where}: {p}" for p in problems]
+        raise ConfigError(urls.redact(f"invalid config: {shown[0]}" if len(shown) == 1 else
+                                      "\n".join([f"invalid config ({len(shown)} problems):",
+                                                  *("  " + p for p in shown)])))
     return cfg
 
 
@@ -686,7 +837,7 @@ def load_config(
 # -- grid ---------------------------------------------------------------------
 
 
-# Sections that change what a run computes; tracking, storage, tune, sweep and
+# Sections that change what a run computes; tracking, storage, tune, sweep, slurm and
 # profiles do not, so moving the MLflow store never invalidates finished cells.
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 

@@ -99,6 +99,27 @@ def matrix_to_euler(R):
     return xp.stack([alpha, beta, gamma], -1) * (180.0 / math.pi)
 
 
+def canonical_euler(angles_deg):
+    """The canonical XYZ triple of each rotation ``(..., 3)``: beta in [-90, 90], alpha and gamma in (-180, 180].
+
+    Every rotation has two XYZ triples, (a, b, c) and (a+180, 180-b, c+180); this one is what
+    :func:`matrix_to_euler` (and so chaining in the ``camera`` frame) returns. Comparing two triples angle by
+    angle only compares rotations when both are canonical. A triple that already is canonical (|beta| < 90,
+    alpha and gamma in (-180, 180]) is returned bit for bit; the others go through the matrix and back.
+    """
+    e = _as_array(angles_deg)
+    xp = _xp(e)
+    a, b, c = e[..., 0], e[..., 1], e[..., 2]
+    keep = (xp.abs(b) < 90.0) & (a > -180.0) & (a <= 180.0) & (c > -180.0) & (c <= 180.0)
+    return xp.where(keep[..., None], e, matrix_to_euler(euler_to_matrix(e)))
+
+
+def canonical_pose(pose):
+    """Poses ``(..., 6)`` with their orientation triple made canonical (:func:`canonical_euler`)."""
+    pose = _as_array(pose)
+    return _xp(pose).concatenate([pose[..., :3], canonical_euler(pose[..., 3:])], -1)
+
+
 def forward_vector(angles_deg):
     """Unit optical axis ``R @ (1, 0, 0)`` (the first column of R), ``(..., 3)``."""
     return euler_to_matrix(angles_deg)[..., :, 0]

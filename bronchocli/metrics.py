@@ -14,6 +14,14 @@ function is a training loss (after ``.mean()``) and an evaluation metric.
   angles converted to radians first (the authors' code fed degrees to cos);
 * ``geodesic`` angle of R_E^T R_GT in degrees.
 
+Rotation L2 and CE compare Euler triples angle by angle, which only compares
+rotations when both triples are in the same (canonical) form: wherever a
+triple stands for a rotation (an absolute orientation, a ``camera``-frame
+relative pose), :func:`per_pose_errors` with ``rotations=True`` first rewrites
+both in the canonical form (geometry.canonical_euler), so the error does not
+depend on which of the two XYZ triples of a rotation was written. ``world``-frame
+relative poses are angle differences, not rotations, and are compared as they are.
+
 The arccos inside ``de`` and ``geodesic`` clamps its argument, so it never
 returns NaN; as a loss it clamps slightly inside [-1, 1] so the gradient is
 finite at zero error (arccos' derivative is infinite at 1).
@@ -157,9 +165,16 @@ def _to_tensor(x) -> torch.Tensor:
     return torch.from_numpy(np.array(x, dtype=np.float64))  # a copy: inputs may be read-only views
 
 
-def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None) -> dict[str, np.ndarray]:
-    """Every metric for each pose of ``pred``/``gt`` ``(N, 6)``, as float64 arrays of length N."""
+def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None, *,
+                    rotations: bool = False) -> dict[str, np.ndarray]:
+    """Every metric for each pose of ``pred``/``gt`` ``(N, 6)``, as float64 arrays of length N.
+
+    ``rotations``: the angle triples stand for rotations (absolute poses, ``camera``-frame deltas); both are
+    made canonical first, so rotation L2 and CE compare rotations, not whichever triple was written.
+    """
     p, g = _to_tensor(pred).reshape(-1, 6), _to_tensor(gt).reshape(-1, 6)
+    if rotations:
+        p, g = geometry.canonical_pose(p), geometry.canonical_pose(g)
     with torch.no_grad():
         out = {name: fn(p, g).numpy() for name, fn in METRICS.items()}
         if spacing_mm is not None:
@@ -168,9 +183,11 @@ def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None) -> dict
     return out
 
 
-def pair_metrics(pred, gt, spacing_mm: Sequence[float] | None = None) -> dict[str, Stat]:
-    """Per image pair: metrics of predicted vs true relative poses ``(N, 6)``, mean and std over pairs."""
-    return {k: Stat.of(v) for k, v in per_pose_errors(pred, gt, spacing_mm).items()}
+def pair_metrics(pred, gt, spacing_mm: Sequence[float] | None = None, *, rotations: bool = False
+                 ) -> dict[str, Stat]:
+    """Per image pair: metrics of predicted vs true relative poses ``(N, 6)``, mean and std over pairs
+    (``rotations``: see :func:`per_pose_errors`; True for ``camera``-frame deltas and absolute poses)."""
+    return {k: Stat.of(v) for k, v in per_pose_errors(pred, gt, spacing_mm, rotations=rotations).items()}
 
 
 def accumulated_endpoints(
@@ -193,6 +210,7 @@ def accumulated_metrics(
     frame: geometry.PoseFrame,
     spacing_mm: Sequence[float] | None = None,
 ) -> dict[str, Stat]:
-    """Accumulated evaluation: chain whole trajectories, score the last pose only; stats over trajectories."""
+    """Accumulated evaluation: chain whole trajectories, score the last pose only; stats over trajectories.
+    The endpoints are orientations, compared as rotations whatever form either triple is written in."""
     pred_end, gt_end = accumulated_endpoints(trajectories, frame)
-    return pair_metrics(pred_end, gt_end, spacing_mm)
+    return pair_metrics(pred_end, gt_end, spacing_mm, rotations=True)

@@ -16,7 +16,8 @@ def trajectory_figure(
 ):
     """3-D trajectories (voxel axes): ground truth vs one or more models, one panel per trajectory.
 
-    ``ground_truth[i]`` and ``predictions[name][i]`` are ``(N, >=3)`` absolute poses.
+    ``ground_truth[i]`` and ``predictions[name][i]`` are ``(N, >=3)`` absolute poses; ``ground_truth[i]``
+    may be None (a trajectory tracked without ground truth: its first predicted pose is marked instead).
     """
     n = len(ground_truth)
     cols = max(1, min(columns, n))
@@ -25,8 +26,10 @@ def trajectory_figure(
     styles = ["tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange"]
     for i, gt in enumerate(ground_truth):
         ax = fig.add_subplot(rows, cols, i + 1, projection="3d")
-        ax.plot(gt[:, 0], gt[:, 1], gt[:, 2], color="black", lw=2, label="ground truth")
-        ax.scatter(*gt[0, :3], color="black", s=12)
+        if gt is not None:
+            ax.plot(gt[:, 0], gt[:, 1], gt[:, 2], color="black", lw=2, label="ground truth")
+        start = gt if gt is not None else next(iter(predictions.values()))[i]
+        ax.scatter(*start[0, :3], color="black", s=12)
         for (name, preds), color in zip(predictions.items(), styles):
             p = preds[i]
             ax.plot(p[:, 0], p[:, 1], p[:, 2], color=color, lw=1.4, label=name)

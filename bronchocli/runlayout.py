@@ -11,6 +11,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from . import urls
 from .config import Config
 from .errors import BronchoError
 
@@ -67,3 +68,76 @@ def process_age_s() -> float | None:
         return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return None
+
+
+# -- path pre-flight: one line before anything is created -----------------------------------------------------
+
+
+def _why_not_writable(folder: Path) -> str | None:
+    """Why nothing can be created in the existing folder ``folder`` (None: it can)."""
+    try:
+        if os.statvfs(folder).f_flag & os.ST_RDONLY:
+            return "read-only file system"
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return "permission denied"
+    return None
+
+
+def check_output(path: Path, setting: str, kind: str = "folder") -> None:
+    """``path`` (a folder, or a ``file`` to create) can be written: BronchoError naming the setting otherwise.
+
+    Creates nothing: the nearest existing ancestor must be a folder this user may write in, on a writable
+    file system, and ``path`` itself, if it exists, must be of the right kind (and writable).
+    """
+    if path.exists():
+        if kind == "folder" and not path.is_dir():
+            raise BronchoError(f"{setting} {path}: is a file, not a folder; point {setting} at a folder")
+        if kind == "file" and path.is_dir():
+            raise BronchoError(f"{setting} {path}: is a folder, not a database file; point {setting} at a file")
+        target = path if path.is_dir() else path.parent
+        why = _why_not_writable(target)
+        if why is not None:
+            raise BronchoError(f"{setting} {path}: cannot write there ({why}); point {setting} at a writable place")
+        return
+    nearest = path.parent
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise BronchoError(f"{setting} {path}: {nearest} is a file, so no {kind} can be created there")
+    why = _why_not_writable(nearest)
+    if why is not None:
+        raise BronchoError(f"{setting} {path}: cannot create it in {nearest} ({why}); point {setting} at a "
+                           "writable place")
+
+
+def check_dataset_root(cfg: Config) -> None:
+    """``dataset.root`` is a folder (or missing, to be generated): a file there is one line, before anything runs."""
+    root = cfg.paths.dataset
+    if root.exists() and not root.is_dir():
+        raise BronchoError(f"dataset.root {root}: is a file, not a dataset folder; point dataset.root at the "
+                           "folder holding dataset.json (or at a new folder to generate one there)")
+    if not root.exists():
+        check_output(root, "dataset.root")
+
+
+def check_paths(cfg: Config, *, storage: bool = False, logs: bool = False) -> None:
+    """Every folder and database file a training command writes, checked before any is created (one line each).
+
+    ``storage``: also the SQLite file of ``storage.url`` (sweep, tune); ``logs``: the sweep's worker logs.
+    """
+    check_dataset_root(cfg)
+    outputs = [(cfg.paths.checkpoints, "tracking.checkpoints", "folder"), (cfg.paths.cache, "data.cache_dir", "folder")]
+    tracking_db = urls.sqlite_file(cfg.paths.tracking_uri)
+    if tracking_db is not None:
+        outputs += [(tracking_db, "tracking.uri", "file"), (cfg.paths.artifacts, "tracking.artifacts", "folder")]
+    elif not urls.is_server(cfg.paths.tracking_uri) and not urls.is_postgres(cfg.paths.tracking_uri):
+        outputs.append((cfg.paths.artifacts, "tracking.artifacts", "folder"))
+    storage_db = urls.sqlite_file(cfg.paths.storage_url)
+    if logs:
+        outputs.append((cfg.paths.sweep_logs, "sweep.logs", "folder"))
+    if storage_db is not None and storage:
+        outputs.append((storage_db, "storage.url", "file"))
+    for path, setting, kind in outputs:
+        check_output(path, setting, kind)

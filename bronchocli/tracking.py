@@ -29,6 +29,7 @@ from mlflow.entities import Metric, Param, Run
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 from sqlalchemy import create_engine, text
+from sqlalchemy import inspect as sqlalchemy_inspect
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
@@ -57,6 +58,7 @@ TAG_SOURCE_GIT = "mlflow.source.git.commit"
 TAG_SOURCE_BRANCH = "mlflow.source.git.branch"
 # MLflow 3's UI opens an experiment of this kind on its runs table, not on the GenAI overview.
 EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
+TAG_INIT = "init"  # backbone initialisation: "random", "imagenet:<torchvision file>", "file:<name>#<sha256>"
 
 _PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
 # pg_advisory_lock key under which MLflow's first-time table creation runs (any fixed 64-bit number will do;
@@ -80,8 +82,11 @@ def redacted_uri(cfg: Config) -> str:
     return urls.redact(cfg.paths.tracking_uri)
 
 
-def client_for(cfg: Config) -> MlflowClient:
+def client_for(cfg: Config, *, reading: bool = False) -> MlflowClient:
     """An MLflow client on the config's store, its tables created; a dead server fails within tracking.timeout_s.
+
+    ``reading`` (report, status): an experiment whose artifacts live outside ``tracking.artifacts`` is read
+    where they are instead of refused (``relocate_artifacts``); a run is never written there.
 
     MLflow creates (migrates) its tables when it first opens a store, and two
     processes doing that at once collide: on SQLite a file lock, on PostgreSQL
@@ -93,14 +98,91 @@ def client_for(cfg: Config) -> MlflowClient:
     db = urls.sqlite_file(uri)
     if db is not None:
         with file_lock(f"{db}.lock"):
-            return _open(uri)
+            client = _open(uri)
+            relocate_artifacts(client, cfg, rewrite=True, reading=reading)
+            return client
     if urls.is_server(uri):
         probe_server(uri, timeout_s)
         return _client(uri)
     if urls.is_postgres(uri):
         with database_lock(uri, timeout_s, what="tracking.uri"):  # also the reachability check
-            return _open(uri)
+            client = _open(uri)
+        relocate_artifacts(client, cfg, rewrite=False, reading=reading)
+        return client
     return _client(uri)
+
+
+class ArtifactsElsewhere(BronchoError):
+    """The experiment's artifacts are not where the config's ``tracking.artifacts`` says."""
+
+
+def _local_path(location: str) -> Path | None:
+    """The folder of a ``file:`` URI or a plain path; None for remote artifact stores (s3://, mlflow-artifacts:)."""
+    if location.startswith("file:"):
+        return Path(urllib.request.url2pathname(urllib.parse.urlparse(location).path))
+    if location and "://" not in location and not location.startswith("mlflow-artifacts:"):
+        return Path(location)
+    return None
+
+
+def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool, reading: bool = False) -> None:
+    """Point the config's experiment (and its runs and models) at ``tracking.artifacts`` when it points elsewhere.
+
+    MLflow stores absolute artifact locations, so a copied (``cp -a``) or moved
+    project would otherwise write into, and report from, the original's folder,
+    and a changed ``tracking.artifacts`` would be ignored. When the store is a
+    project's own SQLite file (``rewrite``) and the runs' artifacts are under the
+    configured folder (a copy or a move), or nowhere any more, or there are no
+    runs, the locations are rewritten. Otherwise (a database shared with
+    another folder, or artifacts that still live only in the old place) it
+    refuses in one line naming both folders and the fix, before anything runs
+    (``reading``: reports and status read the artifacts where they are instead).
+    """
+    uri = cfg.paths.tracking_uri
+    if urls.is_server(uri) or not _is_local_store(uri):
+        return  # a tracking server decides where artifacts go
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    have = _local_path(exp.artifact_location or "") if exp is not None else None
+    want = cfg.paths.artifacts
+    if have is None or have == want or have.resolve() == want.resolve():
+        return
+    runs = search_runs(client, [exp.experiment_id], max_results=50000)
+    moved = any((want / r.info.run_id).exists() for r in runs)
+    gone = not any((have / r.info.run_id).exists() for r in runs)
+    if rewrite and (not runs or moved or gone):
+        _rewrite_locations(uri, exp.experiment_id, exp.artifact_location, want.as_uri())
+        return
+    if reading:
+        return
+    fix = ("this copy shares the tracking database with the original: set tracking.experiment to a new name here, "
+           f"or tracking.artifacts={have}" if not rewrite else
+           f"move the folder there (mv {have} {want}), set tracking.artifacts={have}, or use a new tracking.experiment")
+    raise ArtifactsElsewhere(f"MLflow experiment {cfg.experiment_name!r} keeps its artifacts in {have} but "
+                             f"tracking.artifacts is {want}; {fix}")
+
+
+def _rewrite_locations(uri: str, experiment: str, old: str, new: str) -> None:
+    """Replace the ``old`` artifact-location prefix with ``new`` in one experiment's rows (one transaction)."""
+    old, new = old.rstrip("/"), new.rstrip("/")
+    statements = [
+        ("experiments", "artifact_location", "experiment_id"),
+        ("runs", "artifact_uri", "experiment_id"),
+        ("logged_models", "artifact_location", "experiment_id"),
+    ]
+    engine = create_engine(urls.sqlalchemy(uri), poolclass=NullPool)
+    try:
+        with engine.begin() as conn:
+            tables = set(sqlalchemy_inspect(conn).get_table_names())
+            for table, column, key in statements:
+                if table not in tables:
+                    continue
+                conn.execute(text(
+                    f"UPDATE {table} SET {column} = :new || substr({column}, :n) "
+                    f"WHERE {key} = :exp AND ({column} = :old OR substr({column}, 1, :m) = :prefix)"),
+                    {"new": new, "n": len(old) + 1, "exp": int(experiment) if experiment.isdigit() else experiment,
+                     "old": old, "m": len(old) + 1, "prefix": old + "/"})
+    finally:
+        engine.dispose()
 
 
 def check_reachable(cfg: Config) -> None:

@@ -22,6 +22,8 @@ LAYERS: list[set[str]] = [
     {"generation"},
     {"models"},
     {"training"},
+    {"inference"},
+    {"api"},
     {"sweep"},
     {"reporting"},
     {"commands"},

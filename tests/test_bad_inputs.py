@@ -13,7 +13,7 @@ import socket
 import subprocess
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -38,6 +38,7 @@ class Project:
     root: Path
     config: Path
     silent_port: int  # a TCP port that accepts connections and never answers (a hung server)
+    mounts: list[Path] = field(default_factory=list)  # file systems a case mounted (unmounted afterwards)
 
     def write(self, name: str, text: str | bytes) -> Path:
         path = self.root / name
@@ -59,7 +60,7 @@ def silent_port():
 
 
 @pytest.fixture
-def project(tmp_path, silent_port) -> Project:
+def project(tmp_path, silent_port):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     config = tmp_path / "experiments.yaml"
     config.write_text(yaml.safe_dump({
@@ -67,7 +68,10 @@ def project(tmp_path, silent_port) -> Project:
         "grid": {"arch": ["baseline"], "rot_loss": ["mse"], "population": ["personalized"], "seed": [0]},
         "tracking": {"timeout_s": 1}, "train": {"steps": 2, "batch_size": 2, "threads": 1},
     }))
-    return Project(tmp_path, config, silent_port)
+    project = Project(tmp_path, config, silent_port)
+    yield project
+    for mount in project.mounts:
+        subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
 def edit_csv_row(p: Project) -> Path:
@@ -350,3 +354,255 @@ def test_no_printed_form_of_the_config_shows_a_password(cli, project, args, monk
     assert "hunter2" not in out + err
     if args == ["config"]:
         assert code == 0 and "http://alice:***@127.0.0.1:9/mlflow" in out and "bob:***@db" in out
+
+
+# == bad inputs by family (issue 22.7) =====================================================================
+# Each family is a set of cases that must behave alike: exit 2, one line on stderr naming the culprit, no
+# traceback, and nothing created beyond what the case allows (a dataset problem found while decoding frames
+# may leave the frame-cache folder). New cases join a family; the test does not change.
+
+RUN = ["-a", "baseline", "-l", "mse", "-P", "personalized"]
+
+
+def readonly(p: Project) -> Path:
+    """The project copied onto a tmpfs that is then remounted read-only (skips where mounting is not allowed)."""
+    mount = p.root / "ro"
+    mount.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(mount)], capture_output=True).returncode:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    p.mounts.append(mount)
+    subprocess.run(["cp", "-a", str(p.config), str(p.root / "data"), str(mount)], check=True)
+    subprocess.run(["mount", "-o", "remount,ro", str(mount)], check=True)
+    return mount / p.config.name
+
+
+def dataset_file(p: Project) -> list[str]:
+    return ["-c", str(p.config), "--set", f"dataset.root={p.write('data/file.bin', 'not a folder')}"]
+
+
+def truncate_frame(p: Project) -> Path:
+    root = p.root / "data" / "tiny"
+    frame = sorted(root.rglob("*.png"))[0]
+    frame.write_bytes(frame.read_bytes()[:40])  # a PNG cut short, as by a full disk or an interrupted copy
+    return root
+
+
+def frame_folder(p: Project) -> Path:
+    root = p.root / "data" / "tiny"
+    frame = sorted(root.rglob("*.png"))[0]
+    frame.unlink()
+    frame.mkdir()
+    return root
+
+
+COMMANDS_THAT_WRITE: dict[str, list[str]] = {
+    "train": ["train", *RUN], "sweep": ["sweep"], "sweep --dry-run": ["sweep", "--dry-run"],
+    "tune": ["tune", *RUN, "-n", "1"],
+}
+
+# family -> case -> (argv maker, text the line must contain, paths the case may create)
+FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[str, ...]]]] = {
+    "paths": {
+        **{f"config on a read-only file system ({name})": (
+            lambda p, argv=argv: [*argv, "-c", str(readonly(p))], "read-only file system", ())
+           for name, argv in COMMANDS_THAT_WRITE.items()},
+        **{f"dataset.root is a file ({name})": (lambda p, argv=argv: [*argv, *dataset_file(p)],
+                                                "is a file, not a dataset folder", ())
+           for name, argv in COMMANDS_THAT_WRITE.items()},
+        "tracking database is a folder": (lambda p: ["train", *RUN, *C(p), "--set", "tracking.uri=sqlite:///data"],
+                                          "is a folder, not a database file", ()),
+        "sweep storage is a folder": (lambda p: ["sweep", *C(p), "--set", "storage.url=sqlite:///data"],
+                                      "storage.url", ()),
+        "artifacts folder is a file": (lambda p: ["train", *RUN, *C(p), "--set",
+                                                  f"tracking.artifacts={p.config}"], "is a file, not a folder", ()),
+        "checkpoints under a file": (lambda p: ["sweep", *C(p), "--set", f"tracking.checkpoints={p.config}/ck"],
+                                     "is a file, so no folder can be created there", ()),
+        "cache folder under a file": (lambda p: ["tune", *RUN, *C(p), "--set", f"data.cache_dir={p.config}/c"],
+                                      "data.cache_dir", ()),
+        "dataset.json is a folder": (lambda p: ["data", "stats", str(_json_folder(p))], "dataset.json", ()),
+        "a frame is a folder": (lambda p: ["data", "preview", str(frame_folder(p)), "--out",
+                                           str(p.root / "prev.png")], "t000_f0000.png", ()),
+        "--latency-from is a folder": (lambda p: ["report", *C(p), "--latency-from", str(p.root / "data")],
+                                       "--latency-from", ()),
+    },
+    "YAML constructs": {
+        "recursive alias in a list": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: t\nx: &a [1, *a]\n"))],
+                                      "e.yaml:2: recursive YAML alias", ()),
+        "recursive alias in a mapping": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: t\ntrain: &t\n"
+                                                                                 "  lr: 1\n  sub: *t\n"))],
+                                         "recursive YAML alias", ()),
+        "alias bomb": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: t\n" + _laughs()))],
+                       "YAML aliases expand to more than", ()),
+        "flow mapping with a repeated key": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: t\n"
+                                                                                     "train: {lr: 1, lr: 2}\n"))],
+                                             "e.yaml:2: duplicate key 'lr'", ()),
+        "repeated key in a --set value": (lambda p: ["config", *C(p), "--set", "train={lr: 1, lr: 2}"],
+                                          "duplicate key 'lr'", ()),
+        "python tag": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: !!python/object/apply:os.system "
+                                                              "['touch pwned']\n"))], "e.yaml:1", ()),
+        "local tag": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: !shell t\n"))], "e.yaml:1", ()),
+        "binary tag": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: !!binary dGlueQ==\n"))],
+                       "name", ()),
+        "timestamp for a name": (lambda p: ["config", "-c", str(p.write("e.yaml", "name: 2024-01-01\n"))],
+                                 "name", ()),
+        "set tag for a list": (lambda p: ["config", *C(p), "--set", "grid.seed=!!set {1, 2}"], "grid.seed", ()),
+    },
+    "numbers": {
+        "train.lr=.inf (train)": (lambda p: ["train", *RUN, *C(p), "--set", "train.lr=.inf"],
+                                  "train.lr: Infinity: input should be a finite number", ()),
+        "dataset.generate.step_mm with .nan": (lambda p: ["config", *C(p), "--set",
+                                                          "dataset.generate.step_mm=[.nan, 2]"],
+                                               "dataset.generate.step_mm", ()),
+        "negative --seed (train)": (lambda p: ["train", *RUN, *C(p), "--seed", "-1"], "seed", ()),
+        "--seed past 2**32-1 (tune)": (lambda p: ["tune", *RUN, *C(p), "--seed", "4294967296"], "seed", ()),
+        "negative splits.seed (sweep)": (lambda p: ["sweep", *C(p), "--set", "splits.seed=-3"],
+                                         "splits.seed: -3", ()),
+        "boolean for a count": (lambda p: ["config", *C(p), "--set", "train.steps=true"],
+                                "train.steps: true: input should be a valid integer", ()),
+        "numeric string for a rate": (lambda p: ["config", *C(p), "--set", "train.lr='0.1'"],
+                                      "train.lr: \"0.1\": input should be a valid number", ()),
+        "fraction for a count": (lambda p: ["config", *C(p), "--set", "train.steps=2.5"], "train.steps", ()),
+    },
+    "tune.space": {
+        "unknown key (config)": (lambda p: ["config", *C(p), "--set", "tune.space={train.lrr: {type: float, "
+                                            "low: 1, high: 2}}"], "tune.space.train.lrr", ()),
+        "low > high (config)": (lambda p: ["config", *C(p), "--set", "tune.space={train.lr: {type: float, "
+                                           "low: 0.1, high: 0.01}}"], "needs low < high", ()),
+        "low > high (tune)": (lambda p: ["tune", *RUN, *C(p), "--set", "tune.space={train.lr: {type: float, "
+                                         "low: 0.1, high: 0.01}}"], "needs low < high", ()),
+        "log scale from 0": (lambda p: ["config", *C(p), "--set", "tune.space={train.lr: {type: float, low: 0, "
+                                        "high: 0.1, log: true}}"], "log scale needs low > 0", ()),
+        "a choice the setting refuses": (lambda p: ["config", *C(p), "--set", "tune.space={train.schedule: "
+                                                    "{type: categorical, choices: [cosine, zigzag]}}"],
+                                         "tune.space.train.schedule", ()),
+        "a range past the setting's bound": (lambda p: ["sweep", "--dry-run", *C(p), "--set", "tune.space="
+                                                        "{model.dropout: {type: float, low: 0.1, high: 1.5}}"],
+                                             "tune.space.model.dropout", ()),
+        "not a run setting": (lambda p: ["config", *C(p), "--set", "tune.space={sweep.poll_s: {type: float, "
+                                         "low: 1, high: 2}}"], "only run settings can be tuned", ()),
+        "empty choices": (lambda p: ["config", *C(p), "--set", "tune.space={train.schedule: {type: categorical, "
+                                     "choices: []}}"], "non-empty 'choices'", ()),
+    },
+    "datasets": {
+        "truncated PNG (data preview)": (lambda p: ["data", "preview", str(truncate_frame(p)), "--out",
+                                                    str(p.root / "prev.png")], "cannot decode frame", ()),
+        "truncated PNG (train)": (lambda p: [*_(truncate_frame(p)), "train", *RUN, *C(p)], "cannot decode frame",
+                                  ("runs",)),  # the frame cache's folder and lock
+        "text file named .png (data preview)": (lambda p: ["data", "preview", str(_text_frame(p)), "--out",
+                                                           str(p.root / "prev.png")], "cannot decode frame", ()),
+    },
+}
+
+
+def _(*_made) -> list[str]:
+    """Build a case's input for its side effect (the argv follows)."""
+    return []
+
+
+def _laughs() -> str:
+    lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 7)]
+    return "\n".join(lines) + "\n"
+
+
+def _json_folder(p: Project) -> Path:
+    root = p.root / "data" / "tiny"
+    (root / "dataset.json").unlink()
+    (root / "dataset.json").mkdir()
+    return root
+
+
+def _text_frame(p: Project) -> Path:
+    root = p.root / "data" / "tiny"
+    sorted(root.rglob("*.png"))[0].write_text("not an image\n")
+    return root
+
+
+@pytest.mark.parametrize("family,case", [(f, c) for f, cases in FAMILIES.items() for c in cases],
+                         ids=[f"{f}: {c}" for f, cases in FAMILIES.items() for c in cases])
+def test_each_family_of_bad_input_is_one_line_and_exit_2(cli, project, family, case):
+    make, culprit, allowed = FAMILIES[family][case]
+    args = make(project)
+    before = project.files()
+    code, out, err = cli(*args)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2, f"exit {code}\nstdout: {out}\nstderr: {err}"
+    assert len(lines) == 1, f"expected one line on stderr, got:\n{err}"
+    assert lines[0].startswith("error: ") and culprit in lines[0], lines[0]
+    assert "Traceback" not in out + err and "all is well" not in out
+    created = {f for f in project.files() - before if not any(f == a or f.startswith(a + "/") for a in allowed)}
+    assert not created, f"left behind: {sorted(created)}"
+    assert not (project.root / "pwned").exists()
+
+
+# -- numbers, over the whole schema ---------------------------------------------------------------------------
+
+
+def _settings(model=Config, prefix: str = "") -> list[tuple[str, set]]:
+    """(dotted path, scalar types it takes) of every scalar setting of the config schema."""
+    from typing import Annotated, Literal, Union, get_args, get_origin
+
+    from pydantic import BaseModel
+
+    out = []
+    for name, field in model.model_fields.items():
+        ann, path = field.annotation, f"{prefix}{name}"
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out += _settings(ann, f"{path}.")
+            continue
+        args = get_args(ann) if get_origin(ann) in (Union, getattr(__import__("types"), "UnionType")) else (ann,)
+        args = tuple(get_args(a)[0] if get_origin(a) is Annotated else a for a in args)
+        kinds = {a for a in args if a in (int, float, bool)}
+        if kinds and not any(get_origin(a) is Literal for a in args):
+            out.append((path, kinds))
+    return out
+
+
+SETTINGS = _settings()
+FLOATS = [path for path, kinds in SETTINGS if float in kinds]
+INTS = [path for path, kinds in SETTINGS if kinds == {int}]
+SEEDS = [path for path in INTS if path.endswith("seed")] + ["grid.seed"]
+
+
+def test_the_schema_walk_finds_the_settings_it_must():
+    assert {"train.lr", "model.dropout", "tracking.timeout_s", "sweep.heartbeat_s"} <= set(FLOATS)
+    assert {"train.steps", "splits.seed", "dataset.generate.seed", "tune.seed"} <= set(INTS)
+
+
+def _refused(overrides: list[str], path: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        load_config(REPO / "experiments.yaml", overrides=overrides)
+    message = str(info.value)
+    assert path in message and len(message.splitlines()) == 1, message
+    return message
+
+
+@pytest.mark.parametrize("path", FLOATS)
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan"])
+def test_every_float_setting_refuses_non_finite_values(path, value):
+    assert "finite number" in _refused([f"{path}={value}"], path)
+
+
+@pytest.mark.parametrize("path", FLOATS + INTS)
+@pytest.mark.parametrize("value", ["true", "false", "'3'", "'1e-3'"])
+def test_no_number_setting_coerces_booleans_or_text(path, value):
+    _refused([f"{path}={value}"], path)
+
+
+@PROPERTY
+@given(path=st.sampled_from(SEEDS), seed=st.one_of(st.integers(max_value=-1), st.integers(min_value=2**32)))
+def test_seeds_outside_0_to_2_32_are_refused_where_they_are_set(path, seed):
+    value = f"[{seed}]" if path == "grid.seed" else str(seed)
+    _refused([f"{path}={value}"], path)
+
+
+@PROPERTY
+@given(path=st.sampled_from(SEEDS), seed=st.integers(0, 2**32 - 1))
+def test_every_seed_in_range_is_accepted(path, seed):
+    load_config(REPO / "experiments.yaml", overrides=[f"{path}={f'[{seed}]' if path == 'grid.seed' else seed}"])
+
+
+@PROPERTY
+@given(lr=st.floats(min_value=1e-9, max_value=10, allow_nan=False))
+def test_floats_written_with_an_exponent_are_numbers(lr):
+    assert load_config(REPO / "experiments.yaml", overrides=[f"train.lr={lr:e}"]).train.lr == pytest.approx(lr)

@@ -147,3 +147,16 @@ def test_roll_about_forward_keeps_the_optical_axis():
 def test_unknown_pose_frame_is_rejected():
     with pytest.raises(ValueError, match="world, camera"):
         g.relative_pose(np.zeros(6), np.zeros(6), "body")
+
+
+def test_canonical_euler_is_scipys_xyz_triple_of_the_same_rotation():
+    rng = np.random.default_rng(11)
+    angles = rng.uniform(-180, 180, (200, 3))  # beta beyond ±90 half of the time: the other form
+    canon = g.canonical_euler(angles)
+    ref = Rotation.from_euler("XYZ", angles, degrees=True).as_euler("XYZ", degrees=True)
+    np.testing.assert_allclose(canon, ref, atol=1e-9)
+    assert (np.abs(canon[:, 1]) <= 90).all()
+    np.testing.assert_allclose(g.canonical_euler(canon), canon, atol=1e-9)  # idempotent
+    np.testing.assert_allclose(g.euler_to_matrix(canon), g.euler_to_matrix(angles), atol=1e-12)
+    pose = np.column_stack([rng.normal(size=(200, 3)), angles])
+    np.testing.assert_array_equal(g.canonical_pose(pose)[:, :3], pose[:, :3])

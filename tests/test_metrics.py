@@ -111,3 +111,21 @@ def test_accumulated_metrics_score_the_chained_endpoint(frame):
     assert stats["pos_l2"].n == 1
     perfect = m.accumulated_metrics([(start, gt, gt), (start, gt, gt)], frame)
     assert perfect["pos_l2"].mean == pytest.approx(0.0, abs=1e-9) and perfect["pos_l2"].n == 2
+
+
+def test_rotation_errors_of_rotations_do_not_depend_on_the_written_triple():
+    rng = np.random.default_rng(2)
+    gt = np.column_stack([rng.normal(size=(50, 3)), rng.uniform(-180, 180, (50, 3))])
+    gt[:, 4] = rng.uniform(-80, 80, 50)
+    other = gt.copy()  # the same rotations as (a+180, 180-b, c+180)
+    other[:, 3:] = g.wrap_deg(np.column_stack([gt[:, 3] + 180, 180 - gt[:, 4], gt[:, 5] + 180]))
+    as_triples = m.per_pose_errors(other, gt)
+    assert as_triples["rot_l2"].min() > 10 and as_triples["ce"].min() > 0.1  # compared triple by triple
+    as_rotations = m.per_pose_errors(other, gt, rotations=True)
+    for name in ("rot_l2", "ce", "de", "geodesic"):
+        assert np.abs(as_rotations[name]).max() < 1e-5, name
+    pred = gt + rng.normal(0, 2, gt.shape)
+    a = m.per_pose_errors(pred, gt, rotations=True)
+    b = m.per_pose_errors(pred, other, rotations=True)
+    for name in a:
+        np.testing.assert_allclose(a[name], b[name], atol=1e-9)

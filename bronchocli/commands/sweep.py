@@ -9,6 +9,8 @@ import typer
 
 from ..cells import FIELDS, parse_only
 from ..config import DEFAULT_CONFIG
+from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -33,6 +35,13 @@ def sweep(
                                       help="Reset FAILED cells (and their retry budget) first."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned",
                                             help="Apply the best trial of this Optuna study to every cell."),
+    launcher: Optional[str] = typer.Option(None, "--launcher", help="local: worker processes here; slurm: "
+                                           "submit Slurm job arrays of workers (slurm section, docs/cluster.md). "
+                                           "Default: sweep.launcher."),
+    detach: bool = typer.Option(False, "--detach", help="Slurm: return once submitted instead of watching."),
+    cancel: bool = typer.Option(False, "--cancel", help="Slurm: cancel this sweep's queued and running jobs."),
+    worker_only: bool = typer.Option(False, "--worker-only", hidden=True,
+                                     help="Internal: run one worker through the stages (a Slurm array task)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -47,6 +56,9 @@ def sweep(
     cooperate: each cell is claimed by one worker and yields one FINISHED MLflow run.
     Re-running resumes (FINISHED cells are skipped); FAILED cells are retried up to
     sweep.max_retries; a killed worker's cell is taken over after sweep.stale_after_s.
+    With `--launcher slurm` every worker is a Slurm array task instead (docs/cluster.md):
+    re-running submits only what the sweep's queued and running jobs do not cover,
+    `--detach` returns at once, `--cancel` cancels the sweep's jobs.
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
     from ..sweep import SweepStore, placement, staged  # lazy: keeps `bronchopose --help` fast
@@ -61,12 +73,58 @@ def sweep(
         from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
 
         cfg = apply_best(cfg, use_tuned)
+    if launcher not in (None, "local", "slurm"):
+        raise BronchoError(f"--launcher {launcher}: must be local or slurm")
+    use_slurm = (launcher or cfg.sweep.launcher) == "slurm"
+    if (detach or cancel) and not use_slurm:
+        raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
+                           "(or sweep.launcher: slurm)")
+    if not cancel:
+        check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
     store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s)
+    if worker_only:
+        from ..sweep import slurm  # lazy: only array tasks need it
+
+        raise typer.Exit(slurm.worker_main(cfg, store, selection))
+    if use_slurm and cancel:
+        from ..sweep import slurm  # lazy: only the Slurm launcher needs it
+
+        raise typer.Exit(slurm.cancel(cfg, console))
+    if use_slurm and not dry_run:
+        from ..sweep import slurm  # lazy: only the Slurm launcher needs it
+
+        slurm.check(cfg)  # before touching storage: one line, nothing created, nothing submitted
+        store.exists()
+        argv = _worker_argv(config, profile, set_, storage, only, use_tuned)
+        raise typer.Exit(slurm.launch(cfg, store, selection, argv, detach=detach, console=console,
+                                      retry_failed=retry_failed))
     store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
     devices = placement.parse_gpus(gpus, placement.visible_gpus())
     workers = workers or placement.default_workers(devices, per_gpu)
     if dry_run:
         staged.dry_run(cfg, store, selection, workers, console)
         return
+    if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
+        from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
+
+        initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
+                                                                          for st in cfg.stages)] for a in g.arch}))
     raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
                                       retry_failed=retry_failed, gpus=devices))
+
+
+def _worker_argv(config: Path, profile: Optional[str], set_: Optional[list[str]], storage: Optional[str],
+                 only: Optional[list[str]], use_tuned: Optional[str]) -> list[str]:
+    """The options an array task's worker needs to load the same config, storage and selection."""
+    argv = ["--config", str(config.resolve())]
+    if profile:
+        argv += ["--profile", profile]
+    for text in set_ or []:
+        argv += ["--set", text]
+    if storage:
+        argv += ["--storage", storage]
+    for text in only or []:
+        argv += ["--only", text]
+    if use_tuned:
+        argv += ["--use-tuned", use_tuned]
+    return argv

@@ -10,6 +10,7 @@ import typer
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -54,6 +55,7 @@ def train(
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
         console.print(f"hyperparameters from {cfg.tune.applied}")
+    check_paths(cfg)  # one line before anything is created
     ensure_dataset(cfg)
     console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
     result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet)

@@ -13,6 +13,7 @@ from .. import urls
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
 
 
@@ -97,7 +98,12 @@ def tune(
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
 
+    check_paths(cfg, storage=True)  # one line before anything is created
     ensure_dataset(cfg)
+    if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
+        from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
+
+        initialisation(cfg.paths.pretrained, [target.arch])
     n = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
     console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")

@@ -35,6 +35,7 @@ import zlib
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -54,14 +55,21 @@ log = logging.getLogger(__name__)
 
 def decode_frame(path: str, shape: tuple[int, int] | None) -> np.ndarray:
     """Decode one image file to ``uint8[3, H, W]`` RGB, resized to ``shape`` (H, W) when given."""
+    return _decode(path, shape)[0]
+
+
+def _decode(path: str, shape: tuple[int, int] | None) -> tuple[np.ndarray, str, tuple[int, int]]:
+    """The frame as ``decode_frame`` gives it, its mode on disk (``L``: grayscale, ...) and its (H, W) on disk."""
     try:
         with Image.open(path) as im:
+            mode, native = im.mode, (im.size[1], im.size[0])
             im = im.convert("RGB")
             if shape is not None and im.size != (shape[1], shape[0]):
                 im = im.resize((shape[1], shape[0]), Image.Resampling.BILINEAR)
-            return np.asarray(im).transpose(2, 0, 1)
-    except OSError as exc:
-        raise DataError(f"{path}: cannot decode frame ({exc})") from None
+            return np.asarray(im).transpose(2, 0, 1), mode, native
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:  # Pillow's parse errors
+        raise DataError(f"{path}: cannot decode frame ({exc or type(exc).__name__}); re-render or replace the file"
+                        ) from None
 
 
 def resolve_image_size(image_size: int | None, dataset: Dataset) -> tuple[int, int]:
@@ -207,17 +215,46 @@ def _recorded_stats(sidecar: Path, n: int) -> np.ndarray | None:
         return None
 
 
-def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | None, start: int) -> int:
-    """Decode frames ``start .. start+_CHUNK`` into ``out``; returns how many."""
+@dataclass
+class _Chunk:
+    """What decoding a chunk of frames found besides pixels: frames converted to RGB or of another size."""
+
+    done: int
+    converted: list[tuple[str, str]] = field(default_factory=list)  # (path, mode on disk)
+    resized: list[tuple[str, tuple[int, int]]] = field(default_factory=list)  # (path, (H, W) on disk)
+
+
+def _decode_chunk(out: np.ndarray, paths: np.ndarray, resize: tuple[int, int] | None,
+                  native: tuple[int, int], start: int) -> _Chunk:
+    """Decode frames ``start .. start+_CHUNK`` into ``out``; ``native``: the dataset's (H, W) on disk."""
     expected = out.shape[1:]
     stop = min(start + _CHUNK, len(paths))
+    chunk = _Chunk(stop - start)
     for i in range(start, stop):
-        frame = decode_frame(paths[i], resize)
+        frame, mode, size = _decode(paths[i], resize)
         if frame.shape != expected:
             raise DataError(f"{paths[i]}: frame is {frame.shape[2]}x{frame.shape[1]} pixels, the dataset's "
                             f"are {expected[2]}x{expected[1]}; set data.image_size to resize every frame")
+        if mode != "RGB":
+            chunk.converted.append((str(paths[i]), mode))
+        if size != tuple(native):
+            chunk.resized.append((str(paths[i]), size))
         out[i] = frame
-    return stop - start
+    return chunk
+
+
+def _warn_degraded(chunks: Sequence[_Chunk], native: tuple[int, int]) -> None:
+    """One warning per kind of silent change to frames: converted to RGB, or of another size and resized."""
+    converted = [c for ch in chunks for c in ch.converted]
+    resized = [r for ch in chunks for r in ch.resized]
+    if converted:
+        modes = sorted({m for _, m in converted})
+        log.warning("warning: %d frame(s) were not RGB (mode %s, e.g. %s) and were converted to RGB",
+                    len(converted), "/".join(modes), converted[0][0])
+    if resized:
+        (h, w) = resized[0][1]
+        log.warning("warning: %d frame(s) were not the dataset's %dx%d pixels (e.g. %s is %dx%d) and were resized "
+                    "to data.image_size", len(resized), native[1], native[0], resized[0][0], w, h)
 
 
 def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, ...], path: Path,
@@ -228,13 +265,17 @@ def _build(dataset: Dataset, resize: tuple[int, int] | None, shape: tuple[int, .
         out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=shape)
         pool = ThreadPoolExecutor(threads or min(8, os.cpu_count() or 1))
         try:
+            chunks = []
             with _progress(progress, len(paths), path.name) as advance:
-                for done in pool.map(partial(_decode_chunk, out, paths, resize), range(0, len(paths), _CHUNK)):
-                    advance(done)
+                for chunk in pool.map(partial(_decode_chunk, out, paths, resize, tuple(dataset.frame_shape)),
+                                      range(0, len(paths), _CHUNK)):
+                    advance(chunk.done)
+                    chunks.append(chunk)
         finally:  # on an error or Ctrl-C, drop the chunks not started yet
             pool.shutdown(wait=True, cancel_futures=True)
         out.flush()
         del out  # closes the memory map before the rename
+    _warn_degraded(chunks, tuple(dataset.frame_shape))
     write_json(path.with_suffix(".json"), {
         "dataset": str(dataset.root), "fingerprint": dataset.fingerprint, "shape": list(shape),
         "layout": "uint8[n_frames, 3, H, W] RGB", "version": CACHE_VERSION,

@@ -5,7 +5,9 @@ units and Euler convention, and whether positions are in voxels or mm, so a
 CSV with e.g. ``X, Y, Z, Roll, Pitch, Yaw`` in degrees and positions in mm
 trains without converting by hand. Every row is converted to the project's
 convention (positions in voxels, intrinsic X-Y-Z Euler angles in degrees, see
-bronchocli.geometry) and then validated like a generated dataset.
+bronchocli.geometry; always the canonical triple of each rotation, beta in
+[-90, 90], whichever of its two triples the file holds) and then validated
+like a generated dataset.
 
 The fingerprint of an imported dataset (it keys the frame cache) is the
 sha256 of the import settings, the CSV bytes, and each frame's relative path,
@@ -103,11 +105,17 @@ def camera_axes(forward: str, up: str) -> np.ndarray:
 
 def convert_angles(angles: np.ndarray, cfg: CsvImport) -> np.ndarray:
     """Angles ``(N, 3)`` in ``cfg.euler`` / ``cfg.angle_units`` of a camera whose axes are
-    ``cfg.camera_forward`` / ``cfg.camera_up`` -> our camera's intrinsic XYZ Euler degrees."""
+    ``cfg.camera_forward`` / ``cfg.camera_up`` -> our camera's intrinsic XYZ Euler degrees, canonical.
+
+    Always through the rotation matrix, even when the file already uses our convention: every rotation has
+    two XYZ triples, (a, b, c) and (a+180, 180-b, c+180), and a file may hold either (or switch between them
+    from frame to frame). The matrix and back (geometry.canonical_euler) gives the one triple that chaining also returns (beta in
+    [-90, 90], geometry.canonical_euler), so world-frame labels and Euler metrics compare rotations.
+    """
     degrees = cfg.angle_units == "deg"
     same_axes = (cfg.camera_forward, cfg.camera_up) == ("x", "z")
-    if cfg.euler == "XYZ" and same_axes:  # already our convention: only the units may differ
-        return angles if degrees else np.degrees(angles)
+    if cfg.euler == "XYZ" and same_axes:  # our convention: canonical triples stay exactly as written
+        return geometry.canonical_euler(angles if degrees else np.degrees(angles))
     matrices = Rotation.from_euler(cfg.euler, angles, degrees=degrees).as_matrix()
     if not same_axes:
         matrices = matrices @ camera_axes(cfg.camera_forward, cfg.camera_up)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 from collections.abc import Iterable, Sequence
@@ -30,9 +31,21 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from .. import geometry
 from ..cells import LOBES
 from ..errors import DataError
 from .layout import DATASET_JSON
+
+log = logging.getLogger(__name__)
+_warned: set[str] = set()  # warnings already given by this process (a dataset is opened many times)
+EDIT_SLACK_NS = 2_000_000_000  # a CSV this much newer than dataset.json was edited after generation (not copied)
+
+
+def warn_once(text: str) -> None:
+    """A degradation the user must hear about, once per process (stderr, or the sweep worker's log)."""
+    if text not in _warned:
+        _warned.add(text)
+        log.warning("warning: %s", text)
 
 POSE_COLUMNS: tuple[str, ...] = ("x", "y", "z", "rx", "ry", "rz")  # names in Dataset.frames
 DISK_POSE_COLUMNS: tuple[str, ...] = ("pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz")  # names in <patient>.csv
@@ -249,7 +262,11 @@ def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None,
     _check_groups(table, starts)
     if check_files:
         _check_files(table)
-    poses = table[list(POSE_COLUMNS)].to_numpy(np.float64)
+    poses = table[list(POSE_COLUMNS)].to_numpy(np.float64, copy=True)
+    # One XYZ triple per rotation (beta in [-90, 90]), whatever form the file wrote: canonical ones stay bit for
+    # bit, the others' world-frame labels would otherwise jump by ~180° (geometry.canonical_euler).
+    poses[:, 3:] = geometry.canonical_euler(poses[:, 3:])
+    table = table.assign(**{c: poses[:, 3 + i] for i, c in enumerate(POSE_COLUMNS[3:])})
     paths = table["path"].to_numpy()
     ids = {c: table[c].to_numpy(object)[starts[:-1]] for c in ("patient", "lobe", "trajectory")}
     trajectories = []
@@ -371,6 +388,37 @@ def _check_text(table: pd.DataFrame, columns: Sequence[str], path: Path) -> None
             raise DataError(f"{path} line {bad[0] + 2}: empty {c}")
 
 
+def _fingerprint(root: Path, meta: dict[str, Any], csvs: dict[str, bytes], frame_paths: pd.Series) -> str:
+    """dataset.json's content fingerprint, unless a CSV changed after it was written: then one over the current
+    CSVs too (with a warning), so runs and caches never take edited data for the data that was generated."""
+    recorded = meta.get("fingerprint")
+    if not recorded:
+        return stat_fingerprint(list(csvs.values()), frame_paths, root)
+    hashes = meta.get("csv_sha256")
+    if isinstance(hashes, dict):
+        edited = [p for p, data in csvs.items() if hashlib.sha256(data).hexdigest() != hashes.get(p)]
+    else:  # written before dataset.json recorded its CSVs' hashes: a CSV clearly newer than it was edited
+        written = (root / DATASET_JSON).stat().st_mtime_ns
+        edited = [p for p in csvs if (root / f"{p}.csv").stat().st_mtime_ns > written + EDIT_SLACK_NS]
+    if not edited:
+        return str(recorded)
+    warn_once(f"dataset {root}: {', '.join(f'{p}.csv' for p in edited)} changed after dataset.json was written; "
+              "its recorded fingerprint no longer covers the data, so a fingerprint of the current contents is used")
+    h = hashlib.sha256(str(recorded).encode())
+    for p in sorted(csvs):
+        h.update(hashlib.sha256(csvs[p]).digest())
+    return h.hexdigest()
+
+
+def _warn_empty_lobes(root: Path, patients: Sequence[str], lobes: Sequence[str], frames: pd.DataFrame) -> None:
+    """Warn about each (patient, lobe) of the dataset that holds no trajectory: it trains and tests without it."""
+    present = set(zip(frames["patient"].astype(str), frames["lobe"].astype(str)))
+    empty = [f"{p}/{lb}" for p in patients for lb in lobes if (str(p), str(lb)) not in present]
+    if empty:
+        warn_once(f"dataset {root}: no trajectories in {', '.join(empty)} (lobes {', '.join(lobes)} are listed); "
+                  "training, validation and test go on without them")
+
+
 def open_dataset_dir(root: str | os.PathLike) -> Dataset:
     """Read a dataset in the project's layout (``dataset.json`` + one CSV per patient)."""
     root = Path(root).expanduser().resolve()
@@ -379,9 +427,10 @@ def open_dataset_dir(root: str | os.PathLike) -> Dataset:
     patients = [str(p) for p in meta["patients"]]
     table = pd.concat([read_patient_csv(root, p) for p in patients], ignore_index=True)
     frames, trajectories = assemble(table, patients)
-    fingerprint = meta.get("fingerprint") or stat_fingerprint(
-        [(root / f"{p}.csv").read_bytes() for p in patients], frames["path"], root)
+    csvs = {p: (root / f"{p}.csv").read_bytes() for p in patients}
+    fingerprint = _fingerprint(root, meta, csvs, frames["path"])
     lobes = [str(lb) for lb in meta.get("lobes") or lobe_order(frames["lobe"].unique())]
+    _warn_empty_lobes(root, patients, lobes, frames)
     return Dataset(root=root, format="bronchopose", patients=patients, lobes=lobes,
                    frame_shape=_frame_shape(meta, meta_path), fingerprint=str(fingerprint), frames=frames,
                    trajectories=trajectories, spacing=_spacing(meta, meta_path), meta=meta)

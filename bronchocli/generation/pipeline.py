@@ -20,6 +20,7 @@ root holding output of a different config is an error, never mixed.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -334,7 +335,10 @@ def _finish(root: Path, gen: Generate, record: dict, plans: list[PatientPlan], t
         if not path.is_file() or path.read_bytes() != data:
             write_bytes(path, data)
         parts.append((data, by_patient.get(pp.source.patient, [])))
-    write_json(root / DATASET_JSON, _metadata(gen, record, plans, writer.fingerprint(parts)))
+    meta = _metadata(gen, record, plans, writer.fingerprint(parts))
+    # each CSV's own hash: a reader sees a CSV edited after generation (the fingerprint would no longer cover it)
+    meta["csv_sha256"] = {pp.source.patient: hashlib.sha256(data).hexdigest() for pp, (data, _) in zip(plans, parts)}
+    write_json(root / DATASET_JSON, meta)
     shutil.rmtree(root / WORK_DIR, ignore_errors=True)
 
 

@@ -1,7 +1,8 @@
 """The pose networks: BronchoPose's four architectures and OffsetNet, chosen by name.
 
 ``build_model(name, image_size=..., dropout=..., pretrained=...)`` is the one
-entry point; ``ARCHITECTURES`` is the name -> builder dict it reads (keys are
+entry point (``pretrained``: None = random, ``"imagenet"`` = torchvision's weights via
+PyTorch's hub cache, or a local file; see ``pretrained.py``); ``ARCHITECTURES`` is the name -> builder dict it reads (keys are
 ``config.ARCHS``). Every model maps frames ``[B, T, 3, H, W]`` to relative poses
 ``[B, T-1, 6]`` and accepts/returns a recurrent state (see ``base.PoseNet``).
 docs/models.md describes the layers, parameter counts and the choices made.
@@ -10,7 +11,7 @@ docs/models.md describes the layers, parameter counts and the choices made.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .backbones import n_params
@@ -20,7 +21,7 @@ from .conv3d import Conv3dNet
 from .convlstm import ConvLSTMNet
 from .lstm import LSTMNet
 from .offsetnet import OffsetNet
-from .pretrained import load_pretrained
+from .pretrained import IMAGENET, describe, ensure_weights, load_pretrained
 
 ARCHITECTURES: dict[str, Callable[..., PoseNet]] = {
     "baseline": BaselineNet,
@@ -62,14 +63,31 @@ def build_model(
     return model
 
 
+def backbone_kind(name: str) -> str:
+    """What initialises architecture ``name``'s backbones: ``efficientnet_b0`` or ``resnet34`` weights."""
+    if name not in ARCHITECTURES:
+        raise ModelError(f"unknown architecture {name!r} (valid: {', '.join(ARCHITECTURES)})")
+    return ARCHITECTURES[name].backbone_kind
+
+
+def initialisation(pretrained: str | Path | None, archs: Sequence[str]) -> dict[str, str]:
+    """Fetch (or find) the weights of every architecture in ``archs``; arch -> how it is initialised (run tag)."""
+    kinds = {a: backbone_kind(a) for a in archs}
+    ensure_weights(pretrained, kinds.values())
+    return {a: describe(pretrained, k) for a, k in kinds.items()}
+
+
 __all__ = [
     "ARCHITECTURES",
+    "IMAGENET",
     "PAPER_PARAMS_M",
     "ModelError",
     "PoseNet",
     "State",
+    "backbone_kind",
     "build_model",
     "detach_state",
+    "initialisation",
     "load_pretrained",
     "n_params",
 ]

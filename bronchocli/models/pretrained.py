@@ -1,7 +1,17 @@
-"""Load torchvision-format ImageNet weights from a local file into a model's two backbones.
+"""Backbone initialisation: torchvision's ImageNet weights (through PyTorch's hub cache) or a local file.
 
-Accepted files (``torch.save`` of a state dict, read with ``weights_only=True``;
-no download code anywhere):
+``model.pretrained`` (config) / ``build_model(pretrained=...)``:
+
+* unset (None): random initialisation (torchvision's init scheme), reproducible offline;
+* ``imagenet``: the weights the BronchoPose authors started from (torchvision ``efficientnet_b0(pretrained=True)``
+  and ``resnet34(pretrained=True)``), the files torchvision publishes, fetched once into PyTorch's own hub cache
+  (``torch.hub.get_dir()/checkpoints``: ``$TORCH_HOME/hub/checkpoints``, by default ``~/.cache/torch``) with
+  ``torch.hub.load_state_dict_from_url(check_hash=True)``: the sha256 of the download must start with the hash
+  in the file name, else nothing is cached. No torchvision import. Offline and not cached: one ``ModelError``
+  naming the file to place and where. ``$BRONCHOPOSE_WEIGHTS_URL`` replaces the download base (a mirror);
+* anything else: a local file (``torch.save`` of a state dict, read with ``weights_only=True``).
+
+Accepted state dicts:
 
 * an ``efficientnet_b0`` state dict (as torchvision saves it): the ``features.*``
   entries are loaded, ``classifier.*`` is ignored (BronchoPose architectures);
@@ -17,9 +27,12 @@ Both backbones receive the same weights (they are then trained separately).
 
 from __future__ import annotations
 
+import hashlib
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from urllib.error import URLError
+from urllib.parse import urlparse
 
 import torch
 from torch import Tensor
@@ -28,6 +41,15 @@ from .base import ModelError, PoseNet
 
 _IGNORED_PREFIXES = {"efficientnet_b0": ("classifier.",), "resnet34": ()}
 _SHOW = 5  # offending keys named in the error
+
+IMAGENET = "imagenet"  # model.pretrained value: torchvision's published ImageNet weights
+WEIGHTS_URL_ENV = "BRONCHOPOSE_WEIGHTS_URL"  # another download base (a mirror, or a test server)
+WEIGHTS_BASE = "https://download.pytorch.org/models/"
+# torchvision's IMAGENET1K_V1 files; the 8 hex digits are the start of the file's sha256 (torch.hub checks them).
+IMAGENET_FILES: dict[str, str] = {
+    "efficientnet_b0": "efficientnet_b0_rwightman-7f5810bc.pth",
+    "resnet34": "resnet34-b627a593.pth",
+}
 
 
 def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
@@ -72,9 +94,9 @@ def check_compatible(state: Mapping[str, Tensor], expected: Mapping[str, Tensor]
 
 
 def load_pretrained(model: PoseNet, path: str | os.PathLike) -> PoseNet:
-    """Copy the file's weights into both backbones of ``model`` (strict, see module doc)."""
-    path = Path(path)
+    """Copy the file's weights (or ``imagenet``'s, from the hub cache) into both backbones of ``model`` (strict)."""
     kind = model.backbone_kind
+    path = weights_file(path, kind)
     state = {k: v for k, v in read_state_dict(path).items() if not k.startswith(_IGNORED_PREFIXES[kind])}
     for backbone in model.backbones():
         expected = backbone.state_dict()
@@ -82,3 +104,77 @@ def load_pretrained(model: PoseNet, path: str | os.PathLike) -> PoseNet:
         full = {**{k: v for k, v in expected.items() if k.endswith("num_batches_tracked")}, **state}
         backbone.load_state_dict(full, strict=True)
     return model
+
+
+# -- initialisation: random, ImageNet (hub cache) or a local file ------------------------------------
+
+
+def imagenet_url(kind: str) -> str:
+    """Where torchvision publishes ``kind``'s ImageNet weights (base replaced by ``$BRONCHOPOSE_WEIGHTS_URL``)."""
+    base = os.environ.get(WEIGHTS_URL_ENV) or WEIGHTS_BASE
+    return base.rstrip("/") + "/" + IMAGENET_FILES[kind]
+
+
+def hub_checkpoints() -> Path:
+    """PyTorch's hub cache of downloaded weights (``$TORCH_HOME/hub/checkpoints``)."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def fetch_imagenet(kind: str) -> Path:
+    """The cached ImageNet weights file of backbone ``kind``, downloaded (checksum verified) if not there yet."""
+    url = imagenet_url(kind)
+    name = os.path.basename(urlparse(url).path)
+    cached = hub_checkpoints() / name
+    if cached.is_file():
+        return cached
+    try:
+        torch.hub.load_state_dict_from_url(url, map_location="cpu", progress=False, check_hash=True,
+                                           weights_only=True)
+    except URLError as exc:  # offline, DNS, refused, HTTP error: the user can place the file by hand
+        reason = getattr(exc, "reason", exc)
+        raise ModelError(f"model.pretrained: imagenet: cannot download {url} ({reason}); place torchvision's "
+                         f"{name} in {cached.parent} (PyTorch's hub cache, $TORCH_HOME/hub/checkpoints) and "
+                         "run again") from None
+    except RuntimeError as exc:
+        if "invalid hash value" not in str(exc):
+            raise
+        raise ModelError(f"model.pretrained: imagenet: the download of {url} failed its checksum (sha256 must "
+                         f"start with {name.rsplit('-', 1)[-1].split('.')[0]}); nothing was cached") from None
+    except OSError as exc:
+        raise ModelError(f"model.pretrained: imagenet: cannot store {name} in {cached.parent} "
+                         f"({exc.strerror or exc})") from None
+    return cached
+
+
+def weights_file(pretrained: str | os.PathLike | None, kind: str) -> Path | None:
+    """The state-dict file that initialises backbones of ``kind``: None (random), ImageNet's, or the local file."""
+    if pretrained is None:
+        return None
+    if str(pretrained) == IMAGENET:
+        return fetch_imagenet(kind)
+    return Path(pretrained)
+
+
+def ensure_weights(pretrained: str | os.PathLike | None, kinds: Iterable[str]) -> None:
+    """Fetch (or find) the weights every backbone kind needs, so a missing file fails before any run starts."""
+    for kind in dict.fromkeys(kinds):
+        path = weights_file(pretrained, kind)
+        if path is not None and not path.is_file():
+            raise ModelError(f"model.pretrained: {path}: file not found")
+
+
+def describe(pretrained: str | os.PathLike | None, kind: str) -> str:
+    """The initialisation as runs record it (tag ``init``) and captions state it.
+
+    ``random``; ``imagenet:<torchvision file>``; ``file:<name>#<sha256 prefix>`` (the file's content, not its path).
+    """
+    if pretrained is None:
+        return "random"
+    if str(pretrained) == IMAGENET:
+        return f"{IMAGENET}:{IMAGENET_FILES[kind]}"
+    path = Path(pretrained)
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return f"file:{path.name}#{digest.hexdigest()[:12]}"

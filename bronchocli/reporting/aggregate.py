@@ -83,6 +83,18 @@ def read_errors(path) -> RunErrors:
     return RunErrors.from_frame(pd.read_csv(path, dtype={k: str for k in KEY}))
 
 
+def nonfinite_rows(frames: Frames) -> dict[str, int]:
+    """Run id -> how many rows of its trajectory_errors.csv hold a NaN/inf error (they leave the intervals)."""
+    out = {}
+    for run_id, errors in frames.items():
+        if errors is None or not errors.columns:
+            continue
+        bad = ~np.isfinite(np.stack(list(errors.columns.values()))).all(0)
+        if bad.any():
+            out[run_id] = int(bad.sum())
+    return out
+
+
 def column(source: str, evaluation: str, metric: str) -> str:
     return f"{source}.{SCOPE[evaluation]}.{metric}"
 

@@ -25,7 +25,10 @@ import gc
 from collections import Counter
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Iterable, Iterator, Mapping, Sequence
+from urllib.parse import urlparse
+from urllib.request import url2pathname
 
 from .. import tracking
 from ..cells import FIELDS
@@ -59,6 +62,18 @@ class RunRecord:
 
     def tag(self, name: str) -> str:
         return self.tags.get(name, "") or ""
+
+    @property
+    def artifacts_gone(self) -> Path | None:
+        """The run's local artifact folder when it no longer exists (deleted or moved); None otherwise or remote."""
+        uri = self.artifact_uri
+        if uri.startswith("file:"):
+            folder = Path(url2pathname(urlparse(uri).path))
+        elif uri and "://" not in uri:
+            folder = Path(uri)
+        else:
+            return None
+        return None if folder.exists() else folder
 
     @property
     def key(self) -> str:

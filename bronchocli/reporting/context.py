@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
+from .. import tracking
 from .aggregate import NOUN, Frames
 from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key, stop_reasons
 from .judge import Line, Settings
@@ -202,6 +203,25 @@ def budget_text(runs: Sequence[RunRecord]) -> str:
     stop = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
     text = "Budget per run: " + (", ".join(parts) if parts else "not logged")
     return text + f"; stop reasons: {stop}."
+
+
+def init_text(runs: Sequence[RunRecord]) -> str:
+    """How the runs' backbones were initialised (their ``init`` tag): random, ImageNet or a file."""
+    if not runs:
+        return ""
+    seen = Counter(r.tag(tracking.TAG_INIT) for r in runs)
+    parts = []
+    for init, n in sorted(seen.items()):
+        if init == "random":
+            what = "random weights (no pretrained backbone)"
+        elif init.startswith("imagenet:"):
+            what = f"ImageNet weights (torchvision {init.split(':', 1)[1]})"
+        elif init.startswith("file:"):
+            what = f"weights from the file {init.split(':', 1)[1]}"
+        else:
+            what = "not recorded (runs made before the init tag: random unless model.pretrained was set)"
+        parts.append(what + (f" ({n} of {len(runs)} runs)" if len(seen) > 1 else ""))
+    return "Backbone initialisation: " + "; ".join(parts) + "."
 
 
 def provenance(ctx: ReportContext, c: Collector) -> str:

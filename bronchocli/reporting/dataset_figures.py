@@ -18,8 +18,8 @@ from typing import Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from PIL import Image
 
+from ..data.cache import decode_frame
 from ..data.layout import DATASET_JSON
 from ..data.reader import open_dataset_dir
 from ..errors import DataError
@@ -72,7 +72,7 @@ def montage_figure(root: Path, *, columns: int = 6, patients: Sequence[str] | No
             if c >= len(rows):
                 continue
             row = rows[c]
-            ax.imshow(np.asarray(Image.open(Path(root) / row["filename"]).convert("RGB")))
+            ax.imshow(decode_frame(str(Path(root) / row["filename"]), None).transpose(1, 2, 0))
             arc = f" {row['arc_mm']:.0f} mm" if "arc_mm" in row else ""
             ax.set_title(f"f{int(row['frame'])}{arc}", fontsize=7, pad=2)
         patient = str(g["patient"].iat[0])

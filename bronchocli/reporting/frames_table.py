@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
-from .context import ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish
+from .context import (ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish,
+                      init_text)
 from .judge import better_reference, metric_rows
 from .layout import Column, Estimate, Row, Table, Value
 from .stats import derived, holm
@@ -112,6 +113,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         "shared by both frames and their references, seeds independent; delta method, two-sided), "
         f"Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
         budget_text(every),
+        init_text(every),
         f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
     ])
     merged = collectors["world"]

@@ -139,7 +139,7 @@ def open_store(cfg: Config):
     if db is not None and not db.is_file():
         raise BronchoError(f"tracking.uri {tracking.redacted_uri(cfg)}: no MLflow store there yet; "
                            f"run `bronchopose sweep` or `bronchopose train` first")
-    return tracking.client_for(cfg)
+    return tracking.client_for(cfg, reading=True)
 
 
 def profiles_from_json(path: Path) -> Profiler:

@@ -26,11 +26,12 @@ image-blind reference rows (judge.py).
 from __future__ import annotations
 
 import math
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 from .. import odometry
 from ..errors import BronchoError
-from .aggregate import EVALS
+from .aggregate import EVALS, nonfinite_rows
+from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
     ARCH_GROUPS,
@@ -48,6 +49,7 @@ from .context import (
     bronchotrack,
     budget_text,
     finish,
+    init_text,
     n_text,
     provenance,
     references_text,
@@ -80,7 +82,8 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
         raise NoData(f"{table.key.rsplit('-', 1)[0]} skipped: none of the runs' cells belongs to it "
                      f"({table.title.split('. ', 1)[-1]})")
     every = [r for line in lines for r in line.runs]
-    built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=table.grouped,
+    frames = ctx.frames(every)
+    built = metric_rows(lines, frames, metrics, evaluation, grouped=table.grouped,
                         settings=ctx.settings, skill_metrics=SKILL_METRICS, higher=higher)
     table.rows, table.marks, table.skill, table.judged = built.rows, built.marks, built.skill, True
     parts = [f"{EVAL_TEXT[evaluation]}.", method_text(ctx.settings), n_text(table.rows, evaluation,
@@ -93,13 +96,28 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
-    parts += [budget_text(every), units, provenance(ctx, c)]
+    parts += [budget_text(every), init_text(every), units, provenance(ctx, c)]
     table.caption = " ".join(p for p in parts if p)
     finish(table, c, expected_empty)
     if built.fallback:
-        table.warnings.append(f"{table.key}: no trajectory_errors.csv for {', '.join(built.fallback)} (runs made "
-                              f"before it was logged): logged means shown without interval, not ranked")
+        table.warnings.append(f"{table.key}: no trajectory_errors.csv for {', '.join(built.fallback)} "
+                              f"({_why_missing(every, frames)}): logged means shown without interval, not ranked")
+    dropped = nonfinite_rows(frames)
+    if dropped:
+        table.warnings.append(f"{table.key}: {sum(dropped.values())} trajectory row(s) with NaN/inf errors in the "
+                              f"trajectory_errors.csv of {len(dropped)} run(s) ({', '.join(sorted(dropped))}) left "
+                              "out of the means and intervals")
     return table
+
+
+def _why_missing(runs: Sequence[RunRecord], frames: Mapping[str, object]) -> str:
+    """The true reason runs lack trajectory_errors.csv: their artifact folder is gone, or they predate it."""
+    gone = {r.run_id: r.artifacts_gone for r in runs if frames.get(r.run_id) is None}
+    deleted = sorted(str(p) for p in gone.values() if p is not None)
+    if deleted:
+        return (f"the artifacts of {len(deleted)} run(s) were deleted or moved: {deleted[0]}"
+                + (f" and {len(deleted) - 1} more" if len(deleted) > 1 else "") + " does not exist")
+    return "runs made before it was logged, or whose artifact was removed"
 
 
 def _grid_lines(c: Collector) -> list[Line]:

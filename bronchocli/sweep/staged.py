@@ -9,6 +9,7 @@ Cells already FINISHED (in any stage) are never run again.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 from rich.console import Console
@@ -20,6 +21,9 @@ from . import plan as planning
 from .pool import EXIT_INTERRUPTED, cells_left, run_pool
 from .status import failures, plan_table, progress, summary_line
 from .storage import FINISHED, SweepStore
+from .worker import EXIT_OK, Runner, StopSignals, Worker, default_runner
+
+log = logging.getLogger(__name__)
 
 
 def _print_plan(console: Console, plan: planning.Plan, max_retries: int, workers: int, title: str) -> None:
@@ -131,3 +135,35 @@ def _final(console: Console, plan: planning.Plan, max_retries: int) -> int:
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
     states = [plan.state(c) for c in plan.cells]
     return 0 if all(s == FINISHED for s in states) else 1
+
+
+def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: StopSignals,
+                runner: Runner = default_runner, exit_when_idle: bool = True) -> int:
+    """One worker taking the stages in order (a Slurm array task): claim the first stage's cells; go on to a later
+    stage only once every cell before it is done, settling its selection first (recorded once, whichever task gets
+    there first). Returns when nothing is left here: cells running elsewhere are theirs to finish, and with
+    ``exit_when_idle`` this worker does not wait for them (later stages' tasks start when those end)."""
+    stages = planning.stages_of(cfg)
+    for i, stage in enumerate(stages):
+        sp = planning.plan_stages(cfg, store, only)[i]
+        if sp.cells is None:
+            source = planning.source_of(cfg, stage)
+            source_cells = planning.plan_stages(cfg, store)[stages.index(source)].cells or []
+            missing = _source_done(cfg, store, source_cells)
+            if missing:
+                log.info("stage %s waits: %d cell(s) of stage %s are not done", stage.name, missing, source.name)
+                return EXIT_OK
+            selection = planning.settle_selection(cfg, store, stage, source_cells)
+            log.info("%s", planning.describe_selection(selection))
+            sp = planning.plan_stages(cfg, store, only)[i]
+        cells = sp.cells or []
+        if not cells:
+            continue
+        planning.add_cells(cfg, store, cells)
+        worker = Worker(cfg, cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
+        code = worker.run()
+        if code != EXIT_OK or worker.idle:
+            if worker.idle:
+                log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", stage.name)
+            return code
+    return EXIT_OK

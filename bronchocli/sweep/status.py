@@ -7,6 +7,7 @@ rows point at); nothing writes.
 from __future__ import annotations
 
 import os
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -122,7 +123,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
     """Headline metrics and timing of each MLflow run (missing runs are skipped)."""
     if not run_ids:
         return {}
-    client = tracking.client_for(cfg)
+    client = tracking.client_for(cfg, reading=True)
     out: dict[str, dict[str, Any]] = {}
     for run_id in run_ids:
         try:
@@ -145,8 +146,11 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     training budget (``budget_pairs`` image pairs) done at its last validation."""
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
-    for col, just in (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"),
-                      ("worker", "left"), ("duration", "right"), ("pair pos L2", "right"), ("acc pos L2", "right")):
+    on_slurm = any(slurm_job(r.worker) for r in plan.rows.values())
+    cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
+            *((("Slurm task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
+            ("acc pos L2", "right"))
+    for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
     for cell in plan.cells:
         row = plan.rows.get(cell.key)
@@ -161,10 +165,18 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
         table.add_row(
             cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
-            (row.worker or "-") if row and row.state == RUNNING else "", shown,
-            _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
+            (row.worker or "-") if row and row.state == RUNNING else "",
+            *(((slurm_job(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
+              if on_slurm else ()),
+            shown, _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
         )
     return table
+
+
+def slurm_job(worker: str | None) -> str | None:
+    """The Slurm array job and task (``812_3``) in a worker id written by an array task, else None."""
+    m = re.search(r" slurm (\S+)", worker or "")
+    return m.group(1) if m else None
 
 
 def _num(v: float | None) -> str:

@@ -17,17 +17,20 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
+import re
 import time
 import warnings
 from functools import partial
 from typing import Any, Callable, Mapping, Sequence
 
 import optuna
-from sqlalchemy.exc import SQLAlchemyError
+from sqlalchemy import create_engine, inspect, make_url, text
+from sqlalchemy.exc import ArgumentError, SQLAlchemyError
+from sqlalchemy.pool import NullPool
 
 from .. import extras, runview, tracking, urls
 from ..cells import Cell
-from ..config import Config, TuneParam
+from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
 from ..runlayout import RunPruned, cpu_threads
@@ -58,16 +61,97 @@ optuna.logging.set_verbosity(optuna.logging.ERROR)
 warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
 
 
-def storage_for(cfg: Config):
-    """Optuna RDB storage on ``storage.url`` with heartbeats for dead trials; StorageError (one line) if unreachable."""
-    url = urls.sqlalchemy(cfg.paths.storage_url)
-    kwargs: dict[str, Any] = {}
+OPTUNA_SCHEMA = "bronchopose_optuna"  # Optuna's PostgreSQL schema when storage.url is MLflow's database
+
+
+def _same_database(a: str, b: str) -> bool:
+    """True when two URLs name one database (same SQLite file; same PostgreSQL host, port, database and options)."""
+    fa, fb = urls.sqlite_file(a), urls.sqlite_file(b)
+    if fa is not None or fb is not None:
+        return fa is not None and fb is not None and fa.resolve() == fb.resolve()
+    if not (urls.is_postgres(a) and urls.is_postgres(b)):
+        return False
+    try:
+        ua, ub = make_url(urls.sqlalchemy(a)), make_url(urls.sqlalchemy(b))
+    except ArgumentError:
+        return False
+    key = lambda u: (u.host or "localhost", u.port or 5432, u.database, u.query.get("options"))  # noqa: E731
+    return key(ua) == key(ub)
+
+
+def _holds_mlflow(url: str, timeout_s: float) -> bool:
+    """True when the database already holds MLflow's tables (and not Optuna's): another spelling of tracking.uri."""
+    db = urls.sqlite_file(url)
+    if db is not None and not db.is_file():
+        return False
+    engine = create_engine(url, poolclass=NullPool, **_connect_kwargs(url, timeout_s))
+    try:
+        with engine.connect() as conn:
+            names = set(inspect(conn).get_table_names())
+    except SQLAlchemyError:
+        return False  # unreachable: storage_for says so in one line when it connects
+    finally:
+        engine.dispose()
+    return {"experiments", "runs", "alembic_version"} <= names and "studies" not in names
+
+
+def optuna_url(cfg: Config, probe: bool = True) -> str:
+    """Where Optuna's tables live: ``storage.url``, unless that is MLflow's database too.
+
+    MLflow and Optuna both record their schema revision in a table named
+    ``alembic_version``, so they cannot share one schema. On PostgreSQL Optuna
+    then gets a schema of its own in the same database (``bronchopose_optuna``,
+    or ``<schema>_optuna`` beside a ``search_path`` given in the URL); on SQLite
+    a file beside the database (``mlflow.db`` -> ``mlflow.optuna.db``). The
+    claims table has no migration bookkeeping and stays in ``storage.url``.
+    ``probe``: also look into the database for MLflow's tables (the same
+    database spelled differently, e.g. ``localhost`` and ``127.0.0.1``).
+    """
+    url = cfg.paths.storage_url
+    if not _same_database(url, cfg.paths.tracking_uri) and not (
+            probe and _holds_mlflow(urls.sqlalchemy(url), cfg.tracking.timeout_s)):
+        return url
+    db = urls.sqlite_file(url)
+    if db is not None:
+        return f"sqlite:///{db.with_name(f'{db.stem}.optuna{db.suffix}')}"
+    u = make_url(urls.sqlalchemy(url))
+    options = u.query.get("options") or ""
+    options = options[0] if isinstance(options, tuple) else options
+    m = re.search(r"search_path\s*=\s*([\w$]+)", options)
+    schema = f"{m.group(1)}_optuna" if m else OPTUNA_SCHEMA
+    options = (re.sub(r"-c\s*search_path\s*=\s*[\w$,]+", "", options) + f" -csearch_path={schema}").strip()
+    return u.update_query_dict({"options": options}).render_as_string(hide_password=False)
+
+
+def _connect_kwargs(url: str, timeout_s: float) -> dict[str, Any]:
     if url.startswith("sqlite"):
-        kwargs = {"connect_args": {"timeout": 60}}
-    elif urls.is_postgres(url):  # an unreachable server fails within tracking.timeout_s
-        kwargs = {"connect_args": {"connect_timeout": tracking.connect_timeout(cfg.tracking.timeout_s)}}
+        return {"connect_args": {"timeout": 60}}
+    if urls.is_postgres(url):  # an unreachable server fails within tracking.timeout_s
+        return {"connect_args": {"connect_timeout": tracking.connect_timeout(timeout_s)}}
+    return {}
+
+
+def _create_schema(url: str) -> None:
+    """The PostgreSQL schema named by the URL's search_path (``optuna_url``), created once (under the lock)."""
+    u = make_url(url)
+    m = re.search(r"search_path=([\w$]+)", str(u.query.get("options") or ""))
+    if m is None:
+        return
+    engine = create_engine(u.difference_update_query(["options"]), poolclass=NullPool)
+    try:
+        with engine.begin() as conn:
+            conn.execute(text(f'CREATE SCHEMA IF NOT EXISTS "{m.group(1)}"'))
+    finally:
+        engine.dispose()
+
+
+def storage_for(cfg: Config):
+    """Optuna RDB storage (``optuna_url``) with heartbeats for dead trials; StorageError (one line) if unreachable."""
+    # a database server is looked into only once it answered (below): an unreachable one costs one timeout
+    url = urls.sqlalchemy(optuna_url(cfg, probe=urls.sqlite_file(cfg.paths.storage_url) is not None))
+    kwargs = _connect_kwargs(url, cfg.tracking.timeout_s)
     beat = max(1, int(cfg.sweep.heartbeat_s))
-    make = partial(optuna.storages.RDBStorage, url, engine_kwargs=kwargs, heartbeat_interval=beat,
+    make = partial(optuna.storages.RDBStorage, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
     if urls.is_postgres(url):
         extras.require("postgres", f"storage.url {urls.redact(url)}")
@@ -75,12 +159,15 @@ def storage_for(cfg: Config):
         db = urls.sqlite_file(url)
         if urls.is_postgres(url):  # table creation must not race between machines either
             with tracking.database_lock(url, cfg.tracking.timeout_s, "storage.url", key=OPTUNA_LOCK_KEY):
-                return make()
+                url = urls.sqlalchemy(optuna_url(cfg))
+                if url != urls.sqlalchemy(cfg.paths.storage_url):
+                    _create_schema(url)
+                return make(url)
         if db is None:
-            return make()
+            return make(url)
         db.parent.mkdir(parents=True, exist_ok=True)
         with file_lock(f"{db}.lock"):  # table creation must not race
-            return make()
+            return make(url)
     except (SQLAlchemyError, ImportError, ValueError) as exc:
         text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
         raise StorageError(f"storage.url {urls.redact(url)}: {urls.redact(text[0] if text else type(exc).__name__)}"
@@ -88,32 +175,11 @@ def storage_for(cfg: Config):
 
 
 def check_space(cfg: Config) -> None:
-    """Every ``tune.space`` key must be a settable config path and every distribution well formed."""
-    problems = []
-    for path, p in cfg.tune.space.items():
-        if path.split(".")[0] in ("grid", "tune", "profiles", "tracking", "storage", "sweep", "name"):
-            problems.append(f"tune.space.{path}: only run settings can be tuned (data, model, train, splits, dataset)")
-            continue
-        try:
-            cfg.with_values({path: _probe(p)})
-        except ConfigError as exc:
-            problems.append(f"tune.space.{path}: {str(exc).splitlines()[-1].strip().removeprefix('invalid config: ')}")
-            continue
-        if p.type == "categorical" and not p.choices:
-            problems.append(f"tune.space.{path}: categorical needs a non-empty 'choices' list")
-        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
-            problems.append(f"tune.space.{path}: {p.type} needs low < high (got low={p.low}, high={p.high})")
-        elif p.log and p.type != "categorical" and p.low <= 0:
-            problems.append(f"tune.space.{path}: log scale needs low > 0 (got {p.low})")
+    """Every ``tune.space`` key must be a settable config path and every distribution well formed
+    (``config.space_problems``, which loading a config already runs)."""
+    problems = space_problems(cfg)
     if problems:
         raise ConfigError("invalid tune.space:\n  " + "\n  ".join(problems))
-
-
-def _probe(p: TuneParam) -> Any:
-    if p.type == "categorical":
-        return (p.choices or [None])[0]
-    value = p.low if p.low is not None else 0
-    return int(value) if p.type == "int" else value
 
 
 def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:

@@ -63,10 +63,21 @@ def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
     return run_cell(cfg, cell, **kw)
 
 
+def slurm_task() -> str | None:
+    """This process's Slurm job as ``<array job>_<task>`` (or ``<job>``); None outside Slurm."""
+    job = os.environ.get("SLURM_ARRAY_JOB_ID") or os.environ.get("SLURM_JOB_ID")
+    task = os.environ.get("SLURM_ARRAY_TASK_ID")
+    if not job:
+        return None
+    return f"{job}_{task}" if task and os.environ.get("SLURM_ARRAY_JOB_ID") else job
+
+
 def worker_id() -> str:
-    """``host:pid``, and the GPU the worker is pinned to (``host:pid gpu1``), as claims and status show it."""
-    gpu = os.environ.get("BRONCHOPOSE_WORKER_GPU")
-    return f"{socket.gethostname()}:{os.getpid()}" + (f" gpu{gpu}" if gpu else "")
+    """``host:pid``, the Slurm job of an array-task worker and the GPU the worker is pinned to
+    (``host:pid slurm 812_3 gpu1``), as claims and status show it."""
+    job = slurm_task()
+    gpu = os.environ.get("BRONCHOPOSE_WORKER_GPU") or (os.environ.get("CUDA_VISIBLE_DEVICES") if job else None)
+    return f"{socket.gethostname()}:{os.getpid()}" + (f" slurm {job}" if job else "") + (f" gpu{gpu}" if gpu else "")
 
 
 class ClaimLost(BronchoError):
@@ -92,8 +103,9 @@ class StopSignals:
         self.self_term = False  # a SIGTERM we sent ourselves because the claim was lost
         self.event, self.parent_pid = event, parent_pid
 
-    def install(self) -> None:
-        for s in (signal.SIGINT, signal.SIGTERM):
+    def install(self, extra: Sequence[int] = ()) -> None:
+        """Handle SIGINT, SIGTERM and ``extra`` (under Slurm: SIGUSR1, the time-limit warning) as a stop."""
+        for s in (signal.SIGINT, signal.SIGTERM, *extra):
             signal.signal(s, self._handle)
         self.installed = True
 
@@ -164,8 +176,12 @@ class Worker:
     """The claim -> run -> record loop of one process."""
 
     def __init__(self, cfg: Config, cells: Sequence[Cell], store: SweepStore, runner: Runner = default_runner,
-                 *, signals: StopSignals | None = None, sweep: str | None = None, ident: str | None = None):
+                 *, signals: StopSignals | None = None, sweep: str | None = None, ident: str | None = None,
+                 exit_when_idle: bool = False):
+        """``exit_when_idle``: return when nothing is claimable now (cells held by live workers elsewhere) instead
+        of waiting for them; ``idle`` tells afterwards whether that is why the loop ended (Slurm tasks)."""
         self.cfg, self.store, self.runner = cfg, store, runner
+        self.exit_when_idle, self.idle = exit_when_idle, False
         self.cells = {c.key: c for c in cells}
         self.sweep = sweep or cfg.name
         self.ident = ident or worker_id()
@@ -214,6 +230,9 @@ class Worker:
                              stale_after_s=s.stale_after_s)
             if claim is None:
                 if self._db(self.store.all_done, self.sweep, keys, s.max_retries):
+                    return EXIT_OK
+                if self.exit_when_idle:  # no allocation held while other workers finish their cells
+                    self.idle = True
                     return EXIT_OK
                 self.signals.wait(s.poll_s)  # cells held by other workers: wait for them or their staleness
                 continue
@@ -293,7 +312,7 @@ class Worker:
         if error is not None and _is_interrupt(error):
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
             self._db(self.store.release, claim.token)
-            log.info("interrupted %s: released", cell.label)
+            log.info("interrupted %s: released (%s)", cell.label, _reason(error))
             return "stop"
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):

@@ -15,7 +15,8 @@
   ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
   per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
-  ``tracking.model_artifact``, ``model/model.pt`` (fp32, fp16 or none); the
+  ``tracking.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
+  (``model_logging``: ``mlflow.pyfunc.load_model("runs:/<id>/model")``); the
   description gains the result.
 """
 
@@ -26,7 +27,6 @@ import tempfile
 from pathlib import Path
 
 import torch
-
 from mlflow.entities import Dataset, DatasetInput, InputTag, RunTag
 
 from .. import runview, tracking
@@ -36,7 +36,7 @@ from ..io import save_figure
 from ..plots import trajectory_figure
 from .engine import Outcome
 from .evaluate import predictions_table
-from .network import export
+from .model_logging import log_model
 from .prepare import RunData
 
 TAG_STOP = "stop_reason"
@@ -105,7 +105,5 @@ def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, out
                                 titles=[p.key for p in shown])
         for path in save_figure(fig, out / "trajectories"):
             _log_file(client, run_id, path)
-        if cfg.tracking.model_artifact != "none":
-            torch.save(export(outcome.network, cell, data.image_size, cfg.tracking.model_artifact),
-                       out / "model.pt")
-            _log_file(client, run_id, out / "model.pt", "model")
+    if cfg.tracking.model_artifact != "none":
+        log_model(client, run_id, cfg, cell, data, outcome)

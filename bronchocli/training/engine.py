@@ -24,7 +24,7 @@ from ..models import build_model
 from ..runlayout import cpu_threads, process_age_s
 from . import evaluate
 from .loop import FitResult, Settings, Trainer
-from .network import PoseRegressor
+from .network import PoseRegressor, round_to_export_
 from .prepare import RunData, sample_pairs
 
 EVAL_CHUNK = 64  # pairs per forward when evaluating pairwise models
@@ -119,6 +119,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()
+    round_to_export_(net, cfg.tracking.model_artifact)  # test the weights the run ships (fp16: rounded)
     t0 = time.perf_counter()
     chunk = cfg.data.window if net.temporal else EVAL_CHUNK
     spacing = {p: data.dataset.spacing_mm(p) for p in data.dataset.patients}

@@ -52,6 +52,7 @@ class TrajectoryPrediction:
     gt_abs: np.ndarray  # (N, 6)
     pred_abs: np.ndarray  # (N, 6)
     spacing_mm: np.ndarray  # (3,)
+    frame: str = "world"  # the pose frame of gt_rel/pred_rel: in ``camera`` they are rotations
 
 
 def thresholds(section) -> odometry.Thresholds:
@@ -88,7 +89,7 @@ def predict_trajectories(net, trajectories: Sequence[Trajectory], source: FrameS
             key=t.key, patient=t.patient, lobe=t.lobe, traj_id=str(t.traj_id),
             gt_rel=relative_labels(t, frame), pred_rel=pred_rel, gt_abs=gt_abs,
             pred_abs=geometry.accumulate(gt_abs[0], pred_rel, frame),
-            spacing_mm=np.asarray(spacing[t.patient], dtype=np.float64),
+            spacing_mm=np.asarray(spacing[t.patient], dtype=np.float64), frame=frame,
         ))
     return preds
 
@@ -99,6 +100,11 @@ def _stats(prefix: str, stats: dict[str, metrics.Stat]) -> dict[str, float]:
         out[f"{prefix}.{name}.mean"] = s.mean
         out[f"{prefix}.{name}.std"] = s.std
     return out
+
+
+def _deltas_are_rotations(preds: Sequence[TrajectoryPrediction]) -> bool:
+    """``camera``-frame relative poses are rotations (compared as such); ``world`` ones are angle differences."""
+    return any(p.frame == "camera" for p in preds)
 
 
 def odometry_metrics(p: TrajectoryPrediction, thresholds: odometry.Thresholds) -> dict[str, float]:
@@ -113,10 +119,11 @@ def score(preds: list[TrajectoryPrediction], thresholds: odometry.Thresholds = o
     pred = np.concatenate([p.pred_rel for p in preds])
     gt = np.concatenate([p.gt_rel for p in preds])
     spacing = np.concatenate([np.repeat(p.spacing_mm[None], len(p.gt_rel), 0) for p in preds])
-    out = _stats("pair", metrics.pair_metrics(pred, gt, spacing))
+    out = _stats("pair", metrics.pair_metrics(pred, gt, spacing, rotations=_deltas_are_rotations(preds)))
     ends_pred = np.stack([p.pred_abs[-1] for p in preds])
     ends_gt = np.stack([p.gt_abs[-1] for p in preds])
-    out |= _stats("acc", metrics.pair_metrics(ends_pred, ends_gt, np.stack([p.spacing_mm for p in preds])))
+    out |= _stats("acc", metrics.pair_metrics(ends_pred, ends_gt, np.stack([p.spacing_mm for p in preds]),
+                                              rotations=True))
     per_traj = [odometry_metrics(p, thresholds) for p in preds]
     traj = {k: np.array([m[k] for m in per_traj]) for k in odometry.METRICS}
     out |= _stats("traj", {k: metrics.Stat.of(v[np.isfinite(v)]) for k, v in traj.items()})
@@ -171,8 +178,8 @@ def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, li
                                   "n_pairs": len(p.gt_rel)}
         for name, ps in sources.items():
             q = ps[i]
-            pair = metrics.per_pose_errors(q.pred_rel, q.gt_rel, p.spacing_mm)
-            acc = metrics.per_pose_errors(q.pred_abs[-1:], q.gt_abs[-1:], p.spacing_mm)
+            pair = metrics.per_pose_errors(q.pred_rel, q.gt_rel, p.spacing_mm, rotations=q.frame == "camera")
+            acc = metrics.per_pose_errors(q.pred_abs[-1:], q.gt_abs[-1:], p.spacing_mm, rotations=True)
             for m in TRAJECTORY_METRICS:
                 row[f"{name}.pair.{m}"] = float(np.mean(pair[m]))
                 row[f"{name}.acc.{m}"] = float(acc[m][0])

@@ -59,6 +59,20 @@ def export(net: PoseRegressor, cell, image_size: int, precision: str = "fp32") -
             "pose_frame": cell.pose_frame, "standardized": net.standardized, "state_dict": state}
 
 
+def round_to_export_(net: PoseRegressor, precision: str) -> PoseRegressor:
+    """Round the network's weights and buffers in place to what :func:`export` stores at ``precision``.
+
+    Evaluating after this scores the weights a run ships: with ``fp16`` the test predictions a run logs are
+    exactly what its MLflow Model predicts (the computation stays fp32; only the stored values are rounded).
+    """
+    if precision == "fp16":
+        with torch.no_grad():
+            for t in [*net.parameters(), *net.buffers()]:
+                if t.is_floating_point():
+                    t.copy_(t.half().to(t.dtype))
+    return net
+
+
 def load_exported(payload: dict) -> PoseRegressor:
     """The network of :func:`export`'s artifact, in fp32, eval mode, on the CPU."""
     model = build_model(payload["arch"], image_size=int(payload["image_size"]))

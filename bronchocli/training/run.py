@@ -33,6 +33,7 @@ from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
+from ..models import initialisation
 from ..runlayout import RunInterrupted, RunPruned, RunResult, RunStopped, checkpoint_dir, resume_file
 from . import artifacts
 from .engine import fit_and_evaluate
@@ -137,10 +138,13 @@ def run_cell(
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
     tracking.check_reachable(cfg)  # a dead server fails within tracking.timeout_s, before any work
+    tags = dict(extra_tags or {})
+    if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
+        tags[tracking.TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch])[cell.arch]
     data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
-    run_id, state = _open_run(client, exp_id, cfg, cell, resume, dict(extra_tags or {}))
+    run_id, state = _open_run(client, exp_id, cfg, cell, resume, tags)
     if run_id_callback:
         run_id_callback(run_id)
     flag = StopFlag()

@@ -28,13 +28,13 @@ def ds(tmp_path):
 def decodes(monkeypatch):
     """Counts calls of the frame decoder."""
     calls = []
-    real = cache_mod.decode_frame
+    real = cache_mod._decode
 
     def counting(path, shape):
         calls.append(path)
         return real(path, shape)
 
-    monkeypatch.setattr(cache_mod, "decode_frame", counting)
+    monkeypatch.setattr(cache_mod, "_decode", counting)
     return calls
 
 
@@ -100,8 +100,8 @@ import sys
 from bronchocli.data import cache as c
 from bronchocli.data.reader import open_dataset_dir
 calls = []
-real = c.decode_frame
-c.decode_frame = lambda p, s: calls.append(p) or real(p, s)
+real = c._decode
+c._decode = lambda p, s: calls.append(p) or real(p, s)
 ds = open_dataset_dir(sys.argv[1])
 print("ready", flush=True)
 sys.stdin.readline()

@@ -220,7 +220,8 @@ def fabricate_run(client, exp_id: str, *, arch: str, rot_loss: str, population: 
     key = cell_key if cell_key is not None else f"{arch}-{rot_loss}-{population}-{fold}-{seed}-{train_trajectories}"
     tags = {"arch": arch, "rot_loss": rot_loss, "population": population, "fold": fold, "seed": str(seed),
             "pose_frame": pose_frame, "train_trajectories": train_trajectories, "cell_key": key,
-            "sweep": sweep, "run_kind": kind, "dataset_fingerprint": "fab", "failure_reason": failure_reason}
+            "sweep": sweep, "run_kind": kind, "dataset_fingerprint": "fab", "failure_reason": failure_reason,
+            "init": "random"}
     if status == "FINISHED":
         tags["stop_reason"] = stop_reason
     run = client.create_run(exp_id, start_time=start_time, tags={"mlflow.runName": f"{arch}-{rot_loss}"})
@@ -366,7 +367,7 @@ class MemRuns:
             population: str = "personalized", fold: str = "", seed: int = 0, frame: str = "world", size: str = "",
             status: str = "FINISHED", start: int = 0, key: str | None = None, noise: float = 0.05,
             refs: Mapping[str, Sequence[float]] | None = None, ratio: float = 0.5, with_errors: bool = True,
-            scale: float = 1.0, train_pairs: float | None = None, **extra: float):
+            scale: float = 1.0, train_pairs: float | None = None, init: str = "random", **extra: float):
         from bronchocli.reporting.aggregate import RunErrors
         from bronchocli.reporting.collect import RunRecord
 
@@ -374,7 +375,7 @@ class MemRuns:
         run_id = f"r{len(self.records):03d}"
         tags = {"arch": arch, "rot_loss": loss, "population": population, "fold": fold, "seed": str(seed),
                 "pose_frame": frame, "train_trajectories": size, "cell_key": key or f"k-{run_id}",
-                "stop_reason": "budget" if status == "FINISHED" else ""}
+                "stop_reason": "budget" if status == "FINISHED" else "", "init": init}
         metrics: dict[str, float] = {}
         if acc is not None and status == "FINISHED":
             df = errors_frame(keys, acc, self.rng, hard=self.hard, noise=noise, refs=refs or REFS, scale=scale)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import mlflow
 import numpy as np
 import pandas as pd
 import pytest
@@ -14,6 +16,7 @@ from run_metrics import EXPECTED
 from bronchocli import tracking
 from bronchocli.cells import ARCHS, ROT_LOSSES
 from bronchocli.config import load_config
+from bronchocli.inference.loading import resolve
 from bronchocli.training.network import load_exported
 from bronchocli.training.run import run_cell
 
@@ -150,8 +153,10 @@ def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_c
     cfg = tiny_cfg.with_values({"tracking.model_artifact": "fp16"})
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="ce", population="personalized", seed=3),
                       progress=False)
+    assert result.status == "FINISHED", result.failure_reason
     client = tracking.client_for(cfg)
-    payload = torch.load(client.download_artifacts(result.run_id, "model/model.pt"), weights_only=False)
+    local = Path(mlflow.artifacts.download_artifacts(resolve(client, result.run_id).location))  # its MLflow Model
+    payload = torch.load(local / "data" / "bronchopose" / "weights.pt", weights_only=True)
     assert payload["arch"] == "baseline" and payload["image_size"] == 32
     assert {v.dtype for v in payload["state_dict"].values() if v.is_floating_point()} == {torch.float16}
     net = load_exported(payload)

@@ -1,0 +1,406 @@
+"""``bronchopose sweep --launcher slurm``: the plan's workers as Slurm job arrays (docs/cluster.md).
+
+Slurm schedules, allocates GPUs, requeues and signals; the claims table still
+decides which cell each worker runs, exactly once. Every array task is one
+ordinary sweep worker (``bronchopose sweep --worker-only``, ``exec``-ed by the
+batch script so that Slurm's signals reach it), which takes the stages in order
+(``staged.work_stages``) and exits when nothing is left that it can claim.
+
+A sweep's jobs are found again through their name (``bronchopose-<sweep>``) and
+comment (``bronchopose:<sweep>:<storage id>:<stage>``), so running the command
+again submits only what is missing: tasks for the cells left beyond the
+tasks already queued or running, and one array per later stage, held by
+``--dependency=afterany`` on the arrays before it.
+
+Signals: ``--signal=B:USR1@<signal_delay_s>`` warns the worker before the time
+limit: it checkpoints, releases its cell (the attempt is not counted) and
+requeues its own task (``scontrol requeue``). SIGTERM (``scancel``, preemption,
+node shutdown) also releases the cell; ``--requeue`` lets Slurm put a preempted
+or failed-node task back in the queue. Whoever claims a released cell next
+resumes its run from the checkpoint on the shared checkpoint path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from rich.console import Console
+from rich.live import Live
+
+from .. import urls
+from ..cells import Selection
+from ..config import Config
+from ..errors import BronchoError
+from ..io import atomic_path
+from . import plan as planning
+from .pool import cells_left, worker_config
+from .staged import work_stages
+from .status import live_view, progress, summary_line
+from .storage import FINISHED, SweepStore
+from .worker import EXIT_INTERRUPTED, EXIT_OK, StopSignals, slurm_task
+
+log = logging.getLogger(__name__)
+
+NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node sees
+ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
+          "SUSPENDED", "STOPPED", "SIGNALING")
+REFRESH_S = 1.0
+MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
+
+
+class SlurmError(BronchoError):
+    """sbatch, squeue or scancel failed, or the config cannot run on Slurm (one line)."""
+
+
+def job_name(sweep: str) -> str:
+    return f"bronchopose-{sweep}"
+
+
+def storage_id(cfg: Config) -> str:
+    """Tells sweeps of the same name on different storages apart (the URL's hash, password left out)."""
+    return hashlib.sha256(urls.redact(cfg.paths.storage_url).encode()).hexdigest()[:8]
+
+
+def job_comment(cfg: Config, stage: str) -> str:
+    return f"bronchopose:{cfg.name}:{storage_id(cfg)}:{stage}"
+
+
+def logs_dir(cfg: Config) -> Path:
+    p = Path(os.path.expandvars(cfg.slurm.logs)).expanduser()
+    return p if p.is_absolute() else (cfg.paths.base / p).resolve()
+
+
+# -- up-front checks ------------------------------------------------------------------------------------
+
+
+def _local_store(url: str) -> bool:
+    """A store only this machine's filesystem holds: SQLite, ``file:`` or a bare path (MLflow's file store)."""
+    return url.startswith(("sqlite", "file:")) or "://" not in url
+
+
+def _node_local(path: Path) -> bool:
+    return any(path == Path(p) or Path(p) in path.parents for p in NODE_LOCAL)
+
+
+def check(cfg: Config) -> None:
+    """Everything that would make array tasks fail or disagree, before anything is submitted (one line each)."""
+    if shutil.which("sbatch") is None:
+        raise SlurmError("--launcher slurm: sbatch not found on PATH; run on a Slurm login node (or install Slurm)")
+    if not cfg.slurm.shared_filesystem:
+        _check_shared(cfg)
+    # the cluster's own verdict on partition, account, qos, GPUs, memory, time: nothing is queued
+    args = [a for a in sbatch_args(cfg, "check", 1) if a != "--parsable"]
+    _run([*args, "--test-only", "--wrap", "true"], "slurm: the cluster refuses the slurm section")
+
+
+def _check_shared(cfg: Config) -> None:
+    hint = "or set slurm.shared_filesystem: true if every node sees this path (docs/cluster.md)"
+    if _local_store(cfg.paths.storage_url):
+        raise SlurmError(f"storage.url {urls.redact(cfg.paths.storage_url)}: a SQLite claims table cannot be shared "
+                         f"by compute nodes; use postgresql://user:${{PGPASSWORD}}@host/db, {hint}")
+    if _local_store(cfg.paths.tracking_uri):
+        raise SlurmError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)}: a file/SQLite MLflow store cannot be "
+                         f"shared by compute nodes; use a PostgreSQL database or an MLflow server, {hint}")
+    for key, path in (("dataset.root", cfg.paths.dataset), ("tracking.artifacts", cfg.paths.artifacts),
+                      ("tracking.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg))):
+        if _node_local(path):
+            raise SlurmError(f"{key} {path}: a node-local folder; compute nodes need it on shared storage, {hint}")
+
+
+# -- squeue / sbatch / scancel ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Task:
+    id: str  # 812_3, or 812_[4-9] for tasks not started yet
+    job: str  # the array job id
+    state: str
+    stage: str
+    count: int  # array tasks this line stands for
+
+
+def _run(args: Sequence[str], what: str) -> str:
+    try:
+        out = subprocess.run(list(args), capture_output=True, text=True, timeout=60)
+    except FileNotFoundError:
+        raise SlurmError(f"{args[0]} not found on PATH: run on a Slurm login node") from None
+    except subprocess.TimeoutExpired:
+        raise SlurmError(f"{what}: {args[0]} did not answer in 60 s (is slurmctld up?)") from None
+    if out.returncode != 0:
+        first = (out.stderr.strip() or out.stdout.strip() or f"exit code {out.returncode}").splitlines()[-1]
+        raise SlurmError(f"{what}: {args[0]} failed: {first}")
+    return out.stdout
+
+
+def _count(task_id: str) -> int:
+    """Tasks in one squeue id: 812_3 -> 1, 812_[4-9%2] -> 6, 812_[1,3-4] -> 3."""
+    if "[" not in task_id:
+        return 1
+    spec = task_id.split("[", 1)[1].rstrip("]").split("%", 1)[0]
+    n = 0
+    for part in spec.split(","):
+        lo, _, hi = part.partition("-")
+        n += int(hi) - int(lo) + 1 if hi else 1
+    return n
+
+
+def sweep_tasks(cfg: Config) -> list[Task]:
+    """The sweep's array tasks still queued or running (squeue; pending tasks of one array share a line)."""
+    out = _run(["squeue", "-h", "--name", job_name(cfg.name), "-o", "%i|%F|%T|%k"], "listing the sweep's jobs")
+    prefix = f"bronchopose:{cfg.name}:{storage_id(cfg)}:"
+    tasks = []
+    for line in out.splitlines():
+        parts = line.strip().split("|")
+        if len(parts) != 4 or not parts[3].startswith(prefix) or parts[2] not in ACTIVE:
+            continue
+        tasks.append(Task(parts[0], parts[1], parts[2], parts[3][len(prefix):], _count(parts[0])))
+    return tasks
+
+
+def worker_command(cfg: Config, argv: Sequence[str]) -> list[str]:
+    """What each array task runs: this bronchopose, same config/profile/overrides/selection, one worker."""
+    python = cfg.slurm.python or sys.executable
+    return [python, "-c", MAIN, "sweep", "--worker-only", *argv]
+
+
+def batch_script(cfg: Config, argv: Sequence[str]) -> str:
+    lines = ["#!/bin/bash", "# bronchopose sweep --launcher slurm: one array task = one sweep worker",
+             f"cd {shlex.quote(str(Path.cwd()))}", *cfg.slurm.setup,
+             "# exec: the worker is the batch shell, so --signal=B:USR1 and scancel's SIGTERM reach it",
+             "exec " + shlex.join(worker_command(cfg, argv))]
+    return "\n".join(lines) + "\n"
+
+
+def sbatch_args(cfg: Config, stage: str, tasks: int, dependency: Sequence[str] = ()) -> list[str]:
+    s = cfg.slurm
+    args = ["sbatch", "--parsable", f"--job-name={job_name(cfg.name)}", f"--comment={job_comment(cfg, stage)}",
+            f"--array=0-{tasks - 1}%{s.array_parallelism}", f"--output={logs_dir(cfg) / '%A_%a.log'}",
+            "--open-mode=append", f"--signal=B:USR1@{s.signal_delay_s}", "--requeue", f"--time={s.timeout_min}",
+            f"--cpus-per-task={s.cpus_per_task}", "--export=ALL"]
+    if s.gpus_per_task:
+        args.append(f"--gres=gpu:{s.gpus_per_task}")
+    if s.mem_gb is not None:
+        args.append(f"--mem={max(1, round(s.mem_gb * 1024))}M")
+    for key in ("partition", "account", "qos"):
+        if getattr(s, key):
+            args.append(f"--{key}={getattr(s, key)}")
+    for key, value in s.additional.items():
+        name = key.replace("_", "-")
+        if value is True:
+            args.append(f"--{name}")
+        elif value is not False:
+            args.append(f"--{name}={value}")
+    if dependency:
+        args.append("--dependency=afterany:" + ":".join(dependency))
+    return args
+
+
+def submit(cfg: Config, stage: str, tasks: int, argv: Sequence[str], dependency: Sequence[str] = ()) -> str:
+    """Submit one array of ``tasks`` workers; returns its job id."""
+    folder = logs_dir(cfg)
+    folder.mkdir(parents=True, exist_ok=True)
+    script = folder / f"{cfg.name}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.sh"
+    with atomic_path(script) as tmp:
+        Path(tmp).write_text(batch_script(cfg, argv))
+    out = _run([*sbatch_args(cfg, stage, tasks, dependency), str(script)], f"submitting stage {stage}")
+    return out.strip().split(";")[0]
+
+
+def cancel(cfg: Config, console: Console) -> int:
+    """``bronchopose sweep --cancel``: scancel every job of this sweep (running workers release their cells)."""
+    jobs = sorted({t.job for t in sweep_tasks(cfg)}, key=int)
+    if not jobs:
+        console.print(f"no Slurm job of sweep {cfg.name} is queued or running")
+        return 0
+    _run(["scancel", *jobs], "cancelling the sweep's jobs")
+    console.print(f"cancelled Slurm job(s) {', '.join(jobs)} of sweep {cfg.name}: running cells are released "
+                  "(their runs resume from the checkpoint when the sweep is submitted again)")
+    return 0
+
+
+# -- submitting what is missing --------------------------------------------------------------------------
+
+
+def _stage_size(cfg: Config, store: SweepStore, sp: planning.StagePlan) -> int:
+    """Cells of a stage whose selection is not known yet: ``top`` combinations of its source's cells."""
+    if sp.cells is not None:
+        return len(sp.cells)
+    source = planning.source_of(cfg, sp.stage)
+    stages = planning.stages_of(cfg)
+    source_cells = planning.plan_stages(cfg, store)[stages.index(source)].cells or []
+    over = sp.stage.select.over if sp.stage.select else []
+    combos: list[dict] = []
+    for c in source_cells:
+        combo = {f: getattr(c, f) for f in over}
+        if combo not in combos:
+            combos.append(combo)
+    top = sp.stage.select.top if sp.stage.select else len(combos)
+    from ..generation.sources import planned_patients  # lazy: the dataset's patients, read once here
+
+    return max(1, len(planning.stage_cells(cfg, sp.stage, planned_patients(cfg), combos[:top])))
+
+
+def _settle_ready(cfg: Config, store: SweepStore, console: Console) -> None:
+    """Record the selection of every stage whose source stage is done (as the local launcher does), so its cells
+    are known before submitting."""
+    stages = planning.stages_of(cfg)
+    for i, stage in enumerate(stages):
+        sp = planning.plan_stages(cfg, store)[i]
+        if sp.cells is not None:
+            continue
+        source_cells = planning.plan_stages(cfg, store)[stages.index(planning.source_of(cfg, stage))].cells or []
+        left = cells_left(planning.read_plan(store, cfg.name, source_cells), cfg.sweep.max_retries)
+        if left:
+            return
+        console.print(planning.describe_selection(planning.settle_selection(cfg, store, stage, source_cells)),
+                      highlight=False)
+        planning.add_cells(cfg, store, planning.plan_stages(cfg, store)[i].cells or [])
+
+
+def submit_missing(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str],
+                   console: Console) -> list[str]:
+    """Submit arrays for what the queued/running tasks will not cover; returns the new job ids (none: covered).
+
+    Every task works through the stages in order, so the first stage with cells left counts every task labelled
+    with it or an earlier stage; a later stage's array waits (``afterany``) for the arrays before it."""
+    active = sweep_tasks(cfg)
+    _settle_ready(cfg, store, console)
+    order = [s.name for s in planning.stages_of(cfg)]
+    cap = cfg.slurm.tasks
+    submitted: list[str] = []
+    earlier: list[str] = []  # array jobs labelled with an earlier stage (queued, running or just submitted)
+    first = True
+    for i, sp in enumerate(planning.plan_stages(cfg, store, only)):
+        mine = [t for t in active if t.stage == sp.stage.name]
+        if sp.cells is not None:
+            left = cells_left(planning.add_cells(cfg, store, sp.cells), cfg.sweep.max_retries)
+        else:
+            left = _stage_size(cfg, store, sp)
+        if left:
+            want = min(left, cap) if cap else left
+            have = sum(t.count for t in mine)
+            if first:
+                have += sum(t.count for t in active if t.stage in order[:i])
+            if want > have:
+                job = submit(cfg, sp.stage.name, want - have, argv, () if first else earlier)
+                submitted.append(job)
+                earlier.append(job)
+                console.print(f"submitted Slurm array job {job}: {want - have} task(s) for stage {sp.stage.name}"
+                              + ("" if first else f", after job(s) {', '.join(earlier[:-1])}"), highlight=False)
+            first = False
+        earlier += sorted({t.job for t in mine} - set(earlier), key=int)
+    return submitted
+
+
+def launch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], *, detach: bool,
+           console: Console, retry_failed: bool = False) -> int:
+    """``bronchopose sweep --launcher slurm``: check, prepare the shared state, submit what is missing, and
+    (unless ``detach``) watch the table until the sweep's jobs are gone."""
+    check(cfg)
+    console.print(f"[bold]sweep[/] {cfg.name} on Slurm  storage {store.redacted}  MLflow "
+                  f"{urls.redact(cfg.paths.tracking_uri)}  logs {logs_dir(cfg)}/<job>_<task>.log")
+    planning.prepare(cfg, store, only, retry_failed=retry_failed)
+    jobs = submit_missing(cfg, store, only, argv, console)
+    if not jobs:
+        tasks = sweep_tasks(cfg)
+        console.print(f"nothing new to submit: {sum(t.count for t in tasks)} task(s) of this sweep queued or running"
+                      if tasks else "nothing left to run")
+    if detach:
+        console.print("detached: `bronchopose status` shows progress, `bronchopose sweep --cancel` stops the jobs")
+        return 0
+    return watch(cfg, store, only, argv, console)
+
+
+def _plan(cfg: Config, store: SweepStore, only: Selection) -> planning.Plan:
+    return planning.read_plan(store, cfg.name, planning.plan_cells(cfg, only, store))
+
+
+def _table_state(plan: planning.Plan) -> tuple:
+    """What changes whenever a worker claims, releases, finishes or fails a cell (row versions)."""
+    return tuple(sorted((k, r.version) for k, r in plan.rows.items()))
+
+
+def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], console: Console) -> int:
+    """The live view of the table while the sweep's jobs run; tops up tasks when all ended with cells left but
+    progress was made since the last submission (a cancelled task's released cell); Ctrl-C stops watching only."""
+    retries = cfg.sweep.max_retries
+    live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
+    last_line, plan = "", _plan(cfg, store, only)
+    seen_at_submit = _table_state(plan)
+    if live is not None:
+        live.start()
+    try:
+        while True:
+            try:
+                plan = _plan(cfg, store, only)
+                tasks = sweep_tasks(cfg)
+            except BronchoError as exc:  # a storage or slurmctld hiccup must not end the watch
+                log.warning("%s", exc)
+                time.sleep(REFRESH_S)
+                continue
+            n = sum(t.count for t in tasks)
+            if live is not None:
+                live.update(live_view(plan, retries, max(1, n)))
+            elif (line := summary_line(progress(plan, retries, max(1, n))).plain + f"  tasks {n}") != last_line:
+                console.print(line, highlight=False)
+                last_line = line
+            if not tasks:
+                left = cells_left(plan, retries)
+                stages_known = all(sp.cells is not None for sp in planning.plan_stages(cfg, store, only))
+                if not left and stages_known:
+                    break
+                # tasks ended with cells left (a cancelled task gave its cell back, a stage was selected): submit
+                # again, but only when the table moved since the last submission (tasks that crash at start
+                # would otherwise be resubmitted for ever)
+                now_seen = _table_state(plan)
+                if now_seen == seen_at_submit or not submit_missing(cfg, store, only, argv, console):
+                    console.print(f"[yellow]no Slurm task of sweep {cfg.name} is left and {left} cell(s) are not "
+                                  f"done[/]; see the task logs in {logs_dir(cfg)} and run the command again")
+                    return 1
+                seen_at_submit = _table_state(_plan(cfg, store, only))
+            time.sleep(REFRESH_S)
+    except KeyboardInterrupt:
+        console.print("stopped watching: the Slurm jobs go on (`bronchopose sweep --cancel` stops them)")
+        return EXIT_INTERRUPTED
+    finally:
+        if live is not None:
+            live.stop()
+    console.print(summary_line(progress(plan, retries, 1)))
+    return 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
+
+
+# -- inside an array task ---------------------------------------------------------------------------------
+
+
+def worker_main(cfg: Config, store: SweepStore, only: Selection) -> int:
+    """``bronchopose sweep --worker-only``: one worker through the stages; on SIGUSR1 (the time-limit warning)
+    it gives its cell back and requeues its own task."""
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    threads = os.environ.get("SLURM_CPUS_PER_TASK")
+    wcfg = worker_config(cfg, 1)
+    if cfg.train.threads is None and threads and threads.isdigit():
+        wcfg = wcfg.with_values({"train.threads": int(threads)})
+    signals = StopSignals()
+    signals.install(extra=(signal.SIGUSR1,))
+    log.info("sweep worker %s, Slurm task %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, slurm_task(),
+             os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
+    try:
+        code = work_stages(wcfg, store, only, signals=signals, exit_when_idle=cfg.slurm.exit_when_idle)
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+    if signals.requested == signal.SIGUSR1 and slurm_task():
+        log.info("time limit near: requeueing Slurm task %s", slurm_task())
+        subprocess.run(["scontrol", "requeue", slurm_task()], check=False, timeout=60)
+    return code if code in (EXIT_OK, EXIT_INTERRUPTED) else code

@@ -1,0 +1,47 @@
+"""Every table caption states how the backbones of its runs were initialised (issue 23, item 3)."""
+
+from __future__ import annotations
+
+import pytest
+from report_fakes import MemRuns, frames_runs
+
+from bronchocli.reporting.context import init_text
+from bronchocli.reporting.tables import TABLES, NoData
+
+IMAGENET = "imagenet:efficientnet_b0_rwightman-7f5810bc.pth"
+
+
+def _runs(init: str) -> MemRuns:
+    m = MemRuns(seed=3)
+    for seed in (0, 1):
+        for arch, loss in (("convlstm", "ce"), ("lstm", "ce"), ("offsetnet", "mse")):
+            m.add(arch, loss, seed=seed, init=init)
+        for fold in ("p00", "p01"):
+            m.add("convlstm", "ce", population="cross-subject", fold=fold, seed=seed, init=init)
+    return m
+
+
+@pytest.mark.parametrize("name", sorted(TABLES))
+@pytest.mark.parametrize("init, says", [("random", "Backbone initialisation: random weights (no pretrained backbone)."),
+                                        (IMAGENET, "Backbone initialisation: ImageNet weights (torchvision "
+                                                   "efficientnet_b0_rwightman-7f5810bc.pth).")])
+def test_every_table_caption_states_the_initialisation(name, init, says):
+    m = frames_runs() if name == "frames" else _runs(init)
+    if name == "frames":
+        for i, r in enumerate(m.records):
+            m.records[i] = type(r)(r.run_id, r.status, r.start_time, {**r.tags, "init": init}, r.metrics)
+    try:
+        table = TABLES[name](m.context(), "accumulated")  # tables built once (tracking) ignore it
+    except NoData:
+        pytest.skip(f"{name}: no data in this fabricated sweep")
+    assert says in table.caption
+
+
+def test_mixed_and_unrecorded_initialisations_are_counted():
+    m = _runs("random")
+    m.add("conv3d", "ce", init=IMAGENET)
+    m.add("baseline", "ce", init="")
+    text = init_text(m.records)
+    assert "random weights (no pretrained backbone) (10 of 12 runs)" in text
+    assert "ImageNet weights (torchvision efficientnet_b0_rwightman-7f5810bc.pth) (1 of 12 runs)" in text
+    assert "not recorded" in text

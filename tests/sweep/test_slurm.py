@@ -1,0 +1,276 @@
+"""`bronchopose sweep --launcher slurm` on a real single-node Slurm cluster (slurm_cluster.py) with two fake GPUs.
+
+Nothing stands in for sbatch, squeue, scancel or scontrol: the daemons run for
+the session and every array task is a real worker process that Slurm starts.
+Claims live in PostgreSQL; MLflow in a SQLite file under the shared-filesystem
+opt-in (one node: every task sees it). Fast fake runners (sweep_fakes.py)
+except where a checkpoint resume needs real training.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from slurm_cluster import start_cluster, stop_cluster
+from sweep_fakes import HERE, calls, runs_by_cell
+from tinydata import write_tiny_dataset
+
+from bronchocli import tracking
+from bronchocli.sweep.plan import plan_key
+from bronchocli.sweep.slurm import MAIN
+from bronchocli.sweep.storage import selections_table
+from bronchocli.sweep import FINISHED, PENDING, SweepStore
+
+pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
+REPO = HERE.parents[1]
+LIMIT = 120.0  # bound on every wait: a hang fails the test instead of stalling CI
+
+
+@pytest.fixture(scope="session")
+def cluster():
+    if shutil.which("sbatch") is None or shutil.which("slurmctld") is None:
+        if os.environ.get("CI"):
+            pytest.fail("Slurm is not installed: .ci/run installs slurm-wlm and munge")
+        pytest.skip("Slurm (slurm-wlm, munge) is not installed")
+    c = start_cluster(cpus=4, gpus=2)
+    yield c
+    stop_cluster(c)
+
+
+@pytest.fixture
+def slurm(cluster, monkeypatch, fake_dir):
+    """The cluster, with this process's environment set up so that sbatch hands it to every task."""
+    monkeypatch.setenv("SLURM_CONF", str(cluster.conf))
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(REPO), str(HERE), os.environ.get("PYTHONPATH", "")]))
+    yield cluster
+    cluster.cancel_all()
+    cluster.wait_idle_queue(LIMIT)
+
+
+def project(make_config, tmp_path, pg_url, *, slurm: dict | None = None, **kw):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    return make_config(storage=pg_url, sweep={"heartbeat_s": 0.5, "stale_after_s": 30.0, "poll_s": 0.2},
+                       slurm={"cpus_per_task": 1, "shared_filesystem": True, **(slurm or {})}, **kw)
+
+
+def wait_for(predicate, what: str, limit: float = LIMIT, cluster=None):
+    end = time.monotonic() + limit
+    while not predicate():
+        if time.monotonic() > end:
+            extra = f"; queue {cluster.jobs()}" if cluster is not None else ""
+            raise AssertionError(f"gave up waiting for {what}{extra}")
+        if cluster is not None:
+            cluster.release_held()
+        time.sleep(0.2)
+
+
+def rows(cfg):
+    return SweepStore(cfg.paths.storage_url).rows(cfg.name)
+
+
+def all_finished(cfg, n: int):
+    return lambda: (r := rows(cfg)) and len(r) == n and all(x.state == FINISHED for x in r)
+
+
+def task_logs(cfg) -> str:
+    return "\n".join(p.read_text(errors="replace") for p in sorted((cfg.paths.base / "runs" / "slurm-logs").glob("*.log")))
+
+
+def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_adds_nothing(
+        slurm, cli, make_config, tmp_path, pg_url, fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm", "convlstm"), losses=("mse", "ce"),
+                  slurm={"tasks": 2})  # two workers for six cells: each task runs several
+    path = str(cfg.paths.base / "experiments.yaml")
+    for arch in ("baseline", "lstm", "convlstm"):
+        (fake_dir / f"block-{arch}").touch()  # every cell waits at the gate: two tasks hold cells at once
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    assert re.search(r"submitted Slurm array job \d+: 2 task\(s\)", out), out
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm)
+    queued = sorted(j["id"] for j in slurm.jobs())
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")  # again, while queued/running
+    assert code == 0 and "nothing new to submit: 2 task(s)" in out and "submitted" not in out, out + err
+    assert sorted(j["id"] for j in slurm.jobs()) == queued
+    started = sorted(fake_dir.glob("started-*"))
+    gpus = {(fake_dir / f"gpu-{f.name.split('-')[1]}").read_text() for f in started}
+    assert gpus == {"0", "1"}, "the two tasks running at once must see different GPUs"
+    (fake_dir / "release").touch()
+    wait_for(all_finished(cfg, 6), "every cell finished", cluster=slurm)
+    slurm.wait_idle_queue(LIMIT)  # idle tasks exit instead of waiting
+    finished = rows(cfg)
+    assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in finished}
+    assert [calls(r.cell_key) for r in finished] == [1] * 6
+    for r in finished:  # Slurm set CUDA_VISIBLE_DEVICES per task; the worker id names the task and its GPU
+        assert re.fullmatch(r"\S+:\d+ slurm \d+_\d+ gpu[01]", r.worker), r.worker
+        assert (fake_dir / f"gpu-{r.cell_key}").read_text() == r.worker[-1]
+    code, out, _ = cli("status", "-c", path)
+    assert code == 0 and "Slurm task" in out
+    assert all(re.search(rf"{r.run_id}.*{re.escape(r.worker.split()[2])}", out) for r in finished), out
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm")
+    assert code == 0 and "nothing left to run" in out and not slurm.jobs(), out + err
+
+
+def test_a_requeued_task_gives_its_cell_back_and_no_cell_finishes_twice(slurm, cli, make_config, tmp_path, pg_url,
+                                                                        fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm"), losses=("mse",))
+    path = str(cfg.paths.base / "experiments.yaml")
+    (fake_dir / "block-baseline").touch()
+    (fake_dir / "block-lstm").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both tasks inside their cells", cluster=slurm)
+    victim = next(r for r in rows(cfg) if r.state == "running")
+    task = victim.worker.split()[2]
+    slurm.run("scontrol", "requeue", task)
+    wait_for(lambda: next(r for r in rows(cfg) if r.cell_key == victim.cell_key).state == PENDING,
+             "the requeued task to give its cell back")
+    wait_for(lambda: calls(victim.cell_key) == 2, "the requeued task to run the cell again", cluster=slurm)
+    (fake_dir / "release").touch()
+    wait_for(all_finished(cfg, 2), "both cells finished", cluster=slurm)
+    slurm.wait_idle_queue(LIMIT)
+    assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in rows(cfg)}
+    assert runs_by_cell(cfg, None) == {r.cell_key: 1 for r in rows(cfg)}  # the requeued run was resumed, not doubled
+    row = next(r for r in rows(cfg) if r.cell_key == victim.cell_key)
+    assert row.attempts == 1  # a release does not count as an attempt
+    log = task_logs(cfg)
+    assert log.count(f"Slurm task {task}") == 2, log  # the same task ran twice; its log was appended, not truncated
+
+
+def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(slurm, cli, make_config, tmp_path,
+                                                                             pg_url, fake_dir):
+    stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm", "convlstm"), losses=("mse",),
+                  stages=stages)
+    for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
+        (fake_dir / f"val-{arch}-mse").write_text(str(val))
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    jobs = re.findall(r"submitted Slurm array job (\d+): (\d+) task\(s\) for stage (\w+)", out)
+    assert [(n, s) for _, n, s in jobs] == [("3", "first"), ("1", "second")], out
+    assert f"after job(s) {jobs[0][0]}" in out
+    wait_for(all_finished(cfg, 4), "both stages finished", cluster=slurm)
+    store = SweepStore(cfg.paths.storage_url)
+    assert store.selection(cfg.name, plan_key(cfg), "second")["selected"] == [{"arch": "lstm"}]
+    with store.engine.connect() as conn:
+        recorded_at = conn.execute(selections_table.select()).mappings().one()["created_at"]
+    second = [r for r in rows(cfg) if r.coords["seed"] == 1]
+    assert [r.coords["arch"] for r in second] == ["lstm"]
+    assert second[0].claimed_at >= recorded_at
+    client = tracking.client_for(cfg)
+    exp = tracking.experiment_id(client, cfg)
+    assert len(tracking.search_runs(client, [exp], {tracking.TAG_KIND: "selection"})) == 1  # recorded once
+    assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in rows(cfg)}
+
+
+def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm, cli, make_config, tmp_path,
+                                                                          pg_url, monkeypatch):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline",), losses=("mse",))
+    path = str(cfg.paths.base / "experiments.yaml")
+    data = yaml.safe_load(Path(path).read_text())
+    cases = {
+        "SQLite claims table": ({"storage": {"url": "sqlite:///sweep.db"}, "slurm": {"shared_filesystem": False}},
+                                "storage.url"),
+        "file/SQLite MLflow store": ({"slurm": {"shared_filesystem": False}}, "tracking.uri"),
+        "node-local folder": ({"slurm": {"shared_filesystem": False}, "tracking": {"uri": pg_url}},
+                              "a node-local folder"),
+        "bad slurm value": ({"slurm": {"timeout_min": 0}}, "slurm.timeout_min"),
+        "sbatch option the launcher sets": ({"slurm": {"additional": {"array": "0-9"}}}, "slurm.additional"),
+        "partition the cluster lacks": ({"slurm": {"partition": "nosuch"}}, "sbatch failed"),
+    }
+    for name, (over, expected) in cases.items():
+        bad = tmp_path / f"bad-{len(name)}.yaml"
+        merged = {**data, **{k: {**data.get(k, {}), **v} for k, v in over.items()}}
+        bad.write_text(yaml.safe_dump(merged))
+        code, out, err = cli("sweep", "-c", str(bad), "--launcher", "slurm", "--detach")
+        lines = [x for x in (out + err).splitlines() if x.strip()]
+        assert code == 2 and len(lines) == 1 and expected in lines[0], (name, out + err)
+        assert not slurm.jobs(), name
+    assert not (tmp_path / "sweep.db").exists()  # refused before anything was created
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1
+    assert not slurm.jobs()
+
+
+def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_task(slurm, make_config, tmp_path,
+                                                                                  pg_url, monkeypatch):
+    monkeypatch.delenv("BRONCHOPOSE_TEST_RUNNER")  # real training: the resume needs a real checkpoint
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+    cfg = make_config(storage=pg_url, archs=("baseline",), losses=("mse",),
+                      sweep={"heartbeat_s": 0.5, "stale_after_s": 30.0, "poll_s": 0.2},
+                      slurm={"cpus_per_task": 1, "shared_filesystem": True},
+                      splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
+                      data={"window": 3, "cache_dir": "cache"},
+                      train={"batch_size": 3, "steps": 12, "val_every": 3, "bn_recalibrate": 1, "threads": 1,
+                             "max_val_pairs": 6})
+    path = str(cfg.paths.base / "experiments.yaml")
+    submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"],
+                                 cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=180)
+        (row,) = rows(cfg)
+        first_task = row.worker.split()[2]
+        slurm.run("scancel", first_task)
+        out, _ = submitter.communicate(timeout=240)
+    finally:
+        if submitter.poll() is None:
+            submitter.kill()
+    assert submitter.returncode == 0, out + task_logs(cfg)
+    assert len(re.findall(r"submitted Slurm array job \d+: 1 task", out)) == 2, out  # the top-up after the cancel
+    (row,) = rows(cfg)
+    assert row.state == FINISHED and row.attempts == 1 and row.worker.split()[2] != first_task
+    log = task_logs(cfg)
+    stopped = re.search(r"SIGTERM received at step (\d+)/12", log)
+    assert stopped and 0 < int(stopped.group(1)) < 12, log
+    assert f"resuming run {row.run_id}" in log
+    client = tracking.client_for(cfg)
+    steps = [m.step for m in client.get_metric_history(row.run_id, "val_loss")]
+    assert sorted(steps) == [3, 6, 9, 12], steps  # continued from the checkpoint, no step trained twice
+    assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1} and runs_by_cell(cfg, None) == {row.cell_key: 1}
+
+
+def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, cli, make_config, tmp_path, pg_url,
+                                                                      fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline",), losses=("mse",))
+    path = str(cfg.paths.base / "experiments.yaml")
+    (fake_dir / "block-baseline").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    (row,) = rows(cfg)
+    task = row.worker.split()[2]
+    slurm.run("scancel", "--signal=USR1", "--batch", task)  # what --signal=B:USR1@<s> sends before the time limit
+    wait_for(lambda: calls(row.cell_key) == 2, "the requeued task to take the cell again", cluster=slurm)
+    (fake_dir / "release").touch()
+    wait_for(all_finished(cfg, 1), "the cell finished", cluster=slurm)
+    (row,) = rows(cfg)
+    assert row.attempts == 1 and runs_by_cell(cfg, None) == {row.cell_key: 1}
+    assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
+    log = task_logs(cfg)
+    assert f"time limit near: requeueing Slurm task {task}" in log and log.count(f"Slurm task {task},") == 2, log
+
+
+def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli, make_config, tmp_path, pg_url,
+                                                                     fake_dir):
+    cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm"), losses=("mse",), slurm={"tasks": 1})
+    path = str(cfg.paths.base / "experiments.yaml")
+    (fake_dir / "block-baseline").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    assert code == 0, out + err
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    assert code == 0 and "cancelled Slurm job(s)" in out, out + err
+    slurm.wait_idle_queue(LIMIT)
+    assert [r.state for r in rows(cfg)] == [PENDING, PENDING]  # released, not failed; the other never started
+    assert runs_by_cell(cfg, "KILLED") == {rows(cfg)[0].cell_key: 1}
+    code, out, _ = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    assert code == 0 and "no Slurm job of sweep t is queued or running" in out

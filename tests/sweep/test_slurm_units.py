@@ -1,0 +1,99 @@
+"""The Slurm launcher's pieces that need no cluster: the slurm section, sbatch options, batch script, idle exit."""
+
+from __future__ import annotations
+
+import pytest
+from sweep_fakes import fake_runner
+
+from bronchocli.errors import ConfigError
+from bronchocli.sweep import SweepStore, Worker, prepare
+from bronchocli.sweep.slurm import _count, batch_script, check, sbatch_args
+from bronchocli.sweep.status import slurm_job
+
+
+@pytest.mark.parametrize("task, n", [("812_3", 1), ("812", 1), ("812_[4-9%2]", 6), ("812_[1,3-4]", 3)])
+def test_squeue_ids_are_counted_as_tasks(task, n):
+    assert _count(task) == n
+
+
+def test_sbatch_options_carry_the_slurm_section(make_config):
+    cfg = make_config(slurm={"partition": "gpu", "account": "proj", "qos": "high", "timeout_min": 90,
+                             "gpus_per_task": 2, "cpus_per_task": 6, "mem_gb": 1.5, "array_parallelism": 3,
+                             "signal_delay_s": 45, "additional": {"constraint": "a100", "exclusive": True,
+                                                                  "nice": False}})
+    args = sbatch_args(cfg, "grid", 5, ["17", "18"])
+    for expected in ("--array=0-4%3", "--signal=B:USR1@45", "--requeue", "--open-mode=append", "--time=90",
+                     "--gres=gpu:2", "--cpus-per-task=6", "--mem=1536M", "--partition=gpu", "--account=proj",
+                     "--qos=high", "--constraint=a100", "--exclusive", "--dependency=afterany:17:18",
+                     f"--job-name=bronchopose-{cfg.name}"):
+        assert expected in args, (expected, args)
+    assert not any(a.startswith("--nice") for a in args)
+    assert any(a.startswith(f"--comment=bronchopose:{cfg.name}:") and a.endswith(":grid") for a in args)
+    assert any(a.endswith("slurm-logs/%A_%a.log") for a in args)
+
+
+def test_the_batch_script_runs_setup_then_execs_one_worker(make_config):
+    cfg = make_config(slurm={"setup": ["module load cuda", "source venv/bin/activate"], "python": "/opt/py"})
+    script = batch_script(cfg, ["--config", "/x/experiments.yaml", "--only", "arch=lstm;seed=0"])
+    lines = script.splitlines()
+    assert lines[0] == "#!/bin/bash" and "module load cuda" in lines and "source venv/bin/activate" in lines
+    assert lines[-1].startswith("exec /opt/py -c ") and "--worker-only" in lines[-1]
+    assert "'arch=lstm;seed=0'" in lines[-1]  # quoted for the shell
+    assert lines.index("module load cuda") < len(lines) - 1
+
+
+@pytest.mark.parametrize("section, message", [
+    ({"timeout_min": 0}, "slurm.timeout_min"),
+    ({"partition": "gpu; rm -rf /"}, "slurm.partition"),
+    ({"additional": {"array": "0-3"}}, "set by the launcher"),
+    ({"additional": {"--constraint": "x"}}, "long option name"),
+    ({"setup": ["a\nb"]}, "one shell line"),
+    ({"gpus": 2}, "unknown key 'gpus'"),
+])
+def test_bad_slurm_values_are_refused_at_load(make_config, section, message):
+    with pytest.raises(ConfigError, match="slurm") as info:
+        make_config(slurm=section)
+    assert message in str(info.value) and len(str(info.value).splitlines()) == 1
+
+
+def test_the_checks_refuse_stores_and_folders_compute_nodes_cannot_share(make_config, monkeypatch, tmp_path):
+    monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/" + name)
+    cfg = make_config()
+    with pytest.raises(Exception, match="storage.url sqlite.*SQLite claims table"):
+        check(cfg)
+    with pytest.raises(Exception, match="tracking.uri sqlite.*MLflow store"):
+        check(make_config(storage="postgresql://u@db.example/sweeps"))
+    with pytest.raises(Exception, match="tracking.checkpoints /tmp/ck: a node-local folder"):
+        check(make_config(storage="postgresql://u@db.example/sweeps",
+                          tracking={"uri": "postgresql://u@db.example/mlflow", "artifacts": "/srv/a",
+                                    "checkpoints": "/tmp/ck"}, dataset={"root": "/srv/data"}))
+    # with slurm.shared_filesystem: true the same configs pass these checks (tests/sweep/test_slurm.py submits them)
+
+
+def test_status_reads_the_slurm_task_from_the_worker_id():
+    assert slurm_job("node7:4242 slurm 812_3 gpu0") == "812_3"
+    assert slurm_job("node7:4242 gpu0") is None and slurm_job(None) is None
+
+
+def test_a_worker_that_exits_when_idle_does_not_wait_for_cells_held_elsewhere(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",), sweep={"poll_s": 30.0})
+    store = SweepStore(cfg.paths.storage_url)
+    plan = prepare(cfg, store, dataset=False)
+    claim = store.claim(cfg.name, [c.key for c in plan.cells], "elsewhere:1", max_retries=1, stale_after_s=60)
+    assert claim is not None
+    worker = Worker(cfg, plan.cells, store, fake_runner, exit_when_idle=True)
+    assert worker.run() == 0 and worker.idle  # returned at once: poll_s of 30 s was never waited
+    assert store.rows(cfg.name)[0].worker == "elsewhere:1"
+
+
+def test_launcher_flags_are_checked_and_the_config_can_choose_slurm(cli, make_config, tmp_path, monkeypatch):
+    cfg = make_config(sweep={"launcher": "slurm"})
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "local", "--detach")
+    assert code == 2 and "--detach: only with --launcher slurm" in out + err
+    code, out, err = cli("sweep", "-c", path, "--launcher", "pbs")
+    assert code == 2 and "--launcher pbs: must be local or slurm" in out + err
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    code, out, err = cli("sweep", "-c", path)  # sweep.launcher: slurm, and no sbatch here
+    assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1
+    assert not (tmp_path / "sweep.db").exists()
