@@ -7,7 +7,9 @@ params, so a run logs as params what tells runs apart, not the whole config:
   train_trajectories; a coordinate that is None is left out);
 * the run settings (``config.RUN_SECTIONS`` without ``dataset``, which the
   dataset input identifies) that differ from the built-in defaults, plus every
-  ``tune.space`` path: what a tuned or hand-edited run changed.
+  ``tune.space`` path and ``model.pretrained``: what a tuned or hand-edited
+  run changed (speed settings such as ``train.threads`` included: they
+  explain timing differences).
 
 The full resolved config stays the ``config.yaml`` artifact; the grid, stages,
 storage and tracking settings (the same on every run of a sweep) go on the
@@ -37,11 +39,12 @@ from mlflow.tracking import MlflowClient
 
 from . import tracking, urls
 from .cells import Cell
-from .config import NOT_IN_KEY, RUN_SECTIONS, Config
+from .config import RUN_SECTIONS, Config
 from .io import file_lock
 
 log = logging.getLogger(__name__)
 KIND_SWEEP, KIND_STUDY = "sweep", "study"
+ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
 PARENT_SECTIONS = ("name", "grid", "stages", "splits", "dataset")  # shown as params on a sweep's parent
 
 REFERENCES = ("zero_motion", "train_mean")
@@ -61,17 +64,17 @@ def cell_params(cell: Cell) -> dict[str, str]:
 def _run_settings(cfg: Config) -> dict[str, str]:
     data = cfg.model_dump(mode="json")
     sig = {k: data[k] for k in RUN_SECTIONS if k != "dataset"}
-    for section, key in NOT_IN_KEY:
-        sig.get(section, {}).pop(key, None)
+    sig["data"].pop("cache_dir", None)  # where frames are cached: a path, not a setting of the run
     return tracking.flatten(sig)
 
 
 def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
-    """What a run logs as params: coordinates, run settings that differ from the defaults, tuned paths."""
+    """What a run logs as params: coordinates, run settings that differ from the defaults, tuned paths, and
+    ``ALWAYS`` (what tells models apart even at its default)."""
     ours = _run_settings(cfg)
     defaults = _run_settings(Config(name=cfg.name))
-    tuned = set(cfg.tune.space)
-    out = {k: v for k, v in ours.items() if k in tuned or defaults.get(k) != v}
+    keep = set(cfg.tune.space) | set(ALWAYS)
+    out = {k: v for k, v in ours.items() if k in keep or defaults.get(k) != v}
     return {**out, **cell_params(cell)}
 
 

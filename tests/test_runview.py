@@ -25,7 +25,8 @@ def test_params_are_the_coordinates_and_the_settings_that_differ():
     assert "fold" not in params and "train_trajectories" not in params  # unset coordinates: no param at all
     assert params["train.lr"] == "0.0005"  # changed from the default
     assert "model.dropout" in params  # a tuned path is always a param, even at its default
-    assert "train.threads" not in params  # speed settings are not what a run computes
+    assert params["train.threads"] == "3"  # a speed setting, changed: it explains timing differences
+    assert params["model.pretrained"] == "None"  # the initialisation is always a param (default: random)
     assert not any(k.startswith(("grid.", "tracking.", "storage.", "sweep.", "dataset.")) for k in params)
     assert "train.batch_size" not in params  # at its default: the full value is in config.yaml
     fold = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", train_trajectories=4)
