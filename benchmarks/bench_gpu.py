@@ -2,6 +2,7 @@
 
     python benchmarks/bench_gpu.py [--archs ...] [--sizes 128 256] [--batch 80] [--steps 300] [--pack 1 2 4]
     python benchmarks/bench_gpu.py --device cpu --sizes 64 --steps 6 --seconds 2 --pack 1   # smoke run on a CPU
+                                                      # (in --precision too: bf16 autocast by default)
 
 For every (architecture, size), bf16 on CUDA (``--precision``):
 
@@ -43,18 +44,33 @@ from bronchocli.models.profile import count_macs, random_frames
 HERE = Path(__file__).resolve().parent
 
 
-class SmSampler(threading.Thread):
-    """Samples ``nvidia-smi`` GPU utilisation every 100 ms while running (empty off CUDA)."""
+def smi_id(device: torch.device) -> str:
+    """How ``nvidia-smi -i`` names torch's ``device``: its UUID, else its PCI bus id.
 
-    def __init__(self, index: int = 0) -> None:
+    torch's index counts the devices of ``CUDA_VISIBLE_DEVICES`` (``cuda:0`` may be physical GPU 3) and may
+    follow another order than nvidia-smi's, so neither index can be handed to nvidia-smi.
+    """
+    props = torch.cuda.get_device_properties(device)
+    uuid = str(getattr(props, "uuid", "") or "")
+    if uuid:
+        return uuid if uuid.startswith(("GPU-", "MIG-")) else f"GPU-{uuid}"
+    return f"{props.pci_domain_id:08x}:{props.pci_bus_id:02x}:{props.pci_device_id:02x}.0"
+
+
+class SmSampler(threading.Thread):
+    """Samples ``nvidia-smi`` GPU utilisation of one GPU (``smi_id``) every 100 ms while running."""
+
+    def __init__(self, gpu: str) -> None:
         super().__init__(daemon=True)
-        self.index, self.values, self._stop = index, [], threading.Event()
+        self.gpu, self.values, self._stop = gpu, [], threading.Event()
+
+    def command(self) -> list[str]:
+        return ["nvidia-smi", "-i", self.gpu, "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
+                "-lms", "100"]
 
     def run(self) -> None:
-        cmd = ["nvidia-smi", "-i", str(self.index), "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
-               "-lms", "100"]
         try:
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+            proc = subprocess.Popen(self.command(), stdout=subprocess.PIPE, text=True)
         except OSError:
             return
         while not self._stop.is_set():
@@ -156,23 +172,32 @@ def startup_seconds(device: str) -> tuple[float, float]:
         return imports, run.data.metrics.get("train.process_first_step_s", float("nan"))
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--archs", nargs="+", default=list(ARCHS))
     ap.add_argument("--sizes", nargs="+", type=int, default=[128, 256])
     ap.add_argument("--batch", type=int, default=80, help="image pairs per step (temporal: 8 windows of 10)")
     ap.add_argument("--steps", type=int, default=300, help="engine optimiser steps per measurement")
     ap.add_argument("--seconds", type=float, default=10.0, help="bare-step timing per measurement")
-    ap.add_argument("--precision", default="bf16-mixed", choices=["32", "bf16-mixed", "16-mixed"])
+    ap.add_argument("--precision", default="bf16-mixed", choices=["32", "bf16-mixed", "16-mixed"],
+                    help="on every device: the CPU smoke run exercises autocast too")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--pack", nargs="+", type=int, default=[1, 2, 4], help="cells per GPU for the packing table")
     ap.add_argument("--compile", action="store_true", help="also time torch.compile (and its compile time)")
-    args = ap.parse_args()
-    device = torch.device(args.device)
+    return ap.parse_args(argv)
+
+
+def run_settings(args: argparse.Namespace) -> tuple[torch.device, str]:
+    """The device and the precision every measurement uses: ``--precision`` as asked, on the CPU too."""
+    return torch.device(args.device), args.precision
+
+
+def main() -> None:
+    args = parse_args()
+    device, precision = run_settings(args)
     cuda = device.type == "cuda"
-    precision = args.precision if cuda else "32"
     name = torch.cuda.get_device_name(device) if cuda else platform.processor() or platform.machine()
-    driver = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+    driver = subprocess.run(["nvidia-smi", "-i", smi_id(device), "--query-gpu=driver_version", "--format=csv,noheader"],
                             capture_output=True, text=True).stdout.strip() if cuda else "-"
     peak = matmul_peak_tflops(device) if cuda else float("nan")
     print(f"device: {name}; driver {driver}; torch {torch.__version__} (CUDA {torch.version.cuda}); "
@@ -183,7 +208,7 @@ def main() -> None:
     for size in args.sizes:
         for arch in args.archs:
             bare = bare_step_rate(arch, size, args.batch, device, precision, args.seconds)
-            sampler = SmSampler(device.index or 0) if cuda else None
+            sampler = SmSampler(smi_id(device)) if cuda else None
             if sampler:
                 sampler.start()
             eng = engine_rate(arch, size, args.batch, device, precision, args.steps)

@@ -13,6 +13,7 @@ from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
 from .commands import report as report_cmd
+from .commands import selftest as selftest_cmd
 from .commands import status as status_cmd
 from .commands import sweep as sweep_cmd
 from .commands import track as track_cmd
@@ -43,6 +44,7 @@ COMMANDS = {
     "sweep": sweep_cmd.sweep,
     "status": status_cmd.status,
     "track": track_cmd.track,
+    "selftest": selftest_cmd.selftest,
 }
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app}

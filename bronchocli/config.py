@@ -309,7 +309,9 @@ class Train(Section):
     rot_weight: float = Field(1.0, ge=0)
     precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
-    compile: bool = False  # torch.compile the network (CUDA: pays off on long runs; see benchmarks/README.md)
+    # torch.compile the network: false, true (= default) or an inductor mode; reduce-overhead captures the
+    # forward and backward in CUDA graphs (docs/training.md, "GPU"; benchmarks/README.md)
+    compile: bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"] = False
     max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs (evenly spread, the same every time)
     threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
 

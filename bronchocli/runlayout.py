@@ -17,6 +17,13 @@ from .errors import BronchoError
 
 RESUME_FILE = "last.pt"  # full training state of an unfinished run (removed when the run FINISHED)
 BEST_FILE = "best.pt"  # weights of the best validation so far
+GPU_SHARE_ENV = "BRONCHOPOSE_GPU_SHARE"  # sweep workers pinned to this process's GPU, itself included
+
+
+def gpu_share(env: dict[str, str] | None = None) -> int:
+    """How many processes share this process's GPU (``sweep --per-gpu K`` sets K; 1 when unset or bad)."""
+    value = (os.environ if env is None else env).get(GPU_SHARE_ENV, "1")
+    return int(value) if value.isdigit() and int(value) > 0 else 1
 
 
 @dataclass

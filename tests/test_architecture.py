@@ -22,6 +22,7 @@ LAYERS: list[set[str]] = [
     {"generation"},
     {"models"},
     {"training"},
+    {"diagnostics"},  # op counting and `bronchopose selftest`: trains, so above training
     {"inference"},
     {"api"},
     {"sweep"},

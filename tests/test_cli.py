@@ -19,7 +19,8 @@ def run_console_script(*args: str, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=cwd, env=env)
 
 
-EXPECTED_COMMANDS = {"config", "data", "train", "tune", "ui", "sweep", "status", "report", "profile", "track"}
+EXPECTED_COMMANDS = {"config", "data", "train", "tune", "ui", "sweep", "status", "report", "profile", "track",
+                     "selftest"}
 
 
 def test_the_command_list_is_explicit_and_matches_help():

@@ -112,29 +112,42 @@ class BatchOrder:
         return self._perm[k * self.batch: (k + 1) * self.batch]
 
 
-def _fits_on_device(nbytes: int, device: torch.device) -> bool:
+DEVICE_BUDGET = 0.4  # of a GPU's free memory the frame caches on it may take: the rest is activations
+
+
+def _fits_on_device(nbytes: int, device: torch.device, share: int = 1) -> bool:
+    """Whether the cache fits this process's part of the device budget.
+
+    ``share`` processes pinned to one GPU (``sweep --per-gpu K``) start at about
+    the same time and each measures the free memory before any has allocated,
+    so each may take ``1/K`` of the budget: their K copies together stay within
+    it whatever the order in which they measure (sharing one copy between
+    processes would need CUDA IPC handles kept alive by a producer process).
+    """
     if device.type != "cuda":
         return False
     free, _ = torch.cuda.mem_get_info(device)
-    return nbytes < 0.4 * free  # leave the rest to activations and other cells packed on the GPU
+    return nbytes < DEVICE_BUDGET * free / max(1, share)
 
 
 class FrameSource:
     """uint8 frames of the cache on ``device``, gathered by global frame index.
 
     ``resident``: ``auto`` copies the whole cache into device memory when it
-    takes under 40 % of the free CUDA memory (no host work per batch), ``yes``
-    always, ``no`` never (each batch is read from the memory map, then copied
-    through pinned memory without blocking). On the CPU the memory map is read
-    directly.
+    takes under 40 % of the free CUDA memory divided by ``share`` (the
+    processes sharing the GPU), ``yes`` always — on any device, the CPU
+    included, which is how CI runs the device-resident path — ``no`` never
+    (each batch is read from the memory map, then copied through pinned memory
+    without blocking on CUDA; on the CPU the memory map is read directly).
     """
 
-    def __init__(self, cache: FrameCache, device: torch.device | str = "cpu", resident: str = "auto") -> None:
+    def __init__(self, cache: FrameCache, device: torch.device | str = "cpu", resident: str = "auto",
+                 share: int = 1) -> None:
         self.cache, self.device = cache, torch.device(device)
         nbytes = int(np.prod(cache.shape))
-        on_device = self.device.type != "cpu" and (
-            resident == "yes" or (resident == "auto" and _fits_on_device(nbytes, self.device)))
-        self.bank = torch.from_numpy(np.ascontiguousarray(cache.array)).to(self.device) if on_device else None
+        on_device = resident == "yes" or (resident == "auto" and _fits_on_device(nbytes, self.device, share))
+        # A copy (the memory map is read-only, and on the CPU ``.to`` would not copy): the bank is the cache in memory.
+        self.bank = torch.from_numpy(np.array(cache.array)).to(self.device) if on_device else None
 
     @property
     def resident(self) -> bool:

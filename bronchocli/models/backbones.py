@@ -50,6 +50,32 @@ def _make_divisible(v: float, divisor: int = 8) -> int:
     return new_v + divisor if new_v < 0.9 * v else new_v
 
 
+# -- BatchNorm without the batch counter --------------------------------------------
+
+
+class _Uncounted:
+    """A BatchNorm that does not increment ``num_batches_tracked`` in training (one device op per layer per
+    forward: 109 of an EfficientNet pair model's ~1,100). The counter only serves PyTorch's cumulative mode
+    (``momentum=None``), which this project never uses (``training.loop.recalibrate_bn`` passes explicit
+    momenta); with ``momentum=None`` the layer behaves as PyTorch's. Keys and shapes are unchanged, so
+    torchvision checkpoints load; the counter stays at what it was loaded with."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.momentum is None or not (self.training and self.track_running_stats):
+            return super().forward(x)
+        self._check_input_dim(x)
+        return F.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias, True, self.momentum,
+                            self.eps)
+
+
+class BatchNorm2d(_Uncounted, nn.BatchNorm2d):
+    pass
+
+
+class BatchNorm3d(_Uncounted, nn.BatchNorm3d):
+    pass
+
+
 # -- EfficientNet-B0 ------------------------------------------------------------
 
 
@@ -59,10 +85,12 @@ class ConvBNAct(nn.Sequential):
     def __init__(self, cin: int, cout: int, kernel: int, stride: int = 1, groups: int = 1, act: bool = True) -> None:
         layers: list[nn.Module] = [
             nn.Conv2d(cin, cout, kernel, stride, (kernel - 1) // 2, groups=groups, bias=False),
-            nn.BatchNorm2d(cout),
+            BatchNorm2d(cout),
         ]
         if act:
-            layers.append(nn.SiLU(inplace=True))
+            # Out of place (torchvision: in place): SiLU's backward needs its input, so an in-place SiLU makes
+            # autograd clone the BatchNorm output first: 66 extra copies per forward of the two backbones.
+            layers.append(nn.SiLU())
         super().__init__(*layers)
 
 
@@ -75,7 +103,8 @@ class SqueezeExcitation(nn.Module):
         self.fc2 = nn.Conv2d(squeeze, channels, 1)
 
     def forward(self, x: Tensor) -> Tensor:
-        scale = self.fc2(F.silu(self.fc1(F.adaptive_avg_pool2d(x, 1))))
+        # A plain mean (adaptive_avg_pool2d(x, 1) dispatches 3 operations forward and 4 backward per block)
+        scale = self.fc2(F.silu(self.fc1(x.mean((2, 3), keepdim=True))))
         return x * torch.sigmoid(scale)
 
 
@@ -165,13 +194,13 @@ class BasicBlock(nn.Module):
     def __init__(self, cin: int, planes: int, stride: int = 1) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(cin, planes, 3, stride, 1, bias=False)
-        self.bn1 = nn.BatchNorm2d(planes)
+        self.bn1 = BatchNorm2d(planes)
         self.relu = nn.ReLU(inplace=True)
         self.conv2 = nn.Conv2d(planes, planes, 3, 1, 1, bias=False)
-        self.bn2 = nn.BatchNorm2d(planes)
+        self.bn2 = BatchNorm2d(planes)
         self.downsample: nn.Module | None = None
         if stride != 1 or cin != planes:
-            self.downsample = nn.Sequential(nn.Conv2d(cin, planes, 1, stride, bias=False), nn.BatchNorm2d(planes))
+            self.downsample = nn.Sequential(nn.Conv2d(cin, planes, 1, stride, bias=False), BatchNorm2d(planes))
 
     def forward(self, x: Tensor) -> Tensor:
         identity = x if self.downsample is None else self.downsample(x)
@@ -188,7 +217,7 @@ class ResNet34(nn.Module):
     def __init__(self, num_classes: int = 1000) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(3, 64, 7, 2, 3, bias=False)
-        self.bn1 = nn.BatchNorm2d(64)
+        self.bn1 = BatchNorm2d(64)
         self.relu = nn.ReLU(inplace=True)
         self.maxpool = nn.MaxPool2d(3, 2, 1)
         cin = 64
@@ -245,9 +274,9 @@ class InvertedResidual(nn.Module):
         if stride > 1:
             self.branch1 = nn.Sequential(
                 _depthwise(inp, stride),
-                nn.BatchNorm2d(inp),
+                BatchNorm2d(inp),
                 nn.Conv2d(inp, half, 1, bias=False),
-                nn.BatchNorm2d(half),
+                BatchNorm2d(half),
                 nn.ReLU(inplace=True),
                 nn.Dropout(dropout),
             )
@@ -255,12 +284,12 @@ class InvertedResidual(nn.Module):
             self.branch1 = nn.Sequential()
         self.branch2 = nn.Sequential(
             nn.Conv2d(inp if stride > 1 else half, half, 1, bias=False),
-            nn.BatchNorm2d(half),
+            BatchNorm2d(half),
             nn.ReLU(inplace=True),
             _depthwise(half, stride),
-            nn.BatchNorm2d(half),
+            BatchNorm2d(half),
             nn.Conv2d(half, half, 1, bias=False),
-            nn.BatchNorm2d(half),
+            BatchNorm2d(half),
             nn.ReLU(inplace=True),
             nn.Dropout(dropout),
         )

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..errors import BronchoError
-from .backbones import EfficientNetB0Features
+from .backbones import BatchNorm2d, EfficientNetB0Features
 
 State = tuple[Tensor, ...] | None
 
@@ -148,7 +148,7 @@ def fusion(kernel: int, act: type[nn.Module], padding: int | None = None) -> nn.
     padding = (kernel - 1) // 2 if padding is None else padding
     return nn.Sequential(
         nn.Conv2d(FUSED_CHANNELS, 256, kernel, padding=padding, bias=True),
-        nn.BatchNorm2d(256),
+        BatchNorm2d(256),
         act(inplace=True),
     )
 

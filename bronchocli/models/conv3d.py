@@ -13,13 +13,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .backbones import BatchNorm3d
 from .base import EfficientPairNet, State, fusion
 
 
 def _block3d(padding: tuple[int, int, int]) -> nn.Sequential:
     # The Conv3d keeps its bias (as in the authors' code): without it the model
     # would have 13.982 M parameters instead of the paper's 13.983 M.
-    return nn.Sequential(nn.Conv3d(256, 256, 3, 1, padding), nn.BatchNorm3d(256), nn.ReLU(inplace=True))
+    return nn.Sequential(nn.Conv3d(256, 256, 3, 1, padding), BatchNorm3d(256), nn.ReLU(inplace=True))
 
 
 class Conv3dNet(EfficientPairNet):

@@ -7,6 +7,7 @@ Conv2d 2560->256 3x3 pad 1 + BN + SiLU -> IR(256->128, s2) -> IR(128->64, s2)
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .backbones import InvertedResidual
@@ -30,5 +31,14 @@ class LSTMNet(EfficientPairNet):
     def forward(self, frames: Tensor, state: State = None) -> tuple[Tensor, State]:
         b, t = frames.shape[:2]
         x = pool_to(self.ir(self.fusion(self.pair_features(frames))), GRID)
-        seq, (h, c) = self.lstm(x.flatten(1).view(b, t - 1, -1), state)
+        # The LSTM runs in fp32 with autocast off: under bf16 autocast PyTorch's cuDNN LSTM path casts to fp16
+        # (its autocast policy is fp16-only), so the recurrence would train in fp16 with no loss scaling. It is
+        # 0.2 M of the 14 M parameters and a few hundred FLOPs per pair: fp32 costs nothing measurable.
+        dtype = self.lstm.weight_ih_l0.dtype  # the weights' own (fp32 in training; fp64 in the exactness tests)
+        with torch.autocast(x.device.type, enabled=False):
+            seq, (h, c) = self.lstm(x.flatten(1).view(b, t - 1, -1).to(dtype), _cast(state, dtype))
         return self.head(seq), (h, c)
+
+
+def _cast(state: State, dtype: torch.dtype) -> State:
+    return None if state is None else tuple(s.to(dtype) for s in state)

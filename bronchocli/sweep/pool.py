@@ -33,7 +33,7 @@ from .. import urls
 from ..config import Config
 from ..errors import BronchoError
 from ..runlayout import cpu_threads
-from .placement import assign
+from .placement import assign, share_counts
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
 from .storage import FAILED, FINISHED, SweepStore
@@ -99,9 +99,11 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
     handler = _ParentSignals(procs, event)
     previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        for i, gpu in enumerate(assign(workers, gpus)):
+        placed = assign(workers, gpus)
+        for i, (gpu, share) in enumerate(zip(placed, share_counts(placed))):
             log_path = log_dir / f"{socket.gethostname()}-{os.getpid()}-w{i}.log"
-            spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path), gpu)
+            spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path), gpu,
+                              share)
             procs.append(spawn_worker(spec, event))
         plan = _watch(store, plan, procs, cfg, workers, console, on_refresh)
     except BaseException:  # the parent is failing: stop the workers (they release their cells) before waiting

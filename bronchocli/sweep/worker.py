@@ -37,6 +37,7 @@ from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
 from ..runlayout import RunInterrupted, checkpoint_dir, resume_file
+from .placement import pin_env
 from .storage import CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -407,6 +408,7 @@ class WorkerSpec:
     parent_pid: int | None = None
     log_path: str | None = None
     gpu: str | None = None  # this worker's GPU (its CUDA_VISIBLE_DEVICES); None: leave the environment alone
+    gpu_share: int = 1  # workers pinned to that GPU (this one included)
 
 
 def _redirect_output(path: str | None) -> None:
@@ -423,7 +425,9 @@ def _redirect_output(path: str | None) -> None:
 def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
     """Entry point of a worker process: run the loop, exit 0 (nothing left) or 130 (stopped)."""
     if spec.gpu is not None:  # before anything imports torch: the run sees one device, cuda:0
-        os.environ["CUDA_VISIBLE_DEVICES"] = spec.gpu
+        for key, value in pin_env(spec.gpu, spec.gpu_share).items():
+            if key != "CUDA_DEVICE_ORDER" or key not in os.environ:  # a user's own device order stands
+                os.environ[key] = value
         os.environ["BRONCHOPOSE_WORKER_GPU"] = spec.gpu
     if spec.parent_pid is not None:
         os.setpgrp()  # a terminal Ctrl-C reaches the parent only; it stops the workers once, with SIGTERM

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 import random
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -20,8 +22,9 @@ import torch
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
+from ..errors import BronchoError
 from ..models import build_model
-from ..runlayout import cpu_threads, process_age_s
+from ..runlayout import cpu_threads, gpu_share, process_age_s
 from . import evaluate
 from .loop import FitResult, Settings, Trainer
 from .network import PoseRegressor, round_to_export_
@@ -30,15 +33,53 @@ from .prepare import RunData, sample_pairs
 EVAL_CHUNK = 64  # pairs per forward when evaluating pairwise models
 
 
+class DeviceUnavailable(BronchoError):
+    """``train.device`` names a device this machine does not have (one line, exit 2, before any MLflow run)."""
+
+
+def _fp32_flags() -> tuple[Any, ...]:
+    """Where torch keeps the TF32 switches (matmuls, cuDNN convolutions, cuDNN RNNs); the new API only:
+    mixing it with the legacy ``allow_tf32`` flags makes torch raise."""
+    return (torch.backends.cuda.matmul, torch.backends.cudnn.conv, torch.backends.cudnn.rnn)
+
+
+def set_tf32(enabled: bool) -> None:
+    for flags in _fp32_flags():
+        flags.fp32_precision = "tf32" if enabled else "ieee"
+
+
+@contextmanager
+def exact_fp32() -> Iterator[None]:
+    """fp32 matmuls and convolutions in full precision (no TF32) inside the block: what a CUDA-vs-CPU
+    comparison needs, since cuDNN uses TF32 for fp32 convolutions by default (10-bit mantissa, ~1e-3)."""
+    saved = [flags.fp32_precision for flags in _fp32_flags()]
+    set_tf32(False)
+    try:
+        yield
+    finally:
+        for flags, value in zip(_fp32_flags(), saved):
+            flags.fp32_precision = value
+
+
+def _mps_available() -> bool:
+    mps = getattr(torch.backends, "mps", None)
+    return bool(mps and mps.is_available())
+
+
 def device_for(cfg: Config) -> torch.device:
+    """The run's device: ``auto`` picks cuda > mps > cpu; an explicit device this machine lacks is an error."""
     want = cfg.train.device
+    if want == "cuda" and not torch.cuda.is_available():
+        raise DeviceUnavailable(f"train.device: cuda, but torch {torch.__version__} sees no CUDA device here "
+                                f"(built for CUDA {torch.version.cuda or 'none'}); use train.device: auto or cpu")
+    if want == "mps" and not _mps_available():
+        raise DeviceUnavailable("train.device: mps, but this machine has no MPS device; use auto or cpu")
     if want in ("auto", "cuda") and torch.cuda.is_available():
         # Fixed input shapes: let cuDNN pick the fastest kernels once; TF32 for fp32 matmuls and convolutions.
         torch.backends.cudnn.benchmark = True
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
+        set_tf32(True)
         return torch.device("cuda")
-    if want == "mps" or (want == "auto" and getattr(torch.backends, "mps", None) and torch.backends.mps.is_available()):
+    if want == "mps" or (want == "auto" and _mps_available()):
         return torch.device("mps")
     return torch.device("cpu")
 
@@ -49,6 +90,21 @@ def precision_for(cfg: Config, device: torch.device) -> str:
     if device.type == "cuda":
         return "bf16-mixed" if torch.cuda.is_bf16_supported() else "16-mixed"
     return "32"
+
+
+def device_name(device: torch.device) -> str:
+    """The accelerator's name (``NVIDIA H100 80GB HBM3``), or ``none`` on the CPU."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return "Apple MPS" if device.type == "mps" else "none"
+
+
+def env_tags(cfg: Config, device: torch.device) -> dict[str, str]:
+    """``env.device``, ``env.precision``, ``env.gpu_name``: where and how a run actually trained."""
+    precision = precision_for(cfg, device)
+    if precision == "32" and device.type == "cuda":
+        precision = "32 (tf32 matmuls and convolutions)"
+    return {"env.device": device.type, "env.precision": precision, "env.gpu_name": device_name(device)}
 
 
 def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
@@ -101,7 +157,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     device = device_for(cfg)
     seed_everything(cell.seed)
     net = build_network(cfg, cell, data, device)
-    source = FrameSource(data.cache, device, cfg.data.frames_on_device)
+    source = FrameSource(data.cache, device, cfg.data.frames_on_device, share=gpu_share())
     first_step: dict[str, float] = {}
 
     def stepped(step: int, total: int) -> None:
@@ -141,6 +197,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         "train.train_trajectories": float(len(data.split.train)),
         "best_val_loss": fit.best_val_loss if math.isfinite(fit.best_val_loss) else float("nan"),
         "train.frames_on_device": float(source.resident),
+        "train.skipped_steps": float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
     }
     if "run" in first_step:
         metrics["train.first_step_s"] = first_step["run"]  # from the engine's start (data already prepared)

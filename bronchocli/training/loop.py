@@ -28,6 +28,7 @@ nothing forces a host sync per step on CUDA.
 
 from __future__ import annotations
 
+import logging
 import math
 import random
 import signal
@@ -48,12 +49,24 @@ from ..models import detach_state
 from ..runlayout import RESUME_FILE, RunInterrupted
 from .network import PoseRegressor
 
+log = logging.getLogger(__name__)
+
 VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
 CUDA_CHECK_EVERY = 25  # optimiser steps between non-finite checks on CUDA (each check is a host sync)
+# 16-mixed loss scaling. Unscaled fp16 gradients of these networks at initialisation reach ~1.5e4 (conv3d,
+# lstm: measured on the CPU), so PyTorch's default first scale of 2^16 overflows and halves for ~16 steps
+# that are all skipped: a 4-step run trained nothing. Start at 1 and let the scale grow after every
+# AMP_GROWTH_INTERVAL clean steps (default 2000: never within the budgets of this project).
+AMP_INIT_SCALE = 1.0
+AMP_GROWTH_INTERVAL = 100
 
 
 class NonFiniteLoss(BronchoError):
     """The training loss became NaN or infinite; the run fails with this reason."""
+
+
+class NothingTrained(NonFiniteLoss):
+    """16-mixed: every optimiser step so far had inf/NaN gradients and was skipped by the loss scaler."""
 
 
 @dataclass(frozen=True)
@@ -114,19 +127,26 @@ def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
 
 @torch.no_grad()
 def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) -> int:
-    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``."""
+    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``.
+
+    The average is built with an explicit momentum of ``1 / (k + 1)`` for batch ``k`` (``r <- (1 - m) r + m x``
+    gives the running mean of the ``k + 1`` batch statistics), computed on the host from a counter kept here:
+    PyTorch's own cumulative mode (``momentum=None``) reads ``num_batches_tracked`` back from the device in
+    every BatchNorm of every batch (a host sync each: 1,744 per validation for the baseline on CUDA).
+    """
     bns = batchnorms(net)
     if not bns:
         return 0
     momenta = [m.momentum for m in bns]
     for m in bns:
         m.reset_running_stats()
-        m.momentum = None  # cumulative average
     was_training = net.training
     net.train()
     n = 0
     try:
         for frames in batches:
+            for m in bns:
+                m.momentum = 1.0 / (n + 1)
             with autocast():
                 net(frames)
             n += 1
@@ -137,16 +157,38 @@ def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) ->
     return n
 
 
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
+
+
+def compile_network(net: nn.Module, mode: bool | str, backend: str | None = None) -> nn.Module:
+    """``net`` compiled by ``torch.compile`` in ``mode`` (True: ``default``; False: ``net`` itself).
+
+    ``reduce-overhead`` replays the compiled forward and backward as CUDA graphs (one launch per graph
+    instead of one per operation: what a launch-bound step needs; shapes are fixed and the step makes no
+    host sync, so capture holds). ``backend`` (tests): a backend that needs no code generation, e.g.
+    ``eager`` or ``aot_eager``, in which case the mode (an inductor option) does not apply.
+    """
+    if mode is False or mode is None:
+        return net
+    mode = "default" if mode is True else mode
+    if mode not in COMPILE_MODES:
+        raise BronchoError(f"train.compile {mode!r}: must be false, true or one of {', '.join(COMPILE_MODES)}")
+    if backend is not None:
+        return torch.compile(net, backend=backend)
+    return torch.compile(net, mode=mode)
+
+
 class Trainer:
     """Fits one :class:`PoseRegressor` on training samples, validating on validation samples."""
 
     def __init__(self, net: PoseRegressor, train: Samples, val: Samples, source: FrameSource, s: Settings,
                  *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
                  on_validation: Callable[[int, dict[str, float]], None] | None = None,
-                 on_step: Callable[[int, int], None] | None = None, compile: bool = False) -> None:
+                 on_step: Callable[[int, int], None] | None = None, compile: bool | str = False) -> None:
         self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
         # The compiled module shares the network's parameters; state dicts and checkpoints use ``net``.
-        self.forward = torch.compile(net) if compile else net
+        self.forward = compile_network(net, compile)
+        self.cuda_graphs = compile == "reduce-overhead" and device.type == "cuda"
         self.device, self.ckpt_dir, self.stop = device, ckpt_dir, stop
         self.on_validation, self.on_step = on_validation, on_step
         samples_per_micro = max(1, s.micro_pairs // train.n_pairs)
@@ -156,7 +198,9 @@ class Trainer:
         self.opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
             if s.weight_decay else torch.optim.Adam(net.parameters(), lr=s.lr, fused=fused)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
-        self.scaler = torch.amp.GradScaler(device.type, enabled=s.precision == "16-mixed")
+        self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,
+                                           growth_interval=AMP_GROWTH_INTERVAL, enabled=s.precision == "16-mixed")
+        self.check_every = CUDA_CHECK_EVERY if device.type == "cuda" else 1  # non-finite checks (host syncs)
         self.step = 0  # optimiser steps taken
         self.micro = 0  # training samples batches drawn
         self.backwards = 0  # chunks back-propagated since the last optimiser step
@@ -168,7 +212,7 @@ class Trainer:
         self.train_time = self.val_time = 0.0
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
-        self._finite = torch.ones((), dtype=torch.bool, device=device)
+        self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
 
     # -- precision ------------------------------------------------------------------------------
     def autocast(self):
@@ -192,19 +236,23 @@ class Trainer:
         state = None
         n = labels.shape[1]
         for start in range(0, n, self.s.chunk):
+            if self.cuda_graphs:  # a new iteration: the graphs' previous outputs may be overwritten
+                torch.compiler.cudagraph_mark_step_begin()
             with self.autocast():
                 out, state = self.forward(frames[:, start: start + self.s.chunk + 1], state)
             loss = self.net.loss(out.float(), labels[:, start: start + self.s.chunk], self.s.rot_loss,
                                  self.s.rot_weight)
             self.scaler.scale(loss / self.s.accum).backward()
-            self._loss_sum += loss.detach()
+            self._loss_sum += loss.detach()  # a NaN/inf loss makes the sum non-finite: checked in _check_finite
             self._loss_n += 1
-            self._finite &= torch.isfinite(loss.detach())
             state = detach_state(state)
             yield
 
     def _optimiser_step(self) -> None:
         self.scaler.step(self.opt)
+        if self.scaler.is_enabled():  # counted on the device: fused Adam takes found_inf without a host sync
+            for found in self.scaler._found_inf_per_device(self.opt).values():
+                self._skipped += found
         self.scaler.update()
         self.opt.zero_grad(set_to_none=True)
         self.sched.step()
@@ -225,7 +273,7 @@ class Trainer:
                         break
 
     def _after_step(self) -> None:
-        if self.device.type != "cuda" or self.step % CUDA_CHECK_EVERY == 0:
+        if self.step % self.check_every == 0:
             self._check_finite()
         if self.on_step is not None:
             self.on_step(self.step, self.s.steps)
@@ -235,7 +283,7 @@ class Trainer:
             raise RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}; checkpoint saved to {path}")
 
     def _check_finite(self) -> None:
-        if not bool(self._finite):
+        if not bool(torch.isfinite(self._loss_sum)):
             raise NonFiniteLoss(f"non-finite training loss by step {self.step}: lower train.lr or check the data")
 
     # -- validation ---------------------------------------------------------------------------------
@@ -273,10 +321,12 @@ class Trainer:
         self._recalibrate()
         values = self.validate()
         self._check_finite()
-        train_loss = (self._loss_sum / max(self._loss_n, 1)).item()
+        train_loss, skipped = torch.stack([self._loss_sum / max(self._loss_n, 1), self._skipped]).tolist()
         self._loss_sum.zero_()
+        self._skipped.zero_()
         self._loss_n = 0
-        values |= {"train_loss": train_loss, "lr": self.opt.param_groups[0]["lr"],
+        values |= {"train_loss": train_loss, "skipped_steps": float(self._count_skipped(int(skipped))),
+                   "lr": self.opt.param_groups[0]["lr"],
                    "pairs_seen": float(self.step * self.s.pairs_per_step), "epoch": self.epochs}
         improved = values["val_loss"] < self.best_val - self.s.min_delta
         if improved or self.best_state is None:
@@ -293,6 +343,26 @@ class Trainer:
             self.on_validation(self.step, values)
         self.save_resume()
         return self.s.patience is not None and self.bad >= self.s.patience
+
+    @property
+    def skipped_steps(self) -> int:
+        """Optimiser steps the loss scaler skipped (inf/NaN gradients) as of the last validation; kept in the
+        history, so a resumed run counts the steps skipped before its checkpoint too."""
+        return int(self.history[-1].get("skipped_steps", 0)) if self.history else 0
+
+    def _count_skipped(self, skipped: int) -> int:
+        """The run's skipped steps so far. Said, never silent; a run whose every step was skipped trained nothing."""
+        total = self.skipped_steps + skipped
+        if not skipped:
+            return total
+        log.warning("16-mixed: the loss scaler skipped %d of the last optimiser steps (inf/NaN gradients); "
+                    "%d of %d so far", skipped, total, self.step)
+        # The first steps may be skipped while the scale settles; a run whose every step was skipped by its end,
+        # or by the second validation, trained nothing.
+        if total >= self.step and (self.step >= self.s.steps or len(self.history) >= 1):
+            raise NothingTrained(f"16-mixed: all {self.step} optimiser steps so far had inf/NaN gradients and were "
+                                 f"skipped (nothing was trained); use train.precision: bf16-mixed or 32")
+        return total
 
     @property
     def epochs(self) -> float:

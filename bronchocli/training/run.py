@@ -36,7 +36,7 @@ from ..errors import BronchoError
 from ..models import initialisation
 from ..runlayout import RunInterrupted, RunPruned, RunResult, RunStopped, checkpoint_dir, resume_file
 from . import artifacts
-from .engine import fit_and_evaluate
+from .engine import device_for, env_tags, fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,7 @@ def run_cell(
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
+    device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
     tracking.check_reachable(cfg)  # a dead server fails within tracking.timeout_s, before any work
     tags = dict(extra_tags or {})
     if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
@@ -145,6 +146,8 @@ def run_cell(
     client = tracking.client_for(cfg)
     exp_id = tracking.experiment_id(client, cfg)
     run_id, state = _open_run(client, exp_id, cfg, cell, resume, tags)
+    for key, value in env_tags(cfg, device).items():  # on a resume too: the device may have changed
+        client.set_tag(run_id, key, value)
     if run_id_callback:
         run_id_callback(run_id)
     flag = StopFlag()
