@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 from rich.text import Text
 
-from . import __version__, urls
+from . import __version__, extras, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -28,7 +28,7 @@ app = typer.Typer(
     help="Vision-based bronchoscopy pose estimation: synthetic data, BronchoPose models, "
     "MLflow-tracked sweeps, Optuna tuning and the paper's tables.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion; choices complete from their enums
     pretty_exceptions_enable=False,
     rich_markup_mode="rich",
 )
@@ -75,10 +75,31 @@ def _error(message: str) -> None:
     err_console.print(Text.assemble(("error: ", "bold red"), urls.redact(message)), highlight=False, soft_wrap=True)
 
 
+def _choice_error(exc: Exception) -> str | None:
+    """A bad value of a choice option, worded like every other bad value: ``--arch 'x': must be one of a, b``.
+
+    Typer (pinned < 0.30 in pyproject) checks Literal choices itself; its message is rebuilt from the option's
+    choices and the rejected value. None when ``exc`` is something else (then Typer's own message is shown).
+    """
+    param = getattr(exc, "param", None)
+    choices = getattr(getattr(param, "type_descriptor", None), "choices", None)
+    if not choices or not getattr(getattr(param, "type_descriptor", None), "is_choice", False):
+        return None
+    cause = exc.__cause__
+    errors = cause.errors() if hasattr(cause, "errors") else []
+    if not errors or "input" not in errors[0]:
+        return None
+    flag = max(param.opts, key=len)  # what the user typed, e.g. --pose-frame
+    return f"{flag} {errors[0]['input']!r}: must be one of {', '.join(str(c) for c in choices)}"
+
+
 def _usage_error(exc: Exception) -> int:
     """A bad flag or argument (click's UsageError): one line naming it and where help is, exit code 2."""
     if type(exc).__name__ == "NoArgsIsHelpError":  # the help was printed already
         return int(getattr(exc, "exit_code", 2))
+    if (choice := _choice_error(exc)) is not None:
+        _error(choice)
+        return 2
     ctx = getattr(exc, "ctx", None)
     message = " ".join(exc.format_message().split())  # type: ignore[attr-defined]
     hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
@@ -108,6 +129,12 @@ def main(argv: list[str] | None = None) -> None:
         if not hasattr(exc, "format_message"):
             raise
         raise SystemExit(_usage_error(exc)) from None
+    except ImportError as exc:  # an optional dependency met without an explicit check: name the extra
+        missing = extras.from_import_error(exc, "this command")
+        if missing is None:
+            raise
+        _error(str(missing))
+        raise SystemExit(missing.exit_code) from None
     except OSError as exc:  # a path problem no check caught (read-only, missing, a file for a folder): one line
         if exc.errno not in PATH_ERRNOS or not getattr(exc, "filename", None):
             raise

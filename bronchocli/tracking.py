@@ -11,9 +11,11 @@ import functools
 import logging
 import math
 import os
+import platform
 import socket
 import sqlite3
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.parse
@@ -34,7 +36,7 @@ from sqlalchemy import inspect as sqlalchemy_inspect
 from sqlalchemy.exc import SQLAlchemyError
 from sqlalchemy.pool import NullPool, Pool
 
-from . import __version__, urls
+from . import __version__, extras, urls
 from .cells import FIELDS, Cell
 from .config import Config
 from .errors import BronchoError
@@ -49,7 +51,16 @@ TAG_GIT = "git_commit"
 TAG_VERSION = "bronchocli_version"
 TAG_FAILURE = "failure_reason"
 TAG_HPARAMS = "hparams_source"  # where hyperparameters came from ("config" or "optuna:<study>#<trial>")
-TAG_KIND = "run_kind"  # "cell" (train/sweep) or "trial" (tune)
+TAG_KIND = "run_kind"  # "cell" (train/sweep), "trial" (tune), "sweep"/"study" (parents), "selection"
+# MLflow's own fields (the UI shows them: source, commit, description, nesting)
+TAG_NOTE = "mlflow.note.content"
+TAG_PARENT = "mlflow.parentRunId"
+TAG_SOURCE_NAME = "mlflow.source.name"
+TAG_SOURCE_TYPE = "mlflow.source.type"
+TAG_SOURCE_GIT = "mlflow.source.git.commit"
+TAG_SOURCE_BRANCH = "mlflow.source.git.branch"
+# MLflow 3's UI opens an experiment of this kind on its runs table, not on the GenAI overview.
+EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
 TAG_INIT = "init"  # backbone initialisation: "random", "imagenet:<torchvision file>", "file:<name>#<sha256>"
 
 _PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
@@ -413,6 +424,7 @@ def database_lock(url: str, timeout_s: float, what: str = "database", key: int =
     reachability check of a database before a library with long retries opens it.
     """
     shown, limit = urls.redact(url), connect_timeout(timeout_s)
+    extras.require("postgres", f"{what} {shown}")
     try:
         engine = create_engine(urls.sqlalchemy(url), poolclass=NullPool, connect_args={"connect_timeout": limit})
         conn = engine.connect()
@@ -444,7 +456,7 @@ def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) ->
     attempt = 0
     while True:
         try:
-            return client.create_experiment(name, artifact_location=location)
+            return client.create_experiment(name, artifact_location=location, tags=EXPERIMENT_TAGS)
         except (MlflowException, SQLAlchemyError):  # another worker created it first (or is committing it)
             exp = client.get_experiment_by_name(name)
             if exp is not None:
@@ -455,18 +467,65 @@ def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) ->
             time.sleep(0.2 * attempt)
 
 
-def git_commit(cwd: Path | None = None) -> str:
+def _git(args: list[str], cwd: Path | None) -> str:
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=cwd or Path(__file__).parent, capture_output=True, text=True, timeout=5
-        )
-        return out.stdout.strip() if out.returncode == 0 else "unknown"
+        out = subprocess.run(["git", *args], cwd=cwd or Path(__file__).parent, capture_output=True, text=True,
+                             timeout=5)
+        return out.stdout.strip() if out.returncode == 0 else ""
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return ""
+
+
+def mark_training_experiment(client: MlflowClient, exp_id: str) -> None:
+    """Tag an experiment made before EXPERIMENT_TAGS existed, so MLflow 3's UI opens it on its runs table."""
+    exp = client.get_experiment(exp_id)
+    for key, value in EXPERIMENT_TAGS.items():
+        if key not in exp.tags:
+            client.set_experiment_tag(exp_id, key, value)
+
+
+def git_commit(cwd: Path | None = None) -> str:
+    return _git(["rev-parse", "HEAD"], cwd) or "unknown"
+
+
+def source_name(argv: list[str] | None = None) -> str:
+    """``bronchopose <command>`` when run through the CLI (also in its spawned workers), else the script's name."""
+    argv = sys.argv if argv is None else argv
+    path = Path(argv[0]) if argv and argv[0] else Path("python")
+    prog = path.name
+    if prog == "bronchopose" or path.parent.name == "bronchocli":  # the console script, or python -m bronchocli.cli
+        command = next((a for a in argv[1:] if not a.startswith("-")), "")
+        return f"bronchopose {command}".strip()
+    return prog
+
+
+def source_tags(cfg: Config) -> dict[str, str]:
+    """MLflow's standard source fields; one that cannot be known (no git checkout) is left out, never empty."""
+    tags = {TAG_SOURCE_NAME: source_name(), TAG_SOURCE_TYPE: "LOCAL"}
+    for where in (cfg.paths.base, None):  # the config's checkout, else the code's own (an editable install)
+        commit = git_commit(where)
+        if commit != "unknown":
+            tags[TAG_SOURCE_GIT] = commit
+            branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], where)
+            if branch and branch != "HEAD":
+                tags[TAG_SOURCE_BRANCH] = branch
+            break
+    return tags
+
+
+def python_tags() -> dict[str, str]:
+    """``env.python``; ``env.torch``/``env.cuda`` are logged by training (torch is not imported here)."""
+    return {"env.python": platform.python_version()}
+
+
+def non_empty(tags: Mapping[str, Any]) -> dict[str, str]:
+    """Tags without the unknown ones: a missing tag reads as "" everywhere, an empty one only clutters the UI."""
+    return {k: str(v) for k, v in tags.items() if v is not None and str(v) != ""}
 
 
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
-    tags = cell.tags()
+    """A cell run's tags: coordinates, key, sweep, provenance, MLflow's source fields (no empty values)."""
+    tags: dict[str, Any] = cell.tags()
     tags.update({
         TAG_CELL_KEY: cell.key,
         TAG_SWEEP: cfg.name,
@@ -474,11 +533,13 @@ def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
         TAG_VERSION: __version__,
         TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
-        "profile": cfg.profile or "",
+        "profile": cfg.profile,
         "mlflow.runName": cell.label.replace("/", "-"),
+        **source_tags(cfg),
+        **python_tags(),
     })
     tags.update(extra)
-    return tags
+    return non_empty(tags)
 
 
 def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:

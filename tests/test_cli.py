@@ -58,3 +58,34 @@ def test_config_command_prints_resolved_yaml_and_grid(cli, repo):
     assert code == 0 and "lr: 0.5" in out
     code, out, _ = cli("config", "-c", str(repo / "experiments.yaml"), "--grid", "--set", "grid.arch=[lstm]")
     assert code == 0 and re.search(r"\b6 cells\b", out)
+
+
+
+def _complete(monkeypatch, words: str) -> list[str]:
+    """What the shell gets for ``words`` (Typer's bash completion protocol, in-process)."""
+    import contextlib
+    import io
+
+    monkeypatch.setenv("_BRONCHOPOSE_COMPLETE", "complete_bash")
+    monkeypatch.setenv("COMP_WORDS", words)
+    monkeypatch.setenv("COMP_CWORD", str(len(words.split(" ")) - 1))
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as done:
+        cli.main([])
+    assert done.value.code in (0, None)
+    return out.getvalue().split()
+
+
+def test_choices_complete_in_the_shell_and_are_listed_in_help(monkeypatch):
+    from bronchocli.cells import ARCHS, POPULATIONS
+    from bronchocli.reporting.tables import TABLES
+
+    assert _complete(monkeypatch, "bronchopose train --arch ") == list(ARCHS)
+    assert _complete(monkeypatch, "bronchopose train --arch c") == [a for a in ARCHS if a.startswith("c")]
+    assert _complete(monkeypatch, "bronchopose tune --population ") == list(POPULATIONS)
+    assert _complete(monkeypatch, "bronchopose report --table ") == ["all", *TABLES]  # the registry, not a copy
+    assert _complete(monkeypatch, "bronchopose report --eval ") == ["accumulated", "pair", "both"]
+    monkeypatch.delenv("_BRONCHOPOSE_COMPLETE")
+    shown = run_console_script("train", "--help").stdout
+    assert "<baseline|lstm|convlstm|conv3d|offsetnet>" in "".join(c for c in shown if c not in " \n│")
+    assert "--install-completion" in run_console_script("--help").stdout

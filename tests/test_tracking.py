@@ -20,7 +20,9 @@ def test_flatten_and_cell_tags():
     cell = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", seed=3, pose_frame="camera")
     tags = tracking.cell_tags(cfg, cell)
     assert (tags["arch"], tags["fold"], tags["seed"], tags["pose_frame"]) == ("lstm", "p01", "3", "camera")
-    assert tags["train_trajectories"] == "" and set(FIELDS) <= set(tags) and tracking.CELL_TAGS == FIELDS
+    # an unset coordinate (and an unset profile) is no tag at all, never an empty string
+    assert "train_trajectories" not in tags and "profile" not in tags and all(v != "" for v in tags.values())
+    assert set(FIELDS) - {"train_trajectories"} <= set(tags) and tracking.CELL_TAGS == FIELDS
     assert tags["cell_key"] == cell.key and tags["run_kind"] == "cell" and tags["hparams_source"] == "config"
     assert tags["mlflow.runName"] == "lstm-ce-cross-subject-p01-s3-camera"
     assert Cell.from_tags(tags) == cell  # the run's tags give its cell back, key included

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
 
 import pytest
@@ -39,12 +41,36 @@ def test_ui_serves_the_store(tmp_path):
                     pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
                 time.sleep(0.2)
         assert (tmp_path / "runs" / "mlflow.db").is_file()  # it serves the config's store
-    finally:
+        # the printed link is the experiment's runs table in the model-training view, for the id the server has
+        query = urllib.parse.urlencode({"experiment_name": "ui-test"})
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?{query}",
+                                    timeout=10) as response:
+            experiment = json.load(response)["experiment"]
+        link = f"http://127.0.0.1:{port}/#/experiments/{experiment['experiment_id']}/runs?workflowType=machine_learning"
+        assert {t["key"]: t["value"] for t in experiment["tags"]}["mlflow.experimentKind"] == "custom_model_development"
         os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=30)
+        out = proc.communicate(timeout=30)[0]
+        assert f"runs of experiment ui-test: {link}" in out
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=30)
 
 
 def test_ui_refuses_a_remote_tracking_server(tmp_path, cli):
     (tmp_path / "experiments.yaml").write_text("name: t\ntracking: {uri: 'http://mlflow.example:5000'}\n")
     code, _, err = cli("ui", "-c", str(tmp_path / "experiments.yaml"))
     assert code == 2 and "already a server" in err
+
+
+def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
+    from bronchocli.commands import ui
+    from bronchocli.config import Config
+
+    assert [ui.default_workers(n) for n in (1, 2, 3, 8, 64)] == [1, 1, 1, 4, 4]  # not 4 workers on 2 cores
+    cfg = Config(name="t").with_values({"tracking.uri": f"sqlite:///{tmp_path / 'm.db'}"})
+    argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=3)
+    assert argv[argv.index("--workers") + 1] == "3" and argv[1] == "ui"
+    monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)
+    assert ui.server_env()[ui.JOB_EXECUTION_ENV] == "false"  # no GenAI task consumers for a training experiment
+    assert ui.server_env({ui.JOB_EXECUTION_ENV: "true"})[ui.JOB_EXECUTION_ENV] == "true"  # the user's choice wins

@@ -21,6 +21,7 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import minimum_spanning_tree
 
+from .. import extras
 from ..errors import DataError
 
 SPUR_FACTOR = 1.5  # terminal runs shorter than this many junction radii are pruned
@@ -44,6 +45,7 @@ def largest_component(mask: np.ndarray, source: str) -> np.ndarray:
 def graph_from_mask(mask: np.ndarray, spacing_xyz: np.ndarray, origin_xyz: np.ndarray,
                     source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(points_mm (N, 3) xyz, radii_mm (N,), edges (E, 2)) of the skeleton of a ``[z, y, x]`` mask."""
+    extras.require("render", f"{source}: reading a segmentation volume", ("skimage",))
     from skimage.morphology import skeletonize  # lazy: scikit-image takes ~1 s to import, volumes only
 
     spacing_zyx = np.asarray(spacing_xyz, dtype=np.float64)[::-1]

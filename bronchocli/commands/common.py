@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Literal, Optional
 
 import typer
 from rich.console import Console
@@ -25,6 +25,9 @@ SetOpt = Annotated[
     Optional[list[str]],
     typer.Option("--set", "-s", help="Override a config value: key.path=value (repeatable), e.g. train.lr=3e-4."),
 ]
+
+
+ShowFormat = Literal["table", "json"]  # choices are Literal types: --help lists them, the shell completes them
 
 
 def load(config: Path = Path(DEFAULT_CONFIG), profile: str | None = None, overrides: list[str] | None = None) -> Config:

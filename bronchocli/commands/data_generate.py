@@ -12,6 +12,7 @@ from rich.table import Table
 
 from ..config import DEFAULT_CONFIG, Config, parse_override
 from ..errors import BronchoError, Interrupted
+from ..extras import require
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -69,6 +70,7 @@ def generate(
     Resumable: run it again after an interruption and it continues where it stopped (same seed, same bytes).
     A folder holding a dataset of a different config is refused. See docs/generator.md.
     """
+    require("render", "data generate", ("vtkmodules",))
     from ..generation.pipeline import generate_dataset  # lazy: VTK loads only when generating
 
     flags = _flag_overrides(anatomy, patients=patients, image_size=image_size, trajectories=trajectories, seed=seed)

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 from rich.table import Table
 
+from ..cells import Population
 from ..config import DEFAULT_CONFIG, Config, parse_override
 from ..errors import ConfigError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
@@ -32,8 +33,8 @@ def _table(df, title: str) -> Table:
 def stats(
     dataset: Optional[Path] = typer.Argument(None, metavar="DATASET",
                                              help="Dataset directory (default: the config's dataset.root)."),
-    population: Optional[str] = typer.Option(None, "--population", help="Also show the split of this population "
-                                             "(personalized or cross-subject)."),
+    population: Optional[Population] = typer.Option(None, "--population", help="Also show the split of this "
+                                                    "population."),
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject)."),
     manifest: Optional[Path] = typer.Option(None, "--manifest", help="Write the split manifest CSV here "
                                             "(patient, lobe, trajectory, split); needs --population."),

@@ -10,7 +10,7 @@ from rich import box
 from rich.table import Table
 
 from ..errors import BronchoError
-from .common import console, err_console
+from .common import ShowFormat, console, err_console
 
 
 def profile(
@@ -28,7 +28,7 @@ def profile(
         bool, typer.Option("--channels-last/--no-channels-last", help="Channels-last memory format.")
     ] = True,
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads.")] = None,
-    fmt: Annotated[str, typer.Option("--format", help="table or json.")] = "table",
+    fmt: Annotated[ShowFormat, typer.Option("--format", help="Output format.")] = "table",
 ) -> None:
     """Profile the architectures: parameters, GMAC per pair, latency per pair (batch 1 and N), peak memory.
 

@@ -3,29 +3,39 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import typer
 
-from ..cells import POSE_FRAMES
+from ..cells import PoseFrame
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load, output_folder
 
 
+Evaluation = Literal["accumulated", "pair", "both"]
+
+
+def complete_tables(incomplete: str) -> list[str]:
+    """Shell completion of --table: the registered tables (read when completing, not at start-up)."""
+    from ..reporting.tables import TABLES  # lazy: the reporting stack loads only when completing --table
+
+    return [n for n in ("all", *TABLES) if n.startswith(incomplete)]
+
+
 def report(
     table: str = typer.Option("all", "--table", "-t", help="personalized, cross-subject, sota, ablation, frames, "
-                              "tracking or all."),
-    evaluation: str = typer.Option("both", "--eval", "-e", help="accumulated, pair or both."),
-    fmt: str = typer.Option("both", "--format", "-f", help="md, latex or both."),
+                              "tracking or all.", autocompletion=complete_tables),
+    evaluation: Evaluation = typer.Option("both", "--eval", "-e", help="Per pair, accumulated, or both."),
+    fmt: Literal["md", "latex", "both"] = typer.Option("both", "--format", "-f", help="Markdown, LaTeX or both."),
     sweep: Optional[str] = typer.Option(None, "--sweep", help="Report a stored sweep by name (tag `sweep`): all its "
                                         "cell runs, not tied to the config's cells. Default: the config's cells."),
     include_other_configs: bool = typer.Option(False, "--include-other-configs", help="Also use runs of the "
                                                "config's sweep made under another config (other cell keys)."),
     out: Path = typer.Option(Path("reports"), "--out", "-o", help="Output directory."),
-    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"The main tables' pose frame "
-                                             f"({', '.join(POSE_FRAMES)}); default: the runs' only one, else "
-                                             f"world (the frames table compares both)."),
+    pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="The main tables' pose frame; "
+                                                   "default: the runs' only one, else world (the frames table "
+                                                   "compares both)."),
     best: int = typer.Option(0, "--best", help="Cross-subject tables: keep the best N network/loss combinations "
                              "by mean rank over the metrics (the paper shows 3); 0 = all."),
     figures: Optional[bool] = typer.Option(None, "--figures/--no-figures", help="Write the figures "
@@ -66,8 +76,6 @@ def report(
     from ..reporting.markdown import to_rich
 
     names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
-    if pose_frame is not None and pose_frame not in POSE_FRAMES:
-        raise BronchoError(f"--pose-frame {pose_frame!r}: must be one of {', '.join(POSE_FRAMES)}")
     if best < 0 or trajectories < 1:
         raise BronchoError("--best must be >= 0 and --trajectories >= 1")
     output_folder(out, "--out")  # before minutes of work, not after

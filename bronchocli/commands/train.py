@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..cells import ARCHS, POPULATIONS, POSE_FRAMES, ROT_LOSSES
+from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from ..runlayout import check_paths
@@ -15,13 +15,13 @@ from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
 def train(
-    arch: str = typer.Option(..., "--arch", "-a", help=f"Architecture: {', '.join(ARCHS)}."),
-    rot_loss: str = typer.Option(..., "--rot-loss", "-l", help=f"Rotation loss: {', '.join(ROT_LOSSES)}."),
-    population: str = typer.Option(..., "--population", "-P", help=f"Population: {', '.join(POPULATIONS)}."),
+    arch: Arch = typer.Option(..., "--arch", "-a", help="Architecture."),
+    rot_loss: RotLoss = typer.Option(..., "--rot-loss", "-l", help="Rotation loss."),
+    population: Population = typer.Option(..., "--population", "-P", help="Population."),
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the run."),
-    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help=f"Relative-pose frame: {', '.join(POSE_FRAMES)} "
-                                             "(default: the first of the config's grid.pose_frame)."),
+    pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="Relative-pose frame (default: the "
+                                                   "first of the config's grid.pose_frame)."),
     train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories", help="Training trajectories per "
                                                      "patient and lobe (default: splits.train)."),
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),

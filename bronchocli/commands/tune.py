@@ -10,11 +10,11 @@ import typer
 from rich.table import Table
 
 from .. import urls
-from ..cells import ARCHS, POPULATIONS, ROT_LOSSES
+from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from ..runlayout import check_paths
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
 
 
 def _show(cfg, study: str, fmt: str) -> None:
@@ -43,13 +43,13 @@ def _show(cfg, study: str, fmt: str) -> None:
 
 
 def tune(
-    arch: Optional[str] = typer.Option(None, "--arch", "-a", help=f"Architecture: {', '.join(ARCHS)}."),
-    rot_loss: Optional[str] = typer.Option(None, "--rot-loss", "-l", help=f"Rotation loss: {', '.join(ROT_LOSSES)}."),
-    population: Optional[str] = typer.Option(None, "--population", "-P", help=f"{', '.join(POPULATIONS)}."),
+    arch: Optional[Arch] = typer.Option(None, "--arch", "-a", help="Architecture."),
+    rot_loss: Optional[RotLoss] = typer.Option(None, "--rot-loss", "-l", help="Rotation loss."),
+    population: Optional[Population] = typer.Option(None, "--population", "-P", help="Population."),
     fold: Optional[str] = typer.Option(None, "--fold", help="Held-out patient (cross-subject only)."),
     seed: int = typer.Option(0, "--seed", help="Training seed of every trial."),
-    pose_frame: Optional[str] = typer.Option(None, "--pose-frame", help="world or camera (default: the first of "
-                                             "the config's grid.pose_frame)."),
+    pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="Relative-pose frame (default: the "
+                                                   "first of the config's grid.pose_frame)."),
     train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories",
                                                      help="Training trajectories per patient and lobe."),
     trials: Optional[int] = typer.Option(None, "--trials", "-n", min=1,
@@ -60,7 +60,7 @@ def tune(
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
     workers: int = typer.Option(1, "--workers", "-w", min=1, help="Local worker processes tuning the study."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
-    fmt: str = typer.Option("table", "--format", help="--show output: table or json."),
+    fmt: ShowFormat = typer.Option("table", "--format", help="--show output."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,

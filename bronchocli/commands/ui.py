@@ -1,4 +1,13 @@
-"""`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured tracking store."""
+"""`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured tracking store, opened on the runs table.
+
+MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
+experiment's runs table in the model-training view (``runview.runs_table_url``),
+and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
+so the UI's own navigation lands there too. The server is sized for the machine:
+``--workers`` (default: half the cores, 1 to 4) and no GenAI job runner
+(``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
+judges and trace jobs that a training experiment never uses).
+"""
 
 from __future__ import annotations
 
@@ -7,6 +16,7 @@ import shutil
 import socket
 import sys
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -16,13 +26,32 @@ from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
-def ui_command(cfg, host: str, port: int) -> list[str]:
-    """The `mlflow ui` argv serving the config's store and artifact root."""
-    exe = shutil.which("mlflow") or str(Path(sys.executable).with_name("mlflow"))
-    argv = [exe, "ui", "--backend-store-uri", cfg.paths.tracking_uri, "--host", host, "--port", str(port)]
+JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
+
+
+def default_workers(cores: int | None = None) -> int:
+    """Server worker processes: half the cores, at least 1 and at most 4 (one person browsing needs few)."""
+    cores = cores if cores is not None else (os.cpu_count() or 1)
+    return max(1, min(4, cores // 2))
+
+
+def ui_command(cfg, host: str, port: int, workers: int | None = None) -> list[str]:
+    """The `mlflow ui` argv serving the config's store and artifact root with ``workers`` processes."""
+    exe = str(Path(sys.executable).with_name("mlflow"))
+    if not Path(exe).exists():
+        exe = shutil.which("mlflow") or exe
+    argv = [exe, "ui", "--backend-store-uri", cfg.paths.tracking_uri, "--host", host, "--port", str(port),
+            "--workers", str(workers or default_workers())]
     if not urls.is_server(cfg.paths.tracking_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
+
+
+def server_env(environ: dict[str, str] | None = None) -> dict[str, str]:
+    """The server's environment: the GenAI job runner off unless the user asked for it."""
+    env = dict(os.environ if environ is None else environ)
+    env.setdefault(JOB_EXECUTION_ENV, "false")
+    return env
 
 
 def check_port(host: str, port: int) -> None:
@@ -45,26 +74,36 @@ def check_port(host: str, port: int) -> None:
 def ui(
     port: int = typer.Option(5000, "--port", help="Port to listen on."),
     host: str = typer.Option("127.0.0.1", "--host", help="Interface (127.0.0.1 keeps it local)."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, help="Server worker processes "
+                                          "(default: half the cores, 1 to 4)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Start the MLflow UI for the config's tracking store (Ctrl-C stops it).
+    """Start the MLflow UI for the config's tracking store and print the link to its runs table (Ctrl-C stops it).
 
-    Runs are grouped in the experiment named by the config; filter them with e.g.
-    `tags.arch = 'convlstm' and tags.population = 'personalized'`.
+    The link opens the config's experiment on the runs table of MLflow's model-training
+    view: tick two or more runs and press Compare to see the params that differ (arch,
+    seed, ...). Sweeps and Optuna studies are parent runs with their cells/trials nested.
+    Filter with e.g. `params.arch = 'convlstm' and params.population = 'personalized'`.
     """
     cfg = load(config, profile, set_)
     if urls.is_server(cfg.paths.tracking_uri):
         raise BronchoError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)} is already a server: open it in a browser")
     check_port(host, port)
-    from .. import tracking  # lazy: mlflow loads only when the UI starts
+    from .. import runview, tracking  # lazy: mlflow loads only when the UI starts
 
     tracking.check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
-    argv = ui_command(cfg, host, port)
+    argv = ui_command(cfg, host, port, workers)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
-    console.print(f"MLflow UI for {urls.redact(cfg.paths.tracking_uri)} at http://{host}:{port} (Ctrl-C to stop)")
+    client = tracking.client_for(cfg)
+    exp_id = tracking.experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
+    tracking.mark_training_experiment(client, exp_id)
+    base = f"http://{host}:{port}"
+    console.print(f"MLflow UI for {urls.redact(cfg.paths.tracking_uri)} at {base} (Ctrl-C to stop)\n"
+                  f"runs of experiment {cfg.experiment_name}: {runview.runs_table_url(base, exp_id)}",
+                  highlight=False, soft_wrap=True)
     sys.stdout.flush()
-    os.execv(argv[0], argv)
+    os.execve(argv[0], argv, server_env())

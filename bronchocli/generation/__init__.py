@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from .. import extras
 from ..config import Config
 from ..data.layout import DATASET_JSON
 
@@ -29,6 +30,8 @@ def ensure_dataset(cfg: Config, progress: bool = True, note: Callable[[str], Non
     ``dataset.root`` would otherwise silently start a long generation.
     """
     if needs_generation(cfg):
+        extras.require("render", f"generating the dataset (dataset.root {cfg.paths.dataset} holds none yet)",
+                       ("vtkmodules",))
         from .pipeline import generate_dataset  # lazy: VTK loads only when there is rendering to do
 
         if not cfg.paths.dataset.exists():

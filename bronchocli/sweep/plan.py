@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .. import tracking
+from .. import runview, tracking
 from ..cells import Cell, Selection, select
 from ..config import Config, Stage, expand_grid, run_signature
 from ..errors import BronchoError
@@ -162,7 +162,7 @@ def _log_selection(cfg: Config, selection: dict[str, Any], key: str) -> None:
     exp = tracking.experiment_id(client, cfg)
     run = client.create_run(exp, tags={
         tracking.TAG_SWEEP: cfg.name, tracking.TAG_KIND: "selection", TAG_STAGE: selection["stage"], TAG_PLAN: key,
-        "mlflow.runName": f"selection-{selection['stage']}",
+        "mlflow.runName": f"selection-{selection['stage']}", tracking.TAG_PARENT: runview.sweep_parent(client, cfg, exp),
     })
     run_id = run.info.run_id
     tracking.log_params(client, run_id, {"by": selection["by"], "top": str(selection["top"]),

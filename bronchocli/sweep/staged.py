@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from rich.console import Console
 
-from .. import urls
+from .. import runview, tracking, urls
 from ..cells import Selection
 from ..config import Config
 from . import plan as planning
@@ -63,12 +63,31 @@ def _source_done(cfg: Config, store: SweepStore, source_cells) -> int:
 
 def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
               retry_failed: bool = False, gpus: Sequence[str] = ()) -> int:
-    """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted)."""
+    """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted).
+
+    The sweep's parent MLflow run (its cells nest under it) is RUNNING while this runs and ends like it.
+    """
     console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
                                                            if cfg.tune.applied else "")
                   + (f"  GPUs {','.join(gpus)} ({workers} workers)" if gpus else ""))
     planning.prepare(cfg, store, only, retry_failed=retry_failed)
+    client = tracking.client_for(cfg)
+    parent = runview.sweep_parent(client, cfg, tracking.experiment_id(client, cfg))
+    client.update_run(parent, "RUNNING")
+    code = 1
+    try:
+        code = _run_stages(cfg, store, only=only, workers=workers, console=console, gpus=gpus)
+        return code
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+        raise
+    finally:
+        runview.set_parent_status(client, parent, code)
+
+
+def _run_stages(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
+                gpus: Sequence[str]) -> int:
     stages = planning.stages_of(cfg)
     full = {sp.stage.name: sp for sp in planning.plan_stages(cfg, store)}  # unfiltered: what selections wait for
     code, ran_any = 0, False

@@ -46,7 +46,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
-from .. import urls
+from .. import extras, urls
 from ..cells import Cell
 from ..errors import BronchoError
 
@@ -143,6 +143,8 @@ class SweepStore:
         if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
             raise BronchoError(f"storage.url {self.redacted}: an in-memory SQLite database cannot be shared by "
                                "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
+        if urls.is_postgres(self.url):
+            extras.require("postgres", f"storage.url {self.redacted}")
         try:
             self.engine: Engine = _make_engine(self.url, timeout_s, busy_timeout_s)
         except (SQLAlchemyError, ImportError, ValueError) as exc:

@@ -28,7 +28,7 @@ from sqlalchemy import create_engine, inspect, make_url, text
 from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
-from .. import tracking, urls
+from .. import extras, runview, tracking, urls
 from ..cells import Cell
 from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
@@ -153,6 +153,8 @@ def storage_for(cfg: Config):
     beat = max(1, int(cfg.sweep.heartbeat_s))
     make = partial(optuna.storages.RDBStorage, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
+    if urls.is_postgres(url):
+        extras.require("postgres", f"storage.url {urls.redact(url)}")
     try:
         db = urls.sqlite_file(url)
         if urls.is_postgres(url):  # table creation must not race between machines either
@@ -228,10 +230,21 @@ def _running(study) -> int:
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)))
 
 
+def study_parent(cfg: Config, target: Cell, name: str) -> str | None:
+    """The study's parent MLflow run (trials nest under it); None when the tracking store refused it."""
+    try:
+        client = tracking.client_for(cfg)
+        return runview.study_parent(client, cfg, tracking.experiment_id(client, cfg), name, target)
+    except Exception as exc:  # noqa: BLE001 - nesting is cosmetic: trials must run without it
+        log.warning("no parent run for study %s: %s", name, exc)
+        return None
+
+
 def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> Callable:
     """The function Optuna calls per trial: train one configured run, return its best validation loss."""
     from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
+    parent = study_parent(cfg, target, name)
 
     def run(trial) -> float:
         values = suggest(trial, cfg.tune.space)
@@ -247,6 +260,8 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
 
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
                 "hparams_source": f"optuna:{name}#{trial.number}"}
+        if parent is not None:
+            tags[tracking.TAG_PARENT] = parent
         try:
             result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_validation=on_validation,
                               run_id_callback=lambda rid: trial.set_user_attr(ATTR_RUN, rid))
@@ -295,11 +310,17 @@ def _worker_entry(args: tuple) -> None:
 def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
          timeout: float | None = None, workers: int = 1, progress: bool = True,
          enqueue: Sequence[Mapping[str, Any]] = ()) -> Any:
-    """Tune with ``workers`` local processes (1: in this process); returns the study."""
+    """Tune with ``workers`` local processes (1: in this process); returns the study.
+
+    The study's parent MLflow run is created before the workers start and ends with the best trial's
+    validation loss as its metric ``best_val_loss`` (tags ``best_trial``, ``best_run``).
+    """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
+    study_parent(cfg, target, s.study_name)  # created here once, found by the workers
     if workers <= 1:
         tune_worker(cfg, target, trials, study=study, timeout=timeout, progress=progress, enqueue=enqueue)
+        _close_parent(cfg, target, s)
         return s
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
@@ -311,7 +332,26 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
         p.start()
     for p in procs:
         p.join()
+    _close_parent(cfg, target, s)
     return s
+
+
+def _close_parent(cfg: Config, target: Cell, s) -> None:
+    """The best trial so far on the study's parent run, which ends FINISHED (best effort)."""
+    parent = study_parent(cfg, target, s.study_name)
+    if parent is None:
+        return
+    client = tracking.client_for(cfg)
+    try:
+        best = s.best_trial
+        tracking.log_metrics(client, parent, {"best_val_loss": best.value, "trials.finished": finished(s)},
+                             step=best.number)
+        for key, value in (("best_trial", str(best.number)), ("best_run", best.user_attrs.get(ATTR_RUN))):
+            if value:
+                client.set_tag(parent, key, value)
+    except ValueError:  # no completed trial yet
+        pass
+    runview.set_parent_status(client, parent, 0)
 
 
 def load(cfg: Config, name: str):

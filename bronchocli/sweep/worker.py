@@ -32,7 +32,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .. import tracking
+from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
@@ -190,12 +190,24 @@ class Worker:
         self.signals = signals or StopSignals()
         self.stats = WorkerStats()
         self._client = None
+        self._parent: str | None = None
 
     @property
     def client(self):
         if self._client is None:
             self._client = tracking.client_for(self.cfg)
         return self._client
+
+    def parent_run(self) -> str | None:
+        """The sweep's parent run (found or created once per worker); None if the tracking store refused."""
+        if self._parent is None:
+            try:
+                exp = tracking.experiment_id(self.client, self.cfg)
+                self._parent = runview.sweep_parent(self.client, self.cfg, exp, self.sweep)
+            except Exception as exc:  # noqa: BLE001 - nesting is cosmetic: a cell must run without it
+                log.warning("no parent run for sweep %s: %s", self.sweep, exc)
+                return None
+        return self._parent
 
     def _db(self, fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
         """A storage call, retried through short outages (up to sweep.stale_after_s, while our claim holds)."""
@@ -214,6 +226,7 @@ class Worker:
     def run(self) -> int:
         s = self.cfg.sweep
         keys = list(self.cells)
+        self.parent_run()  # looked up once, before any claim: never while a claim waits for its heartbeat
         while not self.signals.stop:
             claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
                              stale_after_s=s.stale_after_s)
@@ -258,6 +271,8 @@ class Worker:
                 os.kill(os.getpid(), signal.SIGTERM)
 
         tags = {TAG_CLAIM: claim.token, TAG_WORKER: self.ident, TAG_ATTEMPT: str(claim.row.attempts)}
+        if self._parent is not None:
+            tags[tracking.TAG_PARENT] = self._parent
         hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
         resume = self._resumable(claim.released_run, cell)
         kw = {"resume": resume} if resume else {}

@@ -1,24 +1,35 @@
 """What a run leaves in MLflow: params, config, split manifest, metrics, predictions, errors, figure, weights.
 
-* at the start: the dataset fingerprint tag, the flattened config as params,
-  ``config.yaml`` (passwords redacted) and ``split_manifest.csv``;
+* at the start: the dataset fingerprint tag, the comparable params
+  (``runview.run_params``: the cell's coordinates and the run settings that
+  differ from the defaults), the dataset as an MLflow dataset input per split
+  (train/val/test as context, digest = the fingerprint), ``env.torch`` and
+  ``env.cuda`` tags, the run description, ``config.yaml`` (the full resolved
+  config, passwords redacted) and ``split_manifest.csv``;
 * per validation: ``train_loss``, ``val_loss``, ``val.*``, ``lr``, ``pairs_seen``,
   ``epoch`` and ``best_val_loss`` at step = optimiser step;
-* at the end: every test metric (model, ``zero_motion.*``, ``train_mean.*``,
+* at the end: the headline ratios and skills against both references
+  (``ratio.*``, ``skill.*``, see ``runview.headline``) and the headline errors
+  first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
   ``pred.std*``) and the budget (``train.steps``, ``train.pairs_seen``,
   ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
   per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
   ``tracking.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
-  (``model_logging``: ``mlflow.pyfunc.load_model("runs:/<id>/model")``).
+  (``model_logging``: ``mlflow.pyfunc.load_model("runs:/<id>/model")``); the
+  description gains the result.
 """
 
 from __future__ import annotations
 
+import json
 import tempfile
 from pathlib import Path
 
-from .. import tracking
+import torch
+from mlflow.entities import Dataset, DatasetInput, InputTag, RunTag
+
+from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
 from ..io import save_figure
@@ -35,9 +46,34 @@ def _log_file(client, run_id: str, path: Path, artifact_path: str | None = None)
     client.log_artifact(run_id, str(path), artifact_path)
 
 
-def log_start(client, run_id: str, cfg: Config, data: RunData) -> None:
+DIGEST_CHARS = 36  # MLflow's dataset digest column (VARCHAR(36) on PostgreSQL)
+
+
+def environment_tags() -> dict[str, str]:
+    """torch and its CUDA build ("none" for a CPU build); device, precision and GPU name are the engine's."""
+    return {"env.torch": torch.__version__, "env.cuda": torch.version.cuda or "none"}
+
+
+def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
+    """The dataset once per split (name ``<dataset>:<split>``, context train/val/test), digest = fingerprint."""
+    root = cfg.paths.dataset
+    out = []
+    for part, trajectories in data.split.parts().items():
+        profile = {"trajectories": len(trajectories), "frames": int(sum(len(t.frame_index) for t in trajectories)),
+                   "patients": sorted({t.patient for t in trajectories}), "population": data.split.population,
+                   "fold": data.split.fold}
+        ds = Dataset(name=f"{root.name}:{part}", digest=data.fingerprint[:DIGEST_CHARS], source_type="local",
+                     source=json.dumps({"uri": root.as_uri()}), profile=json.dumps(profile))
+        out.append(DatasetInput(ds, [InputTag("mlflow.data.context", part)]))
+    return out
+
+
+def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> None:
     client.set_tag(run_id, tracking.TAG_FINGERPRINT, data.fingerprint)
-    tracking.log_params(client, run_id, tracking.flatten(cfg.dump()))
+    tracking.log_params(client, run_id, runview.run_params(cfg, cell))
+    client.log_batch(run_id, tags=[RunTag(k, v) for k, v in {
+        **environment_tags(), tracking.TAG_NOTE: runview.describe(cell, dataset=cfg.paths.dataset.name)}.items()])
+    client.log_inputs(run_id, datasets=dataset_inputs(cfg, data))
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)
         (out / "config.yaml").write_text(cfg.to_yaml())
@@ -54,7 +90,9 @@ def validation_logger(client, run_id: str):
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
-    tracking.log_metrics(client, run_id, outcome.metrics)
+    for batch in runview.ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
+        tracking.log_metrics(client, run_id, batch)
+    client.set_tag(run_id, tracking.TAG_NOTE, runview.describe(cell, outcome.metrics, cfg.paths.dataset.name))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)

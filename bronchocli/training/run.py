@@ -99,7 +99,7 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
     if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
         raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
                            f"{run.data.tags.get(tracking.TAG_CELL_KEY)} != {cell.key})")
-    tracking.repair_zombie(client, run, "train --resume")
+    repaired = tracking.repair_zombie(client, run, "train --resume")
     path = resume_file(cfg, run_id)
     if not path.is_file():
         raise BronchoError(f"--resume {run_id}: no checkpoint at {path} (it is kept on the machine that ran it)")
@@ -112,7 +112,8 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
         _end_run(client, run_id, "FAILED", _reason(exc))
         raise exc from None
     client.update_run(run_id, "RUNNING")
-    client.set_tag(run_id, tracking.TAG_FAILURE, "")
+    if repaired or tracking.TAG_FAILURE in run.data.tags:
+        client.delete_tag(run_id, tracking.TAG_FAILURE)  # a resumed run has no failure (and no empty tag)
     for key, value in tracking.process_tags().items():
         client.set_tag(run_id, key, value)
     return run_id, state
@@ -182,7 +183,7 @@ def run_cell(
     ckpt = checkpoint_dir(cfg, run_id)
     try:
         if state is None:
-            artifacts.log_start(client, run_id, cfg, data)
+            artifacts.log_start(client, run_id, cfg, data, cell)
         with _stop_on_signals(flag):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,

@@ -58,6 +58,8 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
     exp = tracking.experiment_id(client, project)
     selections = tracking.search_runs(client, [exp], {"run_kind": "selection"})
     assert sorted(r.data.tags["stage"] for r in selections) == ["cross-subject", "sota"]
+    parent = tracking.search_runs(client, [exp], {"run_kind": "sweep"})
+    assert len(parent) == 1 and {r.data.tags["mlflow.parentRunId"] for r in selections} == {parent[0].info.run_id}
     rec = next(r for r in selections if r.data.tags["stage"] == "cross-subject")
     assert rec.data.tags["plan_key"] == plan_key(project)
     payload = json.loads(open(client.download_artifacts(rec.info.run_id, "selection.json")).read())

@@ -59,6 +59,11 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert by_trial[1].info.status == "KILLED" and by_trial[1].data.tags["pruned"] == "true"
     assert all(r.data.tags["study"] == study.study_name for r in runs)
     assert all(t.user_attrs[tuning.ATTR_RUN] == by_trial[t.number].info.run_id for t in trials)
+    # every trial nests under the study's one parent run, which ends with the best trial
+    parents = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "study"})
+    assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
+    assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
+    assert parents[0].data.metrics["best_val_loss"] == pytest.approx(study.best_value)
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
@@ -72,6 +77,11 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert code == 0, err
     swept = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "cell"})
     assert len(swept) == 2 and {r.data.tags["hparams_source"] for r in swept} == {cell_runs[0].data.tags["hparams_source"]}
+    sweep_parent = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "sweep"})
+    assert len(sweep_parent) == 1 and sweep_parent[0].info.status == "FINISHED"  # the sweep's parent, ended with it
+    swept_now = [r for r in swept if r.info.run_id != cell_runs[0].info.run_id]
+    assert swept_now[0].data.tags["mlflow.parentRunId"] == sweep_parent[0].info.run_id
+    assert "mlflow.parentRunId" not in cell_runs[0].data.tags  # `train` alone has no parent
 
     code, out, _ = cli("tune", "-c", str(project / "experiments.yaml"), "--study", study.study_name, "--show")
     assert code == 0 and "best trial" in out and "train.rot_weight" in out

@@ -1,0 +1,213 @@
+"""What a run shows when it is reviewed in the MLflow UI: comparable params, headline metrics, source, parents.
+
+MLflow's compare view, parallel coordinates and "show diff only" work on
+params, so a run logs as params what tells runs apart, not the whole config:
+
+* the cell's coordinates (arch, rot_loss, population, fold, seed, pose_frame,
+  train_trajectories; a coordinate that is None is left out);
+* the run settings (``config.RUN_SECTIONS`` without ``dataset``, which the
+  dataset input identifies) that differ from the built-in defaults, plus every
+  ``tune.space`` path and ``model.pretrained``: what a tuned or hand-edited
+  run changed (speed settings such as ``train.threads`` included: they
+  explain timing differences).
+
+The full resolved config stays the ``config.yaml`` artifact; the grid, stages,
+storage and tracking settings (the same on every run of a sweep) go on the
+sweep's parent run. The coordinates stay tags too: report, status and the
+sweep find runs by tags.
+
+Headline metrics (``headline``): the image-blind references as ratios and
+skills, ``ratio.<ref>.<eval>.<m> = error / reference error`` and
+``skill.<ref>.<eval>.<m> = 1 - ratio`` for both references, and
+``skill.<eval>.<m>`` against the better (lower-error) of the two, as the
+report's skill figures define it. ``ratio.train_mean.pair.pos_l2`` is the
+figure the README quotes. They are logged before the other test metrics.
+
+Parent runs (``parent_run``): one per sweep (``run_kind=sweep``) and one per
+Optuna study (``run_kind=study``), found by tags or created once; cells and
+trials carry ``mlflow.parentRunId`` so the UI nests them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from contextlib import nullcontext
+
+from mlflow.tracking import MlflowClient
+
+from . import tracking, urls
+from .cells import Cell
+from .config import RUN_SECTIONS, Config
+from .io import file_lock
+
+log = logging.getLogger(__name__)
+KIND_SWEEP, KIND_STUDY = "sweep", "study"
+ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
+PARENT_SECTIONS = ("name", "grid", "stages", "splits", "dataset")  # shown as params on a sweep's parent
+
+REFERENCES = ("zero_motion", "train_mean")
+HEADLINE_EVALS = ("pair", "acc")
+HEADLINE_METRICS = ("pos_l2", "rot_l2")
+README_RATIO = "ratio.train_mean.pair.pos_l2"  # pair position error / the training-mean reference's
+
+
+# -- params -------------------------------------------------------------------------------------------
+
+
+def cell_params(cell: Cell) -> dict[str, str]:
+    """The cell's coordinates as params (None left out: MLflow shows a missing param as blank)."""
+    return {k: str(v) for k, v in cell.coords().items() if v is not None}
+
+
+def _run_settings(cfg: Config) -> dict[str, str]:
+    data = cfg.model_dump(mode="json")
+    sig = {k: data[k] for k in RUN_SECTIONS if k != "dataset"}
+    sig["data"].pop("cache_dir", None)  # where frames are cached: a path, not a setting of the run
+    return tracking.flatten(sig)
+
+
+def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
+    """What a run logs as params: coordinates, run settings that differ from the defaults, tuned paths, and
+    ``ALWAYS`` (what tells models apart even at its default)."""
+    ours = _run_settings(cfg)
+    defaults = _run_settings(Config(name=cfg.name))
+    keep = set(cfg.tune.space) | set(ALWAYS)
+    out = {k: v for k, v in ours.items() if k in keep or defaults.get(k) != v}
+    return {**out, **cell_params(cell)}
+
+
+def parent_params(cfg: Config) -> dict[str, str]:
+    """A sweep's settings, for its parent run: the grid and stages, shared by every cell."""
+    data = cfg.dump()
+    return tracking.flatten({k: data[k] for k in PARENT_SECTIONS if k in data})
+
+
+# -- metrics ------------------------------------------------------------------------------------------
+
+
+def headline(metrics: Mapping[str, float]) -> dict[str, float]:
+    """Ratios and skills against both references, README ratio first (missing inputs: left out)."""
+    out: dict[str, float] = {}
+    for ev in HEADLINE_EVALS:
+        for m in HEADLINE_METRICS:
+            err = metrics.get(f"{ev}.{m}.mean")
+            refs = {r: metrics.get(f"{r}.{ev}.{m}.mean") for r in REFERENCES}
+            if err is None:
+                continue
+            for r, ref in refs.items():
+                if ref is not None and ref > 0:
+                    out[f"ratio.{r}.{ev}.{m}"] = err / ref
+                    out[f"skill.{r}.{ev}.{m}"] = 1.0 - err / ref
+            known = [v for v in refs.values() if v is not None and v > 0]
+            if known:
+                out[f"skill.{ev}.{m}"] = 1.0 - err / min(known)
+    first = {k: out[k] for k in (README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2") if k in out}
+    return {**first, **out}
+
+
+def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
+    """The test metrics in logging batches: headline ratios/skills and the headline errors, then the rest."""
+    head = headline(metrics)
+    errors = [f"{ev}.{m}.mean" for ev in HEADLINE_EVALS for m in HEADLINE_METRICS]
+    head |= {k: metrics[k] for k in errors if k in metrics}
+    rest = {k: v for k, v in metrics.items() if k not in head}
+    return [head, rest]
+
+
+def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "") -> str:
+    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result."""
+    lines = [f"**{cell.label}**: {cell.arch} trained with the {cell.rot_loss} rotation loss, {cell.population}"
+             + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
+             f"{cell.pose_frame}-frame relative poses"
+             + (f", {cell.train_trajectories} training trajectories per patient and lobe"
+                if cell.train_trajectories else "") + (f"; dataset {dataset}" if dataset else "") + "."]
+    if metrics and "pair.pos_l2.mean" in metrics:
+        h = headline(metrics)
+        ratio = h.get(README_RATIO, math.nan)
+        lines.append(f"Test: pair position error {metrics['pair.pos_l2.mean']:.4g} vox = {ratio:.3g} × the "
+                     f"training-mean reference's (zero motion: {h.get('ratio.zero_motion.pair.pos_l2', math.nan):.3g}"
+                     f" ×); skill vs the better reference: position {h.get('skill.pair.pos_l2', math.nan):.3g}, "
+                     f"rotation {h.get('skill.pair.rot_l2', math.nan):.3g}; accumulated position error "
+                     f"{metrics.get('acc.pos_l2.mean', math.nan):.4g} vox.")
+    return "\n\n".join(lines)
+
+
+# -- parent runs --------------------------------------------------------------------------------------------
+
+
+def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: str,
+               params: Mapping[str, str] | None = None, description: str = "") -> str:
+    """The run id of the parent run of a sweep or study ``name``: found by tags, or created once.
+
+    Creation is serialised where the store allows it (a file lock beside a
+    SQLite store, an advisory lock on PostgreSQL); against an HTTP server two
+    processes starting at the same moment may each create one, and their
+    children then nest under either (harmless for reports, which ignore parents).
+    """
+    tags = {tracking.TAG_KIND: kind, tracking.TAG_SWEEP if kind == KIND_SWEEP else "study": name}
+    if kind == KIND_STUDY:
+        tags[tracking.TAG_SWEEP] = cfg.name
+    found = tracking.search_runs(client, [exp_id], tags, max_results=1)
+    if found:
+        return found[0].info.run_id
+    with _creation_lock(cfg):
+        found = tracking.search_runs(client, [exp_id], tags, max_results=1)
+        if found:
+            return found[0].info.run_id
+        run = client.create_run(exp_id, tags=tracking.non_empty({
+            **tags, "mlflow.runName": f"{kind}-{name}", tracking.TAG_NOTE: description,
+            **tracking.source_tags(cfg), **tracking.python_tags(),
+        }))
+        if params:
+            tracking.log_params(client, run.info.run_id, params)
+        return run.info.run_id
+
+
+def _creation_lock(cfg: Config):
+    uri = cfg.paths.tracking_uri
+    db = urls.sqlite_file(uri)
+    if db is not None:
+        return file_lock(f"{db}.parent.lock")
+    if urls.is_postgres(uri):
+        return tracking.database_lock(uri, cfg.tracking.timeout_s, "tracking.uri", key=PARENT_LOCK_KEY)
+    return nullcontext()
+
+
+PARENT_LOCK_KEY = tracking.MIGRATION_LOCK_KEY + 2  # pg_advisory_lock key of parent-run creation
+
+
+def sweep_parent(client: MlflowClient, cfg: Config, exp_id: str, sweep: str | None = None) -> str:
+    """The parent run of sweep ``sweep`` (default: the config's name), its grid and stages as params."""
+    name = sweep or cfg.name
+    return parent_run(client, cfg, exp_id, KIND_SWEEP, name, parent_params(cfg),
+                      f"Sweep **{name}**: its cells are nested below; the resolved config of each cell is its "
+                      "`config.yaml` artifact, the grid and stages are this run's params.")
+
+
+def study_parent(client: MlflowClient, cfg: Config, exp_id: str, study: str, target: Cell) -> str:
+    """The parent run of an Optuna study: the target cell's coordinates and the search space as params."""
+    space = {f"tune.space.{k}": v.model_dump_json(exclude_none=True) for k, v in cfg.tune.space.items()}
+    params = {**cell_params(target), **space, "tune.sampler": cfg.tune.sampler, "tune.pruner": cfg.tune.pruner}
+    return parent_run(client, cfg, exp_id, KIND_STUDY, study, params,
+                      f"Optuna study **{study}** of cell {target.label}: each trial is a nested run.")
+
+
+def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:
+    """A sweep's or study's parent ends like its command: 0 FINISHED, 130 KILLED, anything else FAILED.
+
+    Best effort: a tracking store gone at the end must not hide the command's own outcome.
+    """
+    try:
+        client.set_terminated(run_id, "FINISHED" if code == 0 else "KILLED" if code == 130 else "FAILED")
+    except Exception as exc:  # noqa: BLE001 - logged; the children carry the results
+        log.warning("could not end parent run %s: %s", run_id, exc)
+
+
+# -- the UI ------------------------------------------------------------------------------------------------
+
+
+def runs_table_url(base: str, experiment_id: str) -> str:
+    """The experiment's runs table in MLflow 3's model-training view (not the GenAI overview)."""
+    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
