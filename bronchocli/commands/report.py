@@ -12,7 +12,6 @@ from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load, output_folder
 
-
 Evaluation = Literal["accumulated", "pair", "both"]
 
 

@@ -25,7 +25,6 @@ from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
-
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
 
 

@@ -39,6 +39,7 @@ from ..data.batches import FrameSource, Samples
 from ..data.cache import FrameCache
 from ..errors import BronchoError
 from ..models import ARCHITECTURES, build_model
+from ..training import checkpoint
 from ..training.engine import DeviceUnavailable, exact_fp32, seed_everything
 from ..training.loop import Settings, Trainer
 from ..training.network import PoseRegressor
@@ -171,14 +172,6 @@ def visible_devices(count: int) -> Iterator[None]:
         torch.cuda.device_count = real  # type: ignore[assignment]
 
 
-def _load_checkpoint(path: Path) -> dict:
-    try:
-        from ..training import checkpoint  # lazy: the checkpoint module of issue 22 may not be merged yet
-    except ImportError:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    return checkpoint.load(path)
-
-
 def check_resume(arch: str, device: torch.device, precision: str, cache: FrameCache, tmp: Path) -> tuple[bool, str]:
     steps = 4
     straight = trainer(arch, device, precision, cache, steps=steps)
@@ -188,7 +181,7 @@ def check_resume(arch: str, device: torch.device, precision: str, cache: FrameCa
     with visible_devices(8):
         first.fit()
     with visible_devices(1):
-        state = _load_checkpoint(tmp / "last.pt")
+        state = checkpoint.load(tmp / "last.pt")  # weights_only, as a real resume
         second = trainer(arch, device, precision, cache, steps=steps, init_seed=123)  # load_state must undo it
         second.load_state(state)
         second.fit()

@@ -15,8 +15,7 @@ from __future__ import annotations
 
 from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
-from .context import (ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish,
-                      init_text)
+from .context import ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish, init_text
 from .judge import better_reference, metric_rows
 from .layout import Column, Estimate, Row, Table, Value
 from .stats import derived, holm

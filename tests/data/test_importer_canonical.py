@@ -9,7 +9,6 @@ unchanged, the ``world``-frame labels (angle differences) of such a file jump by
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 import pytest
 from tinydata import write_tiny_dataset
 

@@ -63,7 +63,7 @@ def test_status_shows_checkpoint_disk_and_gc_removes_only_what_no_live_cell_need
     assert "checkpoint" in out and "3.0 KB" in out  # the released cell's checkpoint, on its row
     # finished, both failed runs, the taken-over one, the missing one, and the rejected file
     spare = 1000 + 5000 + 5000 + 7000 + 17000 + 13000
-    assert "7 folder(s)" in out and f"needed by no live cell" in out and "sweep --gc" in out
+    assert "7 folder(s)" in out and "needed by no live cell" in out and "sweep --gc" in out
 
     code, out, err = cli("sweep", "-c", path, "--gc")
     assert code == 0, err

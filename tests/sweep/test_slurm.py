@@ -24,10 +24,10 @@ from sweep_fakes import HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli import tracking
+from bronchocli.sweep import FINISHED, PENDING, SweepStore
 from bronchocli.sweep.plan import plan_key
 from bronchocli.sweep.slurm import MAIN
 from bronchocli.sweep.storage import selections_table
-from bronchocli.sweep import FINISHED, PENDING, SweepStore
 
 pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
 REPO = HERE.parents[1]

@@ -14,6 +14,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from loopfakes import FakeSource, samples, settings
 from torch import nn
 
 from bronchocli import tracking
@@ -24,9 +25,7 @@ from bronchocli.runlayout import gpu_share
 from bronchocli.sweep.placement import pin_env, share_counts, smi_gpu_ids, visible_gpus
 from bronchocli.training import engine
 from bronchocli.training.loop import NothingTrained, Trainer, recalibrate_bn
-
 from bronchocli.training.network import PoseRegressor
-from loopfakes import FakeSource, samples, settings
 
 BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 

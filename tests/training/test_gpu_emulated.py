@@ -19,6 +19,7 @@ from bronchocli.data.batches import FrameSource
 from bronchocli.diagnostics import selftest
 from bronchocli.diagnostics.dispatch import OpCounter
 from bronchocli.models import ARCHITECTURES
+from bronchocli.training import checkpoint
 from bronchocli.training.loop import AMP_GROWTH_INTERVAL, NonFiniteLoss, NothingTrained, Settings, Trainer
 
 PRECISIONS = ("32", "bf16-mixed", "16-mixed")
@@ -100,7 +101,7 @@ def test_the_loop_trains_checkpoints_and_resumes_bitwise_in_every_precision(arch
         for p in resumed.net.parameters():
             p.add_(1.0)  # load_state must replace everything
     torch.manual_seed(99)
-    resumed.load_state(torch.load(tmp_path / "last.pt", weights_only=False))
+    resumed.load_state(checkpoint.load(tmp_path / "last.pt"))
     assert _fit(resumed) == outcome
     a, b = straight.net.state_dict(), resumed.net.state_dict()
     # Bitwise, NaN equal to NaN: at 16 px the deepest 3x3 convolutions see 1x1 maps, and oneDNN's reduced-

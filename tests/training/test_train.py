@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 from run_metrics import EXPECTED
+from scipy.spatial.transform import Rotation
 
 from bronchocli import tracking
 from bronchocli.cells import ARCHS, ROT_LOSSES
