@@ -26,12 +26,7 @@ PRECISIONS = ("32", "bf16-mixed", "16-mixed")
 SIZE = 16  # the smallest input the models take: every check here is about the loop, not the pixels
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
