@@ -19,6 +19,17 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 
 
 @pytest.fixture
+def one_thread():
+    """Tiny inputs: one torch thread (a team of threads on a shared CPU is ten times slower here)."""
+    import torch  # lazy: most tests never load torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture
 def repo() -> Path:
     return REPO
 

@@ -68,3 +68,17 @@ def test_the_model_artifact_and_checkpoints_are_plain_data(tmp_path):
     with pytest.raises(checkpoint.BadCheckpoint):
         checkpoint.load(raw)
     assert not (tmp_path / "pwned").exists()
+
+
+def test_a_model_weights_file_with_a_payload_is_refused_in_one_line(tmp_path):
+    import json
+
+    from bronchocli.inference.mlflow_model import load_data_dir
+    from bronchocli.training.model_logging import SPEC_FILE, SPEC_FORMAT, SPEC_VERSION, WEIGHTS_FILE
+
+    marker, path = tmp_path / "pwned", tmp_path / WEIGHTS_FILE
+    (tmp_path / SPEC_FILE).write_text(json.dumps({"format": SPEC_FORMAT, "version": SPEC_VERSION}))
+    torch.save({"state_dict": {"w": torch.zeros(1)}, "x": WritesAFile(marker)}, path)
+    with pytest.raises(BronchoError) as err:
+        load_data_dir(tmp_path)
+    assert not marker.exists() and str(path) in str(err.value) and "\n" not in str(err.value)

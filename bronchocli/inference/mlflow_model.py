@@ -26,6 +26,7 @@ from PIL import Image
 
 from ..errors import BronchoError
 from ..odometry import Thresholds
+from ..training import checkpoint
 from ..training.model_logging import SPEC_FILE, SPEC_FORMAT, SPEC_VERSION, WEIGHTS_FILE
 from ..training.network import PoseRegressor, load_exported
 
@@ -163,7 +164,8 @@ def load_data_dir(data_dir: str | Path) -> PoseModel:
     """The model in an MLflow model's ``data/`` folder (weights + spec), on the CPU, fp32, eval mode."""
     data_dir = Path(data_dir)
     spec = read_spec(data_dir)
-    payload = torch.load(data_dir / WEIGHTS_FILE, map_location="cpu", weights_only=True)
+    payload = checkpoint.read_plain(data_dir / WEIGHTS_FILE, "model weights file",
+                                    "re-download the model or retrain its run")
     return PoseModel(load_exported(payload), spec)
 
 

@@ -192,16 +192,21 @@ def _first_line(exc: BaseException) -> str:
     return (lines[0] if lines else type(exc).__name__)[:200]
 
 
-def load(path: str | os.PathLike, *, run_id: str | None = None, cell_key: str | None = None) -> dict[str, Any]:
-    """The checkpoint at ``path``, refused (BadCheckpoint, one line) unless it is a valid one of this run and cell."""
-    path = Path(path)
+def read_plain(path: Path, what: str, fix: str) -> Any:
+    """``torch.load`` with ``weights_only=True``: a file holding anything but tensors and plain data is refused
+    unloaded (its pickle never runs), as is a truncated or unreadable one: BadCheckpoint, one line."""
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - unpickling refused, truncated, not a zip, I/O error: all mean "bad"
         why = "it holds objects other than tensors and plain data (refused unloaded)" \
             if "weights_only" in str(exc) or "Unsupported global" in str(exc) else _first_line(exc)
-        raise BadCheckpoint(f"checkpoint {path}: not a valid checkpoint: {why}; delete it to start the cell "
-                            "afresh") from None
+        raise BadCheckpoint(f"{what} {path}: not a valid {what}: {why}; {fix}") from None
+
+
+def load(path: str | os.PathLike, *, run_id: str | None = None, cell_key: str | None = None) -> dict[str, Any]:
+    """The checkpoint at ``path``, refused (BadCheckpoint, one line) unless it is a valid one of this run and cell."""
+    path = Path(path)
+    state = read_plain(path, "checkpoint", "delete it to start the cell afresh")
     if not isinstance(state, dict):
         raise BadCheckpoint(f"checkpoint {path}: not a valid checkpoint (a {type(state).__name__}, not a dict)")
     if state.get("format") != FORMAT:

@@ -37,13 +37,7 @@ GPU 1: NVIDIA A100-SXM4-40GB (UUID: GPU-5d5ba0d6-0000-0000-0000-000000000001)
 """
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny inputs: one torch thread (a team of threads on a shared CPU is ten times slower here)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # -- 2. MIG lines are not GPUs --------------------------------------------------------------------

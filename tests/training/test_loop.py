@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from loopfakes import FakeSource, samples, settings
 from torch import nn
 
 from bronchocli.data.batches import Samples
@@ -32,32 +33,6 @@ class TinyNet(nn.Module):
         pairs = torch.cat([x[:, 1:], x[:, :-1]], dim=2).reshape(b * (t - 1), 6, *x.shape[-2:])
         z = torch.relu(self.bn(self.conv(pairs))).mean((2, 3))
         return self.head(z).view(b, t - 1, 6), None
-
-
-class FakeSource:
-    """Frames of a fixed random uint8 bank, indexed like FrameSource."""
-
-    def __init__(self, n: int = 40, size: int = 8, seed: int = 0) -> None:
-        rng = np.random.default_rng(seed)
-        self.bank = torch.from_numpy(rng.integers(0, 256, (n, 3, size, size), dtype=np.uint8))
-
-    def __call__(self, idx):
-        idx = torch.as_tensor(np.asarray(idx, dtype=np.int64))
-        return self.bank[idx.reshape(-1)].view(*idx.shape, *self.bank.shape[1:])
-
-
-def samples(n: int, seed: int = 1, scale: float = 1.0) -> Samples:
-    rng = np.random.default_rng(seed)
-    frames = np.stack([np.arange(i, i + 2) % 40 for i in range(n)])
-    labels = (rng.normal(0, 1, (n, 1, 6)) * scale).astype(np.float32)
-    return Samples(frames, labels, np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), ("t",))
-
-
-def settings(**kw) -> Settings:
-    base = dict(steps=6, micro_pairs=4, accum=1, chunk=1, val_every=2, patience=None, min_delta=0.0, lr=1e-2,
-                weight_decay=0.0, warmup_steps=0, schedule="constant", rot_loss="mse", rot_weight=1.0,
-                precision="32", bn_recalibrate=0, augment=False, seed=0)
-    return Settings(**{**base, **kw})
 
 
 def trainer(s: Settings, seed: int = 0, train: Samples | None = None, **kw) -> Trainer:
