@@ -146,3 +146,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(130) from None
     if isinstance(code, int) and not isinstance(code, bool) and code:  # typer.Exit(n) of a command
         raise SystemExit(code)
+
+
+if __name__ == "__main__":  # `python -m bronchocli.cli ...` runs the command line too (it used to exit 0 silently)
+    main()
