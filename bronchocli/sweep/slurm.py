@@ -400,7 +400,25 @@ def worker_main(cfg: Config, store: SweepStore, only: Selection) -> int:
         code = work_stages(wcfg, store, only, signals=signals, exit_when_idle=cfg.slurm.exit_when_idle)
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
-    if signals.requested == signal.SIGUSR1 and slurm_task():
-        log.info("time limit near: requeueing Slurm task %s", slurm_task())
-        subprocess.run(["scontrol", "requeue", slurm_task()], check=False, timeout=60)
-    return code if code in (EXIT_OK, EXIT_INTERRUPTED) else code
+    if signals.requested == signal.SIGUSR1 and (task := slurm_task()):
+        log.info("time limit near: requeueing Slurm task %s", task)
+        requeue(task)
+    return code
+
+
+def requeue(task: str, tries: int = 3) -> bool:
+    """``scontrol requeue`` this task (slurmctld then kills it and queues it again after ``cred_expire``); a
+    refusal is logged (and retried): the cell is already released, so the sweep goes on either way."""
+    for attempt in range(1, tries + 1):
+        try:
+            out = subprocess.run(["scontrol", "requeue", task], capture_output=True, text=True, timeout=60)
+            if out.returncode == 0:
+                return True
+            why = (out.stderr.strip() or out.stdout.strip() or f"exit code {out.returncode}").splitlines()[-1]
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            why = str(exc)
+        log.warning("scontrol requeue %s failed (try %d/%d): %s", task, attempt, tries, why)
+        time.sleep(2.0 * attempt)
+    log.error("Slurm task %s was not requeued; its released cell waits for the next task "
+              "(`bronchopose sweep --launcher slurm` submits one)", task)
+    return False

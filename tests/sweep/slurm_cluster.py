@@ -45,6 +45,7 @@ class SlurmCluster:
     conf: Path
     env: dict[str, str]
     pids: dict[str, int] = field(default_factory=dict)
+    _held: dict[str, float] = field(default_factory=dict)  # requeued job -> when release_held first saw it
 
     def run(self, *args: str, check: bool = True) -> subprocess.CompletedProcess:
         return subprocess.run(list(args), env=self.env, capture_output=True, text=True, check=check, timeout=60)
@@ -67,11 +68,20 @@ class SlurmCluster:
                 raise AssertionError(f"Slurm jobs still queued after {limit:g} s: {self.jobs()}")
             time.sleep(0.2)
 
-    def release_held(self) -> None:
-        """A requeued job waits ~120 s (Reason=BeginTime): start such jobs now."""
-        for j in self.jobs():
-            if j["state"] == "PENDING" and j["reason"] == "BeginTime":
-                self.run("scontrol", "update", f"JobId={j['id']}", "StartTime=now", check=False)
+    def release_held(self, settle_s: float = 3.0) -> None:
+        """A requeued job waits ``cred_expire`` (120 s, Reason=BeginTime): start it after ``settle_s`` instead.
+
+        Not at once: slurmd revokes the killed instance's credential with a one-second resolution and refuses
+        a new credential from the same second ("Killing non-startable batch JobId=3: Job credential revoked",
+        the job then ends with exit code 1 and leaves the queue). Slurm's own wait exists for this; a few
+        seconds are enough on one node."""
+        now = time.monotonic()
+        held = {j["id"] for j in self.jobs() if j["state"] == "PENDING" and j["reason"] == "BeginTime"}
+        self._held = {k: v for k, v in self._held.items() if k in held}
+        for job in held:
+            since = self._held.setdefault(job, now)
+            if now - since >= settle_s:
+                self.run("scontrol", "update", f"JobId={job}", "StartTime=now", check=False)
 
     def cancel_all(self) -> None:
         self.run("scancel", "-u", pwd.getpwuid(os.getuid()).pw_name, check=False)

@@ -61,11 +61,17 @@ def project(make_config, tmp_path, pg_url, *, slurm: dict | None = None, **kw):
                        slurm={"cpus_per_task": 1, "shared_filesystem": True, **(slurm or {})}, **kw)
 
 
-def wait_for(predicate, what: str, limit: float = LIMIT, cluster=None):
+def wait_for(predicate, what: str, limit: float = LIMIT, cluster=None, cfg=None):
+    """Poll ``predicate`` (bounded); on giving up, the message carries what a CI failure needs: the queue, the
+    tail of the task logs and of slurmctld's log."""
     end = time.monotonic() + limit
     while not predicate():
         if time.monotonic() > end:
             extra = f"; queue {cluster.jobs()}" if cluster is not None else ""
+            if cfg is not None:
+                extra += f"\n--- task logs (tail) ---\n{task_logs(cfg)[-4000:]}"
+            if cluster is not None:
+                extra += f"\n--- slurmctld.log (tail) ---\n{cluster.log('slurmctld')[-3000:]}"
             raise AssertionError(f"gave up waiting for {what}{extra}")
         if cluster is not None:
             cluster.release_held()
@@ -81,7 +87,8 @@ def all_finished(cfg, n: int):
 
 
 def task_logs(cfg) -> str:
-    return "\n".join(p.read_text(errors="replace") for p in sorted((cfg.paths.base / "runs" / "slurm-logs").glob("*.log")))
+    folder = cfg.paths.base / "runs" / "slurm-logs"
+    return "\n".join(f"[{p.name}]\n" + p.read_text(errors="replace") for p in sorted(folder.glob("*.log")))
 
 
 def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_adds_nothing(
@@ -94,7 +101,7 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 0, out + err
     assert re.search(r"submitted Slurm array job \d+: 2 task\(s\)", out), out
-    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm)
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm, cfg=cfg)
     queued = sorted(j["id"] for j in slurm.jobs())
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")  # again, while queued/running
     assert code == 0 and "nothing new to submit: 2 task(s)" in out and "submitted" not in out, out + err
@@ -103,7 +110,7 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     gpus = {(fake_dir / f"gpu-{f.name.split('-')[1]}").read_text() for f in started}
     assert gpus == {"0", "1"}, "the two tasks running at once must see different GPUs"
     (fake_dir / "release").touch()
-    wait_for(all_finished(cfg, 6), "every cell finished", cluster=slurm)
+    wait_for(all_finished(cfg, 6), "every cell finished", cluster=slurm, cfg=cfg)
     slurm.wait_idle_queue(LIMIT)  # idle tasks exit instead of waiting
     finished = rows(cfg)
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in finished}
@@ -126,15 +133,16 @@ def test_a_requeued_task_gives_its_cell_back_and_no_cell_finishes_twice(slurm, c
     (fake_dir / "block-lstm").touch()
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 0, out + err
-    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both tasks inside their cells", cluster=slurm)
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both tasks inside their cells", cluster=slurm,
+             cfg=cfg)
     victim = next(r for r in rows(cfg) if r.state == "running")
     task = victim.worker.split()[2]
     slurm.run("scontrol", "requeue", task)
     wait_for(lambda: next(r for r in rows(cfg) if r.cell_key == victim.cell_key).state == PENDING,
-             "the requeued task to give its cell back")
-    wait_for(lambda: calls(victim.cell_key) == 2, "the requeued task to run the cell again", cluster=slurm)
+             "the requeued task to give its cell back", cluster=slurm, cfg=cfg)
+    wait_for(lambda: calls(victim.cell_key) == 2, "the requeued task to run the cell again", cluster=slurm, cfg=cfg)
     (fake_dir / "release").touch()
-    wait_for(all_finished(cfg, 2), "both cells finished", cluster=slurm)
+    wait_for(all_finished(cfg, 2), "both cells finished", cluster=slurm, cfg=cfg)
     slurm.wait_idle_queue(LIMIT)
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in rows(cfg)}
     assert runs_by_cell(cfg, None) == {r.cell_key: 1 for r in rows(cfg)}  # the requeued run was resumed, not doubled
@@ -157,7 +165,7 @@ def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(sl
     jobs = re.findall(r"submitted Slurm array job (\d+): (\d+) task\(s\) for stage (\w+)", out)
     assert [(n, s) for _, n, s in jobs] == [("3", "first"), ("1", "second")], out
     assert f"after job(s) {jobs[0][0]}" in out
-    wait_for(all_finished(cfg, 4), "both stages finished", cluster=slurm)
+    wait_for(all_finished(cfg, 4), "both stages finished", cluster=slurm, cfg=cfg)
     store = SweepStore(cfg.paths.storage_url)
     assert store.selection(cfg.name, plan_key(cfg), "second")["selected"] == [{"arch": "lstm"}]
     with store.engine.connect() as conn:
@@ -216,7 +224,7 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
     submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"],
                                  cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=180)
+        wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=180, cfg=cfg)
         (row,) = rows(cfg)
         first_task = row.worker.split()[2]
         slurm.run("scancel", first_task)
@@ -245,13 +253,13 @@ def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, c
     (fake_dir / "block-baseline").touch()
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 0, out + err
-    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
     (row,) = rows(cfg)
     task = row.worker.split()[2]
     slurm.run("scancel", "--signal=USR1", "--batch", task)  # what --signal=B:USR1@<s> sends before the time limit
-    wait_for(lambda: calls(row.cell_key) == 2, "the requeued task to take the cell again", cluster=slurm)
+    wait_for(lambda: calls(row.cell_key) == 2, "the requeued task to take the cell again", cluster=slurm, cfg=cfg)
     (fake_dir / "release").touch()
-    wait_for(all_finished(cfg, 1), "the cell finished", cluster=slurm)
+    wait_for(all_finished(cfg, 1), "the cell finished", cluster=slurm, cfg=cfg)
     (row,) = rows(cfg)
     assert row.attempts == 1 and runs_by_cell(cfg, None) == {row.cell_key: 1}
     assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
@@ -266,7 +274,7 @@ def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli
     (fake_dir / "block-baseline").touch()
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 0, out + err
-    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm)
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
     assert code == 0 and "cancelled Slurm job(s)" in out, out + err
     slurm.wait_idle_queue(LIMIT)

@@ -7,7 +7,8 @@ from sweep_fakes import fake_runner
 
 from bronchocli.errors import ConfigError
 from bronchocli.sweep import SweepStore, Worker, prepare
-from bronchocli.sweep.slurm import _count, batch_script, check, sbatch_args
+from bronchocli.sweep import slurm as slurm_launcher
+from bronchocli.sweep.slurm import _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.status import slurm_job
 
 
@@ -97,3 +98,18 @@ def test_launcher_flags_are_checked_and_the_config_can_choose_slurm(cli, make_co
     code, out, err = cli("sweep", "-c", path)  # sweep.launcher: slurm, and no sbatch here
     assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1
     assert not (tmp_path / "sweep.db").exists()
+
+
+def test_a_refused_requeue_is_retried_and_logged_not_ignored(tmp_path, monkeypatch, caplog):
+    fake = tmp_path / "bin" / "scontrol"
+    fake.parent.mkdir()
+    fake.write_text('#!/bin/sh\necho "$@" >> "$(dirname "$0")/calls"\n'
+                    'echo "scontrol: error: Requested operation is presently disabled for job 7_1" >&2\nexit 1\n')
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{fake.parent}:/usr/bin:/bin")
+    monkeypatch.setattr(slurm_launcher.time, "sleep", lambda s: None)
+    assert requeue("7_1") is False
+    assert (fake.parent / "calls").read_text().splitlines() == ["requeue 7_1"] * 3
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 3 and all("presently disabled for job 7_1" in w for w in warnings), warnings
+    assert any(r.levelname == "ERROR" and "7_1 was not requeued" in r.getMessage() for r in caplog.records)
