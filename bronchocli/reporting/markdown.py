@@ -37,11 +37,11 @@ def legend_parts(table: Table, bold: str) -> list[str]:
     """The legend's items with ``bold`` as the example of bold text (format-specific)."""
     parts = []
     if table.judged:
-        parts += [f"{bold} = best of its column, significantly better than every other row (paired t test, "
-                  f"Holm-adjusted p < {ALPHA:g})",
+        parts += [f"{bold} = best of its column, significantly better than every other network row (paired t test, "
+                  f"Holm-adjusted p < {ALPHA:g}; the image-blind references are judged by {NOSKILL} alone)",
                   f"{bold}{TIE} = tied for best: not significantly different from the row with the lowest mean",
                   f"{NOSKILL} = does not beat the better image-blind reference (its interval does not lie below "
-                  f"the reference's mean)"]
+                  f"the reference's mean; above it where higher is better)"]
         if any("ignores" in r.flags for r in table.rows):
             parts.append(f"{IGNORES} = ignores its input (prediction std < 5% of the ground truth's)")
     parts.append(f"{MISSING} = no FINISHED run (see warnings)")

@@ -62,7 +62,8 @@ def skill_figures(tables: Sequence[Table], out: Path, warnings: list[str]) -> li
     for t in tables:
         fig = skill_figure(t)
         if fig is None:
-            if t.judged:
+            skill_columns = {METRICS[m][0] for m in SKILL_METRICS}
+            if t.judged and any(c.title in skill_columns for c in t.columns):  # tracking: no skill columns by design
                 warnings.append(f"figures: fig-skill-{t.key} skipped (no row with per-trajectory errors)")
             continue
         written += save_figure(fig, Path(out) / f"fig-skill-{t.key}", FORMATS)
