@@ -48,7 +48,7 @@ from .pool import cells_left, worker_config
 from .staged import work_stages
 from .status import live_view, progress, summary_line
 from .storage import FINISHED, SweepStore
-from .worker import EXIT_INTERRUPTED, EXIT_OK, StopSignals, slurm_task
+from .worker import EXIT_INTERRUPTED, StopSignals, slurm_task
 
 log = logging.getLogger(__name__)
 
