@@ -85,3 +85,11 @@ def test_require_checks_without_importing(monkeypatch):
     with pytest.raises(extras.MissingExtra, match=r"bronchocli\[render\]"):
         extras.require("render", "reading a volume", ("skimage",))
     extras.require("render", "rendering", ("vtkmodules",))  # installed here: no error
+
+
+def test_reading_a_video_without_pyav_names_the_video_extra(monkeypatch, tmp_path):
+    from bronchocli.inference import reader
+
+    monkeypatch.setitem(sys.modules, "av", None)
+    with pytest.raises(extras.MissingExtra, match=r"reading a video needs .*bronchocli\[video\]"):
+        reader._av()

@@ -28,9 +28,10 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
+from .. import extras
 from ..data.layout import DATASET_JSON
 from ..data.reader import DISK_POSE_COLUMNS, POSE_COLUMNS, open_dataset_dir
-from ..errors import BronchoError, DataError
+from ..errors import DataError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -102,10 +103,9 @@ def open_folder(path: Path) -> FrameInput:
 
 
 def _av():
-    try:
-        import av  # lazy: PyAV (FFmpeg) only for videos, an optional extra
-    except ImportError:
-        raise BronchoError("reading a video needs PyAV: pip install 'bronchocli[video]' (or pip install av)") from None
+    extras.require("video", "reading a video")  # one line naming the [video] extra, as for every optional module
+    import av  # lazy: PyAV (FFmpeg) only for videos, an optional extra
+
     return av
 
 
