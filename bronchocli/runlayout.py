@@ -54,6 +54,12 @@ class RunPruned(RunStopped):
     """An observer (the Optuna pruner) stopped the run after a validation; KILLED, tagged ``pruned``."""
 
 
+def failure_reason(exc: BaseException) -> str:
+    """``Type: first line of the message``: the ``failure_reason`` of a run and a sweep cell (one line, bounded)."""
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else type(exc).__name__}"[:4000]
+
+
 def checkpoint_dir(cfg: Config, run_id: str) -> Path:
     return cfg.paths.checkpoints / run_id
 

@@ -36,7 +36,7 @@ from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import RunInterrupted, checkpoint_dir, resume_file
+from ..runlayout import RunInterrupted, checkpoint_dir, failure_reason, resume_file
 from .checkpoints import RESUMABLE_FAILURES
 from .placement import pin_env
 from .storage import CellRow, Claim, StorageError, SweepStore
@@ -89,10 +89,6 @@ class ClaimLost(BronchoError):
 def _is_interrupt(exc: BaseException) -> bool:
     return isinstance(exc, (KeyboardInterrupt, RunInterrupted))
 
-
-def _reason(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0] if text else ''}"[:4000]
 
 
 class StopSignals:
@@ -314,14 +310,14 @@ class Worker:
         if error is not None and _is_interrupt(error):
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
             self._db(self.store.release, claim.token)
-            log.info("interrupted %s: released (%s)", cell.label, _reason(error))
+            log.info("interrupted %s: released (%s)", cell.label, failure_reason(error))
             return "stop"
         if isinstance(error, tracking.TrackingBusy):  # the database, not the cell: back without using an attempt
-            return self._release_busy(claim, cell, _reason(error), run_id)
+            return self._release_busy(claim, cell, failure_reason(error), run_id)
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
                 log.error("runner failed on %s", cell.label, exc_info=error)
-            reason = _reason(error)
+            reason = failure_reason(error)
             self._terminate(run_id, "FAILED", reason, ("RUNNING",))
             return self._fail(claim, cell, reason, run_id, elapsed)
         if result.status == "FINISHED":

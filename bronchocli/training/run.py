@@ -40,6 +40,7 @@ from ..runlayout import (
     RunResult,
     RunStopped,
     checkpoint_dir,
+    failure_reason,
     resume_file,
 )
 from . import artifacts, checkpoint
@@ -109,7 +110,7 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
         rejected = path.with_name(path.name + REJECTED_SUFFIX)
         path.replace(rejected)
         exc = checkpoint.BadCheckpoint(f"{exc}; moved to {rejected.name}, the next run of the cell starts afresh")
-        _end_run(client, run_id, "FAILED", _reason(exc))
+        _end_run(client, run_id, "FAILED", failure_reason(exc))
         raise exc from None
     client.update_run(run_id, "RUNNING")
     if repaired or tracking.TAG_FAILURE in run.data.tags:
@@ -202,7 +203,7 @@ def run_cell(
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
-        reason = _reason(exc)
+        reason = failure_reason(exc)
         _end_run(client, run_id, "FAILED", reason)
         if not isinstance(exc, KEEP_CHECKPOINT_ON):  # only a failure of the environment is worth resuming
             shutil.rmtree(ckpt, ignore_errors=True)
@@ -222,10 +223,6 @@ KEEP_CHECKPOINT_ON = (checkpoint.WriteFailed, tracking.TrackingBusy)
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
 RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, tracking.TrackingBusy)
 
-
-def _reason(exc: BaseException) -> str:
-    text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return f"{type(exc).__name__}: {text}"[:4000]
 
 
 def _end_run(client, run_id: str, status: str, reason: str) -> None:
