@@ -128,7 +128,7 @@ CSV_CONFIG = """\
     splits: {train: 1, val: 1, test: 1}
     data: {window: 3}
     train: {batch_size: 6, steps: 2, val_every: 2, bn_recalibrate: 1}
-    tracking: {model_artifact: none}
+    runs: {model_artifact: none}
 """
 
 
@@ -163,12 +163,13 @@ def startup_seconds(device: str) -> tuple[float, float]:
         code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
         subprocess.run([sys.executable, "-c", code, *cmd[3:]], cwd=root, check=True, capture_output=True)
         sys.path.insert(0, str(HERE.parent))
-        from bronchocli import tracking
         from bronchocli.config import load_config
+        from bronchocli.runs.client import client_for, experiment_id
+        from bronchocli.runs.records import search_runs
 
         cfg = load_config(root / "experiments.yaml")
-        client = tracking.client_for(cfg)
-        (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+        client = client_for(cfg)
+        (run,) = search_runs(client, [experiment_id(client, cfg)])
         return imports, run.data.metrics.get("train.process_first_step_s", float("nan"))
 
 

@@ -109,7 +109,7 @@ def time_in_process(uri: str, out: Path) -> tuple[float, float]:
 
 def time_cli(uri: str, out: Path) -> float:
     cfg = out / "bench.yaml"
-    cfg.write_text(f"name: {SWEEP}\ntracking:\n  uri: {uri}\n  experiment: {EXPERIMENT}\n")
+    cfg.write_text(f"name: {SWEEP}\nruns:\n  uri: {uri}\n  experiment: {EXPERIMENT}\n")
     env = {**os.environ, "NO_COLOR": "1"}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     t0 = time.perf_counter()

@@ -49,7 +49,7 @@ def project(folder: Path, schema: str, cells: int, real: bool) -> Path:
     write_tiny_dataset(folder / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
     seeds = list(range(max(1, cells // 2)))
     data = {
-        "name": "bench", "tracking": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
+        "name": "bench", "runs": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
         "storage": {"url": f"{PG}?options=-csearch_path%3D{schema}"}, "dataset": {"root": "data/tiny"},
         "grid": {"arch": ["baseline"] if real else ["baseline", "lstm"], "rot_loss": ["mse"],
                  "population": ["personalized"], "seed": [0] if real else seeds},

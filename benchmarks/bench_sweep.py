@@ -38,7 +38,7 @@ def write_config(root: Path, storage: str, real: bool) -> Path:
 
     cfg = {
         "name": "bench",
-        "tracking": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts", "checkpoints": "ckpt"},
+        "runs": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts", "checkpoints": "ckpt"},
         "storage": {"url": storage},
         "dataset": {"root": "data/tiny", "generate": {"patients": 2, "lobes": ["ur"], "trajectories": 4,
                                                       "image_size": 32, "max_frames": 8, "workers": 1}},
@@ -90,7 +90,7 @@ def main() -> None:
         config = write_config(root, args.storage, real=False)
         from bronchocli.config import load_config
         from bronchocli.generation import ensure_dataset
-        from bronchocli.tracking import client_for, experiment_id
+        from bronchocli.runs.client import client_for, experiment_id
 
         ensure_dataset(load_config(config), progress=False)  # rendered once, not timed
         t0 = time.perf_counter()

@@ -54,7 +54,7 @@ CONFIG = """\
                  max_frames: 24, workers: 2}}
     splits: {{train: 4, val: 1, test: 1}}
     train: {{steps: {steps}, batch_size: 20, val_every: 50}}
-    tracking: {{model_artifact: none}}
+    runs: {{model_artifact: none}}
 """
 
 

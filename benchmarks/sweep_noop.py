@@ -8,15 +8,16 @@ from __future__ import annotations
 
 import time
 
-from bronchocli import tracking
-from bronchocli.runlayout import RunResult
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import RunResult
+from bronchocli.runs.records import cell_tags
 
 
 def noop_runner(cfg, cell, *, extra_tags=None, progress=True, run_id_callback=None, **_):
     t0 = time.perf_counter()
-    client = tracking.client_for(cfg)
-    run_id = client.create_run(tracking.experiment_id(client, cfg),
-                               tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+    client = client_for(cfg)
+    run_id = client.create_run(experiment_id(client, cfg),
+                               tags=cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
     if run_id_callback:
         run_id_callback(run_id)
     client.set_terminated(run_id, "FINISHED")

@@ -23,27 +23,28 @@ from pathlib import Path
 import numpy as np
 from mlflow.tracking import MlflowClient
 
-from . import geometry, tracking
+from . import geometry
 from .config import DEFAULT_CONFIG, load_config
 from .inference import loading, reader, trajectory
 from .inference.mlflow_model import PoseModel, check_frames, warn_resize
+from .runs.client import client_for
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score"]
 
 
-def load_model(reference: str, *, tracking_uri: str | None = None,
+def load_model(reference: str, *, mlflow_uri: str | None = None,
                config: str | os.PathLike = DEFAULT_CONFIG) -> PoseModel:
     """The model of ``reference`` on the CPU (fp32 compute, eval mode).
 
-    The tracking store is ``tracking_uri`` when given, else the one of ``config``
+    The MLflow store is ``mlflow_uri`` when given, else the one of ``config``
     (``experiments.yaml`` by default). A local model folder needs neither.
     """
-    if tracking_uri is not None:
-        client = MlflowClient(tracking_uri=tracking_uri)
+    if mlflow_uri is not None:
+        client = MlflowClient(tracking_uri=mlflow_uri)
     elif (Path(reference).expanduser() / "MLmodel").is_file():
         return loading.load_local(Path(reference).expanduser())
     else:
-        client = tracking.client_for(load_config(config))
+        client = client_for(load_config(config))
     return loading.load(client, reference).model
 
 

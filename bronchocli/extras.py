@@ -4,7 +4,7 @@ A GPU box that only trains, sweeps and reports needs none of them:
 
 * ``render``: VTK and scikit-image, for ``data generate`` (rendering, anatomy
   readers) and the dataset figures' centreline;
-* ``postgres``: psycopg, for ``postgresql://`` tracking or sweep storage;
+* ``postgres``: psycopg, for ``postgresql://`` MLflow or sweep storage;
 * ``video``: PyAV, for reading video files.
 
 ``require(extra, what)`` checks before the first import (``importlib`` finds

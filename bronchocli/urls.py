@@ -1,4 +1,4 @@
-"""Database and tracking URLs: the one parser of ``sqlite:///`` paths, password redaction, driver names."""
+"""Database and MLflow URLs: the one parser of ``sqlite:///`` paths, password redaction, driver names."""
 
 from __future__ import annotations
 
@@ -35,6 +35,11 @@ def resolve(url: str, base: Path) -> str:
 def sqlalchemy(url: str) -> str:
     """``postgres://`` and ``postgresql://`` go through psycopg 3 (the installed driver)."""
     return re.sub(r"^postgres(?:ql)?://", "postgresql+psycopg://", url)
+
+
+def is_direct_store(url: str) -> bool:
+    """True for a store MLflow opens itself (a database or a folder; artifacts go where we say), not a server."""
+    return url.startswith(("sqlite:", "file:", "/", "postgresql", "mysql", "mssql")) or "://" not in url
 
 
 def is_server(url: str) -> bool:

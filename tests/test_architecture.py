@@ -13,10 +13,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "bronchocli"
 # Lowest first. A module may import modules of its own layer or of a lower one, never of a higher one.
 LAYERS: list[set[str]] = [
     {"errors"},
-    {"urls", "io", "extras"},
+    {"urls", "io", "extras", "retry"},
     {"cells"},
     {"config"},
-    {"geometry", "metrics", "odometry", "runlayout", "tracking", "runview", "plots"},
+    {"geometry", "metrics", "odometry", "runs", "plots"},  # runs: MLflow run tracking
     {"anatomy", "data"},
     {"render"},
     {"generation"},
@@ -175,3 +175,12 @@ def test_an_import_inside_a_function_says_why_it_is_lazy(name):
                     bad.append(f"{path.name}:{node.lineno}: {lines[node.lineno - 1].strip()}")
                 previous = node.end_lineno
     assert not bad, "imports inside functions without a '# lazy: <reason>' comment:\n" + "\n".join(bad)
+
+
+MAX_LINES = 500  # a module past this holds more than one job: split it (docs/architecture.md)
+
+
+def test_no_module_is_over_the_size_limit():
+    big = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
+           if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not big, f"modules over {MAX_LINES} lines (split them by job): {big}"

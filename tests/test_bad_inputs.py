@@ -66,7 +66,7 @@ def project(tmp_path, silent_port):
     config.write_text(yaml.safe_dump({
         "name": "bad", "dataset": {"root": "data/tiny"},
         "grid": {"arch": ["baseline"], "rot_loss": ["mse"], "population": ["personalized"], "seed": [0]},
-        "tracking": {"timeout_s": 1}, "train": {"steps": 2, "batch_size": 2, "threads": 1},
+        "runs": {"timeout_s": 1}, "train": {"steps": 2, "batch_size": 2, "threads": 1},
     }))
     project = Project(tmp_path, config, silent_port)
     yield project
@@ -116,7 +116,7 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
                         "e.yaml:3: grid.arch: []: value error, must list at least one value"),
     "negative size": (lambda p: ["config", *C(p), "--set", "train.batch_size=-4"], 2,
                       "--set train.batch_size=-4: train.batch_size: -4: input should be greater than or equal to 1"),
-    "negative timeout": (lambda p: ["config", *C(p), "--set", "tracking.timeout_s=-1"], 2, "tracking.timeout_s"),
+    "negative timeout": (lambda p: ["config", *C(p), "--set", "runs.timeout_s=-1"], 2, "runs.timeout_s"),
     "unknown profile": (lambda p: ["config", *C(p), "--profile", "nosuch"], 2, "no such profile"),
     "--set without =": (lambda p: ["config", *C(p), "--set", "trainlr"], 2, "expected key.path=value"),
     "--set of an unknown section": (lambda p: ["config", *C(p), "--set", "foo.bar.baz=1"], 2,
@@ -162,15 +162,15 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "corrupt --latency-from": (lambda p: ["report", *C(p), "--latency-from", str(p.write("lat.json", "[{"))], 2,
                                "--latency-from"),
     # -- servers that are down or never answer ------------------------------------------------
-    "hung tracking server (report)": (lambda p: ["report", *C(p), "--set", f"tracking.uri={hung(p)}"], 2,
+    "hung tracking server (report)": (lambda p: ["report", *C(p), "--set", f"runs.uri={hung(p)}"], 2,
                                       "no answer within 1 s"),
-    "hung tracking server (sweep)": (lambda p: ["sweep", *C(p), "--set", f"tracking.uri={hung(p)}"], 2,
+    "hung tracking server (sweep)": (lambda p: ["sweep", *C(p), "--set", f"runs.uri={hung(p)}"], 2,
                                      "no answer within 1 s"),
     "hung tracking server (train)": (lambda p: ["train", *C(p), "-a", "baseline", "-l", "mse", "-P", "personalized",
-                                                "--set", f"tracking.uri={hung(p)}"], 2, "no answer within 1 s"),
-    "hung PostgreSQL tracking": (lambda p: ["report", *C(p), "--set", f"tracking.uri={hung(p, 'postgresql')}"], 2,
-                                 "tracking.uri postgresql://bob:***@127.0.0.1"),
-    "refused PostgreSQL tracking": (lambda p: ["sweep", *C(p), "--set", "tracking.uri=postgresql://bob:hunter2@"
+                                                "--set", f"runs.uri={hung(p)}"], 2, "no answer within 1 s"),
+    "hung PostgreSQL tracking": (lambda p: ["report", *C(p), "--set", f"runs.uri={hung(p, 'postgresql')}"], 2,
+                                 "runs.uri postgresql://bob:***@127.0.0.1"),
+    "refused PostgreSQL tracking": (lambda p: ["sweep", *C(p), "--set", "runs.uri=postgresql://bob:hunter2@"
                                                "127.0.0.1:1/db"], 2, "cannot connect within 2 s"),
     "hung sweep storage": (lambda p: ["status", *C(p), "--storage", hung(p, "postgresql")], 2,
                            "sweep storage postgresql+psycopg://bob:***@127.0.0.1"),
@@ -184,10 +184,10 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
                                          "postgresql://postgres:hunter2@127.0.0.1:5432/no_such_db_here"], 2,
                               "storage.url postgresql+psycopg://postgres:***@127.0.0.1:5432/no_such_db_here"),
     "ui on a hung PostgreSQL store": (lambda p: ["ui", *C(p), "--port", str(free_port()), "--set",
-                                                 f"tracking.uri={hung(p, 'postgresql')}"], 2, "cannot connect"),
-    "ui on a refused PostgreSQL store": (lambda p: ["ui", *C(p), "--set", "tracking.uri=postgresql://bob:hunter2@"
-                                                    "127.0.0.1:1/db"], 2, "tracking.uri postgresql://bob:***@"),
-    "ui for a remote server": (lambda p: ["ui", *C(p), "--set", f"tracking.uri={hung(p)}"], 2, "already a server"),
+                                                 f"runs.uri={hung(p, 'postgresql')}"], 2, "cannot connect"),
+    "ui on a refused PostgreSQL store": (lambda p: ["ui", *C(p), "--set", "runs.uri=postgresql://bob:hunter2@"
+                                                    "127.0.0.1:1/db"], 2, "runs.uri postgresql://bob:***@"),
+    "ui for a remote server": (lambda p: ["ui", *C(p), "--set", f"runs.uri={hung(p)}"], 2, "already a server"),
 }
 
 
@@ -280,7 +280,7 @@ PROBLEMS = {
     "grid.arch": ("grid", "arch", ["transformer"]),
     "data.window": ("data", "window", 0),
     "sweep.max_retries": ("sweep", "max_retries", -2),
-    "tracking.timeout_s": ("tracking", "timeout_s", 0),
+    "runs.timeout_s": ("runs", "timeout_s", 0),
     "splits.colour": ("splits", "colour", 1),
     "model.dropout": ("model", "dropout", 1.5),
 }
@@ -348,7 +348,7 @@ def test_random_set_overrides_never_escape_as_anything_but_a_config_error(projec
 @pytest.mark.parametrize("args", [["config"], ["config", "--grid"], ["sweep", "--dry-run"]])
 def test_no_printed_form_of_the_config_shows_a_password(cli, project, args, monkeypatch):
     monkeypatch.setenv("BP_SECRET", "hunter2")
-    code, out, err = cli(*args, *C(project), "--set", "tracking.uri=http://alice:${BP_SECRET}@127.0.0.1:9/mlflow",
+    code, out, err = cli(*args, *C(project), "--set", "runs.uri=http://alice:${BP_SECRET}@127.0.0.1:9/mlflow",
                          "--set", "storage.url=sqlite:///runs/sweep.db",
                          "--set", "dataset.csv.frames=postgresql://bob:hunter2@db/x")
     assert "hunter2" not in out + err
@@ -409,13 +409,13 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         **{f"dataset.root is a file ({name})": (lambda p, argv=argv: [*argv, *dataset_file(p)],
                                                 "is a file, not a dataset folder", ())
            for name, argv in COMMANDS_THAT_WRITE.items()},
-        "tracking database is a folder": (lambda p: ["train", *RUN, *C(p), "--set", "tracking.uri=sqlite:///data"],
+        "tracking database is a folder": (lambda p: ["train", *RUN, *C(p), "--set", "runs.uri=sqlite:///data"],
                                           "is a folder, not a database file", ()),
         "sweep storage is a folder": (lambda p: ["sweep", *C(p), "--set", "storage.url=sqlite:///data"],
                                       "storage.url", ()),
         "artifacts folder is a file": (lambda p: ["train", *RUN, *C(p), "--set",
-                                                  f"tracking.artifacts={p.config}"], "is a file, not a folder", ()),
-        "checkpoints under a file": (lambda p: ["sweep", *C(p), "--set", f"tracking.checkpoints={p.config}/ck"],
+                                                  f"runs.artifacts={p.config}"], "is a file, not a folder", ()),
+        "checkpoints under a file": (lambda p: ["sweep", *C(p), "--set", f"runs.checkpoints={p.config}/ck"],
                                      "is a file, so no folder can be created there", ()),
         "cache folder under a file": (lambda p: ["tune", *RUN, *C(p), "--set", f"data.cache_dir={p.config}/c"],
                                       "data.cache_dir", ()),
@@ -565,7 +565,7 @@ SEEDS = [path for path in INTS if path.endswith("seed")] + ["grid.seed"]
 
 
 def test_the_schema_walk_finds_the_settings_it_must():
-    assert {"train.lr", "model.dropout", "tracking.timeout_s", "sweep.heartbeat_s"} <= set(FLOATS)
+    assert {"train.lr", "model.dropout", "runs.timeout_s", "sweep.heartbeat_s"} <= set(FLOATS)
     assert {"train.steps", "splits.seed", "dataset.generate.seed", "tune.seed"} <= set(INTS)
 
 

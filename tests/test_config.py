@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from bronchocli import config as C
+from bronchocli.config.loading import _read_yaml as read_yaml
 from bronchocli.errors import ConfigError
 
 
@@ -23,7 +24,7 @@ def write(tmp_path: Path, text: str) -> Path:
 def shipped_configs(repo: Path) -> list[tuple[Path, str | None]]:
     out = []
     for path in sorted(repo.glob("*.yaml")) + sorted((repo / "configs").glob("*.yaml")):
-        raw = C._read_yaml(path)[0]
+        raw = read_yaml(path)[0]
         out += [(path, None)] + [(path, p) for p in raw.get("profiles", {})]
     return out
 
@@ -41,7 +42,7 @@ def test_every_shipped_config_and_profile_loads_and_expands(repo):
 def test_defaults_and_relative_paths_resolve_against_the_config_dir(tmp_path):
     cfg = C.load_config(write(tmp_path, "name: t\n"))
     assert cfg.paths.base == tmp_path
-    assert cfg.paths.tracking_uri == f"sqlite:///{tmp_path}/runs/mlflow.db"
+    assert cfg.paths.mlflow_uri == f"sqlite:///{tmp_path}/runs/mlflow.db"
     assert cfg.paths.storage_url.startswith(f"sqlite:///{tmp_path}/runs/")
     assert cfg.paths.dataset == tmp_path / "data" / "synthetic"
     assert cfg.paths.cache == tmp_path / "runs" / "cache"
@@ -50,8 +51,8 @@ def test_defaults_and_relative_paths_resolve_against_the_config_dir(tmp_path):
     assert cfg.paths.sweep_logs == tmp_path / "runs" / "sweep-logs"
     assert cfg.paths.anatomy is None and cfg.paths.centreline is None and cfg.paths.pretrained is None
     assert cfg.experiment_name == "t"
-    server = C.Config(name="x", tracking={"uri": "postgresql://u@h/db"})
-    assert server.paths.tracking_uri == "postgresql://u@h/db"
+    server = C.Config(name="x", runs={"uri": "postgresql://u@h/db"})
+    assert server.paths.mlflow_uri == "postgresql://u@h/db"
 
 
 def test_paths_are_resolved_once_at_load_not_against_the_working_directory(tmp_path, monkeypatch):
@@ -143,7 +144,7 @@ def test_a_run_relevant_change_changes_the_key_and_tracking_does_not(tmp_path):
     key = C.expand_grid(base, ["p00"])[0].key
     assert base.train.lr != 5e-4
     assert C.expand_grid(base.with_values({"train.lr": 5e-4}), ["p00"])[0].key != key
-    assert C.expand_grid(base.with_values({"tracking.uri": "http://x:5000"}), ["p00"])[0].key == key
+    assert C.expand_grid(base.with_values({"runs.uri": "http://x:5000"}), ["p00"])[0].key == key
 
 
 def test_cross_subject_folds(tmp_path):
@@ -209,3 +210,45 @@ def test_eval_thresholds_are_validated_and_reach_the_evaluation(tmp_path):
     assert (t.position, t.position_mm, t.angle, t.gap) == (2.5, 5.0, 10.0, 4)
     assert C.cell_key(cfg, {"arch": "lstm"}) == C.cell_key(C.load_config(write(tmp_path, "name: t\n")),
                                                           {"arch": "lstm"})  # thresholds do not retrain
+
+
+# -- renamed keys: `tracking` is `runs` now (read for one release, with a warning) -------------------------------
+
+
+@pytest.fixture
+def fresh_warnings(monkeypatch):
+    monkeypatch.setattr("bronchocli.config.loading._warned", set())
+
+
+def test_the_old_tracking_section_is_read_as_runs_with_a_warning(tmp_path, caplog, fresh_warnings):
+    path = write(tmp_path, """\
+        name: t
+        tracking: {uri: sqlite:///old.db, busy_timeout_s: 7}
+        profiles:
+          p: {tracking: {timeout_s: 3}}
+        """)
+    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):
+        cfg = C.load_config(path, "p")
+    assert cfg.runs.busy_timeout_s == 7 and cfg.runs.timeout_s == 3
+    assert cfg.paths.mlflow_uri == f"sqlite:///{tmp_path}/old.db"
+    [warning] = [r.getMessage() for r in caplog.records]  # once per process, however many places use it
+    assert f"{path}:2" in warning and "'tracking' is now 'runs'" in warning
+
+
+def test_an_error_under_the_old_name_still_names_its_line(tmp_path, fresh_warnings):
+    path = write(tmp_path, "name: t\n\ntracking:\n  timeout_s: -1\n")
+    with pytest.raises(ConfigError, match=rf"{path}:4: runs.timeout_s: -1"):
+        C.load_config(path)
+
+
+def test_both_names_at_once_is_one_clear_error(tmp_path, fresh_warnings):
+    path = write(tmp_path, "name: t\ntracking: {timeout_s: 2}\nruns: {timeout_s: 3}\n")
+    with pytest.raises(ConfigError, match="both 'tracking' and 'runs' are set"):
+        C.load_config(path)
+
+
+def test_a_set_override_under_the_old_name_is_renamed(tmp_path, caplog, fresh_warnings):
+    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):
+        cfg = C.load_config(write(tmp_path, "name: t\n"), overrides=["tracking.experiment=other"])
+    assert cfg.runs.experiment == "other" and cfg.experiment_name == "other"
+    assert "--set tracking.experiment=other" in caplog.records[0].getMessage()

@@ -1,5 +1,5 @@
 """Relocatable projects: MLflow keeps absolute artifact locations, yet a copied (``cp -a``) or moved project
-writes and reads only its own store, and ``--set tracking.artifacts=...`` takes effect or is refused in one line."""
+writes and reads only its own store, and ``--set runs.artifacts=...`` takes effect or is refused in one line."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import tracking
 from bronchocli.config import load_config
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import search_runs
+from bronchocli.runs.relocation import _local_path
 
 TRAIN = ["-a", "baseline", "-l", "mse", "-P", "personalized"]
 
@@ -42,8 +44,8 @@ def _train(cli, root: Path, *extra: str) -> tuple[int, str, str]:
 
 def _runs(root: Path, *overrides: str):
     cfg = load_config(root / "experiments.yaml", overrides=overrides)
-    client = tracking.client_for(cfg)
-    return cfg, tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    return cfg, search_runs(client, [experiment_id(client, cfg)])
 
 
 def test_a_copied_project_writes_and_reads_only_its_own_store(cli, original, tmp_path):
@@ -58,7 +60,7 @@ def test_a_copied_project_writes_and_reads_only_its_own_store(cli, original, tmp
     cfg, runs = _runs(copy)
     assert len(runs) == 2
     for run in runs:  # old and new runs: artifacts in the copy, and present there
-        where = tracking._local_path(run.info.artifact_uri)
+        where = _local_path(run.info.artifact_uri)
         assert where is not None and where.is_relative_to(copy / "runs" / "artifacts"), run.info.artifact_uri
         assert any(where.rglob("*")), f"no artifacts under {where}"
     assert tree_hash(original) == before  # the original's tree is byte-identical
@@ -70,14 +72,14 @@ def test_a_changed_artifact_root_is_refused_in_one_line_until_the_folder_moves(c
     code, out, err = _train(cli, project)  # (the copy is relocated here)
     assert code == 0, out + err
     elsewhere = tmp_path / "elsewhere"
-    code, out, err = _train(cli, project, "--set", f"tracking.artifacts={elsewhere}")
+    code, out, err = _train(cli, project, "--set", f"runs.artifacts={elsewhere}")
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1 and "Traceback" not in out + err, out + err
     assert str(project / "runs" / "artifacts") in lines[0] and str(elsewhere) in lines[0]
     assert not elsewhere.exists()
 
     (project / "runs" / "artifacts").rename(elsewhere)  # the fix the line suggests: move the folder
-    code, out, err = _train(cli, project, "--seed", "2", "--set", f"tracking.artifacts={elsewhere}")
+    code, out, err = _train(cli, project, "--seed", "2", "--set", f"runs.artifacts={elsewhere}")
     assert code == 0, out + err
-    _, runs = _runs(project, f"tracking.artifacts={elsewhere}")
-    assert runs and all(tracking._local_path(r.info.artifact_uri).is_relative_to(elsewhere) for r in runs)
+    _, runs = _runs(project, f"runs.artifacts={elsewhere}")
+    assert runs and all(_local_path(r.info.artifact_uri).is_relative_to(elsewhere) for r in runs)

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from bronchocli import runview, tracking
 from bronchocli.config import Config
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.parents import set_parent_status, study_parent, sweep_parent
+from bronchocli.runs.records import source_name
+from bronchocli.runs.views import README_RATIO, describe, headline, ordered_metrics, run_params, runs_table_url
 
 METRICS = {  # a model and its two image-blind references, per pair and accumulated
     "pair.pos_l2.mean": 0.84, "zero_motion.pair.pos_l2.mean": 1.2, "train_mean.pair.pos_l2.mean": 1.0,
@@ -19,7 +22,7 @@ def test_params_are_the_coordinates_and_the_settings_that_differ():
     cfg = Config(name="t").with_values({"train.lr": 0.0005, "train.threads": 3, "tune.space": {
         "model.dropout": {"type": "float", "low": 0.0, "high": 0.5}}})
     cell = cfg.cell(arch="lstm", rot_loss="ce", population="personalized", seed=2)
-    params = runview.run_params(cfg, cell)
+    params = run_params(cfg, cell)
     assert {k: params[k] for k in ("arch", "rot_loss", "population", "seed", "pose_frame")} == {
         "arch": "lstm", "rot_loss": "ce", "population": "personalized", "seed": "2", "pose_frame": "world"}
     assert "fold" not in params and "train_trajectories" not in params  # unset coordinates: no param at all
@@ -27,15 +30,15 @@ def test_params_are_the_coordinates_and_the_settings_that_differ():
     assert "model.dropout" in params  # a tuned path is always a param, even at its default
     assert params["train.threads"] == "3"  # a speed setting, changed: it explains timing differences
     assert params["model.pretrained"] == "None"  # the initialisation is always a param (default: random)
-    assert not any(k.startswith(("grid.", "tracking.", "storage.", "sweep.", "dataset.")) for k in params)
+    assert not any(k.startswith(("grid.", "runs.", "storage.", "sweep.", "dataset.")) for k in params)
     assert "train.batch_size" not in params  # at its default: the full value is in config.yaml
     fold = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", train_trajectories=4)
-    assert runview.run_params(cfg, fold)["fold"] == "p01" and runview.run_params(cfg, fold)["train_trajectories"] == "4"
+    assert run_params(cfg, fold)["fold"] == "p01" and run_params(cfg, fold)["train_trajectories"] == "4"
 
 
 def test_headline_ratios_and_skills_against_both_references():
-    h = runview.headline(METRICS)
-    assert list(h)[:3] == [runview.README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2"]
+    h = headline(METRICS)
+    assert list(h)[:3] == [README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2"]
     assert h["ratio.train_mean.pair.pos_l2"] == pytest.approx(0.84)  # the README's figure: 0.84 / 1.0
     assert h["ratio.zero_motion.pair.pos_l2"] == pytest.approx(0.7)
     assert h["skill.zero_motion.pair.pos_l2"] == pytest.approx(0.3)
@@ -43,44 +46,44 @@ def test_headline_ratios_and_skills_against_both_references():
     assert h["skill.pair.rot_l2"] == pytest.approx(1 - 3.0 / 2.0)  # worse than zero motion: negative
     assert h["skill.acc.pos_l2"] == pytest.approx(1 - 10.0 / 8.0)
     assert "skill.acc.rot_l2" not in h  # no reference logged for it: nothing invented
-    first, rest = runview.ordered_metrics(METRICS)
-    assert list(first)[0] == runview.README_RATIO and "pair.pos_l2.mean" in first and "acc.pos_l2.mean" in first
+    first, rest = ordered_metrics(METRICS)
+    assert list(first)[0] == README_RATIO and "pair.pos_l2.mean" in first and "acc.pos_l2.mean" in first
     assert set(first) | set(rest) == set(METRICS) | set(h) and not set(first) & set(rest)
 
 
 def test_description_states_the_cell_and_the_result():
     cell = Config(name="t").cell(arch="offsetnet", rot_loss="mse", population="cross-subject", fold="p02", seed=1)
-    before = runview.describe(cell, dataset="synthetic-cpu")
+    before = describe(cell, dataset="synthetic-cpu")
     assert "offsetnet" in before and "test patient p02" in before and "seed 1" in before and "Test:" not in before
-    after = runview.describe(cell, METRICS)
+    after = describe(cell, METRICS)
     assert "0.84 × the training-mean reference" in after and "position 0.16" in after
 
 
 def test_source_name_is_the_command():
-    assert tracking.source_name(["/venv/bin/bronchopose", "-q", "sweep", "--workers", "2"]) == "bronchopose sweep"
-    assert tracking.source_name(["/src/bronchocli/cli.py", "train", "-a", "lstm"]) == "bronchopose train"
-    assert tracking.source_name(["/usr/lib/python3/site-packages/pytest/__main__.py", "x"]) == "__main__.py"
-    assert tracking.source_name(["train.py"]) == "train.py"
+    assert source_name(["/venv/bin/bronchopose", "-q", "sweep", "--workers", "2"]) == "bronchopose sweep"
+    assert source_name(["/src/bronchocli/cli.py", "train", "-a", "lstm"]) == "bronchopose train"
+    assert source_name(["/usr/lib/python3/site-packages/pytest/__main__.py", "x"]) == "__main__.py"
+    assert source_name(["train.py"]) == "train.py"
 
 
 def test_runs_table_url_opens_the_model_training_view():
-    assert runview.runs_table_url("http://127.0.0.1:5000/", "3") == \
+    assert runs_table_url("http://127.0.0.1:5000/", "3") == \
         "http://127.0.0.1:5000/#/experiments/3/runs?workflowType=machine_learning"
 
 
 def test_parent_run_is_created_once_and_found_again(tmp_path):
-    cfg = Config(name="par").with_values({"tracking.uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
-                                          "tracking.artifacts": str(tmp_path / "art")})
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    cfg = Config(name="par").with_values({"runs.uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
+                                          "runs.artifacts": str(tmp_path / "art")})
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     assert client.get_experiment(exp).tags["mlflow.experimentKind"] == "custom_model_development"
-    first = runview.sweep_parent(client, cfg, exp)
-    assert runview.sweep_parent(client, cfg, exp) == first  # found by its tags, not made twice
+    first = sweep_parent(client, cfg, exp)
+    assert sweep_parent(client, cfg, exp) == first  # found by its tags, not made twice
     run = client.get_run(first)
     assert run.data.tags["run_kind"] == "sweep" and run.data.tags["sweep"] == "par"
     assert run.data.params["grid.arch"].startswith("['baseline'")  # the grid lives on the parent
-    study = runview.study_parent(client, cfg, exp, "s1", cfg.cell(arch="lstm", rot_loss="mse",
+    study = study_parent(client, cfg, exp, "s1", cfg.cell(arch="lstm", rot_loss="mse",
                                                                     population="personalized"))
     assert study != first and client.get_run(study).data.params["arch"] == "lstm"
-    runview.set_parent_status(client, first, 130)
+    set_parent_status(client, first, 130)
     assert client.get_run(first).info.status == "KILLED"

@@ -58,7 +58,7 @@ def test_ui_serves_the_store(tmp_path):
 
 
 def test_ui_refuses_a_remote_tracking_server(tmp_path, cli):
-    (tmp_path / "experiments.yaml").write_text("name: t\ntracking: {uri: 'http://mlflow.example:5000'}\n")
+    (tmp_path / "experiments.yaml").write_text("name: t\nruns: {uri: 'http://mlflow.example:5000'}\n")
     code, _, err = cli("ui", "-c", str(tmp_path / "experiments.yaml"))
     assert code == 2 and "already a server" in err
 
@@ -68,7 +68,7 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     from bronchocli.config import Config
 
     assert [ui.default_workers(n) for n in (1, 2, 3, 8, 64)] == [1, 1, 1, 4, 4]  # not 4 workers on 2 cores
-    cfg = Config(name="t").with_values({"tracking.uri": f"sqlite:///{tmp_path / 'm.db'}"})
+    cfg = Config(name="t").with_values({"runs.uri": f"sqlite:///{tmp_path / 'm.db'}"})
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=3)
     assert argv[argv.index("--workers") + 1] == "3" and argv[1] == "ui"
     monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)

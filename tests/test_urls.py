@@ -1,4 +1,4 @@
-"""Database and tracking URLs: password redaction, SQLite paths, resolution, driver names."""
+"""Database and MLflow URLs: password redaction, SQLite paths, resolution, driver names."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ CONFIG = """\
     data: {{window: 3, image_size: 32}}
     model: {{dropout: 0.1}}
     train: {{batch_size: 6, steps: {steps}, val_every: {val_every}, bn_recalibrate: 2, threads: 1}}
-    tracking: {{model_artifact: {model_artifact}}}
+    runs: {{model_artifact: {model_artifact}}}
 """
 
 

@@ -37,9 +37,9 @@ def status(
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
+    store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
     if repair:
-        from ..sweep.checkpoints import repair_zombies  # lazy: keeps `bronchopose --help` fast
+        from ..sweep.housekeeping import repair_zombies  # lazy: keeps `bronchopose --help` fast
 
         done = repair_zombies(cfg, store if store.exists() else None)
         for run_id, what in done:

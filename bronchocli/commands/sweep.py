@@ -8,9 +8,8 @@ from typing import Optional
 import typer
 
 from ..cells import FIELDS, parse_only
-from ..config import DEFAULT_CONFIG
+from ..config import DEFAULT_CONFIG, check_paths
 from ..errors import BronchoError
-from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, load
 from .common import console as _console
 
@@ -82,11 +81,11 @@ def sweep(
         raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
                            "(or sweep.launcher: slurm)")
     if gc:
-        store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
+        store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
         raise typer.Exit(_collect_garbage(cfg, store, console))
     if not cancel:
         check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
-    store = SweepStore(cfg.paths.storage_url, cfg.tracking.timeout_s, cfg.tracking.busy_timeout_s)
+    store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
     if worker_only:
         from ..sweep import slurm  # lazy: only array tasks need it
 
@@ -103,7 +102,7 @@ def sweep(
         argv = _worker_argv(config, profile, set_, storage, only, use_tuned)
         raise typer.Exit(slurm.launch(cfg, store, selection, argv, detach=detach, console=console,
                                       retry_failed=retry_failed))
-    store.exists()  # an unreachable storage fails here, in tracking.timeout_s, before anything is created
+    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     devices = placement.parse_gpus(gpus, placement.visible_gpus())
     workers = workers or placement.default_workers(devices, per_gpu)
     if dry_run:
@@ -137,7 +136,7 @@ def _worker_argv(config: Path, profile: Optional[str], set_: Optional[list[str]]
 
 def _collect_garbage(cfg, store, console) -> int:
     """`--gc`: remove the checkpoints no live cell needs on this machine and say what was freed."""
-    from ..sweep.checkpoints import collect_garbage  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.housekeeping import collect_garbage  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import fmt_bytes
 
     freed = collect_garbage(cfg, store if store.exists() else None)

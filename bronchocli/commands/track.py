@@ -64,8 +64,8 @@ def track(
     `errors.csv` and a table of per-pair and accumulated errors next to both image-blind
     references. Frames of another size than the model's are resized with a warning.
     """
-    from .. import tracking  # lazy: MLflow (~1 s) only once the flags are valid
-    from ..inference import loading, reader, trajectory
+    from ..inference import loading, reader, trajectory  # lazy: MLflow (~1 s) only once the flags are valid
+    from ..runs.client import client_for
 
     chosen = [f for f, v in (("--run", run), ("--model", model), ("--best", best)) if v]
     if len(chosen) != 1:
@@ -76,7 +76,7 @@ def track(
     out = output_folder(out or Path("track") / name, "--out")
     truth = reader.read_ground_truth(ground_truth) if ground_truth is not None else None
     cfg = load(config, profile, set_)
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     if best:
         from ..reporting.best import best_run  # lazy: the report's run collection only for --best
 

@@ -8,9 +8,8 @@ from typing import Optional
 import typer
 
 from ..cells import Arch, Population, PoseFrame, RotLoss
-from ..config import DEFAULT_CONFIG
+from ..config import DEFAULT_CONFIG, check_paths
 from ..errors import BronchoError
-from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 

@@ -11,9 +11,8 @@ from rich.table import Table
 
 from .. import urls
 from ..cells import Arch, Population, PoseFrame, RotLoss
-from ..config import DEFAULT_CONFIG
+from ..config import DEFAULT_CONFIG, check_paths
 from ..errors import BronchoError
-from ..runlayout import check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
 
 

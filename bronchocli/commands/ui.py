@@ -1,7 +1,7 @@
-"""`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured tracking store, opened on the runs table.
+"""`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured MLflow store, opened on the runs table.
 
 MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
-experiment's runs table in the model-training view (``runview.runs_table_url``),
+experiment's runs table in the model-training view (``runs.views.runs_table_url``),
 and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
 so the UI's own navigation lands there too. The server is sized for the machine:
 ``--workers`` (default: half the cores, 1 to 4) and no GenAI job runner
@@ -39,9 +39,9 @@ def ui_command(cfg, host: str, port: int, workers: int | None = None) -> list[st
     exe = str(Path(sys.executable).with_name("mlflow"))
     if not Path(exe).exists():
         exe = shutil.which("mlflow") or exe
-    argv = [exe, "ui", "--backend-store-uri", cfg.paths.tracking_uri, "--host", host, "--port", str(port),
+    argv = [exe, "ui", "--backend-store-uri", cfg.paths.mlflow_uri, "--host", host, "--port", str(port),
             "--workers", str(workers or default_workers())]
-    if not urls.is_server(cfg.paths.tracking_uri):
+    if not urls.is_server(cfg.paths.mlflow_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
 
@@ -79,7 +79,7 @@ def ui(
     profile: ProfileOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Start the MLflow UI for the config's tracking store and print the link to its runs table (Ctrl-C stops it).
+    """Start the MLflow UI for the config's MLflow store and print the link to its runs table (Ctrl-C stops it).
 
     The link opens the config's experiment on the runs table of MLflow's model-training
     view: tick two or more runs and press Compare to see the params that differ (arch,
@@ -87,22 +87,28 @@ def ui(
     Filter with e.g. `params.arch = 'convlstm' and params.population = 'personalized'`.
     """
     cfg = load(config, profile, set_)
-    if urls.is_server(cfg.paths.tracking_uri):
-        raise BronchoError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)} is already a server: open it in a browser")
+    if urls.is_server(cfg.paths.mlflow_uri):
+        raise BronchoError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)} is already a server: open it in a browser")
     check_port(host, port)
-    from .. import runview, tracking  # lazy: mlflow loads only when the UI starts
+    from ..runs.client import (  # lazy: mlflow loads only when the UI starts
+        check_reachable,
+        client_for,
+        experiment_id,
+        mark_training_experiment,
+    )
+    from ..runs.views import runs_table_url
 
-    tracking.check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
+    check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
     argv = ui_command(cfg, host, port, workers)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
-    client = tracking.client_for(cfg)
-    exp_id = tracking.experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
-    tracking.mark_training_experiment(client, exp_id)
+    client = client_for(cfg)
+    exp_id = experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
+    mark_training_experiment(client, exp_id)
     base = f"http://{host}:{port}"
-    console.print(f"MLflow UI for {urls.redact(cfg.paths.tracking_uri)} at {base} (Ctrl-C to stop)\n"
-                  f"runs of experiment {cfg.experiment_name}: {runview.runs_table_url(base, exp_id)}",
+    console.print(f"MLflow UI for {urls.redact(cfg.paths.mlflow_uri)} at {base} (Ctrl-C to stop)\n"
+                  f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",
                   highlight=False, soft_wrap=True)
     sys.stdout.flush()
     os.execve(argv[0], argv, server_env())

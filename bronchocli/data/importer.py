@@ -30,7 +30,7 @@ from scipy.spatial.transform import Rotation
 from .. import geometry
 from ..config import CsvImport
 from ..errors import DataError
-from .layout import file_patient_id
+from .naming import file_patient_id
 from .reader import (
     POSE_COLUMNS,
     Dataset,

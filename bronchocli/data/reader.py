@@ -34,7 +34,7 @@ import pandas as pd
 from .. import geometry
 from ..cells import LOBES
 from ..errors import DataError
-from .layout import DATASET_JSON
+from .naming import DATASET_JSON
 
 log = logging.getLogger(__name__)
 _warned: set[str] = set()  # warnings already given by this process (a dataset is opened many times)

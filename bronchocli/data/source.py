@@ -6,7 +6,7 @@ import json
 
 from ..config import Config
 from .importer import csv_patients, import_csv
-from .layout import DATASET_JSON
+from .naming import DATASET_JSON
 from .reader import Dataset, open_dataset_dir
 
 

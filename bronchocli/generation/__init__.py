@@ -16,7 +16,7 @@ from pathlib import Path
 
 from .. import extras
 from ..config import Config
-from ..data.layout import DATASET_JSON
+from ..data.naming import DATASET_JSON
 
 
 def needs_generation(cfg: Config) -> bool:

@@ -38,7 +38,7 @@ import numpy as np
 from .. import __version__
 from ..anatomy import centreline_distance, load_anatomy, lumen_surface, save_centreline
 from ..config import Config, Generate
-from ..data.layout import DATASET_JSON
+from ..data.naming import DATASET_JSON
 from ..errors import DataError
 from ..io import file_lock, remove_stale_temps, write_bytes, write_json, write_polydata
 from ..render.appearance import prepare_surface

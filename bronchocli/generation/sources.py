@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import Config, Generate
-from ..data.layout import file_patient_id
+from ..data.naming import file_patient_id
 from ..data.source import dataset_patients
 
 

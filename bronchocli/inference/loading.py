@@ -1,13 +1,13 @@
 """Find and load a trained run's MLflow Model: by run id, registry URI, logged-model id or local folder.
 
-References ``resolve`` understands (the tracking store is the config's):
+References ``resolve`` understands (the MLflow store is the config's):
 
 * a run id (32 hex digits), or ``runs:/<run_id>/model``;
 * ``models:/<name>/<version>``, ``models:/<name>/latest``, ``models:/<name>@<alias>`` (Model Registry);
 * ``models:/<model_id>`` (an MLflow 3 logged model, ``m-...``);
 * a local folder holding an ``MLmodel`` file (a downloaded model).
 
-A run without a model (``tracking.model_artifact: none``, an unfinished run,
+A run without a model (``runs.model_artifact: none``, an unfinished run,
 or one logged before MLflow Models, with a bare ``model/model.pt``) is one
 ``BronchoError`` line naming the run and why.
 """
@@ -67,7 +67,7 @@ def _run_model(client, run_id: str, reference: str) -> ModelRef:
     why = ("it logged only bare weights (model/model.pt, before runs logged MLflow Models): retrain it"
            if f"{MODEL_NAME}/model.pt" in names else
            f"its status is {run.info.status}" if run.info.status != "FINISHED" else
-           "tracking.model_artifact was none when it ran")
+           "runs.model_artifact was none when it ran")
     raise BronchoError(f"run {run_id} has no MLflow model ({why})")
 
 

@@ -29,7 +29,7 @@ import pandas as pd
 from PIL import Image
 
 from .. import extras
-from ..data.layout import DATASET_JSON
+from ..data.naming import DATASET_JSON
 from ..data.reader import DISK_POSE_COLUMNS, POSE_COLUMNS, open_dataset_dir
 from ..errors import DataError
 

@@ -9,8 +9,8 @@ tables (skill, learning curve). See docs/reports.md.
 """
 
 from .collect import RunIndex, RunRecord, collect_runs, index_runs
-from .layout import Estimate, Table
 from .report import ReportResult, collect_index, make_report
+from .table_model import Estimate, Table
 from .tables import TABLES, ReportContext
 
 __all__ = ["RunIndex", "RunRecord", "collect_runs", "index_runs", "Estimate", "Table", "ReportResult",

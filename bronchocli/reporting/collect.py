@@ -30,9 +30,9 @@ from typing import TYPE_CHECKING, Iterable, Iterator, Mapping, Sequence
 from urllib.parse import urlparse
 from urllib.request import url2pathname
 
-from .. import tracking
 from ..cells import FIELDS
 from ..errors import BronchoError
+from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, search_runs
 from .scope import PlanView, fetch_selections
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ class RunRecord:
 
     @property
     def key(self) -> str:
-        return self.tag(tracking.TAG_CELL_KEY)
+        return self.tag(TAG_CELL_KEY)
 
     @property
     def identity(self) -> Identity:
@@ -180,7 +180,7 @@ def _gc_paused() -> Iterator[None]:
 def fetch_runs(client, experiment_ids: Sequence[str], sweep: str) -> list[RunRecord]:
     """Every cell run of ``sweep`` (all statuses, newest first): one paginated MLflow query."""
     with _gc_paused():
-        runs = tracking.search_runs(client, experiment_ids, {tracking.TAG_SWEEP: sweep, tracking.TAG_KIND: "cell"})
+        runs = search_runs(client, experiment_ids, {TAG_SWEEP: sweep, TAG_KIND: "cell"})
         return [RunRecord.from_run(r) for r in runs]
 
 
@@ -283,8 +283,8 @@ def collect_runs(client, experiment_name: str, sweep: str, pose_frame: str | Non
     """
     exp = client.get_experiment_by_name(experiment_name)
     if exp is None:
-        raise BronchoError(f"MLflow experiment {experiment_name!r} not found in the tracking store; "
-                           f"run `bronchopose sweep` (or train) first, or pass --config/--set tracking.experiment=...")
+        raise BronchoError(f"MLflow experiment {experiment_name!r} not found in the MLflow store; "
+                           f"run `bronchopose sweep` (or train) first, or pass --config/--set runs.experiment=...")
     records = fetch_runs(client, [exp.experiment_id], sweep)
     if not records:
         raise BronchoError(f"no runs of sweep {sweep!r} (tag sweep={sweep}, run_kind=cell) in experiment "

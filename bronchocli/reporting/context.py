@@ -15,11 +15,11 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from .. import tracking
+from ..runs.records import TAG_INIT
 from .aggregate import NOUN, Frames
 from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key, stop_reasons
 from .judge import Line, Settings
-from .layout import Row, Table, missing_cells
+from .table_model import Row, Table, missing_cells
 
 ARCH_GROUPS = {"baseline": "Baseline", "lstm": "+LSTM", "conv3d": "+3D", "convlstm": "+ConvRNN"}
 ARCH_NAMES = {**ARCH_GROUPS, "offsetnet": "OffsetNet"}
@@ -209,7 +209,7 @@ def init_text(runs: Sequence[RunRecord]) -> str:
     """How the runs' backbones were initialised (their ``init`` tag): random, ImageNet or a file."""
     if not runs:
         return ""
-    seen = Counter(r.tag(tracking.TAG_INIT) for r in runs)
+    seen = Counter(r.tag(TAG_INIT) for r in runs)
     parts = []
     for init, n in sorted(seen.items()):
         if init == "random":

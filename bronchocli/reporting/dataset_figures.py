@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from ..data.cache import decode_frame
-from ..data.layout import DATASET_JSON
+from ..data.naming import DATASET_JSON
 from ..data.reader import open_dataset_dir
 from ..errors import DataError
 from ..io import read_polydata, save_figure

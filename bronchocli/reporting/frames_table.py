@@ -17,8 +17,8 @@ from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
 from .context import ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish, init_text
 from .judge import better_reference, metric_rows
-from .layout import Column, Estimate, Row, Table, Value
 from .stats import derived, holm
+from .table_model import Column, Estimate, Row, Table, Value
 
 FRAMES = ("world", "camera")
 FRAME_METRICS = {"pos_l2": "Position", "rot_l2": "Rotation"}

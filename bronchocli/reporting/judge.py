@@ -32,7 +32,7 @@ import numpy as np
 from . import stats
 from .aggregate import REFERENCES, Frames, logged_mean, model_sample, reference_sample, replicates
 from .collect import RunRecord
-from .layout import Estimate, Row, Value
+from .table_model import Estimate, Row, Value
 
 IGNORES_RATIO = 0.05
 REFERENCE_GROUP = "Image-blind"

@@ -11,8 +11,8 @@ file as comments.
 
 from __future__ import annotations
 
-from .layout import MISSING, Table, cell_texts, marks
 from .markdown import label_cells, legend_parts, run_lines
+from .table_model import MISSING, Table, cell_texts, marks
 
 _SPECIAL = {
     "\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",

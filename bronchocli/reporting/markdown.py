@@ -12,8 +12,8 @@ from __future__ import annotations
 from rich.table import Table as RichTable
 from rich.text import Text
 
-from .layout import IGNORES, MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
 from .stats import ALPHA
+from .table_model import IGNORES, MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
 
 
 def _md_escape(text: str) -> str:

@@ -17,19 +17,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from .. import tracking, urls
+from .. import urls
 from ..config import Config
 from ..errors import BronchoError, DataError
 from ..io import TEMP_SUFFIX, save_figure, write_text
+from ..runs.client import client_for, redacted_uri
 from . import dataset_figures as dataset_figs
 from .collect import RunIndex, collect_runs
 from .context import NoData, Profiler
 from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
-from .layout import Table
 from .markdown import to_markdown
 from .scope import config_plan
 from .skill_figures import learning_curve, skill_figures
+from .table_model import Table
 from .tables import ONCE, TABLES, ReportContext
 
 OUTPUT_FORMATS = {"md": ("md",), "latex": ("tex",), "both": ("md", "tex")}
@@ -165,11 +166,11 @@ def summary_index(index: RunIndex) -> str:
 
 def open_store(cfg: Config):
     """The config's MLflow client; a missing SQLite store is an error here (a report must not create one)."""
-    db = urls.sqlite_file(cfg.paths.tracking_uri)
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
     if db is not None and not db.is_file():
-        raise BronchoError(f"tracking.uri {tracking.redacted_uri(cfg)}: no MLflow store there yet; "
+        raise BronchoError(f"runs.uri {redacted_uri(cfg)}: no MLflow store there yet; "
                            f"run `bronchopose sweep` or `bronchopose train` first")
-    return tracking.client_for(cfg, reading=True)
+    return client_for(cfg, reading=True)
 
 
 def profiles_from_json(path: Path) -> Profiler:

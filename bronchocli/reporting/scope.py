@@ -19,9 +19,9 @@ import json
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
-from .. import tracking
 from ..cells import FIELDS, Cell
 from ..config import Config
+from ..runs.records import TAG_KIND, TAG_SWEEP, search_runs
 from ..sweep.plan import TAG_PLAN, TAG_STAGE, plan_key, plan_stages
 
 Identity = tuple[str, ...]
@@ -78,11 +78,11 @@ def selection_of(run) -> dict[str, Any] | None:
 
 def fetch_selections(client, experiment_ids: list[str], sweep: str, key: str | None) -> dict[str, dict[str, Any]]:
     """The latest recorded selection per stage of ``sweep`` (restricted to plan ``key`` when given): one query."""
-    tags = {tracking.TAG_SWEEP: sweep, tracking.TAG_KIND: "selection"}
+    tags = {TAG_SWEEP: sweep, TAG_KIND: "selection"}
     if key is not None:
         tags[TAG_PLAN] = key
     out: dict[str, dict[str, Any]] = {}
-    for run in tracking.search_runs(client, experiment_ids, tags, ["FINISHED"]):  # newest first
+    for run in search_runs(client, experiment_ids, tags, ["FINISHED"]):  # newest first
         sel = selection_of(run)
         if sel is not None and sel["stage"] and sel["stage"] not in out:
             out[sel["stage"]] = sel

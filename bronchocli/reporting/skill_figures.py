@@ -25,7 +25,7 @@ from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
 from .context import ARCH_NAMES, LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext
 from .judge import metric_rows
-from .layout import Estimate, Table
+from .table_model import Estimate, Table
 
 FORMATS = ("png", "pdf")
 CURVE_EVAL = "pair"

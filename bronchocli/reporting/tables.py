@@ -56,7 +56,7 @@ from .context import (
 )
 from .frames_table import frames
 from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
-from .layout import Column, Row, Table, Value
+from .table_model import Column, Row, Table, Value
 
 MODEL_NAMES = {"baseline": "Baseline", "lstm": "LSTM", "conv3d": "3D conv", "convlstm": "ConvLSTM",
                "offsetnet": "OffsetNet"}

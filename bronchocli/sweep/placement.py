@@ -23,7 +23,7 @@ import subprocess
 from collections.abc import Sequence
 
 from ..errors import BronchoError
-from ..runlayout import GPU_SHARE_ENV
+from ..runs.contract import GPU_SHARE_ENV
 
 ENV = "CUDA_VISIBLE_DEVICES"
 SHARE_ENV = GPU_SHARE_ENV  # worker processes sharing this worker's GPU (itself included)

@@ -29,12 +29,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .. import runview, tracking
 from ..cells import Cell, Selection, select
 from ..config import Config, Stage, expand_grid, run_signature
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
+from ..runs.client import client_for, experiment_id
+from ..runs.parents import sweep_parent
+from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_PARENT, TAG_SWEEP, log_params, search_runs
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
 TAG_STAGE = "stage"
@@ -116,14 +118,14 @@ def plan_cells(cfg: Config, only: Selection | None = None, store: SweepStore | N
 
 def _finished_runs(cfg: Config, cells: Sequence[Cell]) -> dict[str, Any]:
     """The latest FINISHED MLflow run of each cell key (missing keys: no FINISHED run)."""
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     keys = {c.key for c in cells}
-    runs = tracking.search_runs(client, [exp], {tracking.TAG_SWEEP: cfg.name, tracking.TAG_KIND: "cell"},
+    runs = search_runs(client, [exp], {TAG_SWEEP: cfg.name, TAG_KIND: "cell"},
                                 ["FINISHED"])
     out: dict[str, Any] = {}
     for r in runs:  # newest first
-        k = r.data.tags.get(tracking.TAG_CELL_KEY)
+        k = r.data.tags.get(TAG_CELL_KEY)
         if k in keys and k not in out:
             out[k] = r
     return out
@@ -158,14 +160,14 @@ def compute_selection(cfg: Config, stage: Stage, source_cells: Sequence[Cell]) -
 
 def _log_selection(cfg: Config, selection: dict[str, Any], key: str) -> None:
     """The selection as an MLflow run (``run_kind=selection``), so it can be reviewed beside the cells."""
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     run = client.create_run(exp, tags={
-        tracking.TAG_SWEEP: cfg.name, tracking.TAG_KIND: "selection", TAG_STAGE: selection["stage"], TAG_PLAN: key,
-        "mlflow.runName": f"selection-{selection['stage']}", tracking.TAG_PARENT: runview.sweep_parent(client, cfg, exp),
+        TAG_SWEEP: cfg.name, TAG_KIND: "selection", TAG_STAGE: selection["stage"], TAG_PLAN: key,
+        "mlflow.runName": f"selection-{selection['stage']}", TAG_PARENT: sweep_parent(client, cfg, exp),
     })
     run_id = run.info.run_id
-    tracking.log_params(client, run_id, {"by": selection["by"], "top": str(selection["top"]),
+    log_params(client, run_id, {"by": selection["by"], "top": str(selection["top"]),
                                           "source": selection["source"], "over": ",".join(selection["over"]),
                                           "selected": json.dumps(selection["selected"])})
     with tempfile.TemporaryDirectory() as tmp:
@@ -230,7 +232,7 @@ def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sw
             dataset: bool = True, retry_failed: bool = False) -> Plan:
     """Create the shared state once (MLflow store + experiment, dataset, claims tables) and the rows of every
     cell known so far; returns them with their state."""
-    tracking.experiment_id(tracking.client_for(cfg), cfg)  # MLflow's first migration happens here, once
+    experiment_id(client_for(cfg), cfg)  # MLflow's first migration happens here, once
     if dataset:
         ensure_dataset(cfg)  # before expanding: cross-subject folds come from the dataset's patients
     store.ensure_schema()

@@ -32,7 +32,7 @@ from rich.live import Live
 from .. import urls
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import cpu_threads
+from ..runs.contract import cpu_threads
 from .placement import assign, share_counts
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line

@@ -43,6 +43,7 @@ from ..cells import Selection
 from ..config import Config
 from ..errors import BronchoError
 from ..io import atomic_path
+from ..retry import retry
 from . import plan as planning
 from .pool import cells_left, worker_config
 from .staged import work_stages
@@ -109,11 +110,11 @@ def _check_shared(cfg: Config) -> None:
     if _local_store(cfg.paths.storage_url):
         raise SlurmError(f"storage.url {urls.redact(cfg.paths.storage_url)}: a SQLite claims table cannot be shared "
                          f"by compute nodes; use postgresql://user:${{PGPASSWORD}}@host/db, {hint}")
-    if _local_store(cfg.paths.tracking_uri):
-        raise SlurmError(f"tracking.uri {urls.redact(cfg.paths.tracking_uri)}: a file/SQLite MLflow store cannot be "
+    if _local_store(cfg.paths.mlflow_uri):
+        raise SlurmError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)}: a file/SQLite MLflow store cannot be "
                          f"shared by compute nodes; use a PostgreSQL database or an MLflow server, {hint}")
-    for key, path in (("dataset.root", cfg.paths.dataset), ("tracking.artifacts", cfg.paths.artifacts),
-                      ("tracking.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg))):
+    for key, path in (("dataset.root", cfg.paths.dataset), ("runs.artifacts", cfg.paths.artifacts),
+                      ("runs.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg))):
         if _node_local(path):
             raise SlurmError(f"{key} {path}: a node-local folder; compute nodes need it on shared storage, {hint}")
 
@@ -309,7 +310,7 @@ def launch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str],
     (unless ``detach``) watch the table until the sweep's jobs are gone."""
     check(cfg)
     console.print(f"[bold]sweep[/] {cfg.name} on Slurm  storage {store.redacted}  MLflow "
-                  f"{urls.redact(cfg.paths.tracking_uri)}  logs {logs_dir(cfg)}/<job>_<task>.log")
+                  f"{urls.redact(cfg.paths.mlflow_uri)}  logs {logs_dir(cfg)}/<job>_<task>.log")
     planning.prepare(cfg, store, only, retry_failed=retry_failed)
     jobs = submit_missing(cfg, store, only, argv, console)
     if not jobs:
@@ -409,16 +410,17 @@ def worker_main(cfg: Config, store: SweepStore, only: Selection) -> int:
 def requeue(task: str, tries: int = 3) -> bool:
     """``scontrol requeue`` this task (slurmctld then kills it and queues it again after ``cred_expire``); a
     refusal is logged (and retried): the cell is already released, so the sweep goes on either way."""
-    for attempt in range(1, tries + 1):
-        try:
-            out = subprocess.run(["scontrol", "requeue", task], capture_output=True, text=True, timeout=60)
-            if out.returncode == 0:
-                return True
+    def once() -> None:
+        out = subprocess.run(["scontrol", "requeue", task], capture_output=True, text=True, timeout=60)
+        if out.returncode != 0:
             why = (out.stderr.strip() or out.stdout.strip() or f"exit code {out.returncode}").splitlines()[-1]
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            why = str(exc)
-        log.warning("scontrol requeue %s failed (try %d/%d): %s", task, attempt, tries, why)
-        time.sleep(2.0 * attempt)
-    log.error("Slurm task %s was not requeued; its released cell waits for the next task "
-              "(`bronchopose sweep --launcher slurm` submits one)", task)
-    return False
+            raise SlurmError(why)
+
+    try:
+        retry(once, transient=lambda e: isinstance(e, (SlurmError, OSError, subprocess.TimeoutExpired)),
+              what=f"scontrol requeue {task}", attempts=tries, first_delay_s=2.0, max_delay_s=6.0)
+        return True
+    except (SlurmError, OSError, subprocess.TimeoutExpired) as exc:
+        log.error("Slurm task %s was not requeued (%s); its released cell waits for the next task "
+                  "(`bronchopose sweep --launcher slurm` submits one)", task, exc)
+        return False

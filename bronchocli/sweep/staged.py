@@ -14,9 +14,11 @@ from collections.abc import Sequence
 
 from rich.console import Console
 
-from .. import runview, tracking, urls
+from .. import urls
 from ..cells import Selection
 from ..config import Config
+from ..runs.client import client_for, experiment_id
+from ..runs.parents import set_parent_status, sweep_parent
 from . import plan as planning
 from .pool import EXIT_INTERRUPTED, cells_left, run_pool
 from .status import failures, plan_table, progress, summary_line
@@ -67,13 +69,13 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
 
     The sweep's parent MLflow run (its cells nest under it) is RUNNING while this runs and ends like it.
     """
-    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.tracking_uri)}"
+    console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.mlflow_uri)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
                                                            if cfg.tune.applied else "")
                   + (f"  GPUs {','.join(gpus)} ({workers} workers)" if gpus else ""))
     planning.prepare(cfg, store, only, retry_failed=retry_failed)
-    client = tracking.client_for(cfg)
-    parent = runview.sweep_parent(client, cfg, tracking.experiment_id(client, cfg))
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
     client.update_run(parent, "RUNNING")
     code = 1
     try:
@@ -83,7 +85,7 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
         code = EXIT_INTERRUPTED
         raise
     finally:
-        runview.set_parent_status(client, parent, code)
+        set_parent_status(client, parent, code)
 
 
 def _run_stages(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,

@@ -20,10 +20,11 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from .. import cells, tracking
+from .. import cells
 from ..config import Config
 from ..errors import BronchoError
-from .checkpoints import Checkpoint, inventory
+from ..runs.client import client_for
+from .housekeeping import Checkpoint, inventory
 from .plan import Plan, describe_selection, plan_cells, plan_stages, read_plan, source_of
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
@@ -124,7 +125,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
     """Headline metrics and timing of each MLflow run (missing runs are skipped)."""
     if not run_ids:
         return {}
-    client = tracking.client_for(cfg, reading=True)
+    client = client_for(cfg, reading=True)
     out: dict[str, dict[str, Any]] = {}
     for run_id in run_ids:
         try:
@@ -240,7 +241,7 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
 
 
 def given_back(plan: Plan) -> list[tuple[str, str]]:
-    """Pending cells that carry a reason: released by a worker (e.g. the tracking database was busy)."""
+    """Pending cells that carry a reason: released by a worker (e.g. the MLflow database was busy)."""
     return [(c.label, plan.rows[c.key].failure_reason) for c in plan.cells
             if c.key in plan.rows and plan.rows[c.key].state == PENDING and plan.rows[c.key].failure_reason]
 

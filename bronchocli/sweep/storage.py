@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import math
-import time
 import uuid
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -49,6 +48,7 @@ from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, Program
 from .. import extras, urls
 from ..cells import Cell
 from ..errors import BronchoError
+from ..retry import retry
 
 TABLE = "bronchopose_sweep_cells"
 SELECTIONS = "bronchopose_sweep_selections"
@@ -136,8 +136,8 @@ class SweepStore:
     """The claims table of one storage URL (one engine per process)."""
 
     def __init__(self, url: str, timeout_s: float = 10.0, busy_timeout_s: float = SQLITE_BUSY_MS / 1000):
-        """``timeout_s``: connecting to a database server gives up after this long (tracking.timeout_s);
-        ``busy_timeout_s``: how long a locked SQLite database is waited for (tracking.busy_timeout_s)."""
+        """``timeout_s``: connecting to a database server gives up after this long (runs.timeout_s);
+        ``busy_timeout_s``: how long a locked SQLite database is waited for (runs.busy_timeout_s)."""
         self.url = urls.sqlalchemy(url)
         self.redacted = urls.redact(self.url)
         if self.url.startswith("sqlite") and (":memory:" in self.url or self.url.rstrip("/").endswith(":")):
@@ -190,16 +190,15 @@ class SweepStore:
         db = urls.sqlite_file(self.url)
         if db is not None:
             db.parent.mkdir(parents=True, exist_ok=True)
-        for attempt in range(5):
+        def create() -> None:
             try:
                 metadata.create_all(self.engine, checkfirst=True)
-                return
-            except SQLAlchemyError as exc:
-                if self.exists():
-                    return
-                if attempt == 4:
-                    raise StorageError(self._problem(exc)) from None
-                time.sleep(0.2 * (attempt + 1))
+            except SQLAlchemyError:
+                if not self.exists():  # else another machine created it at the same moment: done
+                    raise
+
+        retry(create, transient=lambda e: isinstance(e, SQLAlchemyError), what="creating the claims table",
+              attempts=5, first_delay_s=0.2, quiet=True, give_up=lambda e: StorageError(self._problem(e)))
 
     def db_now(self) -> float:
         with self._tx() as conn:

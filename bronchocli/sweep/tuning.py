@@ -28,12 +28,15 @@ from sqlalchemy import create_engine, inspect, make_url, text
 from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
-from .. import extras, runview, tracking, urls
+from .. import extras, urls
 from ..cells import Cell
 from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
-from ..runlayout import RunPruned, cpu_threads
+from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
+from ..runs.contract import RunPruned, cpu_threads
+from ..runs.parents import set_parent_status, study_parent
+from ..runs.records import TAG_PARENT, log_metrics
 from .storage import StorageError
 
 log = logging.getLogger(__name__)
@@ -43,7 +46,7 @@ class TrialFailed(BronchoError):
     """A trial's run FAILED (e.g. a non-finite loss); the study records it and goes on."""
 
 
-OPTUNA_LOCK_KEY = tracking.MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation
+OPTUNA_LOCK_KEY = MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation
 ATTR_RUN = "mlflow_run_id"
 ATTR_CELL = "cell"
 
@@ -80,7 +83,7 @@ def _same_database(a: str, b: str) -> bool:
 
 
 def _holds_mlflow(url: str, timeout_s: float) -> bool:
-    """True when the database already holds MLflow's tables (and not Optuna's): another spelling of tracking.uri."""
+    """True when the database already holds MLflow's tables (and not Optuna's): another spelling of runs.uri."""
     db = urls.sqlite_file(url)
     if db is not None and not db.is_file():
         return False
@@ -108,8 +111,8 @@ def optuna_url(cfg: Config, probe: bool = True) -> str:
     database spelled differently, e.g. ``localhost`` and ``127.0.0.1``).
     """
     url = cfg.paths.storage_url
-    if not _same_database(url, cfg.paths.tracking_uri) and not (
-            probe and _holds_mlflow(urls.sqlalchemy(url), cfg.tracking.timeout_s)):
+    if not _same_database(url, cfg.paths.mlflow_uri) and not (
+            probe and _holds_mlflow(urls.sqlalchemy(url), cfg.runs.timeout_s)):
         return url
     db = urls.sqlite_file(url)
     if db is not None:
@@ -126,8 +129,8 @@ def optuna_url(cfg: Config, probe: bool = True) -> str:
 def _connect_kwargs(url: str, timeout_s: float) -> dict[str, Any]:
     if url.startswith("sqlite"):
         return {"connect_args": {"timeout": 60}}
-    if urls.is_postgres(url):  # an unreachable server fails within tracking.timeout_s
-        return {"connect_args": {"connect_timeout": tracking.connect_timeout(timeout_s)}}
+    if urls.is_postgres(url):  # an unreachable server fails within runs.timeout_s
+        return {"connect_args": {"connect_timeout": connect_timeout(timeout_s)}}
     return {}
 
 
@@ -149,7 +152,7 @@ def storage_for(cfg: Config):
     """Optuna RDB storage (``optuna_url``) with heartbeats for dead trials; StorageError (one line) if unreachable."""
     # a database server is looked into only once it answered (below): an unreachable one costs one timeout
     url = urls.sqlalchemy(optuna_url(cfg, probe=urls.sqlite_file(cfg.paths.storage_url) is not None))
-    kwargs = _connect_kwargs(url, cfg.tracking.timeout_s)
+    kwargs = _connect_kwargs(url, cfg.runs.timeout_s)
     beat = max(1, int(cfg.sweep.heartbeat_s))
     make = partial(optuna.storages.RDBStorage, engine_kwargs=kwargs, heartbeat_interval=beat,
                    grace_period=max(beat * 2, int(cfg.sweep.stale_after_s)))
@@ -158,7 +161,7 @@ def storage_for(cfg: Config):
     try:
         db = urls.sqlite_file(url)
         if urls.is_postgres(url):  # table creation must not race between machines either
-            with tracking.database_lock(url, cfg.tracking.timeout_s, "storage.url", key=OPTUNA_LOCK_KEY):
+            with database_lock(url, cfg.runs.timeout_s, "storage.url", key=OPTUNA_LOCK_KEY):
                 url = urls.sqlalchemy(optuna_url(cfg))
                 if url != urls.sqlalchemy(cfg.paths.storage_url):
                     _create_schema(url)
@@ -230,11 +233,11 @@ def _running(study) -> int:
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)))
 
 
-def study_parent(cfg: Config, target: Cell, name: str) -> str | None:
-    """The study's parent MLflow run (trials nest under it); None when the tracking store refused it."""
+def study_parent_or_none(cfg: Config, target: Cell, name: str) -> str | None:
+    """The study's parent MLflow run (trials nest under it); None when the MLflow store refused it."""
     try:
-        client = tracking.client_for(cfg)
-        return runview.study_parent(client, cfg, tracking.experiment_id(client, cfg), name, target)
+        client = client_for(cfg)
+        return study_parent(client, cfg, experiment_id(client, cfg), name, target)
     except Exception as exc:  # noqa: BLE001 - nesting is cosmetic: trials must run without it
         log.warning("no parent run for study %s: %s", name, exc)
         return None
@@ -244,7 +247,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
     """The function Optuna calls per trial: train one configured run, return its best validation loss."""
     from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
-    parent = study_parent(cfg, target, name)
+    parent = study_parent_or_none(cfg, target, name)
 
     def run(trial) -> float:
         values = suggest(trial, cfg.tune.space)
@@ -261,7 +264,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
                 "hparams_source": f"optuna:{name}#{trial.number}"}
         if parent is not None:
-            tags[tracking.TAG_PARENT] = parent
+            tags[TAG_PARENT] = parent
         try:
             result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_validation=on_validation,
                               run_id_callback=lambda rid: trial.set_user_attr(ATTR_RUN, rid))
@@ -317,7 +320,7 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
-    study_parent(cfg, target, s.study_name)  # created here once, found by the workers
+    study_parent_or_none(cfg, target, s.study_name)  # created here once, found by the workers
     if workers <= 1:
         tune_worker(cfg, target, trials, study=study, timeout=timeout, progress=progress, enqueue=enqueue)
         _close_parent(cfg, target, s)
@@ -338,20 +341,20 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
 
 def _close_parent(cfg: Config, target: Cell, s) -> None:
     """The best trial so far on the study's parent run, which ends FINISHED (best effort)."""
-    parent = study_parent(cfg, target, s.study_name)
+    parent = study_parent_or_none(cfg, target, s.study_name)
     if parent is None:
         return
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     try:
         best = s.best_trial
-        tracking.log_metrics(client, parent, {"best_val_loss": best.value, "trials.finished": finished(s)},
+        log_metrics(client, parent, {"best_val_loss": best.value, "trials.finished": finished(s)},
                              step=best.number)
         for key, value in (("best_trial", str(best.number)), ("best_run", best.user_attrs.get(ATTR_RUN))):
             if value:
                 client.set_tag(parent, key, value)
     except ValueError:  # no completed trial yet
         pass
-    runview.set_parent_status(client, parent, 0)
+    set_parent_status(client, parent, 0)
 
 
 def load(cfg: Config, name: str):

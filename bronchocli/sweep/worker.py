@@ -32,12 +32,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import RunInterrupted, checkpoint_dir, failure_reason, resume_file
-from .checkpoints import RESUMABLE_FAILURES
+from ..retry import retry
+from ..runs.client import MlflowBusy, client_for, experiment_id
+from ..runs.contract import RunInterrupted, checkpoint_dir, failure_reason, resume_file
+from ..runs.parents import sweep_parent
+from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
+from .housekeeping import RESUMABLE_FAILURES
 from .placement import pin_env
 from .storage import CellRow, Claim, StorageError, SweepStore
 
@@ -191,15 +194,15 @@ class Worker:
     @property
     def client(self):
         if self._client is None:
-            self._client = tracking.client_for(self.cfg)
+            self._client = client_for(self.cfg)
         return self._client
 
     def parent_run(self) -> str | None:
-        """The sweep's parent run (found or created once per worker); None if the tracking store refused."""
+        """The sweep's parent run (found or created once per worker); None if the MLflow store refused."""
         if self._parent is None:
             try:
-                exp = tracking.experiment_id(self.client, self.cfg)
-                self._parent = runview.sweep_parent(self.client, self.cfg, exp, self.sweep)
+                exp = experiment_id(self.client, self.cfg)
+                self._parent = sweep_parent(self.client, self.cfg, exp, self.sweep)
             except Exception as exc:  # noqa: BLE001 - nesting is cosmetic: a cell must run without it
                 log.warning("no parent run for sweep %s: %s", self.sweep, exc)
                 return None
@@ -207,16 +210,9 @@ class Worker:
 
     def _db(self, fn: Callable[..., Any], *args: Any, **kw: Any) -> Any:
         """A storage call, retried through short outages (up to sweep.stale_after_s, while our claim holds)."""
-        delay, deadline = 0.2, time.monotonic() + self.cfg.sweep.stale_after_s
-        while True:
-            try:
-                return fn(*args, **kw)
-            except StorageError as exc:
-                if time.monotonic() > deadline:
-                    raise
-                log.warning("storage unavailable, retrying: %s", exc)
-                time.sleep(delay)
-                delay = min(2 * delay, 5.0)
+        return retry(lambda: fn(*args, **kw), transient=lambda e: isinstance(e, StorageError),
+                     what="claims storage unavailable", bound_s=self.cfg.sweep.stale_after_s, first_delay_s=0.2,
+                     max_delay_s=5.0)
 
     # -- the loop ----------------------------------------------------------------
     def run(self) -> int:
@@ -268,7 +264,7 @@ class Worker:
 
         tags = {TAG_CLAIM: claim.token, TAG_WORKER: self.ident, TAG_ATTEMPT: str(claim.row.attempts)}
         if self._parent is not None:
-            tags[tracking.TAG_PARENT] = self._parent
+            tags[TAG_PARENT] = self._parent
         hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
         resume = self._resumable(claim.released_run, cell)
         kw = {"resume": resume} if resume else {}
@@ -312,7 +308,7 @@ class Worker:
             self._db(self.store.release, claim.token)
             log.info("interrupted %s: released (%s)", cell.label, failure_reason(error))
             return "stop"
-        if isinstance(error, tracking.TrackingBusy):  # the database, not the cell: back without using an attempt
+        if isinstance(error, MlflowBusy):  # the database, not the cell: back without using an attempt
             return self._release_busy(claim, cell, failure_reason(error), run_id)
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
@@ -340,11 +336,11 @@ class Worker:
         return "failed"
 
     def _release_busy(self, claim: Claim, cell: Cell, reason: str, run_id: str | None) -> str:
-        """A run failed by a busy tracking database: the cell goes back (attempt not counted) with the reason."""
+        """A run failed by a busy MLflow database: the cell goes back (attempt not counted) with the reason."""
         self._terminate(run_id, "FAILED", reason, ("RUNNING",))
         self._db(self.store.release, claim.token, reason)
         self.stats.failed += 1
-        log.warning("released %s (tracking database busy; attempt not counted): %s", cell.label, reason)
+        log.warning("released %s (MLflow database busy; attempt not counted): %s", cell.label, reason)
         self.signals.wait(self.cfg.sweep.poll_s)  # give the database a moment before claiming again
         return "released"
 
@@ -367,7 +363,7 @@ class Worker:
             return None
         try:
             run = self.client.get_run(run_id)
-            if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
+            if run.data.tags.get(TAG_CELL_KEY) != cell.key:
                 return None
             if run.info.status == "RUNNING":  # its cell was released, so no worker runs it any more
                 self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; resumed by "
@@ -375,7 +371,7 @@ class Worker:
                 return run_id
         except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
             return None
-        reason = run.data.tags.get(tracking.TAG_FAILURE, "")
+        reason = run.data.tags.get(TAG_FAILURE, "")
         ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and reason.startswith(RESUMABLE_FAILURES))
         return run_id if ok else None
 
@@ -386,17 +382,17 @@ class Worker:
         try:
             run = self.client.get_run(run_id)
             if run.info.status in only:
-                self.client.set_tag(run_id, tracking.TAG_FAILURE, reason)
+                self.client.set_tag(run_id, TAG_FAILURE, reason)
                 self.client.set_terminated(run_id, status)
-        except Exception as exc:  # noqa: BLE001 - the tracking store is best effort here; logged
+        except Exception as exc:  # noqa: BLE001 - the MLflow store is best effort here; logged
             log.warning("could not mark run %s %s: %s", run_id, status, exc)
 
     def _settle_orphans(self, previous: CellRow) -> None:
         """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell."""
         run_ids = {previous.run_id} if previous.run_id else set()
         try:
-            exp = tracking.experiment_id(self.client, self.cfg)
-            found = tracking.search_runs(self.client, [exp], {TAG_CLAIM: previous.token or "-"})
+            exp = experiment_id(self.client, self.cfg)
+            found = search_runs(self.client, [exp], {TAG_CLAIM: previous.token or "-"})
             run_ids |= {r.info.run_id for r in found}
         except Exception as exc:  # noqa: BLE001
             log.warning("could not search the orphan runs of %s: %s", previous.label, exc)
@@ -460,7 +456,7 @@ def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
     signals.install()
     code = EXIT_INTERRUPTED
     try:
-        store = SweepStore(spec.storage_url, spec.cfg.tracking.timeout_s, spec.cfg.tracking.busy_timeout_s)
+        store = SweepStore(spec.storage_url, spec.cfg.runs.timeout_s, spec.cfg.runs.busy_timeout_s)
         code = Worker(spec.cfg, spec.cells, store, spec.runner, signals=signals, sweep=spec.sweep).run()
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED

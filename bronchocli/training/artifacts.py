@@ -1,7 +1,7 @@
 """What a run leaves in MLflow: params, config, split manifest, metrics, predictions, errors, figure, weights.
 
 * at the start: the dataset fingerprint tag, the comparable params
-  (``runview.run_params``: the cell's coordinates and the run settings that
+  (``run_params``: the cell's coordinates and the run settings that
   differ from the defaults), the dataset as an MLflow dataset input per split
   (train/val/test as context, digest = the fingerprint), ``env.torch`` and
   ``env.cuda`` tags, the run description, ``config.yaml`` (the full resolved
@@ -9,13 +9,13 @@
 * per validation: ``train_loss``, ``val_loss``, ``val.*``, ``lr``, ``pairs_seen``,
   ``epoch`` and ``best_val_loss`` at step = optimiser step;
 * at the end: the headline ratios and skills against both references
-  (``ratio.*``, ``skill.*``, see ``runview.headline``) and the headline errors
+  (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
   ``pred.std*``) and the budget (``train.steps``, ``train.pairs_seen``,
   ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
   per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
-  ``tracking.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
+  ``runs.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
   (``model_logging``: ``mlflow.pyfunc.load_model("runs:/<id>/model")``); the
   description gains the result.
 """
@@ -29,11 +29,12 @@ from pathlib import Path
 import torch
 from mlflow.entities import Dataset, DatasetInput, InputTag, RunTag
 
-from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
 from ..io import save_figure
 from ..plots import trajectory_figure
+from ..runs.records import TAG_FINGERPRINT, TAG_NOTE, log_metrics, log_params
+from ..runs.views import describe, ordered_metrics, run_params
 from .engine import Outcome
 from .evaluate import predictions_table
 from .model_logging import log_model
@@ -69,10 +70,10 @@ def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
 
 
 def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> None:
-    client.set_tag(run_id, tracking.TAG_FINGERPRINT, data.fingerprint)
-    tracking.log_params(client, run_id, runview.run_params(cfg, cell))
+    client.set_tag(run_id, TAG_FINGERPRINT, data.fingerprint)
+    log_params(client, run_id, run_params(cfg, cell))
     client.log_batch(run_id, tags=[RunTag(k, v) for k, v in {
-        **environment_tags(), tracking.TAG_NOTE: runview.describe(cell, dataset=cfg.paths.dataset.name)}.items()])
+        **environment_tags(), TAG_NOTE: describe(cell, dataset=cfg.paths.dataset.name)}.items()])
     client.log_inputs(run_id, datasets=dataset_inputs(cfg, data))
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)
@@ -85,14 +86,14 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> No
 def validation_logger(client, run_id: str):
     """A ``Trainer.on_validation`` callback logging the validation's values at step = optimiser step."""
     def log(step: int, values: dict[str, float]) -> None:
-        tracking.log_metrics(client, run_id, values, step=step)
+        log_metrics(client, run_id, values, step=step)
     return log
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
-    for batch in runview.ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
-        tracking.log_metrics(client, run_id, batch)
-    client.set_tag(run_id, tracking.TAG_NOTE, runview.describe(cell, outcome.metrics, cfg.paths.dataset.name))
+    for batch in ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
+        log_metrics(client, run_id, batch)
+    client.set_tag(run_id, TAG_NOTE, describe(cell, outcome.metrics, cfg.paths.dataset.name))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)
@@ -105,5 +106,5 @@ def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, out
                                 titles=[p.key for p in shown])
         for path in save_figure(fig, out / "trajectories"):
             _log_file(client, run_id, path)
-    if cfg.tracking.model_artifact != "none":
+    if cfg.runs.model_artifact != "none":
         log_model(client, run_id, cfg, cell, data, outcome)

@@ -1,6 +1,6 @@
 """Resumable training checkpoints: plain data only, loaded without running code, written only when they fit.
 
-A checkpoint (``runlayout.resume_file``: ``<tracking.checkpoints>/<run_id>/last.pt``)
+A checkpoint (``runlayout.resume_file``: ``<runs.checkpoints>/<run_id>/last.pt``)
 holds tensors, dicts, lists, tuples, strings, numbers, booleans and None: nothing
 else. It is read with ``torch.load(weights_only=True)``, whose unpickler refuses
 every other object, so a file planted on shared storage cannot run code in the
@@ -148,7 +148,7 @@ def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
     if free < need:
         raise CheckpointWriteError(
             f"{path}: not enough disk space for the {what}: needs {human(need)} free ({SPACE_FACTOR}x its size), "
-            f"{human(free)} available; free space there or point tracking.checkpoints elsewhere")
+            f"{human(free)} available; free space there or point runs.checkpoints elsewhere")
 
 
 def check_space_for(path: Path, state: dict[str, Any]) -> int:
@@ -183,7 +183,7 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
         code = getattr(exc, "errno", None)
         why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else _first_line(exc)
         raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about {human(need)} "
-                                   "free there; free space or point tracking.checkpoints elsewhere") from None
+                                   "free there; free space or point runs.checkpoints elsewhere") from None
     return path
 
 

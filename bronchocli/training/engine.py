@@ -24,7 +24,8 @@ from ..config import Config
 from ..data.batches import FrameSource
 from ..errors import BronchoError
 from ..models import build_model
-from ..runlayout import cpu_threads, gpu_share, process_age_s
+from ..runs.contract import cpu_threads, gpu_share
+from ..runs.processes import process_age_s
 from . import evaluate
 from .loop import FitResult, Settings, Trainer
 from .network import PoseRegressor, round_to_export_
@@ -175,7 +176,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()
-    round_to_export_(net, cfg.tracking.model_artifact)  # test the weights the run ships (fp16: rounded)
+    round_to_export_(net, cfg.runs.model_artifact)  # test the weights the run ships (fp16: rounded)
     t0 = time.perf_counter()
     chunk = cfg.data.window if net.temporal else EVAL_CHUNK
     spacing = {p: data.dataset.spacing_mm(p) for p in data.dataset.patients}

@@ -44,7 +44,7 @@ from .. import metrics
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
-from ..runlayout import RESUME_FILE, RunInterrupted
+from ..runs.contract import RESUME_FILE, RunInterrupted
 from . import checkpoint
 from .network import PoseRegressor
 

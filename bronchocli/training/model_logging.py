@@ -9,7 +9,7 @@ both find it, and ``mlflow.register_model`` can register it):
   that module, so ``bronchocli`` must be installed where the model is loaded),
   a signature and an input example (two real test frames of the run);
 * ``data/bronchopose/weights.pt``: the network's state dict (fp16 or fp32, per
-  ``tracking.model_artifact``), loadable with ``torch.load(weights_only=True)``;
+  ``runs.model_artifact``), loadable with ``torch.load(weights_only=True)``;
 * ``data/bronchopose/spec.json``: what prediction needs besides the weights
   (architecture, input size, pose frame, units, chunk length, image
   normalisation, label standardisation, the training-mean relative pose).
@@ -66,7 +66,7 @@ def model_spec(cfg: Config, cell: Cell, data: RunData, outcome: Outcome, run_id:
         "chunk": int(cfg.data.window if net.temporal else EVAL_CHUNK),  # pairs per forward, as evaluation ran
         "pose_frame": cell.pose_frame, "units": {"position": "voxels", "rotation": "degrees (intrinsic XYZ Euler)"},
         "input": INPUT_LAYOUT, "output": OUTPUT_LAYOUT,
-        "precision": cfg.tracking.model_artifact,
+        "precision": cfg.runs.model_artifact,
         "image_mean": list(data.image_mean), "image_std": list(data.image_std),  # [0, 1] units, RGB
         "standardized": bool(net.standardized),
         "label_mean": [float(v) for v in net.label_mean.cpu()], "label_std": [float(v) for v in net.label_std.cpu()],
@@ -121,7 +121,7 @@ def _compact_json(path: Path) -> None:
 
 def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> str:
     """Log the run's MLflow Model (see the module doc); returns its logged-model id."""
-    precision = cfg.tracking.model_artifact
+    precision = cfg.runs.model_artifact
     spec = model_spec(cfg, cell, data, outcome, run_id)
     weights = export(outcome.network, cell, data.image_size, precision)
     exp_id = client.get_run(run_id).info.experiment_id

@@ -28,12 +28,12 @@ from typing import Any
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from .. import tracking
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
 from ..models import initialisation
-from ..runlayout import (
+from ..runs.client import MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
+from ..runs.contract import (
     REJECTED_SUFFIX,
     RunInterrupted,
     RunPruned,
@@ -43,6 +43,8 @@ from ..runlayout import (
     failure_reason,
     resume_file,
 )
+from ..runs.processes import process_alive, process_tags, repair_zombie
+from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
 from . import artifacts, checkpoint
 from .engine import device_for, env_tags, fit_and_evaluate
 from .prepare import prepare
@@ -77,7 +79,7 @@ def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
 
 
 def _find_resumable(client, exp_id: str, cell: Cell) -> str:
-    runs = tracking.search_runs(client, [exp_id], {tracking.TAG_CELL_KEY: cell.key}, ["KILLED", "FAILED", "RUNNING"])
+    runs = search_runs(client, [exp_id], {TAG_CELL_KEY: cell.key}, ["KILLED", "FAILED", "RUNNING"])
     if not runs:
         raise BronchoError(f"--resume: no KILLED/FAILED run of cell {cell.label} (key {cell.key}) to resume")
     return runs[0].info.run_id
@@ -87,20 +89,20 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
               extra_tags: dict[str, str]) -> tuple[str, dict[str, Any] | None]:
     """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, its saved state)."""
     if not resume:
-        for zombie in tracking.search_runs(client, [exp_id], {tracking.TAG_CELL_KEY: cell.key}, ["RUNNING"]):
-            if tracking.process_alive(zombie.data.tags) is False:  # this cell's earlier run, its process died
-                tracking.repair_zombie(client, zombie, "a new run of its cell")
-        run = client.create_run(exp_id, tags=tracking.cell_tags(cfg, cell, **extra_tags, **tracking.process_tags()))
+        for zombie in search_runs(client, [exp_id], {TAG_CELL_KEY: cell.key}, ["RUNNING"]):
+            if process_alive(zombie.data.tags) is False:  # this cell's earlier run, its process died
+                repair_zombie(client, zombie, "a new run of its cell")
+        run = client.create_run(exp_id, tags=cell_tags(cfg, cell, **extra_tags, **process_tags()))
         return run.info.run_id, None
     run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)
     try:
         run = client.get_run(run_id)
     except Exception:  # noqa: BLE001 - MLflow raises its own exception types for a missing run
-        raise BronchoError(f"--run-id {run_id}: no such MLflow run in {tracking.redacted_uri(cfg)}") from None
-    if run.data.tags.get(tracking.TAG_CELL_KEY) != cell.key:
+        raise BronchoError(f"--run-id {run_id}: no such MLflow run in {redacted_uri(cfg)}") from None
+    if run.data.tags.get(TAG_CELL_KEY) != cell.key:
         raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
-                           f"{run.data.tags.get(tracking.TAG_CELL_KEY)} != {cell.key})")
-    repaired = tracking.repair_zombie(client, run, "train --resume")
+                           f"{run.data.tags.get(TAG_CELL_KEY)} != {cell.key})")
+    repaired = repair_zombie(client, run, "train --resume")
     path = resume_file(cfg, run_id)
     if not path.is_file():
         raise BronchoError(f"--resume {run_id}: no checkpoint at {path} (it is kept on the machine that ran it)")
@@ -113,9 +115,9 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
         _end_run(client, run_id, "FAILED", failure_reason(exc))
         raise exc from None
     client.update_run(run_id, "RUNNING")
-    if repaired or tracking.TAG_FAILURE in run.data.tags:
-        client.delete_tag(run_id, tracking.TAG_FAILURE)  # a resumed run has no failure (and no empty tag)
-    for key, value in tracking.process_tags().items():
+    if repaired or TAG_FAILURE in run.data.tags:
+        client.delete_tag(run_id, TAG_FAILURE)  # a resumed run has no failure (and no empty tag)
+    for key, value in process_tags().items():
         client.set_tag(run_id, key, value)
     return run_id, state
 
@@ -159,13 +161,13 @@ def run_cell(
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
-    tracking.check_reachable(cfg)  # a dead server fails within tracking.timeout_s, before any work
+    check_reachable(cfg)  # a dead server fails within runs.timeout_s, before any work
     tags = dict(extra_tags or {})
     if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
-        tags[tracking.TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch])[cell.arch]
+        tags[TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch])[cell.arch]
     data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
-    client = tracking.client_for(cfg)
-    exp_id = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp_id = experiment_id(client, cfg)
     run_id, state = _open_run(client, exp_id, cfg, cell, resume, tags)
     for key, value in env_tags(cfg, device).items():  # on a resume too: the device may have changed
         client.set_tag(run_id, key, value)
@@ -219,9 +221,9 @@ def run_cell(
 
 
 # Failures of the machine, not of the run: the run ends FAILED, keeps its checkpoint, and a retry resumes it.
-KEEP_CHECKPOINT_ON = (checkpoint.WriteFailed, tracking.TrackingBusy)
+KEEP_CHECKPOINT_ON = (checkpoint.WriteFailed, MlflowBusy)
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
-RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, tracking.TrackingBusy)
+RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy)
 
 
 
@@ -232,7 +234,7 @@ def _end_run(client, run_id: str, status: str, reason: str) -> None:
     the sweep's takeover, ``status --repair``) finds its process gone and ends it (``runlayout.repair_zombie``).
     """
     try:
-        client.set_tag(run_id, tracking.TAG_FAILURE, reason)
+        client.set_tag(run_id, TAG_FAILURE, reason)
         client.set_terminated(run_id, status)
     except Exception as exc:  # noqa: BLE001 - logged; the caller reports the original failure
         log.warning("could not mark run %s %s (%s); it will be repaired when next touched", run_id, status,

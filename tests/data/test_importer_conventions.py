@@ -87,7 +87,7 @@ def poses_only_project(tmp_path, trajectories: bool) -> str:
     pd.DataFrame(rows).to_csv(tmp_path / "data" / "poses.csv", index=False)
     columns = {**POSES_ONLY, "patient": "patient", "trajectory": "trajectory" if trajectories else None}
     config = {"name": "poses", "dataset": {"root": "data", "format": "csv", "csv": {"columns": columns}},
-              "splits": {"train": 4, "val": 1, "test": 1}, "tracking": {"uri": "sqlite:///runs/mlflow.db"}}
+              "splits": {"train": 4, "val": 1, "test": 1}, "runs": {"uri": "sqlite:///runs/mlflow.db"}}
     (tmp_path / "experiments.yaml").write_text(yaml.safe_dump(config))
     return str(tmp_path / "experiments.yaml")
 

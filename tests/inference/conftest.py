@@ -10,8 +10,8 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import tracking
 from bronchocli.config import Config, load_config
+from bronchocli.runs.client import client_for
 from bronchocli.training.run import run_cell
 
 
@@ -39,7 +39,7 @@ def train_tiny(root: Path, arch: str = "baseline") -> TinyRun:
     cfg = load_config(root / "experiments.yaml")
     result = run_cell(cfg, cfg.cell(arch=arch, rot_loss="mse", population="personalized", seed=0), progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     dtypes = {"patient": str, "lobe": str, "trajectory": str}
     return TinyRun(root, cfg, result.run_id,
                    pd.read_csv(client.download_artifacts(result.run_id, "predictions.csv"), dtype=dtypes),

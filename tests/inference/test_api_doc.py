@@ -23,7 +23,7 @@ def example_block(repo) -> str:
 
 def test_the_documented_example_runs_against_a_tiny_run(repo, tiny_run, capsys):
     key = tiny_run.test_keys()[0]
-    namespace = {"RUN_ID": tiny_run.run_id, "TRACKING_URI": tiny_run.cfg.paths.tracking_uri,
+    namespace = {"RUN_ID": tiny_run.run_id, "TRACKING_URI": tiny_run.cfg.paths.mlflow_uri,
                  "TRAJECTORY": str(tiny_run.dataset.joinpath(*key.split("/")))}
     exec(compile(example_block(repo), DOC, "exec"), namespace)
     assert "per-pair position error" in capsys.readouterr().out
@@ -35,7 +35,7 @@ def test_the_documented_example_runs_against_a_tiny_run(repo, tiny_run, capsys):
 def test_api_predicts_the_logged_predictions_and_chains_like_geometry(tiny_run):
     key = tiny_run.test_keys()[1]
     path = tiny_run.dataset.joinpath(*key.split("/"))
-    model = api.load_model(tiny_run.run_id, tracking_uri=tiny_run.cfg.paths.tracking_uri)
+    model = api.load_model(tiny_run.run_id, mlflow_uri=tiny_run.cfg.paths.mlflow_uri)
     relative = api.predict(model, api.read_frames(path))
     patient, lobe, traj = key.split("/")
     p = tiny_run.predictions
@@ -49,7 +49,7 @@ def test_api_predicts_the_logged_predictions_and_chains_like_geometry(tiny_run):
 
 
 def test_api_resizes_frames_of_another_size_with_a_warning(tiny_run):
-    model = api.load_model(tiny_run.run_id, tracking_uri=tiny_run.cfg.paths.tracking_uri)
+    model = api.load_model(tiny_run.run_id, mlflow_uri=tiny_run.cfg.paths.mlflow_uri)
     frames = np.zeros((3, 40, 40, 3), np.uint8)
     with pytest.warns(FrameSizeWarning, match="40x40"):
         assert api.predict(model, frames).shape == (2, 6)

@@ -14,9 +14,9 @@ import pytest
 import torch
 from PIL import Image
 
-from bronchocli import tracking
 from bronchocli.inference.loading import resolve
 from bronchocli.inference.mlflow_model import FrameSizeWarning, ModelInputError
+from bronchocli.runs.client import client_for
 from bronchocli.training.evaluate import POSE_COLS
 
 TOL = dict(rtol=5e-3, atol=1e-2)  # fp16 tolerance: same weights, fp32 compute; thread count changes sums
@@ -38,7 +38,7 @@ def logged_relative(run, key: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def pyfunc(tiny_run):
-    mlflow.set_tracking_uri(tiny_run.cfg.paths.tracking_uri)
+    mlflow.set_tracking_uri(tiny_run.cfg.paths.mlflow_uri)
     try:
         yield mlflow.pyfunc.load_model(f"runs:/{tiny_run.run_id}/model")
     finally:
@@ -57,7 +57,7 @@ def test_a_temporal_model_predicts_in_the_chunks_evaluation_used(tiny_temporal_r
     """conv3d pads in time at each chunk's borders: the model must chunk as evaluation did (data.window pairs)."""
     run = tiny_temporal_run
     model = mlflow.pyfunc.load_model(mlflow.artifacts.download_artifacts(
-        resolve(tracking.client_for(run.cfg), run.run_id).location))
+        resolve(client_for(run.cfg), run.run_id).location))
     assert model.get_raw_model().chunk == 3
     for key in run.test_keys():
         frames = frames_of(run, key)
@@ -71,7 +71,7 @@ def test_the_model_has_a_signature_an_input_example_fp16_weights_and_its_spec(ti
     spec_in, spec_out = sig.inputs.inputs[0], sig.outputs.inputs[0]
     assert spec_in.type == np.dtype(np.uint8) and spec_in.shape == (-1, -1, -1, 3)
     assert spec_out.type == np.dtype(np.float64) and spec_out.shape == (-1, 6)
-    client = tracking.client_for(tiny_run.cfg)
+    client = client_for(tiny_run.cfg)
     local = Path(mlflow.artifacts.download_artifacts(resolve(client, tiny_run.run_id).location))
     example = json.loads((local / "input_example.json").read_text())
     assert np.asarray(example).shape == (2, 32, 32, 3)  # the first two frames of a test trajectory
@@ -129,7 +129,7 @@ for name in ("vtk", "vtkmodules", "skimage"):
 import mlflow, numpy as np, torch
 torch.set_num_threads(1)  # as the run evaluated (train.threads: 1): the same reduction order
 assert not torch.cuda.is_available()
-mlflow.set_tracking_uri({tiny_run.cfg.paths.tracking_uri!r})
+mlflow.set_tracking_uri({tiny_run.cfg.paths.mlflow_uri!r})
 out = mlflow.pyfunc.load_model("runs:/{tiny_run.run_id}/model").predict(np.load({str(tmp_path / "frames.npy")!r}))
 np.save({str(tmp_path / "out.npy")!r}, out)
 assert not any(m.startswith(("vtk", "bronchocli.render", "bronchocli.generation", "bronchocli.anatomy"))

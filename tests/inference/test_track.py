@@ -11,8 +11,9 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from bronchocli import geometry, tracking
+from bronchocli import geometry
 from bronchocli.data.reader import DISK_POSE_COLUMNS
+from bronchocli.runs.client import client_for, experiment_id
 
 
 def columns(errors: pd.DataFrame, source: str) -> list[str]:
@@ -147,9 +148,9 @@ def test_a_registered_model_and_the_best_run_of_a_table_track_like_the_run(cli, 
 
 @pytest.fixture
 def bare_run(tiny_run) -> str:
-    """A FINISHED run of the experiment that logged no model (tracking.model_artifact: none)."""
-    client = tracking.client_for(tiny_run.cfg)
-    run = client.create_run(tracking.experiment_id(client, tiny_run.cfg))
+    """A FINISHED run of the experiment that logged no model (runs.model_artifact: none)."""
+    client = client_for(tiny_run.cfg)
+    run = client.create_run(experiment_id(client, tiny_run.cfg))
     client.set_terminated(run.info.run_id, "FINISHED")
     return run.info.run_id
 

@@ -71,7 +71,7 @@ PROFILES = {
 }
 
 GOLDEN_CONFIG = """name: {sweep}
-tracking: {{uri: "{uri}", experiment: {experiment}}}
+runs: {{uri: "{uri}", experiment: {experiment}}}
 dataset: {{root: {data}}}
 splits: {{train: 2, val: 1, test: 2, cross_subject_val: 1}}
 grid: {{arch: [baseline, lstm, conv3d, convlstm, offsetnet], rot_loss: [mse, de, ce], population: [personalized],

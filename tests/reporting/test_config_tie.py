@@ -6,7 +6,7 @@ import pytest
 from report_fakes import errors_frame, fabricate_run, fast_sqlite, metrics_from_errors, new_store, trajectory_keys
 
 CONFIG = """name: tie
-tracking: {{uri: "{uri}", experiment: tie-exp}}
+runs: {{uri: "{uri}", experiment: tie-exp}}
 dataset: {{root: data/none}}
 grid: {{arch: [lstm, convlstm], rot_loss: [ce], population: [personalized], seed: [0]}}
 train: {{steps: {steps}}}

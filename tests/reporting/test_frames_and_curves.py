@@ -7,10 +7,10 @@ from PIL import Image
 from report_fakes import MemRuns, frames_runs
 
 from bronchocli.reporting.context import NoData
-from bronchocli.reporting.layout import Estimate
 from bronchocli.reporting.markdown import to_markdown
 from bronchocli.reporting.report import build_tables, make_report
 from bronchocli.reporting.skill_figures import curve_points
+from bronchocli.reporting.table_model import Estimate
 from bronchocli.reporting.tables import frames
 
 

@@ -7,7 +7,7 @@ import pytest
 from report_fakes import REFS, MemRuns
 
 from bronchocli.reporting import judge, stats
-from bronchocli.reporting.layout import Estimate
+from bronchocli.reporting.table_model import Estimate
 from bronchocli.reporting.tables import ablation, cross_subject, personalized, sota
 
 METRIC_COLS = range(4)

@@ -12,7 +12,7 @@ from report_fakes import PROFILES, frames_runs
 from bronchocli.reporting import report, tables
 from bronchocli.reporting.figures import errors_loader
 from bronchocli.reporting.latex import escape, to_latex
-from bronchocli.reporting.layout import Column, Estimate, Row, Table
+from bronchocli.reporting.table_model import Column, Estimate, Row, Table
 
 
 def _strip_comments(text: str) -> str:

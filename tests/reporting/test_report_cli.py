@@ -49,7 +49,7 @@ def test_bad_flags_exit_2_with_one_line(cli, golden_store, args, message):
 
 def test_a_missing_store_is_not_created(cli, tmp_path):
     path = tmp_path / "experiments.yaml"
-    path.write_text(f"name: x\ntracking:\n  uri: sqlite:///{tmp_path}/none/mlflow.db\n")
+    path.write_text(f"name: x\nruns:\n  uri: sqlite:///{tmp_path}/none/mlflow.db\n")
     code, _, stderr = cli("report", "-c", str(path))
     assert code == 2 and "no MLflow store there yet" in stderr
     assert not (tmp_path / "none" / "mlflow.db").exists()

@@ -26,7 +26,7 @@ def test_report_after_a_tiny_real_sweep(cli, tmp_path):
     # Table 6's two models (2 cells, one sweep): the report reads what training really logs
     # (trajectory_errors.csv, predictions.csv, references, budget) for the config's cells.
     cfg.write_text(f"""name: tiny-report
-tracking: {{uri: "sqlite:///{tmp_path}/runs/mlflow.db", artifacts: {tmp_path}/runs/artifacts,
+runs: {{uri: "sqlite:///{tmp_path}/runs/mlflow.db", artifacts: {tmp_path}/runs/artifacts,
            checkpoints: {tmp_path}/runs/checkpoints}}
 storage: {{url: "sqlite:///{tmp_path}/runs/sweep.db"}}
 dataset: {{root: {data}}}

@@ -50,7 +50,7 @@ def make_config(tmp_path, mlflow_template):
             shutil.copy(mlflow_template, db)
         data = {
             "name": name,
-            "tracking": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
+            "runs": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
             "storage": {"url": storage or "sqlite:///sweep.db"},
             "dataset": {"root": "data/tiny"},
             "grid": {"arch": list(archs), "rot_loss": list(losses), "population": list(populations),

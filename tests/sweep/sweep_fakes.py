@@ -21,8 +21,9 @@ import uuid
 from collections import Counter
 from pathlib import Path
 
-from bronchocli import tracking
-from bronchocli.runlayout import RunInterrupted, RunResult, resume_file
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import RunInterrupted, RunResult, resume_file
+from bronchocli.runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_SWEEP, cell_tags, log_metrics, search_runs
 
 HERE = Path(__file__).resolve().parent
 
@@ -48,13 +49,13 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
     # The marker holds the storage URL the runner's config carries (tests check it has no password).
     (d / "calls" / f"{cell.key}-{os.getpid()}-{uuid.uuid4().hex[:6]}").write_text(cfg.storage.url)
     (d / f"gpu-{cell.key}").write_text(os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     if resume:  # like run_cell: reopen the KILLED run
         run_id = resume
         client.update_run(run_id, "RUNNING")
     else:
-        run_id = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+        run_id = client.create_run(exp, tags=cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
     if run_id_callback:
         run_id_callback(run_id)
     try:
@@ -64,7 +65,7 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
                 time.sleep(0.02)
         fail = d / f"fail-{cell.arch}"
         if fail.exists() and n_calls < int(fail.read_text() or 1):
-            client.set_tag(run_id, tracking.TAG_FAILURE, "fake failure")
+            client.set_tag(run_id, TAG_FAILURE, "fake failure")
             client.set_terminated(run_id, "FAILED")
             return RunResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
     except KeyboardInterrupt:  # like run_cell: a checkpoint, then KILLED
@@ -80,19 +81,18 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
     else:
         metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key),
                    "val_best.pos_l2": _metric(cell.key)}
-    tracking.log_metrics(client, run_id, metrics)
+    log_metrics(client, run_id, metrics)
     client.set_terminated(run_id, "FINISHED")
     return RunResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)
 
 
 def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
     """How many MLflow runs of each cell key have ``status`` (None: any)."""
-    from bronchocli import tracking
 
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     exp = client.get_experiment_by_name(cfg.experiment_name)
     if exp is None:
         return Counter()
-    runs = tracking.search_runs(client, [exp.experiment_id], {tracking.TAG_SWEEP: cfg.name, tracking.TAG_KIND: "cell"},
+    runs = search_runs(client, [exp.experiment_id], {TAG_SWEEP: cfg.name, TAG_KIND: "cell"},
                                 [status] if status else None)
-    return Counter(r.data.tags[tracking.TAG_CELL_KEY] for r in runs)
+    return Counter(r.data.tags[TAG_CELL_KEY] for r in runs)

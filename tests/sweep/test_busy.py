@@ -1,4 +1,4 @@
-"""A busy MLflow database (issue 22, item 3): `status`, `report` and `sweep` wait tracking.busy_timeout_s for a
+"""A busy MLflow database (issue 22, item 3): `status`, `report` and `sweep` wait runs.busy_timeout_s for a
 lock, then print one line and exit 2; a lock released within the bound lets them succeed."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import threading
 import pytest
 from tinydata import write_tiny_dataset
 
-from bronchocli import tracking
+from bronchocli.runs.client import MlflowBusy, _open, retry_busy
 
 
 @pytest.fixture
@@ -35,14 +35,14 @@ class Lock:
 
 def release_when_the_command_reaches_the_store(monkeypatch, lock: Lock) -> list[bool]:
     """Release ``lock`` from a thread as the command starts its first store request (still locked then)."""
-    real, seen = tracking._open, []
+    real, seen = _open, []
 
     def opening(uri):
         seen.append(lock.held)
         threading.Timer(0.2, lock.release).start()
         return real(uri)
 
-    monkeypatch.setattr(tracking, "_open", opening)
+    monkeypatch.setattr("bronchocli.runs.client._open", opening)
     return seen
 
 
@@ -64,7 +64,7 @@ def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fak
         assert cli("sweep", "-c", path)[0] == 0  # something to show
     lock = Lock(project.paths.base / "mlflow.db")
     try:
-        code, out, err = cli(*args(command, project), "-c", path, "--set", "tracking.busy_timeout_s=0.5")
+        code, out, err = cli(*args(command, project), "-c", path, "--set", "runs.busy_timeout_s=0.5")
     finally:
         lock.release()
     assert code == 2, out + err
@@ -80,7 +80,7 @@ def test_a_lock_released_within_the_bound_lets_the_command_succeed(cli, project,
     lock = Lock(project.paths.base / "mlflow.db")
     seen = release_when_the_command_reaches_the_store(monkeypatch, lock)
     try:
-        code, out, err = cli(*args(command, project), "-c", path, "--set", "tracking.busy_timeout_s=60")
+        code, out, err = cli(*args(command, project), "-c", path, "--set", "runs.busy_timeout_s=60")
     finally:
         lock.release()
     assert code == 0, out + err
@@ -96,11 +96,11 @@ def test_transient_errors_are_retried_and_others_are_not():
             raise RuntimeError("(psycopg.OperationalError) server closed the connection unexpectedly")
         return "ok"
 
-    assert tracking.retry_busy(flaky, "test", 30, "db") == "ok" and len(calls) == 3
+    assert retry_busy(flaky, "test", 30, "db") == "ok" and len(calls) == 3
     with pytest.raises(ValueError):
-        tracking.retry_busy(lambda: (_ for _ in ()).throw(ValueError("no such column")), "test", 30, "db")
-    with pytest.raises(tracking.TrackingBusy, match="during test"):
-        tracking.retry_busy(lambda: (_ for _ in ()).throw(RuntimeError("database is locked")), "test", 0.01, "db")
+        retry_busy(lambda: (_ for _ in ()).throw(ValueError("no such column")), "test", 30, "db")
+    with pytest.raises(MlflowBusy, match="during test"):
+        retry_busy(lambda: (_ for _ in ()).throw(RuntimeError("database is locked")), "test", 0.01, "db")
 
 
 def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir):
@@ -108,7 +108,7 @@ def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, pr
     assert cli("sweep", "-c", path)[0] == 0  # the claims table exists (WAL: readers pass, writers wait)
     lock = Lock(project.paths.base / "sweep.db")
     try:
-        code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "tracking.busy_timeout_s=0.5")
+        code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "runs.busy_timeout_s=0.5")
     finally:
         lock.release()
     assert code == 2 and len(err.strip().splitlines()) == 1, out + err

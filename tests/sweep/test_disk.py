@@ -8,8 +8,9 @@ from sqlalchemy import update
 from sweep_fakes import fake_runner
 from tinydata import write_tiny_dataset
 
-from bronchocli import tracking
-from bronchocli.runlayout import checkpoint_dir, resume_file
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import checkpoint_dir, resume_file
+from bronchocli.runs.records import cell_tags
 from bronchocli.sweep import FINISHED, TAG_CLAIM, SweepStore, Worker, prepare
 from bronchocli.sweep.storage import cells_table
 
@@ -19,10 +20,10 @@ def test_taking_over_a_dead_workers_cell_removes_its_orphaned_checkpoint(make_co
     store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     (cell,) = plan.cells
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
-    orphan = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
+    orphan = client.create_run(exp, tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
     store.set_run_id(claim.token, orphan)
     resume_file(cfg, orphan).parent.mkdir(parents=True)
     resume_file(cfg, orphan).write_bytes(b"x" * 1000)  # the dead worker's last checkpoint

@@ -1,7 +1,7 @@
 """Several `bronchopose sweep` processes starting together on a fresh PostgreSQL database (MLflow store and claims).
 
 MLflow creates its tables when it first opens a store; machines that start at
-once must not race on that migration (tracking.client_for serialises it with a
+once must not race on that migration (runs.client.client_for serialises it with a
 database advisory lock).
 """
 
@@ -26,7 +26,7 @@ def test_three_sweeps_starting_together_on_a_fresh_database_all_succeed(tmp_path
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     data = {
         "name": "fresh",
-        "tracking": {"uri": fresh_db, "artifacts": "artifacts"},
+        "runs": {"uri": fresh_db, "artifacts": "artifacts"},
         "storage": {"url": fresh_db},
         "dataset": {"root": "data/tiny"},
         "grid": {"arch": ["baseline", "lstm", "conv3d"], "rot_loss": ["mse", "ce"], "population": ["personalized"],

@@ -10,8 +10,9 @@ from sqlalchemy import create_engine, inspect
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import tracking
 from bronchocli.config import load_config
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import search_runs
 from bronchocli.sweep import tuning
 
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
@@ -32,7 +33,7 @@ def project(tmp_path):
 
 
 def _tune_twice_in_one_database(cli, project, url: str) -> None:
-    sets = ["--set", f"tracking.uri={url}", "--set", f"storage.url={url}"]
+    sets = ["--set", f"runs.uri={url}", "--set", f"storage.url={url}"]
     code, out, err = cli("tune", "-c", str(project / "experiments.yaml"), *TARGET, "-n", "2", *sets)
     assert code == 0, out + err
     cfg = load_config(project / "experiments.yaml", overrides=[s for s in sets if s != "--set"])
@@ -40,8 +41,8 @@ def _tune_twice_in_one_database(cli, project, url: str) -> None:
                                                                           population="personalized")),
                               storage=tuning.storage_for(cfg))
     assert tuning.finished(study) == 2
-    client = tracking.client_for(cfg)  # MLflow still opens its store: its migration bookkeeping is intact
-    runs = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "trial"})
+    client = client_for(cfg)  # MLflow still opens its store: its migration bookkeeping is intact
+    runs = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "trial"})
     assert len(runs) == 2 and {r.info.status for r in runs} <= {"FINISHED", "KILLED"}  # KILLED: pruned
     # a second tune on the same database continues the study (both libraries reopen their tables)
     code, out, err = cli("tune", "-c", str(project / "experiments.yaml"), *TARGET, "-n", "2", *sets)
@@ -53,7 +54,7 @@ def test_tune_with_tracking_and_storage_on_one_sqlite_file(cli, project):
     names = inspect(create_engine(f"sqlite:///{project / 'runs' / 'one.db'}")).get_table_names()
     assert "experiments" in names and "studies" not in names  # MLflow's file; Optuna's tables beside it
     assert tuning.optuna_url(load_config(project / "experiments.yaml", overrides=[
-        "tracking.uri=sqlite:///runs/one.db", "storage.url=sqlite:///runs/one.db"])).endswith("one.optuna.db")
+        "runs.uri=sqlite:///runs/one.db", "storage.url=sqlite:///runs/one.db"])).endswith("one.optuna.db")
 
 
 def test_tune_with_tracking_and_storage_on_one_postgresql_database(cli, project, fresh_db):

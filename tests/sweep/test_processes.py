@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 from sweep_fakes import calls, fake_runner, runs_by_cell
 
-from bronchocli import tracking
+from bronchocli.runs.client import client_for
+from bronchocli.runs.records import TAG_FAILURE
 from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, WorkerSpec, prepare, spawn_worker, worker_config
 
 
@@ -52,7 +53,7 @@ def assert_exactly_once(cfg, store, plan):
     assert runs_by_cell(cfg, "RUNNING") == {}
     rows = store.rows(cfg.name)
     assert {r.cell_key: r.state for r in rows} == {k: FINISHED for k in keys}
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     assert all(client.get_run(r.run_id).info.status == "FINISHED" for r in rows)
 
 
@@ -86,8 +87,8 @@ def test_four_workers_on_postgres_survive_a_sigkilled_worker(make_config, fake_d
     assert victim.exitcode == -signal.SIGKILL
     assert sorted(c for p, c in zip(procs, codes) if p is not victim) == [0, 0, 0, 0], logs
     assert_exactly_once(cfg, store, plan)
-    dead_run = tracking.client_for(cfg).get_run(victim_file.read_text())
-    assert dead_run.info.status == "KILLED" and "lost" in dead_run.data.tags[tracking.TAG_FAILURE]
+    dead_run = client_for(cfg).get_run(victim_file.read_text())
+    assert dead_run.info.status == "KILLED" and "lost" in dead_run.data.tags[TAG_FAILURE]
     row = next(r for r in store.rows(cfg.name) if r.cell_key == victim_key)
     assert row.attempts == 2 and calls(victim_key) == 2
     assert all(calls(c.key) == 1 for c in plan.cells if c.key != victim_key)

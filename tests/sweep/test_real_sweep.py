@@ -7,7 +7,8 @@ import os
 from sweep_fakes import runs_by_cell
 from tinydata import write_tiny_dataset
 
-from bronchocli import tracking
+from bronchocli.runs.client import client_for
+from bronchocli.runs.records import TAG_CELL_KEY
 from bronchocli.sweep import FINISHED, SweepStore
 
 
@@ -25,11 +26,11 @@ def test_a_real_two_worker_sweep_trains_each_cell_once(cli, make_config, tmp_pat
     rows = SweepStore(cfg.paths.storage_url).rows(cfg.name)
     assert [r.state for r in rows] == [FINISHED, FINISHED]
     assert runs_by_cell(cfg) == {r.cell_key: 1 for r in rows}
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     threads = str(max(1, (os.cpu_count() or 1) // 2))
     for row in rows:
         run = client.get_run(row.run_id)
-        assert run.data.tags[tracking.TAG_CELL_KEY] == row.cell_key and run.data.tags["sweep_claim"] == row.token
+        assert run.data.tags[TAG_CELL_KEY] == row.cell_key and run.data.tags["sweep_claim"] == row.token
         assert "pair.pos_l2.mean" in run.data.metrics and "acc.pos_l2.mean" in run.data.metrics
         assert run.data.params["train.threads"] == threads  # the CPU is split between the two workers
     code, out, _ = cli("status", "-c", path)

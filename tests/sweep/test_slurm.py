@@ -23,7 +23,8 @@ from slurm_cluster import start_cluster, stop_cluster
 from sweep_fakes import HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
-from bronchocli import tracking
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import TAG_KIND, search_runs
 from bronchocli.sweep import FINISHED, PENDING, SweepStore
 from bronchocli.sweep.plan import plan_key
 from bronchocli.sweep.slurm import MAIN
@@ -173,9 +174,9 @@ def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(sl
     second = [r for r in rows(cfg) if r.coords["seed"] == 1]
     assert [r.coords["arch"] for r in second] == ["lstm"]
     assert second[0].claimed_at >= recorded_at
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
-    assert len(tracking.search_runs(client, [exp], {tracking.TAG_KIND: "selection"})) == 1  # recorded once
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
+    assert len(search_runs(client, [exp], {TAG_KIND: "selection"})) == 1  # recorded once
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in rows(cfg)}
 
 
@@ -187,8 +188,8 @@ def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm
     cases = {
         "SQLite claims table": ({"storage": {"url": "sqlite:///sweep.db"}, "slurm": {"shared_filesystem": False}},
                                 "storage.url"),
-        "file/SQLite MLflow store": ({"slurm": {"shared_filesystem": False}}, "tracking.uri"),
-        "node-local folder": ({"slurm": {"shared_filesystem": False}, "tracking": {"uri": pg_url}},
+        "file/SQLite MLflow store": ({"slurm": {"shared_filesystem": False}}, "runs.uri"),
+        "node-local folder": ({"slurm": {"shared_filesystem": False}, "runs": {"uri": pg_url}},
                               "a node-local folder"),
         "bad slurm value": ({"slurm": {"timeout_min": 0}}, "slurm.timeout_min"),
         "sbatch option the launcher sets": ({"slurm": {"additional": {"array": "0-9"}}}, "slurm.additional"),
@@ -240,7 +241,7 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
     stopped = re.search(r"SIGTERM received at step (\d+)/12", log)
     assert stopped and 0 < int(stopped.group(1)) < 12, log
     assert f"resuming run {row.run_id}" in log
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     steps = [m.step for m in client.get_metric_history(row.run_id, "val_loss")]
     assert sorted(steps) == [3, 6, 9, 12], steps  # continued from the checkpoint, no step trained twice
     assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1} and runs_by_cell(cfg, None) == {row.cell_key: 1}

@@ -62,11 +62,11 @@ def test_the_checks_refuse_stores_and_folders_compute_nodes_cannot_share(make_co
     cfg = make_config()
     with pytest.raises(Exception, match="storage.url sqlite.*SQLite claims table"):
         check(cfg)
-    with pytest.raises(Exception, match="tracking.uri sqlite.*MLflow store"):
+    with pytest.raises(Exception, match="runs.uri sqlite.*MLflow store"):
         check(make_config(storage="postgresql://u@db.example/sweeps"))
-    with pytest.raises(Exception, match="tracking.checkpoints /tmp/ck: a node-local folder"):
+    with pytest.raises(Exception, match="runs.checkpoints /tmp/ck: a node-local folder"):
         check(make_config(storage="postgresql://u@db.example/sweeps",
-                          tracking={"uri": "postgresql://u@db.example/mlflow", "artifacts": "/srv/a",
+                          runs={"uri": "postgresql://u@db.example/mlflow", "artifacts": "/srv/a",
                                     "checkpoints": "/tmp/ck"}, dataset={"root": "/srv/data"}))
     # with slurm.shared_filesystem: true the same configs pass these checks (tests/sweep/test_slurm.py submits them)
 

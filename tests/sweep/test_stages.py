@@ -9,8 +9,9 @@ import pytest
 from sweep_fakes import calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
-from bronchocli import tracking
 from bronchocli.config import Config
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import search_runs
 from bronchocli.sweep import SweepStore
 from bronchocli.sweep.plan import plan_key, plan_stages
 
@@ -54,11 +55,11 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
     assert len(finished) == 18 and set(finished.values()) == {1}
     assert all(calls(c.key) == 1 for c in stages["sota"].cells)
 
-    client = tracking.client_for(project)
-    exp = tracking.experiment_id(client, project)
-    selections = tracking.search_runs(client, [exp], {"run_kind": "selection"})
+    client = client_for(project)
+    exp = experiment_id(client, project)
+    selections = search_runs(client, [exp], {"run_kind": "selection"})
     assert sorted(r.data.tags["stage"] for r in selections) == ["cross-subject", "sota"]
-    parent = tracking.search_runs(client, [exp], {"run_kind": "sweep"})
+    parent = search_runs(client, [exp], {"run_kind": "sweep"})
     assert len(parent) == 1 and {r.data.tags["mlflow.parentRunId"] for r in selections} == {parent[0].info.run_id}
     rec = next(r for r in selections if r.data.tags["stage"] == "cross-subject")
     assert rec.data.tags["plan_key"] == plan_key(project)

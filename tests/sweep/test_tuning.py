@@ -13,9 +13,11 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import cells, tracking
+from bronchocli import cells
 from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import search_runs
 from bronchocli.sweep import tuning
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -52,22 +54,22 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert tuning.finished(study) == 4
     assert trials[1].state == optuna.trial.TrialState.PRUNED
     assert study.best_trial.params == {"train.rot_weight": 0.0}
-    client = tracking.client_for(cfg)
-    runs = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "trial"})
+    client = client_for(cfg)
+    runs = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "trial"})
     assert sorted(int(r.data.tags["trial"]) for r in runs) == [t.number for t in trials]
     by_trial = {int(r.data.tags["trial"]): r for r in runs}
     assert by_trial[1].info.status == "KILLED" and by_trial[1].data.tags["pruned"] == "true"
     assert all(r.data.tags["study"] == study.study_name for r in runs)
     assert all(t.user_attrs[tuning.ATTR_RUN] == by_trial[t.number].info.run_id for t in trials)
     # every trial nests under the study's one parent run, which ends with the best trial
-    parents = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "study"})
+    parents = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
     assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
     assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
     assert parents[0].data.metrics["best_val_loss"] == pytest.approx(study.best_value)
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
-    cell_runs = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "cell"})
+    cell_runs = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "cell"})
     assert len(cell_runs) == 1
     assert cell_runs[0].data.tags["hparams_source"] == f"optuna:{study.study_name}#{study.best_trial.number}"
     assert float(cell_runs[0].data.params["train.rot_weight"]) == 0.0
@@ -75,9 +77,9 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     code, out, err = cli("sweep", "-c", str(project / "experiments.yaml"), "--use-tuned", study.study_name,
                          "--only", "arch=baseline;rot_loss=mse;population=personalized")
     assert code == 0, err
-    swept = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "cell"})
+    swept = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "cell"})
     assert len(swept) == 2 and {r.data.tags["hparams_source"] for r in swept} == {cell_runs[0].data.tags["hparams_source"]}
-    sweep_parent = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"run_kind": "sweep"})
+    sweep_parent = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "sweep"})
     assert len(sweep_parent) == 1 and sweep_parent[0].info.status == "FINISHED"  # the sweep's parent, ended with it
     swept_now = [r for r in swept if r.info.run_id != cell_runs[0].info.run_id]
     assert swept_now[0].data.tags["mlflow.parentRunId"] == sweep_parent[0].info.run_id

@@ -6,7 +6,8 @@ import pytest
 from sqlalchemy import update
 from sweep_fakes import fake_runner, runs_by_cell
 
-from bronchocli import tracking
+from bronchocli.runs.client import MlflowBusy, client_for, experiment_id
+from bronchocli.runs.records import TAG_FAILURE, cell_tags
 from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
 from bronchocli.sweep.storage import cells_table
 
@@ -81,9 +82,9 @@ def test_a_worker_that_lost_its_claim_kills_its_run_and_the_cell_is_run_once(mak
     worker = Worker(cfg, plan.cells, store, hijacked)
     assert worker.run() == 0  # the thief never heartbeats: its claim goes stale and this worker takes it back
     assert worker.stats.lost == 1 and worker.stats.finished == 1
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     lost = client.get_run(lost_runs[0])
-    assert lost.info.status == "KILLED" and "lost its claim" in lost.data.tags[tracking.TAG_FAILURE]
+    assert lost.info.status == "KILLED" and "lost its claim" in lost.data.tags[TAG_FAILURE]
     assert runs_by_cell(cfg) == {plan.cells[0].key: 1}
     row = store.rows(cfg.name)[0]
     assert row.state == FINISHED and row.run_id != lost_runs[0] and row.attempts == 3
@@ -92,12 +93,12 @@ def test_a_worker_that_lost_its_claim_kills_its_run_and_the_cell_is_run_once(mak
 def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over(make_config, fake_dir):
     cfg = make_config(archs=("baseline", "lstm"))
     store, plan = setup(cfg)
-    client = tracking.client_for(cfg)
-    exp = tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
     orphans = {}
     for cell in plan.cells:
         claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
-        run = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **{TAG_CLAIM: claim.token}))
+        run = client.create_run(exp, tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token}))
         orphans[cell.arch] = run.info.run_id
         if cell.arch == "lstm":  # died after finishing its run, before recording it on the row
             store.set_run_id(claim.token, run.info.run_id)
@@ -108,7 +109,7 @@ def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over(mak
     assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
     for run_id in orphans.values():
         run = client.get_run(run_id)
-        assert run.info.status == "KILLED" and "dead:1 lost" in run.data.tags[tracking.TAG_FAILURE]
+        assert run.info.status == "KILLED" and "dead:1 lost" in run.data.tags[TAG_FAILURE]
     assert runs_by_cell(cfg) == {c.key: 1 for c in plan.cells}
     assert all(r.state == FINISHED and r.run_id not in orphans.values() for r in store.rows(cfg.name))
 
@@ -148,26 +149,26 @@ def test_a_stop_that_arrived_while_the_run_was_evaluating_is_obeyed_after_record
 
 def machine_failure(error_type, ckpt: bool = True):
     """A runner whose run fails with ``error_type`` (after writing a checkpoint), and succeeds when resumed."""
-    from bronchocli.runlayout import RunResult, resume_file
+    from bronchocli.runs.contract import RunResult, resume_file
 
     seen = []
 
     def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
-        client = tracking.client_for(cfg)
+        client = client_for(cfg)
         if resume:
             seen.append(("resumed", resume))
             client.update_run(resume, "RUNNING")
             run_id_callback(resume)
             client.set_terminated(resume, "FINISHED")
             return RunResult(resume, "FINISHED", {"pair.pos_l2.mean": 1.0})
-        exp = tracking.experiment_id(client, cfg)
-        run_id = client.create_run(exp, tags=tracking.cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
+        exp = experiment_id(client, cfg)
+        run_id = client.create_run(exp, tags=cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
         run_id_callback(run_id)
         if ckpt:
             resume_file(cfg, run_id).parent.mkdir(parents=True, exist_ok=True)
             resume_file(cfg, run_id).write_text("checkpoint")
         seen.append(("failed", run_id))
-        client.set_tag(run_id, tracking.TAG_FAILURE, f"{error_type.__name__}: the machine")
+        client.set_tag(run_id, TAG_FAILURE, f"{error_type.__name__}: the machine")
         client.set_terminated(run_id, "FAILED")
         raise error_type("the machine")
 
@@ -177,7 +178,7 @@ def machine_failure(error_type, ckpt: bool = True):
 def test_a_busy_database_releases_the_cell_without_using_an_attempt_and_the_retry_resumes(make_config, fake_dir):
     cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
     store, plan = setup(cfg)
-    runner, seen = machine_failure(tracking.TrackingBusy)
+    runner, seen = machine_failure(MlflowBusy)
     assert Worker(cfg, plan.cells, store, runner).run() == 0
     row = rows(store, cfg)["baseline"]
     assert (row.state, row.attempts) == (FINISHED, 1)  # with max_retries 0: the busy attempt did not count

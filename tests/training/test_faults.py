@@ -15,10 +15,12 @@ from tinydata import write_tiny_dataset
 from tinyproject import write_config
 from training.test_checkpoint import plant
 
-from bronchocli import tracking
 from bronchocli.config import load_config
 from bronchocli.errors import DataError
-from bronchocli.runlayout import RunInterrupted
+from bronchocli.runs.client import MlflowBusy, client_for, experiment_id, retry_busy
+from bronchocli.runs.contract import RunInterrupted
+from bronchocli.runs.processes import TAG_PID
+from bronchocli.runs.records import cell_tags, search_runs
 from bronchocli.training import checkpoint
 from bronchocli.training.run import run_cell
 
@@ -37,8 +39,8 @@ def test_a_signal_at_a_known_step_kills_the_run_and_resume_continues_it_exactly(
 
     with pytest.raises(RunInterrupted, match="SIGINT received at step 5/8"):
         run_cell(cfg, cell, progress=False, on_validation=interrupt_after_step_4)
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     run_id = run.info.run_id
     assert run.info.status == "KILLED" and "SIGINT" in run.data.tags["failure_reason"]
     checkpoint = cfg.paths.checkpoints / run_id / "last.pt"
@@ -51,7 +53,7 @@ def test_a_signal_at_a_known_step_kills_the_run_and_resume_continues_it_exactly(
     assert sorted(m.step for m in client.get_metric_history(run_id, "val_loss")) == [2, 4, 6, 8]  # continued
     assert run.data.metrics["train.steps"] == 8 and run.data.metrics["train.pairs_seen"] == 8 * 6
     assert not checkpoint.exists()
-    assert len(tracking.search_runs(client, [run.info.experiment_id])) == 1
+    assert len(search_runs(client, [run.info.experiment_id])) == 1
 
 
 def test_ctrl_c_on_the_command_exits_130_with_one_line_and_leaves_a_resumable_run(tmp_path):
@@ -71,8 +73,8 @@ def test_ctrl_c_on_the_command_exits_130_with_one_line_and_leaves_a_resumable_ru
     assert proc.returncode == 130, out
     assert "Traceback" not in out and "SIGINT received at step" in out
     cfg = load_config(tmp_path / "experiments.yaml")
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     assert run.info.status == "KILLED"
     assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()
 
@@ -100,7 +102,7 @@ def test_non_finite_loss_fails_the_run_with_its_reason(tmp_path):
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized"), progress=False)
     assert result.status == "FAILED"
     assert "non-finite" in result.failure_reason
-    run = tracking.client_for(cfg).get_run(result.run_id)
+    run = client_for(cfg).get_run(result.run_id)
     assert run.info.status == "FAILED" and "non-finite" in run.data.tags["failure_reason"]
     assert "pair.pos_l2.mean" not in run.data.metrics
 
@@ -113,8 +115,8 @@ def test_a_missing_frame_fails_before_any_run_exists(tmp_path):
     cfg = load_config(write_config(tmp_path))
     with pytest.raises(DataError, match=victim.name):
         run_cell(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized"), progress=False)
-    client = tracking.client_for(cfg)
-    assert not tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    assert not search_runs(client, [experiment_id(client, cfg)])
 
 
 def test_train_command_cross_subject_camera_frame(tiny_project, cli):
@@ -123,8 +125,8 @@ def test_train_command_cross_subject_camera_frame(tiny_project, cli):
     assert code == 0, err
     assert "FINISHED" in out and "pair pos L2" in out and "training-mean predictor" in out
     cfg = load_config(tiny_project / "experiments.yaml")
-    client = tracking.client_for(cfg)
-    runs = tracking.search_runs(client, [tracking.experiment_id(client, cfg)], {"fold": "p01"})
+    client = client_for(cfg)
+    runs = search_runs(client, [experiment_id(client, cfg)], {"fold": "p01"})
     assert len(runs) == 1 and runs[0].data.tags["pose_frame"] == "camera"
     manifest = pd.read_csv(client.download_artifacts(runs[0].info.run_id, "split_manifest.csv"))
     assert set(manifest[manifest.split == "test"].patient) == {"p01"}
@@ -147,8 +149,8 @@ def test_bad_flags_are_one_clear_error(tiny_project, cli, args, message):
 
 def killed_run_of(cfg, cell) -> str:
     """A KILLED run of ``cell`` as an interrupted `train` leaves it (without spending a training run on it)."""
-    client = tracking.client_for(cfg)
-    run = client.create_run(tracking.experiment_id(client, cfg), tags=tracking.cell_tags(cfg, cell))
+    client = client_for(cfg)
+    run = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell))
     client.set_terminated(run.info.run_id, "KILLED")
     return run.info.run_id
 
@@ -165,7 +167,7 @@ def test_a_planted_checkpoint_is_refused_on_resume_and_its_code_never_runs(tmp_p
     assert code == 2, out + err
     assert not marker.exists()  # the payload never ran
     assert len(err.strip().splitlines()) == 1 and str(planted) in err and "Traceback" not in err
-    run = tracking.client_for(cfg).get_run(run_id)
+    run = client_for(cfg).get_run(run_id)
     assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("BadCheckpoint:")
     assert not planted.exists() and planted.with_name("last.pt.rejected").is_file()  # kept aside, never loaded again
 
@@ -178,8 +180,8 @@ def test_train_on_a_full_disk_is_one_line_and_its_run_ends_failed_not_running(tm
     code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
     assert code == 2, out + err
     assert len(err.strip().splitlines()) == 1 and "not enough disk space" in err and str(cfg.paths.checkpoints) in err
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("CheckpointWriteError:")
 
 
@@ -195,8 +197,8 @@ def test_a_checkpoint_write_failing_mid_run_leaves_no_partial_file(tmp_path, cli
     code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "could not write the checkpoint" in err, out + err
     assert [p for p in cfg.paths.checkpoints.rglob("*") if p.is_file()] == []
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     assert run.info.status == "FAILED"
 
 
@@ -204,10 +206,10 @@ def test_train_with_checkpoints_on_a_small_file_system(tmp_path, cli, small_fs):
     write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
     cfg = load_config(write_config(tmp_path))
     code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:],
-                         "--set", f"tracking.checkpoints={small_fs}")
+                         "--set", f"runs.checkpoints={small_fs}")
     assert code == 2 and len(err.strip().splitlines()) == 1 and str(small_fs) in err, out + err
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     assert run.info.status == "FAILED" and "disk space" in run.data.tags["failure_reason"]
     assert list(small_fs.rglob("*.tmp")) == []
 
@@ -231,7 +233,7 @@ def test_a_sweep_worker_refuses_a_planted_checkpoint_and_fails_the_cell_with_the
     assert row.state == FAILED and row.failure_reason.startswith("BadCheckpoint: checkpoint ")
     assert str(cfg.paths.checkpoints / run_id / "last.pt") in row.failure_reason
     assert not marker.exists() and "Traceback" not in caplog.text
-    assert tracking.client_for(cfg).get_run(run_id).info.status == "FAILED"
+    assert client_for(cfg).get_run(run_id).info.status == "FAILED"
 
 
 def test_a_full_disk_under_the_artifacts_is_one_line_and_the_run_ends_failed(tmp_path, cli, monkeypatch):
@@ -249,8 +251,8 @@ def test_a_full_disk_under_the_artifacts_is_one_line_and_the_run_ends_failed(tmp
     code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, out + err
     assert "predictions.csv" in err and "Traceback" not in out + err
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("WriteFailed:")
     assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()  # kept: `train --resume` continues
 
@@ -279,9 +281,9 @@ def test_a_store_locked_mid_run_is_waited_for_and_the_run_finishes(tmp_path, mon
     import threading
 
     write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
-    cfg = load_config(write_config(tmp_path)).with_values({"tracking.busy_timeout_s": 60})
+    cfg = load_config(write_config(tmp_path)).with_values({"runs.busy_timeout_s": 60})
     lock, waited = StoreLock(cfg.paths.base / "runs" / "mlflow.db"), []
-    real = tracking.retry_busy
+    real = retry_busy
 
     def retry(fn, what, bound, shown):  # the first MLflow call after the lock: release it from a thread, later
         if lock.conn is not None and not waited:
@@ -289,7 +291,7 @@ def test_a_store_locked_mid_run_is_waited_for_and_the_run_finishes(tmp_path, mon
             threading.Timer(0.3, lock.release).start()
         return real(fn, what, bound, shown)
 
-    monkeypatch.setattr(tracking, "retry_busy", retry)
+    monkeypatch.setattr("bronchocli.runs.client.retry_busy", retry)
 
     def locked_after_step_2(step, values):
         if step == 2:
@@ -301,13 +303,13 @@ def test_a_store_locked_mid_run_is_waited_for_and_the_run_finishes(tmp_path, mon
     finally:
         lock.release()
     assert result.status == "FINISHED" and waited  # an MLflow call met the lock, waited, and went on
-    history = tracking.client_for(cfg).get_metric_history(result.run_id, "val_loss")
+    history = client_for(cfg).get_metric_history(result.run_id, "val_loss")
     assert sorted(m.step for m in history) == [2, 4]
 
 
 def test_a_store_locked_beyond_the_bound_fails_the_run_in_one_line_and_keeps_its_checkpoint(tmp_path):
     write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
-    cfg = load_config(write_config(tmp_path)).with_values({"tracking.busy_timeout_s": 0.3})
+    cfg = load_config(write_config(tmp_path)).with_values({"runs.busy_timeout_s": 0.3})
     lock = StoreLock(cfg.paths.base / "runs" / "mlflow.db")
     cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
 
@@ -316,14 +318,14 @@ def test_a_store_locked_beyond_the_bound_fails_the_run_in_one_line_and_keeps_its
             lock.take()
 
     try:
-        with pytest.raises(tracking.TrackingBusy) as err:
+        with pytest.raises(MlflowBusy) as err:
             run_cell(cfg, cell, progress=False, on_validation=locked_after_step_2)
     finally:
         lock.release()
     assert "\n" not in str(err.value) and "database is locked" in str(err.value)
-    client = tracking.client_for(cfg)
-    (run,) = tracking.search_runs(client, [tracking.experiment_id(client, cfg)])
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
     # the store stayed locked, so the run could not be ended: RUNNING, tagged with its (this) process, which
     # `status --repair` or the next run of the cell ends once that process is gone; its checkpoint is kept
-    assert run.info.status == "RUNNING" and run.data.tags[tracking.TAG_PID] == str(os.getpid())
+    assert run.info.status == "RUNNING" and run.data.tags[TAG_PID] == str(os.getpid())
     assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()

@@ -17,11 +17,11 @@ import torch
 from loopfakes import FakeSource, samples, settings
 from torch import nn
 
-from bronchocli import tracking
 from bronchocli.data import batches
 from bronchocli.diagnostics.dispatch import OpCounter
 from bronchocli.models import build_model
-from bronchocli.runlayout import gpu_share
+from bronchocli.runs.client import client_for
+from bronchocli.runs.contract import gpu_share
 from bronchocli.sweep.placement import pin_env, share_counts, smi_gpu_ids, visible_gpus
 from bronchocli.training import engine
 from bronchocli.training.loop import NothingTrained, Trainer, recalibrate_bn
@@ -96,7 +96,7 @@ def test_train_with_cuda_on_a_machine_without_it_is_one_line_exit_2_and_leaves_n
     from bronchocli.config import load_config
 
     cfg = load_config(tiny_project / "experiments.yaml")
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     exps = client.search_experiments()
     runs = client.search_runs([e.experiment_id for e in exps]) if exps else []
     assert not [r for r in runs if r.data.tags.get("cell_key")], "a run was left behind"
@@ -121,7 +121,7 @@ def test_a_finished_run_carries_the_device_tags(tiny_project, monkeypatch):
     cfg = load_config(tiny_project / "experiments.yaml").with_values({"train.steps": 2, "train.val_every": 2})
     result = run_cell(cfg, cfg.cell(arch="offsetnet", rot_loss="mse", population="personalized"), progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    tags = tracking.client_for(cfg).get_run(result.run_id).data.tags
+    tags = client_for(cfg).get_run(result.run_id).data.tags
     assert (tags["env.device"], tags["env.precision"], tags["env.gpu_name"]) == ("cpu", "32", "none")
     assert result.metrics["train.skipped_steps"] == 0
 

@@ -14,8 +14,9 @@ import sys
 import pytest
 from weights_server import serve_weights
 
-from bronchocli import tracking
 from bronchocli.config import load_config
+from bronchocli.runs.client import client_for
+from bronchocli.runs.records import TAG_INIT
 from bronchocli.training.run import run_cell
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -31,8 +32,8 @@ def test_every_run_records_its_initialisation(tiny_project, tmp_path, monkeypatc
             cell = cfg.cell(arch="offsetnet", rot_loss="mse", population="personalized")
             result = run_cell(cfg, cell, progress=False)
             assert result.status == "FINISHED", result.failure_reason
-            run = tracking.client_for(cfg).get_run(result.run_id)
-            assert run.data.tags[tracking.TAG_INIT] == expected
+            run = client_for(cfg).get_run(result.run_id)
+            assert run.data.tags[TAG_INIT] == expected
             assert run.data.params["model.pretrained"] == str(pretrained)
         assert server.hits == [f"models/{names['resnet34']}"]
     finally:
@@ -54,7 +55,7 @@ def _run(args, cwd, torch_home):
 
 @pytest.mark.parametrize("command", [["train", *CELL, "--quiet"], ["sweep", "--workers", "1"]])
 def test_offline_without_cached_weights_is_one_line_exit_2_and_no_run(tiny_project, tmp_path, command):
-    proc = _run([*command, "--set", "model.pretrained=imagenet", "--set", "tracking.experiment=offline-init"],
+    proc = _run([*command, "--set", "model.pretrained=imagenet", "--set", "runs.experiment=offline-init"],
                 tiny_project, tmp_path / "torch-home")
     assert proc.returncode == 2, proc.stdout + proc.stderr
     err = proc.stderr.strip()
@@ -62,8 +63,8 @@ def test_offline_without_cached_weights_is_one_line_exit_2_and_no_run(tiny_proje
     if command[0] == "train":
         expected = expected.replace("efficientnet_b0_rwightman-7f5810bc", "resnet34-b627a593")
     assert expected in err and "Traceback" not in err and len(err.splitlines()) == 1, err
-    cfg = load_config(tiny_project / "experiments.yaml", overrides=["tracking.experiment=offline-init"])
-    client = tracking.client_for(cfg)
+    cfg = load_config(tiny_project / "experiments.yaml", overrides=["runs.experiment=offline-init"])
+    client = client_for(cfg)
     exp = client.get_experiment_by_name("offline-init")
     assert exp is None or not client.search_runs([exp.experiment_id])
 

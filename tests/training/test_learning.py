@@ -23,7 +23,7 @@ CONFIG = """\
                  max_frames: 24, workers: 2}
     splits: {train: 4, val: 1, test: 1}
     train: {steps: 320, batch_size: 20, lr: 1.0e-3, val_every: 80, max_val_pairs: 160}
-    tracking: {model_artifact: none}
+    runs: {model_artifact: none}
 """
 
 

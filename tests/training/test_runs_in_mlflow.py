@@ -9,7 +9,9 @@ import platform
 import pytest
 import torch
 
-from bronchocli import runview, tracking
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import TAG_NOTE, TAG_PARENT, TAG_SOURCE_GIT, TAG_SOURCE_NAME, TAG_SOURCE_TYPE
+from bronchocli.runs.views import README_RATIO
 from bronchocli.sweep import SweepStore, Worker
 from bronchocli.sweep.plan import add_cells
 from bronchocli.training.run import run_cell
@@ -19,8 +21,8 @@ from bronchocli.training.run import run_cell
 def swept(tiny_cfg):
     """Two cells that differ in architecture and seed, run for real by a sweep worker (in this process)."""
     cfg = tiny_cfg.with_values({"name": "compare", "train.steps": 2})
-    client = tracking.client_for(cfg)
-    tracking.experiment_id(client, cfg)
+    client = client_for(cfg)
+    experiment_id(client, cfg)
     store = SweepStore(cfg.paths.storage_url)
     store.ensure_schema()
     cells = [cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=0),
@@ -45,7 +47,7 @@ def test_the_rest_api_gives_the_ui_the_same_params(swept, monkeypatch):
     from mlflow.server import app  # lazy: the Flask app reads the store URI from the environment
 
     app.config["TESTING"] = True
-    monkeypatch.setenv("_MLFLOW_SERVER_FILE_STORE", cfg.paths.tracking_uri)
+    monkeypatch.setenv("_MLFLOW_SERVER_FILE_STORE", cfg.paths.mlflow_uri)
     monkeypatch.setenv("_MLFLOW_SERVER_ARTIFACT_ROOT", cfg.paths.artifacts.as_uri())
     with app.test_client() as http:
         body = {"experiment_ids": [runs[0].info.experiment_id], "filter": "tags.run_kind = 'cell'"}
@@ -62,20 +64,20 @@ def test_runs_carry_headline_metrics_inputs_source_and_nest_under_the_sweep(swep
     cfg, client, runs = swept
     for run in runs:
         m, tags = run.data.metrics, run.data.tags
-        assert m[runview.README_RATIO] == pytest.approx(m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"])
+        assert m[README_RATIO] == pytest.approx(m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"])
         better = min(m["zero_motion.pair.pos_l2.mean"], m["train_mean.pair.pos_l2.mean"])
         assert m["skill.pair.pos_l2"] == pytest.approx(1 - m["pair.pos_l2.mean"] / better)
         assert tags["env.torch"] == torch.__version__ and tags["env.cuda"] == (torch.version.cuda or "none")
         assert tags["env.python"] == platform.python_version()
-        assert tags[tracking.TAG_SOURCE_TYPE] == "LOCAL" and tags[tracking.TAG_SOURCE_NAME]
-        assert len(tags[tracking.TAG_SOURCE_GIT]) == 40  # the config's checkout, else the code's (this one)
-        assert "Test: pair position error" in tags[tracking.TAG_NOTE]
+        assert tags[TAG_SOURCE_TYPE] == "LOCAL" and tags[TAG_SOURCE_NAME]
+        assert len(tags[TAG_SOURCE_GIT]) == 40  # the config's checkout, else the code's (this one)
+        assert "Test: pair position error" in tags[TAG_NOTE]
         assert all(v != "" for v in tags.values()), {k for k, v in tags.items() if v == ""}
         inputs = {i.tags[0].value: i.dataset for i in run.inputs.dataset_inputs}
         assert set(inputs) == {"train", "val", "test"}
         assert {d.digest for d in inputs.values()} == {tags["dataset_fingerprint"][:36]}
         assert json.loads(inputs["test"].profile)["trajectories"] == 4  # 2 patients x 2 lobes x 1 test trajectory
-    parents = {r.data.tags[tracking.TAG_PARENT] for r in runs}
+    parents = {r.data.tags[TAG_PARENT] for r in runs}
     assert len(parents) == 1
     parent = client.get_run(parents.pop())
     assert parent.data.tags["run_kind"] == "sweep" and parent.data.tags["sweep"] == "compare"

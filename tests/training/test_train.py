@@ -13,10 +13,10 @@ import torch
 from run_metrics import EXPECTED
 from scipy.spatial.transform import Rotation
 
-from bronchocli import tracking
 from bronchocli.cells import ARCHS, ROT_LOSSES
 from bronchocli.config import load_config
 from bronchocli.inference.loading import resolve
+from bronchocli.runs.client import client_for
 from bronchocli.training.network import load_exported
 from bronchocli.training.run import run_cell
 
@@ -36,7 +36,7 @@ def _check_cell(cfg, arch: str, rot_loss: str) -> None:
     cell = cfg.cell(arch=arch, rot_loss=rot_loss, population="personalized")
     result = run_cell(cfg, cell, progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     run = client.get_run(result.run_id)
     assert run.info.status == "FINISHED"
     missing = [m for m in EXPECTED if m not in run.data.metrics]
@@ -60,7 +60,7 @@ def _check_cell(cfg, arch: str, rot_loss: str) -> None:
     files = artifacts(client, result.run_id)
     assert {"config.yaml", "split_manifest.csv", "predictions.csv", "trajectory_errors.csv",
             "trajectories.png"} <= files
-    assert not any(f.startswith("model/") for f in files)  # tracking.model_artifact: none
+    assert not any(f.startswith("model/") for f in files)  # runs.model_artifact: none
     table = pd.read_csv(client.download_artifacts(result.run_id, "predictions.csv"))
     # 2 patients x 2 lobes x 1 test trajectory of 8 frames
     assert len(table) == 2 * 2 * 8 and m["test.n_pairs"] == 2 * 2 * 7
@@ -95,7 +95,7 @@ def test_references_and_per_trajectory_errors_match_an_independent_computation(t
     result = run_cell(tiny_cfg, tiny_cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=1),
                       progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(tiny_cfg)
+    client = client_for(tiny_cfg)
     manifest = pd.read_csv(client.download_artifacts(result.run_id, "split_manifest.csv"), dtype=str)
     csvs = pd.concat([pd.read_csv(p, dtype={"patient": str, "lobe": str, "trajectory": str})
                       for p in sorted((tiny_project / "tiny").glob("p*.csv"))])
@@ -136,7 +136,7 @@ def test_camera_tracking_metrics_of_the_zero_motion_reference_match_the_dataset(
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=2),
                       progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     errors = pd.read_csv(client.download_artifacts(result.run_id, "trajectory_errors.csv"),
                          dtype={"patient": str, "lobe": str, "trajectory": str})
     csvs = pd.concat([pd.read_csv(p, dtype={"patient": str, "lobe": str, "trajectory": str})
@@ -150,11 +150,11 @@ def test_camera_tracking_metrics_of_the_zero_motion_reference_match_the_dataset(
 
 
 def test_the_model_artifact_is_fp16_and_predicts_like_the_trained_network(tiny_cfg):
-    cfg = tiny_cfg.with_values({"tracking.model_artifact": "fp16"})
+    cfg = tiny_cfg.with_values({"runs.model_artifact": "fp16"})
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="ce", population="personalized", seed=3),
                       progress=False)
     assert result.status == "FINISHED", result.failure_reason
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     local = Path(mlflow.artifacts.download_artifacts(resolve(client, result.run_id).location))  # its MLflow Model
     payload = torch.load(local / "data" / "bronchopose" / "weights.pt", weights_only=True)
     assert payload["arch"] == "baseline" and payload["image_size"] == 32

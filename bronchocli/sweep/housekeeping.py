@@ -1,7 +1,7 @@
 """Which checkpoints are still needed, what they cost on disk, and removing the rest (``sweep --gc``);
 zombie runs (left RUNNING by a process that died) repaired (``status --repair``).
 
-A checkpoint folder (``<tracking.checkpoints>/<run_id>/``) is needed while
+A checkpoint folder (``<runs.checkpoints>/<run_id>/``) is needed while
 something may resume its run:
 
 * the run is RUNNING (a live run writes it);
@@ -25,15 +25,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .. import tracking
 from ..config import Config
 from ..errors import BronchoError
-from ..runlayout import REJECTED_SUFFIX
+from ..runs.client import MlflowBusy, client_for
+from ..runs.contract import REJECTED_SUFFIX
+from ..runs.processes import repair_zombie
+from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, search_runs
 from .storage import FAILED, PENDING, RUNNING, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
 # Failures of the machine, not of the run (``failure_reason`` prefixes): a retry resumes their checkpoint.
-RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "TrackingBusy:")
+RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "MlflowBusy:", "TrackingBusy:")  # TrackingBusy: older stores
 
 
 @dataclass(frozen=True)
@@ -88,7 +90,7 @@ def _decide(run: Any, row: CellRow | None, max_retries: int) -> tuple[bool, str]
         return False, f"cell {row.state} for good"
     if run.data.tags.get("sweep_claim"):
         return False, "no longer the run of its sweep cell (taken over)"
-    reason = run.data.tags.get(tracking.TAG_FAILURE, "")
+    reason = run.data.tags.get(TAG_FAILURE, "")
     if status == "KILLED" or reason.startswith(RESUMABLE_FAILURES):
         return True, f"run {status}: `train --resume` continues it"
     return False, f"run {status}: not resumable"
@@ -102,18 +104,18 @@ def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list
     folders = sorted(p for p in root.iterdir() if p.is_dir())
     if not folders:
         return []
-    client = client or tracking.client_for(cfg)
+    client = client or client_for(cfg)
     rows = _rows_by_run(store)
     out = []
     for folder in folders:
         try:
             run = client.get_run(folder.name)
-        except tracking.TrackingBusy:
+        except MlflowBusy:
             raise
         except Exception:  # noqa: BLE001 - MLflow raises its own types for a missing run
             run = None
         needed, why = _decide(run, rows.get(folder.name), cfg.sweep.max_retries)
-        key = run.data.tags.get(tracking.TAG_CELL_KEY) if run is not None else None
+        key = run.data.tags.get(TAG_CELL_KEY) if run is not None else None
         out.append(Checkpoint(folder.name, folder, folder_bytes(folder), needed, why, key,
                               folder_bytes(folder, only_waste=True) if needed else 0))
     return out
@@ -146,7 +148,7 @@ def repair_zombies(cfg: Config, store: SweepStore | None, client: Any = None) ->
     held under the claim it was made with (the worker lost it, or released the cell without closing the
     run): KILLED. Runs alive, or on other hosts and still claimed, are left alone.
     """
-    client = client or tracking.client_for(cfg)
+    client = client or client_for(cfg)
     exp = client.get_experiment_by_name(cfg.experiment_name)
     if exp is None:
         return []
@@ -154,18 +156,18 @@ def repair_zombies(cfg: Config, store: SweepStore | None, client: Any = None) ->
     if store is not None and store.exists():
         claims = {r.token: r for name in store.sweeps() for r in store.rows(name) if r.token and r.state == RUNNING}
     done = []
-    for run in tracking.search_runs(client, [exp.experiment_id], statuses=["RUNNING"]):
+    for run in search_runs(client, [exp.experiment_id], statuses=["RUNNING"]):
         token = run.data.tags.get("sweep_claim")
         if token and token not in claims:
             reason = "its sweep worker no longer holds the cell's claim; marked KILLED by status --repair"
-            client.set_tag(run.info.run_id, tracking.TAG_FAILURE, reason)
+            client.set_tag(run.info.run_id, TAG_FAILURE, reason)
             client.set_terminated(run.info.run_id, "KILLED")
             done.append((run.info.run_id, "KILLED (claim gone)"))
             continue
         if token:  # still claimed: the sweep's heartbeat takeover decides
             continue
         try:
-            if tracking.repair_zombie(client, run, "status --repair"):
+            if repair_zombie(client, run, "status --repair"):
                 done.append((run.info.run_id, "FAILED (its process died)"))
         except BronchoError:  # alive
             continue

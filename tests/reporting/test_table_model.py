@@ -3,8 +3,17 @@
 from __future__ import annotations
 
 from bronchocli.reporting.latex import to_latex
-from bronchocli.reporting.layout import Column, Estimate, Row, Table, cell_texts, column_decimals, marks, missing_cells
 from bronchocli.reporting.markdown import to_markdown
+from bronchocli.reporting.table_model import (
+    Column,
+    Estimate,
+    Row,
+    Table,
+    cell_texts,
+    column_decimals,
+    marks,
+    missing_cells,
+)
 
 
 def _table(values, groups, mk=None, highlight=True) -> Table:

@@ -12,7 +12,7 @@ params, so a run logs as params what tells runs apart, not the whole config:
   explain timing differences).
 
 The full resolved config stays the ``config.yaml`` artifact; the grid, stages,
-storage and tracking settings (the same on every run of a sweep) go on the
+storage and MLflow settings (the same on every run of a sweep) go on the
 sweep's parent run. The coordinates stay tags too: report, status and the
 sweep find runs by tags.
 
@@ -23,27 +23,18 @@ skills, ``ratio.<ref>.<eval>.<m> = error / reference error`` and
 report's skill figures define it. ``ratio.train_mean.pair.pos_l2`` is the
 figure the README quotes. They are logged before the other test metrics.
 
-Parent runs (``parent_run``): one per sweep (``run_kind=sweep``) and one per
-Optuna study (``run_kind=study``), found by tags or created once; cells and
-trials carry ``mlflow.parentRunId`` so the UI nests them.
+Parent runs are in ``parents.py``.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Mapping
-from contextlib import nullcontext
 
-from mlflow.tracking import MlflowClient
+from ..cells import Cell
+from ..config import RUN_SECTIONS, Config
+from .records import flatten
 
-from . import tracking, urls
-from .cells import Cell
-from .config import RUN_SECTIONS, Config
-from .io import file_lock
-
-log = logging.getLogger(__name__)
-KIND_SWEEP, KIND_STUDY = "sweep", "study"
 ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
 PARENT_SECTIONS = ("name", "grid", "stages", "splits", "dataset")  # shown as params on a sweep's parent
 
@@ -65,7 +56,7 @@ def _run_settings(cfg: Config) -> dict[str, str]:
     data = cfg.model_dump(mode="json")
     sig = {k: data[k] for k in RUN_SECTIONS if k != "dataset"}
     sig["data"].pop("cache_dir", None)  # where frames are cached: a path, not a setting of the run
-    return tracking.flatten(sig)
+    return flatten(sig)
 
 
 def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
@@ -81,7 +72,7 @@ def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
 def parent_params(cfg: Config) -> dict[str, str]:
     """A sweep's settings, for its parent run: the grid and stages, shared by every cell."""
     data = cfg.dump()
-    return tracking.flatten({k: data[k] for k in PARENT_SECTIONS if k in data})
+    return flatten({k: data[k] for k in PARENT_SECTIONS if k in data})
 
 
 # -- metrics ------------------------------------------------------------------------------------------
@@ -132,77 +123,6 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
                      f"rotation {h.get('skill.pair.rot_l2', math.nan):.3g}; accumulated position error "
                      f"{metrics.get('acc.pos_l2.mean', math.nan):.4g} vox.")
     return "\n\n".join(lines)
-
-
-# -- parent runs --------------------------------------------------------------------------------------------
-
-
-def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: str,
-               params: Mapping[str, str] | None = None, description: str = "") -> str:
-    """The run id of the parent run of a sweep or study ``name``: found by tags, or created once.
-
-    Creation is serialised where the store allows it (a file lock beside a
-    SQLite store, an advisory lock on PostgreSQL); against an HTTP server two
-    processes starting at the same moment may each create one, and their
-    children then nest under either (harmless for reports, which ignore parents).
-    """
-    tags = {tracking.TAG_KIND: kind, tracking.TAG_SWEEP if kind == KIND_SWEEP else "study": name}
-    if kind == KIND_STUDY:
-        tags[tracking.TAG_SWEEP] = cfg.name
-    found = tracking.search_runs(client, [exp_id], tags, max_results=1)
-    if found:
-        return found[0].info.run_id
-    with _creation_lock(cfg):
-        found = tracking.search_runs(client, [exp_id], tags, max_results=1)
-        if found:
-            return found[0].info.run_id
-        run = client.create_run(exp_id, tags=tracking.non_empty({
-            **tags, "mlflow.runName": f"{kind}-{name}", tracking.TAG_NOTE: description,
-            **tracking.source_tags(cfg), **tracking.python_tags(),
-        }))
-        if params:
-            tracking.log_params(client, run.info.run_id, params)
-        return run.info.run_id
-
-
-def _creation_lock(cfg: Config):
-    uri = cfg.paths.tracking_uri
-    db = urls.sqlite_file(uri)
-    if db is not None:
-        return file_lock(f"{db}.parent.lock")
-    if urls.is_postgres(uri):
-        return tracking.database_lock(uri, cfg.tracking.timeout_s, "tracking.uri", key=PARENT_LOCK_KEY)
-    return nullcontext()
-
-
-PARENT_LOCK_KEY = tracking.MIGRATION_LOCK_KEY + 2  # pg_advisory_lock key of parent-run creation
-
-
-def sweep_parent(client: MlflowClient, cfg: Config, exp_id: str, sweep: str | None = None) -> str:
-    """The parent run of sweep ``sweep`` (default: the config's name), its grid and stages as params."""
-    name = sweep or cfg.name
-    return parent_run(client, cfg, exp_id, KIND_SWEEP, name, parent_params(cfg),
-                      f"Sweep **{name}**: its cells are nested below; the resolved config of each cell is its "
-                      "`config.yaml` artifact, the grid and stages are this run's params.")
-
-
-def study_parent(client: MlflowClient, cfg: Config, exp_id: str, study: str, target: Cell) -> str:
-    """The parent run of an Optuna study: the target cell's coordinates and the search space as params."""
-    space = {f"tune.space.{k}": v.model_dump_json(exclude_none=True) for k, v in cfg.tune.space.items()}
-    params = {**cell_params(target), **space, "tune.sampler": cfg.tune.sampler, "tune.pruner": cfg.tune.pruner}
-    return parent_run(client, cfg, exp_id, KIND_STUDY, study, params,
-                      f"Optuna study **{study}** of cell {target.label}: each trial is a nested run.")
-
-
-def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:
-    """A sweep's or study's parent ends like its command: 0 FINISHED, 130 KILLED, anything else FAILED.
-
-    Best effort: a tracking store gone at the end must not hide the command's own outcome.
-    """
-    try:
-        client.set_terminated(run_id, "FINISHED" if code == 0 else "KILLED" if code == 130 else "FAILED")
-    except Exception as exc:  # noqa: BLE001 - logged; the children carry the results
-        log.warning("could not end parent run %s: %s", run_id, exc)
 
 
 # -- the UI ------------------------------------------------------------------------------------------------

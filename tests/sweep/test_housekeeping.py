@@ -10,8 +10,10 @@ import sys
 
 import pytest
 
-from bronchocli import tracking
-from bronchocli.runlayout import resume_file
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import resume_file
+from bronchocli.runs.processes import TAG_HOST, TAG_PID, TAG_PSTART, process_tags
+from bronchocli.runs.records import cell_tags
 from bronchocli.sweep import SweepStore, prepare
 
 
@@ -24,9 +26,9 @@ def project(make_config):
 
 
 def new_run(cfg, cell, status, ckpt_bytes=1000, **tags):
-    client = tracking.client_for(cfg)
-    run_id = client.create_run(tracking.experiment_id(client, cfg),
-                               tags=tracking.cell_tags(cfg, cell, **tags)).info.run_id
+    client = client_for(cfg)
+    run_id = client.create_run(experiment_id(client, cfg),
+                               tags=cell_tags(cfg, cell, **tags)).info.run_id
     if status != "RUNNING":
         client.set_terminated(run_id, status)
     if ckpt_bytes:
@@ -85,17 +87,17 @@ def dead_pid() -> int:
 def test_status_repair_ends_runs_whose_process_died_or_whose_claim_is_gone(cli, project):
     cfg, store, plan = project
     base, lstm = plan.cells
-    host = tracking.process_tags()[tracking.TAG_HOST]
-    dead = new_run(cfg, base, "RUNNING", 0, **{tracking.TAG_HOST: host, tracking.TAG_PID: str(dead_pid()),
-                                                tracking.TAG_PSTART: "?"})
-    alive = new_run(cfg, base, "RUNNING", 0, **tracking.process_tags())
-    elsewhere = new_run(cfg, base, "RUNNING", 0, **{tracking.TAG_HOST: "another-node", tracking.TAG_PID: "1"})
+    host = process_tags()[TAG_HOST]
+    dead = new_run(cfg, base, "RUNNING", 0, **{TAG_HOST: host, TAG_PID: str(dead_pid()),
+                                                TAG_PSTART: "?"})
+    alive = new_run(cfg, base, "RUNNING", 0, **process_tags())
+    elsewhere = new_run(cfg, base, "RUNNING", 0, **{TAG_HOST: "another-node", TAG_PID: "1"})
     orphan = new_run(cfg, lstm, "RUNNING", 0, sweep_claim="a-lost-claim")
     c = store.claim(cfg.name, [lstm.key], "w1", max_retries=1, stale_after_s=60)
     claimed = new_run(cfg, lstm, "RUNNING", 0, sweep_claim=c.token)
     code, out, err = cli("status", "-c", str(cfg.paths.base / "experiments.yaml"), "--repair")
     assert code == 0, err
-    client = tracking.client_for(cfg)
+    client = client_for(cfg)
     status = {r: client.get_run(r).info.status for r in (dead, alive, elsewhere, orphan, claimed)}
     assert status == {dead: "FAILED", alive: "RUNNING", elsewhere: "RUNNING", orphan: "KILLED", claimed: "RUNNING"}
     assert "ended without closing the run" in client.get_run(dead).data.tags["failure_reason"]
@@ -108,8 +110,8 @@ def test_resuming_a_run_whose_process_is_alive_is_refused_in_one_line(cli, proje
     cfg, store, plan = project
     write_tiny_dataset(cfg.paths.dataset, patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     base = cfg.cell(arch="baseline", rot_loss="mse", population="personalized")
-    run_id = new_run(cfg, base, "RUNNING", 100, **tracking.process_tags())
+    run_id = new_run(cfg, base, "RUNNING", 100, **process_tags())
     code, out, err = cli("train", "-c", str(cfg.paths.base / "experiments.yaml"), "-a", "baseline", "-l", "mse",
                          "-P", "personalized", "--resume", "--run-id", run_id, "-q")
     assert code == 2 and len(err.strip().splitlines()) == 1 and f"process {os.getpid()}" in err, out + err
-    assert tracking.client_for(cfg).get_run(run_id).info.status == "RUNNING"
+    assert client_for(cfg).get_run(run_id).info.status == "RUNNING"

@@ -1,0 +1,165 @@
+"""The plan's shape: the grid of cells, stages that select from earlier ones, and the cell key.
+
+``expand_grid(cfg, patients)`` turns a ``Grid`` into frozen, hashable ``Cell``s whose ``key`` is a hash of
+the cell and of every config section that changes what a run computes (``run_signature``), so the same
+config gives the same key everywhere and a changed config gives new cells.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import re
+from typing import TYPE_CHECKING, Any, Literal, Sequence
+
+from pydantic import Field, field_validator
+
+from ..cells import ARCHS, POPULATIONS, ROT_LOSSES, Arch, Cell, Population, PoseFrame, RotLoss, Seed
+from ..errors import ConfigError
+from .sections import Section, _listify
+
+if TYPE_CHECKING:
+    from .schema import Config
+
+class Grid(Section):
+    arch: list[Arch] = list(ARCHS)
+    rot_loss: list[RotLoss] = list(ROT_LOSSES)
+    population: list[Population] = list(POPULATIONS)
+    folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
+    seed: list[Seed] = [0, 1, 2]
+    pose_frame: list[PoseFrame] = ["world"]
+    train_trajectories: list[int | None] = [None]  # training trajectories per patient and lobe (None: splits.train)
+
+    _wrap = field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "folds", "train_trajectories",
+                            mode="before")(lambda v: v if v == "all" else _listify(v))
+
+    @field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "train_trajectories")
+    @classmethod
+    def _not_empty(cls, v: list) -> list:
+        if not v:
+            raise ValueError("must list at least one value (an empty axis makes an empty grid)")
+        if len(set(map(str, v))) != len(v):
+            raise ValueError("lists a value twice")
+        return v
+
+    @field_validator("train_trajectories")
+    @classmethod
+    def _positive(cls, v: list) -> list:
+        if any(n is not None and n < 1 for n in v):
+            raise ValueError("every value must be >= 1 (or null for splits.train)")
+        return v
+
+
+SELECTABLE = ("arch", "rot_loss", "pose_frame", "train_trajectories")  # what a stage's "combination" can be
+
+
+class Select(Section):
+    """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
+
+    top: int = Field(3, ge=1)
+    by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss> or best_val_loss
+    over: list[Literal["arch", "rot_loss", "pose_frame", "train_trajectories"]] = ["arch", "rot_loss"]
+
+    @field_validator("by")
+    @classmethod
+    def _validation_only(cls, v: str) -> str:
+        if not (v.startswith("val_best.") or v == "best_val_loss"):
+            raise ValueError("must be a validation metric (val_best.pos_l2, val_best.rot_l2, val_best.de, "
+                             "val_best.ce, val_best.loss or best_val_loss): selection never looks at test results")
+        return v
+
+    @field_validator("over")
+    @classmethod
+    def _over(cls, v: list) -> list:
+        if not v or len(set(v)) != len(v):
+            raise ValueError("must list one or more distinct cell fields")
+        return v
+
+
+class Stage(Section):
+    """One step of a staged sweep (the paper's three experiments); docs/sweep.md."""
+
+    name: str
+    grid: dict[str, Any] = {}  # overrides of the top-level grid for this stage
+    select: Select | None = None  # keep the top combinations of ``source`` (their other axes from this grid)
+    source: str | None = None  # the stage ``select`` ranks (default: the previous stage)
+    add: list[dict[str, Any]] = []  # extra combinations, e.g. {arch: offsetnet, rot_loss: mse}
+
+    @field_validator("name")
+    @classmethod
+    def _stage_name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", v):
+            raise ValueError("must start with a letter or digit and use only letters, digits, '_', '-'")
+        return v
+
+    @field_validator("grid")
+    @classmethod
+    def _grid(cls, v: dict[str, Any]) -> dict[str, Any]:
+        unknown = sorted(set(v) - set(Grid.model_fields))
+        if unknown:
+            raise ValueError(f"unknown grid key(s) {unknown} (allowed: {', '.join(Grid.model_fields)})")
+        return v
+
+    @field_validator("add")
+    @classmethod
+    def _add(cls, v: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        for entry in v:
+            unknown = sorted(set(entry) - set(SELECTABLE))
+            if unknown:
+                raise ValueError(f"{entry}: unknown field(s) {unknown} (allowed: {', '.join(SELECTABLE)})")
+        return v
+
+    def stage_grid(self, base: "Grid") -> "Grid":
+        return Grid.model_validate({**base.model_dump(), **self.grid})
+
+
+# Sections that change what a run computes; runs, storage, tune, sweep, slurm and
+# profiles do not, so moving the MLflow store never invalidates finished cells.
+RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
+
+
+# Settings that change how fast a run goes, not what it computes.
+NOT_IN_KEY = (("train", "threads"), ("train", "compile"), ("data", "workers"), ("data", "cache_dir"),
+              ("data", "frames_on_device"))
+
+
+def run_signature(cfg: Config) -> dict[str, Any]:
+    data = cfg.model_dump(mode="json")
+    sig = {k: data[k] for k in RUN_SECTIONS}
+    for section, key in NOT_IN_KEY:
+        sig[section].pop(key, None)
+    return sig
+
+
+def cell_key(cfg: Config, coords: dict[str, Any]) -> str:
+    blob = json.dumps({"cell": coords, "config": run_signature(cfg)}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def expand_grid(cfg: Config, patients: Sequence[str] | None = None, grid: Grid | None = None) -> list[Cell]:
+    """Every cell of ``grid`` (default ``cfg.grid``), in a stable order.
+
+    ``patients`` (the dataset's patient ids) is needed when cross-subject folds
+    are ``all``; listed folds must be among them when it is given.
+    """
+    g = grid or cfg.grid
+    folds: list[str] = []
+    if "cross-subject" in g.population:
+        if g.folds == "all":
+            if patients is None:
+                raise ConfigError("grid.folds: 'all' needs the dataset's patient list (generate or point at a dataset first)")
+            folds = list(patients)
+        else:
+            folds = list(g.folds)
+            unknown = [f for f in folds if patients is not None and f not in patients]
+            if unknown:
+                raise ConfigError(f"grid.folds: {unknown} not in the dataset's patients ({', '.join(patients)})")
+    out = []
+    for population in g.population:
+        for fold in (folds if population == "cross-subject" else [None]):
+            for arch, rot_loss, size, seed, frame in itertools.product(g.arch, g.rot_loss, g.train_trajectories,
+                                                                        g.seed, g.pose_frame):
+                out.append(cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                                    pose_frame=frame, train_trajectories=size))
+    return out

@@ -1,0 +1,197 @@
+"""The whole experiments.yaml: the ``Config`` model, its validation, and what ``tune.space`` may search.
+
+``validate(raw, ...)`` is the one way a config comes to exist (loading, ``with_values``, tuning), so every
+config in the program has passed the same checks and has its paths resolved (``cfg.paths``).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import PrivateAttr, ValidationError, field_validator, model_validator
+
+from .. import cells, urls
+from ..cells import Cell
+from ..errors import ConfigError
+from .grid import Grid, Stage, cell_key
+from .messages import format_errors
+from .paths import Paths
+from .sections import (
+    DataCfg,
+    DatasetCfg,
+    EvalCfg,
+    ModelCfg,
+    RunsCfg,
+    Section,
+    SlurmCfg,
+    Splits,
+    Storage,
+    SweepCfg,
+    Train,
+    Tune,
+)
+
+
+class Config(Section):
+    name: str
+    runs: RunsCfg = RunsCfg()
+    storage: Storage = Storage()
+    dataset: DatasetCfg = DatasetCfg()
+    splits: Splits = Splits()
+    grid: Grid = Grid()
+    stages: list[Stage] = []  # a staged plan (the paper's protocol); empty: run ``grid`` as one stage
+    data: DataCfg = DataCfg()
+    model: ModelCfg = ModelCfg()
+    train: Train = Train()
+    eval: EvalCfg = EvalCfg()
+    tune: Tune = Tune()
+    sweep: SweepCfg = SweepCfg()
+    slurm: SlurmCfg = SlurmCfg()
+    profiles: dict[str, dict[str, Any]] = {}
+
+    _paths: Paths | None = PrivateAttr(default=None)
+    _source: str = PrivateAttr(default="<memory>")
+    _profile: str | None = PrivateAttr(default=None)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", v):
+            raise ValueError("must start with a letter or digit and use only letters, digits, '.', '_', '-'")
+        return v
+
+    @model_validator(mode="after")
+    def _stages(self) -> "Config":
+        names = [st.name for st in self.stages]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"stages: stage name(s) {dupes} used twice")
+        for i, st in enumerate(self.stages):
+            try:
+                st.stage_grid(self.grid)
+            except ValidationError as exc:
+                first = exc.errors()[0]
+                raise ValueError(f"stages[{i}] ({st.name}).grid.{'.'.join(map(str, first['loc']))}: {first['msg']}"
+                                 ) from None
+            if st.source is not None and st.source not in names[:i]:
+                raise ValueError(f"stages[{i}] ({st.name}).source {st.source!r}: must name an earlier stage "
+                                 f"({', '.join(names[:i]) or 'none before it'})")
+            if st.select is not None and i == 0:
+                raise ValueError(f"stages[0] ({st.name}).select: the first stage has no earlier stage to select from")
+        return self
+
+    @property
+    def paths(self) -> Paths:
+        """Every path and URL, resolved against the config file's folder when it was loaded."""
+        if self._paths is None:
+            self._paths = Paths.of(self, Path.cwd())
+        return self._paths
+
+    @property
+    def profile(self) -> str | None:
+        return self._profile
+
+    @property
+    def experiment_name(self) -> str:
+        return self.runs.experiment or self.name
+
+    def cell(self, **coords: Any) -> Cell:
+        """A validated cell of this config, with its key (ConfigError naming the bad field otherwise).
+
+        No ``pose_frame`` (or None): the first of ``grid.pose_frame``, the frame the config's plan trains in.
+        """
+        if coords.get("pose_frame") is None:
+            coords["pose_frame"] = self.grid.pose_frame[0]
+        bare = cells.make(**coords)
+        return bare.model_copy(update={"key": cell_key(self, bare.coords())})
+
+    def dump(self) -> dict[str, Any]:
+        """The resolved config as plain data (profiles dropped: they are already applied)."""
+        data = self.model_dump(mode="json")
+        data.pop("profiles")
+        return data
+
+    def to_yaml(self) -> str:
+        """The config as YAML, every URL password shown as ``***``."""
+        return urls.redact(yaml.safe_dump(self.dump(), sort_keys=False))
+
+    def with_values(self, values: dict[str, Any]) -> "Config":
+        """A validated copy with dotted-path values set, e.g. ``{"train.lr": 1e-3}``."""
+        raw = self.model_dump(mode="json")
+        for key, value in values.items():
+            set_path(raw, key, value, where=f"override {key}")
+        space = any(k == "tune" or k.startswith("tune.space") for k in values)  # else checked when it loaded
+        return validate(raw, self._source, {}, self.paths.base, self._profile, space=space)
+
+
+TUNABLE = ("data", "model", "train", "splits", "dataset")  # the sections ``tune.space`` may search
+
+
+def space_problems(cfg: Config) -> list[str]:
+    """What is wrong with ``tune.space``: each key a settable run setting, each distribution well formed."""
+    problems = []
+    for path, p in cfg.tune.space.items():
+        where = f"tune.space.{path}"
+        if path.split(".")[0] not in TUNABLE:
+            problems.append(f"{where}: only run settings can be tuned ({', '.join(TUNABLE)})")
+            continue
+        if p.type == "categorical" and not p.choices:
+            problems.append(f"{where}: categorical needs a non-empty 'choices' list")
+            continue
+        if p.type != "categorical" and (p.low is None or p.high is None or not p.low < p.high):
+            problems.append(f"{where}: {p.type} needs low < high (got low={p.low}, high={p.high})")
+            continue
+        if p.log and p.type != "categorical" and p.low <= 0:
+            problems.append(f"{where}: log scale needs low > 0 (got {p.low})")
+            continue
+        if p.step is not None and p.step <= 0:
+            problems.append(f"{where}: step must be > 0 (got {p.step})")
+            continue
+        probes = p.choices if p.type == "categorical" else [p.low, p.high]
+        for value in probes:  # every choice (and both ends of a range) must be a valid value of the setting
+            value = int(value) if p.type == "int" else value
+            raw = cfg.model_dump(mode="json")
+            try:
+                set_path(raw, path, value, where=where)
+                validate(raw, cfg._source, {}, cfg.paths.base, cfg._profile, space=False)
+            except ConfigError as exc:
+                last = str(exc).splitlines()[-1].strip().removeprefix("invalid config: ")
+                problems.append(f"{where}: {last.partition(': ')[2] or last}")
+                break
+    return problems
+
+
+# -- loading ------------------------------------------------------------------
+
+def set_path(data: dict[str, Any], dotted: str, value: Any, where: str) -> None:
+    parts = dotted.split(".")
+    node = data
+    for part in parts[:-1]:
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        if not isinstance(child, dict):
+            raise ConfigError(f"{where}: '{part}' in '{dotted}' is a value, not a section")
+        node = child
+    node[parts[-1]] = value
+
+
+def validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Path, profile: str | None,
+              space: bool = True) -> Config:
+    try:
+        cfg = Config.model_validate(raw)
+    except ValidationError as exc:
+        raise ConfigError(format_errors(Config, exc, source, lines)) from None
+    cfg._source, cfg._profile = source, profile
+    cfg._paths = Paths.of(cfg, base)
+    problems = space_problems(cfg) if space else []
+    if problems:  # the same check as `tune`, so `config` never calls a space valid that tune refuses
+        where = next((v for k, v in lines.items() if k[:2] == ("tune", "space")), source)
+        shown = [f"{where}: {p}" for p in problems]
+        raise ConfigError(urls.redact(f"invalid config: {shown[0]}" if len(shown) == 1 else
+                                      "\n".join([f"invalid config ({len(shown)} problems):",
+                                                  *("  " + p for p in shown)])))
+    return cfg

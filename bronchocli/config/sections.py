@@ -1,0 +1,324 @@
+"""The sections of experiments.yaml as frozen, strict pydantic models (unknown keys and coercions refused).
+
+One class per section (``runs``, ``storage``, ``dataset``, ``splits``, ``data``, ``model``, ``train``,
+``eval``, ``tune``, ``sweep``, ``slurm``); the grid and stages are in ``grid.py``, the whole config in
+``schema.py``. Every key is documented in docs/config.md.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from ..cells import LOBES, Lobe, Seed
+
+
+class Section(BaseModel):
+    # strict: no silent coercion (``steps: true`` is not 1, ``lr: "0.1"`` is not 0.1; ints still fill floats);
+    # allow_inf_nan off: ``.inf``/``.nan`` are refused for every float setting.
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+
+# A YAML list for a fixed-length tuple (strict mode alone wants a tuple, which YAML cannot write).
+def _pair(kind: Any, n: int) -> Any:
+    return Annotated[tuple[(kind,) * n], Field(strict=False)]  # type: ignore[misc]
+
+
+def _listify(value: Any) -> Any:
+    """Let a grid axis be written as a scalar (``arch: lstm``) as well as a list."""
+    return [value] if isinstance(value, (str, int, float)) and not isinstance(value, bool) else value
+
+
+class RunsCfg(Section):
+    """MLflow run tracking: where runs, their artifacts and their checkpoints live (config key ``runs``)."""
+
+    uri: str = "sqlite:///runs/mlflow.db"  # any MLflow tracking URI; ${VAR} is expanded
+    experiment: str | None = None  # MLflow experiment name; defaults to the config's name
+    artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
+    checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
+    model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
+    timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for MLflow servers and databases
+    busy_timeout_s: float = Field(60.0, gt=0, le=86400)  # how long a locked/briefly-down database is waited for
+
+
+class Storage(Section):
+    url: str = "sqlite:///runs/sweep.db"  # sweep claims and Optuna studies; ${VAR} is expanded
+
+
+class Realism(Section):
+    texture: bool = True  # procedural mucosa texture on the lumen wall
+    specular: float = Field(0.3, ge=0, le=1)
+    vignetting: bool = True  # spot-light fall-off towards the image border
+    blur: float = Field(0.0, ge=0, le=5)  # Gaussian blur sigma in pixels
+
+
+class Generate(Section):
+    """How ``data generate`` builds a synthetic dataset (also used when ``dataset.root`` is missing)."""
+
+    anatomy: str = "procedural"  # 'procedural' or a path to a .vtu/.vtp/.nii/.nii.gz/.mhd/.nrrd/.stl/.obj file
+    centreline: str | None = None  # centreline graph for a surface-mesh anatomy (computed when absent)
+    patients: int = Field(3, ge=1)  # procedural patients (seeds seed, seed+1, ...)
+    seed: Seed = 0
+    lobes: list[Lobe] = list(LOBES)
+    lobe_generation: int | None = Field(6, ge=2)  # lobe paths end at this generation (paper: 4-6); None: deepest
+    trajectories: int = Field(6, ge=1)  # per patient and lobe
+    image_size: int = Field(64, ge=16, le=1024)
+    fov_deg: float = Field(70.0, gt=10, lt=170)
+    voxel_mm: float = Field(0.5, gt=0)  # world voxel size for procedural anatomies
+    offset_voxels: int = Field(2, ge=0)  # position variations in [-k, k] voxels per axis
+    roll_deg: float = Field(45.0, ge=0, le=180)  # roll variations in [-r, r] ...
+    roll_step_deg: float = Field(15.0, gt=0)  # ... in steps of this
+    look_ahead_mm: float = Field(10.0, gt=0)  # the camera looks at the centreline this far ahead
+    step_mm: _pair(float, 2) = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
+    base_step_mm: float = Field(0.5, gt=0)  # arc-length grid of base points; increments are multiples of it
+    wall_margin_mm: float = Field(0.4, ge=0)  # camera stays this far inside the local lumen radius
+    max_frames: int | None = Field(None, ge=2)  # cap on frames per trajectory
+    realism: Realism = Realism()
+    workers: int = Field(2, ge=1)
+
+    @field_validator("step_mm")
+    @classmethod
+    def _step_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0 < v[0] <= v[1]):
+            raise ValueError("must be [min, max] with 0 < min <= max")
+        return v
+
+    @field_validator("base_step_mm")
+    @classmethod
+    def _base_step(cls, v: float, info: Any) -> float:
+        steps = info.data.get("step_mm")
+        if steps is not None and v > steps[0]:
+            raise ValueError(f"must not exceed step_mm's minimum ({steps[0]}): increments are whole base steps")
+        return v
+
+
+CameraAxis = Literal["x", "y", "z", "-x", "-y", "-z"]
+
+
+class CsvColumns(Section):
+    """Column names of a foreign pose CSV (``dataset.format: csv``)."""
+
+    patient: str | None = "patient"  # None: one patient named after the file
+    lobe: str | None = "lobe"  # None: a single lobe for every row
+    trajectory: str | None = "trajectory"  # None: one trajectory per patient and lobe
+    frame: str | None = "frame"  # None: row order within the trajectory
+    x: str = "x"
+    y: str = "y"
+    z: str = "z"
+    rx: str = "rx"  # the three angle columns, in the order of the axes in dataset.csv.euler
+    ry: str = "ry"  # (e.g. euler ZYX: rx holds the Z angle, rz the X angle)
+    rz: str = "rz"
+    filename: str | None = "filename"  # None: poses only (evaluating trajectories; training needs frames)
+
+
+class CsvImport(Section):
+    files: list[str] = []  # CSV paths or globs, relative to dataset.root; empty: every *.csv in it
+    frames: str = "."  # directory the filename column is relative to (relative to dataset.root)
+    columns: CsvColumns = CsvColumns()
+    angle_units: Literal["deg", "rad"] = "deg"
+    euler: str = "XYZ"  # SciPy convention of the angle columns (e.g. 'xyz' extrinsic, 'ZYX' intrinsic)
+    position_units: Literal["voxel", "mm"] = "voxel"
+    spacing_mm: _pair(float, 3) = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
+    camera_forward: CameraAxis = "x"  # the imported camera's optical axis (OpenCV-style cameras: z)
+    camera_up: CameraAxis = "z"  # its image-up axis (OpenCV-style cameras, y pointing down: -y)
+
+    @model_validator(mode="after")
+    def _camera_axes(self) -> "CsvImport":
+        if self.camera_forward[-1] == self.camera_up[-1]:
+            raise ValueError(f"camera_forward ({self.camera_forward}) and camera_up ({self.camera_up}) must be "
+                             "different axes")
+        return self
+
+    @field_validator("euler")
+    @classmethod
+    def _euler(cls, v: str) -> str:
+        if not re.fullmatch(r"[xyz]{3}|[XYZ]{3}", v) or v[0] == v[1] or v[1] == v[2]:
+            raise ValueError("must be three axes, all upper case (intrinsic) or all lower case (extrinsic), "
+                             "no axis twice in a row, e.g. XYZ, ZYX, xyz")
+        return v
+
+
+class DatasetCfg(Section):
+    root: str = "data/synthetic"
+    format: Literal["bronchopose", "csv"] = "bronchopose"
+    generate: Generate = Generate()
+    csv: CsvImport = CsvImport()
+
+
+class Splits(Section):
+    train: int = Field(15, ge=1)  # personalized: trajectories per patient and lobe
+    val: int = Field(3, ge=1)
+    test: int = Field(3, ge=1)
+    cross_subject_val: int = Field(3, ge=1)  # cross-subject: val trajectories per training patient and lobe
+    seed: Seed = 0
+
+
+
+class DataCfg(Section):
+    image_size: int | None = Field(None, ge=16, le=1024)  # network input; None = the dataset's
+    window: int = Field(10, ge=1)  # L image pairs per training window of temporal models
+    overlap: int = Field(0, ge=0)  # pairs shared by consecutive windows
+    workers: int = Field(0, ge=0)  # frame cache decoding threads (0: one per core, at most 8)
+    cache_dir: str = "runs/cache"  # decoded-frame cache (uint8, memory-mapped)
+    frames_on_device: Literal["auto", "yes", "no"] = "auto"  # CUDA: keep the whole frame cache in GPU memory
+    augment: bool = False  # photometric augmentation of training frames
+
+    @field_validator("overlap")
+    @classmethod
+    def _overlap(cls, v: int, info: Any) -> int:
+        window = info.data.get("window")
+        if window is not None and v >= window:
+            raise ValueError(f"must be smaller than data.window ({window}): consecutive windows share this many pairs")
+        return v
+
+
+class ModelCfg(Section):
+    dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
+    pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
+    channels_last: bool = True
+
+
+class Train(Section):
+    """The training budget and optimiser; docs/training.md explains each choice."""
+
+    steps: int = Field(400, ge=1)  # optimiser steps: the budget, identical for every cell of a sweep
+    batch_size: int = Field(20, ge=1)  # image pairs per micro-batch (temporal models: batch_size / window windows)
+    effective_batch: int | None = Field(None, ge=1)  # image pairs per optimiser step (gradient accumulation)
+    lr: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(0.0, ge=0)  # > 0: AdamW (decoupled), else Adam
+    warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
+    schedule: Literal["cosine", "constant"] = "cosine"  # after the warm-up
+    val_every: int = Field(50, ge=1)  # steps between validations (best weights, early stopping, pruning)
+    patience: int | None = Field(None, ge=1)  # validations without improvement before stopping; None: never
+    min_delta: float = Field(0.0, ge=0)
+    standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
+    bn_recalibrate: int = Field(16, ge=0)  # training batches that re-estimate BatchNorm statistics per validation
+    tbptt_chunks: int = Field(1, ge=1)  # K chunks of L pairs per training sequence
+    rot_weight: float = Field(1.0, ge=0)
+    precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
+    device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
+    # torch.compile the network: false, true (= default) or an inductor mode; reduce-overhead captures the
+    # forward and backward in CUDA graphs (docs/training.md, "GPU"; benchmarks/README.md)
+    compile: bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"] = False
+    max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs (evenly spread, the same every time)
+    threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
+
+    @model_validator(mode="after")
+    def _accumulation(self) -> "Train":
+        if self.effective_batch is not None and self.effective_batch % self.batch_size:
+            raise ValueError(f"effective_batch ({self.effective_batch}) must be a multiple of batch_size "
+                             f"({self.batch_size}): each optimiser step sums whole micro-batches")
+        return self
+
+    @property
+    def pairs_per_step(self) -> int:
+        """Image pairs behind each optimiser step (micro-batch x accumulation)."""
+        return self.effective_batch or self.batch_size
+
+
+class EvalCfg(Section):
+    """Camera-tracking metrics of the test evaluation (odometry.py; docs/reports.md, tracking table)."""
+
+    ctf_position: float = Field(5.0, gt=0)  # voxels: a frame is tracked below this position error ...
+    ctf_position_mm: float = Field(5.0, gt=0)  # ... (ctf_mm: the same in mm, from the dataset's voxel spacing)
+    ctf_angle: float = Field(10.0, gt=0, le=180)  # ... and below this rotation error (degrees, geodesic)
+    rpe_gap: int = Field(10, ge=1)  # frames between the two poses of a relative pose error
+
+
+class TuneParam(Section):
+    type: Literal["float", "int", "categorical"]
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    step: float | None = None
+    choices: list[Any] | None = None
+
+
+class Tune(Section):
+    trials: int = Field(20, ge=1)
+    timeout: float | None = Field(None, gt=0)
+    sampler: Literal["tpe", "random"] = "tpe"
+    seed: Seed = 0
+    pruner: Literal["median", "hyperband", "none"] = "median"
+    warmup_validations: int = Field(1, ge=0)  # validations a trial always runs before it may be pruned
+    startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
+    applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
+    space: dict[str, TuneParam] = {
+        "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
+        "model.dropout": TuneParam(type="float", low=0.0, high=0.5),
+    }
+
+
+class SweepCfg(Section):
+    max_retries: int = Field(1, ge=0)  # automatic re-runs of a FAILED cell (a lost worker counts as a failure)
+    heartbeat_s: float = Field(10.0, gt=0)  # a worker refreshes its claim this often
+    stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
+    poll_s: float = Field(2.0, gt=0)  # an idle worker looks again this often (cells held elsewhere)
+    logs: str = "runs/sweep-logs"  # one log file per worker process
+    launcher: Literal["local", "slurm"] = "local"  # slurm: submit array tasks as workers (slurm section)
+
+    @field_validator("stale_after_s")
+    @classmethod
+    def _stale(cls, v: float, info: Any) -> float:
+        beat = info.data.get("heartbeat_s")
+        if beat is not None and v < 2 * beat:
+            raise ValueError(f"must be at least twice sweep.heartbeat_s ({beat:g}): a live worker must never look stale")
+        return v
+
+
+# sbatch options the Slurm launcher sets itself: ``slurm.additional`` may not override them (docs/cluster.md)
+SLURM_MANAGED = ("array", "job-name", "comment", "output", "error", "open-mode", "signal", "requeue", "no-requeue",
+                 "gres", "gpus-per-task", "cpus-per-task", "mem", "time", "partition", "account", "qos",
+                 "dependency", "parsable", "wrap", "export", "chdir")
+
+
+class SlurmCfg(Section):
+    """``bronchopose sweep --launcher slurm``: every array task is one sweep worker (docs/cluster.md).
+
+    Names follow Hydra's submitit launcher where one exists (timeout_min, cpus_per_task, mem_gb,
+    array_parallelism, setup, additional, signal_delay_s)."""
+
+    partition: str | None = None
+    account: str | None = None
+    qos: str | None = None
+    timeout_min: int = Field(60, ge=1)  # --time of every array task
+    gpus_per_task: int = Field(1, ge=0)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
+    cpus_per_task: int = Field(2, ge=1)  # also the worker's torch threads (train.threads unset)
+    mem_gb: float | None = Field(None, gt=0)  # --mem per task; None: the cluster's DefMemPerCPU
+    tasks: int | None = Field(None, ge=1)  # array tasks (workers) at most per stage; None: one per cell left
+    array_parallelism: int = Field(256, ge=1)  # tasks of one array running at once (--array=0-N%K)
+    signal_delay_s: int = Field(120, ge=1)  # SIGUSR1 this long before the time limit: checkpoint, requeue
+    setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
+    additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
+    python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
+    logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
+    shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
+    exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+
+    @field_validator("partition", "account", "qos")
+    @classmethod
+    def _slurm_name(cls, v: str | None) -> str | None:
+        if v is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._,-]*", v):
+            raise ValueError("must be a Slurm name: letters, digits, '.', '_', '-' (',' separates several)")
+        return v
+
+    @field_validator("setup")
+    @classmethod
+    def _setup(cls, v: list[str]) -> list[str]:
+        if any("\n" in line for line in v):
+            raise ValueError("each entry is one shell line (no newline inside); list several lines instead")
+        return v
+
+    @field_validator("additional")
+    @classmethod
+    def _additional(cls, v: dict[str, Any]) -> dict[str, Any]:
+        for key in v:
+            name = key.replace("_", "-")
+            if not re.fullmatch(r"[a-z][a-z0-9-]*", name):
+                raise ValueError(f"{key!r}: must be an sbatch long option name without dashes, e.g. constraint")
+            if name in SLURM_MANAGED:
+                raise ValueError(f"{key!r}: set by the launcher itself (or by its own slurm key); not allowed here")
+        return v
+

@@ -1,0 +1,78 @@
+"""The one retry loop: call again with exponential backoff while a failure is transient, within a bound.
+
+Every place that waits out something briefly unavailable (a locked SQLite file, a restarting PostgreSQL,
+an MLflow server answering 5xx, a slurmctld that refuses a request) goes through :func:`retry`, so the
+backoff, the bound and the log line are written once. The caller says what counts as transient and what
+to raise when the bound is spent.
+
+``is_transient_db`` is the shared judgement for databases (the claims table and MLflow's store alike).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import TypeVar
+
+from . import urls
+
+T = TypeVar("T")
+log = logging.getLogger(__name__)
+
+# Error texts of a database that is busy or briefly away (SQLite locks; PostgreSQL restarts, failovers,
+# dropped connections, serialisation failures): worth retrying. Anything else fails at once.
+TRANSIENT_DB = ("database is locked", "database table is locked", "database schema is locked", "could not connect",
+                "connection refused", "server closed the connection", "terminating connection",
+                "the database system is", "could not serialize access", "deadlock detected", "connection timed out",
+                "connection reset", "ssl syscall error", "timeout expired", "connection is closed",
+                "too many connections", "remaining connection slots")
+
+
+def is_transient_db(exc: BaseException) -> bool:
+    """True for a busy or briefly unavailable database (the error, or one it was raised from)."""
+    seen, e = 0, exc
+    while e is not None and seen < 6:
+        text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
+        if any(t in text for t in TRANSIENT_DB):
+            return True
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return False
+
+
+def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], what: str,
+          bound_s: float | None = None, attempts: int | None = None,
+          give_up: Callable[[BaseException], BaseException | None] | None = None,
+          first_delay_s: float = 0.05, max_delay_s: float = 2.0, quiet: bool = False) -> T:
+    """``fn()``, called again after a growing pause while it fails with a ``transient`` error.
+
+    Stops after ``bound_s`` seconds or ``attempts`` calls (whichever is given; both: the first reached).
+    Then ``give_up(last error)`` is raised if it returns an exception, else the last error itself.
+    A non-transient error is raised at once. Each retry logs one warning naming ``what`` (unless ``quiet``).
+    """
+    if bound_s is None and attempts is None:
+        raise ValueError("retry needs bound_s or attempts")
+    deadline = None if bound_s is None else time.monotonic() + bound_s
+    delay, calls = first_delay_s, 0
+    while True:
+        calls += 1
+        try:
+            return fn()
+        except Exception as exc:  # noqa: BLE001 - re-raised unless transient and within the bound
+            if not transient(exc):
+                raise
+            left = None if deadline is None else deadline - time.monotonic()
+            if (left is not None and left <= 0) or (attempts is not None and calls >= attempts):
+                replacement = give_up(exc) if give_up is not None else None
+                if replacement is None:
+                    raise
+                raise replacement from None
+            if not quiet:
+                log.warning("%s: %s; retrying", what, urls.redact(_first_line(exc)))  # a URL may hold a password
+            time.sleep(delay if left is None else min(delay, left))
+            delay = min(2 * delay, max_delay_s)
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__

@@ -1,0 +1,92 @@
+"""Parent runs: one per sweep (``run_kind=sweep``) and one per Optuna study (``run_kind=study``).
+
+Found by tags or created once; cells and trials carry ``mlflow.parentRunId`` so the MLflow UI nests them.
+A parent ends like its command (``set_parent_status``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from contextlib import nullcontext
+
+from mlflow.tracking import MlflowClient
+
+from .. import urls
+from ..cells import Cell
+from ..config import Config
+from ..io import file_lock
+from .client import MIGRATION_LOCK_KEY, database_lock
+from .records import TAG_KIND, TAG_NOTE, TAG_SWEEP, log_params, non_empty, python_tags, search_runs, source_tags
+from .views import cell_params, parent_params
+
+log = logging.getLogger(__name__)
+KIND_SWEEP, KIND_STUDY = "sweep", "study"
+
+
+def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: str,
+               params: Mapping[str, str] | None = None, description: str = "") -> str:
+    """The run id of the parent run of a sweep or study ``name``: found by tags, or created once.
+
+    Creation is serialised where the store allows it (a file lock beside a
+    SQLite store, an advisory lock on PostgreSQL); against an HTTP server two
+    processes starting at the same moment may each create one, and their
+    children then nest under either (harmless for reports, which ignore parents).
+    """
+    tags = {TAG_KIND: kind, TAG_SWEEP if kind == KIND_SWEEP else "study": name}
+    if kind == KIND_STUDY:
+        tags[TAG_SWEEP] = cfg.name
+    found = search_runs(client, [exp_id], tags, max_results=1)
+    if found:
+        return found[0].info.run_id
+    with _creation_lock(cfg):
+        found = search_runs(client, [exp_id], tags, max_results=1)
+        if found:
+            return found[0].info.run_id
+        run = client.create_run(exp_id, tags=non_empty({
+            **tags, "mlflow.runName": f"{kind}-{name}", TAG_NOTE: description,
+            **source_tags(cfg), **python_tags(),
+        }))
+        if params:
+            log_params(client, run.info.run_id, params)
+        return run.info.run_id
+
+
+def _creation_lock(cfg: Config):
+    uri = cfg.paths.mlflow_uri
+    db = urls.sqlite_file(uri)
+    if db is not None:
+        return file_lock(f"{db}.parent.lock")
+    if urls.is_postgres(uri):
+        return database_lock(uri, cfg.runs.timeout_s, "runs.uri", key=PARENT_LOCK_KEY)
+    return nullcontext()
+
+
+PARENT_LOCK_KEY = MIGRATION_LOCK_KEY + 2  # pg_advisory_lock key of parent-run creation
+
+
+def sweep_parent(client: MlflowClient, cfg: Config, exp_id: str, sweep: str | None = None) -> str:
+    """The parent run of sweep ``sweep`` (default: the config's name), its grid and stages as params."""
+    name = sweep or cfg.name
+    return parent_run(client, cfg, exp_id, KIND_SWEEP, name, parent_params(cfg),
+                      f"Sweep **{name}**: its cells are nested below; the resolved config of each cell is its "
+                      "`config.yaml` artifact, the grid and stages are this run's params.")
+
+
+def study_parent(client: MlflowClient, cfg: Config, exp_id: str, study: str, target: Cell) -> str:
+    """The parent run of an Optuna study: the target cell's coordinates and the search space as params."""
+    space = {f"tune.space.{k}": v.model_dump_json(exclude_none=True) for k, v in cfg.tune.space.items()}
+    params = {**cell_params(target), **space, "tune.sampler": cfg.tune.sampler, "tune.pruner": cfg.tune.pruner}
+    return parent_run(client, cfg, exp_id, KIND_STUDY, study, params,
+                      f"Optuna study **{study}** of cell {target.label}: each trial is a nested run.")
+
+
+def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:
+    """A sweep's or study's parent ends like its command: 0 FINISHED, 130 KILLED, anything else FAILED.
+
+    Best effort: an MLflow store gone at the end must not hide the command's own outcome.
+    """
+    try:
+        client.set_terminated(run_id, "FINISHED" if code == 0 else "KILLED" if code == 130 else "FAILED")
+    except Exception as exc:  # noqa: BLE001 - logged; the children carry the results
+        log.warning("could not end parent run %s: %s", run_id, exc)

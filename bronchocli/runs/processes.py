@@ -1,0 +1,78 @@
+"""Runs left RUNNING by a process that died: which process runs a run, whether it lives, ending the dead ones."""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+from pathlib import Path
+from typing import Any, Mapping
+
+from mlflow.entities import Run
+
+from ..errors import BronchoError
+from .records import TAG_FAILURE
+
+TAG_HOST, TAG_PID, TAG_PSTART = "process.host", "process.pid", "process.start"
+
+
+def _process_start(pid: int) -> str | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def process_tags() -> dict[str, str]:
+    """Which process runs a run (host, pid, start tick): lets the next process tell a live run from a dead one."""
+    pid = os.getpid()
+    return {TAG_HOST: socket.gethostname(), TAG_PID: str(pid), TAG_PSTART: _process_start(pid) or "?"}
+
+
+def process_alive(tags: Mapping[str, str]) -> bool | None:
+    """Whether the process a run's tags name is alive: True/False on this host, None when it cannot be told."""
+    if tags.get(TAG_HOST) != socket.gethostname() or not str(tags.get(TAG_PID, "")).isdigit():
+        return None
+    pid = int(tags[TAG_PID])
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # another user's live process
+    start = _process_start(pid)
+    want = tags.get(TAG_PSTART)
+    return not (start is not None and want not in (None, "?") and start != want)  # pid reused by another process
+
+
+def repair_zombie(client: Any, run: Run, who: str) -> bool:
+    """End a RUNNING run whose process died (FAILED, with the reason); True when it did.
+
+    A run still alive is refused (one line); one on another host is left alone (the sweep's heartbeat
+    takeover settles those).
+    """
+    if run.info.status != "RUNNING":
+        return False
+    alive = process_alive(run.data.tags)
+    if alive:
+        raise BronchoError(f"run {run.info.run_id} is still running (process {run.data.tags.get(TAG_PID)} on this "
+                           "host); stop it first (Ctrl-C or kill -TERM), then resume")
+    if alive is None:
+        return False
+    reason = (f"process {run.data.tags.get(TAG_HOST)}:{run.data.tags.get(TAG_PID)} ended without closing the run "
+              f"(killed, or the store was unwritable); marked FAILED by {who}")
+    client.set_tag(run.info.run_id, TAG_FAILURE, reason)
+    client.set_terminated(run.info.run_id, "FAILED")
+    logging.getLogger(__name__).warning("run %s: %s", run.info.run_id, reason)
+    return True
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process started (Linux ``/proc``; None elsewhere): the start-up a user waits through."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()
+        start_ticks = int(fields[19])  # field 22 of stat(5), counted after the command name
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return uptime - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None

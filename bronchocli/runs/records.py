@@ -1,0 +1,172 @@
+"""What a run records in MLflow and how runs are found again: tags, params, metrics, search by tags.
+
+One MLflow run per grid cell. Runs are found again by their tags (``cell_key``, ``sweep``, ...), never by
+name. Everything goes through an explicit ``MlflowClient`` (no fluent global state), so one process can
+drive many runs.
+"""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from mlflow.entities import Metric, Param, Run
+from mlflow.tracking import MlflowClient
+
+from .. import __version__, urls
+from ..cells import FIELDS, Cell
+from ..config import Config
+
+# Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
+# Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
+CELL_TAGS = FIELDS
+TAG_CELL_KEY = "cell_key"
+TAG_SWEEP = "sweep"
+TAG_FINGERPRINT = "dataset_fingerprint"
+TAG_GIT = "git_commit"
+TAG_VERSION = "bronchocli_version"
+TAG_FAILURE = "failure_reason"
+TAG_HPARAMS = "hparams_source"  # where hyperparameters came from ("config" or "optuna:<study>#<trial>")
+TAG_KIND = "run_kind"  # "cell" (train/sweep), "trial" (tune), "sweep"/"study" (parents), "selection"
+# MLflow's own fields (the UI shows them: source, commit, description, nesting)
+# MLflow's own fields (the UI shows them: source, commit, description, nesting)
+TAG_NOTE = "mlflow.note.content"
+TAG_PARENT = "mlflow.parentRunId"
+TAG_SOURCE_NAME = "mlflow.source.name"
+TAG_SOURCE_TYPE = "mlflow.source.type"
+TAG_SOURCE_GIT = "mlflow.source.git.commit"
+TAG_SOURCE_BRANCH = "mlflow.source.git.branch"
+# MLflow 3's UI opens an experiment of this kind on its runs table, not on the GenAI overview.
+EXPERIMENT_TAGS = {"mlflow.experimentKind": "custom_model_development"}
+TAG_INIT = "init"  # backbone initialisation: "random", "imagenet:<torchvision file>", "file:<name>#<sha256>"
+
+_PARAM_BATCH = 100  # MLflow's limit of params per log_batch call
+
+
+def _git(args: list[str], cwd: Path | None) -> str:
+    try:
+        out = subprocess.run(["git", *args], cwd=cwd or Path(__file__).parent, capture_output=True, text=True,
+                             timeout=5)
+        return out.stdout.strip() if out.returncode == 0 else ""
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+def git_commit(cwd: Path | None = None) -> str:
+    return _git(["rev-parse", "HEAD"], cwd) or "unknown"
+
+
+def source_name(argv: list[str] | None = None) -> str:
+    """``bronchopose <command>`` when run through the CLI (also in its spawned workers), else the script's name."""
+    argv = sys.argv if argv is None else argv
+    path = Path(argv[0]) if argv and argv[0] else Path("python")
+    prog = path.name
+    if prog == "bronchopose" or path.parent.name == "bronchocli":  # the console script, or python -m bronchocli.cli
+        command = next((a for a in argv[1:] if not a.startswith("-")), "")
+        return f"bronchopose {command}".strip()
+    return prog
+
+
+def source_tags(cfg: Config) -> dict[str, str]:
+    """MLflow's standard source fields; one that cannot be known (no git checkout) is left out, never empty."""
+    tags = {TAG_SOURCE_NAME: source_name(), TAG_SOURCE_TYPE: "LOCAL"}
+    for where in (cfg.paths.base, None):  # the config's checkout, else the code's own (an editable install)
+        commit = git_commit(where)
+        if commit != "unknown":
+            tags[TAG_SOURCE_GIT] = commit
+            branch = _git(["rev-parse", "--abbrev-ref", "HEAD"], where)
+            if branch and branch != "HEAD":
+                tags[TAG_SOURCE_BRANCH] = branch
+            break
+    return tags
+
+
+def python_tags() -> dict[str, str]:
+    """``env.python``; ``env.torch``/``env.cuda`` are logged by training (torch is not imported here)."""
+    return {"env.python": platform.python_version()}
+
+
+def non_empty(tags: Mapping[str, Any]) -> dict[str, str]:
+    """Tags without the unknown ones: a missing tag reads as "" everywhere, an empty one only clutters the UI."""
+    return {k: str(v) for k, v in tags.items() if v is not None and str(v) != ""}
+
+
+def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
+    """A cell run's tags: coordinates, key, sweep, provenance, MLflow's source fields (no empty values)."""
+    tags: dict[str, Any] = cell.tags()
+    tags.update({
+        TAG_CELL_KEY: cell.key,
+        TAG_SWEEP: cfg.name,
+        TAG_GIT: git_commit(cfg.paths.base),
+        TAG_VERSION: __version__,
+        TAG_HPARAMS: cfg.tune.applied or "config",
+        TAG_KIND: "cell",
+        "profile": cfg.profile,
+        "mlflow.runName": cell.label.replace("/", "-"),
+        **source_tags(cfg),
+        **python_tags(),
+    })
+    tags.update(extra)
+    return non_empty(tags)
+
+
+def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
+    """Nested config -> ``{"train.lr": "0.0001", ...}`` (lists as their JSON-ish repr)."""
+    out: dict[str, str] = {}
+    for key, value in data.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, Mapping) and value:
+            out.update(flatten(value, f"{path}."))
+        else:
+            out[path] = str(value)
+    return out
+
+
+def log_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> None:
+    # URL-valued settings may carry a password: never store it in clear.
+    items = [Param(k, urls.redact(v)[:6000]) for k, v in sorted(params.items())]
+    for i in range(0, len(items), _PARAM_BATCH):
+        client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
+
+
+def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
+    now = int(time.time() * 1000)
+    items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
+    for i in range(0, len(items), 1000):
+        client.log_batch(run_id, metrics=items[i : i + 1000])
+
+
+def _quote(value: str) -> str:
+    return "'" + value.replace("'", "\\'") + "'"
+
+
+def search_runs(
+    client: MlflowClient,
+    experiment_ids: Iterable[str],
+    tags: Mapping[str, str] | None = None,
+    statuses: Iterable[str] | None = None,
+    max_results: int = 50000,
+) -> list[Run]:
+    """Runs matching every tag (exact) and one of the statuses, newest first, in as few queries as possible."""
+    clauses = [f"tags.{k} = {_quote(str(v))}" for k, v in (tags or {}).items()]
+    statuses = list(statuses or [])
+    if len(statuses) == 1:
+        clauses.append(f"attributes.status = {_quote(statuses[0])}")
+    runs: list[Run] = []
+    token = None
+    while True:
+        page = client.search_runs(
+            list(experiment_ids), " and ".join(clauses), max_results=min(max_results, 50000),
+            order_by=["attributes.start_time DESC"], page_token=token,
+        )
+        runs.extend(page)
+        token = page.token
+        if not token or len(runs) >= max_results:
+            break
+    if len(statuses) > 1:
+        runs = [r for r in runs if r.info.status in statuses]
+    return runs
