@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from tinydata import write_tiny_dataset
 
-from bronchocli import config
+from bronchocli import cells
 from bronchocli.config import Splits
 from bronchocli.data.reader import open_dataset_dir
 from bronchocli.data.splits import POPULATIONS, limit_train, make_split, personalized_counts, read_manifest
@@ -37,7 +37,7 @@ def per_group(trajs) -> Counter:
 
 
 def test_registry_matches_the_config_names():
-    assert tuple(POPULATIONS) == config.POPULATIONS == ("personalized", "cross-subject")
+    assert tuple(POPULATIONS) == cells.POPULATIONS == ("personalized", "cross-subject")
 
 
 @pytest.mark.parametrize("counts", [(4, 1, 1), (2, 2, 1), (1, 1, 1)])

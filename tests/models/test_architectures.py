@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from bronchocli.config import ARCHS
+from bronchocli.cells import ARCHS
 from bronchocli.errors import BronchoError
 from bronchocli.metrics import pose_loss
 from bronchocli.models import (
