@@ -23,7 +23,7 @@ def example_block(repo) -> str:
 
 def test_the_documented_example_runs_against_a_tiny_run(repo, tiny_run, capsys):
     key = tiny_run.test_keys()[0]
-    namespace = {"RUN_ID": tiny_run.run_id, "TRACKING_URI": tiny_run.cfg.paths.mlflow_uri,
+    namespace = {"RUN_ID": tiny_run.run_id, "MLFLOW_URI": tiny_run.cfg.paths.mlflow_uri,
                  "TRAJECTORY": str(tiny_run.dataset.joinpath(*key.split("/")))}
     exec(compile(example_block(repo), DOC, "exec"), namespace)
     assert "per-pair position error" in capsys.readouterr().out
