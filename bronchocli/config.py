@@ -30,8 +30,8 @@ from typing import Annotated, Any, Literal, Sequence
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
-from . import cells, urls
-from .cells import ARCHS, LOBES, POPULATIONS, ROT_LOSSES, Arch, Cell, Lobe, Population, PoseFrame, RotLoss, Seed
+from . import cells, registry, urls
+from .cells import LOBES, POPULATIONS, ROT_LOSSES, ArchName, Cell, Lobe, Population, PoseFrame, RotLoss, Seed
 from .errors import ConfigError
 
 DEFAULT_CONFIG = "experiments.yaml"
@@ -176,7 +176,7 @@ class Splits(Section):
 
 
 class Grid(Section):
-    arch: list[Arch] = list(ARCHS)
+    arch: list[ArchName] = Field(default_factory=lambda: list(registry.arch_names()))  # every one registered
     rot_loss: list[RotLoss] = list(ROT_LOSSES)
     population: list[Population] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients

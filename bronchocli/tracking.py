@@ -39,7 +39,7 @@ from sqlalchemy.pool import NullPool, Pool
 from . import __version__, extras, urls
 from .cells import FIELDS, Cell
 from .config import Config
-from .errors import BronchoError
+from .errors import BronchoError, TrackingBusy  # TrackingBusy: a resumable kind, defined with the others
 from .io import file_lock
 
 # Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
@@ -73,10 +73,6 @@ _probed: set[str] = set()  # tracking servers found answering by this process
 
 class TrackingUnreachable(BronchoError):
     """The tracking server or database did not answer within ``tracking.timeout_s``."""
-
-
-class TrackingBusy(BronchoError):
-    """The tracking database stayed locked or unavailable for longer than ``tracking.busy_timeout_s``."""
 
 
 # -- busy databases: bounded retry with backoff ------------------------------------------------------------------

@@ -35,15 +35,13 @@ from typing import Any
 from .. import runview, tracking
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError
+from ..errors import BronchoError, resumable
 from ..runlayout import RunInterrupted, checkpoint_dir, failure_reason, resume_file
-from .checkpoints import RESUMABLE_FAILURES
 from .placement import pin_env
-from .storage import CellRow, Claim, StorageError, SweepStore
+from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
 
-TAG_CLAIM = "sweep_claim"  # the claim token the run was made under (finds orphans of a lost worker)
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
 EXIT_OK, EXIT_INTERRUPTED = 0, 130
@@ -360,7 +358,7 @@ class Worker:
         """The cell's last run, resumed when its checkpoint is on this machine and it ended resumably.
 
         Resumable: KILLED (given back by Ctrl-C/SIGTERM), FAILED by the machine (disk full, busy
-        database; ``RESUMABLE_FAILURES``), or left RUNNING by a worker that released the cell without
+        database; ``errors.resumable``), or left RUNNING by a worker that released the cell without
         being able to close its run (the busy database again): that zombie is marked KILLED first.
         """
         if not run_id or not resume_file(self.cfg, run_id).is_file():
@@ -376,7 +374,7 @@ class Worker:
         except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
             return None
         reason = run.data.tags.get(tracking.TAG_FAILURE, "")
-        ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and reason.startswith(RESUMABLE_FAILURES))
+        ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and resumable(reason))
         return run_id if ok else None
 
     def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:
