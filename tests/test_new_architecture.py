@@ -13,7 +13,7 @@ from torch import nn
 from bronchocli import registry
 from bronchocli.cells import parse_only, select
 from bronchocli.config import Config, expand_grid
-from bronchocli.errors import ConfigError
+from bronchocli.errors import BronchoError, ConfigError
 from bronchocli.models import build_model
 from bronchocli.models import profile as profiling
 from bronchocli.registry import ArchSpec
@@ -83,3 +83,12 @@ def test_the_toy_is_a_row_of_the_report_tables(toy):
     a = ablation(ctx, "accumulated")
     rows = [r for r in a.rows if r.kind == "model"]
     assert [r.label for r in rows] == ["+LSTM", "+Toy"] and rows[1].values[0] == pytest.approx(42e-6)
+
+
+@pytest.mark.parametrize("name, message", [("lstm", "registered already"), ("all", "must be lower case"),
+                                           ("Toy-1", "must be lower case"), ("", "must be lower case")])
+def test_a_taken_or_unusable_name_is_refused(monkeypatch, name, message):
+    monkeypatch.setattr(registry, "_ARCHS", dict(registry._ARCHS))
+    with pytest.raises(BronchoError, match=message):
+        registry.register(ArchSpec(name, ToyNet, label="x", model_name="x"))
+    assert registry.arch_names() == ("baseline", "lstm", "convlstm", "conv3d", "offsetnet")
