@@ -38,8 +38,8 @@ import torch
 from engine_bench import bare_step_rate, engine_rate
 from PIL import Image
 
-from bronchocli.cells import ARCHS
 from bronchocli.models.profile import count_macs, random_frames
+from bronchocli.registry import arch_names
 
 HERE = Path(__file__).resolve().parent
 
@@ -175,7 +175,7 @@ def startup_seconds(device: str) -> tuple[float, float]:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--archs", nargs="+", default=list(ARCHS))
+    ap.add_argument("--archs", nargs="+", default=list(arch_names()))
     ap.add_argument("--sizes", nargs="+", type=int, default=[128, 256])
     ap.add_argument("--batch", type=int, default=80, help="image pairs per step (temporal: 8 windows of 10)")
     ap.add_argument("--steps", type=int, default=300, help="engine optimiser steps per measurement")

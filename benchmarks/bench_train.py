@@ -27,10 +27,10 @@ from pathlib import Path
 import torch
 from engine_bench import bare_step_rate, engine_rate
 
-from bronchocli.cells import ARCHS
 from bronchocli.config import load_config
 from bronchocli.generation import ensure_dataset
 from bronchocli.models import build_model
+from bronchocli.registry import arch_names
 from bronchocli.training.run import run_cell
 
 
@@ -83,7 +83,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=40, help="engine optimiser steps per measurement")
     parser.add_argument("--val-every", type=int, default=50)
     parser.add_argument("--run-steps", type=int, default=150, help="steps of each whole run")
-    parser.add_argument("--archs", nargs="+", default=list(ARCHS))
+    parser.add_argument("--archs", nargs="+", default=list(arch_names()))
     parser.add_argument("--skip-run", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)

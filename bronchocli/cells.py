@@ -12,17 +12,33 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
+from . import registry
 from .errors import ConfigError
 
-Arch = Literal["baseline", "lstm", "convlstm", "conv3d", "offsetnet"]
-RotLoss = Literal["mse", "de", "ce"]
+
+def _registered_arch(value: Any) -> Any:
+    """An architecture registered now (registry.py), refused in the words pydantic uses for a Literal."""
+    names = registry.arch_names()
+    if value not in names:
+        shown = [repr(n) for n in names]
+        raise PydanticCustomError("literal_error", "Input should be {expected}",
+                                  {"expected": f"{', '.join(shown[:-1])} or {shown[-1]}" if len(shown) > 1
+                                   else "".join(shown)})
+    return value
+
+
+# A cell's architecture: any name registered in registry.py when the value is checked.
+ArchName = Annotated[str, BeforeValidator(_registered_arch)]
+# The same as a Literal, for the CLI's --arch choices (--help lists them, the shell completes them).
+Arch = Literal[registry.arch_names()]  # type: ignore[valid-type]
+RotLoss = Literal[tuple(s.name for s in registry.ROT_LOSSES)]  # type: ignore[misc]
 Population = Literal["personalized", "cross-subject"]
 PoseFrame = Literal["world", "camera"]
 Lobe = Literal["ur", "br", "ul", "bl"]
 
-ARCHS: tuple[str, ...] = get_args(Arch)
 ROT_LOSSES: tuple[str, ...] = get_args(RotLoss)
 POPULATIONS: tuple[str, ...] = get_args(Population)
 POSE_FRAMES: tuple[str, ...] = get_args(PoseFrame)
@@ -41,7 +57,7 @@ class Cell(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    arch: Arch
+    arch: ArchName
     rot_loss: RotLoss
     population: Population
     fold: str | None = None  # held-out patient (cross-subject only)
@@ -80,15 +96,18 @@ class Cell(BaseModel):
         return make(**raw, key=tags.get(key_tag, "") or "")
 
 
-CHOICES: dict[str, tuple[str, ...]] = {"arch": ARCHS, "rot_loss": ROT_LOSSES, "population": POPULATIONS,
-                                       "pose_frame": POSE_FRAMES}
+def choices() -> dict[str, tuple[str, ...]]:
+    """The allowed values of each field that has a fixed set (architectures: those registered now)."""
+    return {"arch": registry.arch_names(), "rot_loss": ROT_LOSSES, "population": POPULATIONS,
+            "pose_frame": POSE_FRAMES}
 
 
 def _problem(error: dict[str, Any]) -> str:
     field = ".".join(str(p) for p in error["loc"]) or "cell"
     value = error.get("input")
-    if error["type"] == "literal_error" and field in CHOICES:
-        return f"{field} {value!r}: must be one of {', '.join(CHOICES[field])}"
+    allowed = choices()
+    if error["type"] == "literal_error" and field in allowed:
+        return f"{field} {value!r}: must be one of {', '.join(allowed[field])}"
     msg = error["msg"].removeprefix("Value error, ")
     if error["type"] == "value_error":
         return msg
@@ -146,8 +165,9 @@ def parse_only(specs: Iterable[str] | None) -> Selection:
 
 
 def _check_value(key: str, value: str, part: str) -> None:
-    if key in CHOICES and value not in CHOICES[key]:
-        raise ConfigError(f"--only {part!r}: {key} {value!r} must be one of {', '.join(CHOICES[key])}")
+    allowed = choices()
+    if key in allowed and value not in allowed[key]:
+        raise ConfigError(f"--only {part!r}: {key} {value!r} must be one of {', '.join(allowed[key])}")
     if key in ("seed", "train_trajectories"):
         _int(value, key)
 

@@ -1,4 +1,15 @@
-"""User-facing errors: the CLI prints their message (no traceback) and exits with code 2."""
+"""User-facing errors: the CLI prints their message (no traceback) and exits with code 2.
+
+Which failures a run can be resumed from is said here, once: a kind with
+``resumable = True`` is a failure of the machine (a full disk, a busy
+database), not of the run, so a FAILED run keeps its checkpoint and a retry
+(the sweep's, or ``train --resume``) continues it. :func:`resumable` answers
+for a live exception and for the ``failure_reason`` recorded for one
+(``Type: message``, runs.contract.failure_reason), so the run that fails and the
+sweep that reads its reason later ask the same classes. Resumable kinds are
+defined in this module only (tests/test_errors.py), so a process that reads
+reasons (``sweep --gc``, ``status``) knows them all without importing torch.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +18,7 @@ class BronchoError(Exception):
     """A problem with the user's input (file, flag, config value) that they can fix."""
 
     exit_code = 2
+    resumable = False  # a failure of the machine, not of the run: keep the checkpoint, a retry resumes it
 
 
 class ConfigError(BronchoError):
@@ -21,3 +33,37 @@ class Interrupted(BronchoError):
     """Ctrl-C stopped a command cleanly; the message says how to continue (exit code 130)."""
 
     exit_code = 130
+
+
+class WriteFailed(BronchoError):
+    """A file of the run (artifact, store, checkpoint) could not be written: disk full, I/O error, read-only."""
+
+    resumable = True
+
+
+class CheckpointWriteError(WriteFailed):
+    """A checkpoint could not be written (disk full, I/O error); nothing half-written is left."""
+
+
+class MlflowBusy(BronchoError):
+    """The MLflow database stayed locked or unavailable for longer than ``runs.busy_timeout_s``."""
+
+    resumable = True
+
+
+# Kinds renamed since: a failure_reason recorded under the old name is still read as the new kind.
+RENAMED_KINDS = {"TrackingBusy": MlflowBusy}
+
+
+def _kinds(cls: type[BaseException]) -> list[type[BaseException]]:
+    return [cls] + [k for sub in cls.__subclasses__() for k in _kinds(sub)]
+
+
+def resumable(failure: BaseException | str) -> bool:
+    """Whether a failure (an exception, or the ``failure_reason`` recorded for one) can be resumed."""
+    if isinstance(failure, BaseException):
+        return bool(getattr(failure, "resumable", False))
+    kind, sep, _ = failure.partition(":")
+    if kind in RENAMED_KINDS:
+        return bool(sep) and RENAMED_KINDS[kind].resumable
+    return bool(sep) and any(k.__name__ == kind and getattr(k, "resumable", False) for k in _kinds(BronchoError))

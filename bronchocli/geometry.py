@@ -226,9 +226,3 @@ def roll_about_forward(R, roll_deg):
         roll = xp.as_tensor(roll_deg, dtype=R.dtype, device=R.device)
     zeros = xp.zeros_like(roll)
     return R @ euler_to_matrix(xp.stack([roll, zeros, zeros], -1))
-
-
-def pose_from_matrix(position, R):
-    """Position ``(..., 3)`` and rotation ``(..., 3, 3)`` -> pose 6-vector ``(..., 6)``."""
-    position = _as_array(position)
-    return _xp(position).concatenate([position, matrix_to_euler(R)], -1)

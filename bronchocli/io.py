@@ -5,7 +5,8 @@ a unique temporary name in the target's own directory, then moved into place
 with ``os.replace``, so a reader (or a crash) never sees half a file.
 :func:`file_lock` serialises first-time set-up between processes of one
 machine (building a frame cache, generating a dataset, creating a SQLite
-store's tables).
+store's tables). :func:`folder_bytes` and :func:`fmt_bytes` size and print
+what lies on disk (``status``, ``sweep --gc``, a checkpoint's space check).
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from __future__ import annotations
 import json
 import os
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -68,6 +69,33 @@ def remove_stale_temps(folder: Path) -> int:
             p.unlink(missing_ok=True)
             n += 1
     return n
+
+
+def folder_bytes(folder: str | os.PathLike, only: Callable[[str], bool] | None = None) -> int:
+    """Bytes of the files under ``folder`` (links not followed; 0 when it does not exist); ``only``: count the
+    files whose name it accepts."""
+    total = 0
+    for dirpath, _, files in os.walk(folder):
+        for name in files:
+            if only is not None and not only(name):
+                continue
+            try:
+                total += os.lstat(os.path.join(dirpath, name)).st_size
+            except OSError:  # removed while we walked
+                pass
+    return total
+
+
+def fmt_bytes(n: float | None) -> str:
+    """``1.5 KB``, ``2.5 MB``: decimal units (1 KB = 1000 B, as disk sizes are sold and ``df -H`` prints them);
+    None (nothing there) is ``none``."""
+    if n is None:
+        return "none"
+    for unit in ("B", "KB", "MB", "GB"):
+        if abs(n) < 1000:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"
 
 
 @contextmanager

@@ -36,7 +36,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 import torch
 
-from . import geometry
+from . import geometry, registry
 
 _LOSS_CLAMP = 1e-6  # keeps arccos' gradient finite when used as a loss
 
@@ -114,11 +114,9 @@ UNITS: dict[str, str] = {
     "geodesic": "degrees",
 }
 
-# The three rotation losses of the paper, chosen by name from experiments.yaml.
+# The rotation losses by name (registry.ROT_LOSSES names them and the function of this module for each).
 ROT_LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
-    "mse": rot_mse,
-    "de": direction_error,
-    "ce": cosine_error,
+    spec.name: globals()[spec.function] for spec in registry.ROT_LOSSES
 }
 
 

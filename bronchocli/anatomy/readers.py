@@ -41,9 +41,6 @@ from .skeleton import graph_from_mask, largest_component
 from .surface import clean_surface, polish, surface_from_mask
 
 GRAPH_EXTS = (".vtu", ".vtp")
-VOLUME_EXTS = (".nii", ".nii.gz", ".mhd", ".nrrd")
-MESH_EXTS = (".stl", ".obj", ".vtp")
-ALLOWED_EXTS = (".vtu", ".vtp", ".nii", ".nii.gz", ".mhd", ".nrrd", ".stl", ".obj")
 SKELETON_SMOOTH_MM = 1.0  # skeleton centrelines step between voxels: smooth their points this much
 RADIUS_NAMES = ("radius", "radii", "maximuminscribedsphereradius")  # lower case; VMTK uses the last
 
@@ -340,6 +337,7 @@ READERS: dict[str, Callable[[Path, float, object], AirwayTree]] = {
     ".stl": _from_mesh,
     ".obj": _from_mesh,
 }
+ALLOWED_EXTS = tuple(READERS)  # what read_anatomy_file accepts: a new reader is one entry above
 
 
 def save_centreline(tree: AirwayTree, path: str | Path) -> Path:

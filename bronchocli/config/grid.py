@@ -15,7 +15,8 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 from pydantic import Field, field_validator
 
-from ..cells import ARCHS, POPULATIONS, ROT_LOSSES, Arch, Cell, Population, PoseFrame, RotLoss, Seed
+from .. import registry
+from ..cells import POPULATIONS, ROT_LOSSES, ArchName, Cell, Population, PoseFrame, RotLoss, Seed
 from ..errors import ConfigError
 from .sections import Section, _listify
 
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
     from .schema import Config
 
 class Grid(Section):
-    arch: list[Arch] = list(ARCHS)
+    arch: list[ArchName] = Field(default_factory=lambda: list(registry.arch_names()))  # every one registered
     rot_loss: list[RotLoss] = list(ROT_LOSSES)
     population: list[Population] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients

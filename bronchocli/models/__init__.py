@@ -2,43 +2,54 @@
 
 ``build_model(name, image_size=..., dropout=..., pretrained=...)`` is the one
 entry point (``pretrained``: None = random, ``"imagenet"`` = torchvision's weights via
-PyTorch's hub cache, or a local file; see ``pretrained.py``); ``ARCHITECTURES`` is the name -> builder dict it reads (keys are
-``config.ARCHS``). Every model maps frames ``[B, T, 3, H, W]`` to relative poses
-``[B, T-1, 6]`` and accepts/returns a recurrent state (see ``base.PoseNet``).
-docs/models.md describes the layers, parameter counts and the choices made.
+PyTorch's hub cache, or a local file; see ``pretrained.py``). The names and
+where each model class lives are in ``bronchocli/registry.py``;
+``ARCHITECTURES`` is the name -> model class mapping read from it (live: an
+architecture registered later is in it too). Every model maps frames
+``[B, T, 3, H, W]`` to relative poses ``[B, T-1, 6]`` and accepts/returns a
+recurrent state (see ``base.PoseNet``). docs/models.md describes the layers,
+parameter counts and the choices made.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 
+from .. import registry
 from .backbones import n_params
 from .base import ModelError, PoseNet, State, detach_state
-from .baseline import BaselineNet
-from .conv3d import Conv3dNet
-from .convlstm import ConvLSTMNet
-from .lstm import LSTMNet
-from .offsetnet import OffsetNet
 from .pretrained import IMAGENET, describe, ensure_weights, load_pretrained
 
-ARCHITECTURES: dict[str, Callable[..., PoseNet]] = {
-    "baseline": BaselineNet,
-    "lstm": LSTMNet,
-    "convlstm": ConvLSTMNet,
-    "conv3d": Conv3dNet,
-    "offsetnet": OffsetNet,
-}
 
-# The paper's parameter counts at 256x256, in millions, to the digits it reports.
-PAPER_PARAMS_M: dict[str, str] = {
-    "baseline": "13.967",
-    "lstm": "14.164",
-    "convlstm": "14.142",
-    "conv3d": "13.983",
-    "offsetnet": "43.6",
-}
+@functools.cache
+def _resolve(path: str) -> Callable[..., PoseNet]:
+    """``"package.module:attr"`` -> the attribute (imported on first use: the registry cannot import torch)."""
+    module, _, attr = path.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+class _Architectures(Mapping[str, Callable[..., PoseNet]]):
+    """name -> model class (builder) of every registered architecture, in registration order."""
+
+    def __getitem__(self, name: str) -> Callable[..., PoseNet]:
+        builder = registry.arch(name).builder
+        return _resolve(builder) if isinstance(builder, str) else builder
+
+    def __contains__(self, name: object) -> bool:
+        return name in registry.arch_names()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(registry.arch_names())
+
+    def __len__(self) -> int:
+        return len(registry.arch_names())
+
+
+ARCHITECTURES: Mapping[str, Callable[..., PoseNet]] = _Architectures()
 
 MIN_IMAGE_SIZE, MAX_IMAGE_SIZE = 16, 1024  # what runs; 64-512 is the tested, documented range
 
@@ -58,6 +69,7 @@ def build_model(
     if not 0.0 <= dropout < 1.0:
         raise ModelError(f"dropout {dropout!r} is not in [0, 1)")
     model = ARCHITECTURES[name](image_size=image_size, dropout=dropout)
+    model.name = name
     if pretrained is not None:
         load_pretrained(model, os.fspath(pretrained))
     return model
@@ -80,7 +92,6 @@ def initialisation(pretrained: str | Path | None, archs: Sequence[str]) -> dict[
 __all__ = [
     "ARCHITECTURES",
     "IMAGENET",
-    "PAPER_PARAMS_M",
     "ModelError",
     "PoseNet",
     "State",

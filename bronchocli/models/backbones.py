@@ -23,14 +23,9 @@ layer for layer as in torchvision (``efficientnet.py``, ``resnet.py``,
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-
-EFFICIENTNET_B0_FEATURE_PARAMS = 4_007_548
-RESNET34_PARAMS = 21_797_672
 
 # torchvision's efficientnet_b0 stages: (expand ratio, kernel, stride, in, out, layers).
 _B0_STAGES = (
@@ -301,13 +296,6 @@ class InvertedResidual(nn.Module):
         else:
             out = torch.cat((self.branch1(x), self.branch2(x)), dim=1)
         return channel_shuffle(out, 2)
-
-
-# name -> builder, for the pretrained loader and the key-compatibility tests.
-BACKBONES: dict[str, Callable[[], nn.Module]] = {
-    "efficientnet_b0": EfficientNetB0Features,
-    "resnet34": ResNet34,
-}
 
 
 def n_params(module: nn.Module) -> int:

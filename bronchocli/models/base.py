@@ -56,7 +56,7 @@ def pool_to(x: Tensor, size: tuple[int, int]) -> Tensor:
 class PoseNet(nn.Module):
     """Base class: pair features from two backbones, channels-last handling, input checks."""
 
-    name: ClassVar[str] = ""
+    name: str = ""  # the registered architecture name (registry.py), set by models.build_model
     recurrent: ClassVar[bool] = False
     temporal: ClassVar[bool] = False
     backbone_kind: ClassVar[str] = "efficientnet_b0"  # what a ``pretrained`` file must hold

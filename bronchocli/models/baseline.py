@@ -16,7 +16,6 @@ GRID = (2, 2)  # the map after the two stride-2 blocks at 256x256 input
 
 
 class BaselineNet(EfficientPairNet):
-    name = "baseline"
     recurrent = False
     temporal = False
 

@@ -24,7 +24,6 @@ def _block3d(padding: tuple[int, int, int]) -> nn.Sequential:
 
 
 class Conv3dNet(EfficientPairNet):
-    name = "conv3d"
     recurrent = False
     temporal = True
 

@@ -39,7 +39,6 @@ class ConvLSTMCell(nn.Module):
 
 
 class ConvLSTMNet(EfficientPairNet):
-    name = "convlstm"
     recurrent = True
     temporal = True
 

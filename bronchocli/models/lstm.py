@@ -17,7 +17,6 @@ GRID = (2, 2)
 
 
 class LSTMNet(EfficientPairNet):
-    name = "lstm"
     recurrent = True
     temporal = True
 

@@ -14,7 +14,6 @@ from .base import PoseNet, State
 
 
 class OffsetNet(PoseNet):
-    name = "offsetnet"
     recurrent = False
     temporal = False
     backbone_kind = "resnet34"

@@ -264,11 +264,6 @@ def arch_names(names: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(names))
 
 
-def profile_archs(names: Sequence[str], **kwargs: Any) -> list[dict[str, Any]]:
-    """``profile_arch`` for each name (``all`` = every architecture), in order."""
-    return [profile_arch(n, **kwargs) for n in arch_names(names)]
-
-
 # (result key, short column title, format); the caption says what the short titles mean.
 COLUMNS = (
     ("arch", "arch", "{}"),

@@ -35,9 +35,7 @@ from .stats import Key, Sample
 
 EVALS = ("accumulated", "pair")  # what --eval chooses; "trajectory" is the tracking table's own scope
 SCOPE = {"accumulated": "acc", "pair": "pair", "trajectory": "traj"}
-PREFIX = SCOPE
 COUNT = {"accumulated": "test.n_trajectories", "pair": "test.n_pairs", "trajectory": "test.n_trajectories"}
-NOUN = {"accumulated": "test trajectories", "pair": "test image pairs", "trajectory": "test trajectories"}
 KEY = ["patient", "lobe", "trajectory"]
 REFERENCES = {"zero_motion": "Zero motion", "train_mean": "Training mean"}
 ERRORS_CSV = "trajectory_errors.csv"

@@ -15,15 +15,14 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
+from .. import registry
 from ..runs.records import TAG_INIT
-from .aggregate import NOUN, Frames
+from .aggregate import Frames
 from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key, stop_reasons
 from .judge import Line, Settings
 from .table_model import Row, Table, missing_cells
 
-ARCH_GROUPS = {"baseline": "Baseline", "lstm": "+LSTM", "conv3d": "+3D", "convlstm": "+ConvRNN"}
-ARCH_NAMES = {**ARCH_GROUPS, "offsetnet": "OffsetNet"}
-LOSSES = {"mse": "MSE+MSE", "de": "MSE+DE", "ce": "MSE+CE"}
+LOSSES = {s.name: s.label for s in registry.ROT_LOSSES}  # rotation loss -> its label, in the paper's order
 METRICS = {"pos_l2": ("Position L2", "vox"), "rot_l2": ("Rotation L2", "°"), "de": ("DE", "rad"), "ce": ("CE", "")}
 SKILL_METRICS = ("pos_l2", "rot_l2")
 BRONCHOTRACK = ("convlstm", "ce")  # the paper's BronchoTrack, when no sota stage selected one
@@ -37,6 +36,18 @@ EVAL_TEXT = {
     "trajectory": "Camera tracking: the predicted relative poses of each test trajectory are chained from its true "
                   "first pose and every frame is scored (per trajectory, then mean over trajectories)",
 }
+
+
+def arch_names(paper_tables: bool = False) -> dict[str, str]:
+    """Architecture -> its row label, in the tables' row order (registry.py, read at each call: a registered
+    architecture has rows too). ``paper_tables``: only the row groups of the personalized/cross-subject tables."""
+    return {s.name: s.label for s in registry.table_order() if s.paper_tables or not paper_tables}
+
+
+def model_name(arch: str) -> str:
+    """The architecture's name in prose ("ConvLSTM"); an unregistered one (an old run's tag) as it is."""
+    return registry.arch(arch).model_name if arch in registry.arch_names() else arch
+
 
 Profiler = Callable[[str], Mapping[str, Any]]
 Loader = Callable[[RunRecord], Any]  # run -> its trajectory_errors table (aggregate.read_errors) or None
@@ -257,7 +268,3 @@ def finish(table: Table, c: Collector, expected_empty: Sequence[str] = ()) -> Ta
     if empty:
         table.warnings.append(f"{table.key}: empty cells shown as —: {'; '.join(empty)}")
     return table
-
-
-def noun(evaluation: str) -> str:
-    return NOUN[evaluation]

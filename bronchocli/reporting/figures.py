@@ -31,7 +31,7 @@ from ..io import save_figure
 from ..plots import error_curve_figure, trajectory_figure
 from .aggregate import ERRORS_CSV, read_errors
 from .collect import RunIndex, RunRecord
-from .context import ABLATION_LOSS, ARCH_NAMES, LOSSES, OFFSETNET, bronchotrack
+from .context import ABLATION_LOSS, LOSSES, OFFSETNET, arch_names, bronchotrack
 
 POSE = ("x", "y", "z", "rx", "ry", "rz")
 KEY = ("patient", "lobe", "trajectory")
@@ -174,7 +174,7 @@ def make_figures(index: RunIndex, load: Loader, out: Path, n_trajectories: int, 
         else:
             warnings.append("figures: fig5-trajectories skipped: the runs share no test trajectory")
     per_arch = {}
-    for arch, name in ARCH_NAMES.items():
+    for arch, name in arch_names().items():
         run = _first_run(index, arch, ABLATION_LOSS)
         df = load(run) if run is not None else None
         if df is not None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
-from .context import ARCH_NAMES, EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, budget_text, finish, init_text
+from .context import EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, arch_names, budget_text, finish, init_text
 from .judge import better_reference, metric_rows
 from .stats import derived, holm
 from .table_model import Column, Estimate, Row, Table, Value
@@ -50,7 +50,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         archs, losses = c.combos()
         losses = [lo for lo in LOSSES if lo in losses and any(i[LOSS] == lo and i[FRAME] == frame
                                                                 for i in ctx.index.runs)]
-        lines = [c.line(ARCH_NAMES[a], LOSSES[lo], a, lo) for a in ARCH_NAMES if a in archs for lo in losses]
+        lines = [c.line(name, LOSSES[lo], a, lo) for a, name in arch_names().items() if a in archs for lo in losses]
         lines = [ln for ln in lines if ln.runs]
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=False, settings=ctx.settings)

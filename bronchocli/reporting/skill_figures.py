@@ -23,7 +23,7 @@ import numpy as np
 from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
-from .context import ARCH_NAMES, LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext
+from .context import LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext, arch_names
 from .judge import metric_rows
 from .table_model import Estimate, Table
 
@@ -90,8 +90,8 @@ def curve_points(ctx: ReportContext) -> dict:
         c = Collector(ctx, "learning", population, size=size)
         archs, losses = c.combos()
         several = len(losses) > 1
-        lines = [c.line(ARCH_NAMES.get(a, a), LOSSES.get(lo, lo) if several else "", a, lo)
-                 for a in ARCH_NAMES if a in archs for lo in LOSSES if lo in losses]
+        lines = [c.line(name, LOSSES.get(lo, lo) if several else "", a, lo)
+                 for a, name in arch_names().items() if a in archs for lo in LOSSES if lo in losses]
         lines = [ln for ln in lines if ln.runs]
         if not lines:
             continue

@@ -24,7 +24,6 @@ MISSING = "—"
 TIE, NOSKILL, IGNORES = "≈", "†", "‡"
 SIGNIFICANT = 3  # significant digits of the column's smallest |mean|; interval bounds share its decimals
 MAX_DECIMALS = 8
-MARKS = ("best", "tie", "noskill")
 
 
 @dataclass(frozen=True)

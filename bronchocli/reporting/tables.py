@@ -34,8 +34,6 @@ from .aggregate import EVALS, nonfinite_rows
 from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
-    ARCH_GROUPS,
-    ARCH_NAMES,
     EVAL_TEXT,
     IGNORES_TEXT,
     LOSSES,
@@ -46,10 +44,12 @@ from .context import (
     Collector,
     NoData,
     ReportContext,
+    arch_names,
     bronchotrack,
     budget_text,
     finish,
     init_text,
+    model_name,
     n_text,
     provenance,
     references_text,
@@ -58,12 +58,10 @@ from .frames_table import frames
 from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
 from .table_model import Column, Row, Table, Value
 
-MODEL_NAMES = {"baseline": "Baseline", "lstm": "LSTM", "conv3d": "3D conv", "convlstm": "ConvLSTM",
-               "offsetnet": "OffsetNet"}
 NUMBERS = {("personalized", "accumulated"): 2, ("personalized", "pair"): 3,
            ("cross-subject", "accumulated"): 4, ("cross-subject", "pair"): 5}
 
-__all__ = ["TABLES", "ReportContext", "NoData", "table_names", "evaluations", "ARCH_NAMES", "LOSSES"]
+__all__ = ["TABLES", "ReportContext", "NoData", "table_names", "evaluations", "arch_names", "LOSSES"]
 
 
 def _metric_columns(names: Sequence[str] = tuple(METRICS)) -> list[Column]:
@@ -123,7 +121,8 @@ def _why_missing(runs: Sequence[RunRecord], frames: Mapping[str, object]) -> str
 def _grid_lines(c: Collector) -> list[Line]:
     """The paper's architecture x loss layout, restricted to the combinations of the table's cells."""
     return [c.line(group, label, arch, loss)
-            for arch, group in ARCH_GROUPS.items() for loss, label in LOSSES.items() if c.has(arch, loss)]
+            for arch, group in arch_names(paper_tables=True).items() for loss, label in LOSSES.items()
+            if c.has(arch, loss)]
 
 
 def personalized(ctx: ReportContext, evaluation: str) -> Table:
@@ -186,7 +185,7 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "sota", "personalized")
     arch, loss, how = bronchotrack(ctx.index)
     lines = []
-    for (a, lo), name in (((arch, loss), f"BronchoTrack ({MODEL_NAMES.get(arch, arch)}, {LOSSES.get(loss, loss)})"),
+    for (a, lo), name in (((arch, loss), f"BronchoTrack ({model_name(arch)}, {LOSSES.get(loss, loss)})"),
                           (OFFSETNET, "OffsetNet (MSE+MSE)")):
         if c.expected is not None and not c.wanted(a, lo):
             c.warn(f"sota: this config has no {a}/{lo} personalized cell, so the {name} row is empty")
@@ -203,7 +202,7 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
 
 def _profile_values(ctx: ReportContext, c: Collector, arch: str, runs) -> list[Value]:
     prof = ctx.profile(arch)
-    params = _params_m(c, runs, ARCH_NAMES[arch]) if runs else None
+    params = _params_m(c, runs, arch_names()[arch]) if runs else None
     if prof is None:
         return [params, None, None]
     if params is None and prof.get("params") is not None:
@@ -225,7 +224,7 @@ def _profile_caption(ctx: ReportContext) -> str:
 def ablation(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "ablation", "personalized")
     lines = []
-    for arch, name in ARCH_NAMES.items():
+    for arch, name in arch_names().items():
         if not c.has(arch, ABLATION_LOSS):
             continue
         line = c.line("", name, arch, ABLATION_LOSS)
@@ -275,8 +274,8 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
     """The literature's camera-tracking metrics (the paper's Table 1 and the visual-odometry benchmarks)."""
     del evaluation  # whole-trajectory metrics: one table
     c = Collector(ctx, "tracking", "personalized")
-    lines = [c.line(ARCH_NAMES[arch], LOSSES[loss], arch, loss)
-             for arch in ARCH_NAMES for loss in LOSSES if c.has(arch, loss)]
+    lines = [c.line(name, LOSSES[loss], arch, loss)
+             for arch, name in arch_names().items() for loss in LOSSES if c.has(arch, loss)]
     table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
                   ("Network", "Loss"), [Column(*TRACKING_METRICS[m]) for m in odometry.METRICS], [])
     every = [r for line in lines for r in line.runs]

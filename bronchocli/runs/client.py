@@ -29,7 +29,7 @@ from sqlalchemy.pool import NullPool
 
 from .. import extras, urls
 from ..config import Config
-from ..errors import BronchoError
+from ..errors import BronchoError, MlflowBusy  # MlflowBusy: a resumable kind, defined with the others
 from ..io import file_lock
 from ..retry import is_transient_db, retry
 from .records import EXPERIMENT_TAGS
@@ -45,10 +45,6 @@ _probed: set[str] = set()  # MLflow servers found answering by this process
 
 class MlflowUnreachable(BronchoError):
     """The MLflow server or database did not answer within ``runs.timeout_s``."""
-
-
-class MlflowBusy(BronchoError):
-    """The MLflow database stayed locked or unavailable for longer than ``runs.busy_timeout_s``."""
 
 
 def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> Any:

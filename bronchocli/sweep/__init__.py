@@ -13,8 +13,8 @@ See docs/sweep.md for the model and the exactly-once argument.
 
 from .plan import Plan, plan_cells, prepare, read_plan
 from .pool import PoolResult, run_pool, spawn_worker, worker_config
-from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, Claim, StorageError, SweepStore
-from .worker import TAG_ATTEMPT, TAG_CLAIM, TAG_WORKER, StopSignals, Worker, WorkerSpec, worker_process
+from .storage import FAILED, FINISHED, PENDING, RUNNING, TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
+from .worker import TAG_ATTEMPT, TAG_WORKER, StopSignals, Worker, WorkerSpec, worker_process
 
 __all__ = [
     "FAILED",

@@ -26,16 +26,15 @@ from pathlib import Path
 from typing import Any
 
 from ..config import Config
-from ..errors import BronchoError
-from ..runs.client import MlflowBusy, client_for
+from ..errors import BronchoError, MlflowBusy, resumable
+from ..io import TEMP_SUFFIX, folder_bytes
+from ..runs.client import client_for
 from ..runs.contract import REJECTED_SUFFIX
 from ..runs.processes import repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, search_runs
-from .storage import FAILED, PENDING, RUNNING, CellRow, SweepStore
+from .storage import FAILED, PENDING, RUNNING, TAG_CLAIM, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
-# Failures of the machine, not of the run (``failure_reason`` prefixes): a retry resumes their checkpoint.
-RESUMABLE_FAILURES = ("CheckpointWriteError:", "WriteFailed:", "MlflowBusy:", "TrackingBusy:")  # TrackingBusy: older stores
 
 
 @dataclass(frozen=True)
@@ -49,21 +48,8 @@ class Checkpoint:
     waste: int = 0  # bytes of never-needed files inside a needed folder (rejected checkpoints, temporary files)
 
 
-def folder_bytes(folder: Path, only_waste: bool = False) -> int:
-    total = 0
-    for dirpath, _, files in os.walk(folder):
-        for name in files:
-            if only_waste and not _is_waste(name):
-                continue
-            try:
-                total += os.lstat(os.path.join(dirpath, name)).st_size
-            except OSError:  # removed while we walked
-                pass
-    return total
-
-
 def _is_waste(name: str) -> bool:
-    return name.endswith(REJECTED_SUFFIX) or (name.startswith(".") and name.endswith(".tmp"))
+    return name.endswith(REJECTED_SUFFIX) or (name.startswith(".") and name.endswith(TEMP_SUFFIX))
 
 
 def _rows_by_run(store: SweepStore | None) -> dict[str, CellRow]:
@@ -88,10 +74,10 @@ def _decide(run: Any, row: CellRow | None, max_retries: int) -> tuple[bool, str]
         if row.state == FAILED and row.retryable(max_retries):
             return True, "cell failed, a retry may resume it"
         return False, f"cell {row.state} for good"
-    if run.data.tags.get("sweep_claim"):
+    if run.data.tags.get(TAG_CLAIM):
         return False, "no longer the run of its sweep cell (taken over)"
     reason = run.data.tags.get(TAG_FAILURE, "")
-    if status == "KILLED" or reason.startswith(RESUMABLE_FAILURES):
+    if status == "KILLED" or resumable(reason):
         return True, f"run {status}: `train --resume` continues it"
     return False, f"run {status}: not resumable"
 
@@ -117,7 +103,7 @@ def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list
         needed, why = _decide(run, rows.get(folder.name), cfg.sweep.max_retries)
         key = run.data.tags.get(TAG_CELL_KEY) if run is not None else None
         out.append(Checkpoint(folder.name, folder, folder_bytes(folder), needed, why, key,
-                              folder_bytes(folder, only_waste=True) if needed else 0))
+                              folder_bytes(folder, only=_is_waste) if needed else 0))
     return out
 
 
@@ -157,7 +143,7 @@ def repair_zombies(cfg: Config, store: SweepStore | None, client: Any = None) ->
         claims = {r.token: r for name in store.sweeps() for r in store.rows(name) if r.token and r.state == RUNNING}
     done = []
     for run in search_runs(client, [exp.experiment_id], statuses=["RUNNING"]):
-        token = run.data.tags.get("sweep_claim")
+        token = run.data.tags.get(TAG_CLAIM)
         if token and token not in claims:
             reason = "its sweep worker no longer holds the cell's claim; marked KILLED by status --repair"
             client.set_tag(run.info.run_id, TAG_FAILURE, reason)

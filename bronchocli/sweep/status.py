@@ -6,7 +6,6 @@ rows point at); nothing writes.
 
 from __future__ import annotations
 
-import os
 import re
 import time
 from collections.abc import Sequence
@@ -23,6 +22,7 @@ from rich.text import Text
 from .. import cells
 from ..config import Config
 from ..errors import BronchoError
+from ..io import fmt_bytes, folder_bytes
 from ..runs.client import client_for
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, describe_selection, plan_cells, plan_stages, read_plan, source_of
@@ -259,35 +259,12 @@ def checkpoint_line(held: Sequence[Checkpoint]) -> str:
     return text
 
 
-def folder_size(folder: Path) -> int | None:
-    """Bytes of the files under ``folder`` (links not followed); None when it does not exist."""
-    if not folder.is_dir():
-        return None
-    total = 0
-    for dirpath, _, files in os.walk(folder):
-        for name in files:
-            try:
-                total += os.lstat(os.path.join(dirpath, name)).st_size
-            except OSError:  # removed while we walked
-                pass
-    return total
-
-
-def fmt_bytes(n: int | None) -> str:
-    if n is None:
-        return "none"
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return f"{n:.1f} TB"  # pragma: no cover
-
-
 def disk_line(cfg: Config) -> str:
     """One line: the size of this machine's local stores (docs/sweep.md, "Disk")."""
     folders = (("MLflow artifacts", cfg.paths.artifacts), ("checkpoints", cfg.paths.checkpoints),
                ("frame caches", cfg.paths.cache))
-    return "disk: " + ", ".join(f"{name} {fmt_bytes(folder_size(path))} ({_short(path)})" for name, path in folders)
+    return "disk: " + ", ".join(f"{name} {fmt_bytes(folder_bytes(path) if path.is_dir() else None)} "
+                                f"({_short(path)})" for name, path in folders)
 
 
 def _short(path: Path) -> str:

@@ -53,7 +53,7 @@ from ..retry import retry
 TABLE = "bronchopose_sweep_cells"
 SELECTIONS = "bronchopose_sweep_selections"
 PENDING, RUNNING, FINISHED, FAILED = "pending", "running", "finished", "failed"
-STATES = (PENDING, RUNNING, FINISHED, FAILED)
+TAG_CLAIM = "sweep_claim"  # MLflow tag: the claim token a run was made under (finds orphans of a lost worker)
 SQLITE_BUSY_MS = 60_000
 
 metadata = MetaData()

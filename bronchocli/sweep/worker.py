@@ -1,7 +1,7 @@
 """A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
 
 The cell runner is injectable: any function with ``run_cell``'s signature,
-``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runlayout.RunResult``.
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runs.contract.RunResult``.
 The real one trains; tests and benchmarks pass fast fakes to ``Worker``, or
 name one in the test-only environment variable ``BRONCHOPOSE_TEST_RUNNER``
 (``module:function``), which spawned worker processes inherit. Workers are
@@ -34,19 +34,17 @@ from typing import Any
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError
+from ..errors import BronchoError, resumable
 from ..retry import retry
 from ..runs.client import MlflowBusy, client_for, experiment_id
 from ..runs.contract import RunInterrupted, checkpoint_dir, failure_reason, resume_file
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
-from .housekeeping import RESUMABLE_FAILURES
 from .placement import pin_env
-from .storage import CellRow, Claim, StorageError, SweepStore
+from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
 
-TAG_CLAIM = "sweep_claim"  # the claim token the run was made under (finds orphans of a lost worker)
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
 EXIT_OK, EXIT_INTERRUPTED = 0, 130
@@ -356,7 +354,7 @@ class Worker:
         """The cell's last run, resumed when its checkpoint is on this machine and it ended resumably.
 
         Resumable: KILLED (given back by Ctrl-C/SIGTERM), FAILED by the machine (disk full, busy
-        database; ``RESUMABLE_FAILURES``), or left RUNNING by a worker that released the cell without
+        database; ``errors.resumable``), or left RUNNING by a worker that released the cell without
         being able to close its run (the busy database again): that zombie is marked KILLED first.
         """
         if not run_id or not resume_file(self.cfg, run_id).is_file():
@@ -372,7 +370,7 @@ class Worker:
         except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
             return None
         reason = run.data.tags.get(TAG_FAILURE, "")
-        ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and reason.startswith(RESUMABLE_FAILURES))
+        ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and resumable(reason))
         return run_id if ok else None
 
     def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:

@@ -1,6 +1,6 @@
 """Resumable training checkpoints: plain data only, loaded without running code, written only when they fit.
 
-A checkpoint (``runlayout.resume_file``: ``<runs.checkpoints>/<run_id>/last.pt``)
+A checkpoint (``runs.contract.resume_file``: ``<runs.checkpoints>/<run_id>/last.pt``)
 holds tensors, dicts, lists, tuples, strings, numbers, booleans and None: nothing
 else. It is read with ``torch.load(weights_only=True)``, whose unpickler refuses
 every other object, so a file planted on shared storage cannot run code in the
@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from .. import io
-from ..errors import BronchoError
+from ..errors import BronchoError, CheckpointWriteError, WriteFailed  # resumable kinds: defined with the others
 
 FORMAT = 2
 KEYS = ("format", "run_id", "cell_key", "model", "optimizer", "scheduler", "scaler", "step", "micro", "best_val",
@@ -42,14 +42,6 @@ OVERHEAD = 1 << 16  # bytes added to the tensors' size for the zip container and
 
 class BadCheckpoint(BronchoError):
     """A checkpoint file that is not a valid checkpoint of this run (refused, never executed)."""
-
-
-class WriteFailed(BronchoError):
-    """A file of the run (artifact, store, checkpoint) could not be written: disk full, I/O error, read-only."""
-
-
-class CheckpointWriteError(WriteFailed):
-    """A checkpoint could not be written (disk full, I/O error); nothing half-written is left."""
 
 
 DISK_ERRNOS = (errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS)
@@ -123,14 +115,6 @@ def nbytes(obj: Any) -> int:
     return sum(seen.values()) + OVERHEAD
 
 
-def human(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB"):
-        if abs(n) < 1024 or unit == "TB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TB"  # pragma: no cover
-
-
 def existing_folder(path: Path) -> Path:
     """``path`` or its nearest existing ancestor (where the file system's free space is measured)."""
     p = Path(path)
@@ -147,8 +131,8 @@ def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
         return
     if free < need:
         raise CheckpointWriteError(
-            f"{path}: not enough disk space for the {what}: needs {human(need)} free ({SPACE_FACTOR}x its size), "
-            f"{human(free)} available; free space there or point runs.checkpoints elsewhere")
+            f"{path}: not enough disk space for the {what}: needs {io.fmt_bytes(need)} free ({SPACE_FACTOR}x its "
+            f"size), {io.fmt_bytes(free)} available; free space there or point runs.checkpoints elsewhere")
 
 
 def check_space_for(path: Path, state: dict[str, Any]) -> int:
@@ -182,8 +166,9 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
             raise
         code = getattr(exc, "errno", None)
         why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else _first_line(exc)
-        raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about {human(need)} "
-                                   "free there; free space or point runs.checkpoints elsewhere") from None
+        raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about "
+                                   f"{io.fmt_bytes(need)} free there; free space or point runs.checkpoints "
+                                   "elsewhere") from None
     return path
 
 

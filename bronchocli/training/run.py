@@ -30,7 +30,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError
+from ..errors import BronchoError, resumable
 from ..models import initialisation
 from ..runs.client import MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
 from ..runs.contract import (
@@ -207,7 +207,7 @@ def run_cell(
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
         reason = failure_reason(exc)
         _end_run(client, run_id, "FAILED", reason)
-        if not isinstance(exc, KEEP_CHECKPOINT_ON):  # only a failure of the environment is worth resuming
+        if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             shutil.rmtree(ckpt, ignore_errors=True)
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
             raise exc from None
@@ -220,8 +220,6 @@ def run_cell(
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)
 
 
-# Failures of the machine, not of the run: the run ends FAILED, keeps its checkpoint, and a retry resumes it.
-KEEP_CHECKPOINT_ON = (checkpoint.WriteFailed, MlflowBusy)
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
 RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy)
 
@@ -231,7 +229,7 @@ def _end_run(client, run_id: str, status: str, reason: str) -> None:
     """Terminate the run with its reason, best effort: a store that is busy or full must not hide the reason.
 
     A run this cannot end stays RUNNING with its process tags; whoever touches it next (``train --resume``,
-    the sweep's takeover, ``status --repair``) finds its process gone and ends it (``runlayout.repair_zombie``).
+    the sweep's takeover, ``status --repair``) finds its process gone and ends it (``runs.processes.repair_zombie``).
     """
     try:
         client.set_tag(run_id, TAG_FAILURE, reason)

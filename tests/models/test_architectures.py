@@ -2,21 +2,24 @@
 
 from __future__ import annotations
 
+from typing import get_args
+
 import pytest
 import torch
 
-from bronchocli.cells import ARCHS
+from bronchocli import cells, registry
 from bronchocli.errors import BronchoError
 from bronchocli.metrics import pose_loss
 from bronchocli.models import (
     ARCHITECTURES,
-    PAPER_PARAMS_M,
     PoseNet,
     build_model,
     detach_state,
     n_params,
 )
 
+ARCHS = registry.arch_names()
+PAPER_PARAMS_M = {name: registry.arch(name).paper_params_m for name in ARCHS}
 RECURRENT = {"lstm", "convlstm"}
 TEMPORAL = {"lstm", "convlstm", "conv3d"}
 # Exact parameter counts at 256x256 (docs/models.md derives each one by hand). The fusion conv
@@ -34,9 +37,18 @@ def frames(batch: int = 2, t: int = 3, size: int = 64, seed: int = 0, dtype=torc
     return torch.randn(batch, t, 3, size, size, generator=torch.Generator().manual_seed(seed), dtype=dtype)
 
 
-def test_registry_matches_config():
-    assert tuple(ARCHITECTURES) == ARCHS
-    assert set(PAPER_PARAMS_M) == set(ARCHS)
+def test_models_and_cells_read_the_one_registry():
+    assert tuple(ARCHITECTURES) == ARCHS == cells.choices()["arch"] == get_args(cells.Arch)
+    assert all(PAPER_PARAMS_M.values())  # every shipped architecture has the paper's count (tested below)
+
+
+@pytest.mark.parametrize("name", ARCHS)
+def test_each_builder_path_is_a_posenet_inside_the_models_package(name):
+    """The registry names builders by path (it cannot import torch): each one must resolve, and stay inside
+    ``bronchocli.models`` (a path elsewhere would be an import edge tests/test_architecture.py cannot see)."""
+    path = registry.arch(name).builder
+    assert isinstance(path, str) and path.startswith("bronchocli.models.")
+    assert issubclass(ARCHITECTURES[name], PoseNet) and ARCHITECTURES[name].__module__ == path.split(":")[0]
 
 
 @pytest.mark.parametrize("name", ARCHS)

@@ -14,6 +14,7 @@ import pytest
 import torch
 from training.test_loop import settings, trainer
 
+from bronchocli.io import fmt_bytes
 from bronchocli.training import checkpoint
 from bronchocli.training.checkpoint import BadCheckpoint, CheckpointWriteError
 
@@ -178,7 +179,7 @@ def test_too_little_free_space_refuses_before_writing_and_names_what_is_needed(t
     with pytest.raises(CheckpointWriteError) as err:
         t.save_resume()
     text = str(err.value)
-    assert str(path) in text and checkpoint.human(need) in text and "\n" not in text
+    assert str(path) in text and fmt_bytes(need) in text and "\n" not in text
     assert path.read_bytes() == before and list(path.parent.iterdir()) == [path]
     free_space(monkeypatch, need)
     t.save_resume()  # exactly enough is enough
