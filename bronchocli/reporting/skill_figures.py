@@ -24,6 +24,7 @@ from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
 from .context import ARCH_NAMES, LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext
+from .estimand import unit_of
 from .judge import metric_rows
 from .layout import Estimate, Table
 
@@ -97,7 +98,7 @@ def curve_points(ctx: ReportContext) -> dict:
             continue
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), list(SKILL_METRICS), CURVE_EVAL, grouped=False,
-                            settings=ctx.settings, skill_metrics=SKILL_METRICS)
+                            settings=ctx.settings, skill_metrics=SKILL_METRICS, unit=unit_of(population))
         pairs = [r.metrics["train.train_pairs"] for r in every if "train.train_pairs" in r.metrics]
         points[size] = {"x": float(np.mean(pairs)) if pairs else float("nan"), "rows": built.rows,
                         "skill": built.skill, "label": _size_label(size, ctx)}
