@@ -209,3 +209,13 @@ def test_eval_thresholds_are_validated_and_reach_the_evaluation(tmp_path):
     assert (t.position, t.position_mm, t.angle, t.gap) == (2.5, 5.0, 10.0, 4)
     assert C.cell_key(cfg, {"arch": "lstm"}) == C.cell_key(C.load_config(write(tmp_path, "name: t\n")),
                                                           {"arch": "lstm"})  # thresholds do not retrain
+
+
+def test_paper_profile_follows_the_authors_code_where_the_text_differs(repo):
+    """docs/reproduction.md: organize.py --length 10 cuts 10 frames = 9 pairs; train_all.sh's --intra-patient
+    draws 15 trajectories and splits them 80/20 = 12 train + 3 validation; 512 windows per optimiser step."""
+    cfg = C.load_config(repo / "experiments.yaml", "paper")
+    assert cfg.data.window == 9 and cfg.data.overlap == 0  # consecutive windows share one frame, as theirs
+    assert cfg.train.batch_size == 4 * 9 and cfg.train.effective_batch == 512 * 9 == 4608
+    assert (cfg.splits.train, cfg.splits.val, cfg.splits.test) == (12, 3, 3)
+    assert cfg.dataset.generate.trajectories == 12 + 3 + 3

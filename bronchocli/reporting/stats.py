@@ -28,12 +28,13 @@ moments (no resampling, exact and fast):
   its noise share ``c^2 sum(w^2) MS_noise / R`` (the noise is counted again in
   the unit part), truncated at 0;
 * one **unit part** for the combination, the weighted variance of the per-unit
-  combination ``sum_i c_i unitmean_i[u]`` (U - 1 df; difficulty shared by the
-  cells cancels here — that is the pairing);
+  combination ``sum_i c_i unitmean_i[u]`` (U - 1 df with equal weights,
+  ``_weighted_df`` otherwise; difficulty shared by the cells cancels here —
+  that is the pairing);
 
 and the t quantile uses Satterthwaite's degrees of freedom, computed with the
-parts at their median-unbiased value (``_median_unbiased``), so a few-df part
-that happens to come out small does not also shrink the quantile.
+seed parts at their median-unbiased value (``_median_unbiased``), so a few-df
+part that happens to come out small does not also shrink the quantile.
 
 **Too few replicates.** Two seeds (or fewer than ``MIN_PATIENTS`` patients for
 a new-patient estimand) give no interval and no test (``refusal``): simulated,
@@ -61,101 +62,28 @@ docs/reports.md.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy import stats as sps
 
+from .sample import (  # noqa: F401 - re-exported: the tables and tests know them as stats.*
+    MIN_PATIENTS,
+    MIN_SEEDS,
+    PATIENT,
+    TRAJECTORY,
+    UNITS,
+    Key,
+    Sample,
+    collapse,
+    common_keys,
+    refusal,
+)
+
 ALPHA = 0.05
 LEVEL = 0.95
-Key = tuple[str, str, str]  # (patient, lobe, trajectory)
-TRAJECTORY, PATIENT = "trajectory", "patient"  # the sampling unit: "these patients" / "a new patient"
-UNITS = (TRAJECTORY, PATIENT)
 LINEAR, POSITIVE, PERCENT = "linear", "positive", "percent"
-MIN_SEEDS = 3  # 2 seeds: no interval, no test (1 seed: the units only, said so)
-MIN_PATIENTS = 3  # a new-patient interval needs 3 patients (2 df)
-FEW_UNITS_DF = 2.5  # a unit part with fewer df (3 patients) enters the df at its median-unbiased value too
-METHOD = "t interval with variance components over seeds and test trajectories (Satterthwaite df)"
-
-
-@dataclass(frozen=True)
-class Sample:
-    """Per-trajectory errors of one cell: ``errors[r, t]`` for replicate r and trajectory ``keys[t]``."""
-
-    keys: tuple[Key, ...]
-    weights: np.ndarray  # (T,) n_pairs (per-pair metrics) or ones (accumulated)
-    errors: np.ndarray  # (R, T)
-    pairs: int = 0  # test pairs behind the T trajectories
-    unit: str = TRAJECTORY  # what the interval generalises over (module doc)
-
-    def __post_init__(self) -> None:
-        if self.errors.ndim != 2 or self.errors.shape[1] != len(self.keys) or len(self.weights) != len(self.keys):
-            raise ValueError(f"errors {self.errors.shape} do not match {len(self.keys)} keys / weights")
-        if self.unit not in UNITS:
-            raise ValueError(f"unit {self.unit!r} is not one of {', '.join(UNITS)}")
-
-    @property
-    def replicates(self) -> int:
-        return int(self.errors.shape[0])
-
-    @property
-    def trajectories(self) -> int:
-        return len(self.keys)
-
-    @property
-    def patients(self) -> int:
-        return len({k[0] for k in self.keys})
-
-    @property
-    def mean(self) -> float:
-        return float(np.mean(self.errors @ self.weights / self.weights.sum()))
-
-    def restricted(self, keys: Sequence[Key]) -> "Sample":
-        """The same sample on ``keys`` (a subset of its own), in that order."""
-        pos = {k: i for i, k in enumerate(self.keys)}
-        idx = np.array([pos[k] for k in keys], dtype=int)
-        return replace(self, keys=tuple(keys), weights=self.weights[idx], errors=self.errors[:, idx])
-
-    def as_unit(self, unit: str) -> "Sample":
-        return replace(self, unit=unit)
-
-    def units(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(errors (R, U), weights (U,))`` over the sampling units: the trajectories, or the patients (each
-        the weighted mean of its trajectories, its weight their summed weight)."""
-        if self.unit == TRAJECTORY:
-            return self.errors, self.weights
-        names = sorted({k[0] for k in self.keys})
-        groups = np.array([names.index(k[0]) for k in self.keys])
-        return collapse(self.errors, self.weights, groups, len(names))
-
-
-def collapse(errors: np.ndarray, weights: np.ndarray, groups: np.ndarray, n_groups: int
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted means of ``errors (..., R, T)`` over the trajectories of each group (``groups[t]`` in
-    ``range(n_groups)``): ``(errors (..., R, G), weights (G,))``. The weighted grand mean is unchanged."""
-    member = np.zeros((len(groups), n_groups))
-    member[np.arange(len(groups)), groups] = 1.0
-    w = np.asarray(weights, dtype=np.float64)
-    total = w @ member
-    return (errors * w) @ member / total, total
-
-
-def refusal(sample: Sample) -> str:
-    """Why the sample gets no interval and no test ("" when it does): 2 seeds, or too few patients."""
-    if 1 < sample.replicates < MIN_SEEDS:
-        return f"{sample.replicates} seeds"
-    if sample.unit == PATIENT and sample.patients < MIN_PATIENTS:
-        return f"{sample.patients} patient{'s' if sample.patients != 1 else ''}"
-    return ""
-
-
-def common_keys(samples: Sequence[Sample]) -> list[Key]:
-    """The trajectories every sample has, sorted (what a comparison is computed on)."""
-    keys = set(samples[0].keys)
-    for s in samples[1:]:
-        keys &= set(s.keys)
-    return sorted(keys)
 
 
 # ---------------------------------------------------------------- array core (batched; the benchmark calls it)
@@ -253,6 +181,13 @@ def _parts(errors: np.ndarray, w: np.ndarray, coef=1.0) -> _Parts:
     return _Parts(seed, df, ms_noise, unit, n_eff)
 
 
+def _weighted_df(w: np.ndarray) -> float:
+    """The df of a weighted variance over units with normalised weights ``w``: (sum w^2)^2 / sum w^4 - 1, U - 1
+    for equal weights. With unequal pair counts it is below n_eff - 1 (6.1 vs 8.6 for the pair counts 10-59 of
+    12 trajectories), which the lognormal-trajectory regime needs (coverage 0.915 -> 0.936)."""
+    return max(float(np.sum(w * w) ** 2 / np.sum(w ** 4)) - 1.0, 1.0)
+
+
 def combine(errors: Sequence[np.ndarray], weights: np.ndarray, coefs: Sequence) -> Inference:
     """Inference on ``sum_i coefs[i] * mean_i``, the cells ``errors[i] (..., R_i, U)`` on the same U units.
 
@@ -268,9 +203,9 @@ def combine(errors: Sequence[np.ndarray], weights: np.ndarray, coefs: Sequence) 
         per_unit = sum(c[..., None] * e.mean(-2) for c, e in zip(coefs, errors))
         centred = per_unit - (per_unit @ w)[..., None]
         v_unit = len(w) / (len(w) - 1) * (centred ** 2 @ (w * w))
-        unit_df = max(1.0 / float(np.sum(w * w)) - 1.0, 1.0)
+        unit_df = _weighted_df(w)
         terms.append((v_unit, unit_df))
-        for_df.append(_median_unbiased(v_unit, unit_df) if unit_df < FEW_UNITS_DF else v_unit)
+        for_df.append(v_unit)
     for c, e in zip(coefs, errors):
         parts = _parts(e, w, c)
         if parts.seed is not None:
@@ -309,16 +244,13 @@ def positive_interval(errors: np.ndarray, weights: np.ndarray, level: float = LE
     seed = zero if parts.seed is None else r * _median_unbiased(parts.seed, parts.seed_df)
     unit = zero if parts.unit is None else parts.n_eff * parts.unit  # sigma_unit^2 + sigma_noise^2 / R
     noise = zero if parts.noise is None else parts.noise * (1.0 - 1.0 / r)
-    # the df of a weighted variance: (sum w^2)^2 / sum w^4 - 1 (= U - 1 for equal weights; 6 for the pair counts
-    # 10-59 of 12 trajectories, where n_eff - 1 = 8.6 under-covered lognormal trajectories: 0.915 -> 0.936)
-    unit_df = max(float(np.sum(w * w) ** 2 / np.sum(w ** 4)) - 1.0, 1.0)
+    unit_df = _weighted_df(w)
     var_s = 2.0 * unit ** 2 / unit_df
     if parts.seed is not None:
         var_s = var_s + 2.0 * seed ** 2 / parts.seed_df + 2.0 * noise ** 2 / ((r - 1) * max(u - 1, 1))
     centre = inf.value + (seed + unit + noise) / 2.0
-    df = np.minimum(inf.df, unit_df) if u > 1 else inf.df
     with np.errstate(invalid="ignore"):
-        half = sps.t.ppf(0.5 + level / 2.0, df) * np.sqrt(inf.se ** 2 + var_s / 4.0)
+        half = sps.t.ppf(0.5 + level / 2.0, inf.df) * np.sqrt(inf.se ** 2 + var_s / 4.0)
         lo, hi = np.exp(centre - half), np.exp(centre + half)
     return np.minimum(lo, mean), np.maximum(hi, mean)
 
