@@ -24,6 +24,7 @@ from .layout import Row
 from .stats import MIN_PATIENTS, MIN_SEEDS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
 
 PERCENT_METRICS = frozenset({"ctf", "ctf_mm"})  # bounded in [0, 100]
+ESTIMAND_NAMES = {TRAJECTORY: "these patients", PATIENT: "a new patient"}
 
 
 def unit_of(population: str) -> str:
