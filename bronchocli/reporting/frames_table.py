@@ -137,7 +137,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         "the two frames (the test trajectories "
         "shared by both frames and their references, seeds independent; delta method, two-sided), "
         f"Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
-        refused_text(built_rows).replace("no best or tie mark and no †", "no skill and no p"),
+        refused_text(built_rows).replace("no best or tie mark and no †", "no p"),
         budget_text(every),
         init_text(every),
         f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
