@@ -81,7 +81,8 @@ def matrix_to_euler(R):
     alpha is taken from the third column; beta and gamma are then read from
     ``Rx(alpha)^T R = Ry(beta) Rz(gamma)``, so an imprecise alpha near gimbal
     lock is compensated by gamma and ``euler_to_matrix`` reproduces ``R``.
-    beta lies in [-90, 90]; at gimbal lock alpha is 0.
+    beta lies in [-90, 90] and alpha, gamma in (-180, 180], exactly (never -180, never 90 + 1 ulp); at gimbal
+    lock alpha is 0.
     """
     R = _as_array(R)
     xp = _xp(R)
@@ -91,12 +92,22 @@ def matrix_to_euler(R):
     ca, sa = xp.cos(alpha), xp.sin(alpha)
     # Rows of Rx(alpha)^T R that hold beta and gamma (see the docstring).
     n02 = R[..., 0, 2]
-    n22 = -sa * R[..., 1, 2] + ca * R[..., 2, 2]
+    n22 = (-sa * R[..., 1, 2] + ca * R[..., 2, 2]).clip(min=0.0)  # = cos(beta) >= 0; rounding can make it -0.0
     n10 = ca * R[..., 1, 0] + sa * R[..., 2, 0]
     n11 = ca * R[..., 1, 1] + sa * R[..., 2, 1]
     beta = xp.arctan2(n02, n22)
     gamma = xp.arctan2(n10, n11)
-    return xp.stack([alpha, beta, gamma], -1) * (180.0 / math.pi)
+    return _in_ranges(xp.stack([alpha, beta, gamma], -1) * (180.0 / math.pi))
+
+
+def _in_ranges(e):
+    """Euler triples (degrees) exactly inside the documented ranges: alpha, gamma in (-180, 180] (atan2 gives
+    -180 for a -0.0 sine) and |beta| <= 90 (pi/2 in degrees rounds to 90 + 1 ulp)."""
+    xp = _xp(e)
+    a, b, c = e[..., 0], e[..., 1], e[..., 2]
+    a = xp.where(a <= -180.0, a + 360.0, a).clip(max=180.0)
+    c = xp.where(c <= -180.0, c + 360.0, c).clip(max=180.0)
+    return xp.stack([a, b.clip(-90.0, 90.0), c], -1)
 
 
 def canonical_euler(angles_deg):

@@ -19,7 +19,7 @@ degrees):
 * ``rpe_trans`` / ``rpe_rot``: relative pose error over a fixed gap of
   ``Thresholds.gap`` frames (TUM): for every i, E_i = (Q_i^-1 Q_i+gap)^-1
   (P_i^-1 P_i+gap) in SE(3), the RMSE over i of |t(E_i)| (voxels) and of the
-  angle of R(E_i) (degrees). NaN when the trajectory has no frame pair that
+  angle of R(E_i) (degrees; the norm of the rotation log, exact near 0). NaN when the trajectory has no frame pair that
   far apart;
 * ``drift``: the final position error as a percentage of the ground-truth path
   length (sum of the distances between consecutive true positions).
@@ -58,9 +58,12 @@ def _rotations(poses: np.ndarray) -> np.ndarray:
 
 
 def _angle_deg(R: np.ndarray) -> np.ndarray:
-    """Rotation angle of each ``(..., 3, 3)`` matrix, degrees (clamped: never NaN)."""
-    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    return np.degrees(np.arccos(cos))
+    """Rotation angle of each ``(..., 3, 3)`` matrix in degrees: the norm of the rotation log, in its atan2
+    form ``atan2(|vee(R - R^T)|, trace(R) - 1)`` (sin and cos of the angle, each times 2). Unlike arccos of the
+    trace, which floors at ~6e-7° (the cosine of a tiny angle rounds to 1), it is exact near 0, as evo's
+    log map is, and accurate up to 180°; never NaN."""
+    vee = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1), np.trace(R, axis1=-2, axis2=-1) - 1.0))
 
 
 def frame_errors(pred, gt, spacing_mm=None) -> dict[str, np.ndarray]:

@@ -252,3 +252,13 @@ def test_a_set_override_under_the_old_name_is_renamed(tmp_path, caplog, fresh_wa
         cfg = C.load_config(write(tmp_path, "name: t\n"), overrides=["tracking.experiment=other"])
     assert cfg.runs.experiment == "other" and cfg.experiment_name == "other"
     assert "--set tracking.experiment=other" in caplog.records[0].getMessage()
+
+
+def test_paper_profile_follows_the_authors_code_where_the_text_differs(repo):
+    """docs/reproduction.md: organize.py --length 10 cuts 10 frames = 9 pairs; train_all.sh's --intra-patient
+    draws 15 trajectories and splits them 80/20 = 12 train + 3 validation; 512 windows per optimiser step."""
+    cfg = C.load_config(repo / "experiments.yaml", "paper")
+    assert cfg.data.window == 9 and cfg.data.overlap == 0  # consecutive windows share one frame, as theirs
+    assert cfg.train.batch_size == 4 * 9 and cfg.train.effective_batch == 512 * 9 == 4608
+    assert (cfg.splits.train, cfg.splits.val, cfg.splits.test) == (12, 3, 3)
+    assert cfg.dataset.generate.trajectories == 12 + 3 + 3

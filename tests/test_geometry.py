@@ -160,3 +160,36 @@ def test_canonical_euler_is_scipys_xyz_triple_of_the_same_rotation():
     np.testing.assert_allclose(g.euler_to_matrix(canon), g.euler_to_matrix(angles), atol=1e-12)
     pose = np.column_stack([rng.normal(size=(200, 3)), angles])
     np.testing.assert_array_equal(g.canonical_pose(pose)[:, :3], pose[:, :3])
+
+
+def _assert_in_ranges(e) -> None:
+    e = np.asarray(e)
+    assert np.all(e[..., 0] > -180.0) and np.all(e[..., 0] <= 180.0)
+    assert np.all(np.abs(e[..., 1]) <= 90.0)
+    assert np.all(e[..., 2] > -180.0) and np.all(e[..., 2] <= 180.0)
+
+
+BOUNDARY = [(a, b, c) for a in (-180.0, -90.0, -0.0, 0.0, 90.0, 180.0) for b in (-90.0, -89.9999999, 0.0, 90.0)
+            for c in (-180.0, -0.0, 0.0, 180.0)]
+
+
+@pytest.mark.parametrize("lib", ["numpy", "torch"])
+def test_euler_angles_stay_inside_the_documented_ranges_at_the_boundaries(lib):
+    """Never exactly -180 for alpha/gamma (atan2 of a -0.0 sine), never |beta| > 90 (pi/2 in degrees is
+    90 + 1 ulp): the documented ranges hold exactly, and the triples still reproduce their rotations."""
+    rng = np.random.default_rng(11)
+    near_lock = np.stack([rng.uniform(-180, 180, 500), rng.choice([-1, 1], 500) * (90 - 10 ** rng.uniform(-15, -1, 500)),
+                          rng.uniform(-180, 180, 500)], 1)
+    angles = np.concatenate([np.array(BOUNDARY), near_lock])
+    R = Rotation.from_euler("XYZ", angles, degrees=True).as_matrix()
+    turns = np.stack([np.diag(d) for d in ([1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0])])  # 180° turns
+    R = np.concatenate([R, turns])
+    x = torch.as_tensor(R) if lib == "torch" else R
+    e = g.matrix_to_euler(x)
+    e = e.numpy() if lib == "torch" else e
+    _assert_in_ranges(e)
+    np.testing.assert_allclose(g.euler_to_matrix(e), R, atol=1e-12)
+    canon = g.canonical_euler(np.array(BOUNDARY))
+    _assert_in_ranges(canon)
+    np.testing.assert_allclose(g.euler_to_matrix(canon), Rotation.from_euler("XYZ", BOUNDARY, degrees=True).as_matrix(),
+                               atol=1e-12)

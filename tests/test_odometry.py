@@ -100,7 +100,7 @@ def test_rotation_errors_do_not_depend_on_the_euler_triple():
     # the same rotations written with beta beyond 90 degrees: (a + 180, 180 - b, c + 180)
     pred[:, 3:] = np.stack([gt[:, 3] + 180.0, 180.0 - gt[:, 4], gt[:, 5] + 180.0], 1)
     m = o.trajectory_metrics(pred, gt, thresholds=o.Thresholds(gap=3))
-    assert m["rpe_rot"] == pytest.approx(0.0, abs=1e-5) and m["ctf"] == 100.0 and m["ate"] == 0.0
+    assert m["rpe_rot"] == pytest.approx(0.0, abs=1e-10) and m["ctf"] == 100.0 and m["ate"] == 0.0
 
 
 def test_a_perfect_tracker_and_a_trajectory_too_short_for_the_gap():
@@ -108,3 +108,35 @@ def test_a_perfect_tracker_and_a_trajectory_too_short_for_the_gap():
     m = o.trajectory_metrics(gt, gt, thresholds=o.Thresholds(gap=10))
     assert m["ctf"] == 100.0 and m["ate"] == 0.0 and m["drift"] == 0.0
     assert math.isnan(m["rpe_trans"]) and math.isnan(m["rpe_rot"])  # no frame pair 10 apart
+
+
+@pytest.mark.parametrize("tiny", [1e-12, 1e-9, 1e-6])
+def test_rpe_rotation_of_a_near_perfect_tracker_is_exact_like_the_log_map(tiny):
+    """A tracker off by ``tiny`` degrees about one axis: RPE rot is that angle (the rotation log), not the
+    ~6e-7° floor of arccos(trace); compared with SciPy's rotation magnitude (and evo's log map when present)."""
+    gt = _random_walk(np.random.default_rng(6), 12)
+    pred = gt.copy()
+    R = Rotation.from_euler("XYZ", gt[:, 3:], degrees=True) * Rotation.from_rotvec([0.0, 0.0, np.radians(tiny)])
+    pred[:, 3:] = R.as_euler("XYZ", degrees=True)
+    _, rot = o.relative_pose_errors(pred, gt, 1)
+    Rp = Rotation.from_euler("XYZ", pred[:, 3:], degrees=True)
+    Rg = Rotation.from_euler("XYZ", gt[:, 3:], degrees=True)
+    ref = np.degrees(((Rg[:-1].inv() * Rg[1:]).inv() * (Rp[:-1].inv() * Rp[1:])).magnitude())
+    assert rot == pytest.approx(ref, rel=1e-3, abs=5e-13)  # Euler angles of ~50° hold ~1e-14° only
+    assert np.all(rot < 10 * tiny + 1e-12)  # arccos of the trace gives ~6e-7 here
+    lie = pytest.importorskip("evo.core.lie_algebra")
+    E = [(np.linalg.inv(a) @ b) for a, b in zip(
+        [np.linalg.inv(g.euler_to_matrix(x)) @ g.euler_to_matrix(y) for x, y in zip(gt[:-1, 3:], gt[1:, 3:])],
+        [np.linalg.inv(g.euler_to_matrix(x)) @ g.euler_to_matrix(y) for x, y in zip(pred[:-1, 3:], pred[1:, 3:])])]
+    evo_deg = np.degrees([lie.so3_log_angle(e) for e in E])
+    assert rot == pytest.approx(evo_deg, rel=1e-3, abs=5e-13)
+
+
+def test_rotation_angle_is_accurate_over_its_whole_range():
+    rng = np.random.default_rng(7)
+    rv = rng.normal(size=(5000, 3))
+    rv *= (rng.uniform(0, np.pi, 5000) / np.linalg.norm(rv, axis=1))[:, None]
+    rv[:10] *= 1e-10  # near 0
+    rv[10:20] *= (np.pi - 1e-9) / np.linalg.norm(rv[10:20], axis=1)[:, None]  # near 180 degrees
+    got = o._angle_deg(Rotation.from_rotvec(rv).as_matrix())
+    assert got == pytest.approx(np.degrees(np.linalg.norm(rv, axis=1)), rel=1e-9, abs=1e-10)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from bronchocli import __version__, geometry
 
@@ -111,3 +112,11 @@ def write_tiny_dataset(root, *, patients: int = 3, lobes=("ur", "br", "ul", "bl"
     }
     (root / "dataset.json").write_text(json.dumps(meta, indent=2))
     return root
+
+
+def turning_angles(beta: float, n: int = 40) -> np.ndarray:
+    """Intrinsic XYZ Euler angles (degrees, canonical) of a camera turning by ~2.5° a frame from
+    (20°, beta, -30°): near beta = ±90° (gimbal lock) alpha and gamma swing far more than the camera turns."""
+    start = Rotation.from_euler("XYZ", [20.0, beta, -30.0], degrees=True)
+    return (start * Rotation.from_rotvec(np.outer(np.arange(n), np.radians([1.5, 0.3, 2.0])))).as_euler(
+        "XYZ", degrees=True)

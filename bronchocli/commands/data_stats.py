@@ -43,7 +43,7 @@ def stats(
     set_: SetOpt = None,
 ) -> None:
     """Summarise a dataset: trajectories and frames per patient and lobe, trajectory lengths, pose ranges,
-    image size and fingerprint. With --population (and --fold for cross-subject), also the per-split counts
+    image size and fingerprint, and the trajectories whose world-frame labels pass near gimbal lock. With --population (and --fold for cross-subject), also the per-split counts
     of that population under the config's `splits`, and with --manifest the split manifest as CSV.
 
     The dataset is read as the config's dataset.format (bronchopose, or csv with dataset.csv's mapping).
@@ -62,6 +62,11 @@ def stats(
     console.print(facts)
     console.print(_table(st.per_lobe(ds), "per patient and lobe (lengths in frames)"))
     console.print(_table(st.pose_ranges(ds), "pose ranges (voxels, degrees)"))
+    gimbal = st.gimbal_table(ds)
+    if len(gimbal):
+        console.print(_table(gimbal, "world-frame labels near gimbal lock: Euler differences far larger than "
+                                     "the rotation between frames (pose_frame world is not the motion there; "
+                                     "camera-frame labels are unaffected, docs/conventions.md)"))
     if population is None:
         return
     split = make_split(ds, population, fold, cfg.splits)

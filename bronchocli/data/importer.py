@@ -7,7 +7,8 @@ trains without converting by hand. Every row is converted to the project's
 convention (positions in voxels, intrinsic X-Y-Z Euler angles in degrees, see
 bronchocli.geometry; always the canonical triple of each rotation, beta in
 [-90, 90], whichever of its two triples the file holds) and then validated
-like a generated dataset.
+like a generated dataset. Trajectories whose world-frame labels are not their
+motion (near gimbal lock, gimbal.py) are named in a warning.
 
 The fingerprint of an imported dataset (it keys the frame cache) is the
 sha256 of the import settings, the CSV bytes, and each frame's relative path,
@@ -30,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from .. import geometry
 from ..config import CsvImport
 from ..errors import DataError
+from .gimbal import world_label_warning
 from .naming import file_patient_id
 from .reader import (
     POSE_COLUMNS,
@@ -40,6 +42,7 @@ from .reader import (
     lobe_order,
     natural_key,
     stat_fingerprint,
+    warn_once,
 )
 
 SINGLE_LOBE = "all"  # lobe name when dataset.csv.columns.lobe is null
@@ -197,7 +200,11 @@ def import_csv(root: str | os.PathLike, cfg: CsvImport) -> Dataset:
     fingerprint = stat_fingerprint([settings, *(f.read_bytes() for f in files)],
                                    frames["path"] if has_frames else [], root)
     meta = {"format": "csv", "files": [str(f) for f in files], "import": cfg.model_dump(mode="json")}
-    return Dataset(root=root, format="csv", patients=patients, lobes=lobe_order(frames["lobe"].unique()),
-                   frame_shape=_frame_shape(frames["path"].iat[0]) if has_frames else (0, 0),
-                   fingerprint=fingerprint, frames=frames, trajectories=trajectories,
-                   spacing={p: tuple(cfg.spacing_mm) for p in patients}, meta=meta, has_frames=has_frames)
+    dataset = Dataset(root=root, format="csv", patients=patients, lobes=lobe_order(frames["lobe"].unique()),
+                      frame_shape=_frame_shape(frames["path"].iat[0]) if has_frames else (0, 0),
+                      fingerprint=fingerprint, frames=frames, trajectories=trajectories,
+                      spacing={p: tuple(cfg.spacing_mm) for p in patients}, meta=meta, has_frames=has_frames)
+    gimbal = world_label_warning(dataset)  # foreign trajectories may pass near gimbal lock (gimbal.py)
+    if gimbal:
+        warn_once(gimbal)
+    return dataset

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from .gimbal import world_label_jumps
 from .reader import POSE_COLUMNS, Dataset
 from .splits import Split
 from .windows import window_starts
@@ -69,3 +70,13 @@ def split_per_patient(split: Split, dataset: Dataset) -> pd.DataFrame:
             if parts:
                 rows.append((patient, lobe, *(parts.count(p) for p in ("train", "val", "test"))))
     return pd.DataFrame(rows, columns=["patient", "lobe", "train", "val", "test"])
+
+
+def gimbal_table(dataset: Dataset) -> pd.DataFrame:
+    """Trajectories whose world-frame labels are not their motion (near gimbal lock, gimbal.py): the frames,
+    the largest Euler-difference norm and true rotation there, and the trajectory's largest |beta|."""
+    rows = [(j.key, ", ".join(map(str, j.frames)) if len(j.frames) <= 12 else
+             f"{', '.join(map(str, j.frames[:12]))} and {len(j.frames) - 12} more", len(j.frames),
+             j.euler_max, j.rotation_max, j.beta_max) for j in world_label_jumps(dataset)]
+    return pd.DataFrame(rows, columns=["trajectory", "frames", "pairs", "euler_diff_max_deg", "rotation_max_deg",
+                                       "abs_beta_max_deg"])

@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 
 from .collect import RunRecord, seed_key
-from .stats import Key, Sample
+from .stats import TRAJECTORY, Key, Sample
 
 EVALS = ("accumulated", "pair")  # what --eval chooses; "trajectory" is the tracking table's own scope
 SCOPE = {"accumulated": "acc", "pair": "pair", "trajectory": "traj"}
@@ -112,7 +112,7 @@ def _replicate(rep: Sequence[RunRecord], frames: Frames) -> RunErrors | None:
     return RunErrors.concat(parts)  # type: ignore[arg-type]
 
 
-def _sample(tables: Sequence[RunErrors], col: str, evaluation: str) -> Sample | None:
+def _sample(tables: Sequence[RunErrors], col: str, evaluation: str, unit: str = TRAJECTORY) -> Sample | None:
     if not tables or any(col not in t.columns for t in tables):
         return None
     common = set(tables[0].keys)
@@ -128,20 +128,21 @@ def _sample(tables: Sequence[RunErrors], col: str, evaluation: str) -> Sample | 
         return None
     weights = pairs if evaluation == "pair" else np.ones(len(keys))
     kept = tuple(k for k, good in zip(keys, ok) if good)
-    return Sample(kept, weights[ok], errors[:, ok], int(pairs[ok].sum()))
+    return Sample(kept, weights[ok], errors[:, ok], int(pairs[ok].sum()), unit)
 
 
 def model_sample(reps: Sequence[Sequence[RunRecord]], frames: Frames, evaluation: str, metric: str,
-                 source: str = "model") -> Sample | None:
-    """Per replicate, the error of every shared test trajectory (None when a run lacks its errors table)."""
+                 source: str = "model", unit: str = TRAJECTORY) -> Sample | None:
+    """Per replicate, the error of every shared test trajectory (None when a run lacks its errors table);
+    ``unit``: the estimand its intervals state (stats.TRAJECTORY: these patients, stats.PATIENT: a new one)."""
     tables = [_replicate(rep, frames) for rep in reps]
     if not tables or any(t is None for t in tables):
         return None
-    return _sample(tables, column(source, evaluation, metric), evaluation)  # type: ignore[arg-type]
+    return _sample(tables, column(source, evaluation, metric), evaluation, unit)  # type: ignore[arg-type]
 
 
 def reference_sample(runs: Sequence[RunRecord], frames: Frames, source: str, evaluation: str,
-                     metric: str) -> Sample | None:
+                     metric: str, unit: str = TRAJECTORY) -> Sample | None:
     """One replicate: each trajectory's ``source`` error averaged over every run (with an errors table) that has it."""
     col = column(source, evaluation, metric)
     parts = [t for r in runs if (t := frames.get(r.run_id)) is not None and col in t.columns]
@@ -156,7 +157,7 @@ def reference_sample(runs: Sequence[RunRecord], frames: Frames, source: str, eva
         np.add.at(count, idx, 1.0)
         pairs[idx] = p.n_pairs
     mean = RunErrors(tuple(keys), pairs, {col: total / count})
-    return _sample([mean], col, evaluation)
+    return _sample([mean], col, evaluation, unit)
 
 
 def _run_mean(run: RunRecord, name: str) -> float | None:

@@ -13,11 +13,14 @@ Holm-corrected over the rows of each metric.
 
 from __future__ import annotations
 
+import math
+
 from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
 from .context import EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, arch_names, budget_text, finish, init_text
-from .judge import better_reference, metric_rows
-from .stats import derived, holm
+from .estimand import estimand_text, refused_text, unit_of
+from .judge import judged, metric_rows
+from .stats import Sample, common_keys, derived, holm, skill
 from .table_model import Column, Estimate, Row, Table, Value
 
 FRAMES = ("world", "camera")
@@ -30,10 +33,37 @@ def _population(ctx: ReportContext) -> str:
 
 
 def _frame_skill(row_w, ref_w, row_c, ref_c, s) -> tuple[Estimate, Estimate, float]:
-    w = derived([row_w, ref_w], lambda m, r: 1.0 - m / r, s.level)
-    c = derived([row_c, ref_c], lambda m, r: 1.0 - m / r, s.level)
+    w = skill(row_w, ref_w, s.level)
+    c = skill(row_c, ref_c, s.level)
     diff = derived([row_w, ref_w, row_c, ref_c], lambda a, b, c_, d: (1.0 - a / b) - (1.0 - c_ / d), s.level)
     return Estimate(w.value, w.lo, w.hi), Estimate(c.value, c.lo, c.hi), diff.p
+
+
+def _better(refs: dict[str, list], j: int) -> Sample | None:
+    """The reference with the lower mean of metric ``j`` (judged or not: a refused one still gives means)."""
+    found = [x[j] for x in refs.values() if x[j] is not None]
+    return min(found, key=lambda x: x.mean) if found else None
+
+
+def _point_skill(model: Sample, ref: Sample) -> Estimate:
+    keys = common_keys([model, ref])
+    return Estimate(1.0 - model.restricted(keys).mean / ref.restricted(keys).mean)
+
+
+def _row_cells(samples: dict[str, Sample | None], refs: dict[str, Sample | None], s
+               ) -> tuple[Estimate | None, Estimate | None, float]:
+    """World skill, camera skill and the p of their difference for one row: means only (p NaN) when a sample
+    is refused (stats.refusal: 2 seeds, too few patients); nothing without data or shared trajectories."""
+    every = (*samples.values(), *refs.values())
+    if any(x is None for x in every):
+        return None, None, math.nan
+    try:
+        if any(judged(x) is None for x in every):
+            return _point_skill(samples["world"], refs["world"]), _point_skill(samples["camera"], refs["camera"]), \
+                math.nan
+        return _frame_skill(samples["world"], refs["world"], samples["camera"], refs["camera"], s)
+    except ValueError:  # the frames share no test trajectory
+        return None, None, math.nan
 
 
 def frames(ctx: ReportContext, evaluation: str) -> Table:
@@ -42,6 +72,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         raise NoData(f"frames table skipped: the runs have pose frame(s) {', '.join(sorted(have)) or 'none'}, "
                      f"not both world and camera")
     population = _population(ctx)
+    unit = unit_of(population)
     metrics = list(FRAME_METRICS)
     per_frame = {}
     collectors = {}
@@ -53,7 +84,8 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         lines = [c.line(name, LOSSES[lo], a, lo) for a, name in arch_names().items() if a in archs for lo in losses]
         lines = [ln for ln in lines if ln.runs]
         every = [r for ln in lines for r in ln.runs]
-        built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=False, settings=ctx.settings)
+        built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=False, settings=ctx.settings,
+                            unit=unit)
         per_frame[frame] = ({(ln.group, ln.label): ln for ln in lines}, built)
         collectors[frame] = c
     both = [k for k in per_frame["world"][0] if k in per_frame["camera"][0]]
@@ -64,20 +96,11 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
     cells: dict[tuple, list] = {k: [] for k in both}
     raw: dict[str, list[float]] = {m: [] for m in metrics}
     for j, m in enumerate(metrics):
-        refs = {f: better_reference(per_frame[f][1].references, j) for f in FRAMES}
+        refs = {f: _better(per_frame[f][1].references, j) for f in FRAMES}
         for k in both:
             samples = {f: model_sample(replicates(per_frame[f][0][k].runs), ctx.frames(per_frame[f][0][k].runs),
-                                       evaluation, m) for f in FRAMES}
-            if any(x is None for x in (*samples.values(), *refs.values())):
-                cells[k] += [None, None]
-                raw[m].append(float("nan"))
-                continue
-            try:
-                w, c, p = _frame_skill(samples["world"], refs["world"], samples["camera"], refs["camera"], s)
-            except ValueError:  # the frames share no test trajectory
-                cells[k] += [None, None]
-                raw[m].append(float("nan"))
-                continue
+                                       evaluation, m, unit=unit) for f in FRAMES}
+            w, c, p = _row_cells(samples, refs, s)
             cells[k] += [w, c]
             raw[m].append(p)
     adjusted = {}
@@ -103,14 +126,18 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
     table = Table(f"table8-frames-{evaluation}", f"Table 8. Pose-frame convention: skill with world vs camera "
                   f"labels, {population} population, {evaluation} evaluation", ("Model",), columns, rows)
     every = [r for f in FRAMES for ln in per_frame[f][0].values() for r in ln.runs]
-    table.caption = " ".join([
+    built_rows = [r for f in FRAMES for r in per_frame[f][1].rows]
+    table.caption = " ".join(p for p in [
         f"{EVAL_TEXT[evaluation]}.",
+        estimand_text(unit, built_rows),
         "Skill = 1 − error / error of the better image-blind reference (zero motion or training mean) of the same "
         "pose frame, on the same test trajectories: 0 = no better than an image-blind model, 1 = perfect; higher is "
-        "better. Cells: skill [95% interval: delta-method t interval, variance components over seeds and test "
-        "trajectories, Satterthwaite df]. p: t test of equal skill in the two frames (the test trajectories "
+        "better. Cells: skill [95% interval: delta-method t interval on log(error / reference error), so it stays "
+        "below 1; variance components over the estimand's levels, Satterthwaite df]. p: t test of equal skill in "
+        "the two frames (the test trajectories "
         "shared by both frames and their references, seeds independent; delta method, two-sided), "
         f"Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
+        refused_text(built_rows).replace("no best or tie mark and no †", "no p"),
         budget_text(every),
         init_text(every),
         f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",

@@ -14,8 +14,10 @@ column (``judge_column``):
    ``best``; otherwise every row of the tied group is marked ``tie`` and the
    caption says that no row is significantly best at that number of seeds.
 
-A row whose interval does not lie entirely below the better reference's mean
-is marked ``noskill``; a row whose predictions vary less than
+A row whose sample ``stats.refusal`` refuses (2 seeds, or too few patients for
+a new-patient estimand) shows its mean only and takes no part in the marks or
+skill (estimand.py). A row whose interval does not lie entirely below the
+better reference's mean is marked ``noskill``; a row whose predictions vary less than
 ``IGNORES_RATIO`` of the ground truth's (``pred.std_ratio.pos``) is flagged
 ``ignores``. Skill = 1 - error / better-reference error, with its interval
 from the same variance components (delta method, ``stats.skill``).
@@ -32,6 +34,7 @@ import numpy as np
 from . import stats
 from .aggregate import REFERENCES, Frames, logged_mean, model_sample, reference_sample, replicates
 from .collect import RunRecord
+from .estimand import scale_of
 from .table_model import Estimate, Row, Value
 
 IGNORES_RATIO = 0.05
@@ -64,11 +67,19 @@ class Built:
     unsettled: list[str] = field(default_factory=list)  # metrics whose column has no significant best
 
 
-def estimate(sample: stats.Sample | None, fallback: float | None, s: Settings) -> Estimate | None:
+def estimate(sample: stats.Sample | None, fallback: float | None, s: Settings,
+             scale: str = stats.POSITIVE) -> Estimate | None:
+    """The cell: the sample's mean with its interval on ``scale`` (none when refused or nothing varies), else
+    the logged mean."""
     if sample is not None:
-        lo, hi = stats.interval(sample, s.level)
+        lo, hi = stats.interval(sample, s.level, scale)
         return Estimate(sample.mean, lo, hi) if lo == lo else Estimate(sample.mean)  # NaN: no interval
     return None if fallback is None else Estimate(fallback)
+
+
+def judged(sample: stats.Sample | None) -> stats.Sample | None:
+    """The sample if it may be ranked and tested (not refused: stats.refusal), else None."""
+    return None if sample is None or stats.refusal(sample) else sample
 
 
 def ignores_input(runs: Sequence[RunRecord]) -> bool:
@@ -77,27 +88,29 @@ def ignores_input(runs: Sequence[RunRecord]) -> bool:
     return bool(ratios) and float(np.mean(ratios)) < IGNORES_RATIO
 
 
-def _model_row(line: Line, frames: Frames, metrics: Sequence[str], evaluation: str, s: Settings) -> Row:
+def _model_row(line: Line, frames: Frames, metrics: Sequence[str], evaluation: str, s: Settings, unit: str) -> Row:
     reps = replicates(line.runs)
-    samples = [model_sample(reps, frames, evaluation, m) if reps else None for m in metrics]
+    samples = [model_sample(reps, frames, evaluation, m, unit=unit) if reps else None for m in metrics]
     values: list[Value] = list(line.extra)
     for m, sample in zip(metrics, samples):
-        values.append(estimate(sample, logged_mean(reps, evaluation, m) if reps else None, s) if reps else None)
+        fallback = logged_mean(reps, evaluation, m) if reps else None
+        values.append(estimate(sample, fallback, s, scale_of(m)) if reps else None)
     first = next((x for x in samples if x is not None), None)
     info = {"samples": samples, "replicates": len(reps), "runs": line.runs,
+            "refused": stats.refusal(first) if first is not None else "",
             "trajectories": first.trajectories if first else None, "pairs": first.pairs if first else None}
     flags = {"ignores"} if line.runs and ignores_input(line.runs) else set()
     return Row(line.group, line.label, values, [r.run_id for r in line.runs], flags=flags, info=info)
 
 
 def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence[str], evaluation: str,
-                    n_extra: int, grouped: bool, s: Settings) -> tuple[list[Row], dict[str, list]]:
+                    n_extra: int, grouped: bool, s: Settings, unit: str) -> tuple[list[Row], dict[str, list]]:
     rows, samples = [], {}
     reps = replicates(runs)
     for source, name in REFERENCES.items():
-        per_metric = [reference_sample(runs, frames, source, evaluation, m) for m in metrics]
+        per_metric = [reference_sample(runs, frames, source, evaluation, m, unit) for m in metrics]
         values: list[Value] = [""] * n_extra
-        values += [estimate(x, logged_mean(reps, evaluation, m, source) if reps else None, s)
+        values += [estimate(x, logged_mean(reps, evaluation, m, source) if reps else None, s, scale_of(m))
                    for x, m in zip(per_metric, metrics)]
         rows.append(Row(REFERENCE_GROUP if grouped else "", name, values, kind="reference"))
         samples[source] = per_metric
@@ -109,6 +122,7 @@ def judge_column(samples: Sequence[stats.Sample | None], s: Settings, higher: bo
     """Marks of one column (per row) and the Holm-adjusted p of each row against the best (the lowest mean;
     the highest where ``higher`` is better, e.g. CTF)."""
     out: list[set[str]] = [set() for _ in samples]
+    samples = [judged(x) for x in samples]
     cand = [i for i, x in enumerate(samples) if x is not None]
     if len(cand) < 2:
         return out, {}
@@ -124,7 +138,8 @@ def judge_column(samples: Sequence[stats.Sample | None], s: Settings, higher: bo
 
 
 def better_reference(refs: dict[str, list], j: int, higher: bool = False) -> stats.Sample | None:
-    found = [x[j] for x in refs.values() if x[j] is not None]
+    """The better reference's sample of metric ``j`` (None when none may be judged: stats.refusal)."""
+    found = [x[j] for x in refs.values() if judged(x[j]) is not None]
     sign = -1.0 if higher else 1.0
     return min(found, key=lambda x: sign * x.mean) if found else None
 
@@ -138,14 +153,15 @@ def _no_skill(v: Estimate, bar: float, higher: bool) -> bool:
 
 def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], evaluation: str, *,
                 grouped: bool, settings: Settings | None = None, skill_metrics: Sequence[str] = (),
-                higher: Sequence[str] = ()) -> Built:
+                higher: Sequence[str] = (), unit: str = stats.TRAJECTORY) -> Built:
     """Model rows, then the two reference rows; marks for the metric columns (after the ``extra`` ones).
-    ``higher``: the metrics where higher is better (CTF); the others are errors (lower is better)."""
+    ``higher``: the metrics where higher is better (CTF); the others are errors (lower is better). ``unit``:
+    the estimand (estimand.unit_of: these patients or a new patient)."""
     s = settings or Settings()
     n_extra = len(lines[0].extra) if lines else 0
-    rows = [_model_row(line, frames, metrics, evaluation, s) for line in lines]
+    rows = [_model_row(line, frames, metrics, evaluation, s, unit) for line in lines]
     every = [r for line in lines for r in line.runs]
-    ref_rows, refs = _reference_rows(every, frames, metrics, evaluation, n_extra, grouped, s)
+    ref_rows, refs = _reference_rows(every, frames, metrics, evaluation, n_extra, grouped, s, unit)
     marks: list[list[set[str]]] = [[set() for _ in range(n_extra + len(metrics))] for _ in rows + ref_rows]
     skill: dict[str, dict[str, stats.Derived]] = {}
     unsettled: list[str] = []
@@ -162,9 +178,10 @@ def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], e
         for i, row in enumerate(rows):
             marks[i][n_extra + j] |= column_marks[i]
             v = row.values[n_extra + j]
-            if bar is not None and isinstance(v, Estimate) and _no_skill(v, bar, up):
+            refused = col[i] is not None and judged(col[i]) is None  # means only: no † either
+            if bar is not None and isinstance(v, Estimate) and not refused and _no_skill(v, bar, up):
                 marks[i][n_extra + j].add("noskill")
-            if metric in skill_metrics and col[i] is not None and best_ref is not None:
+            if metric in skill_metrics and judged(col[i]) is not None and best_ref is not None:
                 try:
                     skill.setdefault(row.name, {})[metric] = stats.skill(col[i], best_ref, s.level)
                 except ValueError:  # no shared trajectory with the reference
@@ -175,11 +192,14 @@ def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], e
 
 def method_text(s: Settings) -> str:
     """The caption's statement of the interval, the test, the correction and alpha."""
-    return (f"Cells: mean over seeds of the run-level metric [{s.level:.0%} interval: t interval whose variance "
-            f"adds the seed-to-seed and the test-trajectory variation (variance components, Satterthwaite df; "
-            f"calibrated by simulation at 3 and 5 seeds, docs/reports.md)]. Best: the row with the lowest mean, "
+    return (f"Cells: mean over seeds of the run-level metric [{s.level:.0%} interval over the estimand's variance "
+            f"levels (variance components, Satterthwaite df), on the log scale of the errors (Cox's lognormal-mean "
+            f"interval: above 0, longer upwards where errors are skewed) and the logit scale of percentages "
+            f"(inside 0-100); calibrated by simulation at 3 and 5 seeds, also with skewed errors and few patients, "
+            f"docs/reports.md]. Best: the row with the lowest mean, "
             f"compared with every other row of its column by a paired t test on the shared test trajectories "
-            f"(seeds independent per row; two-sided), Holm-corrected over those comparisons; bold = significantly "
+            f"(patients, for a new patient; seeds independent per row; two-sided), Holm-corrected over those "
+            f"comparisons; bold = significantly "
             f"better than every other row (adjusted p < {s.alpha:g}); bold with ≈ = tied group, not significantly "
             f"different from the lowest mean (adjusted p >= {s.alpha:g}).")
 
@@ -188,7 +208,8 @@ def unsettled_text(metrics: Sequence[str], names: dict[str, str], rows: Sequence
     """'No significant best at 3 seeds: Rotation L2, DE.' for the columns whose best is not significant."""
     if not metrics:
         return ""
-    reps = sorted({r.info["replicates"] for r in rows if r.kind == "model" and r.info.get("replicates")})
+    reps = sorted({r.info["replicates"] for r in rows
+                   if r.kind == "model" and r.info.get("replicates") and not r.info.get("refused")})
     seeds = "/".join(str(n) for n in reps) or "?"
     return (f"No significant best at {seeds} seed{'s' if reps != [1] else ''} (n.s.): "
             f"{', '.join(names.get(m, m) for m in metrics)}; the bold ≈ rows are the tied group, no winner is "

@@ -24,6 +24,7 @@ from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
 from .context import LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext, arch_names
+from .estimand import ESTIMAND_NAMES, unit_of
 from .judge import metric_rows
 from .table_model import Estimate, Table
 
@@ -51,8 +52,10 @@ def skill_figure(table: Table):
         ax.set_ylabel(f"skill, {METRICS[m][0]}")
         ax.set_title(f"{METRICS[m][0]}: 1 − error / better reference", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
-    fig.suptitle(f"{table.title}\nbars: skill with 95% t interval (seeds and trajectories); blue = interval above 0",
-                 fontsize=8)
+    units = {x.unit for r in table.rows if r.kind == "model" for x in r.info.get("samples", ()) if x is not None}
+    about = ESTIMAND_NAMES.get(units.pop() if len(units) == 1 else "", "its table's estimand")
+    fig.suptitle(f"{table.title}\nbars: skill with 95% interval (estimand: {about}); blue = interval above 0; "
+                 f"rows with 2 seeds show no skill", fontsize=8)
     fig.tight_layout()
     return fig
 
@@ -97,7 +100,7 @@ def curve_points(ctx: ReportContext) -> dict:
             continue
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), list(SKILL_METRICS), CURVE_EVAL, grouped=False,
-                            settings=ctx.settings, skill_metrics=SKILL_METRICS)
+                            settings=ctx.settings, skill_metrics=SKILL_METRICS, unit=unit_of(population))
         pairs = [r.metrics["train.train_pairs"] for r in every if "train.train_pairs" in r.metrics]
         points[size] = {"x": float(np.mean(pairs)) if pairs else float("nan"), "rows": built.rows,
                         "skill": built.skill, "label": _size_label(size, ctx)}
@@ -144,8 +147,9 @@ def learning_curve_figure(ctx: ReportContext):
         if j == 0:
             err_ax.legend(fontsize=6)
             skill_ax.legend(fontsize=6)
-    fig.suptitle(f"Learning curve, {data['population']} population, per-pair evaluation: mean with 95% t interval "
-                 f"(seeds and trajectories); skill = 1 − error / better image-blind reference", fontsize=8)
+    about = ESTIMAND_NAMES[unit_of(data["population"])]
+    fig.suptitle(f"Learning curve, {data['population']} population, per-pair evaluation: mean with 95% interval "
+                 f"(estimand: {about}); skill = 1 − error / better image-blind reference", fontsize=8)
     fig.tight_layout()
     return fig
 

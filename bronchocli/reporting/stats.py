@@ -1,4 +1,4 @@
-"""The statistics behind every table cell: variance components over seeds and test trajectories, t intervals.
+"""The statistics behind every table cell: variance components over seeds, patients and test trajectories.
 
 A cell's data is a :class:`Sample`: for each replicate (a seed; for
 cross-subject the fold runs of one seed together) the per-trajectory error of
@@ -7,90 +7,83 @@ pairs for per-pair metrics, 1 for accumulated ones). Its value is the mean over
 replicates of the weighted mean over trajectories, i.e. the mean of the
 run-level metric the runs logged.
 
-What a 95 % interval must cover is the mean over *new* seeds and *new* test
-trajectories, so both sources of variation count. With R seeds, T
-trajectories (normalised weights w) and the model
-``error[r, t] = mu + seed_r + traj_t + noise_rt``, the variance of a linear
-combination ``sum_i c_i mean_i`` of cells sharing their trajectories is
-estimated from moments (no resampling, exact and fast):
+**Estimand.** What an interval covers is stated by the sample's ``unit``:
+
+* ``trajectory`` — *these patients*: the mean over new seeds and new test
+  trajectories of the same patients (personalized tables). Sources: seeds and
+  trajectories;
+* ``patient`` — *a new patient*: the mean over new seeds, new patients and new
+  trajectories of those patients (cross-subject tables). Patients are a level:
+  each trajectory is first averaged into its patient (weights summed), so the
+  patient-to-patient variation, the trajectory-within-patient variation and a
+  seed x patient interaction all enter through the patient means. With few
+  patients the interval is honestly wide (2 df at 3 patients).
+
+With R replicates, U units (trajectories or patients; normalised weights w)
+and ``error[r, u] = mu + seed_r + unit_u + noise_ru``, the variance of a linear
+combination ``sum_i c_i mean_i`` of cells sharing their units is estimated from
+moments (no resampling, exact and fast):
 
 * a **seed part** per cell, ``c^2 var_r(seed mean_r) / R`` (R - 1 df), minus
   its noise share ``c^2 sum(w^2) MS_noise / R`` (the noise is counted again in
-  the trajectory part), truncated at 0;
-* one **trajectory part** for the combination, the weighted variance of the
-  per-trajectory combination ``sum_i c_i trajmean_i[t]`` (T - 1 df; trajectory
-  difficulty shared by the cells cancels here — that is the pairing);
+  the unit part), truncated at 0;
+* one **unit part** for the combination, the weighted variance of the per-unit
+  combination ``sum_i c_i unitmean_i[u]`` (U - 1 df with equal weights,
+  ``_weighted_df`` otherwise; difficulty shared by the cells cancels here —
+  that is the pairing);
 
 and the t quantile uses Satterthwaite's degrees of freedom, computed with the
-seed parts at their median-unbiased value (``_median_unbiased``). With 3 seeds and
-seed-to-seed variation dominating that is about 2 df (t = 4.3): wide, but
-calibrated. ``benchmarks/bench_calibration.py`` simulates the three regimes
-(seed-dominated, mixed, trajectory-dominated) at 3 and 5 seeds and measures
-coverage, the false-positive rate of ``paired_p`` and its power; the figures
-are in docs/reports.md. A cell with one replicate (or a reference, which does
-not depend on the seed) has no seed part: its interval covers the trajectory
-variation only.
+seed parts at their median-unbiased value (``_median_unbiased``), so a few-df
+part that happens to come out small does not also shrink the quantile.
 
-* ``interval``: the t interval of one sample's mean;
-* ``paired_p``: two rows on their shared trajectories (seeds independent per
-  row), a Welch-Satterthwaite t test of equal means, two-sided;
-* ``derived`` / ``skill``: a smooth function of several means (skill =
-  1 - error / reference error) by the delta method on the same components;
+**Too few replicates.** Two seeds (or fewer than ``MIN_PATIENTS`` patients for
+a new-patient estimand) give no interval and no test (``refusal``): simulated,
+they under-cover (0.89) and over-reject. One seed keeps an interval, over the
+units only (its estimand is that one trained model; captions say so).
+
+**Scales** (``interval(..., scale=)``): ``linear`` is the plain t interval;
+``positive`` (errors: > 0, right-skewed) is Cox's lognormal-mean interval on
+the variance parts of the log errors (``positive_interval``: above 0, longer
+upwards where a bad seed or a hard trajectory skews the errors, the t interval
+where they vary little); ``percent`` (CTF) is the t interval on the logit
+scale (inside [0, 100]).
+``benchmarks/bench_calibration.py`` measures all of it; the figures are in
+docs/reports.md.
+
+* ``interval``: the interval of one sample's mean;
+* ``paired_p``: two rows on their shared units (seeds independent per row), a
+  Welch-Satterthwaite t test of equal means, two-sided;
+* ``skill``: 1 - error / reference error with its interval on the log-ratio
+  scale (so it stays <= 1); ``derived``: any smooth function of several means
+  by the delta method;
 * ``holm``: Holm's step-down adjustment of a family of p-values.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
 from scipy import stats as sps
 
+from .sample import (  # noqa: F401 - re-exported: the tables and tests know them as stats.*
+    MIN_PATIENTS,
+    MIN_SEEDS,
+    PATIENT,
+    TRAJECTORY,
+    UNITS,
+    Key,
+    Sample,
+    collapse,
+    common_keys,
+    refusal,
+)
+
 ALPHA = 0.05
 LEVEL = 0.95
-Key = tuple[str, str, str]  # (patient, lobe, trajectory)
-METHOD = ("t interval with variance components over seeds and test trajectories (Satterthwaite df)")
-
-
-@dataclass(frozen=True)
-class Sample:
-    """Per-trajectory errors of one cell: ``errors[r, t]`` for replicate r and trajectory ``keys[t]``."""
-
-    keys: tuple[Key, ...]
-    weights: np.ndarray  # (T,) n_pairs (per-pair metrics) or ones (accumulated)
-    errors: np.ndarray  # (R, T)
-    pairs: int = 0  # test pairs behind the T trajectories
-
-    def __post_init__(self) -> None:
-        if self.errors.ndim != 2 or self.errors.shape[1] != len(self.keys) or len(self.weights) != len(self.keys):
-            raise ValueError(f"errors {self.errors.shape} do not match {len(self.keys)} keys / weights")
-
-    @property
-    def replicates(self) -> int:
-        return int(self.errors.shape[0])
-
-    @property
-    def trajectories(self) -> int:
-        return len(self.keys)
-
-    @property
-    def mean(self) -> float:
-        return float(np.mean(self.errors @ self.weights / self.weights.sum()))
-
-    def restricted(self, keys: Sequence[Key]) -> "Sample":
-        """The same sample on ``keys`` (a subset of its own), in that order."""
-        pos = {k: i for i, k in enumerate(self.keys)}
-        idx = np.array([pos[k] for k in keys], dtype=int)
-        return Sample(tuple(keys), self.weights[idx], self.errors[:, idx], self.pairs)
-
-
-def common_keys(samples: Sequence[Sample]) -> list[Key]:
-    """The trajectories every sample has, sorted (what a comparison is computed on)."""
-    keys = set(samples[0].keys)
-    for s in samples[1:]:
-        keys &= set(s.keys)
-    return sorted(keys)
+LINEAR, POSITIVE, PERCENT = "linear", "positive", "percent"
 
 
 # ---------------------------------------------------------------- array core (batched; the benchmark calls it)
@@ -104,8 +97,23 @@ class Inference:
     df: np.ndarray
 
     def interval(self, level: float = LEVEL) -> tuple[np.ndarray, np.ndarray]:
+        """The plain (linear, symmetric) t interval."""
         half = sps.t.ppf(0.5 + level / 2.0, self.df) * self.se
         return self.value - half, self.value + half
+
+    def logit_interval(self, level: float = LEVEL, top: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+        """The t interval of a figure in [0, top] (a percentage) on the logit scale (delta method): inside the
+        bounds, asymmetric near them; a value on a bound (nothing varies) is its own interval."""
+        q = sps.t.ppf(0.5 + level / 2.0, self.df)
+        m = np.asarray(self.value, dtype=np.float64)
+        p = np.clip(m / top, 0.0, 1.0)
+        inner = (p > 0) & (p < 1)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            eta = np.log(p / (1.0 - p))
+            half = q * self.se / (top * p * (1.0 - p))
+            lo = np.where(inner, top / (1.0 + np.exp(-(eta - half))), m)
+            hi = np.where(inner, top / (1.0 + np.exp(-(eta + half))), m)
+        return lo, hi
 
     @property
     def p(self) -> np.ndarray:
@@ -132,61 +140,119 @@ def _satterthwaite(terms: Sequence[tuple[np.ndarray, float]], for_df: Sequence[n
 def _median_unbiased(v: np.ndarray, df: np.ndarray) -> np.ndarray:
     """A variance estimate with ``df`` degrees of freedom scaled to its median-unbiased value (chi2 median).
 
-    Satterthwaite's df is liberal when a few-df seed part happens to come out small (the df then jumps to the
-    trajectory part's, exactly when the interval is too short); computing the df from the median-unbiased seed
-    variance (x 1.44 at 2 df) removes that (bench_calibration: coverage 0.931 -> 0.941 at 3 seeds, seed-dominated).
+    Satterthwaite's df is liberal when a few-df part happens to come out small (the df then jumps to the other
+    parts', exactly when the interval is too short); computing the df from the median-unbiased value (x 1.44 at
+    2 df) removes that (bench_calibration: coverage 0.931 -> 0.941 at 3 seeds, seed-dominated).
     """
     return v * df / sps.chi2.ppf(0.5, df)
 
 
-def _seed_part(errors: np.ndarray, w: np.ndarray, coef: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """``c^2 sigma_seed^2 / R`` of one cell (``errors (..., R, T)``) and its df; None with one replicate."""
-    r, t = errors.shape[-2:]
+@dataclass(frozen=True)
+class _Parts:
+    """The variance parts of one cell ``errors (..., R, U)`` (normalised weights ``w``)."""
+
+    seed: np.ndarray | None  # sigma_seed^2 / R (noise share removed, >= 0); None with one replicate
+    seed_df: np.ndarray | None
+    noise: np.ndarray | None  # MS of the seed x unit residual (sigma_noise^2); None with one replicate
+    unit: np.ndarray | None  # variance of the weighted mean of the per-unit means; None with one unit
+    n_eff: float  # 1 / sum(w^2): the units' effective number
+
+
+def _parts(errors: np.ndarray, w: np.ndarray, coef=1.0) -> _Parts:
+    r, u = errors.shape[-2:]
+    n_eff = 1.0 / float(np.sum(w * w))
+    unit = None
+    if u > 1:
+        per_unit = coef * errors.mean(-2) if np.ndim(coef) == 0 else coef[..., None] * errors.mean(-2)
+        centred = per_unit - (per_unit @ w)[..., None]
+        unit = u / (u - 1) * (centred ** 2 @ (w * w))
     if r < 2:
-        return None
+        return _Parts(None, None, None, unit, n_eff)
     seed_means = errors @ w  # (..., R)
     v_seed = coef ** 2 * seed_means.var(-1, ddof=1) / r
-    sw2 = float(np.sum(w * w))
-    traj_means = errors.mean(-2)  # (..., T)
-    resid = errors - seed_means[..., :, None] - traj_means[..., None, :] + (seed_means.mean(-1))[..., None, None]
+    sw2 = 1.0 / n_eff
+    resid = errors - seed_means[..., :, None] - errors.mean(-2)[..., None, :] + (seed_means.mean(-1))[..., None, None]
     ms_noise = (resid ** 2 @ w).sum(-1) / ((r - 1) * max(1.0 - sw2, 1e-12))
-    v_noise = coef ** 2 * sw2 * ms_noise / r  # the noise share, also in the trajectory part
-    part = np.maximum(v_seed - v_noise, 0.0)
+    v_noise = coef ** 2 * sw2 * ms_noise / r  # the noise share, also in the unit part
+    seed = np.maximum(v_seed - v_noise, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        denom = v_seed ** 2 / (r - 1) + v_noise ** 2 / ((r - 1) * max(t - 1, 1))
-        df = np.where(denom > 0, part ** 2 / denom, np.inf)
-    return part, np.maximum(df, 1.0)
+        denom = v_seed ** 2 / (r - 1) + v_noise ** 2 / ((r - 1) * max(u - 1, 1))
+        df = np.maximum(np.where(denom > 0, seed ** 2 / denom, np.inf), 1.0)
+    return _Parts(seed, df, ms_noise, unit, n_eff)
+
+
+def _weighted_df(w: np.ndarray) -> float:
+    """The df of a weighted variance over units with normalised weights ``w``: (sum w^2)^2 / sum w^4 - 1, U - 1
+    for equal weights. With unequal pair counts it is below n_eff - 1 (6.1 vs 8.6 for the pair counts 10-59 of
+    12 trajectories), which the lognormal-trajectory regime needs (coverage 0.915 -> 0.936)."""
+    return max(float(np.sum(w * w) ** 2 / np.sum(w ** 4)) - 1.0, 1.0)
 
 
 def combine(errors: Sequence[np.ndarray], weights: np.ndarray, coefs: Sequence) -> Inference:
-    """Inference on ``sum_i coefs[i] * mean_i``, the cells ``errors[i] (..., R_i, T)`` on the same T trajectories.
+    """Inference on ``sum_i coefs[i] * mean_i``, the cells ``errors[i] (..., R_i, U)`` on the same U units.
 
     Leading dimensions are a batch (independent experiments); ``coefs`` may be arrays of that batch shape.
     """
     w = np.asarray(weights, dtype=np.float64)
     w = w / w.sum()
-    t = len(w)
     coefs = [np.asarray(c, dtype=np.float64) for c in coefs]
     value = sum(c * (e @ w).mean(-1) for c, e in zip(coefs, errors))
-    per_traj = sum(c[..., None] * e.mean(-2) for c, e in zip(coefs, errors))  # (..., T)
     terms: list[tuple[np.ndarray, float]] = []
     for_df: list[np.ndarray] = []
-    if t > 1:
-        centred = per_traj - (per_traj @ w)[..., None]
-        v_traj = t / (t - 1) * (centred ** 2 @ (w * w))
-        n_eff = 1.0 / float(np.sum(w * w))
-        terms.append((v_traj, max(n_eff - 1.0, 1.0)))
-        for_df.append(v_traj)
+    if len(w) > 1:  # one unit part for the combination: shared difficulty cancels (the pairing)
+        per_unit = sum(c[..., None] * e.mean(-2) for c, e in zip(coefs, errors))
+        centred = per_unit - (per_unit @ w)[..., None]
+        v_unit = len(w) / (len(w) - 1) * (centred ** 2 @ (w * w))
+        unit_df = _weighted_df(w)
+        terms.append((v_unit, unit_df))
+        for_df.append(v_unit)
     for c, e in zip(coefs, errors):
-        part = _seed_part(e, w, c)
-        if part is not None:
-            terms.append(part)  # type: ignore[arg-type]
-            for_df.append(_median_unbiased(*part))
-    if not terms:  # one replicate of one trajectory: no variation to measure
+        parts = _parts(e, w, c)
+        if parts.seed is not None:
+            terms.append((parts.seed, parts.seed_df))  # type: ignore[arg-type]
+            for_df.append(_median_unbiased(parts.seed, parts.seed_df))
+    if not terms:  # one replicate of one unit: no variation to measure
         nan = np.full_like(np.asarray(value, dtype=np.float64), np.nan)
         return Inference(np.asarray(value), nan, nan)
     total, df = _satterthwaite(terms, for_df)
     return Inference(np.asarray(value), np.sqrt(np.maximum(total, 0.0)), df)
+
+
+def positive_interval(errors: np.ndarray, weights: np.ndarray, level: float = LEVEL
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The interval of the mean of one cell of positive, possibly right-skewed errors ``(..., R, U)``.
+
+    On the log scale the variance parts of ``log error`` are estimated as in ``combine``, and the interval is
+    Cox's for a lognormal mean, log(mean) = E[log error] + sigma^2 / 2 with sigma^2 the sum of the seed, unit
+    and noise parts: ``exp(m + s/2 +- t sqrt(se^2 + var(s) / 4))``. It stays above 0, widens upwards where
+    the errors are skewed (a bad seed, a hard trajectory) and equals the linear t interval to first order where
+    they vary little relative to their mean; the seed part enters the centre and var(s) at its median-unbiased
+    value (bench_calibration). The arithmetic mean itself is always inside. Errors that are not all > 0: the
+    linear interval, its lower bound clipped at 0.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    mean = (errors @ w).mean(-1)
+    if not np.all(errors > 0):
+        lo, hi = combine([errors], w, [1.0]).interval(level)
+        return np.maximum(lo, 0.0), hi
+    y = np.log(errors)
+    inf = combine([y], w, [1.0])
+    parts = _parts(y, w)
+    r, u = y.shape[-2:]
+    zero = np.zeros_like(inf.value, dtype=np.float64)
+    seed = zero if parts.seed is None else r * _median_unbiased(parts.seed, parts.seed_df)
+    unit = zero if parts.unit is None else parts.n_eff * parts.unit  # sigma_unit^2 + sigma_noise^2 / R
+    noise = zero if parts.noise is None else parts.noise * (1.0 - 1.0 / r)
+    unit_df = _weighted_df(w)
+    var_s = 2.0 * unit ** 2 / unit_df
+    if parts.seed is not None:
+        var_s = var_s + 2.0 * seed ** 2 / parts.seed_df + 2.0 * noise ** 2 / ((r - 1) * max(u - 1, 1))
+    centre = inf.value + (seed + unit + noise) / 2.0
+    with np.errstate(invalid="ignore"):
+        half = sps.t.ppf(0.5 + level / 2.0, inf.df) * np.sqrt(inf.se ** 2 + var_s / 4.0)
+        lo, hi = np.exp(centre - half), np.exp(centre + half)
+    return np.minimum(lo, mean), np.maximum(hi, mean)
 
 
 # ---------------------------------------------------------------- on samples (what the tables call)
@@ -195,25 +261,38 @@ def _aligned(samples: Sequence[Sample]) -> list[Sample]:
     keys = common_keys(samples)
     if not keys:
         raise ValueError("the samples share no test trajectory")
+    if len({s.unit for s in samples}) > 1:
+        raise ValueError("the samples state different estimands (units)")
     return [s.restricted(keys) for s in samples]
 
 
 def linear(samples: Sequence[Sample], coefs: Sequence[float]) -> Inference:
-    """Inference on ``sum_i coefs[i] * mean_i`` over the samples' shared trajectories."""
+    """Inference on ``sum_i coefs[i] * mean_i`` over the samples' shared trajectories (grouped into patients
+    for a new-patient estimand)."""
     aligned = _aligned(samples)
-    return combine([s.errors for s in aligned], aligned[0].weights, coefs)
+    units = [s.units() for s in aligned]
+    return combine([e for e, _ in units], units[0][1], coefs)
 
 
-def interval(sample: Sample, level: float = LEVEL) -> tuple[float, float]:
-    """The t interval of the sample's mean (seed and trajectory variation, Satterthwaite df); NaN bounds when
-    nothing varies that could be measured (one replicate, one trajectory)."""
-    inf = combine([sample.errors], sample.weights, [1.0])
-    lo, hi = inf.interval(level)
+def interval(sample: Sample, level: float = LEVEL, scale: str = LINEAR) -> tuple[float, float]:
+    """The interval of the sample's mean on ``scale``; NaN bounds when it is refused (``refusal``) or nothing
+    varies that could be measured (one replicate, one unit)."""
+    if refusal(sample):
+        return math.nan, math.nan
+    errors, weights = sample.units()
+    if scale == POSITIVE:
+        lo, hi = positive_interval(errors, weights, level)
+    elif scale == PERCENT:
+        lo, hi = combine([errors], weights, [1.0]).logit_interval(level)
+    elif scale == LINEAR:
+        lo, hi = combine([errors], weights, [1.0]).interval(level)
+    else:
+        raise ValueError(f"scale {scale!r} is not one of {LINEAR}, {POSITIVE}, {PERCENT}")
     return float(lo), float(hi)
 
 
 def paired_p(a: Sample, b: Sample) -> float:
-    """Two-sided test of equal means of ``a`` and ``b`` on their shared trajectories (seeds independent)."""
+    """Two-sided test of equal means of ``a`` and ``b`` on their shared units (seeds independent)."""
     return float(linear([a, b], [1.0, -1.0]).p)
 
 
@@ -263,5 +342,7 @@ def derived(samples: Sequence[Sample], fn: Callable[..., float], level: float = 
 
 
 def skill(model: Sample, reference: Sample, level: float = LEVEL) -> Derived:
-    """1 - model error / reference error (0: no better than the reference; 1: perfect)."""
-    return derived([model, reference], lambda m, r: 1.0 - m / r, level)
+    """1 - model error / reference error (0: no better than the reference; 1: perfect), its interval by the
+    delta method on log(model / reference) so that it never exceeds 1; p of 'skill is 0'."""
+    lr = derived([model, reference], lambda m, r: math.log(m / r) if m > 0 and r > 0 else math.nan, level)
+    return Derived(1.0 - math.exp(lr.value), 1.0 - math.exp(lr.hi), 1.0 - math.exp(lr.lo), lr.p, lr.df)

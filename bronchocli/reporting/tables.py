@@ -54,6 +54,7 @@ from .context import (
     provenance,
     references_text,
 )
+from .estimand import estimand_text, refused_text, unit_of
 from .frames_table import frames
 from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
 from .table_model import Column, Row, Table, Value
@@ -70,7 +71,7 @@ def _metric_columns(names: Sequence[str] = tuple(METRICS)) -> list[Column]:
 
 def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line], metrics: Sequence[str],
            evaluation: str, extra: str = "", expected_empty: Sequence[str] = (), units: str = UNITS,
-           higher: Sequence[str] = ()) -> Table:
+           higher: Sequence[str] = (), population: str = "personalized") -> Table:
     """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings.
 
     No line at all (none of the config's cells belongs to this table, e.g. Table 4 of a sweep without
@@ -81,11 +82,12 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
                      f"({table.title.split('. ', 1)[-1]})")
     every = [r for line in lines for r in line.runs]
     frames = ctx.frames(every)
+    unit = unit_of(population)
     built = metric_rows(lines, frames, metrics, evaluation, grouped=table.grouped,
-                        settings=ctx.settings, skill_metrics=SKILL_METRICS, higher=higher)
+                        settings=ctx.settings, skill_metrics=SKILL_METRICS, higher=higher, unit=unit)
     table.rows, table.marks, table.skill, table.judged = built.rows, built.marks, built.skill, True
-    parts = [f"{EVAL_TEXT[evaluation]}.", method_text(ctx.settings), n_text(table.rows, evaluation,
-                                                                           sorted(c.folds))]
+    parts = [f"{EVAL_TEXT[evaluation]}.", estimand_text(unit, table.rows), method_text(ctx.settings),
+             n_text(table.rows, evaluation, sorted(c.folds)), refused_text(table.rows)]
     if extra:
         parts.append(extra)
     names = {m: (METRICS.get(m) or TRACKING_METRICS[m])[0] for m in metrics}
@@ -165,7 +167,7 @@ def cross_subject(ctx: ReportContext, evaluation: str) -> Table:
     pooled = ("Leave-one-patient-out: a replicate is one seed's runs over every held-out patient (held-out: "
               f"{', '.join(sorted(c.folds)) or '-'}); its value is the metric over the union of their test "
               f"{'pairs' if evaluation == 'pair' else 'trajectories'}.")
-    _build(ctx, c, table, lines, list(METRICS), evaluation, pooled)
+    _build(ctx, c, table, lines, list(METRICS), evaluation, pooled, population="cross-subject")
     if ctx.best > 0:
         note = _keep_best(table, ctx.best)
         table.caption = table.caption.replace(pooled, f"{pooled} {note}")
@@ -241,11 +243,15 @@ def ablation(ctx: ReportContext, evaluation: str) -> Table:
     return _build(ctx, c, table, lines, ["pos_l2", "ce"], evaluation, extra, unmeasured)
 
 
-TRACKING_METRICS = {"ctf": ("CTF", "%"), "ctf_mm": ("CTF mm", "%"), "ate": ("ATE", "vox"), "ate_mm": ("ATE", "mm"),
-                    "rpe_trans": ("RPE trans.", "vox"), "rpe_rot": ("RPE rot.", "°"), "drift": ("Drift", "% path")}
+TRACKING_METRICS = {"ctf": ("CTF vox", "%"), "ctf_mm": ("CTF mm", "%"), "ate": ("ATE", "vox"),
+                    "ate_mm": ("ATE", "mm"), "rpe_trans": ("RPE trans.", "vox"), "rpe_rot": ("RPE rot.", "°"),
+                    "drift": ("Drift", "% path")}
+MM_FIRST = ("ctf_mm", "ctf", "ate_mm", "ate", "rpe_trans", "rpe_rot", "drift")  # the literature's units lead
 TRACKING_UNITS = ("CTF: share of frames 1..N-1 (the first pose is given) whose position error is below the position "
                   "threshold and whose rotation error (geodesic angle) is below the angle threshold, %, higher is "
-                  "better (CTF mm: the position threshold in mm, from the dataset's voxel spacing); ATE: RMSE of the "
+                  "better; CTF mm (the literature's threshold, in mm from the dataset's voxel spacing) is the primary "
+                  "column, CTF vox (the threshold in voxels) the secondary one; its interval is built on the logit "
+                  "scale, so it stays within 0-100%; ATE: RMSE of the "
                   "position error over every frame, no alignment, voxels and mm; RPE: RMSE over every frame i of "
                   "the error of the relative motion from frame i to i + gap (translation in voxels, rotation in "
                   "degrees; TUM definition); Drift: final position error / ground-truth path length, %. Lower is "
@@ -265,8 +271,8 @@ def _thresholds_text(c: Collector, runs) -> str:
             c.warn(f"tracking: the runs used different {k} ({', '.join(f'{v:g}' for v in values)}); their CTF/RPE "
                    f"are not comparable")
     text = {k: "/".join(fmt.format(v) for v in seen[k]) or "?" for k, fmt in names.items()}
-    return (f"Thresholds (config eval:): position {text['eval.ctf_position']} (CTF mm: "
-            f"{text['eval.ctf_position_mm']}), angle {text['eval.ctf_angle']}; RPE gap {text['eval.rpe_gap']} "
+    return (f"Thresholds (config eval:): position {text['eval.ctf_position_mm']} (CTF mm) / "
+            f"{text['eval.ctf_position']} (CTF vox), angle {text['eval.ctf_angle']}; RPE gap {text['eval.rpe_gap']} "
             f"(a test trajectory shorter than the gap has no RPE and is left out of those columns).")
 
 
@@ -276,11 +282,19 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "tracking", "personalized")
     lines = [c.line(name, LOSSES[loss], arch, loss)
              for arch, name in arch_names().items() for loss in LOSSES if c.has(arch, loss)]
-    table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
-                  ("Network", "Loss"), [Column(*TRACKING_METRICS[m]) for m in odometry.METRICS], [])
     every = [r for line in lines for r in line.runs]
-    return _build(ctx, c, table, lines, list(odometry.METRICS), "trajectory", _thresholds_text(c, every),
+    order = tracking_order(every)
+    table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
+                  ("Network", "Loss"), [Column(*TRACKING_METRICS[m]) for m in order], [])
+    return _build(ctx, c, table, lines, order, "trajectory", _thresholds_text(c, every),
                   units=TRACKING_UNITS, higher=sorted(odometry.HIGHER_IS_BETTER))
+
+
+def tracking_order(runs: Sequence[RunRecord]) -> list[str]:
+    """The tracking columns: mm first where the runs know the voxel spacing (a finite ``traj.ctf_mm.mean``),
+    voxels first where none does (e.g. imported poses without spacing)."""
+    known = any(math.isfinite(r.metrics.get("traj.ctf_mm.mean", math.nan)) for r in runs)
+    return list(MM_FIRST) if known or not runs else list(odometry.METRICS)
 
 
 ONCE = {"tracking"}  # tables built once, not per evaluation

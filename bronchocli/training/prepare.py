@@ -17,7 +17,8 @@ from ..cells import Cell
 from ..config import Config
 from ..data.batches import Samples, windows
 from ..data.cache import FrameCache, channel_stats, input_size, open_frame_cache
-from ..data.reader import Dataset
+from ..data.gimbal import world_label_warning
+from ..data.reader import Dataset, warn_once
 from ..data.source import open_dataset
 from ..data.splits import Split, limit_train, make_split
 from ..errors import ConfigError, DataError
@@ -65,6 +66,8 @@ def label_stats(samples: Samples) -> tuple[np.ndarray, np.ndarray]:
 def prepare(cfg: Config, cell: Cell, progress: bool = True) -> RunData:
     check_batch(cfg, cell)
     dataset = open_dataset(cfg)
+    if cell.pose_frame == "world" and (gimbal := world_label_warning(dataset)):
+        warn_once(gimbal)  # the paper's labels are noise near gimbal lock: say so before training on them
     split = make_split(dataset, cell.population, cell.fold, cfg.splits)
     split = limit_train(split, cell.train_trajectories, cfg.splits.seed)
     cache = open_frame_cache(cfg, dataset, progress=progress)  # decodes every frame: fails early on a bad one

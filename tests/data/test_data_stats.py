@@ -7,6 +7,7 @@ import re
 import pandas as pd
 import pytest
 import typer
+from tinydata import turning_angles as turning
 from tinydata import write_tiny_dataset
 from typer.testing import CliRunner
 
@@ -85,3 +86,16 @@ def test_an_unknown_population_is_one_line(cli, tiny, tmp_path):  # a choice fla
 def test_missing_dataset_is_a_clear_error(tmp_path):
     _, _, exc = run("stats", str(tmp_path / "nope"), "--config", write_config(tmp_path, tmp_path))
     assert isinstance(exc, BronchoError) and "dataset directory not found" in str(exc)
+
+
+def test_stats_names_trajectories_near_gimbal_lock(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds", patients=1, lobes=("ur",), trajectories=2, frames=12, image_size=16)
+    table = pd.read_csv(root / "p00.csv")
+    first = table["trajectory"].astype(str) == str(table["trajectory"].iat[0])
+    table.loc[first, ["Rx", "Ry", "Rz"]] = turning(-88.9, int(first.sum()))
+    table.to_csv(root / "p00.csv", index=False)
+    code, out, _ = run("stats", str(root))
+    assert code == 0
+    flat = " ".join(out.split())
+    assert "world-frame labels near gimbal lock" in flat
+    assert f"p00/ur/{table['trajectory'].iat[0]}" in flat and f"p00/ur/{table['trajectory'].iat[-1]}" not in flat

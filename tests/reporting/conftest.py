@@ -29,7 +29,7 @@ def golden_store(tmp_path_factory) -> Golden:
     root = tmp_path_factory.mktemp("golden-store")
     fast_sqlite(root.parent)  # every store of this test session
     client, exp_id, uri = new_store(root)
-    data = write_tiny_dataset(root / "data", patients=2, trajectories=1, frames=6)
+    data = write_tiny_dataset(root / "data", patients=3, trajectories=1, frames=6)
     path, cfg = write_config(root / "experiments.yaml", sweep=SWEEP, uri=uri, experiment=EXPERIMENT, data=data)
     ids = fabricate_golden(client, exp_id, cfg)
     return Golden(client, uri, ids, path, cfg)

@@ -20,6 +20,7 @@ from bronchocli.reporting import report, tables
 from bronchocli.reporting.figures import errors_loader
 from bronchocli.reporting.latex import to_latex
 from bronchocli.reporting.markdown import to_markdown
+from bronchocli.reporting.table_model import Estimate
 
 GOLDEN = Path(__file__).parent / "golden"
 UPDATE = os.environ.get("BRONCHO_UPDATE_GOLDEN") == "1"
@@ -82,7 +83,7 @@ def test_table2_marks_follow_the_planted_values(built):
     md = normalise(to_markdown(tabs["table2-personalized-accumulated"]), names)
     pos = {(g, lo): _cells(md, g, lo)[0] for g, lo in (("+ConvRNN", "MSE+CE"), ("+ConvRNN", "MSE+DE"))}
     # Position L2: ConvLSTM MSE+CE (planted 2.0) is 10 % below the next (2.2): significantly best, alone.
-    assert re.fullmatch(r"\*\*1\.9\d \[\S+, \S+\]\*\*", pos[("+ConvRNN", "MSE+CE")])
+    assert re.fullmatch(r"\*\*(1\.9|2\.0)\d \[\S+, \S+\]\*\*", pos[("+ConvRNN", "MSE+CE")])
     assert not pos[("+ConvRNN", "MSE+DE")].startswith("**")
     # Rotation L2: LSTM MSE+CE 12.0 and ConvLSTM MSE+MSE 12.05 are tied; ConvLSTM MSE+CE 13.0 is not.
     assert _cells(md, "+LSTM", "MSE+CE")[1].endswith("**≈")
@@ -102,10 +103,10 @@ def test_warnings_name_duplicates_failures_and_other_configs(built):
     md = normalise(to_markdown(tabs["table2-personalized-accumulated"]), names)
     assert ("> **Warning:** duplicate: lstm/ce/personalized/s0/world has 2 FINISHED runs; using the latest "
             "<personalized/lstm/ce/s0>, ignoring <personalized/lstm/ce/s0-old>") in md
-    assert ("lacks 2 cell(s) (rows show — or fewer seeds): conv3d/ce/personalized/s0/world (FAILED: "
+    assert ("lacks 3 cell(s) (rows show — or fewer seeds): conv3d/ce/personalized/s0/world (FAILED: "
             "FloatingPointError: loss is nan <personalized/conv3d/ce/s0-failed>); "
-            "conv3d/ce/personalized/s1/world") in md
-    assert any("left out 2 run(s) of sweep 'golden'" in n for n in ctx.index.notes)
+            "conv3d/ce/personalized/s1/world; conv3d/ce/personalized/s2/world") in md
+    assert any("left out 3 run(s) of sweep 'golden'" in n for n in ctx.index.notes)
 
 
 def test_staged_tables_take_their_stage_and_the_recorded_selections(built):
@@ -113,7 +114,10 @@ def test_staged_tables_take_their_stage_and_the_recorded_selections(built):
     cross = tabs["table4-cross-subject-accumulated"]
     assert [r.name for r in cross.rows if r.kind == "model"] == ["+LSTM MSE+CE", "+ConvRNN MSE+DE",
                                                                 "+ConvRNN MSE+CE"]
-    assert cross.rows[1].info["replicates"] == 1  # seed 1 lacks fold p01
+    assert cross.rows[1].info["replicates"] == 2  # seed 1 lacks fold p01: 2 seeds, so means only
+    assert all(isinstance(v, Estimate) and not v.has_interval for v in cross.rows[1].values)
+    assert not any(cross.marks[1]) and "Means only at 2 seeds (+ConvRNN MSE+DE)" in cross.caption
+    assert "Estimand: a new patient" in cross.caption and "it rests on 3 patients (p00, p01, p02)" in cross.caption
     sota = tabs["table6-sota-pair"]
     assert sota.rows[0].label == "BronchoTrack (ConvLSTM, MSE+DE)"  # this plan's selection, not another plan's
     assert [r.label for r in tabs["table7-ablation-pair"].rows if r.kind == "model"] == [
@@ -147,5 +151,7 @@ def test_tracking_table_marks_ctf_higher_is_better(built):
     offsetnet = row["OffsetNet MSE+MSE"]  # CTF below the better reference's (training mean): no skill
     assert "noskill" in t.marks[offsetnet][ctf] and "noskill" in t.marks[offsetnet][ate]
     assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]
-    assert "position 5 voxels (CTF mm: 5 mm), angle 10°; RPE gap 10 frames" in t.caption
+    assert "position 5 mm (CTF mm) / 5 voxels (CTF vox), angle 10°; RPE gap 10 frames" in t.caption
+    assert [c.title for c in t.columns[:4]] == ["CTF mm", "CTF vox", "ATE", "ATE"]  # mm first: the spacing is known
+    assert [c.unit for c in t.columns[2:4]] == ["mm", "vox"]
 

@@ -96,7 +96,7 @@ def test_cell_mean_is_the_mean_over_seeds_of_the_logged_run_metric():
     for ev, name in (("pair", "pair.pos_l2.mean"), ("accumulated", "acc.pos_l2.mean")):
         t = personalized(m.context(), ev)
         assert t.rows[0].values[0].mean == pytest.approx(np.mean([r.metrics[name] for r in runs]))
-    assert "n per cell = 3 seeds × 16 test trajectories" in t.caption
+    assert "n per cell = 3 seeds × 24 test trajectories" in t.caption
 
 
 def test_cross_subject_replicate_is_the_union_of_its_folds():

@@ -85,11 +85,11 @@ def test_report_all_writes_every_table_and_figure_even_without_vtk(cli, golden_s
     assert sorted(p.name for p in out.iterdir()) == sorted(TABLE_FILES + _files(FIGURE_STEMS + DATASET_STEMS))
     assert "Table 2. Personalized population, accumulated evaluation" in stdout
     flat = " ".join(stdout.split())  # rich wraps at the terminal width
-    assert ("35 of the config's 38 cells have a FINISHED run, 1 superseded duplicate(s), 1 cell(s) with only "
-            "unfinished runs (1 run(s)), 2 run(s) of other configs left out") in flat
+    assert ("62 of the config's 66 cells have a FINISHED run, 1 superseded duplicate(s), 1 cell(s) with only "
+            "unfinished runs (1 run(s)), 3 run(s) of other configs left out") in flat
     err = " ".join(stderr.split())
     assert err.count("duplicate: lstm/ce/personalized/s0/world has 2 FINISHED runs") == 1  # once, not per table
     assert err.count("frames table skipped") == 1
-    assert err.count("left out 2 run(s) of sweep 'golden'") == 1
+    assert err.count("left out 3 run(s) of sweep 'golden'") == 1
     assert err.count("VTK is not installed here") == 1  # the positions figure is drawn without the centreline
     assert "Latency and GMAC not measured (--no-latency)" in (out / "table7-ablation-pair.md").read_text()

@@ -124,11 +124,25 @@ def test_skill_against_the_reference():
     d = stats.skill(model, ref)
     assert d.value == pytest.approx(1 - model.mean / ref.mean)
     assert d.lo < d.value < d.hi and d.lo > 0.7  # the shared difficulty cancels: a narrow interval
-    # delta method by hand (one seed): 1 - m/r linearised is -(x_t - (m/r) y_t) / r per trajectory
+    # delta method by hand (one seed) on the log-ratio scale: log(m/r) linearised is x_t / m - y_t / r per
+    # trajectory; skill = 1 - exp(log ratio)
     x, y = model.errors[0], ref.errors[0]
-    lin = -(x - (model.mean / ref.mean) * y) / ref.mean
+    lin = x / model.mean - y / ref.mean
     half = sps.t.ppf(0.975, len(x) - 1) * lin.std(ddof=1) / math.sqrt(len(x))
-    assert (d.lo, d.hi) == pytest.approx((d.value - half, d.value + half), rel=1e-6)
+    log_ratio = math.log(model.mean / ref.mean)
+    assert (d.lo, d.hi) == pytest.approx((1 - math.exp(log_ratio + half), 1 - math.exp(log_ratio - half)), rel=1e-6)
+
+
+def test_skill_interval_never_exceeds_one():
+    """Skill is bounded above by 1 (a perfect model): a near-perfect, noisy model's interval stays below it,
+    where the linear delta method would cross it."""
+    rng = np.random.default_rng(10)
+    ref = _sample(rng.lognormal(0, 0.3, (3, 6)) * 4.0)
+    model = _sample(rng.lognormal(-3.0, 1.5, (3, 6)))
+    d = stats.skill(model, ref)
+    linear = stats.derived([model, ref], lambda m, r: 1.0 - m / r)
+    assert linear.hi > 1.0  # the bound the linear interval breaks
+    assert d.lo < d.value < d.hi < 1.0
 
 
 def test_one_seed_of_one_trajectory_has_no_interval_and_no_significance():

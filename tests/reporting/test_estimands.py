@@ -1,0 +1,136 @@
+"""Every table states its estimand (these patients / a new patient), refuses what too few replicates cannot
+support, and keeps bounded figures inside their bounds (issue 28)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from report_fakes import MemRuns
+
+from bronchocli.reporting import stats
+from bronchocli.reporting.aggregate import reference_sample, replicates
+from bronchocli.reporting.table_model import Estimate
+from bronchocli.reporting.tables import cross_subject, personalized, tracking
+
+PATIENT_DIFFICULTY = {"p00": 0.6, "p01": 1.0, "p02": 1.7}  # a hard patient is hard for every trajectory of it
+
+
+def _clustered(patients=("p00", "p01", "p02"), seed: int = 3) -> MemRuns:
+    m = MemRuns(seed=seed, keys=[k for k in MemRuns().keys if k[0] in patients])
+    for key, h in m.hard.items():
+        h["acc"] *= PATIENT_DIFFICULTY[key[0]]
+        h["pair"] *= PATIENT_DIFFICULTY[key[0]]
+    return m
+
+
+def _cross_sweep(patients=("p00", "p01", "p02"), seeds=(0, 1, 2)) -> MemRuns:
+    """A tiny cross-subject sweep: 2 networks, one run per (seed, held-out patient)."""
+    m = _clustered(patients)
+    for seed in seeds:
+        for p in patients:
+            m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), population="cross-subject", fold=p, seed=seed)
+            m.add("convlstm", "ce", (2.3, 11.0, 0.11, 0.011), population="cross-subject", fold=p, seed=seed)
+    return m
+
+
+def test_cross_subject_caption_states_a_new_patient_and_how_many_patients():
+    t = cross_subject(_cross_sweep().context(), "accumulated")
+    assert "Estimand: a new patient" in t.caption
+    assert "patients are a variance level (seed, patient, trajectory within patient)" in t.caption
+    assert "it rests on 3 patients (p00, p01, p02), and is wide with so few" in t.caption
+    row = t.rows[0]
+    sample = row.info["samples"][0]
+    assert sample.unit == stats.PATIENT and sample.patients == 3
+    # the patient level counts: wider than the same data read as "these patients" (trajectories as units)
+    these = stats.interval(sample.as_unit(stats.TRAJECTORY), scale=stats.POSITIVE)
+    v = row.values[0]
+    assert isinstance(v, Estimate) and v.has_interval
+    assert v.hi - v.lo > 2 * (these[1] - these[0])
+
+
+def test_cross_subject_with_two_patients_shows_means_only_and_says_why():
+    t = cross_subject(_cross_sweep(patients=("p00", "p01")).context(), "pair")
+    assert "it rests on 2 patients (p00, p01): too few to measure how patients differ" in t.caption
+    models = [i for i, r in enumerate(t.rows) if r.kind == "model"]
+    assert all(isinstance(v, Estimate) and not v.has_interval for i in models for v in t.rows[i].values)
+    assert not any(mk for i in models for mk in t.marks[i])  # no best, tie or †
+    assert not t.skill
+
+
+def test_personalized_caption_states_these_patients():
+    m = _clustered()
+    for seed in (0, 1, 2):
+        m.add("lstm", "ce", seed=seed)
+    t = personalized(m.context(), "pair")
+    assert "Estimand: these patients" in t.caption and "of the 3 patients (p00, p01, p02) tested" in t.caption
+    assert "not a claim about a new patient" in t.caption
+    assert t.rows[0].info["samples"][0].unit == stats.TRAJECTORY
+
+
+def test_two_seeds_show_the_mean_without_interval_or_marks_and_say_why():
+    m = MemRuns(seed=4)
+    for seed in (0, 1):
+        m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
+        m.add("convlstm", "ce", (6.0, 30.0, 0.30, 0.030), seed=seed)  # worse than the references: † at 3 seeds
+    t = personalized(m.context(), "accumulated")
+    models = [i for i, r in enumerate(t.rows) if r.kind == "model"]
+    runs = {r.run_id: r for r in m.records}
+    for i in models:
+        reps = replicates([runs[x] for x in t.rows[i].runs])
+        logged = np.mean([np.mean([r.metrics["acc.pos_l2.mean"] for r in rep]) for rep in reps])
+        assert t.rows[i].values[0] == Estimate(pytest.approx(logged))  # the mean, no interval
+        assert not any(t.marks[i])
+    assert "Means only at 2 seeds (every row): no interval, no best or tie mark and no †" in t.caption
+    assert not t.skill
+    refs = [r for r in t.rows if r.kind == "reference"]  # the references do not depend on seeds: intervals
+    assert all(v.has_interval for r in refs for v in r.values)
+
+
+def test_a_third_seed_brings_the_interval_and_the_marks_back():
+    m = MemRuns(seed=4)
+    for seed in (0, 1, 2):
+        m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
+        m.add("convlstm", "ce", (6.5, 30.0, 0.40, 0.090), seed=seed)
+    t = personalized(m.context(), "accumulated")
+    assert "Means only" not in t.caption
+    assert all(v.has_interval for r in t.rows for v in r.values)
+    worse = next(i for i, r in enumerate(t.rows) if r.group == "+ConvRNN")
+    assert all("noskill" in mk for mk in t.marks[worse])
+
+
+def test_tracking_table_keeps_a_near_zero_ctf_interval_inside_0_100():
+    """Zero motion tracks almost nothing (CTF ~ 0 %, a few trajectories a few %): the linear t interval would
+    reach below 0; the logit one stays in [0, 100]. A near-perfect model's CTF near 100 % stays below 100."""
+    m = MemRuns(seed=5, keys=[("p00", lobe, f"{lobe}0") for lobe in ("ur", "br", "ul", "bl")])
+    for key, h in zip(m.keys, (0.5, 1.2, 1.3, 1.4)):  # one easy trajectory: zero motion tracks a few % of it
+        m.hard[key]["acc"] = h
+    refs = {"zero_motion": (22.0, 80.0, 0.5, 0.1), "train_mean": (20.0, 70.0, 0.4, 0.09)}
+    for seed in (0, 1, 2):
+        m.add("lstm", "ce", (0.02, 0.05, 0.001, 0.0001), seed=seed, refs=refs, noise=0.3)
+    t = tracking(m.context(), "accumulated")
+    ctf_cols = [j for j, c in enumerate(t.columns) if c.title.startswith("CTF")]
+    assert [t.columns[j].title for j in ctf_cols] == ["CTF mm", "CTF vox"]  # mm is the primary column
+    zero = next(r for r in t.rows if r.label == "Zero motion")
+    model = next(r for r in t.rows if r.kind == "model")
+    frames = m.context().frames(m.records)
+    linear = stats.interval(reference_sample(m.records, frames, "zero_motion", "trajectory", "ctf"))
+    assert linear[0] < 0.0  # what the plain interval did
+    for j in ctf_cols:
+        v = zero.values[j]
+        assert 0.0 <= v.lo <= v.mean <= v.hi <= 100.0 and v.mean < 5.0
+        w = model.values[j]
+        assert 0.0 <= w.lo <= w.mean <= w.hi <= 100.0 and w.mean > 99.0
+
+
+def test_positive_errors_keep_their_interval_above_zero():
+    base = np.array([0.010, 0.020, 0.015, 0.500, 0.012, 0.011, 0.018, 0.014])  # one hard trajectory
+    errors = base * np.array([[1.0], [1.1], [0.9]])
+    s = stats.Sample(tuple(("p", "l", f"t{i}") for i in range(8)), np.ones(8), errors)
+    lin = stats.interval(s, scale=stats.LINEAR)
+    pos = stats.interval(s, scale=stats.POSITIVE)
+    assert lin[0] < 0.0 < pos[0] <= s.mean <= pos[1]
+    assert pos[1] - s.mean > s.mean - pos[0]  # longer upwards: the errors are right-skewed
+    one = stats.Sample(s.keys[:1], np.ones(1), errors[:1, :1])
+    assert math.isnan(stats.interval(one, scale=stats.POSITIVE)[0])  # one seed, one trajectory: nothing measured
