@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from sweep_fakes import calls, runs_by_cell
+from sweep_fakes import FAKE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli import tracking
@@ -39,7 +39,7 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
     code, out, _ = cli("sweep", "-c", path, "--dry-run")
     assert code == 0 and "12 cells" in out and "cells known once stage personalized is done" in out
 
-    code, out, err = cli("sweep", "-c", path, "--workers", "2")
+    code, out, err = cli("sweep", "-c", path, "--workers", "2", *FAKE)
     assert code == 0, out + err
     # Poisoned on purpose: the test metric ranks these two last; the validation metric ranks them first.
     assert "top 2 of stage personalized by val_best.pos_l2" in out and "lstm/ce 0.1" in out and "convlstm/mse 0.2" in out
@@ -68,13 +68,13 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
 
     code, out, _ = cli("status", "-c", path)
     assert code == 0 and "stage cross-subject: top 2 of stage personalized by val_best.pos_l2" in out
-    code, out, _ = cli("sweep", "-c", path)  # all done: nothing runs again
+    code, out, _ = cli("sweep", "-c", path, *FAKE)  # all done: nothing runs again
     assert code == 0 and "nothing left to run" in out and len(runs_by_cell(project)) == 18
 
 
 def test_a_later_stage_waits_while_its_source_is_incomplete(cli, project):
     path = str(project.paths.base / "experiments.yaml")
-    code, out, err = cli("sweep", "-c", path, "--only", "arch=baseline")
+    code, out, err = cli("sweep", "-c", path, "--only", "arch=baseline", *FAKE)
     assert code == 0, out + err
     assert "stage cross-subject waits: 8 cell(s) of stage personalized are not done" in out
     assert SweepStore(project.paths.storage_url).selection(project.name, plan_key(project), "cross-subject") is None
