@@ -23,7 +23,7 @@ LAYERS: list[set[str]] = [
     {"urls", "io", "extras"},
     {"cells"},
     {"config"},
-    {"geometry", "metrics", "odometry", "runlayout", "tracking", "runview", "plots"},
+    {"geometry", "metrics", "odometry", "runlayout", "tracking", "runview", "mlflow_ui", "plots"},
     {"anatomy", "data"},
     {"render"},
     {"generation"},

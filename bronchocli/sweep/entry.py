@@ -1,5 +1,7 @@
-"""``bronchopose sweep``'s modes as library calls: the command parses its flags, loads the config
-(``task.TaskSpec.load``, the same call an array task makes) and calls exactly one of these.
+"""The library calls behind ``bronchopose sweep``, ``status``, ``tune`` and ``config --grid``: each command parses
+its flags, loads the config and calls exactly one of these.
+
+``sweep``'s modes (the config loaded by ``task.TaskSpec.load``, the same call an array task makes):
 
 - ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``);
 - ``dry_run``: the plan and each cell's state; nothing is started;
@@ -7,20 +9,29 @@
 - ``launch_slurm``: submit the workers as Slurm job arrays, then watch (``slurm.launch``);
 - ``cancel``: scancel the sweep's Slurm jobs.
 
-The sixth way in is not a mode of the command: a Slurm array task starts
-``python -m bronchocli.sweep.task '<spec>'`` (``task.main``).
+A Slurm array task is not a mode of the command: it starts
+``python -m bronchocli.sweep.task '<spec>'`` (``task.main``). The others:
+``status`` (``bronchopose status``), ``grid`` (``config --grid``), ``tune`` and
+``show_study`` (``tune`` and ``tune --show``).
 """
 
 from __future__ import annotations
 
-from rich.console import Console
+import json
 
-from ..cells import Selection
+from rich.console import Console
+from rich.table import Table
+
+from .. import urls
+from ..cells import FIELDS, Cell, Selection
 from ..config import Config
+from ..errors import BronchoError
+from ..generation import ensure_dataset
 from ..runlayout import check_paths
 from . import placement, slurm, staged, task
-from .checkpoints import collect_garbage
-from .status import fmt_bytes
+from .checkpoints import collect_garbage, repair_zombies
+from .plan import StageWalk
+from .status import fmt_bytes, show_status
 from .storage import SweepStore
 from .worker import Runner, default_runner
 
@@ -88,3 +99,89 @@ def launch_slurm(cfg: Config, spec: task.TaskSpec, *, detach: bool = False, retr
 def cancel(cfg: Config, console: Console) -> int:
     """scancel every queued or running job of the sweep (running workers release their cells)."""
     return slurm.cancel(cfg, console)
+
+
+# -- bronchopose status, config --grid -----------------------------------------------------------------
+
+
+def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False, console: Console) -> None:
+    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells."""
+    store = open_store(cfg)
+    if repair:
+        done = repair_zombies(cfg, store if store.exists() else None)
+        for run_id, what in done:
+            console.print(f"repaired run {run_id}: {what}", highlight=False)
+        console.print(f"--repair: {len(done)} run(s) left RUNNING by a dead process were ended")
+    show_status(cfg, store, name, show_all, console)
+
+
+def grid(cfg: Config, console: Console) -> None:
+    """``bronchopose config --grid``: the plan's cells per stage (a selecting stage: what it will choose)."""
+    total = 0
+    for sp in StageWalk(cfg, None).plans():  # a procedural dataset's patients are known before it exists
+        title = f"{cfg.name}" + ("" if sp.stage.name == "grid" else f", stage {sp.stage.name}")
+        if sp.cells is None:
+            console.print(f"{title}: the top {sp.stage.select.top} combinations of stage "
+                          f"{sp.stage.source or 'before'} by {sp.stage.select.by}, chosen when it is done")
+            continue
+        table = Table("key", *FIELDS, title=title)
+        for c in sp.cells:
+            table.add_row(c.key, *(v or "-" for v in c.tags().values()))
+        console.print(table)
+        total += len(sp.cells)
+    console.print(f"{total} cells")
+
+
+# -- bronchopose tune ------------------------------------------------------------------------------------
+
+
+def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> None:
+    """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study)."""
+    from . import tuning  # lazy: optuna only when a study is read
+
+    if study is None and target is None:
+        names = tuning.list_studies(cfg)
+        raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
+                           f"studies in the storage: {', '.join(names) or 'none'}")
+    study = study or tuning.study_name(cfg, target)
+    info = tuning.summary(cfg, study)
+    if fmt == "json":
+        console.print_json(json.dumps(info, default=str))
+        return
+    counts = ", ".join(f"{v} {k}" for k, v in info["counts"].items() if v)
+    console.print(f"[bold]study[/] {study}: {counts or 'no trials'}")
+    best = info["best"]
+    if best is None:
+        console.print("no completed trial yet")
+        return
+    table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
+                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
+    for name, value in best["params"].items():
+        imp = info["importances"].get(name)
+        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),
+                      "—" if imp is None else f"{imp:.3f}")
+    console.print(table)
+    if info.get("importances_note"):
+        console.print(f"importances unavailable: {info['importances_note']}")
+    console.print(f"apply it: bronchopose sweep --use-tuned {study}  (or train --use-tuned {study})")
+
+
+def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | None = None,
+         timeout: float | None = None, workers: int = 1, progress: bool = True, console: Console) -> None:
+    """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials, then
+    show its best trial."""
+    from . import tuning  # lazy: optuna only when the command runs
+
+    check_paths(cfg, storage=True)  # one line before anything is created
+    ensure_dataset(cfg)
+    if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
+        from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
+
+        initialisation(cfg.paths.pretrained, [target.arch])
+    n = trials or cfg.tune.trials
+    name = study or tuning.study_name(cfg, target)
+    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
+    s = tuning.tune(cfg, target, n, study=study, timeout=timeout or cfg.tune.timeout, workers=workers,
+                    progress=progress)
+    console.print(f"{tuning.finished(s)} finished trials in study {name}")
+    show_study(cfg, name, None, "table", console)

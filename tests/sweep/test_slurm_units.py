@@ -8,9 +8,8 @@ import pytest
 from sweep_fakes import fake_runner
 
 from bronchocli.errors import ConfigError
-from bronchocli.sweep import SweepStore, Worker, prepare
+from bronchocli.sweep import SweepStore, Worker, prepare, task
 from bronchocli.sweep import slurm as slurm_launcher
-from bronchocli.sweep import task
 from bronchocli.sweep.slurm import _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.status import slurm_job
 from bronchocli.sweep.task import TaskSpec
