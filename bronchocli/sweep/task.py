@@ -16,6 +16,7 @@ log) and exit code 2, as on the command line.
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import os
@@ -34,11 +35,30 @@ from .pool import worker_config
 from .slurm import requeue
 from .staged import work_stages
 from .storage import SweepStore
-from .worker import EXIT_INTERRUPTED, Runner, StopSignals, default_runner, load_runner, slurm_task
+from .worker import EXIT_INTERRUPTED, Runner, StopSignals, default_runner, slurm_task
 
 log = logging.getLogger(__name__)
 
 MODULE = "bronchocli.sweep.task"  # what ``python -m`` runs (``__name__`` is ``__main__`` there)
+
+
+def load_runner(spec: str | None) -> Runner:
+    """The cell runner named ``module:function`` (``--runner``); None: ``default_runner`` (training)."""
+    if not spec:
+        return default_runner
+    module, _, name = spec.partition(":")
+    if not module or not name:
+        raise BronchoError(f"--runner {spec}: must be module:function (a function with run_cell's signature)")
+    try:
+        fn = getattr(importlib.import_module(module), name)
+    except ImportError as exc:
+        raise BronchoError(f"--runner {spec}: cannot import {module} ({exc}); it must be importable by the "
+                           "workers (e.g. on PYTHONPATH)") from None
+    except AttributeError:
+        raise BronchoError(f"--runner {spec}: module {module} has no {name}") from None
+    if not callable(fn):
+        raise BronchoError(f"--runner {spec}: {name} is not a function")
+    return fn
 
 
 @dataclass(frozen=True)

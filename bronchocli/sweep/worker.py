@@ -3,7 +3,7 @@
 The cell runner is injectable: any function with ``run_cell``'s signature,
 ``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runlayout.RunResult``.
 The real one trains (``default_runner``); ``bronchopose sweep --runner
-module:function`` names another (``load_runner``), which reaches spawned
+module:function`` names another (``task.load_runner``), which reaches spawned
 worker processes by reference and Slurm array tasks through their task spec;
 tests and benchmarks use it for fast fakes. Workers are processes started by
 ``bronchopose sweep`` (multiprocessing ``spawn``; see ``pool.py``) or by anyone
@@ -20,7 +20,6 @@ run KILLED and goes on with another cell.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 import shutil
@@ -57,25 +56,6 @@ def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
     from ..training.run import run_cell  # lazy: torch loads in worker processes only, not in the sweep's parent
 
     return run_cell(cfg, cell, **kw)
-
-
-def load_runner(spec: str | None) -> Runner:
-    """The cell runner named ``module:function`` (``--runner``); None: ``default_runner`` (training)."""
-    if not spec:
-        return default_runner
-    module, _, name = spec.partition(":")
-    if not module or not name:
-        raise BronchoError(f"--runner {spec}: must be module:function (a function with run_cell's signature)")
-    try:
-        fn = getattr(importlib.import_module(module), name)
-    except ImportError as exc:
-        raise BronchoError(f"--runner {spec}: cannot import {module} ({exc}); it must be importable by the "
-                           "workers (e.g. on PYTHONPATH)") from None
-    except AttributeError:
-        raise BronchoError(f"--runner {spec}: module {module} has no {name}") from None
-    if not callable(fn):
-        raise BronchoError(f"--runner {spec}: {name} is not a function")
-    return fn
 
 
 def slurm_task() -> str | None:

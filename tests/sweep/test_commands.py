@@ -55,6 +55,9 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     (["--only", "arch=offsetnet"], "no cell of the plan has that arch"),
     (["--only", "colour=red"], "key one of arch, rot_loss"),
     (["--workers", "0"], ""),
+    (["--runner", "no_such_module:run"], "--runner no_such_module:run: cannot import no_such_module"),
+    (["--runner", "sweep_fakes"], "must be module:function"),
+    (["--runner", "sweep_fakes:no_such_runner"], "module sweep_fakes has no no_such_runner"),
 ])
 def test_bad_input_exits_2(cli, project, args, message):
     code, _, err = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", *args)
