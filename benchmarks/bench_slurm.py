@@ -40,9 +40,9 @@ from tinydata import write_tiny_dataset  # noqa: E402
 
 from bronchocli.config import load_config  # noqa: E402
 from bronchocli.sweep import SweepStore  # noqa: E402
-from bronchocli.sweep.slurm import MAIN  # noqa: E402
 
 PG = "postgresql://postgres@127.0.0.1:5432/test"
+MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 
 
 def project(folder: Path, schema: str, cells: int, real: bool) -> Path:
@@ -64,10 +64,10 @@ def project(folder: Path, schema: str, cells: int, real: bool) -> Path:
     return path
 
 
-def submit(path: Path, env: dict) -> tuple[float, float]:
+def submit(path: Path, env: dict, runner: list[str]) -> tuple[float, float]:
     """Run the submit command; returns when it started and when it returned (its jobs are queued by then)."""
     t0 = time.time()
-    subprocess.run([sys.executable, "-c", MAIN, "sweep", "-c", str(path), "--launcher", "slurm", "--detach"],
+    subprocess.run([sys.executable, "-c", MAIN, "sweep", "-c", str(path), "--launcher", "slurm", "--detach", *runner],
                    cwd=path.parent, env=env, check=True, capture_output=True, timeout=300)
     return t0, time.time()
 
@@ -98,8 +98,8 @@ def main() -> None:
             fake = Path(tmp) / "fake"
             (fake / "x").mkdir(parents=True)
             path = project(Path(tmp) / "x", schema, args.cells, real=False)
-            fenv = {**env, "SWEEP_FAKE_DIR": str(fake / "x"), "BRONCHOPOSE_TEST_RUNNER": "sweep_fakes:fake_runner"}
-            t0, queued = submit(path, fenv)
+            fenv = {**env, "SWEEP_FAKE_DIR": str(fake / "x")}
+            t0, queued = submit(path, fenv, ["--runner", "sweep_fakes:fake_runner"])
             cfg = load_config(path)
             store = SweepStore(cfg.paths.storage_url)
             wait(lambda: any(r.claimed_at for r in store.rows(cfg.name)))
@@ -121,7 +121,7 @@ def main() -> None:
             schemas.append(schema)
             admin.execute(f"CREATE SCHEMA {schema}")
             path = project(Path(tmp) / "real", schema, 1, real=True)
-            t1, _ = submit(path, env)
+            t1, _ = submit(path, env, [])
             rcfg = load_config(path)
             wait(lambda: any(rcfg.paths.checkpoints.glob("*/last.pt")))
             first_step = time.time() - t1

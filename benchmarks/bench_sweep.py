@@ -3,7 +3,7 @@
     python benchmarks/bench_sweep.py [--cells 5 40] [--workers 1 2] [--storage URL] [--real]
 
 Runs the real command (`bronchopose sweep`) in a subprocess on a fresh sweep, with the no-op runner of
-sweep_noop.py (named in the test/benchmark-only ``BRONCHOPOSE_TEST_RUNNER``) that only creates and finishes
+sweep_noop.py (named by ``--runner sweep_noop:noop_runner``) that only creates and finishes
 an MLflow run (inside-runner time, recorded per cell in the claims table). For
 each worker count it runs two sweep sizes and reports
 
@@ -64,7 +64,7 @@ def sweep(config: Path, name: str, cells: int, workers: int, runner: str | None,
     args = ["--set", f"name={name}", "--set", f"grid.seed={seeds}", "--workers", str(workers), *extra]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     if runner:
-        env["BRONCHOPOSE_TEST_RUNNER"] = runner
+        args += ["--runner", runner]
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     t0 = time.perf_counter()
     out = subprocess.run([sys.executable, "-c", code, "sweep", "-c", str(config), *args], capture_output=True,

@@ -1,7 +1,7 @@
 """A zero-work cell runner for bench_sweep.py: creates and finishes an MLflow run, nothing else.
 
-Named in ``BRONCHOPOSE_TEST_RUNNER=sweep_noop:noop_runner`` (test/benchmark-only), with this folder on
-PYTHONPATH, so the sweep's spawned workers run it instead of training.
+Named by ``bronchopose sweep --runner sweep_noop:noop_runner``, with this folder on PYTHONPATH, so the
+sweep's spawned workers run it instead of training.
 """
 
 from __future__ import annotations

@@ -1,8 +1,15 @@
-"""The package's shape (docs/architecture.md): layers in order, no import circle, lazy imports justified."""
+"""The package's shape (docs/architecture.md): layers in order, no import circle, lazy imports justified.
+
+A string that names a bronchocli module (``python -m bronchocli.sweep.task``, ``from bronchocli.cli import
+main`` in a ``-c`` code string, an MLflow ``loader_module``) starts that module as surely as an import does:
+it counts as an import of the module that holds the string ("launched"), so a lower layer cannot start a
+higher one through a subprocess either.
+"""
 
 from __future__ import annotations
 
 import ast
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -64,23 +71,61 @@ def _is_type_checking(node: ast.If) -> bool:
     return isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING"
 
 
-def imports(name: str) -> list[tuple[str, int, bool]]:
-    """(imported module, line, nested in a function) for every bronchocli import of module ``name``."""
-    path = MODULES[name]
-    tree = ast.parse(path.read_text())
-    out: list[tuple[str, int, bool]] = []
+LAUNCHED = re.compile(r"\bbronchocli(?:\.\w+)+")  # a module path inside a string
+
+# Launch edges that run against the layers on purpose, each with its reason (like a ``# lazy:`` comment).
+ALLOWED_LAUNCHES = {
+    ("bronchocli.training.model_logging", "bronchocli.inference.mlflow_model"):
+        "the MLflow pyfunc loader_module recorded in every logged model: MLflow imports it when the model is "
+        "loaded, never while training runs",
+}
+
+
+def _launched_module(text: str) -> str:
+    """The longest bronchocli module (or package) that a dotted path in a string names."""
+    parts = text.split(".")
+    while len(parts) > 1 and ".".join(parts) not in MODULES:
+        parts.pop()
+    return ".".join(parts)
+
+
+def _docstrings(tree: ast.AST) -> set[int]:
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
+            first = node.body[0]
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
+                out.add(id(first.value))
+    return out
+
+
+def source_imports(name: str, source: str, is_package: bool = False) -> list[tuple[str, int, bool, bool]]:
+    """(imported module, line, nested in a function, launched by a string) for every bronchocli module that the
+    source of module ``name`` imports, or names in a string (docstrings aside: they describe, they do not run)."""
+    tree = ast.parse(source)
+    docs = _docstrings(tree)
+    out: list[tuple[str, int, bool, bool]] = []
 
     def visit(node: ast.AST, nested: bool) -> None:
         for child in ast.iter_child_nodes(node):
             if isinstance(child, ast.If) and _is_type_checking(child):
                 continue  # never executed
             if isinstance(child, (ast.Import, ast.ImportFrom)):
-                for target in _resolve(name, path.name == "__init__.py", child):
-                    out.append((target, child.lineno, nested))
+                for target in _resolve(name, is_package, child):
+                    out.append((target, child.lineno, nested, False))
+            elif isinstance(child, ast.Constant) and isinstance(child.value, str) and id(child) not in docs:
+                for text in LAUNCHED.findall(child.value):
+                    if (name, target := _launched_module(text)) not in ALLOWED_LAUNCHES:
+                        out.append((target, child.lineno, nested, True))
             visit(child, nested or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
 
     visit(tree, False)
     return out
+
+
+def imports(name: str) -> list[tuple[str, int, bool, bool]]:
+    path = MODULES[name]
+    return source_imports(name, path.read_text(), path.name == "__init__.py")
 
 
 def top_package(module: str) -> str:
@@ -93,18 +138,44 @@ def test_every_package_is_in_a_layer():
     assert not missing, f"add these to LAYERS and docs/architecture.md: {missing}"
 
 
-def test_no_import_from_a_lower_layer_to_a_higher_one():
-    upward = []
-    for name in MODULES:
+def upward(sources: dict[str, list[tuple[str, int, bool, bool]]]) -> list[str]:
+    """``module:line: src imports|launches dst`` for every edge from a lower layer to a higher one."""
+    out = []
+    for name, edges in sources.items():
         if name == "bronchocli":
             continue
-        for target, line, _ in imports(name):
+        for target, line, _, launched in edges:
             if target == "bronchocli":
                 continue
             src, dst = top_package(name), top_package(target)
             if RANK[dst] > RANK[src]:
-                upward.append(f"{MODULES[name].relative_to(PACKAGE.parent)}:{line}: {src} imports {dst}")
-    assert not upward, "imports from a lower layer to a higher one:\n" + "\n".join(upward)
+                out.append(f"{name}:{line}: {src} {'launches' if launched else 'imports'} {dst}")
+    return out
+
+
+def test_no_import_from_a_lower_layer_to_a_higher_one():
+    found = upward({name: imports(name) for name in MODULES})
+    assert not found, "imports from a lower layer to a higher one:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("planted", [
+    'MAIN = "import sys; from bronchocli.cli import main; main()"',  # the old array task's code string
+    'def command():\n    return ["python", "-m", "bronchocli.commands.sweep", "--help"]',
+    "LOADER = 'bronchocli.reporting.tables'",
+])
+def test_a_string_that_launches_a_higher_layer_is_caught(planted):
+    name = "bronchocli.sweep.planted"
+    source = f'"""A module whose docstring may name bronchocli.cli freely."""\n\nfrom . import plan\n\n{planted}\n'
+    edges = source_imports(name, source)
+    assert [e for e in edges if not e[3]] == [("bronchocli.sweep.plan", 3, False, False)]
+    found = upward({name: edges})
+    assert len(found) == 1 and " launches " in found[0], found
+    assert upward({name: source_imports(name, '"""Runs bronchocli.cli (said, not done)."""\nX = "bronchocli"\n')}) == []
+
+
+def test_the_array_task_is_launched_through_its_own_module_not_the_command_line():
+    launched = {t for name in MODULES for t, _, _, how in imports(name) if how}
+    assert "bronchocli.sweep.task" in launched and "bronchocli.cli" not in launched
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -147,7 +218,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_no_import_circle_between_modules():
     graph: dict[str, set[str]] = defaultdict(set)
     for name in MODULES:
-        for target, _, _ in imports(name):
+        for target, _, _, _ in imports(name):
             if target != name:
                 graph[name].add(target)
     assert _cycles(graph) == []

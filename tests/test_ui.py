@@ -64,8 +64,8 @@ def test_ui_refuses_a_remote_tracking_server(tmp_path, cli):
 
 
 def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
-    from bronchocli.commands import ui
     from bronchocli.config import Config
+    from bronchocli.runs import ui
 
     assert [ui.default_workers(n) for n in (1, 2, 3, 8, 64)] == [1, 1, 1, 4, 4]  # not 4 workers on 2 cores
     cfg = Config(name="t").with_values({"runs.uri": f"sqlite:///{tmp_path / 'm.db'}"})

@@ -9,7 +9,7 @@ from typing import Annotated, Literal, Optional
 import typer
 from rich.console import Console
 
-from ..config import DEFAULT_CONFIG, Config, load_config
+from ..config import DEFAULT_CONFIG, Config, load_config, parse_override
 from ..errors import BronchoError
 
 console = Console()
@@ -32,6 +32,14 @@ ShowFormat = Literal["table", "json"]  # choices are Literal types: --help lists
 
 def load(config: Path = Path(DEFAULT_CONFIG), profile: str | None = None, overrides: list[str] | None = None) -> Config:
     return load_config(config, profile, overrides or ())
+
+
+def load_or_defaults(config: Path, profile: str | None, overrides: list[str] | None, name: str) -> Config:
+    """``load``, except that without an experiments.yaml (the default path missing, no profile) the defaults
+    apply, named ``name``, with the overrides: commands that work on a dataset alone need no config file."""
+    if config == Path(DEFAULT_CONFIG) and not config.exists() and not profile:
+        return Config(name=name).with_values(dict(parse_override(s) for s in overrides or []))
+    return load(config, profile, overrides)
 
 
 def output_folder(path: Path, flag: str) -> Path:

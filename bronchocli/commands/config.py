@@ -5,9 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-from rich.table import Table
 
-from ..cells import FIELDS
 from ..config import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
@@ -26,18 +24,6 @@ def config(
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return
-    from ..sweep.plan import plan_stages  # lazy: keeps `bronchopose --help` fast
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
 
-    total = 0
-    for sp in plan_stages(cfg, None):  # a procedural dataset's patients are known before it exists
-        title = f"{cfg.name}" + ("" if sp.stage.name == "grid" else f", stage {sp.stage.name}")
-        if sp.cells is None:
-            console.print(f"{title}: the top {sp.stage.select.top} combinations of stage "
-                          f"{sp.stage.source or 'before'} by {sp.stage.select.by}, chosen when it is done")
-            continue
-        table = Table("key", *FIELDS, title=title)
-        for c in sp.cells:
-            table.add_row(c.key, *(v or "-" for v in c.tags().values()))
-        console.print(table)
-        total += len(sp.cells)
-    console.print(f"{total} cells")
+    entry.grid(cfg, console)

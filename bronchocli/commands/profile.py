@@ -1,13 +1,11 @@
-"""`bronchopose profile`: parameters, GMACs, latency and peak memory per architecture (the ablation table)."""
+"""`bronchopose profile`: parameters, GMACs, latency and peak memory per architecture (the ablation table;
+``diagnostics.entry.profile``)."""
 
 from __future__ import annotations
 
-import json
 from typing import Annotated
 
 import typer
-from rich import box
-from rich.table import Table
 
 from ..errors import BronchoError
 from .common import ShowFormat, console, err_console
@@ -40,23 +38,8 @@ def profile(
     """
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
-    from ..models import profile as profiling  # lazy: torch loads only when the command runs
+    from ..diagnostics import entry  # lazy: torch loads only when the command runs
 
-    names = profiling.arch_names(arch)
-    if threads is not None:
-        profiling.set_threads(threads)
-    kwargs = {"image_size": image_size, "device": device, "batch": batch, "repeats": repeats, "warmup": warmup,
-              "window": window, "precision": precision, "channels_last": channels_last}
-    rows = []
-    for name in names:
-        with err_console.status(f"profiling {name} at {image_size}x{image_size} on {device} ..."):
-            rows.append(profiling.profile_arch(name, **kwargs))
-    if fmt == "json":
-        typer.echo(json.dumps(rows, indent=2))
-        return
-    table = Table(caption=profiling.caption(rows), box=box.SIMPLE_HEAD, pad_edge=False)
-    for i, (_, title, _) in enumerate(profiling.COLUMNS):
-        table.add_column(title, no_wrap=True, justify="left" if i == 0 else "right")
-    for row in rows:
-        table.add_row(*profiling.cells(row))
-    console.print(table)
+    entry.profile(arch, fmt=fmt, threads=threads, console=console, err_console=err_console, image_size=image_size,
+                  device=device, batch=batch, repeats=repeats, warmup=warmup, window=window, precision=precision,
+                  channels_last=channels_last)

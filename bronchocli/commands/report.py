@@ -69,10 +69,9 @@ def report(
     curve (several train_trajectories), dataset frames and positions.
     See docs/reports.md.
     """
-    from ..reporting import report as rep  # lazy: keeps `bronchopose --help` fast
+    from ..reporting import entry  # lazy: keeps `bronchopose --help` fast
+    from ..reporting import report as rep
     from ..reporting import tables as tbl
-    from ..reporting.figures import errors_loader, mlflow_loader
-    from ..reporting.markdown import to_rich
 
     names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
     if best < 0 or trajectories < 1:
@@ -80,36 +79,8 @@ def report(
     output_folder(out, "--out")  # before minutes of work, not after
     given_profiles = rep.profiles_from_json(latency_from) if latency_from is not None else None
     cfg = load(config, profile, set_)
-    client = rep.open_store(cfg)
-    index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
-    console.print(rep.summary_index(index))
-    ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client),
-                            default_train_trajectories=None if sweep else cfg.splits.train)
-    if given_profiles is not None:
-        ctx.profiler = given_profiles
-    elif latency:
-        measure = rep.measuring_profiler(image_size or rep.default_image_size(cfg), latency_device)
-
-        def profiled(arch: str):
-            with err_console.status(f"profiling {arch} for the ablation table ..."):
-                return measure(arch)
-        ctx.profiler = profiled
-    else:
-        ctx.profiler_note = "--no-latency"
-    with_figures = table == "all" if figures is None else figures
-    warnings: list[str] = []
-    try:
-        result = rep.make_report(
-            ctx, names, evals, suffixes, out, loader=mlflow_loader(client, warnings) if with_figures else None,
-            n_trajectories=trajectories, dataset_root=cfg.paths.dataset if with_figures else None,
-            warnings=warnings,
-        )
-    except OSError as exc:  # e.g. the disk filled up: each file is written atomically, none is left half-written
-        raise BronchoError(f"--out {out}: cannot write {exc.filename or 'the report'} ({exc.strerror or exc})"
-                           ) from None
-    if not quiet:
-        for t in result.tables:
-            console.print(to_rich(t))
-    for w in dict.fromkeys([w for t in result.tables for w in t.warnings] + result.warnings):
-        err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
-    console.print(f"wrote {len(result.files)} file(s) to {out}/: " + ", ".join(p.name for p in result.files))
+    entry.report(cfg, names, evals, suffixes, out, sweep=sweep, pose_frame=pose_frame,
+                 include_other_configs=include_other_configs, best=best,
+                 figures=table == "all" if figures is None else figures, trajectories=trajectories,
+                 profiles=given_profiles, latency=latency, latency_device=latency_device, image_size=image_size,
+                 quiet=quiet, console=console, err_console=err_console)

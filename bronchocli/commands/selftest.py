@@ -1,14 +1,12 @@
-"""`bronchopose selftest`: prove training works on this machine's device (CUDA or CPU) in about a minute."""
+"""`bronchopose selftest`: prove training works on this machine's device (CUDA or CPU) in about a minute
+(``diagnostics.entry.selftest``)."""
 
 from __future__ import annotations
 
 from typing import Optional
 
 import typer
-from rich import box
-from rich.table import Table
 
-from ..errors import BronchoError
 from .common import console
 
 
@@ -32,31 +30,6 @@ def selftest(
     check passed, 1 naming those that failed, 2 for a device this machine lacks.
     docs/training.md ("GPU") explains how to read it.
     """
-    from ..diagnostics import selftest as st  # lazy: torch loads only when the command runs
-    from ..models import ARCHITECTURES  # lazy: torch loads only when the command runs
+    from ..diagnostics import entry  # lazy: torch loads only when the command runs
 
-    unknown = [a for a in arch or [] if a not in ARCHITECTURES]
-    if unknown:
-        raise BronchoError(f"--arch {', '.join(unknown)}: unknown (valid: {', '.join(ARCHITECTURES)})")
-    dev = st.resolve_device(device)
-    st.torch.set_num_threads(threads)
-    prec = st.resolve_precision(precision, dev)
-    env = Table(title="selftest: what this machine offers", box=box.SIMPLE_HEAD, show_header=False)
-    for what, value in st.environment(dev, prec):
-        env.add_row(what, value)
-    console.print(env)
-    table = Table(title=f"selftest on {dev} in {prec}", box=box.SIMPLE_HEAD)
-    for title in ("check", "result", "s", "detail"):
-        table.add_column(title, no_wrap=title != "detail", justify="right" if title == "s" else "left")
-    with console.status("running the checks ...") as status:
-        def seen(check: st.Check) -> None:
-            status.update(f"{check.name}: {'ok' if check.ok else 'FAILED'}; running the next check ...")
-        checks = st.run(dev, prec, arch, on_check=seen)
-    for c in checks:
-        table.add_row(c.name, "[green]ok[/]" if c.ok else "[bold red]FAILED[/]", f"{c.seconds:.1f}", c.detail)
-    console.print(table)
-    failed = [c.name for c in checks if not c.ok]
-    if failed:
-        console.print(f"[bold red]selftest failed:[/] {', '.join(failed)}")
-        raise typer.Exit(1)
-    console.print(f"[green]selftest passed:[/] {len(checks)} checks on {dev} in {prec}")
+    raise typer.Exit(entry.selftest(device, precision, arch, threads=threads, console=console))

@@ -31,18 +31,10 @@ def status(
     resumable state takes on this machine, and how much no live cell needs
     (`bronchopose sweep --gc` frees it).
     """
-    from ..sweep import SweepStore  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.status import show_status, wide
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.status import wide
 
     cfg = load(config, profile, set_)
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
-    store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
-    if repair:
-        from ..sweep.housekeeping import repair_zombies  # lazy: keeps `bronchopose --help` fast
-
-        done = repair_zombies(cfg, store if store.exists() else None)
-        for run_id, what in done:
-            _console.print(f"repaired run {run_id}: {what}", highlight=False)
-        _console.print(f"--repair: {len(done)} run(s) left RUNNING by a dead process were ended")
-    show_status(cfg, store, sweep or cfg.name, show_all, wide(_console))
+    entry.status(cfg, sweep or cfg.name, show_all=show_all, repair=repair, console=wide(_console))

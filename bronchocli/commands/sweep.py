@@ -1,4 +1,8 @@
-"""`bronchopose sweep`: run every cell of the plan exactly once with local workers over shared storage."""
+"""`bronchopose sweep`: run every cell of the plan exactly once with local workers over shared storage.
+
+Parses the flags, loads the config and calls one mode of ``sweep.entry`` (run, dry_run, gc, launch_slurm,
+cancel); docs/sweep.md, "Modes".
+"""
 
 from __future__ import annotations
 
@@ -7,10 +11,10 @@ from typing import Optional
 
 import typer
 
-from ..cells import FIELDS, parse_only
-from ..config import DEFAULT_CONFIG, check_paths
+from ..cells import FIELDS
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, load
+from .common import ConfigOpt, ProfileOpt, SetOpt
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
@@ -41,8 +45,9 @@ def sweep(
                                            "Default: sweep.launcher."),
     detach: bool = typer.Option(False, "--detach", help="Slurm: return once submitted instead of watching."),
     cancel: bool = typer.Option(False, "--cancel", help="Slurm: cancel this sweep's queued and running jobs."),
-    worker_only: bool = typer.Option(False, "--worker-only", hidden=True,
-                                     help="Internal: run one worker through the stages (a Slurm array task)."),
+    runner: Optional[str] = typer.Option(None, "--runner", help="Run each cell with this function instead of "
+                                         "training: module:function with run_cell's signature, importable by the "
+                                         "workers (e.g. on PYTHONPATH); docs/sweep.md, \"Cell runners\"."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -60,88 +65,33 @@ def sweep(
     With `--launcher slurm` every worker is a Slurm array task instead (docs/cluster.md):
     re-running submits only what the sweep's queued and running jobs do not cover,
     `--detach` returns at once, `--cancel` cancels the sweep's jobs.
+    `--runner module:function` runs each cell with that function instead of training.
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
-    from ..sweep import SweepStore, placement, staged  # lazy: keeps `bronchopose --help` fast
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import wide
+    from ..sweep.task import TaskSpec
 
-    console = wide(_console)
-    cfg = load(config, profile, set_)
-    selection = parse_only(only)
-    if storage:
-        cfg = cfg.with_values({"storage.url": storage})
-    if use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
-        from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
-
-        cfg = apply_best(cfg, use_tuned)
+    spec = TaskSpec(config=str(config), profile=profile, overrides=tuple(set_ or ()), storage=storage,
+                    use_tuned=use_tuned, only=tuple(only or ()), runner=runner)
+    cfg = spec.load()  # as every Slurm array task loads it
+    selection, cell_runner = spec.selection(), spec.cell_runner()
     if launcher not in (None, "local", "slurm"):
         raise BronchoError(f"--launcher {launcher}: must be local or slurm")
     use_slurm = (launcher or cfg.sweep.launcher) == "slurm"
     if (detach or cancel) and not use_slurm:
         raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
                            "(or sweep.launcher: slurm)")
+    console = wide(_console)
     if gc:
-        store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
-        raise typer.Exit(_collect_garbage(cfg, store, console))
-    if not cancel:
-        check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
-    store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
-    if worker_only:
-        from ..sweep import slurm  # lazy: only array tasks need it
-
-        raise typer.Exit(slurm.worker_main(cfg, store, selection))
-    if use_slurm and cancel:
-        from ..sweep import slurm  # lazy: only the Slurm launcher needs it
-
-        raise typer.Exit(slurm.cancel(cfg, console))
-    if use_slurm and not dry_run:
-        from ..sweep import slurm  # lazy: only the Slurm launcher needs it
-
-        slurm.check(cfg)  # before touching storage: one line, nothing created, nothing submitted
-        store.exists()
-        argv = _worker_argv(config, profile, set_, storage, only, use_tuned)
-        raise typer.Exit(slurm.launch(cfg, store, selection, argv, detach=detach, console=console,
-                                      retry_failed=retry_failed))
-    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
-    devices = placement.parse_gpus(gpus, placement.visible_gpus())
-    workers = workers or placement.default_workers(devices, per_gpu)
-    if dry_run:
-        staged.dry_run(cfg, store, selection, workers, console)
-        return
-    if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
-        from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
-
-        initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
-                                                                          for st in cfg.stages)] for a in g.arch}))
-    raise typer.Exit(staged.run_sweep(cfg, store, only=selection, workers=workers, console=console,
-                                      retry_failed=retry_failed, gpus=devices))
-
-
-def _worker_argv(config: Path, profile: Optional[str], set_: Optional[list[str]], storage: Optional[str],
-                 only: Optional[list[str]], use_tuned: Optional[str]) -> list[str]:
-    """The options an array task's worker needs to load the same config, storage and selection."""
-    argv = ["--config", str(config.resolve())]
-    if profile:
-        argv += ["--profile", profile]
-    for text in set_ or []:
-        argv += ["--set", text]
-    if storage:
-        argv += ["--storage", storage]
-    for text in only or []:
-        argv += ["--only", text]
-    if use_tuned:
-        argv += ["--use-tuned", use_tuned]
-    return argv
-
-
-def _collect_garbage(cfg, store, console) -> int:
-    """`--gc`: remove the checkpoints no live cell needs on this machine and say what was freed."""
-    from ..sweep.housekeeping import collect_garbage  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.status import fmt_bytes
-
-    freed = collect_garbage(cfg, store if store.exists() else None)
-    for ck, n in freed:
-        what = "rejected/temporary files" if ck.needed else ck.why
-        console.print(f"freed {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
-    console.print(f"--gc: freed {fmt_bytes(sum(n for _, n in freed))} in {len(freed)} checkpoint folder(s)")
-    return 0
+        code = entry.gc(cfg, console)
+    elif cancel:
+        code = entry.cancel(cfg, console)
+    elif use_slurm and not dry_run:
+        code = entry.launch_slurm(cfg, spec, detach=detach, retry_failed=retry_failed, console=console)
+    elif dry_run:
+        code = entry.dry_run(cfg, selection, workers=workers, gpus=gpus, per_gpu=per_gpu, console=console)
+    else:
+        code = entry.run(cfg, selection, workers=workers, gpus=gpus, per_gpu=per_gpu, retry_failed=retry_failed,
+                         runner=cell_runner, console=console)
+    raise typer.Exit(code)

@@ -2,36 +2,15 @@
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.table import Table
 
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from ..runs.client import client_for
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load, output_folder
-
-METRIC_UNITS = {"pos_l2": "vox", "pos_l2_mm": "mm", "rot_l2": "deg", "de": "rad", "ce": "", "geodesic": "deg"}
-SOURCES = ("model", "zero_motion", "train_mean")
-
-
-def _errors_table(errors) -> Table:
-    """Per metric and evaluation (per pair: mean over pairs; accumulated: endpoint error), model vs references."""
-    row = errors.iloc[0]
-    table = Table(title="errors: per pair (mean) and accumulated (endpoint after chaining)")
-    for name in ("metric", "evaluation", *SOURCES):
-        table.add_column(name.replace("_", " "), justify="left" if name in ("metric", "evaluation") else "right")
-    for metric, unit in METRIC_UNITS.items():
-        if f"model.pair.{metric}" not in row:
-            continue
-        for ev, text in (("pair", "per pair"), ("acc", "accumulated")):
-            values = [float(row[f"{s}.{ev}.{metric}"]) for s in SOURCES]
-            table.add_row(f"{metric} ({unit})" if unit else metric, text,
-                          *("nan" if math.isnan(v) else f"{v:.6g}" for v in values))
-    return table
 
 
 def track(
@@ -64,8 +43,7 @@ def track(
     `errors.csv` and a table of per-pair and accumulated errors next to both image-blind
     references. Frames of another size than the model's are resized with a warning.
     """
-    from ..inference import loading, reader, trajectory  # lazy: MLflow (~1 s) only once the flags are valid
-    from ..runs.client import client_for
+    from ..inference import entry, reader, trajectory  # lazy: MLflow (~1 s) only once the command runs
 
     chosen = [f for f, v in (("--run", run), ("--model", model), ("--best", best)) if v]
     if len(chosen) != 1:
@@ -76,31 +54,13 @@ def track(
     out = output_folder(out or Path("track") / name, "--out")
     truth = reader.read_ground_truth(ground_truth) if ground_truth is not None else None
     cfg = load(config, profile, set_)
-    client = client_for(cfg)
-    if best:
-        from ..reporting.best import best_run  # lazy: the report's run collection only for --best
+    client = None
+    if best:  # a report table's choice: resolved here, reporting sits above inference
+        from ..reporting.best import best_run
 
+        client = client_for(cfg)
         chosen_best = best_run(client, cfg, best)
         console.print(chosen_best.describe())
         run = chosen_best.run.run_id
-    loaded = loading.load(client, run or model)
-    if register:
-        version = loading.register(client, loaded.ref, register)
-        console.print(f"registered as models:/{register}/{version}")
-    spec = loaded.model.spec
-    console.print(f"[bold]track[/] {inp.name} ({inp.kind}, {inp.n_frames or '?'} frames, {inp.shape[1]}x"
-                  f"{inp.shape[0]}) with {loaded.label} (run {loaded.ref.run_id or '?'}, {spec['pose_frame']} "
-                  f"pose frame, {spec['image_size']} px)")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = trajectory.track(loaded.model, inp, first, truth, progress=not quiet)
-    for w in caught:
-        console.print(f"[yellow]warning:[/] {w.message}")
-    title = result.truth.key if result.truth is not None and result.truth.key else Path(inp.name).name
-    files = trajectory.write(result, out, title=title, model_label=loaded.label)
-    console.print(f"{len(result.poses)} poses chained in the {result.pose_frame} frame from "
-                  f"({', '.join(f'{v:g}' for v in result.first_pose)})")
-    if result.errors is not None:
-        console.print(_errors_table(result.errors))
-    for f in files:
-        console.print(f"wrote {f}")
+    entry.track(cfg, inp, run or model, out, first_pose=first, truth=truth, register=register,
+                progress=not quiet, console=console, client=client)

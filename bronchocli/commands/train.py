@@ -1,4 +1,4 @@
-"""`bronchopose train`: train and evaluate one grid cell as one MLflow run."""
+"""`bronchopose train`: train and evaluate one grid cell as one MLflow run (``training.entry.train``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..cells import Arch, Population, PoseFrame, RotLoss
-from ..config import DEFAULT_CONFIG, check_paths
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
@@ -40,8 +40,7 @@ def train(
     (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
     marks the run KILLED; `--resume` continues it. Exit code 1 when the run FAILED.
     """
-    from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
-    from ..training.run import run_cell
+    from ..training import entry  # lazy: torch loads only when the command runs
 
     cfg = load(config, profile, set_)
     if run_id and not resume:
@@ -53,21 +52,4 @@ def train(
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-        console.print(f"hyperparameters from {cfg.tune.applied}")
-    check_paths(cfg)  # one line before anything is created
-    ensure_dataset(cfg)
-    console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
-    result = run_cell(cfg, cell, resume=run_id or resume, progress=not quiet)
-    if result.status != "FINISHED":
-        console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
-        raise typer.Exit(1)
-    m = result.metrics
-    if result.stop_requested:
-        console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
-    ratio = m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"]
-    console.print(
-        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m['train.steps']:.0f} steps, "
-        f"{m['train.pairs_seen']:.0f} pairs seen) — pair pos L2 {m['pair.pos_l2.mean']:.3f} vox "
-        f"({ratio:.2f} x the training-mean predictor's {m['train_mean.pair.pos_l2.mean']:.3f}, zero motion "
-        f"{m['zero_motion.pair.pos_l2.mean']:.3f}), accumulated pos L2 {m['acc.pos_l2.mean']:.2f} vox"
-    )
+    raise typer.Exit(entry.train(cfg, cell, resume=run_id or resume, progress=not quiet, console=console))

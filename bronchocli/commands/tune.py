@@ -1,44 +1,16 @@
-"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results."""
+"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results (``sweep.entry``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.table import Table
 
-from .. import urls
 from ..cells import Arch, Population, PoseFrame, RotLoss
-from ..config import DEFAULT_CONFIG, check_paths
+from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
-
-
-def _show(cfg, study: str, fmt: str) -> None:
-    from ..sweep.tuning import summary  # lazy: optuna only when the command runs
-
-    info = summary(cfg, study)
-    if fmt == "json":
-        console.print_json(json.dumps(info, default=str))
-        return
-    counts = ", ".join(f"{v} {k}" for k, v in info["counts"].items() if v)
-    console.print(f"[bold]study[/] {study}: {counts or 'no trials'}")
-    best = info["best"]
-    if best is None:
-        console.print("no completed trial yet")
-        return
-    table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
-                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
-    for name, value in best["params"].items():
-        imp = info["importances"].get(name)
-        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),
-                      "—" if imp is None else f"{imp:.3f}")
-    console.print(table)
-    if info.get("importances_note"):
-        console.print(f"importances unavailable: {info['importances_note']}")
-    console.print(f"apply it: bronchopose sweep --use-tuned {study}  (or train --use-tuned {study})")
 
 
 def tune(
@@ -73,7 +45,7 @@ def tune(
     or machines can tune it together and an interrupted study resumes. With
     --show, print the best trial and parameter importances (no training).
     """
-    from ..sweep import tuning  # lazy: optuna only when the command runs
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
 
     cfg = load(config, profile, set_)
     if storage:
@@ -87,26 +59,9 @@ def tune(
         target = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
                           pose_frame=pose_frame, train_trajectories=train_trajectories)
     if show:
-        if study is None and target is None:
-            names = tuning.list_studies(cfg)
-            raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
-                               f"studies in the storage: {', '.join(names) or 'none'}")
-        _show(cfg, study or tuning.study_name(cfg, target), fmt)
-        return
-    if target is None:
+        entry.show_study(cfg, study, target, fmt, console)
+    elif target is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
-    from ..generation import ensure_dataset  # lazy: keeps `bronchopose --help` fast
-
-    check_paths(cfg, storage=True)  # one line before anything is created
-    ensure_dataset(cfg)
-    if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
-        from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
-
-        initialisation(cfg.paths.pretrained, [target.arch])
-    n = trials or cfg.tune.trials
-    name = study or tuning.study_name(cfg, target)
-    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
-    s = tuning.tune(cfg, target, n, study=study, timeout=timeout or cfg.tune.timeout, workers=workers,
-                    progress=not quiet)
-    console.print(f"{tuning.finished(s)} finished trials in study {name}")
-    _show(cfg, name, "table")
+    else:
+        entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, progress=not quiet,
+                   console=console)

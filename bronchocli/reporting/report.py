@@ -1,7 +1,7 @@
 """`bronchopose report` in library form: collect runs once, build tables, write Markdown/LaTeX and figures.
 
 ``collect_index`` finds the runs (the config's cells, or a stored sweep),
-``make_report`` is what the command calls; ``build_tables`` and
+``make_report`` is what ``entry.report`` (the command) calls; ``build_tables`` and
 ``write_tables`` are usable on their own (tests, notebooks).
 """
 

@@ -22,7 +22,8 @@ from typing import Any, Mapping
 from ..cells import FIELDS, Cell
 from ..config import Config
 from ..runs.records import TAG_KIND, TAG_SWEEP, search_runs
-from ..sweep.plan import TAG_PLAN, TAG_STAGE, plan_key, plan_stages
+from ..sweep.plan import plan_key, plan_stages
+from ..sweep.selection import TAG_PLAN, TAG_STAGE
 
 Identity = tuple[str, ...]
 TABLE_STAGES = {"personalized": "personalized", "cross-subject": "cross-subject", "sota": "sota"}

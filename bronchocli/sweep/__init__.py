@@ -1,10 +1,16 @@
 """Sweeps: a grid of cells run exactly once each by cooperating workers over shared SQL storage.
 
 - ``storage``: the claims table (SQLite on one machine, PostgreSQL for many) and its atomic transitions;
-- ``worker``: the claim -> run -> record loop with its heartbeat and signal handling;
-- ``plan``: the stages, their cells and selections, and the shared state prepared once before workers start;
-- ``staged``: ``bronchopose sweep`` as a library call (stages in order, each with the worker pool);
+- ``worker``: the claim -> run -> record loop with its heartbeat and signal handling; the cell runner;
+- ``plan``: the stages and their cells, ``StageWalk`` (the one walk through the stages every launcher uses),
+  the claims rows and the shared state prepared once before workers start;
+- ``selection``: a selecting stage's ranking by a validation metric, recorded once and logged to MLflow;
 - ``pool``: local worker processes and the parent's live view;
+- ``staged``: the local launcher (stages in order, each with the worker pool) and one worker's walk;
+- ``slurm``: the Slurm driver (sbatch, squeue, scancel, scontrol, the batch script) and the launcher's watch;
+- ``task``: a Slurm array task's entry point (``python -m bronchocli.sweep.task <spec>``);
+- ``entry``: ``bronchopose sweep``'s modes as library calls (run, dry_run, gc, launch_slurm, cancel);
+- ``placement``, ``checkpoints``: GPUs for local workers; checkpoints on disk (inventory, --gc, --repair);
 - ``status``: tables for the plan, the live view and ``bronchopose status``;
 - ``tuning``: Optuna studies on the same storage, one MLflow run per trial.
 

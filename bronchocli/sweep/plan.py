@@ -1,18 +1,20 @@
-"""Planning a sweep: its stages, the cells of each, the selections between them, and the shared state.
+"""Planning a sweep: its stages, the cells of each, the walk through them, and the claims rows.
 
 A config without ``stages`` is one stage: its grid. With ``stages`` (the
 paper's protocol), each stage expands the top-level grid updated by its own
-``grid``; a stage with ``select`` keeps the ``top`` combinations (values of
-the ``over`` fields, e.g. arch and rot_loss) of its ``source`` stage, ranked by
-the mean over that stage's FINISHED runs of a validation metric (never a test
-metric), and crosses them with its other grid axes; ``add`` appends fixed
-combinations. A cell wanted by several stages is one cell (one key, one run).
+``grid``; a stage with ``select`` keeps the ``top`` combinations of its
+``source`` stage by a validation metric (``selection.py``) and crosses them
+with its other grid axes; ``add`` appends fixed combinations. A cell wanted by
+several stages is one cell (one key, one run).
 
-The selection is computed once the source stage's cells are all done, by
-whichever sweep process gets there first, and recorded in the storage
-(``record_selection`` keeps the first); every process then uses the recorded
-one, so machines agree. The recording process also logs it to MLflow as a
-``run_kind=selection`` run (``selection.json``: the ranking with every value).
+``StageWalk`` is the one walk through the stages that every launcher uses:
+the local pool (``staged.run_sweep``), a Slurm array task's worker
+(``staged.work_stages``) and the Slurm submission (``slurm.submit_missing``).
+It plans once (the patient list read once), reads the recorded selections once
+per decision, and holds the selection rule: a selecting stage's cells are
+known once its selection is recorded; it is settled (computed and recorded,
+the first writer wins) as soon as every cell of its source stage is done
+(FINISHED, or FAILED with no retry left, on any machine).
 
 ``prepare`` runs in the parent ``bronchopose sweep`` process before any worker
 starts, so one-time work never races between workers: the MLflow store and
@@ -23,24 +25,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import tempfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from ..cells import Cell, Selection, select
 from ..config import Config, Stage, expand_grid, run_signature
-from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
-from ..runs.parents import sweep_parent
-from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_PARENT, TAG_SWEEP, log_params, search_runs
+from .selection import settle_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
-
-TAG_STAGE = "stage"
-TAG_PLAN = "plan_key"
 
 
 def stages_of(cfg: Config) -> list[Stage]:
@@ -82,124 +77,154 @@ class StagePlan:
     selection: dict[str, Any] | None = None
 
 
+@dataclass
+class Step:
+    """A stage as the walk reaches it: its cells (filtered by ``only``), or, when ``waits`` > 0, the number of
+    cells of its ``source`` stage that are not done yet (the walk ends there)."""
+
+    stage: Stage
+    cells: list[Cell]
+    settled: dict[str, Any] | None = None  # the selection this walk settled just now (worth printing)
+    source: Stage | None = None
+    waits: int = 0
+
+
+class StageWalk:
+    """The plan's stages in order, for every launcher: planned once, recorded selections read once per decision.
+
+    ``store`` may be None (no selection is known: ``config --grid``) or anything with ``SweepStore.selection``
+    (the report reads selections from MLflow). Walking (``steps``, ``work_left``) needs the claims table.
+    """
+
+    def __init__(self, cfg: Config, store: SweepStore | None, only: Selection | None = None, *,
+                 sweep: str | None = None):
+        self.cfg, self.store, self.only = cfg, store, only
+        self.sweep = sweep or cfg.name
+        self.key = plan_key(cfg)
+        self.stages = stages_of(cfg)
+        self.patients = planned_patients(cfg)  # read once: cross-subject folds come from the dataset's patients
+        self.selections: dict[str, dict[str, Any]] = {}  # recorded ones: never change (the first writer wins)
+        self._all: dict[str, list[Cell]] = {}  # every cell of each stage known so far
+        self._mine: dict[str, list[Cell]] = {}  # the same, filtered by ``only``
+        for stage in self.stages:
+            if stage.select is None:
+                self._all[stage.name] = stage_cells(cfg, stage, self.patients)
+            elif (recorded := self._recorded(stage)) is not None:
+                self.selections[stage.name] = recorded
+                self._all[stage.name] = stage_cells(cfg, stage, self.patients, recorded["selected"])
+        if only:
+            select([c for cells in self._all.values() for c in cells], only)  # a value no cell has: a typo
+        for name in self._all:
+            self._filter(name)
+
+    # -- what is known ---------------------------------------------------------------------------------
+    def _recorded(self, stage: Stage) -> dict[str, Any] | None:
+        return self.store.selection(self.sweep, self.key, stage.name) if self.store is not None else None
+
+    def _filter(self, name: str) -> None:
+        cells = self._all[name]
+        self._mine[name] = select(cells, self.only) if self.only and cells else list(cells)
+
+    def _learn(self, stage: Stage, selection: dict[str, Any]) -> None:
+        self.selections[stage.name] = selection
+        self._all[stage.name] = stage_cells(self.cfg, stage, self.patients, selection["selected"])
+        self._filter(stage.name)
+
+    def refresh(self) -> None:
+        """Read the selections not known yet (one query each): another process may have recorded them."""
+        for stage in self.stages:
+            if stage.name not in self._all and (recorded := self._recorded(stage)) is not None:
+                self._learn(stage, recorded)
+
+    def cells(self, stage: Stage, *, mine: bool = True) -> list[Cell] | None:
+        """The stage's cells (``mine``: filtered by ``only``); None while its selection is not known."""
+        return (self._mine if mine else self._all).get(stage.name)
+
+    def plans(self) -> list[StagePlan]:
+        """Every stage with the cells known so far, filtered by ``only``."""
+        return [StagePlan(s, self.cells(s), self.selections.get(s.name)) for s in self.stages]
+
+    def known_cells(self) -> list[Cell]:
+        """Every cell known so far (all stages, deduplicated in stage order), filtered by ``only``."""
+        seen: dict[str, Cell] = {}
+        for stage in self.stages:
+            for c in self.cells(stage) or []:
+                seen.setdefault(c.key, c)
+        return list(seen.values())
+
+    @property
+    def complete(self) -> bool:
+        """Every stage's cells are known (every selection recorded)."""
+        return all(s.name in self._all for s in self.stages)
+
+    def rows(self) -> Plan:
+        """The known cells (after ``refresh``) with their stored rows."""
+        self.refresh()
+        return read_plan(self.store, self.sweep, self.known_cells())
+
+    # -- the selection rule ----------------------------------------------------------------------------
+    def decide(self, stage: Stage) -> Step:
+        """Whether ``stage``'s cells are known: a grid stage's always; a selecting stage's once its selection is
+        recorded (read now, once), or settled here because every cell of its source stage is done."""
+        if stage.name in self._all:
+            return Step(stage, self._mine[stage.name])
+        if (recorded := self._recorded(stage)) is not None:
+            self._learn(stage, recorded)
+            return Step(stage, self._mine[stage.name])
+        source = source_of(self.cfg, stage)
+        source_cells = self._all.get(source.name) or []
+        left = cells_left(read_plan(self.store, self.sweep, source_cells), self.cfg.sweep.max_retries)
+        if left:
+            return Step(stage, [], source=source, waits=left)
+        selection = settle_selection(self.cfg, self.store, stage, source, source_cells, self.key, self.sweep)
+        self._learn(stage, selection)
+        return Step(stage, self._mine[stage.name], settled=selection)
+
+    def steps(self) -> Iterator[Step]:
+        """The stages in order, each decided when the caller asks for it (after it has run the ones before);
+        ends with the first stage that waits."""
+        for stage in self.stages:
+            step = self.decide(stage)
+            yield step
+            if step.waits:
+                return
+
+    # -- Slurm: what arrays to size ----------------------------------------------------------------------
+    def estimate(self, stage: Stage) -> int:
+        """Cells of a stage whose selection is not known yet: ``top`` combinations of its source's cells."""
+        sel = stage.select
+        assert sel is not None  # only a selecting stage can be unknown
+        combos: list[dict] = []
+        for c in self._all.get(source_of(self.cfg, stage).name) or []:
+            combo = {f: getattr(c, f) for f in sel.over}
+            if combo not in combos:
+                combos.append(combo)
+        return max(1, len(stage_cells(self.cfg, stage, self.patients, combos[: sel.top])))
+
+    def work_left(self) -> list[tuple[Stage, int]]:
+        """Per stage, in order: cells still to run or wait for (rows added for every known cell), or the
+        estimate of a stage whose selection is not known yet."""
+        self.refresh()
+        out = []
+        for stage in self.stages:
+            cells = self.cells(stage)
+            if cells is None:
+                out.append((stage, self.estimate(stage)))
+            else:
+                plan = add_cells(self.cfg, self.store, cells, sweep=self.sweep)
+                out.append((stage, cells_left(plan, self.cfg.sweep.max_retries)))
+        return out
+
+
 def plan_stages(cfg: Config, store: SweepStore | None, only: Selection | None = None,
                 sweep: str | None = None) -> list[StagePlan]:
     """Every stage with the cells known so far (recorded selections are read from ``store``), filtered."""
-    patients = planned_patients(cfg)
-    key = plan_key(cfg)
-    out = []
-    for stage in stages_of(cfg):
-        if stage.select is None:
-            out.append(StagePlan(stage, stage_cells(cfg, stage, patients)))
-            continue
-        recorded = store.selection(sweep or cfg.name, key, stage.name) if store is not None else None
-        cells = None if recorded is None else stage_cells(cfg, stage, patients, recorded["selected"])
-        out.append(StagePlan(stage, cells, recorded))
-    if only:
-        known = [c for sp in out for c in sp.cells or []]
-        select(known, only)  # a value no known cell has is an error (a typo)
-        for sp in out:
-            if sp.cells is not None:
-                sp.cells = select(sp.cells, only) if sp.cells else []
-    return out
+    return StageWalk(cfg, store, only, sweep=sweep).plans()
 
 
 def plan_cells(cfg: Config, only: Selection | None = None, store: SweepStore | None = None) -> list[Cell]:
     """Every cell known so far (all stages, deduplicated in stage order), filtered by ``only``."""
-    seen: dict[str, Cell] = {}
-    for sp in plan_stages(cfg, store, only):
-        for c in sp.cells or []:
-            seen.setdefault(c.key, c)
-    return list(seen.values())
-
-
-# -- selection ----------------------------------------------------------------------------------------
-
-
-def _finished_runs(cfg: Config, cells: Sequence[Cell]) -> dict[str, Any]:
-    """The latest FINISHED MLflow run of each cell key (missing keys: no FINISHED run)."""
-    client = client_for(cfg)
-    exp = experiment_id(client, cfg)
-    keys = {c.key for c in cells}
-    runs = search_runs(client, [exp], {TAG_SWEEP: cfg.name, TAG_KIND: "cell"},
-                                ["FINISHED"])
-    out: dict[str, Any] = {}
-    for r in runs:  # newest first
-        k = r.data.tags.get(TAG_CELL_KEY)
-        if k in keys and k not in out:
-            out[k] = r
-    return out
-
-
-def compute_selection(cfg: Config, stage: Stage, source_cells: Sequence[Cell]) -> dict[str, Any]:
-    """Rank the source stage's combinations by the mean of ``select.by`` over their FINISHED runs; keep ``top``."""
-    sel = stage.select
-    assert sel is not None
-    runs = _finished_runs(cfg, source_cells)
-    groups: dict[tuple, list[tuple[Cell, Any]]] = {}
-    for c in source_cells:
-        groups.setdefault(tuple(getattr(c, f) for f in sel.over), []).append((c, runs.get(c.key)))
-    ranked = []
-    for combo, members in groups.items():
-        values = [r.data.metrics[sel.by] for _, r in members if r is not None and sel.by in r.data.metrics]
-        ranked.append({
-            "combo": dict(zip(sel.over, combo)),
-            "value": sum(values) / len(values) if values else None,
-            "runs": len(values), "cells": len(members),
-            "run_ids": [r.info.run_id for _, r in members if r is not None],
-        })
-    ranked.sort(key=lambda e: (e["value"] is None, e["value"] if e["value"] is not None else 0.0,
-                               json.dumps(e["combo"], sort_keys=True)))
-    chosen = [e["combo"] for e in ranked if e["value"] is not None][: sel.top]
-    if not chosen:
-        raise BronchoError(f"stage {stage.name}: no FINISHED run of stage {source_of(cfg, stage).name} has metric "
-                           f"{sel.by!r} to select by")
-    return {"stage": stage.name, "source": source_of(cfg, stage).name, "by": sel.by, "top": sel.top,
-            "over": list(sel.over), "ranked": ranked, "selected": chosen}
-
-
-def _log_selection(cfg: Config, selection: dict[str, Any], key: str) -> None:
-    """The selection as an MLflow run (``run_kind=selection``), so it can be reviewed beside the cells."""
-    client = client_for(cfg)
-    exp = experiment_id(client, cfg)
-    run = client.create_run(exp, tags={
-        TAG_SWEEP: cfg.name, TAG_KIND: "selection", TAG_STAGE: selection["stage"], TAG_PLAN: key,
-        "mlflow.runName": f"selection-{selection['stage']}", TAG_PARENT: sweep_parent(client, cfg, exp),
-    })
-    run_id = run.info.run_id
-    log_params(client, run_id, {"by": selection["by"], "top": str(selection["top"]),
-                                          "source": selection["source"], "over": ",".join(selection["over"]),
-                                          "selected": json.dumps(selection["selected"])})
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "selection.json"
-        path.write_text(json.dumps(selection, indent=2))
-        client.log_artifact(run_id, str(path))
-    client.set_terminated(run_id, "FINISHED")
-
-
-def settle_selection(cfg: Config, store: SweepStore, stage: Stage, source_cells: Sequence[Cell],
-                     sweep: str | None = None) -> dict[str, Any]:
-    """The stage's selection: the recorded one, or computed now and recorded (the first writer wins)."""
-    sweep = sweep or cfg.name
-    key = plan_key(cfg)
-    recorded = store.selection(sweep, key, stage.name)
-    if recorded is not None:
-        return recorded
-    selection = compute_selection(cfg, stage, source_cells)
-    if store.record_selection(sweep, key, stage.name, selection):
-        _log_selection(cfg, selection, key)
-        return selection
-    return store.selection(sweep, key, stage.name) or selection
-
-
-def describe_selection(selection: dict[str, Any]) -> str:
-    """One line: which combinations went on, by which metric, with which values."""
-    chosen = [json.dumps(c, sort_keys=True) for c in selection["selected"]]
-    values = {json.dumps(e["combo"], sort_keys=True): e for e in selection["ranked"]}
-    parts = [f"{'/'.join(str(v) for v in json.loads(c).values())} {values[c]['value']:.4g} "
-             f"({values[c]['runs']} run{'s' if values[c]['runs'] != 1 else ''})" for c in chosen]
-    return (f"stage {selection['stage']}: top {selection['top']} of stage {selection['source']} by "
-            f"{selection['by']} (validation, mean over runs): " + ", ".join(parts))
+    return StageWalk(cfg, store, only).known_cells()
 
 
 # -- the claims rows ----------------------------------------------------------------------------------
@@ -228,15 +253,31 @@ def read_plan(store: SweepStore, sweep: str, cells: Sequence[Cell]) -> Plan:
     return Plan(sweep, list(cells), rows)
 
 
-def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sweep: str | None = None,
-            dataset: bool = True, retry_failed: bool = False) -> Plan:
-    """Create the shared state once (MLflow store + experiment, dataset, claims tables) and the rows of every
-    cell known so far; returns them with their state."""
+def cells_left(plan: Plan, max_retries: int) -> int:
+    """Cells still to run or to wait for (pending, running anywhere, or failed with a retry left)."""
+    def done(c: Cell) -> bool:
+        state = plan.state(c)
+        return state == FINISHED or (state == FAILED and not plan.rows[c.key].retryable(max_retries))
+
+    return sum(1 for c in plan.cells if not done(c))
+
+
+def prepare_walk(cfg: Config, store: SweepStore, only: Selection | None = None, *, sweep: str | None = None,
+                 dataset: bool = True, retry_failed: bool = False) -> tuple[StageWalk, Plan]:
+    """Create the shared state once (MLflow store + experiment, dataset, claims tables), plan the stages and add
+    the rows of every cell known so far; returns the walk and those rows with their state."""
     experiment_id(client_for(cfg), cfg)  # MLflow's first migration happens here, once
     if dataset:
-        ensure_dataset(cfg)  # before expanding: cross-subject folds come from the dataset's patients
+        ensure_dataset(cfg)  # before planning: cross-subject folds come from the dataset's patients
     store.ensure_schema()
-    return add_cells(cfg, store, plan_cells(cfg, only, store), sweep=sweep, retry_failed=retry_failed)
+    walk = StageWalk(cfg, store, only, sweep=sweep)
+    return walk, add_cells(cfg, store, walk.known_cells(), sweep=sweep, retry_failed=retry_failed)
+
+
+def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sweep: str | None = None,
+            dataset: bool = True, retry_failed: bool = False) -> Plan:
+    """``prepare_walk`` for callers that need only the rows."""
+    return prepare_walk(cfg, store, only, sweep=sweep, dataset=dataset, retry_failed=retry_failed)[1]
 
 
 def add_cells(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: str | None = None,

@@ -36,7 +36,7 @@ from ..runs.contract import cpu_threads
 from .placement import assign, share_counts
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
-from .storage import FAILED, FINISHED, SweepStore
+from .storage import FINISHED, SweepStore
 from .worker import EXIT_INTERRUPTED, Runner, WorkerSpec, default_runner, worker_process
 
 REFRESH_S = 0.5
@@ -163,12 +163,3 @@ def _exit_code(plan: Plan, max_retries: int, interrupted: bool) -> int:
         return EXIT_INTERRUPTED
     states = [plan.state(c) for c in plan.cells]
     return 0 if all(s == FINISHED for s in states) else 1
-
-
-def cells_left(plan: Plan, max_retries: int) -> int:
-    """Cells still to run or to wait for (pending, running anywhere, or failed with a retry left)."""
-    def done(c) -> bool:
-        state = plan.state(c)
-        return state == FINISHED or (state == FAILED and not plan.rows[c.key].retryable(max_retries))
-
-    return sum(1 for c in plan.cells if not done(c))

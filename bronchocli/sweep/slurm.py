@@ -1,10 +1,12 @@
 """``bronchopose sweep --launcher slurm``: the plan's workers as Slurm job arrays (docs/cluster.md).
 
 Slurm schedules, allocates GPUs, requeues and signals; the claims table still
-decides which cell each worker runs, exactly once. Every array task is one
-ordinary sweep worker (``bronchopose sweep --worker-only``, ``exec``-ed by the
-batch script so that Slurm's signals reach it), which takes the stages in order
-(``staged.work_stages``) and exits when nothing is left that it can claim.
+decides which cell each worker runs, exactly once. This module is the Slurm
+driver (sbatch, squeue, scancel, scontrol requeue, the batch script) and the
+launcher's watch; what to run in each task is the caller's ``command``
+(``task.command``: ``python -m bronchocli.sweep.task <spec>``, ``exec``-ed by
+the batch script so that Slurm's signals reach it), and how many tasks each
+stage needs is the stage walk's arithmetic (``plan.StageWalk.work_left``).
 
 A sweep's jobs are found again through their name (``bronchopose-<sweep>``) and
 comment (``bronchopose:<sweep>:<storage id>:<stage>``), so running the command
@@ -27,9 +29,7 @@ import logging
 import os
 import shlex
 import shutil
-import signal
 import subprocess
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -44,12 +44,11 @@ from ..config import Config
 from ..errors import BronchoError
 from ..io import atomic_path
 from ..retry import retry
-from . import plan as planning
-from .pool import cells_left, worker_config
-from .staged import work_stages
+from .plan import Plan, StageWalk, add_cells, cells_left, prepare_walk
+from .selection import describe_selection
 from .status import live_view, progress, summary_line
 from .storage import FINISHED, SweepStore
-from .worker import EXIT_INTERRUPTED, StopSignals, slurm_task
+from .worker import EXIT_INTERRUPTED
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +56,6 @@ NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node s
 ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
           "SUSPENDED", "STOPPED", "SIGNALING")
 REFRESH_S = 1.0
-MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 
 
 class SlurmError(BronchoError):
@@ -169,17 +167,12 @@ def sweep_tasks(cfg: Config) -> list[Task]:
     return tasks
 
 
-def worker_command(cfg: Config, argv: Sequence[str]) -> list[str]:
-    """What each array task runs: this bronchopose, same config/profile/overrides/selection, one worker."""
-    python = cfg.slurm.python or sys.executable
-    return [python, "-c", MAIN, "sweep", "--worker-only", *argv]
-
-
-def batch_script(cfg: Config, argv: Sequence[str]) -> str:
+def batch_script(cfg: Config, command: Sequence[str]) -> str:
+    """The array task's script: cd to where the sweep was submitted, the ``setup`` lines, then ``exec command``."""
     lines = ["#!/bin/bash", "# bronchopose sweep --launcher slurm: one array task = one sweep worker",
              f"cd {shlex.quote(str(Path.cwd()))}", *cfg.slurm.setup,
              "# exec: the worker is the batch shell, so --signal=B:USR1 and scancel's SIGTERM reach it",
-             "exec " + shlex.join(worker_command(cfg, argv))]
+             "exec " + shlex.join(command)]
     return "\n".join(lines) + "\n"
 
 
@@ -207,13 +200,13 @@ def sbatch_args(cfg: Config, stage: str, tasks: int, dependency: Sequence[str] =
     return args
 
 
-def submit(cfg: Config, stage: str, tasks: int, argv: Sequence[str], dependency: Sequence[str] = ()) -> str:
-    """Submit one array of ``tasks`` workers; returns its job id."""
+def submit(cfg: Config, stage: str, tasks: int, command: Sequence[str], dependency: Sequence[str] = ()) -> str:
+    """Submit one array of ``tasks`` tasks that each run ``command``; returns its job id."""
     folder = logs_dir(cfg)
     folder.mkdir(parents=True, exist_ok=True)
     script = folder / f"{cfg.name}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.sh"
     with atomic_path(script) as tmp:
-        Path(tmp).write_text(batch_script(cfg, argv))
+        Path(tmp).write_text(batch_script(cfg, command))
     out = _run([*sbatch_args(cfg, stage, tasks, dependency), str(script)], f"submitting stage {stage}")
     return out.strip().split(";")[0]
 
@@ -233,86 +226,50 @@ def cancel(cfg: Config, console: Console) -> int:
 # -- submitting what is missing --------------------------------------------------------------------------
 
 
-def _stage_size(cfg: Config, store: SweepStore, sp: planning.StagePlan) -> int:
-    """Cells of a stage whose selection is not known yet: ``top`` combinations of its source's cells."""
-    if sp.cells is not None:
-        return len(sp.cells)
-    source = planning.source_of(cfg, sp.stage)
-    stages = planning.stages_of(cfg)
-    source_cells = planning.plan_stages(cfg, store)[stages.index(source)].cells or []
-    over = sp.stage.select.over if sp.stage.select else []
-    combos: list[dict] = []
-    for c in source_cells:
-        combo = {f: getattr(c, f) for f in over}
-        if combo not in combos:
-            combos.append(combo)
-    top = sp.stage.select.top if sp.stage.select else len(combos)
-    from ..generation.sources import planned_patients  # lazy: the dataset's patients, read once here
-
-    return max(1, len(planning.stage_cells(cfg, sp.stage, planned_patients(cfg), combos[:top])))
-
-
-def _settle_ready(cfg: Config, store: SweepStore, console: Console) -> None:
-    """Record the selection of every stage whose source stage is done (as the local launcher does), so its cells
-    are known before submitting."""
-    stages = planning.stages_of(cfg)
-    for i, stage in enumerate(stages):
-        sp = planning.plan_stages(cfg, store)[i]
-        if sp.cells is not None:
-            continue
-        source_cells = planning.plan_stages(cfg, store)[stages.index(planning.source_of(cfg, stage))].cells or []
-        left = cells_left(planning.read_plan(store, cfg.name, source_cells), cfg.sweep.max_retries)
-        if left:
-            return
-        console.print(planning.describe_selection(planning.settle_selection(cfg, store, stage, source_cells)),
-                      highlight=False)
-        planning.add_cells(cfg, store, planning.plan_stages(cfg, store)[i].cells or [])
-
-
-def submit_missing(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str],
-                   console: Console) -> list[str]:
+def submit_missing(walk: StageWalk, command: Sequence[str], console: Console) -> list[str]:
     """Submit arrays for what the queued/running tasks will not cover; returns the new job ids (none: covered).
 
     Every task works through the stages in order, so the first stage with cells left counts every task labelled
     with it or an earlier stage; a later stage's array waits (``afterany``) for the arrays before it."""
+    cfg = walk.cfg
     active = sweep_tasks(cfg)
-    _settle_ready(cfg, store, console)
-    order = [s.name for s in planning.stages_of(cfg)]
+    for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
+        if step.settled is not None:
+            console.print(describe_selection(step.settled), highlight=False)
+            add_cells(cfg, walk.store, walk.cells(step.stage, mine=False) or [])
+    order = [s.name for s in walk.stages]
     cap = cfg.slurm.tasks
     submitted: list[str] = []
     earlier: list[str] = []  # array jobs labelled with an earlier stage (queued, running or just submitted)
     first = True
-    for i, sp in enumerate(planning.plan_stages(cfg, store, only)):
-        mine = [t for t in active if t.stage == sp.stage.name]
-        if sp.cells is not None:
-            left = cells_left(planning.add_cells(cfg, store, sp.cells), cfg.sweep.max_retries)
-        else:
-            left = _stage_size(cfg, store, sp)
+    for i, (stage, left) in enumerate(walk.work_left()):
+        mine = [t for t in active if t.stage == stage.name]
         if left:
             want = min(left, cap) if cap else left
             have = sum(t.count for t in mine)
             if first:
                 have += sum(t.count for t in active if t.stage in order[:i])
             if want > have:
-                job = submit(cfg, sp.stage.name, want - have, argv, () if first else earlier)
+                job = submit(cfg, stage.name, want - have, command, () if first else earlier)
                 submitted.append(job)
                 earlier.append(job)
-                console.print(f"submitted Slurm array job {job}: {want - have} task(s) for stage {sp.stage.name}"
+                console.print(f"submitted Slurm array job {job}: {want - have} task(s) for stage {stage.name}"
                               + ("" if first else f", after job(s) {', '.join(earlier[:-1])}"), highlight=False)
             first = False
         earlier += sorted({t.job for t in mine} - set(earlier), key=int)
     return submitted
 
 
-def launch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], *, detach: bool,
+def launch(cfg: Config, store: SweepStore, only: Selection, command: Sequence[str], *, detach: bool,
            console: Console, retry_failed: bool = False) -> int:
-    """``bronchopose sweep --launcher slurm``: check, prepare the shared state, submit what is missing, and
-    (unless ``detach``) watch the table until the sweep's jobs are gone."""
-    check(cfg)
+    """``bronchopose sweep --launcher slurm``: check, prepare the shared state, submit arrays of tasks that each
+    run ``command`` for what is missing, and (unless ``detach``) watch the table until the sweep's jobs are gone."""
+    check(cfg)  # before touching storage: one line, nothing created, nothing submitted
+    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     console.print(f"[bold]sweep[/] {cfg.name} on Slurm  storage {store.redacted}  MLflow "
                   f"{urls.redact(cfg.paths.mlflow_uri)}  logs {logs_dir(cfg)}/<job>_<task>.log")
-    planning.prepare(cfg, store, only, retry_failed=retry_failed)
-    jobs = submit_missing(cfg, store, only, argv, console)
+    walk, _ = prepare_walk(cfg, store, only, retry_failed=retry_failed)
+    jobs = submit_missing(walk, command, console)
     if not jobs:
         tasks = sweep_tasks(cfg)
         console.print(f"nothing new to submit: {sum(t.count for t in tasks)} task(s) of this sweep queued or running"
@@ -320,31 +277,28 @@ def launch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str],
     if detach:
         console.print("detached: `bronchopose status` shows progress, `bronchopose sweep --cancel` stops the jobs")
         return 0
-    return watch(cfg, store, only, argv, console)
+    return watch(walk, command, console)
 
 
-def _plan(cfg: Config, store: SweepStore, only: Selection) -> planning.Plan:
-    return planning.read_plan(store, cfg.name, planning.plan_cells(cfg, only, store))
-
-
-def _table_state(plan: planning.Plan) -> tuple:
+def _table_state(plan: Plan) -> tuple:
     """What changes whenever a worker claims, releases, finishes or fails a cell (row versions)."""
     return tuple(sorted((k, r.version) for k, r in plan.rows.items()))
 
 
-def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], console: Console) -> int:
+def watch(walk: StageWalk, command: Sequence[str], console: Console) -> int:
     """The live view of the table while the sweep's jobs run; tops up tasks when all ended with cells left but
     progress was made since the last submission (a cancelled task's released cell); Ctrl-C stops watching only."""
+    cfg = walk.cfg
     retries = cfg.sweep.max_retries
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    last_line, plan = "", _plan(cfg, store, only)
+    last_line, plan = "", walk.rows()
     seen_at_submit = _table_state(plan)
     if live is not None:
         live.start()
     try:
         while True:
             try:
-                plan = _plan(cfg, store, only)
+                plan = walk.rows()
                 tasks = sweep_tasks(cfg)
             except BronchoError as exc:  # a storage or slurmctld hiccup must not end the watch
                 log.warning("%s", exc)
@@ -358,18 +312,17 @@ def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], 
                 last_line = line
             if not tasks:
                 left = cells_left(plan, retries)
-                stages_known = all(sp.cells is not None for sp in planning.plan_stages(cfg, store, only))
-                if not left and stages_known:
+                if not left and walk.complete:
                     break
                 # tasks ended with cells left (a cancelled task gave its cell back, a stage was selected): submit
                 # again, but only when the table moved since the last submission (tasks that crash at start
                 # would otherwise be resubmitted for ever)
                 now_seen = _table_state(plan)
-                if now_seen == seen_at_submit or not submit_missing(cfg, store, only, argv, console):
+                if now_seen == seen_at_submit or not submit_missing(walk, command, console):
                     console.print(f"[yellow]no Slurm task of sweep {cfg.name} is left and {left} cell(s) are not "
                                   f"done[/]; see the task logs in {logs_dir(cfg)} and run the command again")
                     return 1
-                seen_at_submit = _table_state(_plan(cfg, store, only))
+                seen_at_submit = _table_state(walk.rows())
             time.sleep(REFRESH_S)
     except KeyboardInterrupt:
         console.print("stopped watching: the Slurm jobs go on (`bronchopose sweep --cancel` stops them)")
@@ -379,32 +332,6 @@ def watch(cfg: Config, store: SweepStore, only: Selection, argv: Sequence[str], 
             live.stop()
     console.print(summary_line(progress(plan, retries, 1)))
     return 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
-
-
-# -- inside an array task ---------------------------------------------------------------------------------
-
-
-def worker_main(cfg: Config, store: SweepStore, only: Selection) -> int:
-    """``bronchopose sweep --worker-only``: one worker through the stages; on SIGUSR1 (the time-limit warning)
-    it gives its cell back and requeues its own task."""
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    threads = os.environ.get("SLURM_CPUS_PER_TASK")
-    wcfg = worker_config(cfg, 1)
-    if cfg.train.threads is None and threads and threads.isdigit():
-        wcfg = wcfg.with_values({"train.threads": int(threads)})
-    signals = StopSignals()
-    signals.install(extra=(signal.SIGUSR1,))
-    log.info("sweep worker %s, Slurm task %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, slurm_task(),
-             os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
-    try:
-        code = work_stages(wcfg, store, only, signals=signals, exit_when_idle=cfg.slurm.exit_when_idle)
-    except KeyboardInterrupt:
-        code = EXIT_INTERRUPTED
-    if signals.requested == signal.SIGUSR1 and (task := slurm_task()):
-        log.info("time limit near: requeueing Slurm task %s", task)
-        requeue(task)
-    return code
 
 
 def requeue(task: str, tries: int = 3) -> bool:

@@ -3,8 +3,9 @@
 Every stage's cells are claimed exactly once across all processes and machines
 (the claims table); a stage that selects from an earlier one waits until all
 of that stage's cells are done (FINISHED, or FAILED with no retry left), then
-settles its selection (``plan.settle_selection``) and runs the chosen cells.
-Cells already FINISHED (in any stage) are never run again.
+settles its selection and runs the chosen cells (both decided by the one stage
+walk, ``plan.StageWalk``). Cells already FINISHED (in any stage) are never run
+again. ``work_stages`` is the same walk for one worker (a Slurm array task).
 """
 
 from __future__ import annotations
@@ -16,11 +17,13 @@ from rich.console import Console
 
 from .. import urls
 from ..cells import Selection
-from ..config import Config
+from ..config import Config, Stage
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, sweep_parent
 from . import plan as planning
-from .pool import EXIT_INTERRUPTED, cells_left, run_pool
+from .plan import cells_left
+from .pool import EXIT_INTERRUPTED, run_pool
+from .selection import describe_selection
 from .status import failures, plan_table, progress, summary_line
 from .storage import FINISHED, SweepStore
 from .worker import EXIT_OK, Runner, StopSignals, Worker, default_runner
@@ -35,36 +38,30 @@ def _print_plan(console: Console, plan: planning.Plan, max_retries: int, workers
                   f"{c['pending']} pending; workers here: {workers}")
 
 
-def _stage_title(sp: planning.StagePlan, n_stages: int) -> str:
-    if n_stages == 1 and sp.stage.name == "grid":
+def _stage_title(stage: Stage, n_stages: int) -> str:
+    if n_stages == 1 and stage.name == "grid":
         return ""
-    how = f"top {sp.stage.select.top} of {sp.stage.source or 'the previous stage'} by {sp.stage.select.by}" \
-        if sp.stage.select else "grid"
-    return f"stage {sp.stage.name} ({how})"
+    how = f"top {stage.select.top} of {stage.source or 'the previous stage'} by {stage.select.by}" \
+        if stage.select else "grid"
+    return f"stage {stage.name} ({how})"
 
 
 def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, console: Console) -> None:
-    stages = planning.plan_stages(cfg, store, only)
+    stages = planning.StageWalk(cfg, store, only).plans()
     for sp in stages:
         if sp.cells is None:
-            console.print(f"[bold]{_stage_title(sp, len(stages))}[/]: cells known once stage "
+            console.print(f"[bold]{_stage_title(sp.stage, len(stages))}[/]: cells known once stage "
                           f"{planning.source_of(cfg, sp.stage).name} is done")
             continue
         if sp.selection is not None:
-            console.print(planning.describe_selection(sp.selection), highlight=False)
+            console.print(describe_selection(sp.selection), highlight=False)
         _print_plan(console, planning.read_plan(store, cfg.name, sp.cells), cfg.sweep.max_retries, workers,
-                    _stage_title(sp, len(stages)))
+                    _stage_title(sp.stage, len(stages)))
     console.print("[dim]dry run: nothing started[/]")
 
 
-def _source_done(cfg: Config, store: SweepStore, source_cells) -> int:
-    """How many cells of the source stage are not done yet (0: its selection can be settled)."""
-    plan = planning.read_plan(store, cfg.name, source_cells)
-    return cells_left(plan, cfg.sweep.max_retries)
-
-
 def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
-              retry_failed: bool = False, gpus: Sequence[str] = ()) -> int:
+              retry_failed: bool = False, gpus: Sequence[str] = (), runner: Runner = default_runner) -> int:
     """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted).
 
     The sweep's parent MLflow run (its cells nest under it) is RUNNING while this runs and ends like it.
@@ -73,13 +70,13 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
                                                            if cfg.tune.applied else "")
                   + (f"  GPUs {','.join(gpus)} ({workers} workers)" if gpus else ""))
-    planning.prepare(cfg, store, only, retry_failed=retry_failed)
+    walk, _ = planning.prepare_walk(cfg, store, only, retry_failed=retry_failed)
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))
     client.update_run(parent, "RUNNING")
     code = 1
     try:
-        code = _run_stages(cfg, store, only=only, workers=workers, console=console, gpus=gpus)
+        code = _run_stages(walk, workers=workers, console=console, gpus=gpus, runner=runner)
         return code
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
@@ -88,35 +85,27 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
         set_parent_status(client, parent, code)
 
 
-def _run_stages(cfg: Config, store: SweepStore, *, only: Selection, workers: int, console: Console,
-                gpus: Sequence[str]) -> int:
-    stages = planning.stages_of(cfg)
-    full = {sp.stage.name: sp for sp in planning.plan_stages(cfg, store)}  # unfiltered: what selections wait for
+def _run_stages(walk: planning.StageWalk, *, workers: int, console: Console, gpus: Sequence[str],
+                runner: Runner) -> int:
+    cfg, store = walk.cfg, walk.store
     code, ran_any = 0, False
-    for stage in stages:
-        sp = planning.plan_stages(cfg, store, only)[stages.index(stage)]
-        if sp.cells is None:
-            source = planning.source_of(cfg, stage)
-            source_cells = full[source.name].cells or []
-            missing = _source_done(cfg, store, source_cells)
-            if missing:
-                console.print(f"[yellow]stage {stage.name} waits:[/] {missing} cell(s) of stage {source.name} are "
-                              "not done (excluded by --only, or running elsewhere); run the sweep again later")
-                break
-            selection = planning.settle_selection(cfg, store, stage, source_cells)
-            console.print(planning.describe_selection(selection), highlight=False)
-            sp = planning.plan_stages(cfg, store, only)[stages.index(stage)]
-            full = {s.stage.name: s for s in planning.plan_stages(cfg, store)}
-        cells = sp.cells or []
-        if not cells:
+    for step in walk.steps():
+        if step.waits:
+            console.print(f"[yellow]stage {step.stage.name} waits:[/] {step.waits} cell(s) of stage "
+                          f"{step.source.name} are not done (excluded by --only, or running elsewhere); run the "
+                          "sweep again later")
+            break
+        if step.settled is not None:
+            console.print(describe_selection(step.settled), highlight=False)
+        if not step.cells:
             continue
-        plan = planning.add_cells(cfg, store, cells)
+        plan = planning.add_cells(cfg, store, step.cells)
         left = cells_left(plan, cfg.sweep.max_retries)
         n_workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
-        _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(sp, len(stages)))
+        _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(step.stage, len(walk.stages)))
         if left:
             ran_any = True
-            result = run_pool(cfg, store, plan, workers=n_workers, console=console, gpus=gpus)
+            result = run_pool(cfg, store, plan, workers=n_workers, runner=runner, console=console, gpus=gpus)
             if result.interrupted:
                 console.print("[yellow]interrupted:[/] running cells were released; run the same command again "
                               "to resume")
@@ -145,27 +134,20 @@ def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: Sto
     stage only once every cell before it is done, settling its selection first (recorded once, whichever task gets
     there first). Returns when nothing is left here: cells running elsewhere are theirs to finish, and with
     ``exit_when_idle`` this worker does not wait for them (later stages' tasks start when those end)."""
-    stages = planning.stages_of(cfg)
-    for i, stage in enumerate(stages):
-        sp = planning.plan_stages(cfg, store, only)[i]
-        if sp.cells is None:
-            source = planning.source_of(cfg, stage)
-            source_cells = planning.plan_stages(cfg, store)[stages.index(source)].cells or []
-            missing = _source_done(cfg, store, source_cells)
-            if missing:
-                log.info("stage %s waits: %d cell(s) of stage %s are not done", stage.name, missing, source.name)
-                return EXIT_OK
-            selection = planning.settle_selection(cfg, store, stage, source_cells)
-            log.info("%s", planning.describe_selection(selection))
-            sp = planning.plan_stages(cfg, store, only)[i]
-        cells = sp.cells or []
-        if not cells:
+    for step in planning.StageWalk(cfg, store, only).steps():
+        if step.waits:
+            log.info("stage %s waits: %d cell(s) of stage %s are not done", step.stage.name, step.waits,
+                     step.source.name)
+            return EXIT_OK
+        if step.settled is not None:
+            log.info("%s", describe_selection(step.settled))
+        if not step.cells:
             continue
-        planning.add_cells(cfg, store, cells)
-        worker = Worker(cfg, cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
+        planning.add_cells(cfg, store, step.cells)
+        worker = Worker(cfg, step.cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
         code = worker.run()
         if code != EXIT_OK or worker.idle:
             if worker.idle:
-                log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", stage.name)
+                log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
             return code
     return EXIT_OK

@@ -25,7 +25,8 @@ from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
 from ..runs.client import client_for
 from .housekeeping import Checkpoint, inventory
-from .plan import Plan, describe_selection, plan_cells, plan_stages, read_plan, source_of
+from .plan import Plan, StageWalk, read_plan, source_of
+from .selection import describe_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
 HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
@@ -215,13 +216,13 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
     if show_all or name != cfg.name:
         plan = _stored_plan(store, name)
     else:
-        stages = plan_stages(cfg, store)
-        for sp in stages:
+        walk = StageWalk(cfg, store)
+        for sp in walk.plans():
             if sp.selection is not None:
                 console.print(describe_selection(sp.selection), highlight=False)
             elif sp.cells is None:
                 console.print(f"stage {sp.stage.name}: waits for stage {source_of(cfg, sp.stage).name}")
-        plan = read_plan(store, name, plan_cells(cfg, store=store))
+        plan = read_plan(store, name, walk.known_cells())
         stale = len(store.rows(name)) - len(plan.rows) if store.exists() else 0
         if stale > 0:
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "

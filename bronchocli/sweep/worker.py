@@ -1,12 +1,13 @@
 """A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
 
 The cell runner is injectable: any function with ``run_cell``'s signature,
-``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runs.contract.RunResult``.
-The real one trains; tests and benchmarks pass fast fakes to ``Worker``, or
-name one in the test-only environment variable ``BRONCHOPOSE_TEST_RUNNER``
-(``module:function``), which spawned worker processes inherit. Workers are
-processes started by ``bronchopose sweep`` (multiprocessing ``spawn``; see
-``pool.py``) or by anyone calling ``worker_process``.
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runlayout.RunResult``.
+The real one trains (``default_runner``); ``bronchopose sweep --runner
+module:function`` names another (``task.load_runner``), which reaches spawned
+worker processes by reference and Slurm array tasks through their task spec;
+tests and benchmarks use it for fast fakes. Workers are processes started by
+``bronchopose sweep`` (multiprocessing ``spawn``; see ``pool.py``) or by anyone
+calling ``worker_process``.
 
 Signals: SIGINT/SIGTERM stop the worker. While a cell runs, ``run_cell``
 itself turns the signal into a KILLED MLflow run (``RunInterrupted``); outside
@@ -19,7 +20,6 @@ run KILLED and goes on with another cell.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import os
 import shutil
@@ -52,15 +52,8 @@ EXIT_OK, EXIT_INTERRUPTED = 0, 130
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
 
 
-TEST_RUNNER_ENV = "BRONCHOPOSE_TEST_RUNNER"  # test-only: module:function run instead of training
-
-
 def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
-    """Train the cell (``training.run.run_cell``), or the test runner named in ``$BRONCHOPOSE_TEST_RUNNER``."""
-    spec = os.environ.get(TEST_RUNNER_ENV)
-    if spec:
-        module, _, name = spec.partition(":")
-        return getattr(importlib.import_module(module), name)(cfg, cell, **kw)
+    """Train the cell (``training.run.run_cell``)."""
     from ..training.run import run_cell  # lazy: torch loads in worker processes only, not in the sweep's parent
 
     return run_cell(cfg, cell, **kw)

@@ -30,11 +30,13 @@ def mlflow_template(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def fake_dir(tmp_path, monkeypatch) -> Path:
-    """The fake runner's control folder; sweep workers (spawned processes too) run the fake instead of training."""
+    """The fake runner's control folder (spawned and Slurm-started workers inherit it through the environment).
+
+    A sweep runs the fake when given it: ``--runner sweep_fakes:fake_runner`` (``sweep_fakes.FAKE``) on the
+    command line, ``runner=fake_runner`` in a library call."""
     d = tmp_path / "fake"
     d.mkdir()
     monkeypatch.setenv("SWEEP_FAKE_DIR", str(d))
-    monkeypatch.setenv("BRONCHOPOSE_TEST_RUNNER", "sweep_fakes:fake_runner")
     return d
 
 

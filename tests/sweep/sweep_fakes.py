@@ -2,6 +2,9 @@
 
 They have ``run_cell``'s signature and are importable by spawned worker
 processes (the tests put this folder on ``sys.path``, which ``spawn`` passes on).
+A command-line sweep runs them when given ``--runner sweep_fakes:fake_runner``
+(``FAKE``), a documented option of ``bronchopose sweep``; a Slurm array task
+gets it through its task spec.
 Behaviour is driven by files in the directory named by ``$SWEEP_FAKE_DIR``:
 
 - ``fail-<arch>`` containing N: the first N runs of each such cell end FAILED;
@@ -26,6 +29,7 @@ from bronchocli.runs.contract import RunInterrupted, RunResult, resume_file
 from bronchocli.runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_SWEEP, cell_tags, log_metrics, search_runs
 
 HERE = Path(__file__).resolve().parent
+FAKE = ("--runner", "sweep_fakes:fake_runner")  # `bronchopose sweep` options that run the fake instead of training
 
 
 def _dir() -> Path:

@@ -7,6 +7,7 @@ import sqlite3
 import threading
 
 import pytest
+from sweep_fakes import FAKE
 from tinydata import write_tiny_dataset
 
 from bronchocli.runs.client import MlflowBusy, _open, retry_busy
@@ -49,7 +50,7 @@ def release_when_the_command_reaches_the_store(monkeypatch, lock: Lock) -> list[
 COMMANDS = {
     "status": ["status"],
     "report": ["report", "--table", "personalized", "-q", "--out", "{out}"],
-    "sweep": ["sweep", "--workers", "1"],
+    "sweep": ["sweep", "--workers", "1", *FAKE],
 }
 
 
@@ -61,7 +62,7 @@ def args(command, project) -> list[str]:
 def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir, command):
     path = str(project.paths.base / "experiments.yaml")
     if command != "sweep":
-        assert cli("sweep", "-c", path)[0] == 0  # something to show
+        assert cli("sweep", "-c", path, *FAKE)[0] == 0  # something to show
     lock = Lock(project.paths.base / "mlflow.db")
     try:
         code, out, err = cli(*args(command, project), "-c", path, "--set", "runs.busy_timeout_s=0.5")
@@ -76,7 +77,7 @@ def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fak
 def test_a_lock_released_within_the_bound_lets_the_command_succeed(cli, project, fake_dir, monkeypatch, command):
     path = str(project.paths.base / "experiments.yaml")
     if command != "sweep":
-        assert cli("sweep", "-c", path)[0] == 0
+        assert cli("sweep", "-c", path, *FAKE)[0] == 0
     lock = Lock(project.paths.base / "mlflow.db")
     seen = release_when_the_command_reaches_the_store(monkeypatch, lock)
     try:
@@ -105,10 +106,10 @@ def test_transient_errors_are_retried_and_others_are_not():
 
 def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir):
     path = str(project.paths.base / "experiments.yaml")
-    assert cli("sweep", "-c", path)[0] == 0  # the claims table exists (WAL: readers pass, writers wait)
+    assert cli("sweep", "-c", path, *FAKE)[0] == 0  # the claims table exists (WAL: readers pass, writers wait)
     lock = Lock(project.paths.base / "sweep.db")
     try:
-        code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "runs.busy_timeout_s=0.5")
+        code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "runs.busy_timeout_s=0.5", *FAKE)
     finally:
         lock.release()
     assert code == 2 and len(err.strip().splitlines()) == 1, out + err

@@ -10,7 +10,7 @@ import sys
 import time
 
 import pytest
-from sweep_fakes import HERE, calls, fake_runner, runs_by_cell
+from sweep_fakes import FAKE, HERE, calls, fake_runner, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, prepare, worker_config
@@ -33,7 +33,7 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     code, out, err = cli("sweep", "-c", path, "--dry-run")
     assert code == 0 and "2 cells: 0 finished" in out and "dry run" in out
     assert not (project.paths.base / "sweep.db").exists()  # a dry run writes nothing
-    code, out, err = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--workers", "2")
+    code, out, err = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--workers", "2", *FAKE)
     assert code == 1, out + err
     assert "done 1/2" in out and "failed lstm/mse/personalized/s0/world: fake failure" in out
     code, out, _ = cli("status", "-c", path, "--set", "sweep.max_retries=0")
@@ -42,9 +42,9 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     line = next(line for line in out.splitlines() if base.run_id in line)
     metric = int(base.cell_key[:6], 16) / 2**24  # what the fake logged as pair.pos_l2.mean
     assert "finished" in line and f"{metric:.3f}" in line and f"{10 * metric:.3f}" in line
-    code, out, _ = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--retry-failed")
+    code, out, _ = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--retry-failed", *FAKE)
     assert code == 0 and "done 2/2" in out
-    code, out, _ = cli("sweep", "-c", path)  # nothing left: no worker runs anything again
+    code, out, _ = cli("sweep", "-c", path, *FAKE)  # nothing left: no worker runs anything again
     assert code == 0 and "2 finished" in out
     assert calls(base.cell_key) == 1 and calls(cells_of(project)["lstm"].cell_key) == 2
     assert runs_by_cell(project) == {r.cell_key: 1 for r in cells_of(project).values()}
@@ -55,6 +55,9 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     (["--only", "arch=offsetnet"], "no cell of the plan has that arch"),
     (["--only", "colour=red"], "key one of arch, rot_loss"),
     (["--workers", "0"], ""),
+    (["--runner", "no_such_module:run"], "--runner no_such_module:run: cannot import no_such_module"),
+    (["--runner", "sweep_fakes"], "must be module:function"),
+    (["--runner", "sweep_fakes:no_such_runner"], "module sweep_fakes has no no_such_runner"),
 ])
 def test_bad_input_exits_2(cli, project, args, message):
     code, _, err = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", *args)
@@ -71,7 +74,7 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
     (fake_dir / "block-lstm").touch()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", path],
+    proc = subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", path, *FAKE],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     end = time.monotonic() + 120
     while not any(fake_dir.glob("started-*")):  # wait for the worker to be inside the lstm cell
@@ -96,7 +99,7 @@ def test_storage_passwords_never_appear_in_output_logs_or_runs(cli, project, fak
     path = str(project.paths.base / "experiments.yaml")
     assert worker_config(project.with_values({"storage.url": url}), 2).storage.url.count("topsecret") == 0
     outputs = []
-    for args in (["sweep", "--dry-run"], ["sweep"], ["status"]):
+    for args in (["sweep", "--dry-run"], ["sweep", *FAKE], ["status"]):
         code, out, err = cli(*args, "-c", path, "--storage", url)
         assert code == 0, out + err
         outputs.append(out + err)

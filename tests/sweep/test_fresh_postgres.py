@@ -13,7 +13,7 @@ import sys
 
 import pytest
 import yaml
-from sweep_fakes import HERE, runs_by_cell
+from sweep_fakes import FAKE, HERE, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli.config import load_config
@@ -37,7 +37,7 @@ def test_three_sweeps_starting_together_on_a_fresh_database_all_succeed(tmp_path
     path.write_text(yaml.safe_dump(data))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
-    procs = [subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", str(path)], cwd=tmp_path, env=env,
+    procs = [subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", str(path), *FAKE], cwd=tmp_path, env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(3)]
     outs = [p.communicate(timeout=300)[0] for p in procs]
     logs = "\n".join(p.read_text() for p in (tmp_path / "runs" / "sweep-logs").rglob("*.log"))

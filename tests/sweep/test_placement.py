@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from sweep_fakes import runs_by_cell
+from sweep_fakes import fake_runner, runs_by_cell
 
 from bronchocli.errors import BronchoError
 from bronchocli.sweep import SweepStore, prepare
@@ -40,7 +40,7 @@ def test_each_worker_process_sees_only_its_gpu(make_config, tmp_path, fake_dir):
     cfg = make_config(archs=("baseline", "lstm", "convlstm", "conv3d"))
     store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
-    result = run_pool(cfg, store, plan, workers=2, gpus=["3", "5"])
+    result = run_pool(cfg, store, plan, workers=2, runner=fake_runner, gpus=["3", "5"])
     assert result.exit_code == 0
     seen = {c.key: (fake_dir / f"gpu-{c.key}").read_text() for c in plan.cells}
     assert set(seen.values()) <= {"3", "5"} and len(runs_by_cell(cfg)) == 4

@@ -20,19 +20,19 @@ from pathlib import Path
 import pytest
 import yaml
 from slurm_cluster import start_cluster, stop_cluster
-from sweep_fakes import HERE, calls, runs_by_cell
+from sweep_fakes import FAKE, HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import TAG_KIND, search_runs
 from bronchocli.sweep import FINISHED, PENDING, SweepStore
 from bronchocli.sweep.plan import plan_key
-from bronchocli.sweep.slurm import MAIN
 from bronchocli.sweep.storage import selections_table
 
 pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
 REPO = HERE.parents[1]
 LIMIT = 120.0  # bound on every wait: a hang fails the test instead of stalling CI
+MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 
 
 @pytest.fixture(scope="session")
@@ -99,12 +99,12 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     path = str(cfg.paths.base / "experiments.yaml")
     for arch in ("baseline", "lstm", "convlstm"):
         (fake_dir / f"block-{arch}").touch()  # every cell waits at the gate: two tasks hold cells at once
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     assert re.search(r"submitted Slurm array job \d+: 2 task\(s\)", out), out
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm, cfg=cfg)
     queued = sorted(j["id"] for j in slurm.jobs())
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")  # again, while queued/running
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)  # again, while queued/running
     assert code == 0 and "nothing new to submit: 2 task(s)" in out and "submitted" not in out, out + err
     assert sorted(j["id"] for j in slurm.jobs()) == queued
     started = sorted(fake_dir.glob("started-*"))
@@ -122,7 +122,7 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     code, out, _ = cli("status", "-c", path)
     assert code == 0 and "Slurm task" in out
     assert all(re.search(rf"{r.run_id}.*{re.escape(r.worker.split()[2])}", out) for r in finished), out
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", *FAKE)
     assert code == 0 and "nothing left to run" in out and not slurm.jobs(), out + err
 
 
@@ -132,7 +132,7 @@ def test_a_requeued_task_gives_its_cell_back_and_no_cell_finishes_twice(slurm, c
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
     (fake_dir / "block-lstm").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both tasks inside their cells", cluster=slurm,
              cfg=cfg)
@@ -161,7 +161,7 @@ def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(sl
     for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
         (fake_dir / f"val-{arch}-mse").write_text(str(val))
     path = str(cfg.paths.base / "experiments.yaml")
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     jobs = re.findall(r"submitted Slurm array job (\d+): (\d+) task\(s\) for stage (\w+)", out)
     assert [(n, s) for _, n, s in jobs] == [("3", "first"), ("1", "second")], out
@@ -211,8 +211,8 @@ def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm
 
 
 def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_task(slurm, make_config, tmp_path,
-                                                                                  pg_url, monkeypatch):
-    monkeypatch.delenv("BRONCHOPOSE_TEST_RUNNER")  # real training: the resume needs a real checkpoint
+                                                                                  pg_url):
+    # real training (no --runner): the resume needs a real checkpoint
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
     cfg = make_config(storage=pg_url, archs=("baseline",), losses=("mse",),
                       sweep={"heartbeat_s": 0.5, "stale_after_s": 30.0, "poll_s": 0.2},
@@ -252,7 +252,7 @@ def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, c
     cfg = project(make_config, tmp_path, pg_url, archs=("baseline",), losses=("mse",))
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
     (row,) = rows(cfg)
@@ -273,7 +273,7 @@ def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli
     cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm"), losses=("mse",), slurm={"tasks": 1})
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
     code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import shlex
+
 import pytest
 from sweep_fakes import fake_runner
 
 from bronchocli.errors import ConfigError
-from bronchocli.sweep import SweepStore, Worker, prepare
+from bronchocli.sweep import SweepStore, Worker, prepare, task
 from bronchocli.sweep import slurm as slurm_launcher
 from bronchocli.sweep.slurm import _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.status import slurm_job
+from bronchocli.sweep.task import TaskSpec
 
 
 @pytest.mark.parametrize("task, n", [("812_3", 1), ("812", 1), ("812_[4-9%2]", 6), ("812_[1,3-4]", 3)])
@@ -35,12 +38,29 @@ def test_sbatch_options_carry_the_slurm_section(make_config):
 
 def test_the_batch_script_runs_setup_then_execs_one_worker(make_config):
     cfg = make_config(slurm={"setup": ["module load cuda", "source venv/bin/activate"], "python": "/opt/py"})
-    script = batch_script(cfg, ["--config", "/x/experiments.yaml", "--only", "arch=lstm;seed=0"])
+    spec = TaskSpec(config="/x/experiments.yaml", only=("arch=lstm;seed=0",), runner="sweep_fakes:fake_runner")
+    script = batch_script(cfg, task.command(cfg, spec))
     lines = script.splitlines()
     assert lines[0] == "#!/bin/bash" and "module load cuda" in lines and "source venv/bin/activate" in lines
-    assert lines[-1].startswith("exec /opt/py -c ") and "--worker-only" in lines[-1]
-    assert "'arch=lstm;seed=0'" in lines[-1]  # quoted for the shell
+    assert lines[-1].startswith("exec /opt/py -m bronchocli.sweep.task '{")  # the task's own entry point
+    assert "arch=lstm;seed=0" in lines[-1] and "'" + spec.to_json() + "'" in lines[-1]  # quoted for the shell
+    assert TaskSpec.from_json(shlex.split(lines[-1])[-1]) == spec  # the task reads back what the launcher wrote
     assert lines.index("module load cuda") < len(lines) - 1
+
+
+def test_an_array_task_loads_the_config_the_command_loaded_and_refuses_a_bad_spec(make_config, capsys):
+    cfg = make_config()
+    spec = TaskSpec(config=str(cfg.paths.base / "experiments.yaml"), overrides=("train.lr=0.005",),
+                    storage="sqlite:///other.db", only=("arch=lstm",))
+    loaded = TaskSpec.from_json(task.command(cfg, spec)[-1]).load()
+    assert loaded.train.lr == 0.005 and loaded.storage.url == "sqlite:///other.db"
+    assert TaskSpec.from_json(spec.to_json()).selection() == {"arch": {"lstm"}}
+    for bad in ("not json", '{"only": []}', '{"config": "x", "colour": 1}'):
+        assert task.main([bad]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: task spec:") and len(err.strip().splitlines()) == 1, err
+    assert task.main([TaskSpec(config=str(cfg.paths.base / "nope.yaml")).to_json()]) == 2
+    assert "nope.yaml" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("section, message", [

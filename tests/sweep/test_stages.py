@@ -6,13 +6,14 @@ from __future__ import annotations
 import json
 
 import pytest
-from sweep_fakes import calls, runs_by_cell
+from sweep_fakes import FAKE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli.config import Config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
 from bronchocli.sweep import SweepStore
+from bronchocli.sweep import plan as plan_module
 from bronchocli.sweep.plan import plan_key, plan_stages
 
 STAGES = [
@@ -35,13 +36,31 @@ def project(make_config, tmp_path, fake_dir):
     return make_config(stages=STAGES, grid={"seed": [0, 1], "folds": ["p00"]})
 
 
+def count_calls(monkeypatch, owner, name: str) -> list[int]:
+    """Count the calls of ``owner.name`` in this process (a one-element list)."""
+    real, seen = getattr(owner, name), [0]
+
+    def counted(*args, **kw):
+        seen[0] += 1
+        return real(*args, **kw)
+
+    monkeypatch.setattr(owner, name, counted)
+    return seen
+
+
 def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_dir):
     path = str(project.paths.base / "experiments.yaml")
     code, out, _ = cli("sweep", "-c", path, "--dry-run")
     assert code == 0 and "12 cells" in out and "cells known once stage personalized is done" in out
 
-    code, out, err = cli("sweep", "-c", path, "--workers", "2")
+    with pytest.MonkeyPatch.context() as mp:
+        patients = count_calls(mp, plan_module, "planned_patients")
+        selections = count_calls(mp, SweepStore, "selection")
+        code, out, err = cli("sweep", "-c", path, "--workers", "2", *FAKE)
     assert code == 0, out + err
+    # One walk in the sweep's process: the patients read once; each selecting stage's selection read when
+    # planned, when decided and once more by the settling (another process may have recorded it meanwhile).
+    assert patients == [1] and selections[0] <= 3 * 2, (patients, selections)
     # Poisoned on purpose: the test metric ranks these two last; the validation metric ranks them first.
     assert "top 2 of stage personalized by val_best.pos_l2" in out and "lstm/ce 0.1" in out and "convlstm/mse 0.2" in out
     store = SweepStore(project.paths.storage_url)
@@ -69,13 +88,13 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
 
     code, out, _ = cli("status", "-c", path)
     assert code == 0 and "stage cross-subject: top 2 of stage personalized by val_best.pos_l2" in out
-    code, out, _ = cli("sweep", "-c", path)  # all done: nothing runs again
+    code, out, _ = cli("sweep", "-c", path, *FAKE)  # all done: nothing runs again
     assert code == 0 and "nothing left to run" in out and len(runs_by_cell(project)) == 18
 
 
 def test_a_later_stage_waits_while_its_source_is_incomplete(cli, project):
     path = str(project.paths.base / "experiments.yaml")
-    code, out, err = cli("sweep", "-c", path, "--only", "arch=baseline")
+    code, out, err = cli("sweep", "-c", path, "--only", "arch=baseline", *FAKE)
     assert code == 0, out + err
     assert "stage cross-subject waits: 8 cell(s) of stage personalized are not done" in out
     assert SweepStore(project.paths.storage_url).selection(project.name, plan_key(project), "cross-subject") is None

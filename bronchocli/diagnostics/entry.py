@@ -1,0 +1,73 @@
+"""``bronchopose profile`` and ``bronchopose selftest`` as library calls: measure the architectures, or prove
+this machine's training path, and print the tables."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from typing import Any
+
+from rich import box
+from rich.console import Console
+from rich.table import Table
+
+from ..errors import BronchoError
+from ..models import ARCHITECTURES
+from ..models import profile as profiling
+from . import selftest as st
+
+
+def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = None, console: Console,
+            err_console: Console, **kwargs: Any) -> None:
+    """Parameters, GMAC, latency and peak memory of ``archs`` (or ``all``), one row each, as a table or JSON;
+    ``kwargs`` are ``profile_arch``'s (image_size, device, batch, repeats, warmup, window, precision,
+    channels_last)."""
+    names = profiling.arch_names(archs)
+    if threads is not None:
+        profiling.set_threads(threads)
+    rows = []
+    for name in names:
+        with err_console.status(f"profiling {name} at {kwargs['image_size']}x{kwargs['image_size']} on "
+                                f"{kwargs['device']} ..."):
+            rows.append(profiling.profile_arch(name, **kwargs))
+    if fmt == "json":
+        console.file.write(json.dumps(rows, indent=2) + "\n")  # verbatim: no markup, wrapping or emoji codes
+        return
+    table = Table(caption=profiling.caption(rows), box=box.SIMPLE_HEAD, pad_edge=False)
+    for i, (_, title, _) in enumerate(profiling.COLUMNS):
+        table.add_column(title, no_wrap=True, justify="left" if i == 0 else "right")
+    for row in rows:
+        table.add_row(*profiling.cells(row))
+    console.print(table)
+
+
+def selftest(device: str = "auto", precision: str = "auto", archs: Sequence[str] | None = None, *,
+             threads: int = 1, console: Console) -> int:
+    """The environment, then every check (train each architecture, resume, CUDA vs CPU, throughput); exit code
+    0 when all passed, 1 when some failed."""
+    unknown = [a for a in archs or [] if a not in ARCHITECTURES]
+    if unknown:
+        raise BronchoError(f"--arch {', '.join(unknown)}: unknown (valid: {', '.join(ARCHITECTURES)})")
+    dev = st.resolve_device(device)
+    st.torch.set_num_threads(threads)
+    prec = st.resolve_precision(precision, dev)
+    env = Table(title="selftest: what this machine offers", box=box.SIMPLE_HEAD, show_header=False)
+    for what, value in st.environment(dev, prec):
+        env.add_row(what, value)
+    console.print(env)
+    table = Table(title=f"selftest on {dev} in {prec}", box=box.SIMPLE_HEAD)
+    for title in ("check", "result", "s", "detail"):
+        table.add_column(title, no_wrap=title != "detail", justify="right" if title == "s" else "left")
+    with console.status("running the checks ...") as status:
+        def seen(check: st.Check) -> None:
+            status.update(f"{check.name}: {'ok' if check.ok else 'FAILED'}; running the next check ...")
+        checks = st.run(dev, prec, archs, on_check=seen)
+    for c in checks:
+        table.add_row(c.name, "[green]ok[/]" if c.ok else "[bold red]FAILED[/]", f"{c.seconds:.1f}", c.detail)
+    console.print(table)
+    failed = [c.name for c in checks if not c.ok]
+    if failed:
+        console.print(f"[bold red]selftest failed:[/] {', '.join(failed)}")
+        return 1
+    console.print(f"[green]selftest passed:[/] {len(checks)} checks on {dev} in {prec}")
+    return 0

@@ -1,0 +1,62 @@
+"""``bronchopose report`` as a library call: collect the config's runs once, build the chosen tables (and figures),
+write them, print them and their warnings.
+
+The command checks its flags first (table names, evaluations, formats, ``--best``/``--trajectories``, the output
+folder, a ``--latency-from`` file: one line each, before minutes of work), loads the config and calls ``report``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from rich.console import Console
+
+from ..config import Config
+from ..errors import BronchoError
+from . import report as rep
+from . import tables as tbl
+from .context import Profiler
+from .figures import errors_loader, mlflow_loader
+from .markdown import to_rich
+
+
+def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffixes: Sequence[str], out: Path, *,
+           sweep: str | None = None, pose_frame: str | None = None, include_other_configs: bool = False,
+           best: int = 0, figures: bool = True, trajectories: int = 4, profiles: Profiler | None = None,
+           latency: bool = True, latency_device: str = "cpu", image_size: int | None = None, quiet: bool = False,
+           console: Console, err_console: Console) -> None:
+    """Write the tables ``names`` (and, with ``figures``, the figures) of the config's runs (or of stored sweep
+    ``sweep``) to ``out``. The ablation table's latency/GMAC come from ``profiles`` (``--latency-from``), else
+    are measured (``latency``) at ``image_size`` on ``latency_device``, else stay empty."""
+    client = rep.open_store(cfg)
+    index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
+    console.print(rep.summary_index(index))
+    ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client),
+                            default_train_trajectories=None if sweep else cfg.splits.train)
+    if profiles is not None:
+        ctx.profiler = profiles
+    elif latency:
+        measure = rep.measuring_profiler(image_size or rep.default_image_size(cfg), latency_device)
+
+        def profiled(arch: str):
+            with err_console.status(f"profiling {arch} for the ablation table ..."):
+                return measure(arch)
+        ctx.profiler = profiled
+    else:
+        ctx.profiler_note = "--no-latency"
+    warnings: list[str] = []
+    try:
+        result = rep.make_report(
+            ctx, names, evaluations, suffixes, out, loader=mlflow_loader(client, warnings) if figures else None,
+            n_trajectories=trajectories, dataset_root=cfg.paths.dataset if figures else None, warnings=warnings,
+        )
+    except OSError as exc:  # e.g. the disk filled up: each file is written atomically, none is left half-written
+        raise BronchoError(f"--out {out}: cannot write {exc.filename or 'the report'} ({exc.strerror or exc})"
+                           ) from None
+    if not quiet:
+        for t in result.tables:
+            console.print(to_rich(t))
+    for w in dict.fromkeys([w for t in result.tables for w in t.warnings] + result.warnings):
+        err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
+    console.print(f"wrote {len(result.files)} file(s) to {out}/: " + ", ".join(p.name for p in result.files))

@@ -1,0 +1,91 @@
+"""The MLflow UI on this machine for the config's tracking store, opened on the runs table (``bronchopose ui``).
+
+MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
+experiment's runs table in the model-training view (``runs_table_url``),
+and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
+so the UI's own navigation lands there too. The server is sized for the machine:
+``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
+(``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
+judges and trace jobs that a training experiment never uses).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import sys
+from pathlib import Path
+
+from rich.console import Console
+
+from .. import urls
+from ..config import Config
+from ..errors import BronchoError
+from ..runs.client import check_reachable, client_for, experiment_id, mark_training_experiment
+from ..runs.views import runs_table_url
+
+JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
+
+
+def default_workers(cores: int | None = None) -> int:
+    """Server worker processes: half the cores, at least 1 and at most 4 (one person browsing needs few)."""
+    cores = cores if cores is not None else (os.cpu_count() or 1)
+    return max(1, min(4, cores // 2))
+
+
+def ui_command(cfg: Config, host: str, port: int, workers: int | None = None) -> list[str]:
+    """The `mlflow ui` argv serving the config's store and artifact root with ``workers`` processes."""
+    exe = str(Path(sys.executable).with_name("mlflow"))
+    if not Path(exe).exists():
+        exe = shutil.which("mlflow") or exe
+    argv = [exe, "ui", "--backend-store-uri", cfg.paths.mlflow_uri, "--host", host, "--port", str(port),
+            "--workers", str(workers or default_workers())]
+    if not urls.is_server(cfg.paths.mlflow_uri):
+        argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
+    return argv
+
+
+def server_env(environ: dict[str, str] | None = None) -> dict[str, str]:
+    """The server's environment: the GenAI job runner off unless the user asked for it."""
+    env = dict(os.environ if environ is None else environ)
+    env.setdefault(JOB_EXECUTION_ENV, "false")
+    return env
+
+
+def check_port(host: str, port: int) -> None:
+    """The UI's port must be valid and free on ``host`` (checked here: mlflow would fail with a traceback)."""
+    if not 1 <= port <= 65535:
+        raise BronchoError(f"--port {port}: must be between 1 and 65535")
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise BronchoError(f"--host {host}: not an address of this machine ({exc})") from None
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server does: TIME_WAIT is no obstacle
+        try:
+            sock.bind(address)
+        except OSError as exc:
+            raise BronchoError(f"--port {port}: cannot listen on {host}:{port} ({exc.strerror or exc}); is another "
+                               "`bronchopose ui` or MLflow server running? pick another port with --port") from None
+
+
+def serve(cfg: Config, host: str, port: int, workers: int | None, console: Console) -> None:
+    """Check the store and the port, print the runs-table link and become `mlflow ui` (never returns)."""
+    if urls.is_server(cfg.paths.mlflow_uri):
+        raise BronchoError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)} is already a server: open it in a browser")
+    check_port(host, port)
+    check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
+    argv = ui_command(cfg, host, port, workers)
+    if not Path(argv[0]).exists():
+        raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
+    cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
+    client = client_for(cfg)
+    exp_id = experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
+    mark_training_experiment(client, exp_id)
+    base = f"http://{host}:{port}"
+    console.print(f"MLflow UI for {urls.redact(cfg.paths.mlflow_uri)} at {base} (Ctrl-C to stop)\n"
+                  f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",
+                  highlight=False, soft_wrap=True)
+    sys.stdout.flush()
+    os.execve(argv[0], argv, server_env())

@@ -1,0 +1,187 @@
+"""The library calls behind ``bronchopose sweep``, ``status``, ``tune`` and ``config --grid``: each command parses
+its flags, loads the config and calls exactly one of these.
+
+``sweep``'s modes (the config loaded by ``task.TaskSpec.load``, the same call an array task makes):
+
+- ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``);
+- ``dry_run``: the plan and each cell's state; nothing is started;
+- ``gc``: remove the checkpoints no live cell needs on this machine;
+- ``launch_slurm``: submit the workers as Slurm job arrays, then watch (``slurm.launch``);
+- ``cancel``: scancel the sweep's Slurm jobs.
+
+A Slurm array task is not a mode of the command: it starts
+``python -m bronchocli.sweep.task '<spec>'`` (``task.main``). The others:
+``status`` (``bronchopose status``), ``grid`` (``config --grid``), ``tune`` and
+``show_study`` (``tune`` and ``tune --show``).
+"""
+
+from __future__ import annotations
+
+import json
+
+from rich.console import Console
+from rich.table import Table
+
+from .. import urls
+from ..cells import FIELDS, Cell, Selection
+from ..config import Config, check_paths
+from ..errors import BronchoError
+from ..generation import ensure_dataset
+from ..io import fmt_bytes
+from . import placement, slurm, staged, task
+from .housekeeping import collect_garbage, repair_zombies
+from .plan import StageWalk
+from .status import show_status
+from .storage import SweepStore
+from .worker import Runner, default_runner
+
+
+def open_store(cfg: Config) -> SweepStore:
+    return SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
+
+
+def _local_store(cfg: Config) -> SweepStore:
+    check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
+    store = open_store(cfg)
+    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
+    return store
+
+
+def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[str]]:
+    """Local workers and their GPUs: ``--gpus`` (auto, none or a list), default GPUs x ``per_gpu`` (else 1)."""
+    devices = placement.parse_gpus(gpus, placement.visible_gpus())
+    return workers or placement.default_workers(devices, per_gpu), devices
+
+
+def run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
+        retry_failed: bool = False, runner: Runner = default_runner, console: Console) -> int:
+    """Run every cell of the plan not FINISHED with local workers; 0 all FINISHED, 1 some FAILED, 130 stopped."""
+    store = _local_store(cfg)
+    n, devices = _workers(workers, gpus, per_gpu)
+    if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
+        from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
+
+        initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
+                                                                          for st in cfg.stages)] for a in g.arch}))
+    return staged.run_sweep(cfg, store, only=only, workers=n, console=console, retry_failed=retry_failed,
+                            gpus=devices, runner=runner)
+
+
+def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
+            console: Console) -> int:
+    """Print the plan (per stage: its cells and their state) and the workers a run would start; starts nothing."""
+    store = _local_store(cfg)
+    n, _ = _workers(workers, gpus, per_gpu)
+    staged.dry_run(cfg, store, only, n, console)
+    return 0
+
+
+def gc(cfg: Config, console: Console) -> int:
+    """Remove the checkpoints no live cell needs on this machine and say what was freed."""
+    store = open_store(cfg)
+    freed = collect_garbage(cfg, store if store.exists() else None)
+    for ck, n in freed:
+        what = "rejected/temporary files" if ck.needed else ck.why
+        console.print(f"freed {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
+    console.print(f"--gc: freed {fmt_bytes(sum(n for _, n in freed))} in {len(freed)} checkpoint folder(s)")
+    return 0
+
+
+def launch_slurm(cfg: Config, spec: task.TaskSpec, *, detach: bool = False, retry_failed: bool = False,
+                 console: Console) -> int:
+    """Submit the plan's workers as Slurm job arrays (each task: ``task.command`` with ``spec``) and, unless
+    ``detach``, watch them; re-running submits only what the queued and running tasks do not cover."""
+    check_paths(cfg, storage=True, logs=True)
+    return slurm.launch(cfg, open_store(cfg), spec.selection(), task.command(cfg, spec), detach=detach,
+                        console=console, retry_failed=retry_failed)
+
+
+def cancel(cfg: Config, console: Console) -> int:
+    """scancel every queued or running job of the sweep (running workers release their cells)."""
+    return slurm.cancel(cfg, console)
+
+
+# -- bronchopose status, config --grid -----------------------------------------------------------------
+
+
+def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False, console: Console) -> None:
+    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells."""
+    store = open_store(cfg)
+    if repair:
+        done = repair_zombies(cfg, store if store.exists() else None)
+        for run_id, what in done:
+            console.print(f"repaired run {run_id}: {what}", highlight=False)
+        console.print(f"--repair: {len(done)} run(s) left RUNNING by a dead process were ended")
+    show_status(cfg, store, name, show_all, console)
+
+
+def grid(cfg: Config, console: Console) -> None:
+    """``bronchopose config --grid``: the plan's cells per stage (a selecting stage: what it will choose)."""
+    total = 0
+    for sp in StageWalk(cfg, None).plans():  # a procedural dataset's patients are known before it exists
+        title = f"{cfg.name}" + ("" if sp.stage.name == "grid" else f", stage {sp.stage.name}")
+        if sp.cells is None:
+            console.print(f"{title}: the top {sp.stage.select.top} combinations of stage "
+                          f"{sp.stage.source or 'before'} by {sp.stage.select.by}, chosen when it is done")
+            continue
+        table = Table("key", *FIELDS, title=title)
+        for c in sp.cells:
+            table.add_row(c.key, *(v or "-" for v in c.tags().values()))
+        console.print(table)
+        total += len(sp.cells)
+    console.print(f"{total} cells")
+
+
+# -- bronchopose tune ------------------------------------------------------------------------------------
+
+
+def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> None:
+    """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study)."""
+    from . import tuning  # lazy: optuna only when a study is read
+
+    if study is None and target is None:
+        names = tuning.list_studies(cfg)
+        raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
+                           f"studies in the storage: {', '.join(names) or 'none'}")
+    study = study or tuning.study_name(cfg, target)
+    info = tuning.summary(cfg, study)
+    if fmt == "json":
+        console.print_json(json.dumps(info, default=str))
+        return
+    counts = ", ".join(f"{v} {k}" for k, v in info["counts"].items() if v)
+    console.print(f"[bold]study[/] {study}: {counts or 'no trials'}")
+    best = info["best"]
+    if best is None:
+        console.print("no completed trial yet")
+        return
+    table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
+                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
+    for name, value in best["params"].items():
+        imp = info["importances"].get(name)
+        table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),
+                      "—" if imp is None else f"{imp:.3f}")
+    console.print(table)
+    if info.get("importances_note"):
+        console.print(f"importances unavailable: {info['importances_note']}")
+    console.print(f"apply it: bronchopose sweep --use-tuned {study}  (or train --use-tuned {study})")
+
+
+def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | None = None,
+         timeout: float | None = None, workers: int = 1, progress: bool = True, console: Console) -> None:
+    """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials, then
+    show its best trial."""
+    from . import tuning  # lazy: optuna only when the command runs
+
+    check_paths(cfg, storage=True)  # one line before anything is created
+    ensure_dataset(cfg)
+    if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
+        from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
+
+        initialisation(cfg.paths.pretrained, [target.arch])
+    n = trials or cfg.tune.trials
+    name = study or tuning.study_name(cfg, target)
+    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
+    s = tuning.tune(cfg, target, n, study=study, timeout=timeout or cfg.tune.timeout, workers=workers,
+                    progress=progress)
+    console.print(f"{tuning.finished(s)} finished trials in study {name}")
+    show_study(cfg, name, None, "table", console)

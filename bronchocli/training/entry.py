@@ -1,0 +1,36 @@
+"""``bronchopose train`` as a library call: check the paths, make sure the dataset exists, run one cell, say how
+it went (exit code 0 FINISHED, 1 otherwise)."""
+
+from __future__ import annotations
+
+from rich.console import Console
+
+from ..cells import Cell
+from ..config import Config, check_paths
+from ..generation import ensure_dataset
+from .run import run_cell
+
+
+def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool = True, console: Console) -> int:
+    """Train and evaluate ``cell`` as one MLflow run (``resume``: continue its latest, or this, KILLED/FAILED run
+    from its checkpoint); prints the run's headline against both image-blind references."""
+    if cfg.tune.applied:
+        console.print(f"hyperparameters from {cfg.tune.applied}")
+    check_paths(cfg)  # one line before anything is created
+    ensure_dataset(cfg)
+    console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
+    result = run_cell(cfg, cell, resume=resume, progress=progress)
+    if result.status != "FINISHED":
+        console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
+        return 1
+    m = result.metrics
+    if result.stop_requested:
+        console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
+    ratio = m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"]
+    console.print(
+        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m['train.steps']:.0f} steps, "
+        f"{m['train.pairs_seen']:.0f} pairs seen) — pair pos L2 {m['pair.pos_l2.mean']:.3f} vox "
+        f"({ratio:.2f} x the training-mean predictor's {m['train_mean.pair.pos_l2.mean']:.3f}, zero motion "
+        f"{m['zero_motion.pair.pos_l2.mean']:.3f}), accumulated pos L2 {m['acc.pos_l2.mean']:.2f} vox"
+    )
+    return 0
