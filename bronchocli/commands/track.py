@@ -9,7 +9,6 @@ import typer
 
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from ..runs.client import client_for
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load, output_folder
 
 
@@ -56,7 +55,8 @@ def track(
     cfg = load(config, profile, set_)
     client = None
     if best:  # a report table's choice: resolved here, reporting sits above inference
-        from ..reporting.best import best_run
+        from ..reporting.best import best_run  # lazy: the report's run collection only for --best
+        from ..runs.client import client_for
 
         client = client_for(cfg)
         chosen_best = best_run(client, cfg, best)
