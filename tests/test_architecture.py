@@ -263,3 +263,15 @@ def test_no_module_is_over_the_size_limit():
     big = {str(p.relative_to(PACKAGE.parent)): n for p in PACKAGE.rglob("*.py")
            if (n := len(p.read_text().splitlines())) > MAX_LINES}
     assert not big, f"modules over {MAX_LINES} lines (split them by job): {big}"
+
+
+def test_the_command_line_starts_without_the_heavy_libraries():
+    """`bronchopose --help` and flag errors stay fast: MLflow, torch, Optuna and VTK load only in the command
+    that needs them (each such import is a ``# lazy:`` one inside the command)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, bronchocli.cli; "
+            "print(','.join(m for m in ('mlflow', 'torch', 'optuna', 'vtk', 'sqlalchemy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "", f"imported at start-up: {out}"
