@@ -62,7 +62,7 @@ class SmSampler(threading.Thread):
 
     def __init__(self, gpu: str) -> None:
         super().__init__(daemon=True)
-        self.gpu, self.values, self._stop = gpu, [], threading.Event()
+        self.gpu, self.values, self._halt = gpu, [], threading.Event()
 
     def command(self) -> list[str]:
         return ["nvidia-smi", "-i", self.gpu, "--query-gpu=utilization.gpu", "--format=csv,noheader,nounits",
@@ -73,7 +73,7 @@ class SmSampler(threading.Thread):
             proc = subprocess.Popen(self.command(), stdout=subprocess.PIPE, text=True)
         except OSError:
             return
-        while not self._stop.is_set():
+        while not self._halt.is_set():
             line = proc.stdout.readline()
             if not line:
                 break
@@ -84,7 +84,7 @@ class SmSampler(threading.Thread):
         proc.terminate()
 
     def stop(self) -> float:
-        self._stop.set()
+        self._halt.set()
         self.join(timeout=2)
         return statistics.mean(self.values) if self.values else float("nan")
 
