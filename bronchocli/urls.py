@@ -7,12 +7,59 @@ import re
 from pathlib import Path
 
 _SQLITE = re.compile(r"^(sqlite(?:\+\w+)?:///)(.+)$")
-_PASSWORD = re.compile(r"(://[^:/@\s]+):[^@/\s]*@")
+# the forms libpq, SQLAlchemy and MLflow accept: userinfo (``scheme://user:secret@host``, user may be empty) and
+# a ``password``/``sslpassword`` parameter (``?password=secret``, ``&password=...``, libpq's ``password='a b'``)
+_USERINFO = re.compile(r"(://[^:/@\s'\"]*):[^/?#\s'\"]*@")  # to the last @: a password may hold one
+_PARAMETER = re.compile(r"(?i)((?:^|(?<=[\s?&;,(\[{'\"]))(?:ssl)?password\s*=\s*)('(?:[^'\\]|\\.)*'|[^\s&#'\"]*)")
+# environment variables whose value is a secret wherever it shows up (libpq, MLflow's HTTP auth)
+SECRET_ENV = ("PGPASSWORD", "MLFLOW_TRACKING_PASSWORD", "MLFLOW_TRACKING_TOKEN")
+MIN_SECRET = 4  # a shorter stored secret is not hunted for in free text (it would mask ordinary words)
+_pgpass_cache: dict[tuple[str, int], tuple[str, ...]] = {}
+
+
+def _pgpass_passwords() -> tuple[str, ...]:
+    """The passwords of libpq's password file (``PGPASSFILE``, else ``~/.pgpass``), read once per change."""
+    path = os.environ.get("PGPASSFILE") or os.path.join(os.path.expanduser("~"), ".pgpass")
+    try:
+        key = (path, os.stat(path).st_mtime_ns)
+    except OSError:
+        return ()
+    if key not in _pgpass_cache:
+        found = []
+        try:
+            lines = Path(path).read_text(errors="replace").splitlines()
+        except OSError:
+            lines = []
+        for line in lines:  # host:port:database:user:password, ``\:`` and ``\\`` escaped
+            if line.startswith("#"):
+                continue
+            fields = re.split(r"(?<!\\):", line, maxsplit=4)
+            if len(fields) == 5:
+                found.append(fields[4].replace("\\:", ":").replace("\\\\", "\\"))
+        _pgpass_cache.clear()
+        _pgpass_cache[key] = tuple(found)
+    return _pgpass_cache[key]
+
+
+def known_secrets() -> list[str]:
+    """Secrets held outside the config (``PGPASSWORD``, MLflow's password/token, ``.pgpass``), longest first."""
+    values = [os.environ.get(name, "") for name in SECRET_ENV] + list(_pgpass_passwords())
+    return sorted({v for v in values if len(v) >= MIN_SECRET}, key=len, reverse=True)
 
 
 def redact(text: str) -> str:
-    """Hide every URL password in ``text`` (``scheme://user:secret@host`` -> ``scheme://user:***@host``)."""
-    return _PASSWORD.sub(r"\1:***@", text)
+    """Hide every password in ``text``: URL userinfo (``scheme://user:secret@host`` -> ``scheme://user:***@host``),
+    ``password=`` parameters (``?password=secret`` -> ``?password=***``), and the literal value of every secret
+    held in the environment or libpq's password file (:func:`known_secrets`)."""
+    text = _PARAMETER.sub(r"\1***", _USERINFO.sub(r"\1:***@", text))
+    for secret in known_secrets():
+        text = text.replace(secret, "***")
+    return text
+
+
+def has_secret(text: str) -> bool:
+    """Whether ``text`` holds a password :func:`redact` would hide (a URL or a ``--set`` override)."""
+    return redact(text) != text
 
 
 def sqlite_file(url: str) -> Path | None:
