@@ -51,6 +51,28 @@ class MlflowBusy(BronchoError):
     resumable = True
 
 
+class OutOfMemory(BronchoError):
+    """An allocation failed (the machine's memory, the GPU's, or an address-space limit such as ``ulimit -v``)."""
+
+
+_ALLOCATION_FAILED = ("can't allocate memory", "cannot allocate memory", "out of memory", "bad_alloc")
+
+
+def out_of_memory(exc: BaseException) -> OutOfMemory | None:
+    """``exc`` as one line when it is an allocation failure (MemoryError; torch's allocators raise RuntimeError
+    "can't allocate memory" / "CUDA out of memory"), else None."""
+    if isinstance(exc, OutOfMemory):
+        return exc
+    text = str(exc).strip()
+    if not isinstance(exc, MemoryError) and not (
+            isinstance(exc, RuntimeError) and any(t in text.lower() for t in _ALLOCATION_FAILED)):
+        return None
+    first = text.splitlines()[0] if text else type(exc).__name__
+    return OutOfMemory(f"out of memory ({first[:300]}): this machine, or its address-space limit (`ulimit -v`), "
+                       "cannot hold what the command needs; free memory, raise the limit, or ask for less "
+                       "(train.batch_size, --workers)")
+
+
 # Kinds renamed since: a failure_reason recorded under the old name is still read as the new kind.
 RENAMED_KINDS = {"TrackingBusy": MlflowBusy}
 

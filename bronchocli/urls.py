@@ -6,6 +6,8 @@ import os
 import re
 from pathlib import Path
 
+from . import pathcheck
+
 _SQLITE = re.compile(r"^(sqlite(?:\+\w+)?:///)(.+)$")
 # the forms libpq, SQLAlchemy and MLflow accept: userinfo (``scheme://user:secret@host``, user may be empty) and
 # a ``password``/``sslpassword`` parameter (``?password=secret``, ``&password=...``, libpq's ``password='a b'``)
@@ -70,13 +72,14 @@ def sqlite_file(url: str) -> Path | None:
     return Path(m.group(2))
 
 
-def resolve(url: str, base: Path) -> str:
-    """Expand ``${VAR}``s and make a relative ``sqlite:///`` path absolute against ``base``."""
-    url = os.path.expandvars(url)
+def resolve(url: str, base: Path, setting: str = "url") -> str:
+    """Expand ``${VAR}``s (an undefined one is an error naming ``setting``) and make a relative ``sqlite:///``
+    path absolute against ``base``."""
+    url = pathcheck.expand(url, setting)
     m = _SQLITE.match(url)
     if not m or m.group(2).startswith("/") or m.group(2) == ":memory:":
         return url
-    return f"{m.group(1)}{(base / os.path.expanduser(m.group(2))).resolve()}"
+    return f"{m.group(1)}{pathcheck.resolve(m.group(2), setting, base)}"
 
 
 def sqlalchemy(url: str) -> str:
