@@ -151,6 +151,11 @@ def main(argv: list[str] | None = None) -> None:
         else:
             raise
         raise SystemExit(2) from None
+    except Exception as exc:  # a SQLite store found damaged mid-command (its header passed the check at opening)
+        if (damaged := urls.damaged_message(exc)) is None:
+            raise
+        _error(damaged)
+        raise SystemExit(2) from None
     except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
         err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
                                         "run the same command again to continue"), highlight=False)

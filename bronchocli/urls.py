@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 from . import pathcheck
+from .errors import BronchoError
 
 _SQLITE = re.compile(r"^(sqlite(?:\+\w+)?:///)(.+)$")
 # the forms libpq, SQLAlchemy and MLflow accept: userinfo (``scheme://user:secret@host``, user may be empty) and
@@ -100,3 +101,74 @@ def is_server(url: str) -> bool:
 def is_postgres(url: str) -> bool:
     """True for a PostgreSQL URL (``postgres://``, ``postgresql://``, ``postgresql+driver://``)."""
     return re.match(r"^postgres(?:ql)?(?:\+\w+)?://", url) is not None
+
+
+# -- a damaged SQLite store: one line naming the file and what to do ----------------------------------------
+
+DAMAGED = ("database disk image is malformed", "file is not a database")
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+_checked: dict[str, str] = {}  # SQLite files this process opened -> their setting (named by damaged_message)
+
+
+def sqlite_damage(path: Path) -> str | None:
+    """Why the SQLite file ``path`` cannot be a sound database, read from its 100-byte header (None: it looks
+    sound, is empty or does not exist yet): not SQLite at all, or shorter than the pages its header counts."""
+    try:
+        size = os.path.getsize(path)
+        if size == 0:
+            return None  # SQLite treats an empty file as a new database
+        with open(path, "rb") as f:
+            head = f.read(100)
+    except OSError:
+        return None  # missing or unreadable: the caller's own checks say so
+    if len(head) < 100 or not head.startswith(_SQLITE_MAGIC):
+        return "file is not a database"
+    page_size = int.from_bytes(head[16:18], "big")
+    page_size = 65536 if page_size == 1 else page_size
+    pages = int.from_bytes(head[28:32], "big")
+    if head[24:28] == head[92:96] and pages and size < pages * page_size:  # the page count is valid: truncated
+        return f"database disk image is malformed: {size} bytes, its header counts {pages * page_size}"
+    return None
+
+
+def damaged_sqlite(path: Path | str, setting: str, why: str) -> BronchoError:
+    return BronchoError(f"{setting} {path}: damaged SQLite database ({why}); restore it from a backup, or move it "
+                        f"aside (mv {path} {path}.damaged) to start a new one; `sqlite3 {path} .recover` may save "
+                        "its rows")
+
+
+def check_sqlite(path: Path, setting: str) -> None:
+    """A damaged SQLite file at ``path`` is one line naming ``setting``, the file and what to do."""
+    _checked[str(path)] = setting
+    why = sqlite_damage(path)
+    if why is not None:
+        raise damaged_sqlite(path, setting, why)
+
+
+def damage_in(exc: BaseException) -> str | None:
+    """The SQLite damage an exception (or one it wraps) reports: "database disk image is malformed", "file is
+    not a database"; None for anything else."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
+        found = next((d for d in DAMAGED if d in text), None)
+        if found:
+            return found
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def damaged_message(exc: BaseException) -> str | None:
+    """One line for a damaged SQLite store met mid-command (after the header check passed): the files this
+    process opened and what to do; None when ``exc`` is not SQLite damage."""
+    why = damage_in(exc)
+    if why is None:
+        return None
+    damaged = [(p, s) for p, s in _checked.items() if sqlite_damage(Path(p)) is not None]
+    if len(damaged) == 1:
+        return str(damaged_sqlite(damaged[0][0], damaged[0][1], why))
+    files = ", ".join(f"{s} {p}" for p, s in (damaged or list(_checked.items()))) or "a SQLite store"
+    return (f"damaged SQLite database ({why}) among {files}; run `sqlite3 <file> 'PRAGMA integrity_check'` on "
+            "each, restore the damaged one from a backup or move it aside to start a new one")
