@@ -491,6 +491,75 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         "text file named .png (data preview)": (lambda p: ["data", "preview", str(_text_frame(p)), "--out",
                                                            str(p.root / "prev.png")], "cannot decode frame", ()),
     },
+    # issue 32.5: a symlink loop is one line wherever a path is read (pathcheck.resolve; the CLI's last resort)
+    "symlink loops": {
+        "dataset folder (data stats)": (lambda p: ["data", "stats", str(loop(p))], "symbolic link loop", ()),
+        "dataset folder (data preview)": (lambda p: ["data", "preview", str(loop(p)), "--out",
+                                                     str(p.root / "prev.png")], "symbolic link loop", ()),
+        "dataset.root (sweep)": (lambda p: ["sweep", *C(p), *_(loop(p)), "--set", "dataset.root=loop/tiny"],
+                                 "dataset.root loop/tiny: a symbolic link loop", ()),
+        "runs.artifacts (train)": (lambda p: ["train", *RUN, *C(p), *_(loop(p)), "--set", "runs.artifacts=loop/a"],
+                                   "runs.artifacts loop/a: a symbolic link loop", ()),
+        "runs.checkpoints absolute (config)": (lambda p: ["config", *C(p), "--set",
+                                                          f"runs.checkpoints={loop(p)}/ck"],
+                                               "runs.checkpoints", ()),
+        "a sqlite:/// path (status)": (lambda p: ["status", *C(p), *_(loop(p)), "--set",
+                                                  "storage.url=sqlite:///loop/sweep.db"],
+                                       "storage.url", ()),
+        "an absolute sqlite:/// path (report)": (lambda p: ["report", *C(p), "--set",
+                                                            f"runs.uri=sqlite:///{loop(p)}/m.db"], "runs.uri", ()),
+        "data generate --out": (lambda p: ["data", "generate", *C(p), "--out", str(loop(p) / "gen"),
+                                           *TINY_GENERATE], "--out", ()),
+        "the config file": (lambda p: ["config", "-c", str(loop(p))], "symbolic link loop", ()),
+    },
+    # issue 32.5: a dataset reads only its own files; outputs never go to system folders
+    "paths leaving their root": {
+        "patient ../escaped (data stats)": (lambda p: ["data", "stats", str(_patient(p, "../escaped"))],
+                                            "patients[0] '../escaped'", ()),
+        "patient /abs (train)": (lambda p: ["train", *RUN, *C(p), *_(_patient(p, str(p.root / "escaped")))],
+                                 "a patient name is a file name", ("runs",)),
+        "frame filename ../ (data stats)": (lambda p: ["data", "stats", str(_frame_name(p, "../../outside.png"))],
+                                            "p00.csv line 2: frame file '../../outside.png' is outside", ()),
+        "absolute frame filename (train)": (lambda p: [*_(_frame_name(p, str(p.root / "outside.png"))), "train",
+                                                       *RUN, *C(p)], "p00.csv line 2", ("runs",)),
+        "runs.artifacts=/etc": (lambda p: ["config", *C(p), "--set", "runs.artifacts=/etc"],
+                                "runs.artifacts /etc: a system folder", ()),
+        "runs.checkpoints=/ (sweep)": (lambda p: ["sweep", *C(p), "--set", "runs.checkpoints=/"],
+                                       "runs.checkpoints /: a system folder", ()),
+        "runs.artifacts under /usr (train)": (lambda p: ["train", *RUN, *C(p), "--set", "runs.artifacts=/usr/lib/x"],
+                                              "a system folder", ()),
+    },
+    # issue 32.6: a damaged SQLite store names the file and what to do
+    "damaged stores": {
+        "truncated mlflow.db (report)": (lambda p: ["report", *C(p), *_(_damaged(p, "runs/mlflow.db"))],
+                                         "runs/mlflow.db: damaged SQLite database (database disk image is "
+                                         "malformed", ()),
+        "truncated mlflow.db (sweep)": (lambda p: ["sweep", *C(p), *_(_damaged(p, "runs/mlflow.db"))],
+                                        "move it aside", ()),
+        "truncated mlflow.db (status)": (lambda p: ["status", *C(p), *_(_damaged(p, "runs/mlflow.db"),
+                                                                         _damaged(p, "runs/sweep.db"))],
+                                         "damaged SQLite database", ()),
+        "truncated sweep.db (status)": (lambda p: ["status", *C(p), *_(_damaged(p, "runs/sweep.db"))],
+                                        "storage.url " , ()),
+        "sweep.db not a database (sweep)": (lambda p: ["sweep", *C(p), *_(p.write("runs/sweep.db", b"x" * 4096))],
+                                            "(file is not a database)", ()),
+        "sweep.db not a database (tune)": (lambda p: ["tune", *RUN, *C(p), "-n", "1",
+                                                      *_(p.write("runs/sweep.db", b"x" * 4096))],
+                                           "sweep.db: damaged SQLite database", ("runs",)),
+    },
+    # issue 32.7: an undefined ${VAR} is an error naming the key and the variable (no folder named ${VAR})
+    "environment": {
+        "undefined ${VAR} in a path (sweep)": (lambda p: ["sweep", *C(p), "--set",
+                                                          "runs.checkpoints=${BP_UNDEFINED_32}/ck"],
+                                               "runs.checkpoints: environment variable ${BP_UNDEFINED_32} is not "
+                                               "set", ()),
+        "undefined ${VAR} in a URL (config)": (lambda p: ["config", *C(p), "--set",
+                                                          "storage.url=postgresql://u:${BP_UNDEFINED_32}@h/db"],
+                                               "storage.url: environment variable ${BP_UNDEFINED_32}", ()),
+        "undefined ${VAR} in the file (train)": (lambda p: ["train", *RUN, "-c", str(p.write(
+            "e2.yaml", p.config.read_text() + "data: {cache_dir: '${BP_UNDEFINED_32}/cache'}\n"))],
+            "data.cache_dir: environment variable ${BP_UNDEFINED_32}", ()),
+    },
 }
 
 
@@ -503,6 +572,56 @@ def _laughs() -> str:
     lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
     lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 7)]
     return "\n".join(lines) + "\n"
+
+
+def loop(p: Project) -> Path:
+    """``<project>/loop``: a symbolic link to itself."""
+    link = p.root / "loop"
+    if not link.is_symlink():
+        link.symlink_to(link)
+    return link
+
+
+def _patient(p: Project, name: str) -> Path:
+    """The tiny dataset with ``name`` as its first patient, and a valid CSV where that name leads."""
+    root = p.root / "data" / "tiny"
+    meta = __import__("json").loads((root / "dataset.json").read_text())
+    target = (root / f"{name}.csv") if not Path(name).is_absolute() else Path(f"{name}.csv")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text((root / f"{meta['patients'][0]}.csv").read_text())
+    meta["patients"][0] = name
+    (root / "dataset.json").write_text(__import__("json").dumps(meta))
+    return root
+
+
+def _frame_name(p: Project, name: str) -> Path:
+    """The tiny dataset whose first CSV row names the frame ``name`` (a file that exists there)."""
+    root = p.root / "data" / "tiny"
+    csv = root / "p00.csv"
+    lines = csv.read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[1].split(",")
+    frame = root / row[header.index("filename")]
+    (root / name).parent.mkdir(parents=True, exist_ok=True)
+    (root / name).write_bytes(frame.read_bytes())
+    row[header.index("filename")] = name
+    lines[1] = ",".join(row)
+    csv.write_text("\n".join(lines) + "\n")
+    return root
+
+
+def _damaged(p: Project, name: str) -> Path:
+    """A real SQLite database at ``name`` (in the project), cut to half its length as by a full disk."""
+    import sqlite3
+
+    path = p.root / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE t (x BLOB)")
+        db.executemany("INSERT INTO t VALUES (?)", [(os.urandom(2000),) for _ in range(40)])
+    db.close()
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
 
 
 def _json_folder(p: Project) -> Path:
