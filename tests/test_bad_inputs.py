@@ -725,3 +725,100 @@ def test_every_seed_in_range_is_accepted(path, seed):
 @given(lr=st.floats(min_value=1e-9, max_value=10, allow_nan=False))
 def test_floats_written_with_an_exponent_are_numbers(lr):
     assert load_config(REPO / "experiments.yaml", overrides=[f"train.lr={lr:e}"]).train.lr == pytest.approx(lr)
+
+
+# == issue 32: out of memory, damage found mid-command, secrets in every printed and recorded form ============
+
+
+def _runs(p: Project) -> list:
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{p.root / 'runs' / 'mlflow.db'}")
+    return client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
+@pytest.mark.parametrize("failure", [MemoryError(), RuntimeError(
+    "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to "
+    "allocate 4000000000 bytes. Error code 12 (Cannot allocate memory)")], ids=["MemoryError", "torch allocator"])
+def test_out_of_memory_in_a_run_is_one_line_and_the_run_failed_with_it(cli, project, monkeypatch, failure):
+    def allocate(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr("bronchocli.training.run.fit_and_evaluate", allocate)
+    code, out, err = cli("train", *RUN, *C(project))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: out of memory"), err
+    assert "ulimit -v" in lines[0] and "Traceback" not in out + err
+    (run,) = _runs(project)
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("OutOfMemory: out of memory")
+
+
+def test_real_allocation_failures_are_recognised_as_out_of_memory():
+    import numpy as np
+    import torch
+
+    from bronchocli.errors import OutOfMemory, out_of_memory
+
+    for allocate in (lambda: np.empty(2**50, dtype=np.uint8), lambda: torch.empty(2**50, dtype=torch.uint8)):
+        with pytest.raises((MemoryError, RuntimeError)) as info:  # 1 PiB: no machine has it
+            allocate()
+        assert isinstance(out_of_memory(info.value), OutOfMemory), info.value
+    assert out_of_memory(RuntimeError("shape mismatch")) is None and out_of_memory(ValueError("x")) is None
+
+
+def test_damage_met_mid_command_is_one_line_naming_the_store(tmp_path):
+    """A page damaged inside a SQLite file whose header is sound: the query fails later; the message names the
+    stores this process opened and what to do (the CLI's last resort for it)."""
+    import sqlite3
+
+    from bronchocli import urls
+
+    path = tmp_path / "sweep.db"
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE t (x BLOB)")
+        db.executemany("INSERT INTO t VALUES (?)", [(os.urandom(3000),) for _ in range(60)])
+    db.close()
+    urls.check_sqlite(path, "storage.url")  # sound so far
+    data = bytearray(path.read_bytes())
+    data[4096:8192] = b"\xff" * 4096  # the table's root page
+    path.write_bytes(bytes(data))
+    urls.check_sqlite(path, "storage.url")  # the header still looks sound
+    with pytest.raises(sqlite3.DatabaseError) as info:
+        with sqlite3.connect(path) as db:
+            db.execute("SELECT count(*), sum(length(x)) FROM t").fetchall()
+    message = urls.damaged_message(info.value)
+    assert message is not None and str(path) in message and "move it aside" in message, message
+    assert urls.damaged_message(ValueError("something else")) is None
+
+
+SECRETS = {"userinfo": "Pl4nt-userinfo-32", "query": "Pl4nt-query-32", "env": "Pl4nt-env-32",
+           "pgpass": "Pl4nt-pgpass-32"}
+
+
+def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record(cli, project, monkeypatch):
+    """issue 32.4: userinfo, ?password=, PGPASSWORD and .pgpass passwords are in the config of a real tiny
+    sweep; none of them is in its output, any file it wrote (logs, the MLflow store: params, tags, artifacts)."""
+    pgpass = project.write("pgpass", f"db.example:5432:*:bp:{SECRETS['pgpass']}\n")
+    pgpass.chmod(0o600)
+    monkeypatch.setenv("PGPASSFILE", str(pgpass))
+    monkeypatch.setenv("PGPASSWORD", SECRETS["env"])
+    secret_url = (f"postgresql://bp:{SECRETS['userinfo']}@db.example:5432/x?sslmode=require"
+                  f"&password={SECRETS['query']}&note={SECRETS['env']}{SECRETS['pgpass']}")
+    args = [*C(project), "--set", f"dataset.csv.frames={secret_url}", "--set", "sweep.logs=runs/sweep-logs"]
+    outputs = []
+    for argv in (["config"], ["sweep"], ["status"], ["report", "--out", "reports"]):
+        code, out, err = cli(*argv, *args)
+        outputs.append(out + err)
+        assert code == 0, (argv, out, err)
+    runs = _runs(project)  # the cell's run (and the sweep's parent run)
+    assert runs and all(r.info.status == "FINISHED" for r in runs)
+    assert all(not [f for f, v in SECRETS.items() if v in str(r.data.params) + str(r.data.tags)] for r in runs)
+    assert "***" in outputs[0]  # the config shows where the password was
+    for text in outputs:
+        assert not [form for form, s in SECRETS.items() if s in text], text
+    written = [f for f in project.root.rglob("*") if f.is_file() and f != pgpass]
+    assert any(f.name == "mlflow.db" for f in written) and any("sweep-logs" in str(f) for f in written)
+    for f in written:
+        data = f.read_bytes()
+        leaked = [form for form, s in SECRETS.items() if s.encode() in data]
+        assert not leaked, (f, leaked)
