@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -17,14 +18,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from tinydata import write_tiny_dataset
 
+from bronchocli import urls
 from bronchocli.config import Config, load_config, parse_override
-from bronchocli.errors import ConfigError
+from bronchocli.errors import ConfigError, OutOfMemory, out_of_memory
 from bronchocli.generation import ensure_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -612,8 +615,6 @@ def _frame_name(p: Project, name: str) -> Path:
 
 def _damaged(p: Project, name: str) -> Path:
     """A real SQLite database at ``name`` (in the project), cut to half its length as by a full disk."""
-    import sqlite3
-
     path = p.root / name
     path.parent.mkdir(parents=True, exist_ok=True)
     with sqlite3.connect(path) as db:
@@ -754,10 +755,7 @@ def test_out_of_memory_in_a_run_is_one_line_and_the_run_failed_with_it(cli, proj
 
 
 def test_real_allocation_failures_are_recognised_as_out_of_memory():
-    import numpy as np
     import torch
-
-    from bronchocli.errors import OutOfMemory, out_of_memory
 
     for allocate in (lambda: np.empty(2**50, dtype=np.uint8), lambda: torch.empty(2**50, dtype=torch.uint8)):
         with pytest.raises((MemoryError, RuntimeError)) as info:  # 1 PiB: no machine has it
@@ -769,10 +767,6 @@ def test_real_allocation_failures_are_recognised_as_out_of_memory():
 def test_damage_met_mid_command_is_one_line_naming_the_store(tmp_path):
     """A page damaged inside a SQLite file whose header is sound: the query fails later; the message names the
     stores this process opened and what to do (the CLI's last resort for it)."""
-    import sqlite3
-
-    from bronchocli import urls
-
     path = tmp_path / "sweep.db"
     with sqlite3.connect(path) as db:
         db.execute("CREATE TABLE t (x BLOB)")

@@ -12,6 +12,7 @@ generator's progress bar.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import time
@@ -71,8 +72,6 @@ def die_with_parent(parent_pid: int) -> None:
     """Have the kernel kill this process when its parent dies (Linux ``PR_SET_PDEATHSIG``): a killed
     ``data generate`` leaves no worker rendering on. Elsewhere (no prctl) nothing changes."""
     try:
-        import ctypes  # lazy: only pool workers need it
-
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
     except (OSError, AttributeError):
