@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import sqlite3
 from pathlib import Path
 
 from . import pathcheck
@@ -107,7 +108,7 @@ def is_postgres(url: str) -> bool:
 
 DAMAGED = ("database disk image is malformed", "file is not a database")
 _SQLITE_MAGIC = b"SQLite format 3\x00"
-_checked: dict[str, str] = {}  # SQLite files this process opened -> their setting (named by damaged_message)
+_checked: dict[str, str] = {}  # setting -> the SQLite file this process last opened for it (damaged_message)
 
 
 def sqlite_damage(path: Path) -> str | None:
@@ -139,7 +140,7 @@ def damaged_sqlite(path: Path | str, setting: str, why: str) -> BronchoError:
 
 def check_sqlite(path: Path, setting: str) -> None:
     """A damaged SQLite file at ``path`` is one line naming ``setting``, the file and what to do."""
-    _checked[str(path)] = setting
+    _checked[setting] = str(path)
     why = sqlite_damage(path)
     if why is not None:
         raise damaged_sqlite(path, setting, why)
@@ -160,15 +161,30 @@ def damage_in(exc: BaseException) -> str | None:
     return None
 
 
+def _fails_quick_check(path: Path) -> bool:
+    """Whether SQLite's own ``PRAGMA quick_check`` finds ``path`` damaged (read-only; only after a failure)."""
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1)
+        try:
+            return db.execute("PRAGMA quick_check").fetchone()[0] != "ok"
+        finally:
+            db.close()
+    except sqlite3.DatabaseError as exc:
+        return damage_in(exc) is not None
+    except sqlite3.Error:
+        return False
+
+
 def damaged_message(exc: BaseException) -> str | None:
-    """One line for a damaged SQLite store met mid-command (after the header check passed): the files this
-    process opened and what to do; None when ``exc`` is not SQLite damage."""
+    """One line for a damaged SQLite store met mid-command (after the header check passed): the store of this
+    command that is damaged and what to do; None when ``exc`` is not SQLite damage."""
     why = damage_in(exc)
     if why is None:
         return None
-    damaged = [(p, s) for p, s in _checked.items() if sqlite_damage(Path(p)) is not None]
+    stores = [(path, setting) for setting, path in _checked.items()]
+    damaged = [(p, s) for p, s in stores if sqlite_damage(Path(p)) is not None or _fails_quick_check(Path(p))]
     if len(damaged) == 1:
         return str(damaged_sqlite(damaged[0][0], damaged[0][1], why))
-    files = ", ".join(f"{s} {p}" for p, s in (damaged or list(_checked.items()))) or "a SQLite store"
+    files = ", ".join(f"{s} {p}" for p, s in (damaged or stores)) or "a SQLite store"
     return (f"damaged SQLite database ({why}) among {files}; run `sqlite3 <file> 'PRAGMA integrity_check'` on "
             "each, restore the damaged one from a backup or move it aside to start a new one")
