@@ -130,12 +130,15 @@ def main(argv: list[str] | None = None) -> None:
             raise
         raise SystemExit(_usage_error(exc)) from None
     except ImportError as exc:  # an optional dependency met without an explicit check: name the extra
-        missing = extras.from_import_error(exc, "this command")
+        missing = extras.from_import_error(exc, "this command") or out_of_memory(exc)  # or: loaded under ulimit -v
         if missing is None:
             raise
         _error(str(missing))
         raise SystemExit(missing.exit_code) from None
     except OSError as exc:  # a path problem no check caught (read-only, missing, a file for a folder): one line
+        if (oom := out_of_memory(exc)) is not None:
+            _error(str(oom))
+            raise SystemExit(2) from None
         if pathcheck.is_loop(exc) and getattr(exc, "filename", None):
             _error(str(pathcheck.loop_error(exc.filename, "path")))
             raise SystemExit(2) from None

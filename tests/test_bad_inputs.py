@@ -740,7 +740,9 @@ def _runs(p: Project) -> list:
 
 @pytest.mark.parametrize("failure", [MemoryError(), RuntimeError(
     "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to "
-    "allocate 4000000000 bytes. Error code 12 (Cannot allocate memory)")], ids=["MemoryError", "torch allocator"])
+    "allocate 4000000000 bytes. Error code 12 (Cannot allocate memory)"),
+    ImportError("/venv/lib/python3.11/site-packages/torch/lib/libtorch_cpu.so: failed to map segment from shared "
+                "object")], ids=["MemoryError", "torch allocator", "library loaded under ulimit -v"])
 def test_out_of_memory_in_a_run_is_one_line_and_the_run_failed_with_it(cli, project, monkeypatch, failure):
     def allocate(*args, **kwargs):
         raise failure
@@ -785,11 +787,42 @@ def test_damage_met_mid_command_is_one_line_naming_the_store(tmp_path):
     assert urls.damaged_message(ValueError("something else")) is None
 
 
+def test_out_of_memory_outside_a_run_is_one_line(cli, monkeypatch):
+    def allocate(*args, **kwargs):
+        raise ImportError("libopenblas.so.0: cannot allocate memory for thread-local data")
+
+    monkeypatch.setattr("bronchocli.commands.common.load_config", allocate)
+    code, out, err = cli("config", "-c", str(REPO / "experiments.yaml"))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: out of memory"), err
+
+
+def _planted_storage(request) -> str:
+    """A fresh schema of the local PostgreSQL (trust auth: the planted passwords are sent and ignored)."""
+    psycopg = pytest.importorskip("psycopg")
+    try:
+        admin = psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
+                                autocommit=True)
+    except psycopg.Error as exc:
+        pytest.skip(f"PostgreSQL at 127.0.0.1:5432/test unreachable: {exc}")
+    schema = f"secrets_{os.getpid()}_{time.monotonic_ns()}"
+    admin.execute(f"CREATE SCHEMA {schema}")
+
+    def drop() -> None:
+        admin.execute(f"DROP SCHEMA {schema} CASCADE")
+        admin.close()
+
+    request.addfinalizer(drop)
+    return (f"postgresql://postgres:{SECRETS['userinfo']}@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
+            f"&password={SECRETS['query']}")
+
+
 SECRETS = {"userinfo": "Pl4nt-userinfo-32", "query": "Pl4nt-query-32", "env": "Pl4nt-env-32",
            "pgpass": "Pl4nt-pgpass-32"}
 
 
-def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record(cli, project, monkeypatch):
+def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record(cli, project, monkeypatch,
+                                                                                   request):
     """issue 32.4: userinfo, ?password=, PGPASSWORD and .pgpass passwords are in the config of a real tiny
     sweep; none of them is in its output, any file it wrote (logs, the MLflow store: params, tags, artifacts)."""
     pgpass = project.write("pgpass", f"db.example:5432:*:bp:{SECRETS['pgpass']}\n")
@@ -798,7 +831,9 @@ def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record
     monkeypatch.setenv("PGPASSWORD", SECRETS["env"])
     secret_url = (f"postgresql://bp:{SECRETS['userinfo']}@db.example:5432/x?sslmode=require"
                   f"&password={SECRETS['query']}&note={SECRETS['env']}{SECRETS['pgpass']}")
-    args = [*C(project), "--set", f"dataset.csv.frames={secret_url}", "--set", "sweep.logs=runs/sweep-logs"]
+    storage = _planted_storage(request)  # the claims table on PostgreSQL, both passwords in its URL
+    args = [*C(project), "--set", f"dataset.csv.frames={secret_url}", "--set", "sweep.logs=runs/sweep-logs",
+            "--set", f"storage.url={storage}"]
     outputs = []
     for argv in (["config"], ["sweep"], ["status"], ["report", "--out", "reports"]):
         code, out, err = cli(*argv, *args)
@@ -808,6 +843,7 @@ def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record
     assert runs and all(r.info.status == "FINISHED" for r in runs)
     assert all(not [f for f, v in SECRETS.items() if v in str(r.data.params) + str(r.data.tags)] for r in runs)
     assert "***" in outputs[0]  # the config shows where the password was
+    assert "postgres:***@127.0.0.1" in outputs[1]  # the sweep prints its storage, redacted
     for text in outputs:
         assert not [form for form, s in SECRETS.items() if s in text], text
     written = [f for f in project.root.rglob("*") if f.is_file() and f != pgpass]
