@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 from rich.text import Text
 
-from . import __version__, extras, urls
+from . import __version__, extras, pathcheck, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -21,7 +21,7 @@ from .commands import train as train_cmd
 from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
 from .commands.common import err_console
-from .errors import BronchoError, Interrupted
+from .errors import BronchoError, Interrupted, out_of_memory
 
 app = typer.Typer(
     name="bronchopose",
@@ -130,15 +130,34 @@ def main(argv: list[str] | None = None) -> None:
             raise
         raise SystemExit(_usage_error(exc)) from None
     except ImportError as exc:  # an optional dependency met without an explicit check: name the extra
-        missing = extras.from_import_error(exc, "this command")
+        missing = extras.from_import_error(exc, "this command") or out_of_memory(exc)  # or: loaded under ulimit -v
         if missing is None:
             raise
         _error(str(missing))
         raise SystemExit(missing.exit_code) from None
     except OSError as exc:  # a path problem no check caught (read-only, missing, a file for a folder): one line
+        if (oom := out_of_memory(exc)) is not None:
+            _error(str(oom))
+            raise SystemExit(2) from None
+        if pathcheck.is_loop(exc) and getattr(exc, "filename", None):
+            _error(str(pathcheck.loop_error(exc.filename, "path")))
+            raise SystemExit(2) from None
         if exc.errno not in PATH_ERRNOS or not getattr(exc, "filename", None):
             raise
         _error(f"{exc.filename}: {exc.strerror or exc}; check the path and its permissions")
+        raise SystemExit(2) from None
+    except (RuntimeError, MemoryError) as exc:  # a symlink loop no setting's check met, or an allocation failed
+        if pathcheck.is_loop(exc):  # Path.resolve's "Symlink loop from '...'"
+            _error(str(pathcheck.loop_error(str(exc).partition(" from ")[2].strip("'\"") or "a path", "path")))
+        elif (oom := out_of_memory(exc)) is not None:  # the failed allocation is gone: memory to say so is back
+            _error(str(oom))
+        else:
+            raise
+        raise SystemExit(2) from None
+    except Exception as exc:  # a SQLite store found damaged mid-command (its header passed the check at opening)
+        if (damaged := urls.damaged_message(exc)) is None:
+            raise
+        _error(damaged)
         raise SystemExit(2) from None
     except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
         err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "

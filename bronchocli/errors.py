@@ -51,6 +51,33 @@ class MlflowBusy(BronchoError):
     resumable = True
 
 
+class OutOfMemory(BronchoError):
+    """An allocation failed (the machine's memory, the GPU's, or an address-space limit such as ``ulimit -v``)."""
+
+
+# what allocators say: torch's CPU and CUDA allocators, C++, the dynamic loader mapping a library under ulimit -v
+_ALLOCATION_FAILED = ("can't allocate memory", "cannot allocate memory", "out of memory", "bad_alloc",
+                      "failed to map segment")
+ENOMEM = 12  # errno.ENOMEM on every platform Python runs on
+
+
+def out_of_memory(exc: BaseException) -> OutOfMemory | None:
+    """``exc`` as one line when it is an allocation failure (MemoryError; torch's allocators raise RuntimeError
+    "can't allocate memory" / "CUDA out of memory"; loading a native library under an address-space limit raises
+    ImportError/OSError "failed to map segment" or ENOMEM), else None."""
+    if isinstance(exc, OutOfMemory):
+        return exc
+    text = str(exc).strip()
+    named = any(t in text.lower() for t in _ALLOCATION_FAILED)
+    if not (isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and named)
+            or (isinstance(exc, (ImportError, OSError)) and (named or getattr(exc, "errno", None) == ENOMEM))):
+        return None
+    first = text.splitlines()[0] if text else type(exc).__name__
+    return OutOfMemory(f"out of memory ({first[:300]}): this machine, or its address-space limit (`ulimit -v`), "
+                       "cannot hold what the command needs; free memory, raise the limit, or ask for less "
+                       "(train.batch_size, --workers)")
+
+
 # Kinds renamed since: a failure_reason recorded under the old name is still read as the new kind.
 RENAMED_KINDS = {"TrackingBusy": MlflowBusy}
 

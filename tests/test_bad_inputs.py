@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 import time
@@ -17,14 +18,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from tinydata import write_tiny_dataset
 
+from bronchocli import urls
 from bronchocli.config import Config, load_config, parse_override
-from bronchocli.errors import ConfigError
+from bronchocli.errors import ConfigError, OutOfMemory, out_of_memory
 from bronchocli.generation import ensure_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -491,6 +494,75 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         "text file named .png (data preview)": (lambda p: ["data", "preview", str(_text_frame(p)), "--out",
                                                            str(p.root / "prev.png")], "cannot decode frame", ()),
     },
+    # issue 32.5: a symlink loop is one line wherever a path is read (pathcheck.resolve; the CLI's last resort)
+    "symlink loops": {
+        "dataset folder (data stats)": (lambda p: ["data", "stats", str(loop(p))], "symbolic link loop", ()),
+        "dataset folder (data preview)": (lambda p: ["data", "preview", str(loop(p)), "--out",
+                                                     str(p.root / "prev.png")], "symbolic link loop", ()),
+        "dataset.root (sweep)": (lambda p: ["sweep", *C(p), *_(loop(p)), "--set", "dataset.root=loop/tiny"],
+                                 "dataset.root loop/tiny: a symbolic link loop", ()),
+        "runs.artifacts (train)": (lambda p: ["train", *RUN, *C(p), *_(loop(p)), "--set", "runs.artifacts=loop/a"],
+                                   "runs.artifacts loop/a: a symbolic link loop", ()),
+        "runs.checkpoints absolute (config)": (lambda p: ["config", *C(p), "--set",
+                                                          f"runs.checkpoints={loop(p)}/ck"],
+                                               "runs.checkpoints", ()),
+        "a sqlite:/// path (status)": (lambda p: ["status", *C(p), *_(loop(p)), "--set",
+                                                  "storage.url=sqlite:///loop/sweep.db"],
+                                       "storage.url", ()),
+        "an absolute sqlite:/// path (report)": (lambda p: ["report", *C(p), "--set",
+                                                            f"runs.uri=sqlite:///{loop(p)}/m.db"], "runs.uri", ()),
+        "data generate --out": (lambda p: ["data", "generate", *C(p), "--out", str(loop(p) / "gen"),
+                                           *TINY_GENERATE], "--out", ()),
+        "the config file": (lambda p: ["config", "-c", str(loop(p))], "symbolic link loop", ()),
+    },
+    # issue 32.5: a dataset reads only its own files; outputs never go to system folders
+    "paths leaving their root": {
+        "patient ../escaped (data stats)": (lambda p: ["data", "stats", str(_patient(p, "../escaped"))],
+                                            "patients[0] '../escaped'", ()),
+        "patient /abs (train)": (lambda p: ["train", *RUN, *C(p), *_(_patient(p, str(p.root / "escaped")))],
+                                 "a patient name is a file name", ("runs",)),
+        "frame filename ../ (data stats)": (lambda p: ["data", "stats", str(_frame_name(p, "../../outside.png"))],
+                                            "p00.csv line 2: frame file '../../outside.png' is outside", ()),
+        "absolute frame filename (train)": (lambda p: [*_(_frame_name(p, str(p.root / "outside.png"))), "train",
+                                                       *RUN, *C(p)], "p00.csv line 2", ("runs",)),
+        "runs.artifacts=/etc": (lambda p: ["config", *C(p), "--set", "runs.artifacts=/etc"],
+                                "runs.artifacts /etc: a system folder", ()),
+        "runs.checkpoints=/ (sweep)": (lambda p: ["sweep", *C(p), "--set", "runs.checkpoints=/"],
+                                       "runs.checkpoints /: a system folder", ()),
+        "runs.artifacts under /usr (train)": (lambda p: ["train", *RUN, *C(p), "--set", "runs.artifacts=/usr/lib/x"],
+                                              "a system folder", ()),
+    },
+    # issue 32.6: a damaged SQLite store names the file and what to do
+    "damaged stores": {
+        "truncated mlflow.db (report)": (lambda p: ["report", *C(p), *_(_damaged(p, "runs/mlflow.db"))],
+                                         "runs/mlflow.db: damaged SQLite database (database disk image is "
+                                         "malformed", ()),
+        "truncated mlflow.db (sweep)": (lambda p: ["sweep", *C(p), *_(_damaged(p, "runs/mlflow.db"))],
+                                        "move it aside", ()),
+        "truncated mlflow.db (status)": (lambda p: ["status", *C(p), *_(_damaged(p, "runs/mlflow.db"),
+                                                                         _damaged(p, "runs/sweep.db"))],
+                                         "damaged SQLite database", ()),
+        "truncated sweep.db (status)": (lambda p: ["status", *C(p), *_(_damaged(p, "runs/sweep.db"))],
+                                        "storage.url " , ()),
+        "sweep.db not a database (sweep)": (lambda p: ["sweep", *C(p), *_(p.write("runs/sweep.db", b"x" * 4096))],
+                                            "(file is not a database)", ()),
+        "sweep.db not a database (tune)": (lambda p: ["tune", *RUN, *C(p), "-n", "1",
+                                                      *_(p.write("runs/sweep.db", b"x" * 4096))],
+                                           "sweep.db: damaged SQLite database", ("runs",)),
+    },
+    # issue 32.7: an undefined ${VAR} is an error naming the key and the variable (no folder named ${VAR})
+    "environment": {
+        "undefined ${VAR} in a path (sweep)": (lambda p: ["sweep", *C(p), "--set",
+                                                          "runs.checkpoints=${BP_UNDEFINED_32}/ck"],
+                                               "runs.checkpoints: environment variable ${BP_UNDEFINED_32} is not "
+                                               "set", ()),
+        "undefined ${VAR} in a URL (config)": (lambda p: ["config", *C(p), "--set",
+                                                          "storage.url=postgresql://u:${BP_UNDEFINED_32}@h/db"],
+                                               "storage.url: environment variable ${BP_UNDEFINED_32}", ()),
+        "undefined ${VAR} in the file (train)": (lambda p: ["train", *RUN, "-c", str(p.write(
+            "e2.yaml", p.config.read_text() + "data: {cache_dir: '${BP_UNDEFINED_32}/cache'}\n"))],
+            "data.cache_dir: environment variable ${BP_UNDEFINED_32}", ()),
+    },
 }
 
 
@@ -503,6 +575,54 @@ def _laughs() -> str:
     lines = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
     lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 7)]
     return "\n".join(lines) + "\n"
+
+
+def loop(p: Project) -> Path:
+    """``<project>/loop``: a symbolic link to itself."""
+    link = p.root / "loop"
+    if not link.is_symlink():
+        link.symlink_to(link)
+    return link
+
+
+def _patient(p: Project, name: str) -> Path:
+    """The tiny dataset with ``name`` as its first patient, and a valid CSV where that name leads."""
+    root = p.root / "data" / "tiny"
+    meta = __import__("json").loads((root / "dataset.json").read_text())
+    target = (root / f"{name}.csv") if not Path(name).is_absolute() else Path(f"{name}.csv")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text((root / f"{meta['patients'][0]}.csv").read_text())
+    meta["patients"][0] = name
+    (root / "dataset.json").write_text(__import__("json").dumps(meta))
+    return root
+
+
+def _frame_name(p: Project, name: str) -> Path:
+    """The tiny dataset whose first CSV row names the frame ``name`` (a file that exists there)."""
+    root = p.root / "data" / "tiny"
+    csv = root / "p00.csv"
+    lines = csv.read_text().splitlines()
+    header = lines[0].split(",")
+    row = lines[1].split(",")
+    frame = root / row[header.index("filename")]
+    (root / name).parent.mkdir(parents=True, exist_ok=True)
+    (root / name).write_bytes(frame.read_bytes())
+    row[header.index("filename")] = name
+    lines[1] = ",".join(row)
+    csv.write_text("\n".join(lines) + "\n")
+    return root
+
+
+def _damaged(p: Project, name: str) -> Path:
+    """A real SQLite database at ``name`` (in the project), cut to half its length as by a full disk."""
+    path = p.root / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE t (x BLOB)")
+        db.executemany("INSERT INTO t VALUES (?)", [(os.urandom(2000),) for _ in range(40)])
+    db.close()
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    return path
 
 
 def _json_folder(p: Project) -> Path:
@@ -606,3 +726,129 @@ def test_every_seed_in_range_is_accepted(path, seed):
 @given(lr=st.floats(min_value=1e-9, max_value=10, allow_nan=False))
 def test_floats_written_with_an_exponent_are_numbers(lr):
     assert load_config(REPO / "experiments.yaml", overrides=[f"train.lr={lr:e}"]).train.lr == pytest.approx(lr)
+
+
+# == issue 32: out of memory, damage found mid-command, secrets in every printed and recorded form ============
+
+
+def _runs(p: Project) -> list:
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{p.root / 'runs' / 'mlflow.db'}")
+    return client.search_runs([e.experiment_id for e in client.search_experiments()])
+
+
+@pytest.mark.parametrize("failure", [MemoryError(), RuntimeError(
+    "[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to "
+    "allocate 4000000000 bytes. Error code 12 (Cannot allocate memory)"),
+    ImportError("/venv/lib/python3.11/site-packages/torch/lib/libtorch_cpu.so: failed to map segment from shared "
+                "object")], ids=["MemoryError", "torch allocator", "library loaded under ulimit -v"])
+def test_out_of_memory_in_a_run_is_one_line_and_the_run_failed_with_it(cli, project, monkeypatch, failure):
+    def allocate(*args, **kwargs):
+        raise failure
+
+    monkeypatch.setattr("bronchocli.training.run.fit_and_evaluate", allocate)
+    code, out, err = cli("train", *RUN, *C(project))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: out of memory"), err
+    assert "ulimit -v" in lines[0] and "Traceback" not in out + err
+    (run,) = _runs(project)
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("OutOfMemory: out of memory")
+
+
+def test_real_allocation_failures_are_recognised_as_out_of_memory():
+    import torch
+
+    for allocate in (lambda: np.empty(2**50, dtype=np.uint8), lambda: torch.empty(2**50, dtype=torch.uint8)):
+        with pytest.raises((MemoryError, RuntimeError)) as info:  # 1 PiB: no machine has it
+            allocate()
+        assert isinstance(out_of_memory(info.value), OutOfMemory), info.value
+    assert out_of_memory(RuntimeError("shape mismatch")) is None and out_of_memory(ValueError("x")) is None
+
+
+def test_damage_met_mid_command_is_one_line_naming_the_store(tmp_path):
+    """A page damaged inside a SQLite file whose header is sound: the query fails later; the message names the
+    stores this process opened and what to do (the CLI's last resort for it)."""
+    path = tmp_path / "sweep.db"
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE t (x BLOB)")
+        db.executemany("INSERT INTO t VALUES (?)", [(os.urandom(3000),) for _ in range(60)])
+    db.close()
+    urls.check_sqlite(path, "storage.url")  # sound so far
+    data = bytearray(path.read_bytes())
+    data[4096:8192] = b"\xff" * 4096  # the table's root page
+    path.write_bytes(bytes(data))
+    urls.check_sqlite(path, "storage.url")  # the header still looks sound
+    with pytest.raises(sqlite3.DatabaseError) as info:
+        with sqlite3.connect(path) as db:
+            db.execute("SELECT count(*), sum(length(x)) FROM t").fetchall()
+    message = urls.damaged_message(info.value)
+    assert message is not None and str(path) in message and "move it aside" in message, message
+    assert urls.damaged_message(ValueError("something else")) is None
+
+
+def test_out_of_memory_outside_a_run_is_one_line(cli, monkeypatch):
+    def allocate(*args, **kwargs):
+        raise ImportError("libopenblas.so.0: cannot allocate memory for thread-local data")
+
+    monkeypatch.setattr("bronchocli.commands.common.load_config", allocate)
+    code, out, err = cli("config", "-c", str(REPO / "experiments.yaml"))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("error: out of memory"), err
+
+
+def _planted_storage(request) -> str:
+    """A fresh schema of the local PostgreSQL (trust auth: the planted passwords are sent and ignored)."""
+    psycopg = pytest.importorskip("psycopg")
+    try:
+        admin = psycopg.connect(host="127.0.0.1", port=5432, user="postgres", dbname="test", connect_timeout=3,
+                                autocommit=True)
+    except psycopg.Error as exc:
+        pytest.skip(f"PostgreSQL at 127.0.0.1:5432/test unreachable: {exc}")
+    schema = f"secrets_{os.getpid()}_{time.monotonic_ns()}"
+    admin.execute(f"CREATE SCHEMA {schema}")
+
+    def drop() -> None:
+        admin.execute(f"DROP SCHEMA {schema} CASCADE")
+        admin.close()
+
+    request.addfinalizer(drop)
+    return (f"postgresql://postgres:{SECRETS['userinfo']}@127.0.0.1:5432/test?options=-csearch_path%3D{schema}"
+            f"&password={SECRETS['query']}")
+
+
+SECRETS = {"userinfo": "Pl4nt-userinfo-32", "query": "Pl4nt-query-32", "env": "Pl4nt-env-32",
+           "pgpass": "Pl4nt-pgpass-32"}
+
+
+def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record(cli, project, monkeypatch,
+                                                                                   request):
+    """issue 32.4: userinfo, ?password=, PGPASSWORD and .pgpass passwords are in the config of a real tiny
+    sweep; none of them is in its output, any file it wrote (logs, the MLflow store: params, tags, artifacts)."""
+    pgpass = project.write("pgpass", f"db.example:5432:*:bp:{SECRETS['pgpass']}\n")
+    pgpass.chmod(0o600)
+    monkeypatch.setenv("PGPASSFILE", str(pgpass))
+    monkeypatch.setenv("PGPASSWORD", SECRETS["env"])
+    secret_url = (f"postgresql://bp:{SECRETS['userinfo']}@db.example:5432/x?sslmode=require"
+                  f"&password={SECRETS['query']}&note={SECRETS['env']}{SECRETS['pgpass']}")
+    storage = _planted_storage(request)  # the claims table on PostgreSQL, both passwords in its URL
+    args = [*C(project), "--set", f"dataset.csv.frames={secret_url}", "--set", "sweep.logs=runs/sweep-logs",
+            "--set", f"storage.url={storage}"]
+    outputs = []
+    for argv in (["config"], ["sweep"], ["status"], ["report", "--out", "reports"]):
+        code, out, err = cli(*argv, *args)
+        outputs.append(out + err)
+        assert code == 0, (argv, out, err)
+    runs = _runs(project)  # the cell's run (and the sweep's parent run)
+    assert runs and all(r.info.status == "FINISHED" for r in runs)
+    assert all(not [f for f, v in SECRETS.items() if v in str(r.data.params) + str(r.data.tags)] for r in runs)
+    assert "***" in outputs[0]  # the config shows where the password was
+    assert "postgres:***@127.0.0.1" in outputs[1]  # the sweep prints its storage, redacted
+    for text in outputs:
+        assert not [form for form, s in SECRETS.items() if s in text], text
+    written = [f for f in project.root.rglob("*") if f.is_file() and f != pgpass]
+    assert any(f.name == "mlflow.db" for f in written) and any("sweep-logs" in str(f) for f in written)
+    for f in written:
+        data = f.read_bytes()
+        leaked = [form for form, s in SECRETS.items() if s.encode() in data]
+        assert not leaked, (f, leaked)

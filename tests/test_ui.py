@@ -74,3 +74,14 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)
     assert ui.server_env()[ui.JOB_EXECUTION_ENV] == "false"  # no GenAI task consumers for a training experiment
     assert ui.server_env({ui.JOB_EXECUTION_ENV: "true"})[ui.JOB_EXECUTION_ENV] == "true"  # the user's choice wins
+
+
+def test_the_store_uri_goes_to_the_server_through_its_environment_never_its_argv():
+    from bronchocli.config import Config
+    from bronchocli.runs import ui
+
+    uri = "postgresql://bp:hunter22@db.example/mlflow?password=hunter23"
+    cfg = Config(name="t").with_values({"runs.uri": uri})
+    argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=1)
+    assert "hunter2" not in " ".join(argv) and "--backend-store-uri" not in argv  # `ps` shows argv to everyone
+    assert ui.server_env({}, store_uri=cfg.paths.mlflow_uri)[ui.STORE_ENV] == uri  # what `mlflow ui` reads

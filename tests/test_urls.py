@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+import pytest
 
 from bronchocli import urls
 
@@ -37,3 +40,33 @@ def test_driver_names_and_servers():
     assert urls.sqlalchemy("sqlite:///x.db") == "sqlite:///x.db"
     assert urls.is_server("http://h:5000") and urls.is_server("https://h")
     assert not urls.is_server("sqlite:///x.db") and not urls.is_server("postgresql://u@h/db")
+
+
+@pytest.mark.parametrize("text, shown", [
+    ("postgresql://bp:s3cr:et@db/x", "postgresql://bp:***@db/x"),  # a colon in the password
+    ("postgresql://:s3cret@db/x", "postgresql://:***@db/x"),  # no user name
+    ("postgresql://bp:p@ss@db:5432/x", "postgresql://bp:***@db:5432/x"),  # an @ in the password
+    ("postgresql://bp@db/x?sslmode=require&password=s3cret", "postgresql://bp@db/x?sslmode=require&password=***"),
+    ("postgresql://db/x?password=s3cret&sslmode=require", "postgresql://db/x?password=***&sslmode=require"),
+    ("host=db password='s3 cret' dbname=x", "host=db password=*** dbname=x"),  # libpq keyword/value
+    ("host=db PASSWORD=s3cret", "host=db PASSWORD=***"),
+    ("mysql://u@h/db?sslpassword=s3cret", "mysql://u@h/db?sslpassword=***"),
+    ("storage.url=postgresql://db/x?password=s3cret", "storage.url=postgresql://db/x?password=***"),
+    ("a passwordless://db/x and password_file=/p", "a passwordless://db/x and password_file=/p"),
+])
+def test_every_password_form_libpq_and_mlflow_accept_is_redacted(text, shown):
+    assert urls.redact(text) == shown and "s3" not in urls.redact(text)
+    assert urls.has_secret(text) == (text != shown)
+
+
+def test_passwords_held_outside_the_config_are_redacted_wherever_they_appear(tmp_path, monkeypatch):
+    pgpass = tmp_path / "pgpass"
+    pgpass.write_text("# comment\ndb:5432:*:bp:from\\:pgpass\nbad line\n*:*:*:*:abc\n")
+    monkeypatch.setenv("PGPASSFILE", str(pgpass))
+    monkeypatch.setenv("PGPASSWORD", "from-env-var")
+    monkeypatch.setenv("MLFLOW_TRACKING_PASSWORD", "mlflow-pw")
+    text = "connection failed for from-env-var / from:pgpass / mlflow-pw (abc stays: too short to hunt)"
+    assert urls.redact(text) == "connection failed for *** / *** / *** (abc stays: too short to hunt)"
+    pgpass.write_text("db:5432:*:bp:changed-pw\n")
+    os.utime(pgpass, ns=(1, 1))  # a new mtime even on a coarse clock: the file is read again
+    assert urls.redact("changed-pw") == "***"

@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 
+from .. import pathcheck
 from ..config import DEFAULT_CONFIG
 from ..extras import require
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load_or_defaults
@@ -19,7 +20,7 @@ def _flag_overrides(anatomy: str | None, **flags) -> list[str]:
     values = {k: v for k, v in flags.items() if v is not None}
     if anatomy is not None:
         # A path on the command line is relative to the working directory, not to the config file.
-        values["anatomy"] = anatomy if anatomy == "procedural" else str(Path(anatomy).expanduser().resolve())
+        values["anatomy"] = anatomy if anatomy == "procedural" else str(pathcheck.resolve(anatomy, "--anatomy"))
     return [f"dataset.generate.{k}={json.dumps(v)}" for k, v in values.items()]
 
 

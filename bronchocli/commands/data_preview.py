@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 
+from .. import pathcheck
 from ..errors import BronchoError
 from .common import console, output_folder
 
@@ -23,7 +24,7 @@ def preview(
     """
     from ..reporting.dataset_figures import preview as draw  # lazy: matplotlib only when drawing
 
-    root = dataset.expanduser().resolve()
+    root = pathcheck.resolve(dataset, "--dataset")
     target = out if out is not None else Path("reports") / f"{root.name}-montage.png"
     if target.is_dir():
         raise BronchoError(f"--out {target}: is a folder; give the montage's file name, e.g. {target / 'montage.png'}")

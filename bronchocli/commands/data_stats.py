@@ -8,6 +8,7 @@ from typing import Optional
 
 import typer
 
+from .. import pathcheck
 from ..cells import Population
 from ..config import DEFAULT_CONFIG
 from ..errors import ConfigError
@@ -40,5 +41,5 @@ def stats(
     # Inspecting a dataset should not need an experiments.yaml: without one, the defaults apply.
     cfg = load_or_defaults(config, profile, set_, "data-stats") if dataset is not None else load(config, profile, set_)
     if dataset is not None:
-        cfg = cfg.with_values({"dataset.root": str(dataset.expanduser().resolve())})
+        cfg = cfg.with_values({"dataset.root": str(pathcheck.resolve(dataset, "--dataset"))})
     entry.stats(cfg, population=population, fold=fold, manifest=manifest, console=console)

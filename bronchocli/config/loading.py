@@ -17,7 +17,7 @@ from typing import Any, Sequence
 
 import yaml
 
-from .. import urls
+from .. import pathcheck, urls
 from ..errors import ConfigError
 from .schema import Config, set_path, validate
 
@@ -162,6 +162,7 @@ def _check_structure(node: yaml.Node | None, source: str) -> None:
 
 
 def _read_text(path: Path) -> str:
+    pathcheck.resolve(path, "config file")  # a symlink loop: one line, not "not found"
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     try:

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .. import urls
-from ..errors import BronchoError
+from .. import pathcheck, urls
+from ..errors import BronchoError, ConfigError
 
 if TYPE_CHECKING:
     from .schema import Config
@@ -37,20 +37,44 @@ class Paths:
 
     @classmethod
     def of(cls, cfg: Config, base: Path) -> "Paths":
-        def path(p: str | None) -> Path | None:
+        """Every path resolved (``pathcheck``: an undefined ``${VAR}``, a symlink loop or an output root in a
+        system folder is a ConfigError naming the key)."""
+        try:
+            return cls._of(cfg, base)
+        except ConfigError:
+            raise
+        except BronchoError as exc:
+            raise ConfigError(str(exc)) from None
+
+    @classmethod
+    def _of(cls, cfg: Config, base: Path) -> "Paths":
+        def path(p: str | None, key: str, output: bool = False) -> Path | None:
             if p is None:
                 return None
-            q = Path(os.path.expandvars(p)).expanduser()
-            return q if q.is_absolute() else (base / q).resolve()
+            q = Path(pathcheck.expand(p, key)).expanduser()
+            real = pathcheck.resolve(q, key, base)  # a symlink loop is one line here, whatever reads it later
+            if output:
+                pathcheck.check_writable_root(real, key)
+            return q if q.is_absolute() else real
+
+        def url(u: str, key: str) -> str:
+            resolved = urls.resolve(u, base, key)
+            if (db := urls.sqlite_file(resolved)) is not None:
+                pathcheck.resolve(db, key)
+            return resolved
 
         gen = cfg.dataset.generate
         return cls(
-            base=base, dataset=path(cfg.dataset.root), cache=path(cfg.data.cache_dir),
-            checkpoints=path(cfg.runs.checkpoints), artifacts=path(cfg.runs.artifacts),
-            sweep_logs=path(cfg.sweep.logs),
-            pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained),
-            anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy), centreline=path(gen.centreline),
-            mlflow_uri=urls.resolve(cfg.runs.uri, base), storage_url=urls.resolve(cfg.storage.url, base),
+            base=base, dataset=path(cfg.dataset.root, "dataset.root"),
+            cache=path(cfg.data.cache_dir, "data.cache_dir", output=True),
+            checkpoints=path(cfg.runs.checkpoints, "runs.checkpoints", output=True),
+            artifacts=path(cfg.runs.artifacts, "runs.artifacts", output=True),
+            sweep_logs=path(cfg.sweep.logs, "sweep.logs", output=True),
+            pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained,
+                                                                                              "model.pretrained"),
+            anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy, "dataset.generate.anatomy"),
+            centreline=path(gen.centreline, "dataset.generate.centreline"),
+            mlflow_uri=url(cfg.runs.uri, "runs.uri"), storage_url=url(cfg.storage.url, "storage.url"),
         )
 
 

@@ -28,7 +28,7 @@ import pandas as pd
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
-from .. import geometry
+from .. import geometry, pathcheck
 from ..config import CsvImport
 from ..errors import DataError
 from .gimbal import world_label_warning
@@ -37,6 +37,7 @@ from .reader import (
     POSE_COLUMNS,
     Dataset,
     assemble,
+    check_inside,
     integer_column,
     join_paths,
     lobe_order,
@@ -59,7 +60,12 @@ def csv_files(root: Path, cfg: CsvImport) -> list[Path]:
         hits = sorted(glob.glob(os.path.join(root, pattern)))
         if not hits:
             raise DataError(f"dataset.csv.files: {pattern!r} matches no file in {root}")
-        found += [Path(h).resolve() for h in hits if Path(h).resolve() not in found]
+        outside = pathcheck.outside(root, [os.path.normpath(h) for h in hits])
+        if outside:
+            raise DataError(f"dataset.csv.files: {pattern!r} matches {hits[outside[0]]}, outside the dataset folder "
+                            f"{root}; list CSVs inside it")
+        found += [pathcheck.resolve(h, "dataset.csv.files") for h in hits
+                  if pathcheck.resolve(h, "dataset.csv.files") not in found]
     return found
 
 
@@ -163,8 +169,11 @@ def read_table(path: Path, root: Path, cfg: CsvImport) -> pd.DataFrame:
         table["filename"] = table["path"] = ""
     else:
         table["filename"] = _ids(raw, c.filename, "", path, "filename")
-        table["path"] = join_paths((root / cfg.frames).resolve(), table["filename"])
+        frames = pathcheck.resolve(root / cfg.frames, "dataset.csv.frames")
+        table["path"] = join_paths(frames, table["filename"])
     table["source"], table["line"] = str(path), np.arange(len(raw)) + 2  # line 1 is the header
+    if c.filename is not None:
+        check_inside(table, frames, "the frames folder (dataset.csv.frames)")
     return table
 
 
@@ -190,7 +199,7 @@ def csv_patients(root: Path, cfg: CsvImport) -> list[str]:
 
 def import_csv(root: str | os.PathLike, cfg: CsvImport) -> Dataset:
     """Read a foreign pose dataset under ``root`` as configured by ``dataset.csv``."""
-    root = Path(root).expanduser().resolve()
+    root = pathcheck.resolve(root, "dataset")
     files = csv_files(root, cfg)
     table = pd.concat([read_table(f, root, cfg) for f in files], ignore_index=True)
     patients = sorted(table["patient"].unique(), key=natural_key)

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from .. import geometry
+from .. import geometry, pathcheck
 from ..cells import LOBES
 from ..errors import DataError
 from .naming import DATASET_JSON
@@ -369,7 +369,18 @@ def read_patient_csv(root: Path, patient: str) -> pd.DataFrame:
     if len(wrong):
         raise DataError(f"{path} line {wrong[0] + 2}: patient {table['patient'].iat[wrong[0]]!r}, expected {patient!r}")
     table["path"] = join_paths(root, table["filename"])
+    check_inside(table, root, "the dataset folder")
     return table
+
+
+def check_inside(table: pd.DataFrame, folder: Path, name: str) -> None:
+    """Every frame path stays inside ``folder``: a ``filename`` that leaves it (``../x``, an absolute path) is
+    refused, naming the row (a dataset reads only its own files)."""
+    bad = pathcheck.outside(folder, table["path"].tolist())
+    if bad:
+        i = min(bad, key=lambda k: (table["source"].iat[k], table["line"].iat[k]))
+        raise DataError(f"{_where(table, i)}: frame file {table['filename'].iat[i]!r} is outside {name} {folder}; "
+                        f"a filename must be a path inside it, without '..'{_more(len(bad))}")
 
 
 def integer_column(values: pd.Series, name: str, path: Path) -> pd.Series:
@@ -421,10 +432,14 @@ def _warn_empty_lobes(root: Path, patients: Sequence[str], lobes: Sequence[str],
 
 def open_dataset_dir(root: str | os.PathLike) -> Dataset:
     """Read a dataset in the project's layout (``dataset.json`` + one CSV per patient)."""
-    root = Path(root).expanduser().resolve()
+    root = pathcheck.resolve(root, "dataset")
     meta = _read_meta(root)
     meta_path = root / DATASET_JSON
     patients = [str(p) for p in meta["patients"]]
+    for i, p in enumerate(patients):  # <patient>.csv must be a file of this folder
+        if not pathcheck.plain_name(p):
+            raise DataError(f"{meta_path}: patients[{i}] {p!r}: a patient name is a file name in the dataset "
+                            "folder (no '/', '\\' or '..')")
     table = pd.concat([read_patient_csv(root, p) for p in patients], ignore_index=True)
     frames, trajectories = assemble(table, patients)
     csvs = {p: (root / f"{p}.csv").read_bytes() for p in patients}

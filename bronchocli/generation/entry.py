@@ -10,6 +10,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from .. import pathcheck
 from ..config import Config
 from ..errors import BronchoError, Interrupted
 
@@ -38,7 +39,7 @@ def generate(cfg: Config, out: Path | None = None, *, workers: int | None = None
     the frames rendered so far: the same call resumes."""
     from .pipeline import generate_dataset  # lazy: VTK loads only when generating
 
-    root = out.expanduser().resolve() if out is not None else cfg.paths.dataset
+    root = pathcheck.resolve(out, "--out") if out is not None else cfg.paths.dataset
     if root.exists() and not root.is_dir():
         raise BronchoError(f"--out {root}: is a file, not a dataset folder; choose a folder path")
     already = (root / "dataset.json").is_file()

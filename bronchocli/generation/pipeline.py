@@ -191,7 +191,7 @@ class _Runner:
         if workers > 1:
             threads = max(1, (os.cpu_count() or 1) // workers)
             self.pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
-                                            initializer=init_worker, initargs=(threads,))
+                                            initializer=init_worker, initargs=(threads, os.getpid()))
 
     def map(self, fn, *iterables) -> list:
         if self.pool is None:

@@ -108,6 +108,7 @@ def client_for(cfg: Config, *, reading: bool = False) -> MlflowClient:
     set_http_limits(timeout_s)
     db = urls.sqlite_file(uri)
     if db is not None:
+        urls.check_sqlite(db, "runs.uri")  # a damaged file: one line naming it and what to do
         set_busy_timeout(db, bound)
         with file_lock(f"{db}.lock"):
             def opened_sqlite() -> MlflowClient:

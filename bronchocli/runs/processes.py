@@ -64,7 +64,25 @@ def repair_zombie(client: Any, run: Run, who: str) -> bool:
     client.set_tag(run.info.run_id, TAG_FAILURE, reason)
     client.set_terminated(run.info.run_id, "FAILED")
     logging.getLogger(__name__).warning("run %s: %s", run.info.run_id, reason)
+    fail_pending_models(client, run)
     return True
+
+
+def fail_pending_models(client: Any, run: Run) -> list[str]:
+    """Mark FAILED the logged models of ``run`` left PENDING (its process was killed while logging the model:
+    nothing else would ever finalise them); returns their ids."""
+    try:
+        models = client.search_logged_models(
+            [run.info.experiment_id], filter_string=f"source_run_id = '{run.info.run_id}'")  # status: compared below
+    except Exception as exc:  # noqa: BLE001 - a store without logged models (an old server): nothing to finalise
+        logging.getLogger(__name__).debug("logged models of run %s not searched: %s", run.info.run_id, exc)
+        return []
+    ids = [m.model_id for m in models if str(getattr(m.status, "name", m.status)).upper().endswith("PENDING")]
+    for model_id in ids:
+        client.finalize_logged_model(model_id, "FAILED")
+        logging.getLogger(__name__).warning("logged model %s of run %s was left PENDING: marked FAILED",
+                                            model_id, run.info.run_id)
+    return ids
 
 
 def process_age_s() -> float | None:

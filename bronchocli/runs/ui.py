@@ -26,6 +26,7 @@ from ..runs.client import check_reachable, client_for, experiment_id, mark_train
 from ..runs.views import runs_table_url
 
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
+STORE_ENV = "MLFLOW_BACKEND_STORE_URI"  # `mlflow ui --backend-store-uri` read from the environment
 
 
 def default_workers(cores: int | None = None) -> int:
@@ -35,21 +36,27 @@ def default_workers(cores: int | None = None) -> int:
 
 
 def ui_command(cfg: Config, host: str, port: int, workers: int | None = None) -> list[str]:
-    """The `mlflow ui` argv serving the config's store and artifact root with ``workers`` processes."""
+    """The `mlflow ui` argv serving the config's artifact root with ``workers`` processes.
+
+    The store's URI is not on it (a process's argv is public in ``ps``; the URI may hold a password): it goes
+    through the environment (``server_env``, ``MLFLOW_BACKEND_STORE_URI``, which `mlflow ui` reads)."""
     exe = str(Path(sys.executable).with_name("mlflow"))
     if not Path(exe).exists():
         exe = shutil.which("mlflow") or exe
-    argv = [exe, "ui", "--backend-store-uri", cfg.paths.mlflow_uri, "--host", host, "--port", str(port),
+    argv = [exe, "ui", "--host", host, "--port", str(port),
             "--workers", str(workers or default_workers())]
     if not urls.is_server(cfg.paths.mlflow_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
 
 
-def server_env(environ: dict[str, str] | None = None) -> dict[str, str]:
-    """The server's environment: the GenAI job runner off unless the user asked for it."""
+def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None) -> dict[str, str]:
+    """The server's environment: the store's URI (``store_uri``: never on the command line), the GenAI job
+    runner off unless the user asked for it."""
     env = dict(os.environ if environ is None else environ)
     env.setdefault(JOB_EXECUTION_ENV, "false")
+    if store_uri is not None:
+        env[STORE_ENV] = store_uri
     return env
 
 
@@ -88,4 +95,4 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
                   f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",
                   highlight=False, soft_wrap=True)
     sys.stdout.flush()
-    os.execve(argv[0], argv, server_env())
+    os.execve(argv[0], argv, server_env(store_uri=cfg.paths.mlflow_uri))

@@ -145,6 +145,8 @@ class SweepStore:
                                "workers; use a file (sqlite:///runs/sweep.db) or postgresql://...")
         if urls.is_postgres(self.url):
             extras.require("postgres", f"storage.url {self.redacted}")
+        if (db := urls.sqlite_file(self.url)) is not None:
+            urls.check_sqlite(db, "storage.url")  # a damaged file: one line naming it and what to do
         try:
             self.engine: Engine = _make_engine(self.url, timeout_s, busy_timeout_s)
         except (SQLAlchemyError, ImportError, ValueError) as exc:
@@ -163,6 +165,8 @@ class SweepStore:
         except (OperationalError, ProgrammingError, DBAPIError) as exc:
             if isinstance(exc, IntegrityError):
                 raise
+            if (why := urls.damage_in(exc)) and (db := urls.sqlite_file(self.url)) is not None:
+                raise urls.damaged_sqlite(db, "storage.url", why) from None  # not an outage: never waited out
             raise StorageError(self._problem(exc)) from None
 
     def close(self) -> None:

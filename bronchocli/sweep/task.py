@@ -3,7 +3,11 @@
 The launcher (``entry.launch_slurm``) writes the spec, a small JSON object
 (``TaskSpec``: the config file, profile, ``--set`` overrides, ``--storage``,
 ``--use-tuned``, ``--only`` and ``--runner`` it was given), into the batch
-script's ``exec`` line. The task loads the same config the same way
+script's ``exec`` line. A value that holds a password (a ``--set`` override or
+``--storage`` URL, in any form ``urls.redact`` knows) is never written there nor
+onto the task's command line (``ps`` shows it to every user): ``seal`` moves
+those values into a file only the user can read (mode 0600, beside the task
+logs) and the spec shows them redacted and names that file. The task loads the same config the same way
 (``TaskSpec.load``, which the ``sweep`` command itself uses), checks its paths
 and runs one worker over the stage walk (``staged.work_stages``); it exits when
 nothing is left that it can claim. On SIGUSR1 (Slurm's time-limit warning,
@@ -16,6 +20,7 @@ log) and exit code 2, as on the command line.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 import logging
@@ -31,7 +36,7 @@ from ..cells import Selection, parse_only
 from ..config import Config, check_paths, load_config
 from ..errors import BronchoError
 from .pool import worker_config
-from .slurm import requeue
+from .slurm import logs_dir, requeue
 from .staged import work_stages
 from .storage import SweepStore
 from .worker import EXIT_INTERRUPTED, Runner, StopSignals, default_runner, slurm_task
@@ -71,17 +76,44 @@ class TaskSpec:
     use_tuned: str | None = None
     only: tuple[str, ...] = ()  # --only texts
     runner: str | None = None  # --runner module:function; None: training
+    secrets: str | None = None  # a 0600 file holding the real overrides/storage (``seal``); these are redacted
 
     def load(self) -> Config:
         """The config: file + profile + overrides, then the storage URL and a study's best trial."""
-        cfg = load_config(Path(self.config), self.profile, self.overrides)
-        if self.storage:
-            cfg = cfg.with_values({"storage.url": self.storage})
+        spec = self.unsealed()
+        cfg = load_config(Path(spec.config), spec.profile, spec.overrides)
+        if spec.storage:
+            cfg = cfg.with_values({"storage.url": spec.storage})
         if self.use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
             from .tuning import apply_best  # lazy: optuna only with --use-tuned
 
             cfg = apply_best(cfg, self.use_tuned)
         return cfg
+
+    def unsealed(self) -> TaskSpec:
+        """This spec with the values ``seal`` moved into its secret file put back (itself when none was)."""
+        if not self.secrets:
+            return self
+        try:
+            data = json.loads(Path(self.secrets).read_text())
+            return replace(self, overrides=tuple(data["overrides"]), storage=data["storage"], secrets=None)
+        except OSError as exc:
+            raise BronchoError(f"task spec: secret file {self.secrets}: {exc.strerror or exc}; submit the sweep "
+                               "again (`bronchopose sweep --launcher slurm` writes it)") from None
+        except (ValueError, KeyError, TypeError):
+            raise BronchoError(f"task spec: secret file {self.secrets}: not what `bronchopose sweep --launcher "
+                               "slurm` writes; submit the sweep again") from None
+
+    def seal(self, folder: Path) -> TaskSpec:
+        """This spec with every value that holds a password moved into a file in ``folder`` that only this user
+        can read (0600); the spec keeps them redacted and names the file. Unchanged when nothing is secret."""
+        if not any(urls.has_secret(v) for v in (*self.overrides, self.storage or "")):
+            return self
+        text = json.dumps({"overrides": list(self.overrides), "storage": self.storage}, sort_keys=True)
+        path = folder / f"secrets-{hashlib.sha256(text.encode()).hexdigest()[:16]}.json"  # same values: same file
+        write_private(path, text)
+        return replace(self, overrides=tuple(urls.redact(v) for v in self.overrides),
+                       storage=urls.redact(self.storage) if self.storage else None, secrets=str(path))
 
     def selection(self) -> Selection:
         return parse_only(list(self.only))
@@ -106,9 +138,27 @@ class TaskSpec:
         return cls(**data)
 
 
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically, readable and writable by this user only (0600) from its first byte."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)  # the file existed (a crashed earlier write): O_CREAT's mode does not apply
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
 def command(cfg: Config, spec: TaskSpec) -> list[str]:
-    """What each array task runs: the config's ``slurm.python`` (else this Python) on this module with ``spec``."""
-    spec = replace(spec, config=str(Path(spec.config).resolve()))
+    """What each array task runs: the config's ``slurm.python`` (else this Python) on this module with ``spec``,
+    its secrets sealed into a 0600 file beside the task logs (never in the batch script or the argv)."""
+    spec = replace(spec, config=str(Path(spec.config).resolve())).seal(logs_dir(cfg))
     return [cfg.slurm.python or sys.executable, "-m", MODULE, spec.to_json()]
 
 

@@ -168,6 +168,7 @@ def storage_for(cfg: Config):
                 return make(url)
         if db is None:
             return make(url)
+        urls.check_sqlite(db, "storage.url")  # a damaged file: one line naming it, not Optuna's traceback
         db.parent.mkdir(parents=True, exist_ok=True)
         with file_lock(f"{db}.lock"):  # table creation must not race
             return make(url)

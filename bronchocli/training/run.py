@@ -30,7 +30,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, resumable
+from ..errors import BronchoError, OutOfMemory, out_of_memory, resumable
 from ..models import initialisation
 from ..runs.client import MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
 from ..runs.contract import (
@@ -205,6 +205,7 @@ def run_cell(
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
+        exc = out_of_memory(exc) or exc  # MemoryError, torch's allocator: one line, the run FAILED with it
         reason = failure_reason(exc)
         _end_run(client, run_id, "FAILED", reason)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
@@ -221,7 +222,7 @@ def run_cell(
 
 
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
-RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy)
+RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy, OutOfMemory)
 
 
 

@@ -1,0 +1,82 @@
+"""A user's path, checked where it is resolved: the one home of what can go wrong with one, as one line each.
+
+* ``expand``: ``${VAR}`` and ``~``; an undefined ``${VAR}`` is an error naming the setting and the variable
+  (it would otherwise stay literal and become a folder named ``${VAR}``).
+* ``resolve``: symlinks followed; a symlink loop (Python 3.11 raises RuntimeError "Symlink loop" from
+  ``Path.resolve``, ``open``/``stat`` raise OSError ELOOP) is one line naming the setting. ``is_loop`` tells
+  either exception apart, so the command line's last-resort handler words a loop met elsewhere the same way.
+* ``check_writable_root``: an output root (artifacts, checkpoints, caches, logs) is never a system folder.
+* ``outside``: names (a patient, a frame's ``filename``) that leave the folder they are relative to.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+from .errors import BronchoError
+
+_VAR = re.compile(r"\$\{([^}]*)\}")
+# never an output root: the folder itself (the root of the file system, a home, a system tree) ...
+SYSTEM_FOLDERS = ("/", "/bin", "/boot", "/dev", "/etc", "/home", "/lib", "/lib32", "/lib64", "/media", "/mnt",
+                  "/opt", "/proc", "/root", "/run", "/sbin", "/srv", "/sys", "/tmp", "/usr", "/var", "/var/tmp")
+# ... nor anything inside these (the operating system's own files)
+SYSTEM_TREES = ("/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/proc", "/sbin", "/sys", "/usr")
+
+
+def expand(text: str, setting: str) -> str:
+    """``text`` with its ``${VAR}``s expanded; an undefined one is a BronchoError naming ``setting`` and it."""
+    for name in _VAR.findall(text):
+        if name not in os.environ:
+            raise BronchoError(f"{setting}: environment variable ${{{name}}} is not set; set it (export "
+                               f"{name or 'NAME'}=...) or write the value itself")
+    return os.path.expandvars(text)
+
+
+def is_loop(exc: BaseException) -> bool:
+    """Whether ``exc`` is a symlink loop: RuntimeError "Symlink loop" (Path.resolve) or OSError ELOOP."""
+    if isinstance(exc, OSError):
+        return exc.errno == errno.ELOOP
+    return isinstance(exc, RuntimeError) and "symlink loop" in str(exc).lower()
+
+
+def loop_error(path: str | os.PathLike, setting: str) -> BronchoError:
+    return BronchoError(f"{setting} {path}: a symbolic link loop (a link that leads back to itself); fix or "
+                        "remove the link")
+
+
+def resolve(path: str | os.PathLike, setting: str, base: Path | None = None) -> Path:
+    """``path`` (``~`` expanded, relative to ``base`` when given) with its symlinks followed; one line on a loop."""
+    p = Path(path).expanduser()
+    if base is not None and not p.is_absolute():
+        p = base / p
+    try:
+        return p.resolve()
+    except (RuntimeError, OSError) as exc:
+        if is_loop(exc):
+            raise loop_error(path, setting) from None
+        raise
+
+
+def check_writable_root(path: Path, setting: str) -> None:
+    """An output root must not be a system folder (``/``, ``/etc``, a home, ...) nor inside the OS's own trees."""
+    real = resolve(path, setting)
+    inside = next((t for t in SYSTEM_TREES if real == Path(t) or Path(t) in real.parents), None)
+    if str(real) in SYSTEM_FOLDERS or inside is not None or real == Path.home():
+        where = "" if real == path else f" (that is {real})"
+        raise BronchoError(f"{setting} {path}{where}: a system folder; point {setting} at a folder of this "
+                           "project (e.g. runs/...)")
+
+
+def outside(root: str | os.PathLike, paths: Sequence[str]) -> list[int]:
+    """Indices of ``paths`` (absolute and normalised) that are not inside ``root`` (lexically: no symlink is read)."""
+    prefix = os.path.normpath(os.path.abspath(root)).rstrip(os.sep) + os.sep
+    return [i for i, p in enumerate(paths) if not p.startswith(prefix)]
+
+
+def plain_name(name: str) -> bool:
+    """A name that stays in its folder as a file name: no separator, not ``.``/``..``, not empty."""
+    return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and "\0" not in name
