@@ -34,6 +34,15 @@ def _local_path(location: str) -> Path | None:
     return None
 
 
+def writes_here(cfg: Config, artifact_uri: str) -> bool:
+    """Whether a run's artifacts (``artifact_uri``) are written into this project: under ``runs.artifacts`` for
+    a store the project holds itself, anywhere an MLflow server decides otherwise."""
+    if urls.is_server(cfg.paths.mlflow_uri) or not urls.is_direct_store(cfg.paths.mlflow_uri):
+        return True
+    where = _local_path(artifact_uri)
+    return where is None or where.resolve().is_relative_to(cfg.paths.artifacts.resolve())
+
+
 def relocate_artifacts(client: MlflowClient, cfg: Config, *, rewrite: bool, reading: bool = False) -> None:
     """Point the config's experiment (and its runs and models) at ``runs.artifacts`` when it points elsewhere.
 
