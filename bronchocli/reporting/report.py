@@ -17,11 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from .. import urls
 from ..config import Config
 from ..errors import BronchoError, DataError
 from ..io import TEMP_SUFFIX, save_figure, write_text
-from ..runs.client import client_for, redacted_uri
+from ..runs.client import client_for, require_store
 from ..runs.parents import KIND_SWEEP, REPORT_FOLDER, find_parent, log_report
 from ..runs.relocation import writes_here
 from . import dataset_figures as dataset_figs
@@ -168,10 +167,7 @@ def summary_index(index: RunIndex) -> str:
 
 def open_store(cfg: Config):
     """The config's MLflow client; a missing SQLite store is an error here (a report must not create one)."""
-    db = urls.sqlite_file(cfg.paths.mlflow_uri)
-    if db is not None and not db.is_file():
-        raise BronchoError(f"runs.uri {redacted_uri(cfg)}: no MLflow store there yet; "
-                           f"run `bronchopose sweep` or `bronchopose train` first")
+    require_store(cfg)
     return client_for(cfg, reading=True)
 
 

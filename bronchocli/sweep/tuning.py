@@ -353,8 +353,17 @@ def _close_parent(cfg: Config, target: Cell, s) -> None:
     set_parent_status(client, parent, 0)
 
 
+def _no_database(cfg: Config) -> bool:
+    """True when Optuna's SQLite file does not exist: reading a study must not create an empty one there."""
+    db = urls.sqlite_file(optuna_url(cfg))
+    return db is not None and not db.is_file()
+
+
 def load(cfg: Config, name: str):
-    """An existing study (BronchoError naming the studies there when it is not)."""
+    """An existing study (BronchoError naming the studies there when it is not; nothing is created)."""
+    if _no_database(cfg):
+        raise BronchoError(f"no Optuna study named {name!r}: storage.url {urls.redact(cfg.paths.storage_url)} holds "
+                           "no study yet (no database there; check the path, or run `bronchopose tune` first)")
     storage = storage_for(cfg)
     try:
         return optuna.load_study(study_name=name, storage=storage)
@@ -406,4 +415,6 @@ def describe_study(s) -> dict[str, Any]:
 
 
 def list_studies(cfg: Config) -> list[str]:
+    if _no_database(cfg):
+        return []
     return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))
