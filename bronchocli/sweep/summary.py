@@ -191,7 +191,7 @@ def importance_note(info: Mapping[str, Any]) -> str:
     if n < 2:
         return "not computed: fewer than 2 complete trials"
     if n < IMPORTANCE_MIN_TRIALS:
-        return (f"indicative only: {n} complete trials (Optuna's fANOVA estimate is unreliable below "
+        return (f"indicative only: {n} complete trials (Optuna's importance estimate is unreliable below "
                 f"{IMPORTANCE_MIN_TRIALS})")
     return ""
 
@@ -203,6 +203,6 @@ def importance_figure(importances: Mapping[str, float], n_trials: int, note: str
     names = sorted(importances, key=importances.get)
     fig, ax = plt.subplots(figsize=(6, 0.5 * len(names) + 1.4))
     ax.barh(names, [importances[k] for k in names], color="#4c72b0")
-    ax.set_xlabel("importance (fANOVA, sums to 1)")
+    ax.set_xlabel("importance (Optuna's default evaluator, normalised to sum to 1)")
     ax.set_title(f"parameter importances, {n_trials} complete trials" + (f"\n{note}" if note else ""), fontsize=9)
     return save_figure(fig, stem, ("png",))[0]
