@@ -32,7 +32,7 @@ from ..config import Select, Stage
 from ..io import save_figure
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import log_plan_params, sweep_parent
-from ..runs.records import log_metrics
+from ..runs.records import TAG_NOTE, log_metrics
 from ..runs.views import README_RATIO
 from . import plan as planning
 from .selection import describe_selection, finished_runs
@@ -114,6 +114,31 @@ def outcome(walk: planning.StageWalk) -> tuple[dict[str, float], dict[str, str]]
     return metrics, tags
 
 
+def describe_sweep(walk: planning.StageWalk, metrics: Mapping[str, float], tags: Mapping[str, str]) -> str:
+    """The parent's description (Markdown, the top of its run page): counts, then per stage what ran, what it
+    selected and its best cell, headline first."""
+    m = {k: int(v) for k, v in metrics.items() if k.startswith("cells.")}
+    lines = [f"Sweep **{walk.sweep}**: {m['cells.planned']} cells planned, {m['cells.finished']} finished, "
+             f"{m['cells.failed']} failed. Per stage (params `stage.<name>.*`, metrics `best.<name>.*`):"]
+    for stage in walk.stages:
+        cells = walk.cells(stage, mine=False)
+        what = f"{len(cells)} cells" if cells is not None else "not known yet"
+        if (sel := walk.selections.get(stage.name)) is not None:
+            what += f", {describe_selection(sel).split(': ', 1)[1]}"
+        elif stage.select is not None:
+            what += f", selects the top {stage.select.top} of stage {planning.source_of(walk.cfg, stage).name}"
+        p = f"best.{stage.name}."
+        best = ""
+        if p + "cell" in tags:
+            by = ranked_by(walk.cfg, stage)
+            figures = [f"{h} {metrics[p + h]:.4g}" for h in HEADLINES if p + h in metrics]
+            best = (f"; best by validation: {tags[p + 'cell']} (" + ", ".join(figures + [f"{by} {metrics[p + by]:.4g}"])
+                    + ")")
+        lines.append(f"- **{stage.name}**: {what}{best}")
+    lines.append("The tables and figures of `bronchopose report` are the artifacts under `report/`.")
+    return "\n".join(lines)
+
+
 def record(client, parent: str, walk: planning.StageWalk, *, finished: bool = False) -> None:
     """The plan (params) and selections (tags) on the sweep's parent run; with ``finished`` also the outcome.
 
@@ -125,7 +150,7 @@ def record(client, parent: str, walk: planning.StageWalk, *, finished: bool = Fa
         if finished:
             metrics, best = outcome(walk)
             log_metrics(client, parent, metrics)
-            tags |= best
+            tags |= best | {TAG_NOTE: describe_sweep(walk, metrics, best)}
         for key, value in tags.items():
             client.set_tag(parent, key, value)
     except Exception as exc:  # noqa: BLE001 - a summary must never turn a finished sweep into a failed one
