@@ -193,6 +193,7 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
         log_metrics(client, parent, {f"importance.{k}": v for k, v in shown.items()})
     if note:
         tags["importances"] = note
+    tags[TAG_NOTE] = describe_study(info, n_finished, shown, note)
     for key, value in tags.items():
         if value:
             client.set_tag(parent, key, value)
@@ -201,6 +202,22 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
             path = importance_figure(shown, info["counts"].get("complete", 0), note,
                                      Path(tmp) / "param_importances")
             client.log_artifact(parent, str(path))
+
+
+def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mapping[str, float], note: str) -> str:
+    """The study parent's description (Markdown): trial counts, the best trial and its values, importances."""
+    c, best = info["counts"], info["best"]
+    values = ", ".join(f"`{k}` = {v:.4g}" if isinstance(v, float) else f"`{k}` = {v}"
+                       for k, v in best["params"].items())
+    ranked = ", ".join(f"`{k}` {v:.2f}" for k, v in sorted(importances.items(), key=lambda kv: -kv[1]))
+    return "\n\n".join([
+        f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
+        f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
+        f"Best: trial #{best['number']}, best_val_loss {best['value']:.5g}" + (f", with {values}" if values else "")
+        + " (apply it with `--use-tuned`).",
+        *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]
+          if ranked else [f"Importances: {note}."] if note else []),
+    ])
 
 
 IMPORTANCE_MIN_TRIALS = 10  # fewer complete trials: importances are shown with a caveat

@@ -179,3 +179,6 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
     else:
         assert not any(k.startswith("importance.") for k in metrics)
     assert (caveat in tags["importances"]) if caveat else "importances" not in tags
+    note = tags["mlflow.note.content"]  # the description says the same, best trial first
+    assert f"Best: trial #{best.number}, best_val_loss {best.value:.5g}, with `train.lr` = " in note
+    assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
