@@ -275,12 +275,12 @@ def launch(cfg: Config, store: SweepStore, only: Selection, command: Sequence[st
         tasks = sweep_tasks(cfg)
         console.print(f"nothing new to submit: {sum(t.count for t in tasks)} task(s) of this sweep queued or running"
                       if tasks else "nothing left to run")
-    summary.record_sweep(walk)  # the plan on the sweep's parent run; the outcome once watching ends
+    summary.record_sweep_parent(walk)  # the plan on the sweep's parent run; the outcome once watching ends
     if detach:
         console.print("detached: `bronchopose status` shows progress, `bronchopose sweep --cancel` stops the jobs")
         return 0
     code = watch(walk, command, console)
-    summary.record_sweep(walk, finished=True)
+    summary.record_sweep_parent(walk, finished=True)
     return code
 
 

@@ -139,7 +139,7 @@ def describe_sweep(walk: planning.StageWalk, metrics: Mapping[str, float], tags:
     return "\n".join(lines)
 
 
-def record(client, parent: str, walk: planning.StageWalk, *, finished: bool = False) -> None:
+def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bool = False) -> None:
     """The plan (params) and selections (tags) on the sweep's parent run; with ``finished`` also the outcome.
 
     Best effort (a warning): the cells' runs and the claims table hold the results either way.
@@ -157,15 +157,15 @@ def record(client, parent: str, walk: planning.StageWalk, *, finished: bool = Fa
         log.warning("could not record the sweep's plan on its parent run %s: %s", parent, exc)
 
 
-def record_sweep(walk: planning.StageWalk, *, finished: bool = False) -> None:
-    """``record`` on the sweep's parent run, found or created here (the Slurm driver, which holds no client)."""
+def record_sweep_parent(walk: planning.StageWalk, *, finished: bool = False) -> None:
+    """``record_parent`` on the sweep's parent run, found or created here (the Slurm driver holds no client)."""
     try:
         client = client_for(walk.cfg)
         parent = sweep_parent(client, walk.cfg, experiment_id(client, walk.cfg), walk.sweep)
-    except Exception as exc:  # noqa: BLE001 - as in record: best effort
+    except Exception as exc:  # noqa: BLE001 - as in record_parent: best effort
         log.warning("could not record the sweep's plan on its parent run: %s", exc)
         return
-    record(client, parent, walk, finished=finished)
+    record_parent(client, parent, walk, finished=finished)
 
 
 # -- a study's parent -----------------------------------------------------------------------------------
@@ -174,7 +174,7 @@ def record_sweep(walk: planning.StageWalk, *, finished: bool = False) -> None:
 def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> None:
     """What a reviewer reads on an Optuna study's parent run (``info``: ``tuning.describe_study``).
 
-    Trial counts (metrics ``trials.*``), the best trial (metric ``best_val_loss``, tags ``best_trial``,
+    Trial counts (metrics ``trials.*``), the best trial (metric ``val_best.loss``, tags ``best_trial``,
     ``best_run`` and ``best.<path>`` = its value of each searched path), and parameter importances (metrics
     ``importance.<path>``, the figure ``param_importances.png``) only where they mean something: two or more
     searched parameters and complete trials (tag ``importances``: why not, or the caveat of few trials).
@@ -184,7 +184,7 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
     best = info["best"]
     if best is None:
         return
-    log_metrics(client, parent, {"best_val_loss": best["value"]}, step=best["number"])
+    log_metrics(client, parent, {"val_best.loss": best["value"]}, step=best["number"])
     tags = {"best_trial": str(best["number"]), "best_run": best["run_id"],
             **{f"best.{k}": str(v) for k, v in best["params"].items()}}
     note = importance_note(info)
@@ -213,7 +213,7 @@ def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mappin
     return "\n\n".join([
         f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
         f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
-        f"Best: trial #{best['number']}, best_val_loss {best['value']:.5g}" + (f", with {values}" if values else "")
+        f"Best: trial #{best['number']}, val_best.loss {best['value']:.5g}" + (f", with {values}" if values else "")
         + " (apply it with `--use-tuned`).",
         *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]
           if ranked else [f"Importances: {note}."] if note else []),

@@ -316,8 +316,8 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
          enqueue: Sequence[Mapping[str, Any]] = ()) -> Any:
     """Tune with ``workers`` local processes (1: in this process); returns the study.
 
-    The study's parent MLflow run is created before the workers start and ends with the study's outcome
-    (``summary.log_study``: trial counts, the best trial and its values, importances where they mean something).
+    The study's parent MLflow run is created before the workers start and ends with the best trial's
+    validation loss as its metric ``val_best.loss`` (tags ``best_trial``, ``best_run``).
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
@@ -353,17 +353,17 @@ def _close_parent(cfg: Config, target: Cell, s) -> None:
     set_parent_status(client, parent, 0)
 
 
-def _no_database(cfg: Config) -> bool:
-    """True when Optuna's SQLite file does not exist: reading a study must not create an empty one there."""
-    db = urls.sqlite_file(optuna_url(cfg))
+def _no_storage(cfg: Config) -> bool:
+    """The studies' SQLite file does not exist: nothing to read (and reading must not create it)."""
+    db = urls.sqlite_file(optuna_url(cfg, probe=False))
     return db is not None and not db.is_file()
 
 
 def load(cfg: Config, name: str):
-    """An existing study (BronchoError naming the studies there when it is not; nothing is created)."""
-    if _no_database(cfg):
-        raise BronchoError(f"no Optuna study named {name!r}: storage.url {urls.redact(cfg.paths.storage_url)} holds "
-                           "no study yet (no database there; check the path, or run `bronchopose tune` first)")
+    """An existing study (BronchoError naming the studies there when it is not); creates nothing."""
+    if _no_storage(cfg):
+        raise BronchoError(f"no Optuna study named {name!r}: storage {urls.redact(cfg.paths.storage_url)} holds no "
+                           "study yet (run `bronchopose tune` first)")
     storage = storage_for(cfg)
     try:
         return optuna.load_study(study_name=name, storage=storage)
@@ -415,6 +415,6 @@ def describe_study(s) -> dict[str, Any]:
 
 
 def list_studies(cfg: Config) -> list[str]:
-    if _no_database(cfg):
+    if _no_storage(cfg):
         return []
     return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))

@@ -65,7 +65,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     parents = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
     assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
     assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
-    assert parents[0].data.metrics["best_val_loss"] == pytest.approx(study.best_value)
+    assert parents[0].data.metrics["val_best.loss"] == pytest.approx(study.best_value)
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
@@ -171,7 +171,7 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
     best = s.best_trial
     assert tags["best_trial"] == str(best.number) and tags["best_run"] == f"run-{best.number}"
     assert {k: float(tags[f"best.{k}"]) for k in params} == pytest.approx(best.params)  # the best trial's values
-    assert metrics["best_val_loss"] == pytest.approx(best.value) and metrics["trials.complete"] == n
+    assert metrics["val_best.loss"] == pytest.approx(best.value) and metrics["trials.complete"] == n
     artifacts = {a.path for a in client.list_artifacts(parent)}
     assert ("param_importances.png" in artifacts) == plot
     if plot:  # train.lr decides the loss: the evaluator must find it far more important than the noise
@@ -180,5 +180,5 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
         assert not any(k.startswith("importance.") for k in metrics)
     assert (caveat in tags["importances"]) if caveat else "importances" not in tags
     note = tags["mlflow.note.content"]  # the description says the same, best trial first
-    assert f"Best: trial #{best.number}, best_val_loss {best.value:.5g}, with `train.lr` = " in note
+    assert f"Best: trial #{best.number}, val_best.loss {best.value:.5g}, with `train.lr` = " in note
     assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
