@@ -27,7 +27,7 @@ from . import geometry
 from .config import DEFAULT_CONFIG, load_config
 from .inference import loading, reader, trajectory
 from .inference.mlflow_model import PoseModel, check_frames, warn_resize
-from .runs.client import client_for
+from .runs.client import client_for, require_store
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score"]
 
@@ -44,7 +44,9 @@ def load_model(reference: str, *, mlflow_uri: str | None = None,
     elif (Path(reference).expanduser() / "MLmodel").is_file():
         return loading.load_local(Path(reference).expanduser())
     else:
-        client = client_for(load_config(config))
+        cfg = load_config(config)
+        require_store(cfg)  # a mistyped runs.uri: one line, no empty store created
+        client = client_for(cfg)
     return loading.load(client, reference).model
 
 

@@ -125,6 +125,9 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "--set of an unknown section": (lambda p: ["config", *C(p), "--set", "foo.bar.baz=1"], 2,
                                     "--set foo.bar.baz=1: foo: unknown key 'foo'"),
     "--set into a value": (lambda p: ["config", *C(p), "--set", "name.x=1"], 2, "'name' in 'name.x' is a value"),
+    "--set grid.* that every stage overrides": (
+        lambda p: ["config", *C(p), "--set", "stages=[{name: a, grid: {arch: [lstm]}}]", "--set", "grid.arch=[conv3d]"],
+        2, "--set grid.arch=[conv3d]: has no effect: the stages decide the cells and every stage sets arch itself"),
     "password in a bad value": (lambda p: ["config", *C(p), "--set", "storage.url=[postgresql://u:hunter2@h/db]"],
                                 2, "postgresql://u:***@h/db"),
     # -- flags -------------------------------------------------------------------------
@@ -164,6 +167,11 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "missing frame file": (lambda p: ["data", "stats", str(_remove_frame(p))], 2, "not found"),
     "corrupt --latency-from": (lambda p: ["report", *C(p), "--latency-from", str(p.write("lat.json", "[{"))], 2,
                                "--latency-from"),
+    "mistyped runs.uri (track)": (lambda p: ["track", str(p.root / "data" / "tiny" / "p00" / "ur"), *C(p), "--run",
+                                             "0" * 32, "--set", "runs.uri=sqlite:///runs/mlfow.db"], 2,
+                                  "runs.uri sqlite:///"),
+    "mistyped storage.url (tune --show)": (lambda p: ["tune", *C(p), "--show", "--study", "s", "--storage",
+                                                      "sqlite:///runs/swep.db"], 2, "holds no study yet"),
     # -- servers that are down or never answer ------------------------------------------------
     "hung tracking server (report)": (lambda p: ["report", *C(p), "--set", f"runs.uri={hung(p)}"], 2,
                                       "no answer within 1 s"),

@@ -74,9 +74,10 @@ def test_env_vars_expand_in_urls(tmp_path, monkeypatch):
 
 
 def test_profile_and_set_overrides_apply_in_order(repo):
-    cfg = C.load_config(repo / "experiments.yaml", "paper", ["train.lr=3e-4", "grid.arch=lstm"])
+    cfg = C.load_config(repo / "experiments.yaml", "paper", ["train.lr=3e-4", "grid.seed=4"])
     assert cfg.dataset.generate.image_size == 256  # from the profile
-    assert cfg.train.lr == 3e-4 and cfg.grid.arch == ["lstm"]  # --set wins, scalars become lists
+    assert cfg.train.lr == 3e-4 and cfg.grid.seed == [4]  # --set wins, scalars become lists
+    # (grid.arch would be refused here: every stage of the paper profile decides arch itself)
     assert cfg.profile == "paper"
 
 
@@ -262,3 +263,35 @@ def test_paper_profile_follows_the_authors_code_where_the_text_differs(repo):
     assert cfg.train.batch_size == 4 * 9 and cfg.train.effective_batch == 512 * 9 == 4608
     assert (cfg.splits.train, cfg.splits.val, cfg.splits.test) == (12, 3, 3)
     assert cfg.dataset.generate.trajectories == 12 + 3 + 3
+
+
+STAGED = """\
+    name: t
+    grid: {arch: [baseline], rot_loss: [mse], population: [personalized], seed: [0]}
+    stages:
+      - {name: a, grid: {arch: [lstm]}}
+      - {name: b, select: {top: 1}, grid: {population: [cross-subject], folds: [p00]}}
+"""
+
+
+def test_a_set_grid_field_the_stages_decide_is_refused_or_warned_never_dropped(tmp_path, caplog):
+    path = write(tmp_path, STAGED)
+    # arch: stage a's own grid sets it, stage b takes it from a's selection: the --set would change nothing
+    with pytest.raises(ConfigError, match=r"--set grid.arch=\[conv3d\]: has no effect: the stages decide the cells "
+                                          r"and every stage sets arch itself \(a: its grid sets arch; b: selected "
+                                          r"from the previous stage\)"):
+        C.load_config(path, overrides=["grid.arch=[conv3d]"])
+    with pytest.raises(ConfigError, match="--set grid={arch: \\[conv3d\\]}: has no effect"):  # the whole grid, too
+        C.load_config(path, overrides=["grid={arch: [conv3d]}"])
+    # rot_loss: stage a reads the top-level grid, stage b its selection: applied, with one warning saying so
+    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):
+        cfg = C.load_config(path, overrides=["grid.rot_loss=[ce]"])
+    assert cfg.stages[0].stage_grid(cfg.grid).rot_loss == ["ce"]
+    (record,) = caplog.records
+    assert record.getMessage() == ("--set grid.rot_loss=[ce]: applies to stage(s) a only; the others set rot_loss "
+                                   "themselves (b: selected from the previous stage)")
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):  # seed: every stage reads it
+        cfg = C.load_config(path, overrides=["grid.seed=[1,2]"])
+    assert not caplog.records and cfg.stages[1].stage_grid(cfg.grid).seed == [1, 2]
+    assert C.load_config(write(tmp_path, "name: t\n"), overrides=["grid.arch=[conv3d]"]).grid.arch == ["conv3d"]

@@ -4,6 +4,7 @@ writes and reads only its own store, and ``--set runs.artifacts=...`` takes effe
 from __future__ import annotations
 
 import hashlib
+import json
 import subprocess
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from tinyproject import write_config
 from bronchocli.config import load_config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.runs.relocation import _local_path
+from bronchocli.runs.relocation import _local_path, moved_roots, relocated_source
 
 TRAIN = ["-a", "baseline", "-l", "mse", "-P", "personalized"]
 
@@ -63,7 +64,23 @@ def test_a_copied_project_writes_and_reads_only_its_own_store(cli, original, tmp
         where = _local_path(run.info.artifact_uri)
         assert where is not None and where.is_relative_to(copy / "runs" / "artifacts"), run.info.artifact_uri
         assert any(where.rglob("*")), f"no artifacts under {where}"
+        # dataset inputs resolve like artifacts: the copy's own dataset, for the old run and the new one
+        sources = {json.loads(d.dataset.source)["uri"] for d in run.inputs.dataset_inputs}
+        assert sources == {(copy / "tiny").as_uri()}, sources
     assert tree_hash(original) == before  # the original's tree is byte-identical
+
+
+def test_dataset_sources_move_only_with_the_project(tmp_path):
+    old, new = tmp_path / "a" / "orig", tmp_path / "b" / "copy"
+    assert moved_roots(old / "runs" / "artifacts", new / "runs" / "artifacts") == (old, new)
+    (new / "data" / "tiny").mkdir(parents=True)
+    source = json.dumps({"uri": (old / "data" / "tiny").as_uri()})
+    assert json.loads(relocated_source(source, old, new))["uri"] == (new / "data" / "tiny").as_uri()
+    outside = json.dumps({"uri": (tmp_path / "shared" / "tiny").as_uri()})
+    assert relocated_source(outside, old, new) is None  # a dataset outside the project stays where it is
+    not_copied = json.dumps({"uri": (old / "data" / "other").as_uri()})
+    assert relocated_source(not_copied, old, new) is None  # not in the copy: the old path is the only one
+    assert relocated_source("not json", old, new) is None
 
 
 def test_a_changed_artifact_root_is_refused_in_one_line_until_the_folder_moves(cli, original, tmp_path):

@@ -6,7 +6,7 @@ import pytest
 
 from bronchocli.config import Config
 from bronchocli.runs.client import client_for, experiment_id
-from bronchocli.runs.parents import set_parent_status, study_parent, sweep_parent
+from bronchocli.runs.parents import log_plan_params, set_parent_status, study_parent, sweep_parent
 from bronchocli.runs.records import source_name
 from bronchocli.runs.views import README_RATIO, describe, headline, ordered_metrics, run_params, runs_table_url
 
@@ -81,7 +81,13 @@ def test_parent_run_is_created_once_and_found_again(tmp_path):
     assert sweep_parent(client, cfg, exp) == first  # found by its tags, not made twice
     run = client.get_run(first)
     assert run.data.tags["run_kind"] == "sweep" and run.data.tags["sweep"] == "par"
-    assert run.data.params["grid.arch"].startswith("['baseline'")  # the grid lives on the parent
+    # the shared settings, not the config's grid lists (what ran is the plan's: sweep/summary.py)
+    assert "splits.train" in run.data.params and not any(k.startswith(("grid.", "stages.")) for k in run.data.params)
+    assert log_plan_params(client, first, {"stage.grid.arch": "lstm", "stage.grid.cells": "2"}) == []
+    assert log_plan_params(client, first, {"stage.grid.arch": "lstm,conv3d", "stage.grid.cells": "2"}) == [
+        "stage.grid.arch"]  # a changed plan: the param keeps what ran first, a tag of that name the latest
+    run = client.get_run(first)
+    assert run.data.params["stage.grid.arch"] == "lstm" and run.data.tags["stage.grid.arch"] == "lstm,conv3d"
     study = study_parent(client, cfg, exp, "s1", cfg.cell(arch="lstm", rot_loss="mse",
                                                                     population="personalized"))
     assert study != first and client.get_run(study).data.params["arch"] == "lstm"

@@ -48,6 +48,8 @@ def report(
     image_size: Optional[int] = typer.Option(None, "--image-size", help="Ablation profiling input size "
                                              "(default: data.image_size or dataset.generate.image_size)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Do not print the tables."),
+    to_parent: bool = typer.Option(True, "--log-to-parent/--no-log-to-parent", help="Also log the written files "
+                                   "to the sweep's parent MLflow run (artifacts report/), to read them in the UI."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -66,8 +68,9 @@ def report(
     ‡ = the model ignores its input. Only runs whose cell_key is a cell of the
     config count (--sweep NAME: a stored sweep without the config). Figures
     (PNG + PDF): trajectories, error vs frame, skill per table, the learning
-    curve (several train_trajectories), dataset frames and positions.
-    See docs/reports.md.
+    curve (several train_trajectories), dataset frames and positions. The
+    written files are also logged to the sweep's parent MLflow run (artifacts
+    report/). See docs/reports.md.
     """
     from ..reporting import entry  # lazy: keeps `bronchopose --help` fast
     from ..reporting import report as rep
@@ -83,4 +86,4 @@ def report(
                  include_other_configs=include_other_configs, best=best,
                  figures=table == "all" if figures is None else figures, trajectories=trajectories,
                  profiles=given_profiles, latency=latency, latency_device=latency_device, image_size=image_size,
-                 quiet=quiet, console=console, err_console=err_console)
+                 quiet=quiet, to_parent=to_parent, console=console, err_console=err_console)

@@ -56,8 +56,9 @@ def track(
     client = None
     if best:  # a report table's choice: resolved here, reporting sits above inference
         from ..reporting.best import best_run  # lazy: the report's run collection only for --best
-        from ..runs.client import client_for
+        from ..runs.client import client_for, require_store
 
+        require_store(cfg)
         client = client_for(cfg)
         chosen_best = best_run(client, cfg, best)
         console.print(chosen_best.describe())

@@ -115,6 +115,36 @@ class Stage(Section):
         return Grid.model_validate({**base.model_dump(), **self.grid})
 
 
+def decided_by_stages(stages: Sequence[Stage], field: str) -> dict[str, str]:
+    """The stages that decide grid field ``field`` themselves, each with how (its own grid, its selection):
+    the top-level ``grid.<field>`` does not reach their cells."""
+    out = {}
+    for st in stages:
+        if field in st.grid:
+            out[st.name] = f"its grid sets {field}"
+        elif st.select is not None and field in st.select.over:
+            out[st.name] = f"selected from stage {st.source}" if st.source else "selected from the previous stage"
+    return out
+
+
+def override_problem(stages: Sequence[Stage], key: str, text: str) -> tuple[str, bool]:
+    """What a ``--set`` of ``grid.<field>`` (``text``) does under ``stages``: ("", _) when it applies to every
+    stage; else the one line saying which stages decide the field themselves, and whether it reaches none."""
+    parts = key.split(".")
+    if not stages or parts[0] != "grid" or len(parts) != 2:
+        return "", False
+    decided = decided_by_stages(stages, parts[1])
+    if not decided:
+        return "", False
+    how = "; ".join(f"{name}: {why}" for name, why in decided.items())
+    if len(decided) == len(stages):
+        return (f"--set {text}: has no effect: the stages decide the cells and every stage sets {parts[1]} itself "
+                f"({how}); change the stages (experiments.yaml, or --set stages=[...]) or pick cells with "
+                "--only", True)
+    rest = ", ".join(st.name for st in stages if st.name not in decided)
+    return (f"--set {text}: applies to stage(s) {rest} only; the others set {parts[1]} themselves ({how})", False)
+
+
 # Sections that change what a run computes; runs, storage, tune, sweep, slurm and
 # profiles do not, so moving the MLflow store never invalidates finished cells.
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")

@@ -19,6 +19,7 @@ import yaml
 
 from .. import pathcheck, urls
 from ..errors import ConfigError
+from .grid import override_problem
 from .schema import Config, set_path, validate
 
 DEFAULT_CONFIG = "experiments.yaml"
@@ -226,10 +227,34 @@ def load_config(
         raw = deep_merge(raw, profiles[profile])
         prefix = ("profiles", profile)
         lines = {**lines, **{k[2:]: v for k, v in lines.items() if k[:2] == prefix}}
+    keys = []
     for text in overrides:
         key, value = parse_override(text)
         key = renamed_key(key, f"--set {text}")
         set_path(raw, key, value, where=f"--set {text}")
         _blame_override(lines, tuple(key.split(".")), f"--set {text}")
-    return validate(raw, str(path), lines, path.resolve().parent, profile)
+        keys.append((key, text))
+    cfg = validate(raw, str(path), lines, path.resolve().parent, profile)
+    _check_plan_overrides(cfg, keys)
+    return cfg
+
+
+def _check_plan_overrides(cfg: Config, keys: Sequence[tuple[str, str]]) -> None:
+    """A ``--set grid.<field>`` that the stages override is refused (no stage uses it) or warned (some ignore
+    it), in one line saying what decides the cells: never silently dropped."""
+    for key, text in keys:
+        for field in _grid_fields(key, text):
+            message, refused = override_problem(cfg.stages, field, text)
+            if refused:
+                raise ConfigError(urls.redact(message))
+            if message:
+                log.warning("%s", urls.redact(message))
+
+
+def _grid_fields(key: str, text: str) -> list[str]:
+    """The ``grid.<field>`` paths a ``--set`` writes (``grid={arch: [...]}`` writes each of its keys)."""
+    if key == "grid":
+        value = parse_override(text)[1]
+        return [f"grid.{k}" for k in value] if isinstance(value, dict) else []
+    return [key] if key.startswith("grid.") else []
 

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.table import Table
 
 from ..config import Config
-from ..runs.client import client_for
+from ..runs.client import client_for, require_store
 from . import loading, trajectory
 from .reader import FrameInput, GroundTruth
 
@@ -48,6 +48,8 @@ def track(cfg: Config, inp: FrameInput, reference: str, out: Path, *, first_pose
     """Track the camera through ``inp`` with the model of ``reference`` (a run id or an MLflow model URI) and
     write the results to ``out``; with ``register``, also register the model under that name. ``client``: the
     config's MLflow client when the caller has one open. Returns the files written."""
+    if client is None and not Path(reference).expanduser().is_dir():  # a model folder needs no store
+        require_store(cfg)
     client = client or client_for(cfg)
     loaded = loading.load(client, reference)
     if register:

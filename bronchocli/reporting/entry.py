@@ -25,10 +25,11 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
            sweep: str | None = None, pose_frame: str | None = None, include_other_configs: bool = False,
            best: int = 0, figures: bool = True, trajectories: int = 4, profiles: Profiler | None = None,
            latency: bool = True, latency_device: str = "cpu", image_size: int | None = None, quiet: bool = False,
-           console: Console, err_console: Console) -> None:
+           to_parent: bool = True, console: Console, err_console: Console) -> None:
     """Write the tables ``names`` (and, with ``figures``, the figures) of the config's runs (or of stored sweep
     ``sweep``) to ``out``. The ablation table's latency/GMAC come from ``profiles`` (``--latency-from``), else
-    are measured (``latency``) at ``image_size`` on ``latency_device``, else stay empty."""
+    are measured (``latency``) at ``image_size`` on ``latency_device``, else stay empty. With ``to_parent``
+    the written files are also logged to the sweep's parent MLflow run (``report/`` artifacts)."""
     client = rep.open_store(cfg)
     index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
     console.print(rep.summary_index(index))
@@ -60,3 +61,5 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     for w in dict.fromkeys([w for t in result.tables for w in t.warnings] + result.warnings):
         err_console.print(f"[yellow]warning:[/] {w}", highlight=False, soft_wrap=True)
     console.print(f"wrote {len(result.files)} file(s) to {out}/: " + ", ".join(p.name for p in result.files))
+    if to_parent and result.files:
+        console.print(rep.log_to_parent(client, cfg, index.sweep, out, result.files), highlight=False)

@@ -17,11 +17,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from .. import urls
 from ..config import Config
 from ..errors import BronchoError, DataError
 from ..io import TEMP_SUFFIX, save_figure, write_text
-from ..runs.client import client_for, redacted_uri
+from ..runs.client import client_for, require_store
+from ..runs.parents import KIND_SWEEP, REPORT_FOLDER, find_parent, log_report
+from ..runs.relocation import writes_here
 from . import dataset_figures as dataset_figs
 from .collect import RunIndex, collect_runs
 from .context import NoData, Profiler
@@ -166,11 +167,26 @@ def summary_index(index: RunIndex) -> str:
 
 def open_store(cfg: Config):
     """The config's MLflow client; a missing SQLite store is an error here (a report must not create one)."""
-    db = urls.sqlite_file(cfg.paths.mlflow_uri)
-    if db is not None and not db.is_file():
-        raise BronchoError(f"runs.uri {redacted_uri(cfg)}: no MLflow store there yet; "
-                           f"run `bronchopose sweep` or `bronchopose train` first")
+    require_store(cfg)
     return client_for(cfg, reading=True)
+
+
+def log_to_parent(client, cfg: Config, sweep: str, out: Path, files: Sequence[Path]) -> str:
+    """The report's files as artifacts of the sweep's parent run (under ``report/``, the layout of ``out``), so
+    the MLflow UI shows the sweep's tables and figures; returns the line to print (what was logged, or why not).
+
+    Nothing is created: no parent (runs made by ``train``, not a sweep), or a parent whose artifacts live
+    outside this project's ``runs.artifacts`` (a store read where another project keeps them), is one line.
+    """
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    parent = find_parent(client, exp.experiment_id, KIND_SWEEP, sweep) if exp is not None else None
+    if parent is None:
+        return f"not logged to MLflow: sweep {sweep!r} has no parent run (its runs were not made by `sweep`)"
+    if not writes_here(cfg, client.get_run(parent).info.artifact_uri):
+        return (f"not logged to MLflow: the parent run {parent} of sweep {sweep!r} keeps its artifacts outside "
+                f"runs.artifacts ({cfg.paths.artifacts})")
+    n = log_report(client, parent, out, files)
+    return f"logged {n} file(s) to the parent run {parent} of sweep {sweep!r} (artifacts {REPORT_FOLDER}/)"
 
 
 def profiles_from_json(path: Path) -> Profiler:

@@ -133,6 +133,20 @@ def client_for(cfg: Config, *, reading: bool = False) -> MlflowClient:
     return BusyRetryClient(client, bound, shown)
 
 
+def store_missing(cfg: Config) -> bool:
+    """True when ``runs.uri`` is a SQLite file that does not exist (opening it would create an empty store)."""
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    return db is not None and not db.is_file()
+
+
+def require_store(cfg: Config) -> None:
+    """Commands that only read runs (report, track, the API's model loading) refuse a missing SQLite store in one
+    line instead of creating an empty one (a mistyped ``runs.uri`` path leaves no file behind)."""
+    if store_missing(cfg):
+        raise BronchoError(f"runs.uri {redacted_uri(cfg)}: no MLflow store there yet; check the path, or run "
+                           "`bronchopose sweep` or `bronchopose train` first")
+
+
 def check_reachable(cfg: Config) -> None:
     """Fail within runs.timeout_s (one line) when the config's MLflow server or database does not answer."""
     uri, timeout_s = cfg.paths.mlflow_uri, cfg.runs.timeout_s

@@ -1,14 +1,18 @@
 """Parent runs: one per sweep (``run_kind=sweep``) and one per Optuna study (``run_kind=study``).
 
 Found by tags or created once; cells and trials carry ``mlflow.parentRunId`` so the MLflow UI nests them.
-A parent ends like its command (``set_parent_status``).
+A parent ends like its command (``set_parent_status``). What a parent says about its sweep or study (the
+plan that ran, its outcome, the best trial) is written by the sweep package (``sweep/summary.py``,
+``sweep/tuning.py``) through ``log_plan_params``; ``report`` adds its tables and figures under
+``report/`` (``log_report``).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from contextlib import nullcontext
+from pathlib import Path
 
 from mlflow.tracking import MlflowClient
 
@@ -22,6 +26,7 @@ from .views import cell_params, parent_params
 
 log = logging.getLogger(__name__)
 KIND_SWEEP, KIND_STUDY = "sweep", "study"
+REPORT_FOLDER = "report"  # the parent's artifact folder holding the tables and figures of `report`
 
 
 def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: str,
@@ -70,7 +75,10 @@ def sweep_parent(client: MlflowClient, cfg: Config, exp_id: str, sweep: str | No
     name = sweep or cfg.name
     return parent_run(client, cfg, exp_id, KIND_SWEEP, name, parent_params(cfg),
                       f"Sweep **{name}**: its cells are nested below; the resolved config of each cell is its "
-                      "`config.yaml` artifact, the grid and stages are this run's params.")
+                      "`config.yaml` artifact. This run's params state what ran (each stage's cells and "
+                      "selection: `stage.<name>.*`), its metrics the outcome (`cells.*`, the best cell per stage "
+                      f"by validation: `best.<stage>.*`), its `{REPORT_FOLDER}/` artifacts the tables and figures of "
+                      "`bronchopose report`.")
 
 
 def study_parent(client: MlflowClient, cfg: Config, exp_id: str, study: str, target: Cell) -> str:
@@ -90,3 +98,43 @@ def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:
         client.set_terminated(run_id, "FINISHED" if code == 0 else "KILLED" if code == 130 else "FAILED")
     except Exception as exc:  # noqa: BLE001 - logged; the children carry the results
         log.warning("could not end parent run %s: %s", run_id, exc)
+
+
+def find_parent(client: MlflowClient, exp_id: str, kind: str, name: str) -> str | None:
+    """The run id of an existing parent (sweep or study ``name``); None when there is none (nothing created)."""
+    found = search_runs(client, [exp_id], {TAG_KIND: kind, TAG_SWEEP if kind == KIND_SWEEP else "study": name},
+                        max_results=1)
+    return found[0].info.run_id if found else None
+
+
+def log_plan_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> list[str]:
+    """Log the params the parent does not have yet; returns the keys whose logged value differs.
+
+    MLflow params never change, and a sweep keeps its parent when its config changes (cells are found by
+    key, not by plan). A differing value is set as a tag of the same key instead (the UI shows tags
+    beside params), with one warning: the params then say what ran first, the tags what the latest plan says.
+    """
+    have = client.get_run(run_id).data.params
+    new = {k: v for k, v in params.items() if k not in have}
+    changed = {k: v for k, v in params.items() if k in have and have[k] != str(v)[:6000]}
+    if new:
+        log_params(client, run_id, new)
+    for key, value in changed.items():
+        client.set_tag(run_id, key, value)
+    if changed:
+        log.warning("the plan changed since parent run %s logged it (%s): its params keep the first values, "
+                    "its tags of the same names hold the latest", run_id, ", ".join(sorted(changed)))
+    return sorted(changed)
+
+
+def log_report(client: MlflowClient, run_id: str, folder: str | Path, files: Sequence[str | Path]) -> int:
+    """The report's ``files`` (under ``folder``) as the parent's artifacts under ``report/``, same layout;
+    returns how many were logged."""
+    folder = Path(folder)
+    n = 0
+    for f in files:
+        rel = Path(f).resolve().relative_to(folder.resolve())
+        sub = (Path(REPORT_FOLDER) / rel.parent).as_posix()
+        client.log_artifact(run_id, str(f), sub)
+        n += 1
+    return n

@@ -11,9 +11,10 @@ params, so a run logs as params what tells runs apart, not the whole config:
   run changed (speed settings such as ``train.threads`` included: they
   explain timing differences).
 
-The full resolved config stays the ``config.yaml`` artifact; the grid, stages,
-storage and MLflow settings (the same on every run of a sweep) go on the
-sweep's parent run. The coordinates stay tags too: report, status and the
+The full resolved config stays the ``config.yaml`` artifact; the splits and
+dataset settings (the same on every run of a sweep) go on the sweep's parent
+run, beside what its plan ran (``sweep/summary.py``: stages and cells, not the
+config's grid lists, which stages and selections override). The coordinates stay tags too: report, status and the
 sweep find runs by tags.
 
 Headline metrics (``headline``): the image-blind references as ratios and
@@ -36,7 +37,7 @@ from ..config import RUN_SECTIONS, Config
 from .records import flatten
 
 ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
-PARENT_SECTIONS = ("name", "grid", "stages", "splits", "dataset")  # shown as params on a sweep's parent
+PARENT_SECTIONS = ("name", "splits", "dataset")  # shown as params on a sweep's parent (the plan: sweep/summary.py)
 
 REFERENCES = ("zero_motion", "train_mean")
 HEADLINE_EVALS = ("pair", "acc")
@@ -70,7 +71,7 @@ def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
 
 
 def parent_params(cfg: Config) -> dict[str, str]:
-    """A sweep's settings, for its parent run: the grid and stages, shared by every cell."""
+    """A sweep's settings shared by every cell, for its parent run (what the plan ran: ``sweep/summary.py``)."""
     data = cfg.dump()
     return flatten({k: data[k] for k in PARENT_SECTIONS if k in data})
 

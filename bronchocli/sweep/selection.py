@@ -33,13 +33,13 @@ TAG_STAGE = "stage"
 TAG_PLAN = "plan_key"
 
 
-def _finished_runs(cfg: Config, cells: Sequence[Cell]) -> dict[str, Any]:
-    """The latest FINISHED MLflow run of each cell key (missing keys: no FINISHED run)."""
+def finished_runs(cfg: Config, cells: Sequence[Cell], sweep: str | None = None) -> dict[str, Any]:
+    """The latest FINISHED MLflow run of each cell key of sweep ``sweep`` (default: the config's; missing keys:
+    no FINISHED run)."""
     client = client_for(cfg)
     exp = experiment_id(client, cfg)
     keys = {c.key for c in cells}
-    runs = search_runs(client, [exp], {TAG_SWEEP: cfg.name, TAG_KIND: "cell"},
-                                ["FINISHED"])
+    runs = search_runs(client, [exp], {TAG_SWEEP: sweep or cfg.name, TAG_KIND: "cell"}, ["FINISHED"])
     out: dict[str, Any] = {}
     for r in runs:  # newest first
         k = r.data.tags.get(TAG_CELL_KEY)
@@ -52,7 +52,7 @@ def compute_selection(cfg: Config, stage: Stage, source: Stage, source_cells: Se
     """Rank the source stage's combinations by the mean of ``select.by`` over their FINISHED runs; keep ``top``."""
     sel = stage.select
     assert sel is not None
-    runs = _finished_runs(cfg, source_cells)
+    runs = finished_runs(cfg, source_cells)
     groups: dict[tuple, list[tuple[Cell, Any]]] = {}
     for c in source_cells:
         groups.setdefault(tuple(getattr(c, f) for f in sel.over), []).append((c, runs.get(c.key)))

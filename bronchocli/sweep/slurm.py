@@ -44,6 +44,7 @@ from ..config import Config
 from ..errors import BronchoError
 from ..io import atomic_path
 from ..retry import retry
+from . import summary
 from .plan import Plan, StageWalk, add_cells, cells_left, prepare_walk
 from .selection import describe_selection
 from .status import live_view, progress, summary_line
@@ -274,10 +275,13 @@ def launch(cfg: Config, store: SweepStore, only: Selection, command: Sequence[st
         tasks = sweep_tasks(cfg)
         console.print(f"nothing new to submit: {sum(t.count for t in tasks)} task(s) of this sweep queued or running"
                       if tasks else "nothing left to run")
+    summary.record_sweep_parent(walk)  # the plan on the sweep's parent run; the outcome once watching ends
     if detach:
         console.print("detached: `bronchopose status` shows progress, `bronchopose sweep --cancel` stops the jobs")
         return 0
-    return watch(walk, command, console)
+    code = watch(walk, command, console)
+    summary.record_sweep_parent(walk, finished=True)
+    return code
 
 
 def _table_state(plan: Plan) -> tuple:

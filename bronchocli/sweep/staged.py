@@ -26,6 +26,7 @@ from .pool import EXIT_INTERRUPTED, run_pool
 from .selection import describe_selection
 from .status import failures, plan_table, progress, summary_line
 from .storage import FINISHED, SweepStore
+from .summary import record_parent
 from .worker import EXIT_OK, Runner, StopSignals, Worker, default_runner
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,8 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
               retry_failed: bool = False, gpus: Sequence[str] = (), runner: Runner = default_runner) -> int:
     """Run every stage; exit code 0 (all FINISHED), 1 (some FAILED), 130 (interrupted).
 
-    The sweep's parent MLflow run (its cells nest under it) is RUNNING while this runs and ends like it.
+    The sweep's parent MLflow run (its cells nest under it) is RUNNING while this runs and ends like it, with
+    the plan, its selections and its outcome recorded (``summary.record_parent``).
     """
     console.print(f"[bold]sweep[/] {cfg.name}  storage {store.redacted}  MLflow {urls.redact(cfg.paths.mlflow_uri)}"
                   f"  experiment {cfg.experiment_name}" + (f"  hyperparameters {cfg.tune.applied}"
@@ -76,12 +78,14 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
     client.update_run(parent, "RUNNING")
     code = 1
     try:
+        record_parent(client, parent, walk)  # the plan; the outcome when the sweep ends (finally)
         code = _run_stages(walk, workers=workers, console=console, gpus=gpus, runner=runner)
         return code
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
         raise
     finally:
+        record_parent(client, parent, walk, finished=True)
         set_parent_status(client, parent, code)
 
 

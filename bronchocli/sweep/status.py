@@ -23,7 +23,7 @@ from .. import cells
 from ..config import Config
 from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
-from ..runs.client import client_for
+from ..runs.client import client_for, store_missing
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
 from .selection import describe_selection
@@ -124,7 +124,7 @@ def live_view(plan: Plan, max_retries: int, workers: int, now: float | None = No
 
 def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, Any]]:
     """Headline metrics and timing of each MLflow run (missing runs are skipped)."""
-    if not run_ids:
+    if not run_ids or store_missing(cfg):  # a mistyped runs.uri: rows without metrics, no empty store made
         return {}
     client = client_for(cfg, reading=True)
     out: dict[str, dict[str, Any]] = {}

@@ -36,8 +36,9 @@ from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
 from ..runs.contract import RunPruned, cpu_threads
 from ..runs.parents import set_parent_status, study_parent
-from ..runs.records import TAG_PARENT, log_metrics
+from ..runs.records import TAG_PARENT
 from .storage import StorageError
+from .summary import log_study
 
 log = logging.getLogger(__name__)
 
@@ -317,7 +318,7 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
     """Tune with ``workers`` local processes (1: in this process); returns the study.
 
     The study's parent MLflow run is created before the workers start and ends with the best trial's
-    validation loss as its metric ``best_val_loss`` (tags ``best_trial``, ``best_run``).
+    validation loss as its metric ``val_best.loss`` (tags ``best_trial``, ``best_run``).
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
@@ -341,25 +342,29 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
 
 
 def _close_parent(cfg: Config, target: Cell, s) -> None:
-    """The best trial so far on the study's parent run, which ends FINISHED (best effort)."""
+    """The study's outcome on its parent run (``summary.log_study``), which ends FINISHED (best effort)."""
     parent = study_parent_or_none(cfg, target, s.study_name)
     if parent is None:
         return
     client = client_for(cfg)
     try:
-        best = s.best_trial
-        log_metrics(client, parent, {"best_val_loss": best.value, "trials.finished": finished(s)},
-                             step=best.number)
-        for key, value in (("best_trial", str(best.number)), ("best_run", best.user_attrs.get(ATTR_RUN))):
-            if value:
-                client.set_tag(parent, key, value)
-    except ValueError:  # no completed trial yet
-        pass
+        log_study(client, parent, describe_study(s), finished(s))
+    except Exception as exc:  # noqa: BLE001 - the trials' runs and the study hold the results either way
+        log.warning("could not record study %s on its parent run %s: %s", s.study_name, parent, exc)
     set_parent_status(client, parent, 0)
 
 
+def _no_storage(cfg: Config) -> bool:
+    """The studies' SQLite file does not exist: nothing to read (and reading must not create it)."""
+    db = urls.sqlite_file(optuna_url(cfg, probe=False))
+    return db is not None and not db.is_file()
+
+
 def load(cfg: Config, name: str):
-    """An existing study (BronchoError naming the studies there when it is not)."""
+    """An existing study (BronchoError naming the studies there when it is not); creates nothing."""
+    if _no_storage(cfg):
+        raise BronchoError(f"no Optuna study named {name!r}: storage {urls.redact(cfg.paths.storage_url)} holds no "
+                           "study yet (run `bronchopose tune` first)")
     storage = storage_for(cfg)
     try:
         return optuna.load_study(study_name=name, storage=storage)
@@ -387,7 +392,12 @@ def apply_best(cfg: Config, name: str) -> Config:
 
 def summary(cfg: Config, name: str) -> dict[str, Any]:
     """Counts, best trial and parameter importances of a study (for ``tune --show``)."""
-    s = load(cfg, name)
+    return describe_study(load(cfg, name))
+
+
+def describe_study(s) -> dict[str, Any]:
+    """Counts, best trial and parameter importances of a loaded study."""
+    name = s.study_name
     states = optuna.trial.TrialState
     trials = s.get_trials(deepcopy=False)
     counts = {st.name.lower(): sum(t.state == st for t in trials) for st in states}
@@ -406,4 +416,6 @@ def summary(cfg: Config, name: str) -> dict[str, Any]:
 
 
 def list_studies(cfg: Config) -> list[str]:
+    if _no_storage(cfg):
+        return []
     return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))

@@ -1,10 +1,17 @@
-"""Report tests on real models: the profiler hook of the ablation table, and a tiny real sweep -> report."""
+"""Report tests on real models: the profiler hook of the ablation table, and a tiny real sweep -> report (and
+the sweep's parent run: its plan, outcome and the report's files as artifacts)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from tinydata import write_tiny_dataset
 
+from bronchocli.config import load_config
 from bronchocli.reporting.report import measuring_profiler
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import search_runs
+from bronchocli.runs.views import README_RATIO
 
 
 def test_the_measuring_profiler_returns_the_keys_the_ablation_table_reads():
@@ -40,10 +47,11 @@ eval: {{rpe_gap: 3}}
     code, _, stderr = cli("sweep", "-c", str(cfg))
     assert code == 0, stderr
     out = tmp_path / "reports"
-    code, _, stderr = cli("report", "-c", str(cfg), "--table", "sota", "--figures", "--no-latency", "-q",
-                          "--out", str(out))
+    code, stdout, stderr = cli("report", "-c", str(cfg), "--table", "sota", "--figures", "--no-latency", "-q",
+                               "--out", str(out))
     assert code == 0, stderr
     names = {p.name for p in out.iterdir()}
+    check_parent(load_config(cfg), names, stdout)
     assert {"table6-sota-accumulated.md", "table6-sota-pair.tex"} <= names
     for stem in ("fig5-trajectories", "fig-skill-table6-sota-pair", "fig-dataset-frames"):
         assert {f"{stem}.png", f"{stem}.pdf"} <= names
@@ -61,3 +69,22 @@ eval: {{rpe_gap: 3}}
         row = next((line for line in tracking.splitlines() if line.startswith(model)), tracking)
         assert "—" not in row and row.count("[") == 7, row  # CTF, CTF mm, ATE vox/mm, RPE trans/rot, drift
     assert "RPE gap 3 frames" in tracking and not (out / "table9-tracking-pair.md").exists()
+
+
+def check_parent(cfg, written: set[str], stdout: str) -> None:
+    """The sweep's parent run: the plan that ran, the best cell with its headline, and the report's files among
+    its artifacts (report/), read back through the MLflow client as the UI reads them."""
+    client = client_for(cfg)
+    (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "sweep"})
+    params, metrics, tags = parent.data.params, parent.data.metrics, parent.data.tags
+    assert params["stage.sota.arch"] == "convlstm,offsetnet" and params["stage.sota.rot_loss"] == "ce,mse"
+    assert params["stage.sota.cells"] == "2" and params["cells"] == "2" and "grid.arch" not in params
+    assert (metrics["cells.finished"], metrics["cells.failed"]) == (2, 0)
+    best = client.get_run(tags["best.sota.run"])
+    assert metrics["best.sota.val_best.pos_l2"] == best.data.metrics["val_best.pos_l2"]
+    assert metrics[f"best.sota.{README_RATIO}"] == best.data.metrics[README_RATIO]  # its headline, as logged
+    logged = {Path(a.path).name for a in client.list_artifacts(parent.info.run_id, "report")}
+    assert written <= logged and "table6-sota-pair.md" in logged and "fig5-trajectories.png" in logged
+    table = Path(client.download_artifacts(parent.info.run_id, "report/table6-sota-pair.md")).read_text()
+    assert "| BronchoTrack (ConvLSTM, MSE+CE) |" in table
+    assert f"logged {len(written)} file(s) to the parent run {parent.info.run_id}" in stdout

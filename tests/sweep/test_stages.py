@@ -85,11 +85,47 @@ def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_d
     payload = json.loads(open(client.download_artifacts(rec.info.run_id, "selection.json")).read())
     assert payload["selected"] == [{"arch": "lstm", "rot_loss": "ce"}, {"arch": "convlstm", "rot_loss": "mse"}]
     assert [e["runs"] for e in payload["ranked"]] == [2] * 6  # every combination, both seeds, with its value
+    check_parent(client, parent[0].info.run_id, stages)
 
     code, out, _ = cli("status", "-c", path)
     assert code == 0 and "stage cross-subject: top 2 of stage personalized by val_best.pos_l2" in out
     code, out, _ = cli("sweep", "-c", path, *FAKE)  # all done: nothing runs again
     assert code == 0 and "nothing left to run" in out and len(runs_by_cell(project)) == 18
+
+
+def check_parent(client, run_id: str, stages) -> None:
+    """The sweep's parent states what ran (stages, their cells and selections; not the config's grid lists)
+    and the outcome (cells finished/failed, the best cell per stage by validation with its test figure)."""
+    run = client.get_run(run_id)
+    params, metrics, tags = run.data.params, run.data.metrics, run.data.tags
+    assert run.info.status == "FINISHED"
+    assert not any(k.startswith(("grid.", "stages.")) for k in params), sorted(params)  # no config grid lists
+    assert params["stages"] == "personalized,cross-subject,sota" and params["cells"] == "18"
+    assert {k: params[f"stage.personalized.{k}"] for k in ("cells", "arch", "rot_loss", "population", "seed")} == {
+        "cells": "12", "arch": "baseline,lstm,convlstm", "rot_loss": "mse,ce", "population": "personalized",
+        "seed": "0,1"}
+    assert "stage.personalized.fold" not in params  # no personalized cell has a held-out patient
+    assert params["stage.cross-subject.select"] == "top 2 of personalized by val_best.pos_l2 over arch,rot_loss"
+    assert params["stage.cross-subject.selected"] == "lstm/ce,convlstm/mse"
+    assert (params["stage.cross-subject.arch"], params["stage.cross-subject.fold"]) == ("lstm,convlstm", "p00")
+    assert params["stage.sota.selected"] == "lstm/ce" and params["stage.sota.arch"] == "lstm,offsetnet"
+    assert "lstm/ce 0.1" in tags["selection.cross-subject"] and "by val_best.pos_l2" in tags["selection.sota"]
+    assert (metrics["cells.planned"], metrics["cells.finished"], metrics["cells.failed"]) == (18, 18, 0)
+    assert metrics["best.personalized.val_best.pos_l2"] == pytest.approx(0.1)  # lstm/ce, the validation's best
+    assert metrics["best.personalized.pair.pos_l2.mean"] == pytest.approx(9.9)  # its test figure (fake: 10 - val)
+    assert tags["best.personalized.cell"].startswith("lstm/ce/personalized/")
+    best = client.get_run(tags["best.personalized.run"])
+    assert (best.data.tags["arch"], best.data.tags["rot_loss"]) == ("lstm", "ce")
+    values = {c.label: v for c in stages["sota"].cells
+              for v in [search_runs(client, [run.info.experiment_id], {"cell_key": c.key})[0]
+                        .data.metrics["val_best.pos_l2"]]}
+    assert metrics["best.sota.val_best.pos_l2"] == pytest.approx(min(values.values()))  # the stage's own minimum
+    assert tags["best.sota.cell"] == min(values, key=lambda k: (values[k], k))
+    note = tags["mlflow.note.content"]  # the run page's description: counts, then each stage, headline first
+    assert note.startswith("Sweep **t**: 18 cells planned, 18 finished, 0 failed.")
+    assert ("- **personalized**: 12 cells; best by validation: lstm/ce/personalized/s0/world (pair.pos_l2.mean 9.9, "
+            "val_best.pos_l2 0.1)") in note
+    assert "- **cross-subject**: 4 cells, top 2 of stage personalized by val_best.pos_l2" in note
 
 
 def test_a_later_stage_waits_while_its_source_is_incomplete(cli, project):

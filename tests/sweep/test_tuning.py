@@ -65,7 +65,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     parents = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
     assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
     assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
-    assert parents[0].data.metrics["best_val_loss"] == pytest.approx(study.best_value)
+    assert parents[0].data.metrics["val_best.loss"] == pytest.approx(study.best_value)
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
@@ -130,3 +130,55 @@ def test_bad_tune_space_is_one_clear_error(project):
         load_config(project / "experiments.yaml", overrides=[
             "tune.space={train.lrr: {type: float, low: 1, high: 2}, model.dropout: {type: float, low: 0.5, high: 0.1}}"])
     assert "tune.space.train.lrr" in str(exc.value) and "needs low < high" in str(exc.value)
+
+
+def _study(n: int, params: tuple[str, ...]):
+    """An in-memory study of ``n`` complete trials; the loss depends on train.lr only (model.dropout: noise)."""
+    import math
+
+    from optuna.distributions import FloatDistribution
+
+    s = optuna.create_study(study_name=f"s{n}-{len(params)}")
+    dists = {"train.lr": FloatDistribution(1e-5, 1e-2, log=True), "model.dropout": FloatDistribution(0.0, 0.5)}
+    for i in range(n):
+        values = {"train.lr": 10 ** (-5 + 3 * i / max(1, n - 1)), "model.dropout": (i * 7 % 12) / 24}
+        s.add_trial(optuna.trial.create_trial(
+            params={k: values[k] for k in params}, distributions={k: dists[k] for k in params},
+            value=(math.log10(values["train.lr"]) + 3) ** 2, user_attrs={tuning.ATTR_RUN: f"run-{i}"}))
+    return s
+
+
+@pytest.mark.parametrize("n, params, caveat, plot", [
+    (12, ("train.lr", "model.dropout"), None, True),  # enough trials: importances without a caveat
+    (2, ("train.lr", "model.dropout"), "indicative only: 2 complete trials", True),  # two trials: with a caveat
+    (6, ("train.lr",), "one searched parameter", False),  # one parameter: importance 1 by definition, no plot
+])
+def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_something(
+        tmp_path, n, params, caveat, plot):
+    from bronchocli.config import Config
+    from bronchocli.runs.parents import study_parent
+    from bronchocli.sweep.summary import log_study
+
+    cfg = Config(name="st").with_values({"runs.uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
+                                         "runs.artifacts": str(tmp_path / "art")})
+    client = client_for(cfg)
+    s = _study(n, params)
+    parent = study_parent(client, cfg, experiment_id(client, cfg), s.study_name,
+                          cells.make(arch="baseline", rot_loss="mse", population="personalized"))
+    log_study(client, parent, tuning.describe_study(s), tuning.finished(s))
+    run = client.get_run(parent)
+    tags, metrics = run.data.tags, run.data.metrics
+    best = s.best_trial
+    assert tags["best_trial"] == str(best.number) and tags["best_run"] == f"run-{best.number}"
+    assert {k: float(tags[f"best.{k}"]) for k in params} == pytest.approx(best.params)  # the best trial's values
+    assert metrics["val_best.loss"] == pytest.approx(best.value) and metrics["trials.complete"] == n
+    artifacts = {a.path for a in client.list_artifacts(parent)}
+    assert ("param_importances.png" in artifacts) == plot
+    if plot:  # train.lr decides the loss: the evaluator must find it far more important than the noise
+        assert metrics["importance.train.lr"] > metrics["importance.model.dropout"]
+    else:
+        assert not any(k.startswith("importance.") for k in metrics)
+    assert (caveat in tags["importances"]) if caveat else "importances" not in tags
+    note = tags["mlflow.note.content"]  # the description says the same, best trial first
+    assert f"Best: trial #{best.number}, val_best.loss {best.value:.5g}, with `train.lr` = " in note
+    assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
