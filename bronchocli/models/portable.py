@@ -7,7 +7,7 @@ this module as its pyfunc ``loader_module``. So ``mlflow.pyfunc.load_model``
 works in a Python holding only torch and MLflow (numpy, and Pillow when frames
 must be resized, come with MLflow): no bronchocli. That is why this module and
 those it ships with import only the standard library, numpy, torch and each
-other (relative imports); tests/models/test_portable.py checks it for every
+other (relative imports); tests/training/test_bundle.py checks it for every
 architecture. The project itself uses the same classes (one copy of each):
 ``training.network.PoseRegressor`` is :class:`Regressor` with the loss, and
 ``inference.mlflow_model.PoseModel`` is :class:`Predictor` with the run's
@@ -175,7 +175,7 @@ class Predictor:
         return state
 
     def get_raw_model(self) -> Predictor:
-        """What ``PyFuncModel.get_raw_model()`` returns: this object (``.net`` is the torch module, ``.spec`` the JSON)."""
+        """What ``PyFuncModel.get_raw_model()`` returns: this object (``.net``: the torch module, ``.spec``: JSON)."""
         return self
 
     def predict(self, model_input: Any, params: dict[str, Any] | None = None) -> np.ndarray:

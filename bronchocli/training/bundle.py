@@ -12,7 +12,7 @@ and Python imports a package name once).
 
 A shipped file may import the standard library, numpy, torch, Pillow and the
 files beside it; anything else (the rest of bronchocli) is a ``problem``:
-tests/models/test_portable.py checks that every registered architecture has
+tests/training/test_bundle.py checks that every registered architecture has
 none, and logging a model with one warns that it needs that code to load.
 """
 

@@ -71,7 +71,8 @@ def model_spec(cfg: Config, cell: Cell, data: RunData, outcome: Outcome, run_id:
     net = outcome.network
     return {
         "format": SPEC_FORMAT, "version": SPEC_VERSION,
-        "arch": cell.arch, "model_class": bundle.bundle_for(cell.arch).model_class, "image_size": int(data.image_size), "temporal": bool(net.temporal),
+        "arch": cell.arch, "model_class": bundle.bundle_for(cell.arch).model_class,  # the class in code/
+        "image_size": int(data.image_size), "temporal": bool(net.temporal),
         "chunk": int(cfg.data.window if net.temporal else EVAL_CHUNK),  # pairs per forward, as evaluation ran
         "pose_frame": cell.pose_frame, "units": {"position": "voxels", "rotation": "degrees (intrinsic XYZ Euler)"},
         "input": INPUT_LAYOUT, "output": OUTPUT_LAYOUT,
@@ -108,7 +109,7 @@ def save_model_dir(path: Path, spec: dict[str, Any], weights: dict[str, Any], ex
                    mlflow_model: Model | None = None) -> Path:
     """Write the MLflow model folder ``path`` (must not exist): MLmodel, code/, data/, example, environment."""
     code = bundle.bundle_for(spec["arch"])
-    if code.problems:  # tests/models/test_portable.py keeps the registered architectures free of these
+    if code.problems:  # tests/training/test_bundle.py keeps the registered architectures free of these
         log.warning("the %s model's code is not self-contained (%s): loading it needs bronchocli installed",
                     spec["arch"], "; ".join(code.problems))
     with tempfile.TemporaryDirectory(prefix="bronchopose-model-") as tmp:
@@ -141,7 +142,8 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
     exp_id = client.get_run(run_id).info.experiment_id
     logged = client.create_logged_model(
         exp_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
-        params=redacted(run_params(cfg, cell)), tags={"arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision})
+        params=redacted(run_params(cfg, cell)),
+        tags={"arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision})
     try:
         client.log_outputs(run_id, [LoggedModelOutput(logged.model_id, step=0)])
         meta = Model(artifact_path=logged.artifact_location, model_uuid=logged.model_id, run_id=run_id,
