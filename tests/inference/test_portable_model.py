@@ -49,8 +49,8 @@ model = mlflow.pyfunc.load_model(f"runs:/{run_id}/model")
 example = Model.load(local).load_input_example(local)
 pred = model.predict(example)
 np.save(out, pred)
-print(json.dumps({"loader": model.loader_module, "bronchocli": sorted(m for m in sys.modules if "bronchocli" in m),
-                  "shape": list(pred.shape)}))
+ours = sorted(m for m in sys.modules if m.split(".")[0] == "bronchocli")
+print(json.dumps({"loader": model.loader_module, "bronchocli": ours, "shape": list(pred.shape)}))
 """
 
 
