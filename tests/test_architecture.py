@@ -75,9 +75,6 @@ LAUNCHED = re.compile(r"\bbronchocli(?:\.\w+)+")  # a module path inside a strin
 
 # Launch edges that run against the layers on purpose, each with its reason (like a ``# lazy:`` comment).
 ALLOWED_LAUNCHES = {
-    ("bronchocli.training.model_logging", "bronchocli.inference.mlflow_model"):
-        "the MLflow pyfunc loader_module recorded in every logged model: MLflow imports it when the model is "
-        "loaded, never while training runs",
     ("bronchocli.registry", "bronchocli.models"):
         "each architecture's builder path is data: models.build_model (layer 8) resolves it, the registry never "
         "imports it; tests/models/test_architectures.py checks every path is a PoseNet inside bronchocli.models",

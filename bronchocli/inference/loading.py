@@ -26,8 +26,9 @@ from mlflow.exceptions import MlflowException
 from mlflow.models import Model
 
 from ..errors import BronchoError
-from ..training.model_logging import LOADER_MODULE, MODEL_NAME
-from .mlflow_model import PoseModel, load_data_dir
+from ..training.bundle import LOADER, PREFIX
+from ..training.model_logging import MODEL_NAME
+from .mlflow_model import LEGACY_LOADER, PoseModel, load_data_dir
 
 _RUN_ID = re.compile(r"^[0-9a-f]{32}$")
 
@@ -132,14 +133,22 @@ def resolve(client, reference: str) -> ModelRef:
                        "models:/<name>@<alias>, models:/<model_id> or a folder with an MLmodel file")
 
 
+_BUNDLED = re.compile(re.escape(PREFIX) + r"[0-9a-f]+\." + LOADER)
+
+
 def load_local(path: str | Path) -> PoseModel:
-    """A downloaded MLflow model folder -> its PoseModel (refuses a model bronchocli did not write)."""
+    """A downloaded MLflow model folder -> its PoseModel, built with this bronchocli's classes.
+
+    Refuses a model bronchocli did not write. A model that carries its code (``<bundle>.portable``) and one
+    logged before (``LEGACY_LOADER``) load the same way: only their ``data/`` folder is read.
+    """
     path = Path(path)
     meta = Model.load(str(path / "MLmodel"))
     pyfunc = meta.flavors.get("python_function", {})
-    if pyfunc.get("loader_module") != LOADER_MODULE:
-        raise BronchoError(f"{path}: not a bronchopose model (its pyfunc loader is "
-                           f"{pyfunc.get('loader_module')!r}, expected {LOADER_MODULE})")
+    loader = str(pyfunc.get("loader_module"))
+    if loader != LEGACY_LOADER and not _BUNDLED.fullmatch(loader):
+        raise BronchoError(f"{path}: not a bronchopose model (its pyfunc loader is {loader!r}, expected "
+                           f"{PREFIX}<hash>.{LOADER} or {LEGACY_LOADER})")
     return load_data_dir(path / pyfunc["data"])
 
 

@@ -21,7 +21,8 @@ from pathlib import Path
 
 from .. import registry
 from .backbones import n_params
-from .base import ModelError, PoseNet, State, detach_state
+from .base import PoseNet, State, detach_state
+from .errors import ModelError
 from .pretrained import IMAGENET, describe, ensure_weights, load_pretrained
 
 

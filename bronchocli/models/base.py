@@ -23,14 +23,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..errors import BronchoError
 from .backbones import BatchNorm2d, EfficientNetB0Features
 
 State = tuple[Tensor, ...] | None
-
-
-class ModelError(BronchoError, ValueError):
-    """A bad architecture name, size, setting or pretrained file (also a ValueError for library callers)."""
 
 
 def detach_state(state: Any) -> Any:

@@ -37,7 +37,8 @@ from urllib.parse import urlparse
 import torch
 from torch import Tensor
 
-from .base import ModelError, PoseNet
+from .base import PoseNet
+from .errors import ModelError
 
 _IGNORED_PREFIXES = {"efficientnet_b0": ("classifier.",), "resnet34": ()}
 _SHOW = 5  # offending keys named in the error

@@ -7,6 +7,7 @@ drive many runs.
 
 from __future__ import annotations
 
+import math
 import platform
 import subprocess
 import sys
@@ -126,16 +127,27 @@ def flatten(data: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
+def redacted(params: Mapping[str, str]) -> dict[str, str]:
+    """Params as MLflow stores them: URL-valued settings may carry a password, never stored in clear."""
+    return {k: urls.redact(v)[:6000] for k, v in sorted(params.items())}
+
+
 def log_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> None:
-    # URL-valued settings may carry a password: never store it in clear.
-    items = [Param(k, urls.redact(v)[:6000]) for k, v in sorted(params.items())]
+    items = [Param(k, v) for k, v in redacted(params).items()]
     for i in range(0, len(items), _PARAM_BATCH):
         client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
 
 
-def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
+def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0,
+                model_id: str | None = None, dataset: tuple[str, str] | None = None) -> None:
+    """Metrics of the run at ``step``; with ``model_id`` also of that logged model, evaluated on ``dataset``
+    (name, digest: the model's page lists it under "Datasets used"). A NaN stays the run's only: MLflow would
+    store it as 0 for the model."""
     now = int(time.time() * 1000)
-    items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
+    name, digest = dataset or (None, None)
+    items = [Metric(k, float(v), now, step) if model_id is None or math.isnan(float(v)) else
+             Metric(k, float(v), now, step, model_id=model_id, dataset_name=name, dataset_digest=digest)
+             for k, v in metrics.items()]
     for i in range(0, len(items), 1000):
         client.log_batch(run_id, metrics=items[i : i + 1000])
 

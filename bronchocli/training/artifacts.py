@@ -55,6 +55,10 @@ def environment_tags() -> dict[str, str]:
     return {"env.torch": torch.__version__, "env.cuda": torch.version.cuda or "none"}
 
 
+def dataset_name(cfg: Config, part: str) -> str:
+    return f"{cfg.paths.dataset.name}:{part}"
+
+
 def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
     """The dataset once per split (name ``<dataset>:<split>``, context train/val/test), digest = fingerprint."""
     root = cfg.paths.dataset
@@ -63,7 +67,7 @@ def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
         profile = {"trajectories": len(trajectories), "frames": int(sum(len(t.frame_index) for t in trajectories)),
                    "patients": sorted({t.patient for t in trajectories}), "population": data.split.population,
                    "fold": data.split.fold}
-        ds = Dataset(name=f"{root.name}:{part}", digest=data.fingerprint[:DIGEST_CHARS], source_type="local",
+        ds = Dataset(name=dataset_name(cfg, part), digest=data.fingerprint[:DIGEST_CHARS], source_type="local",
                      source=json.dumps({"uri": root.as_uri()}), profile=json.dumps(profile))
         out.append(DatasetInput(ds, [InputTag("mlflow.data.context", part)]))
     return out
@@ -91,8 +95,11 @@ def validation_logger(client, run_id: str):
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
+    # The model first, so that the test metrics are logged once, as the run's and as the model's (on the test split).
+    model_id = log_model(client, run_id, cfg, cell, data, outcome) if cfg.runs.model_artifact != "none" else None
+    test = (dataset_name(cfg, "test"), data.fingerprint[:DIGEST_CHARS])
     for batch in ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
-        log_metrics(client, run_id, batch)
+        log_metrics(client, run_id, batch, model_id=model_id, dataset=test)
     client.set_tag(run_id, TAG_NOTE, describe(cell, outcome.metrics, cfg.paths.dataset.name))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
@@ -106,5 +113,3 @@ def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, out
                                 titles=[p.key for p in shown])
         for path in save_figure(fig, out / "trajectories"):
             _log_file(client, run_id, path)
-    if cfg.runs.model_artifact != "none":
-        log_model(client, run_id, cfg, cell, data, outcome)

@@ -4,15 +4,22 @@ What ``model/`` holds (an MLflow 3 logged model named ``model`` whose source
 run is the training run, so ``runs:/<run_id>/model`` and ``models:/<model_id>``
 both find it, and ``mlflow.register_model`` can register it):
 
-* ``MLmodel``: the ``python_function`` flavour with loader module
-  ``bronchocli.inference.mlflow_model`` (nothing is pickled: loading imports
-  that module, so ``bronchocli`` must be installed where the model is loaded),
-  a signature and an input example (two real test frames of the run);
+* ``MLmodel``: the ``python_function`` flavour whose loader module is the
+  model's own code, ``code/bronchopose_model_<hash>/`` (``bundle.py``: copies of
+  ``models/portable.py`` and the architecture's model modules), so loading
+  needs only torch and MLflow, not bronchocli; a signature and an input example
+  (two real test frames of the run); ``requirements.txt`` lists what that code
+  imports (MLflow, torch, numpy, Pillow);
 * ``data/bronchopose/weights.pt``: the network's state dict (fp16 or fp32, per
   ``runs.model_artifact``), loadable with ``torch.load(weights_only=True)``;
 * ``data/bronchopose/spec.json``: what prediction needs besides the weights
-  (architecture, input size, pose frame, units, chunk length, image
-  normalisation, label standardisation, the training-mean relative pose).
+  (architecture and its class in the bundle, input size, pose frame, units,
+  chunk length, image normalisation, label standardisation, the training-mean
+  relative pose).
+
+The logged model's own fields: the run's params (``runs.views.run_params``) and,
+logged by ``artifacts.log_outcome`` with the model's id, the run's test metrics
+linked to the test split's dataset, so its page in the UI shows both.
 
 Input: uint8 frames ``[T, H, W, 3]`` (RGB, channel last, one video in time
 order, T >= 2). Output: ``float64 [T-1, 6]`` relative poses between
@@ -25,13 +32,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import tempfile
 from pathlib import Path
 from typing import Any
 
 import mlflow
 import numpy as np
-import pandas
 import PIL
 import torch
 from mlflow.entities import LoggedModelOutput
@@ -41,16 +48,18 @@ from mlflow.types import Schema, TensorSpec
 from .. import __version__
 from ..cells import Cell
 from ..config import Config
-from . import evaluate
+from ..models.portable import SPEC_FILE, WEIGHTS_FILE
+from ..runs.records import redacted
+from ..runs.views import run_params
+from . import bundle, evaluate
 from .engine import EVAL_CHUNK, Outcome
 from .network import export
 from .prepare import RunData
 
+log = logging.getLogger(__name__)
+
 MODEL_NAME = "model"  # runs:/<run_id>/model
-LOADER_MODULE = "bronchocli.inference.mlflow_model"
-DATA_DIR = "bronchopose"  # MLflow copies it to model/data/bronchopose/
-SPEC_FILE = "spec.json"
-WEIGHTS_FILE = "weights.pt"
+DATA_DIR = "bronchopose"  # MLflow copies it to model/data/bronchopose/ (SPEC_FILE and WEIGHTS_FILE)
 SPEC_FORMAT = "bronchopose-pyfunc"
 SPEC_VERSION = 1
 INPUT_LAYOUT = "uint8 [T, H, W, 3]: T RGB frames of one video in time order, channel last (T >= 2)"
@@ -62,7 +71,8 @@ def model_spec(cfg: Config, cell: Cell, data: RunData, outcome: Outcome, run_id:
     net = outcome.network
     return {
         "format": SPEC_FORMAT, "version": SPEC_VERSION,
-        "arch": cell.arch, "image_size": int(data.image_size), "temporal": bool(net.temporal),
+        "arch": cell.arch, "model_class": bundle.bundle_for(cell.arch).model_class,  # the class in code/
+        "image_size": int(data.image_size), "temporal": bool(net.temporal),
         "chunk": int(cfg.data.window if net.temporal else EVAL_CHUNK),  # pairs per forward, as evaluation ran
         "pose_frame": cell.pose_frame, "units": {"position": "voxels", "rotation": "degrees (intrinsic XYZ Euler)"},
         "input": INPUT_LAYOUT, "output": OUTPUT_LAYOUT,
@@ -90,24 +100,29 @@ def input_example(data: RunData) -> np.ndarray:
 
 
 def requirements() -> list[str]:
-    """What loading needs from PyPI; bronchocli itself (not on PyPI) must be installed too (docs/api.md)."""
+    """What loading imports: MLflow, and what the bundle's code imports (torch, numpy; Pillow to resize)."""
     return [f"mlflow=={mlflow.__version__}", f"torch=={torch.__version__.split('+')[0]}",
-            f"numpy=={np.__version__}", f"pandas=={pandas.__version__}", f"pillow=={PIL.__version__}"]
+            f"numpy=={np.__version__}", f"pillow=={PIL.__version__}"]
 
 
 def save_model_dir(path: Path, spec: dict[str, Any], weights: dict[str, Any], example: np.ndarray,
                    mlflow_model: Model | None = None) -> Path:
-    """Write the MLflow model folder ``path`` (must not exist): MLmodel, data/, example, environment files."""
+    """Write the MLflow model folder ``path`` (must not exist): MLmodel, code/, data/, example, environment."""
+    code = bundle.bundle_for(spec["arch"])
+    if code.problems:  # tests/training/test_bundle.py keeps the registered architectures free of these
+        log.warning("the %s model's code is not self-contained (%s): loading it needs bronchocli installed",
+                    spec["arch"], "; ".join(code.problems))
     with tempfile.TemporaryDirectory(prefix="bronchopose-model-") as tmp:
         data = Path(tmp) / DATA_DIR
         data.mkdir()
         torch.save(weights, data / WEIGHTS_FILE)
         (data / SPEC_FILE).write_text(json.dumps(spec, indent=2))
+        package = bundle.write(code, Path(tmp) / "code")
         mlflow.pyfunc.save_model(
-            str(path), loader_module=LOADER_MODULE, data_path=str(data), mlflow_model=mlflow_model,
-            signature=signature(), input_example=example, pip_requirements=requirements(),
+            str(path), loader_module=code.loader_module, data_path=str(data), code_paths=[str(package)],
+            mlflow_model=mlflow_model, signature=signature(), input_example=example, pip_requirements=requirements(),
             metadata={"bronchopose": {k: spec[k] for k in ("arch", "image_size", "pose_frame", "input", "output")},
-                      "requires": "the bronchocli package installed (the loader module lives in it)"},
+                      "requires": "torch and mlflow (the model's code is in code/)"},
         )
     _compact_json(path / "serving_input_example.json")
     return path
@@ -127,6 +142,7 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
     exp_id = client.get_run(run_id).info.experiment_id
     logged = client.create_logged_model(
         exp_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
+        params=redacted(run_params(cfg, cell)),
         tags={"arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision})
     try:
         client.log_outputs(run_id, [LoggedModelOutput(logged.model_id, step=0)])
