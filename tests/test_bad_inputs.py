@@ -606,3 +606,32 @@ def test_every_seed_in_range_is_accepted(path, seed):
 @given(lr=st.floats(min_value=1e-9, max_value=10, allow_nan=False))
 def test_floats_written_with_an_exponent_are_numbers(lr):
     assert load_config(REPO / "experiments.yaml", overrides=[f"train.lr={lr:e}"]).train.lr == pytest.approx(lr)
+
+
+# -- roots that hold each other or a system folder (issue 32, item 1) -------------------------------------------
+
+ROOTS: dict[str, tuple[list[str], str]] = {
+    "checkpoints holding the artifacts (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=runs"],
+                                               "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    "checkpoints holding the artifacts (train)": (["train", *RUN, "--set", "runs.checkpoints=runs"],
+                                                  "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    "cache is the checkpoints folder (sweep)": (["sweep", "--set", "data.cache_dir=runs/checkpoints"],
+                                                "data.cache_dir {root}/runs/checkpoints: is the same folder as runs.checkpoints"),
+    "logs inside the cache (sweep --dry-run)": (["sweep", "--dry-run", "--set", "sweep.logs=runs/cache/logs"],
+                                                "data.cache_dir {root}/runs/cache: contains sweep.logs"),
+    "artifacts in /etc (tune)": (["tune", *RUN, "--set", "runs.artifacts=/etc/bronchopose"],
+                                 "runs.artifacts /etc/bronchopose: is inside the system folder /etc"),
+    "checkpoints at / (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: is a system"),
+    "checkpoints at home (gc)": (["sweep", "--gc", "--set", "runs.checkpoints='~'"], "is your home folder"),
+}
+
+
+@pytest.mark.parametrize("case", list(ROOTS))
+def test_roots_inside_each_other_or_system_folders_are_refused_in_one_line(cli, project, case):
+    args, culprit = ROOTS[case]
+    before = project.files()
+    code, out, err = cli(*args, *C(project))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, f"exit {code}\nstdout: {out}\nstderr: {err}"
+    assert culprit.format(root=project.root) in lines[0], lines[0]
+    assert project.files() == before

@@ -21,6 +21,7 @@ from ..config import Config, Stage
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, sweep_parent
 from . import plan as planning
+from . import record
 from .plan import cells_left
 from .pool import EXIT_INTERRUPTED, run_pool
 from .selection import describe_selection
@@ -55,8 +56,13 @@ def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, conso
             continue
         if sp.selection is not None:
             console.print(describe_selection(sp.selection), highlight=False)
-        _print_plan(console, planning.read_plan(store, cfg.name, sp.cells), cfg.sweep.max_retries, workers,
+        plan = planning.read_plan(store, cfg.name, sp.cells)
+        rows, known = record.overlay(cfg, plan.sweep, plan.cells, plan.rows)
+        _print_plan(console, planning.Plan(plan.sweep, plan.cells, rows), cfg.sweep.max_retries, workers,
                     _stage_title(sp.stage, len(stages)))
+        if known:
+            console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished, never "
+                          "trained again (a sweep records them there)", highlight=False)
     console.print("[dim]dry run: nothing started[/]")
 
 
