@@ -19,7 +19,7 @@ from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
 from ..runs.client import client_for, experiment_id
-from ..runs.parents import set_parent_status, sweep_parent
+from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
 from . import record
 from .plan import cells_left
@@ -79,7 +79,7 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
     walk, _ = planning.prepare_walk(cfg, store, only, retry_failed=retry_failed)
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))
-    client.update_run(parent, "RUNNING")
+    start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
     code = 1
     try:
         code = _run_stages(walk, workers=workers, console=console, gpus=gpus, runner=runner)

@@ -10,8 +10,8 @@ import sys
 
 import pytest
 
-from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.io import fmt_bytes, folder_bytes
+from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.processes import TAG_HOST, TAG_PID, TAG_PSTART, process_tags

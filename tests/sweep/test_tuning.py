@@ -78,11 +78,10 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
                          "--only", "arch=baseline;rot_loss=mse;population=personalized")
     assert code == 0, err
     swept = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "cell"})
-    assert len(swept) == 2 and {r.data.tags["hparams_source"] for r in swept} == {cell_runs[0].data.tags["hparams_source"]}
+    # the tuned cell FINISHED by `train` is the same cell: MLflow is the record, the sweep does not train it again
+    assert [r.info.run_id for r in swept] == [cell_runs[0].info.run_id]
     sweep_parent = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "sweep"})
     assert len(sweep_parent) == 1 and sweep_parent[0].info.status == "FINISHED"  # the sweep's parent, ended with it
-    swept_now = [r for r in swept if r.info.run_id != cell_runs[0].info.run_id]
-    assert swept_now[0].data.tags["mlflow.parentRunId"] == sweep_parent[0].info.run_id
     assert "mlflow.parentRunId" not in cell_runs[0].data.tags  # `train` alone has no parent
 
     code, out, _ = cli("tune", "-c", str(project / "experiments.yaml"), "--study", study.study_name, "--show")
@@ -117,6 +116,9 @@ def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project)
     out, _ = proc.communicate(timeout=300)
     assert proc.returncode == 130, out
     assert "Traceback" not in out
+    client = client_for(cfg)
+    (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
+    assert parent.info.status == "KILLED"  # an interrupted tune ends its study's parent run (issue 32, item 7)
     states = trial_states(cfg, name)
     assert states.count("FAIL") == 1 and states.count("COMPLETE") + states.count("PRUNED") == 3, states
     again = subprocess.run([*cmd[:-1], "4"], cwd=project, env=env, capture_output=True, text=True, timeout=600)
@@ -130,3 +132,43 @@ def test_bad_tune_space_is_one_clear_error(project):
         load_config(project / "experiments.yaml", overrides=[
             "tune.space={train.lrr: {type: float, low: 1, high: 2}, model.dropout: {type: float, low: 0.5, high: 0.1}}"])
     assert "tune.space.train.lrr" in str(exc.value) and "needs low < high" in str(exc.value)
+
+
+def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_other(project, monkeypatch):
+    """Issue 32, item 7: Ctrl-C in a trial's last steps (the run finishes its evaluation first) ends `tune` with
+    that trial counted, no next trial started, and the study's parent run KILLED, not left RUNNING."""
+    from bronchocli.runs.contract import RunInterrupted, RunResult
+    from bronchocli.training import run as training_run
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    started = []
+
+    def evaluated_under_sigint(cfg, cell, **kw):
+        started.append(cell.key)
+        return RunResult(f"run{len(started)}", "FINISHED", {"best_val_loss": 1.0}, stop_requested=signal.SIGINT)
+
+    monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
+    with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
+        tuning.tune(cfg, target, 3, progress=False)
+    assert len(started) == 1 and trial_states(cfg, tuning.study_name(cfg, target)) == ["COMPLETE"]
+    client = client_for(cfg)
+    (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
+    assert parent.info.status == "KILLED"
+
+
+def test_status_repair_ends_a_study_parent_whose_tune_was_killed(project, cli):
+    from bronchocli.runs.parents import start_parent
+    from bronchocli.runs.processes import TAG_PID
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    parent = tuning.study_parent_or_none(cfg, target, "s")
+    client = client_for(cfg)
+    start_parent(client, parent)  # as `tune` does; then the process is SIGKILLed:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    client.set_tag(parent, TAG_PID, str(dead.pid))
+    code, out, err = cli("status", "-c", str(project / "experiments.yaml"), "--repair")
+    assert code == 0 and f"repaired run {parent}" in out, out + err
+    assert client.get_run(parent).info.status == "FAILED"
