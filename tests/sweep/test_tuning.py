@@ -13,7 +13,7 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import cells
+from bronchocli import cells, urls
 from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
@@ -172,3 +172,38 @@ def test_status_repair_ends_a_study_parent_whose_tune_was_killed(project, cli):
     code, out, err = cli("status", "-c", str(project / "experiments.yaml"), "--repair")
     assert code == 0 and f"repaired run {parent}" in out, out + err
     assert client.get_run(parent).info.status == "FAILED"
+
+
+def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project, monkeypatch):
+    """Issue 32, item 2: with the study's database deleted, `tune` counts the FINISHED trial runs in MLflow and
+    runs no trial again."""
+    from bronchocli.runs.contract import RunResult
+    from bronchocli.runs.records import cell_tags, log_metrics, log_params
+    from bronchocli.training import run as training_run
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    started = []
+
+    def trial_run(trial_cfg, cell, *, extra_tags=None, run_id_callback=None, **_):
+        client = client_for(trial_cfg)
+        run_id = client.create_run(experiment_id(client, trial_cfg),
+                                   tags=cell_tags(trial_cfg, cell, **(extra_tags or {}))).info.run_id
+        run_id_callback(run_id)
+        loss = trial_cfg.train.lr * 1000
+        log_params(client, run_id, {"train.lr": str(trial_cfg.train.lr)})
+        log_metrics(client, run_id, {"best_val_loss": loss})
+        client.set_terminated(run_id, "FINISHED")
+        started.append(run_id)
+        return RunResult(run_id, "FINISHED", {"best_val_loss": loss})
+
+    monkeypatch.setattr(training_run, "run_cell", trial_run)
+    first = tuning.tune(cfg, target, 2, progress=False)
+    best = (first.best_trial.params, first.best_value)
+    db = urls.sqlite_file(cfg.paths.storage_url)
+    for path in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
+        path.unlink(missing_ok=True)
+    again = tuning.tune(cfg, target, 2, progress=False)
+    assert len(started) == 2 and tuning.finished(again) == 2  # no trial ran again
+    assert (again.best_trial.params, again.best_value) == best
+    assert again.best_trial.user_attrs[tuning.ATTR_RUN] in started
