@@ -429,8 +429,17 @@ def _close_parent(cfg: Config, target: Cell, s) -> None:
     set_parent_status(client, parent, 0)
 
 
+def _no_storage(cfg: Config) -> bool:
+    """The studies' SQLite file does not exist: nothing to read (and reading must not create it)."""
+    db = urls.sqlite_file(optuna_url(cfg, probe=False))
+    return db is not None and not db.is_file()
+
+
 def load(cfg: Config, name: str):
-    """An existing study (BronchoError naming the studies there when it is not)."""
+    """An existing study (BronchoError naming the studies there when it is not); creates nothing."""
+    if _no_storage(cfg):
+        raise BronchoError(f"no Optuna study named {name!r}: storage {urls.redact(cfg.paths.storage_url)} holds no "
+                           "study yet (run `bronchopose tune` first)")
     storage = storage_for(cfg)
     try:
         return optuna.load_study(study_name=name, storage=storage)
@@ -477,4 +486,6 @@ def summary(cfg: Config, name: str) -> dict[str, Any]:
 
 
 def list_studies(cfg: Config) -> list[str]:
+    if _no_storage(cfg):
+        return []
     return sorted(s.study_name for s in optuna.get_all_study_summaries(storage_for(cfg)))

@@ -160,10 +160,10 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
     state = {"format": FORMAT, **state}
     need = check_space_for(path, state)
     try:
-        if state.get("run_id") == path.parent.name:  # the marker first: an interrupted first write is provably ours
-            mark(path.parent, state["run_id"], state.get("cell_key"))
         with io.atomic_path(path) as tmp:
             torch.save(state, tmp)
+        if state.get("run_id") == path.parent.name:  # proves the folder is this run's (runs.ownership: gc, cleanup)
+            mark(path.parent, state["run_id"], state.get("cell_key"))
     except (OSError, RuntimeError) as exc:
         if not _is_write_failure(exc):
             raise

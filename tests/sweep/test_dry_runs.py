@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import hashlib
 
+import optuna
 import pytest
 
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import cell_tags
-from bronchocli.sweep import SweepStore, prepare
+from bronchocli.sweep import SweepStore, prepare, tuning
 from bronchocli.sweep.slurm import job_comment
 
 DRY_RUNS = [
@@ -25,6 +26,7 @@ DRY_RUNS = [
     ["--dry-run", "--launcher", "slurm", "--retry-failed"],
     ["--dry-run", "--retry-failed"],
     ["--dry-run", "--only", "arch=lstm", "--workers", "2", "--gpus", "none"],
+    ["--dry-run", "--use-tuned", "s"],
 ]
 ACTING = ("sbatch", "scancel", "scontrol")
 
@@ -58,6 +60,10 @@ def finished_project(make_config, tmp_path, monkeypatch):
         else:
             store.fail(claim.token, "boom", run_id)
     store.close()
+    storage = tuning.storage_for(cfg)
+    study = optuna.create_study(study_name="s", storage=storage)  # for --use-tuned
+    study.add_trial(optuna.trial.create_trial(params={}, distributions={}, value=1.0))
+    storage.engine.dispose()  # the last connection closes: SQLite moves its write-ahead log into the file
     fake = tmp_path / "fakebin"
     fake.mkdir()
     (fake / "queue").write_text(f"812_[1-2]|812|PENDING|{job_comment(cfg, 'grid')}\n")
@@ -83,3 +89,11 @@ def test_a_dry_run_changes_nothing_and_calls_no_slurm_command_that_acts(cli, fin
         assert "would cancel Slurm job(s) 812" in out and "nothing cancelled" in out
     if "--gc" in flags:
         assert "would free" in out and "nothing was removed" in out
+
+
+def test_a_dry_run_with_a_study_that_does_not_exist_creates_no_database(cli, make_config, tmp_path):
+    make_config()
+    before = snapshot(tmp_path)
+    code, out, err = cli("sweep", "-c", str(tmp_path / "experiments.yaml"), "--dry-run", "--use-tuned", "nosuch")
+    assert code == 2 and "no Optuna study named 'nosuch'" in err and len(err.strip().splitlines()) == 1, out + err
+    assert snapshot(tmp_path) == before and not (tmp_path / "sweep.db").exists()

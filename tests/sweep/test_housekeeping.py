@@ -35,7 +35,7 @@ def new_run(cfg, cell, status, ckpt_bytes=1000, **tags):
         client.set_terminated(run_id, status)
     if ckpt_bytes:
         path = resume_file(cfg, run_id)
-        mark(path.parent, run_id, cell.key)  # as checkpoint.save does before its first write
+        mark(path.parent, run_id, cell.key)  # as checkpoint.save does with its first checkpoint
         path.write_bytes(b"x" * ckpt_bytes)
     return run_id
 
