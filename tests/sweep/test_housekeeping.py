@@ -44,7 +44,8 @@ def test_status_shows_checkpoint_disk_and_gc_removes_only_what_no_live_cell_need
     cfg, store, plan = project
     base, lstm = plan.cells
     path = str(cfg.paths.base / "experiments.yaml")
-    finished = new_run(cfg, base, "FINISHED", 1000)
+    # a FINISHED run (of a cell outside the plan: a plan cell with a FINISHED run is finished, MLflow is the record)
+    finished = new_run(cfg, cfg.cell(arch="baseline", rot_loss="ce", population="personalized"), "FINISHED", 1000)
     # a cell given back by Ctrl-C: its KILLED run is resumed by the next worker
     c = store.claim(cfg.name, [base.key], "w1", max_retries=1, stale_after_s=60)
     released = new_run(cfg, base, "KILLED", 3000, sweep_claim=c.token)
