@@ -53,18 +53,31 @@ def mark(folder: Path, run_id: str, cell_key: str | None) -> None:
         write_json(marker, {"run_id": run_id, "cell_key": cell_key, "written_by": "bronchopose"})
 
 
+class _StandIn(dict):
+    """What every global a pickle names becomes: inert, accepting whatever the pickle does to it (called, built,
+    filled like a dict or a list), so the plain data around it (the top-level dict) reads back."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ARG002 - arguments ignored on purpose
+        super().__init__()
+
+    def __setstate__(self, state) -> None:
+        pass
+
+    def append(self, item) -> None:
+        pass
+
+    def extend(self, items) -> None:
+        pass
+
+
 class _NoGlobals(pickle.Unpickler):
-    """Reads a pickle's plain structure; every global it names becomes an inert stand-in (never imported)."""
+    """Reads a pickle's plain structure; every global it names becomes :class:`_StandIn` (never imported)."""
 
     def find_class(self, module: str, name: str):  # noqa: ARG002 - nothing is resolved
-        return _stand_in
+        return _StandIn
 
     def persistent_load(self, pid):  # tensor storages: not needed to read the identity
         return None
-
-
-def _stand_in(*args, **kwargs) -> None:
-    return None
 
 
 def read_identity(path: Path) -> tuple[object, object] | None:

@@ -15,12 +15,12 @@ from .run import run_cell
 
 
 def finished_run(cfg: Config, cell: Cell) -> str | None:
-    """The id of a FINISHED MLflow run of ``cell`` (MLflow is the record of what finished), else None; reads only
-    (a SQLite store not created yet holds none)."""
+    """The id of a FINISHED MLflow run of ``cell`` (MLflow is the record of what finished), else None. A SQLite
+    store not created yet holds none; otherwise the store is opened as training opens it (relocated or refused)."""
     db = urls.sqlite_file(cfg.paths.mlflow_uri)
     if db is not None and not db.is_file():
         return None
-    client = client_for(cfg, reading=True)
+    client = client_for(cfg)
     exp = client.get_experiment_by_name(cfg.experiment_name)
     run = finished_cell_runs(client, exp.experiment_id, cfg.name, [cell.key]).get(cell.key) if exp else None
     return run.info.run_id if run is not None else None

@@ -162,7 +162,11 @@ def test_a_checkpoint_written_before_markers_is_proven_by_reading_it_back(tmp_pa
     run_id = "a" * 32
     folder = tmp_path / run_id
     folder.mkdir()
-    torch.save({"format": 2, "run_id": run_id, "cell_key": "k", "model": {"w": torch.zeros(3)}}, folder / "last.pt")
+    net = torch.nn.Sequential(torch.nn.Linear(2, 2), torch.nn.BatchNorm1d(2))  # an OrderedDict, tensors, ints
+    opt = torch.optim.Adam(net.parameters())
+    torch.save({"format": 2, "run_id": run_id, "cell_key": "k", "model": net.state_dict(),
+                "optimizer": opt.state_dict(), "rng": {"torch": torch.get_rng_state(), "python": (3, (1, 2), None)},
+                "history": [{"step": 1, "val_loss": 0.5}]}, folder / "last.pt")
     assert read_identity(folder / "last.pt") == (2, run_id)
     assert owned_checkpoint(folder).proof == "checkpoint read back"
     other = tmp_path / ("b" * 32)  # a checkpoint of another run copied in: not this folder's
