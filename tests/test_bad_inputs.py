@@ -620,9 +620,9 @@ ROOTS: dict[str, tuple[list[str], str]] = {
     "logs inside the cache (sweep --dry-run)": (["sweep", "--dry-run", "--set", "sweep.logs=runs/cache/logs"],
                                                 "data.cache_dir {root}/runs/cache: contains sweep.logs"),
     "artifacts in /etc (tune)": (["tune", *RUN, "--set", "runs.artifacts=/etc/bronchopose"],
-                                 "runs.artifacts /etc/bronchopose: is inside the system folder /etc"),
-    "checkpoints at / (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: is a system"),
-    "checkpoints at home (gc)": (["sweep", "--gc", "--set", "runs.checkpoints='~'"], "is your home folder"),
+                                 "runs.artifacts /etc/bronchopose: a system folder"),
+    "checkpoints at / (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: a system folder"),
+    "checkpoints at home (gc)": (["sweep", "--gc", "--set", "runs.checkpoints='~'"], "a system folder"),
 }
 
 

@@ -136,10 +136,9 @@ def check_roots(cfg: Config) -> None:
     for name, path, real in found:
         system = next((f for f in SYSTEM_FOLDERS if _inside(real, Path(f))), None)
         if system is not None or str(real) in SYSTEM_ROOTS or real == home:
-            what = f"inside the system folder {system}" if system else \
-                "your home folder" if real == home else "a system folder"
-            raise BronchoError(f"{name} {path}: is {what}; point {name} at a folder of its own for this project "
-                               "(e.g. runs/...)")
+            what = f" (inside {system})" if system else " (your home folder)" if real == home else ""
+            raise BronchoError(f"{name} {path}: a system folder{what}; point {name} at a folder of its own for "
+                               "this project (e.g. runs/...)")
     for i, (name, path, real) in enumerate(found):
         for other, opath, oreal in found[i + 1:]:
             if _inside(real, oreal) or _inside(oreal, real):
