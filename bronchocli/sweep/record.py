@@ -9,21 +9,23 @@ again, whatever the claims table says: a lost or new claims database, a table be
   ``REBUILT``), before any worker can claim them;
 * ``Worker`` checks the cell it just claimed, and records the FINISHED run instead of training;
 * ``overlay``: ``sweep --dry-run`` and ``status`` show the same, without writing anything.
+
+A study that is new in its storage gets the trials MLflow records FINISHED for it (``rebuild_trials``).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
 from .. import urls
 from ..cells import Cell
-from ..config import Config
+from ..config import Config, TuneParam
 from ..errors import MlflowBusy
 from ..runs.client import client_for
-from ..runs.records import finished_cell_runs
+from ..runs.records import TAG_KIND, finished_cell_runs, search_runs
 from .storage import FAILED, FINISHED, PENDING, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
@@ -100,3 +102,59 @@ def overlay(cfg: Config, sweep: str, cells: Sequence[Cell], rows: dict[str, Cell
 def rebuilt_count(rows: dict[str, CellRow]) -> int:
     """Rows recorded from MLflow rather than by the worker that ran them."""
     return sum(1 for r in rows.values() if r.state == FINISHED and r.worker == REBUILT)
+
+
+# -- Optuna studies ------------------------------------------------------------------------------------------
+
+
+def distributions(space: Mapping[str, TuneParam]) -> dict[str, Any]:
+    """``tune.space`` as Optuna distributions (what ``tuning.suggest`` samples)."""
+    from optuna import distributions as d  # lazy: optuna only where a study is tuned, not in every sweep
+
+    out: dict[str, Any] = {}
+    for path, p in space.items():
+        if p.type == "float":
+            out[path] = d.FloatDistribution(p.low, p.high, log=p.log, step=p.step)
+        elif p.type == "int":
+            out[path] = d.IntDistribution(int(p.low), int(p.high), log=p.log, step=int(p.step or 1))
+        else:
+            out[path] = d.CategoricalDistribution(p.choices)
+    return out
+
+
+def _param(raw: str | None, dist: Any) -> Any:
+    """A trial's value of one parameter, from the MLflow param its run logged (a string)."""
+    if raw is None:
+        raise ValueError("not logged")
+    if hasattr(dist, "choices"):
+        return next(c for c in dist.choices if str(c) == raw)
+    return int(float(raw)) if type(dist).__name__ == "IntDistribution" else float(raw)
+
+
+def rebuild_trials(cfg: Config, study: Any, attr_run: str) -> int:
+    """A new (or lost) study gets the trials MLflow records as FINISHED for it, as COMPLETE trials with their
+    parameters and best validation loss (user attribute ``attr_run``: the run), so none is run again."""
+    from optuna.trial import create_trial  # lazy: optuna only where a study is tuned, not in every sweep
+
+    if study.get_trials(deepcopy=False):
+        return 0
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    if db is not None and not db.is_file():
+        return 0
+    client = client_for(cfg)
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    if exp is None:
+        return 0
+    runs = search_runs(client, [exp.experiment_id], {TAG_KIND: "trial", "study": study.study_name}, ["FINISHED"])
+    dists, n = distributions(cfg.tune.space), 0
+    for run in sorted(runs, key=lambda r: r.info.start_time or 0):
+        try:
+            params = {k: _param(run.data.params.get(k), dist) for k, dist in dists.items()}
+            study.add_trial(create_trial(params=params, distributions=dists, value=run.data.metrics.get(
+                "best_val_loss"), user_attrs={attr_run: run.info.run_id, "rebuilt": "mlflow"}))
+        except (ValueError, StopIteration, TypeError):  # another search space, or no finite loss: not this study's
+            continue
+        n += 1
+    if n:
+        log.warning("study %s was new: %d finished trial(s) rebuilt from MLflow", study.study_name, n)
+    return n

@@ -36,7 +36,8 @@ from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
 from ..runs.contract import RunInterrupted, RunPruned, cpu_threads
 from ..runs.parents import set_parent_status, start_parent, study_parent
-from ..runs.records import TAG_PARENT, log_metrics, search_runs
+from ..runs.records import TAG_PARENT, log_metrics
+from .record import rebuild_trials
 from .storage import StorageError
 
 log = logging.getLogger(__name__)
@@ -224,57 +225,6 @@ def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int
     return s
 
 
-def distributions(space: Mapping[str, TuneParam]) -> dict[str, Any]:
-    """``tune.space`` as Optuna distributions (what ``suggest`` samples)."""
-    d = optuna.distributions
-    out: dict[str, Any] = {}
-    for path, p in space.items():
-        if p.type == "float":
-            out[path] = d.FloatDistribution(p.low, p.high, log=p.log, step=p.step)
-        elif p.type == "int":
-            out[path] = d.IntDistribution(int(p.low), int(p.high), log=p.log, step=int(p.step or 1))
-        else:
-            out[path] = d.CategoricalDistribution(p.choices)
-    return out
-
-
-def _param(raw: str | None, dist: Any) -> Any:
-    """A trial's value of one parameter, from the MLflow param its run logged (a string)."""
-    if raw is None:
-        raise ValueError("not logged")
-    if isinstance(dist, optuna.distributions.CategoricalDistribution):
-        return next(c for c in dist.choices if str(c) == raw)
-    return int(float(raw)) if isinstance(dist, optuna.distributions.IntDistribution) else float(raw)
-
-
-def rebuild_trials(cfg: Config, s) -> int:
-    """A new (or lost) study gets the trials MLflow records as FINISHED for it, as COMPLETE trials with their
-    parameters and best validation loss: MLflow is the record of what finished, so none is run again."""
-    if s.get_trials(deepcopy=False):
-        return 0
-    db = urls.sqlite_file(cfg.paths.mlflow_uri)
-    if db is not None and not db.is_file():
-        return 0
-    client = client_for(cfg)
-    exp = client.get_experiment_by_name(cfg.experiment_name)
-    if exp is None:
-        return 0
-    runs = search_runs(client, [exp.experiment_id], {"run_kind": "trial", "study": s.study_name}, ["FINISHED"])
-    dists, n = distributions(cfg.tune.space), 0
-    for run in sorted(runs, key=lambda r: r.info.start_time or 0):
-        value = run.data.metrics.get("best_val_loss")
-        try:
-            params = {k: _param(run.data.params.get(k), dist) for k, dist in dists.items()}
-            s.add_trial(optuna.trial.create_trial(params=params, distributions=dists, value=value,
-                                                  user_attrs={ATTR_RUN: run.info.run_id, "rebuilt": "mlflow"}))
-        except (ValueError, StopIteration, TypeError):  # another search space, or no finite loss: not this study's
-            continue
-        n += 1
-    if n:
-        log.warning("study %s was new: %d finished trial(s) rebuilt from MLflow", s.study_name, n)
-    return n
-
-
 def finished(study) -> int:
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,
                                                          optuna.trial.TrialState.PRUNED)))
@@ -378,7 +328,7 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
-    rebuild_trials(cfg, s)  # a lost or new study storage: the finished trials MLflow records count, none reruns
+    rebuild_trials(cfg, s, ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
     parent = study_parent_or_none(cfg, target, s.study_name)  # created here once, found by the workers
     if parent is not None:
         start_parent(client_for(cfg), parent)  # RUNNING with this process: `status --repair` ends it if killed
