@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -61,11 +62,20 @@ def write_json(path: str | os.PathLike, data: Any) -> Path:
     return write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
+_TEMP_NAME = re.compile(rf"^\..+\.\d+-[0-9a-f]{{8}}{re.escape(TEMP_SUFFIX)}$")  # what temp_name makes
+
+
+def is_temp_name(name: str) -> bool:
+    """A name :func:`temp_name` makes (a user's ``.notes.tmp`` is not one)."""
+    return bool(_TEMP_NAME.match(name))
+
+
 def remove_stale_temps(folder: Path) -> int:
-    """Delete the temporary files interrupted writers left under ``folder``; returns how many."""
+    """Delete the temporary files interrupted writers left under ``folder`` (only names :func:`temp_name`
+    makes, never a link); returns how many."""
     n = 0
     for p in Path(folder).rglob(f".*{TEMP_SUFFIX}"):
-        if p.is_file():
+        if is_temp_name(p.name) and p.is_file() and not p.is_symlink():
             p.unlink(missing_ok=True)
             n += 1
     return n

@@ -736,7 +736,8 @@ def test_floats_written_with_an_exponent_are_numbers(lr):
     assert load_config(REPO / "experiments.yaml", overrides=[f"train.lr={lr:e}"]).train.lr == pytest.approx(lr)
 
 
-# == issue 32: out of memory, damage found mid-command, secrets in every printed and recorded form ============
+# == issue 32: out of memory, damage found mid-command, secrets in every printed and recorded form =====
+
 
 
 def _runs(p: Project) -> list:
@@ -860,3 +861,30 @@ def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record
         data = f.read_bytes()
         leaked = [form for form, s in SECRETS.items() if s.encode() in data]
         assert not leaked, (f, leaked)
+# -- roots that hold each other or a system folder (issue 32, item 1) -------------------------------------------
+
+ROOTS: dict[str, tuple[list[str], str]] = {
+    "checkpoints holding the artifacts (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=runs"],
+                                               "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    "checkpoints holding the artifacts (train)": (["train", *RUN, "--set", "runs.checkpoints=runs"],
+                                                  "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    "cache is the checkpoints folder (sweep)": (["sweep", "--set", "data.cache_dir=runs/checkpoints"],
+                                                "data.cache_dir {root}/runs/checkpoints: is the same folder as runs.checkpoints"),
+    "logs inside the cache (sweep --dry-run)": (["sweep", "--dry-run", "--set", "sweep.logs=runs/cache/logs"],
+                                                "data.cache_dir {root}/runs/cache: contains sweep.logs"),
+    "artifacts in /etc (tune)": (["tune", *RUN, "--set", "runs.artifacts=/etc/bronchopose"],
+                                 "runs.artifacts /etc/bronchopose: a system folder"),
+    "checkpoints at / (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: a system folder"),
+    "checkpoints at home (gc)": (["sweep", "--gc", "--set", "runs.checkpoints='~'"], "a system folder"),
+}
+
+
+@pytest.mark.parametrize("case", list(ROOTS))
+def test_roots_inside_each_other_or_system_folders_are_refused_in_one_line(cli, project, case):
+    args, culprit = ROOTS[case]
+    before = project.files()
+    code, out, err = cli(*args, *C(project))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, f"exit {code}\nstdout: {out}\nstderr: {err}"
+    assert culprit.format(root=project.root) in lines[0], lines[0]
+    assert project.files() == before

@@ -26,3 +26,16 @@ def test_folder_bytes_counts_files_below_not_links_and_filters_by_name(tmp_path)
     assert folder_bytes(tmp_path) == 1300 + link
     assert folder_bytes(tmp_path, only=lambda name: name.endswith(".tmp")) == 300
     assert folder_bytes(tmp_path / "missing") == 0
+
+
+def test_stale_temporary_files_are_only_those_atomic_writes_make(tmp_path):
+    """Issue 32, item 1: a user's ``.notes.tmp`` is not a temporary file of an interrupted write."""
+    from bronchocli.io import remove_stale_temps, temp_name
+
+    ours = temp_name(tmp_path / "sub" / "a.csv")
+    ours.parent.mkdir()
+    ours.write_text("half")
+    theirs = [tmp_path / ".notes.tmp", tmp_path / "sub" / ".draft.1-xyz.tmp", tmp_path / "keep.tmp"]
+    for p in theirs:
+        p.write_text("mine")
+    assert remove_stale_temps(tmp_path) == 1 and not ours.exists() and all(p.exists() for p in theirs)

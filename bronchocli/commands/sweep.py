@@ -33,7 +33,9 @@ def sweep(
                                 "a GPU idle; packing several raises throughput)."),
     storage: Optional[str] = typer.Option(None, "--storage", help=STORAGE_HELP),
     only: Optional[list[str]] = typer.Option(None, "--only", help=ONLY_HELP),
-    dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit; with "
+                                 "--gc: what would be removed; with --cancel: the jobs that would be cancelled. "
+                                 "Changes nothing, with any other flag."),
     retry_failed: bool = typer.Option(False, "--retry-failed",
                                       help="Reset FAILED cells (and their retry budget) first."),
     gc: bool = typer.Option(False, "--gc", help="Remove the checkpoints no live cell needs (finished, orphaned, "
@@ -84,9 +86,9 @@ def sweep(
                            "(or sweep.launcher: slurm)")
     console = wide(_console)
     if gc:
-        code = entry.gc(cfg, console)
+        code = entry.gc(cfg, console, dry_run=dry_run)
     elif cancel:
-        code = entry.cancel(cfg, console)
+        code = entry.cancel(cfg, console, dry_run=dry_run)
     elif use_slurm and not dry_run:
         code = entry.launch_slurm(cfg, spec, detach=detach, retry_failed=retry_failed, console=console)
     elif dry_run:

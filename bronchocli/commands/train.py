@@ -26,6 +26,8 @@ def train(
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),
     run_id: Optional[str] = typer.Option(None, "--run-id", help="With --resume: the MLflow run to continue."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study."),
+    again: bool = typer.Option(False, "--again", help="Train even when the cell already has a FINISHED MLflow run "
+                               "(by default it is not trained twice)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
@@ -38,7 +40,8 @@ def train(
     zero-motion and training-mean references), the resolved config, split manifest,
     predictions, per-trajectory errors, trajectory plot and weights land in MLflow
     (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
-    marks the run KILLED; `--resume` continues it. Exit code 1 when the run FAILED.
+    marks the run KILLED; `--resume` continues it. A cell that already has a FINISHED
+    run (in MLflow) is not trained again unless `--again`. Exit code 1 when the run FAILED.
     """
     from ..training import entry  # lazy: torch loads only when the command runs
 
@@ -52,4 +55,5 @@ def train(
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-    raise typer.Exit(entry.train(cfg, cell, resume=run_id or resume, progress=not quiet, console=console))
+    raise typer.Exit(entry.train(cfg, cell, resume=run_id or resume, progress=not quiet, again=again,
+                                 console=console))

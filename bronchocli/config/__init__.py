@@ -12,7 +12,7 @@ The names below are the package's public surface; import them from ``bronchocli.
 
 from .grid import RUN_SECTIONS, SELECTABLE, Grid, Select, Stage, cell_key, expand_grid, run_signature
 from .loading import DEFAULT_CONFIG, deep_merge, load_config, parse_override
-from .paths import Paths, check_dataset_root, check_output, check_paths
+from .paths import Paths, check_dataset_root, check_output, check_paths, check_roots
 from .schema import TUNABLE, Config, space_problems
 from .sections import (
                        CsvColumns,
@@ -37,6 +37,6 @@ __all__ = [
     "DEFAULT_CONFIG", "RUN_SECTIONS", "SELECTABLE", "TUNABLE", "Config", "CsvColumns", "CsvImport", "DataCfg",
     "DatasetCfg", "EvalCfg", "Generate", "Grid", "ModelCfg", "Paths", "Realism", "RunsCfg", "Select", "SlurmCfg",
     "Splits", "Stage", "Storage", "SweepCfg", "Train", "Tune", "TuneParam", "cell_key", "check_dataset_root",
-    "check_output", "check_paths", "deep_merge", "expand_grid", "load_config", "parse_override", "run_signature",
+    "check_output", "check_paths", "check_roots", "deep_merge", "expand_grid", "load_config", "parse_override", "run_signature",
     "space_problems",
 ]

@@ -29,6 +29,7 @@ class Paths:
     checkpoints: Path
     artifacts: Path
     sweep_logs: Path
+    slurm_logs: Path
     pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
@@ -70,6 +71,7 @@ class Paths:
             checkpoints=path(cfg.runs.checkpoints, "runs.checkpoints", output=True),
             artifacts=path(cfg.runs.artifacts, "runs.artifacts", output=True),
             sweep_logs=path(cfg.sweep.logs, "sweep.logs", output=True),
+            slurm_logs=path(cfg.slurm.logs, "slurm.logs", output=True),
             pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained,
                                                                                               "model.pretrained"),
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy, "dataset.generate.anatomy"),
@@ -129,11 +131,44 @@ def check_dataset_root(cfg: Config) -> None:
         check_output(root, "dataset.root")
 
 
+def roots(cfg: Config) -> list[tuple[str, Path]]:
+    """The folders the project writes into and cleans up after (setting name, resolved path)."""
+    return [("runs.checkpoints", cfg.paths.checkpoints), ("runs.artifacts", cfg.paths.artifacts),
+            ("data.cache_dir", cfg.paths.cache), ("sweep.logs", cfg.paths.sweep_logs),
+            ("slurm.logs", cfg.paths.slurm_logs)]
+
+
+def _real(path: Path) -> Path:
+    return Path(os.path.realpath(path))  # symlinks followed, a loop left as is (no error)
+
+
+def _inside(a: Path, b: Path) -> bool:
+    return a == b or b in a.parents
+
+
+def check_roots(cfg: Config) -> None:
+    """Each root (``roots``) its own folder: none equal to or inside another. One line naming both settings
+    otherwise, before anything is written or removed (``sweep --gc`` once deleted every folder inside a checkpoints
+    root that held the artifacts). System folders, the file system's root and home are refused for every output
+    root when the config is read (``pathcheck.check_writable_root``, through ``Paths.of``)."""
+    found = [(name, path, _real(path)) for name, path in roots(cfg)]
+    for i, (name, path, real) in enumerate(found):
+        for other, opath, oreal in found[i + 1:]:
+            if _inside(real, oreal) or _inside(oreal, real):
+                outer, inner = ((other, opath), (name, path)) if _inside(real, oreal) else ((name, path), (other, opath))
+                how = "is the same folder as" if real == oreal else "contains"
+                raise BronchoError(f"{outer[0]} {outer[1]}: {how} {inner[0]} {inner[1]}; give runs.checkpoints, "
+                                   "runs.artifacts, data.cache_dir, sweep.logs and slurm.logs each a folder of its "
+                                   "own, none inside another")
+
+
 def check_paths(cfg: Config, *, storage: bool = False, logs: bool = False) -> None:
     """Every folder and database file a training command writes, checked before any is created (one line each).
 
     ``storage``: also the SQLite file of ``storage.url`` (sweep, tune); ``logs``: the sweep's worker logs.
+    The roots are checked first (``check_roots``).
     """
+    check_roots(cfg)
     check_dataset_root(cfg)
     outputs = [(cfg.paths.checkpoints, "runs.checkpoints", "folder"), (cfg.paths.cache, "data.cache_dir", "folder")]
     mlflow_db = urls.sqlite_file(cfg.paths.mlflow_uri)

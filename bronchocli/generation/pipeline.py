@@ -286,15 +286,31 @@ def generate_dataset(cfg: Config, *, root: Path | None = None, workers: int | No
                           fresh=state == "fresh")
             except BaseException:
                 if created:
-                    _remove_stub(root)
+                    _remove_stub(root, [src.patient for src in sources])
                 raise
     return root
 
 
-def _remove_stub(root: Path) -> None:
-    """A generation that failed before rendering any frame leaves no folder behind (nothing to resume)."""
-    if not any(root.rglob("*.png")):
-        shutil.rmtree(root, ignore_errors=True)
+def _remove_stub(root: Path, patients: list[str]) -> None:
+    """A generation that failed before rendering any frame leaves no folder behind (nothing to resume).
+
+    Only what generation writes is removed (its work folder and lock, each patient's folder and CSV); the
+    root goes only once nothing else is left in it.
+    """
+    if any(root.rglob("*.png")):
+        return
+    ours = {*OURS, *patients, *(f"{p}.csv" for p in patients)}
+    for p in root.iterdir():
+        if p.name not in ours:
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    try:
+        root.rmdir()
+    except OSError:  # something else is in it: left as it is
+        pass
 
 
 def _generate(root: Path, gen: Generate, sources: list[PatientSource], record: dict, workers: int, progress: bool,

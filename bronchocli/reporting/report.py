@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import socket
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -139,11 +141,41 @@ def publish(stage: Path, out: Path, files: Sequence[Path]) -> list[Path]:
     return moved
 
 
+STAGE = re.compile(rf"^\.report-(\d+)-[0-9a-f]{{8}}@(.+){re.escape(TEMP_SUFFIX)}$")  # .report-<pid>-<hex>@<host>.tmp
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def stale_stages(out: Path) -> list[Path]:
+    """Staging folders in ``out`` left by a report of this host whose process is gone (SIGKILL, power loss)."""
+    host = socket.gethostname()
+    found = []
+    for p in out.iterdir() if out.is_dir() else ():
+        m = STAGE.match(p.name)
+        if m and m.group(2) == host and not p.is_symlink() and p.is_dir() and not _pid_alive(int(m.group(1))):
+            found.append(p)
+    return found
+
+
 @contextmanager
 def staged_outputs(out: Path) -> Iterator[Path]:
-    """A hidden staging folder inside ``out``, removed afterwards (with whatever a failed report left in it)."""
+    """A hidden staging folder inside ``out``, removed afterwards (with whatever a failed report left in it).
+
+    Staging folders that an earlier report of this host left when it was killed (its process gone) are removed
+    first; only folders named like this function's own (``STAGE``) are ever removed.
+    """
     out.mkdir(parents=True, exist_ok=True)
-    stage = out / f".report-{os.getpid()}-{uuid.uuid4().hex[:8]}{TEMP_SUFFIX}"
+    for old in stale_stages(out):
+        shutil.rmtree(old, ignore_errors=True)
+    stage = out / f".report-{os.getpid()}-{uuid.uuid4().hex[:8]}@{socket.gethostname()}{TEMP_SUFFIX}"
     stage.mkdir()
     try:
         yield stage

@@ -21,6 +21,7 @@ from ..cells import Cell
 from ..config import Config
 from ..io import file_lock
 from .client import MIGRATION_LOCK_KEY, database_lock
+from .processes import process_tags
 from .records import TAG_KIND, TAG_NOTE, TAG_SWEEP, log_params, non_empty, python_tags, search_runs, source_tags
 from .views import cell_params, parent_params
 
@@ -87,6 +88,14 @@ def study_parent(client: MlflowClient, cfg: Config, exp_id: str, study: str, tar
     params = {**cell_params(target), **space, "tune.sampler": cfg.tune.sampler, "tune.pruner": cfg.tune.pruner}
     return parent_run(client, cfg, exp_id, KIND_STUDY, study, params,
                       f"Optuna study **{study}** of cell {target.label}: each trial is a nested run.")
+
+
+def start_parent(client: MlflowClient, run_id: str) -> None:
+    """A parent is RUNNING while its command runs, tagged with that command's process: a command killed outright
+    (SIGKILL) leaves it RUNNING, and ``status --repair`` (or the next command) sees the process gone and ends it."""
+    client.update_run(run_id, "RUNNING")
+    for key, value in process_tags().items():
+        client.set_tag(run_id, key, value)
 
 
 def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:

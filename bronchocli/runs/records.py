@@ -182,3 +182,19 @@ def search_runs(
     if len(statuses) > 1:
         runs = [r for r in runs if r.info.status in statuses]
     return runs
+
+
+def finished_cell_runs(client: MlflowClient, experiment_id: str, sweep: str,
+                       keys: Iterable[str] | None = None) -> dict[str, Run]:
+    """The newest FINISHED cell run (``run_kind=cell``, not a tuning trial) of each cell key of ``sweep``
+    (``keys``: only these): MLflow is the record of what finished, whatever the claims table says."""
+    want = None if keys is None else set(keys)
+    tags = {TAG_SWEEP: sweep, TAG_KIND: "cell"}
+    if want is not None and len(want) == 1:
+        tags[TAG_CELL_KEY] = next(iter(want))
+    out: dict[str, Run] = {}
+    for run in search_runs(client, [experiment_id], tags, ["FINISHED"]):  # newest first
+        key = run.data.tags.get(TAG_CELL_KEY)
+        if key and (want is None or key in want):
+            out.setdefault(key, run)
+    return out

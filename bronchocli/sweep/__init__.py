@@ -10,7 +10,10 @@
 - ``slurm``: the Slurm driver (sbatch, squeue, scancel, scontrol, the batch script) and the launcher's watch;
 - ``task``: a Slurm array task's entry point (``python -m bronchocli.sweep.task <spec>``);
 - ``entry``: ``bronchopose sweep``'s modes as library calls (run, dry_run, gc, launch_slurm, cancel);
-- ``placement``, ``checkpoints``: GPUs for local workers; checkpoints on disk (inventory, --gc, --repair);
+- ``record``: MLflow as the record of what finished (claims rows rebuilt from FINISHED runs, the check before
+  training, the read-only view for ``--dry-run`` and ``status``);
+- ``placement``, ``housekeeping``: GPUs for local workers; checkpoints on disk (inventory, --gc, --repair; what
+  is provably a checkpoint is ``runs.ownership``'s call);
 - ``status``: tables for the plan, the live view and ``bronchopose status``;
 - ``tuning``: Optuna studies on the same storage, one MLflow run per trial.
 

@@ -5,9 +5,11 @@ its flags, loads the config and calls exactly one of these.
 
 - ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``);
 - ``dry_run``: the plan and each cell's state; nothing is started;
-- ``gc``: remove the checkpoints no live cell needs on this machine;
+- ``gc``: remove the checkpoints no live cell needs on this machine (``dry_run``: list them);
 - ``launch_slurm``: submit the workers as Slurm job arrays, then watch (``slurm.launch``);
-- ``cancel``: scancel the sweep's Slurm jobs.
+- ``cancel``: scancel the sweep's Slurm jobs (``dry_run``: list them).
+
+Every mode with ``--dry-run`` changes nothing anywhere: no job submitted or cancelled, no file or row written.
 
 A Slurm array task is not a mode of the command: it starts
 ``python -m bronchocli.sweep.task '<spec>'`` (``task.main``). The others:
@@ -24,12 +26,12 @@ from rich.table import Table
 
 from .. import urls
 from ..cells import FIELDS, Cell, Selection
-from ..config import Config, check_paths
+from ..config import Config, check_paths, check_roots
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
 from . import placement, slurm, staged, task
-from .housekeeping import collect_garbage, repair_zombies
+from .housekeeping import collect_garbage, foreign, repair_zombies
 from .plan import StageWalk
 from .status import show_status
 from .storage import SweepStore
@@ -76,14 +78,23 @@ def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: s
     return 0
 
 
-def gc(cfg: Config, console: Console) -> int:
-    """Remove the checkpoints no live cell needs on this machine and say what was freed."""
+def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
+    """Remove the checkpoints no live cell needs on this machine and say what was freed (``dry_run``: what would
+    go; nothing is removed). Only what provably is a run's checkpoint is ever removed (``runs.ownership``)."""
+    check_roots(cfg)  # a checkpoints root holding other roots (or a system folder) is refused before anything
     store = open_store(cfg)
-    freed = collect_garbage(cfg, store if store.exists() else None)
+    freed = collect_garbage(cfg, store if store.exists() else None, dry_run=dry_run)
+    verb = "would free" if dry_run else "freed"
     for ck, n in freed:
         what = "rejected/temporary files" if ck.needed else ck.why
-        console.print(f"freed {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
-    console.print(f"--gc: freed {fmt_bytes(sum(n for _, n in freed))} in {len(freed)} checkpoint folder(s)")
+        console.print(f"{verb} {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
+    others = foreign(cfg)
+    if others:
+        shown = ", ".join(p.name for p in others[:8]) + (", ..." if len(others) > 8 else "")
+        console.print(f"left alone: {len(others)} entr{'y' if len(others) == 1 else 'ies'} in "
+                      f"{cfg.paths.checkpoints} not provably a checkpoint of this project ({shown})", highlight=False)
+    console.print(f"--gc{' --dry-run' if dry_run else ''}: {verb} {fmt_bytes(sum(n for _, n in freed))} in "
+                  f"{len(freed)} checkpoint folder(s)" + ("; nothing was removed" if dry_run else ""))
     return 0
 
 
@@ -96,9 +107,10 @@ def launch_slurm(cfg: Config, spec: task.TaskSpec, *, detach: bool = False, retr
                         console=console, retry_failed=retry_failed)
 
 
-def cancel(cfg: Config, console: Console) -> int:
-    """scancel every queued or running job of the sweep (running workers release their cells)."""
-    return slurm.cancel(cfg, console)
+def cancel(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
+    """scancel every queued or running job of the sweep (running workers release their cells); ``dry_run``: list
+    them (squeue only) and cancel nothing."""
+    return slurm.cancel(cfg, console, dry_run=dry_run)
 
 
 # -- bronchopose status, config --grid -----------------------------------------------------------------

@@ -14,22 +14,25 @@ Anything else is an orphan: a FINISHED or missing run, a run whose cell moved
 on (taken over, failed for good, finished by another run), a failed run that no
 retry will resume. ``last.pt.rejected`` files (refused on resume) and temporary
 files of interrupted writes are never needed.
+
+Only folders provably written by a run are looked at, and only the files a run
+wrote there are removed (``runs.ownership``: its marker, or its ``last.pt``
+read back); anything else in ``runs.checkpoints`` (a user's folder, MLflow's
+artifacts, a foreign file) is never touched and is listed by ``foreign``.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .. import urls
 from ..config import Config
 from ..errors import BronchoError, MlflowBusy, resumable
-from ..io import TEMP_SUFFIX, folder_bytes
 from ..runs.client import client_for
-from ..runs.contract import REJECTED_SUFFIX
+from ..runs.ownership import owned_checkpoint, removable_bytes, remove_checkpoint
 from ..runs.processes import repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, search_runs
 from .storage import FAILED, PENDING, RUNNING, TAG_CLAIM, CellRow, SweepStore
@@ -41,15 +44,11 @@ log = logging.getLogger(__name__)
 class Checkpoint:
     run_id: str
     folder: Path
-    bytes: int
+    bytes: int  # of the files the run wrote there (what removing it frees; anything else inside is kept)
     needed: bool
     why: str
     cell_key: str | None = None
     waste: int = 0  # bytes of never-needed files inside a needed folder (rejected checkpoints, temporary files)
-
-
-def _is_waste(name: str) -> bool:
-    return name.endswith(REJECTED_SUFFIX) or (name.startswith(".") and name.endswith(TEMP_SUFFIX))
 
 
 def _rows_by_run(store: SweepStore | None) -> dict[str, CellRow]:
@@ -82,45 +81,61 @@ def _decide(run: Any, row: CellRow | None, max_retries: int) -> tuple[bool, str]
     return False, f"run {status}: not resumable"
 
 
-def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list[Checkpoint]:
-    """Every checkpoint folder of this machine, its size, and whether a live cell needs it."""
+def _entries(cfg: Config) -> list[Path]:
     root = cfg.paths.checkpoints
-    if not root.is_dir():
+    if root.is_symlink() or not root.is_dir():
         return []
-    folders = sorted(p for p in root.iterdir() if p.is_dir())
-    if not folders:
+    return sorted(root.iterdir())
+
+
+def foreign(cfg: Config) -> list[Path]:
+    """What lies in ``runs.checkpoints`` but is not provably a checkpoint folder of this project (never touched)."""
+    return [p for p in _entries(cfg) if owned_checkpoint(p) is None]
+
+
+def _open_client(cfg: Config) -> Any:
+    """A client of the config's MLflow store; None when its SQLite file does not exist (nothing is created)."""
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    return None if db is not None and not db.is_file() else client_for(cfg, reading=True)
+
+
+def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list[Checkpoint]:
+    """Every checkpoint folder of this machine provably written by a run, its size, and whether a live cell
+    needs it (anything else in ``runs.checkpoints`` is not a checkpoint: ``foreign`` lists it)."""
+    owned = [o for o in map(owned_checkpoint, _entries(cfg)) if o is not None]
+    if not owned:
         return []
-    client = client or client_for(cfg)
+    client = client or _open_client(cfg)
     rows = _rows_by_run(store)
     out = []
-    for folder in folders:
-        try:
-            run = client.get_run(folder.name)
-        except MlflowBusy:
-            raise
-        except Exception:  # noqa: BLE001 - MLflow raises its own types for a missing run
-            run = None
-        needed, why = _decide(run, rows.get(folder.name), cfg.sweep.max_retries)
+    for o in owned:
+        run = None
+        if client is not None:
+            try:
+                run = client.get_run(o.folder.name)
+            except MlflowBusy:
+                raise
+            except Exception:  # noqa: BLE001 - MLflow raises its own types for a missing run
+                run = None
+        needed, why = _decide(run, rows.get(o.folder.name), cfg.sweep.max_retries)
         key = run.data.tags.get(TAG_CELL_KEY) if run is not None else None
-        out.append(Checkpoint(folder.name, folder, folder_bytes(folder), needed, why, key,
-                              folder_bytes(folder, only=_is_waste) if needed else 0))
+        out.append(Checkpoint(o.folder.name, o.folder, removable_bytes(o.folder), needed, why, key,
+                              removable_bytes(o.folder, only_waste=True) if needed else 0))
     return out
 
 
-def collect_garbage(cfg: Config, store: SweepStore | None, client: Any = None) -> list[tuple[Checkpoint, int]]:
-    """Remove what no live cell needs; returns each touched checkpoint and the bytes freed there."""
+def collect_garbage(cfg: Config, store: SweepStore | None, client: Any = None, *,
+                    dry_run: bool = False) -> list[tuple[Checkpoint, int]]:
+    """Remove what no live cell needs (``dry_run``: only say what would go); returns each touched checkpoint and
+    the bytes freed there. Only files a run wrote in its own folder are removed (``runs.ownership``)."""
     freed = []
     for ck in inventory(cfg, store, client):
         if not ck.needed:
-            shutil.rmtree(ck.folder, ignore_errors=True)
-            freed.append((ck, ck.bytes))
-            log.info("removed checkpoint %s (%s)", ck.folder, ck.why)
+            n = ck.bytes if dry_run else remove_checkpoint(ck.folder, ck.why)
+            freed.append((ck, n))
         elif ck.waste:
-            for dirpath, _, files in os.walk(ck.folder):
-                for name in files:
-                    if _is_waste(name):
-                        Path(dirpath, name).unlink(missing_ok=True)
-            freed.append((ck, ck.waste))
+            n = ck.waste if dry_run else remove_checkpoint(ck.folder, ck.why, only_waste=True)
+            freed.append((ck, n))
     return freed
 
 

@@ -77,8 +77,7 @@ def job_comment(cfg: Config, stage: str) -> str:
 
 
 def logs_dir(cfg: Config) -> Path:
-    p = Path(os.path.expandvars(cfg.slurm.logs)).expanduser()
-    return p if p.is_absolute() else (cfg.paths.base / p).resolve()
+    return cfg.paths.slurm_logs
 
 
 # -- up-front checks ------------------------------------------------------------------------------------
@@ -212,11 +211,15 @@ def submit(cfg: Config, stage: str, tasks: int, command: Sequence[str], dependen
     return out.strip().split(";")[0]
 
 
-def cancel(cfg: Config, console: Console) -> int:
-    """``bronchopose sweep --cancel``: scancel every job of this sweep (running workers release their cells)."""
+def cancel(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
+    """``bronchopose sweep --cancel``: scancel every job of this sweep (running workers release their cells);
+    ``dry_run``: only list them (squeue, which changes nothing)."""
     jobs = sorted({t.job for t in sweep_tasks(cfg)}, key=int)
     if not jobs:
         console.print(f"no Slurm job of sweep {cfg.name} is queued or running")
+        return 0
+    if dry_run:
+        console.print(f"dry run: would cancel Slurm job(s) {', '.join(jobs)} of sweep {cfg.name}; nothing cancelled")
         return 0
     _run(["scancel", *jobs], "cancelling the sweep's jobs")
     console.print(f"cancelled Slurm job(s) {', '.join(jobs)} of sweep {cfg.name}: running cells are released "

@@ -19,8 +19,9 @@ from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
 from ..runs.client import client_for, experiment_id
-from ..runs.parents import set_parent_status, sweep_parent
+from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
+from . import record
 from .plan import cells_left
 from .pool import EXIT_INTERRUPTED, run_pool
 from .selection import describe_selection
@@ -56,8 +57,13 @@ def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, conso
             continue
         if sp.selection is not None:
             console.print(describe_selection(sp.selection), highlight=False)
-        _print_plan(console, planning.read_plan(store, cfg.name, sp.cells), cfg.sweep.max_retries, workers,
+        plan = planning.read_plan(store, cfg.name, sp.cells)
+        rows, known = record.overlay(cfg, plan.sweep, plan.cells, plan.rows)
+        _print_plan(console, planning.Plan(plan.sweep, plan.cells, rows), cfg.sweep.max_retries, workers,
                     _stage_title(sp.stage, len(stages)))
+        if known:
+            console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished, never "
+                          "trained again (a sweep records them there)", highlight=False)
     console.print("[dim]dry run: nothing started[/]")
 
 
@@ -75,7 +81,7 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
     walk, _ = planning.prepare_walk(cfg, store, only, retry_failed=retry_failed)
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))
-    client.update_run(parent, "RUNNING")
+    start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
     code = 1
     try:
         record_parent(client, parent, walk)  # the plan; the outcome when the sweep ends (finally)

@@ -26,6 +26,7 @@ from ..io import fmt_bytes, folder_bytes
 from ..runs.client import client_for, store_missing
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
+from .record import overlay, rebuilt_count
 from .selection import describe_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
@@ -210,7 +211,8 @@ def _stored_plan(store: SweepStore, name: str) -> Plan:
 def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> None:
     """``bronchopose status``: the plan's cells (or every stored cell) with state, run, duration, metrics."""
     if not store.exists():
-        console.print(f"no sweep has used storage {store.redacted} yet")
+        console.print(f"no claims table in storage {store.redacted} (new, or lost): cells FINISHED in MLflow are "
+                      "shown finished and the next sweep records them there", highlight=False)
         if name != cfg.name:
             return
     if show_all or name != cfg.name:
@@ -227,6 +229,15 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         if stale > 0:
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
+    rows, known = overlay(cfg, plan.sweep, plan.cells, plan.rows)
+    if known:
+        console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished (never trained "
+                      "again; the next sweep records them there)", highlight=False)
+    plan = Plan(plan.sweep, plan.cells, rows)
+    rebuilt = rebuilt_count(rows) - known
+    if rebuilt > 0:
+        console.print(f"{rebuilt} cell(s) recorded from their FINISHED MLflow runs: the claims table was rebuilt from "
+                      "MLflow (new, lost, or behind)", highlight=False)
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
     held = inventory(cfg, store if store.exists() else None)
     console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,

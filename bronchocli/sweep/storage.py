@@ -248,6 +248,19 @@ class SweepStore:
             )
             return res.rowcount
 
+    def record_finished(self, row: CellRow, run_id: str, duration_s: float | None, worker: str) -> bool:
+        """Record an unclaimed row (pending or failed, as read) FINISHED by ``run_id``, a FINISHED MLflow run of the
+        cell (``record.rebuild``); False when the row changed since it was read (a worker claimed it)."""
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            res = conn.execute(
+                update(cells_table)
+                .where(c.sweep == row.sweep, c.cell_key == row.cell_key, c.version == row.version,
+                       c.state.in_([PENDING, FAILED]))
+                .values(state=FINISHED, run_id=run_id, duration_s=duration_s, worker=worker, token=None,
+                        heartbeat=None, finished_at=self._now, failure_reason=None, version=c.version + 1))
+            return res.rowcount == 1
+
     # -- claims ------------------------------------------------------------------
     def _claimable(self, max_retries: int, stale_after_s: float):
         c = cells_table.c

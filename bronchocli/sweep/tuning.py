@@ -34,9 +34,10 @@ from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
-from ..runs.contract import RunPruned, cpu_threads
-from ..runs.parents import set_parent_status, study_parent
+from ..runs.contract import RunInterrupted, RunPruned, cpu_threads
+from ..runs.parents import set_parent_status, start_parent, study_parent
 from ..runs.records import TAG_PARENT
+from .record import rebuild_trials
 from .storage import StorageError
 from .summary import log_study
 
@@ -274,11 +275,14 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
             raise optuna.TrialPruned(str(exc)) from None
         if result.status != "FINISHED":
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
+        if result.stop_requested:  # Ctrl-C during the trial's last steps (evaluation): the trial counts, none follows
+            run.stop_requested = (trial.number, result.stop_requested)
         value = result.metrics.get("best_val_loss", math.nan)
         if not math.isfinite(value):
             raise TrialFailed(f"trial {trial.number}: no finite validation loss")
         return value
 
+    run.stop_requested = None  # (trial number, signal) once a stop request arrived while a trial evaluated
     return run
 
 
@@ -299,6 +303,10 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
             break
         before = finished(s)
         s.optimize(fn, n_trials=1, catch=(TrialFailed,))
+        if fn.stop_requested is not None:
+            number, signum = fn.stop_requested
+            raise RunInterrupted(f"tune interrupted (signal {signum} while trial #{number} was evaluated: that trial "
+                                 "was completed first, no other was started); run the same command to continue")
         last = s.get_trials(deepcopy=False)[-1]
         if last.state == optuna.trial.TrialState.FAIL:
             log.warning("trial %d failed (its MLflow run %s says why)", last.number, last.user_attrs.get(ATTR_RUN))
@@ -322,11 +330,27 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
-    study_parent_or_none(cfg, target, s.study_name)  # created here once, found by the workers
+    rebuild_trials(cfg, s, ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
+    parent = study_parent_or_none(cfg, target, s.study_name)  # created here once, found by the workers
+    if parent is not None:
+        start_parent(client_for(cfg), parent)  # RUNNING with this process: `status --repair` ends it if killed
+    try:
+        _run_workers(cfg, target, trials, s, study=study, timeout=timeout, workers=workers, progress=progress,
+                     enqueue=enqueue)
+    except BaseException as exc:  # an interrupted or failed tune ends its parent run too (KILLED / FAILED)
+        if parent is not None:
+            interrupted = isinstance(exc, (KeyboardInterrupt, RunInterrupted))
+            set_parent_status(client_for(cfg), parent, 130 if interrupted else 1)
+        raise
+    _close_parent(cfg, target, s)
+    return s
+
+
+def _run_workers(cfg: Config, target: Cell, trials: int, s, *, study: str | None, timeout: float | None,
+                 workers: int, progress: bool, enqueue: Sequence[Mapping[str, Any]]) -> None:
     if workers <= 1:
         tune_worker(cfg, target, trials, study=study, timeout=timeout, progress=progress, enqueue=enqueue)
-        _close_parent(cfg, target, s)
-        return s
+        return
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
     per = cfg.with_values({"train.threads": cpu_threads(cfg, workers)})
@@ -337,8 +361,6 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
         p.start()
     for p in procs:
         p.join()
-    _close_parent(cfg, target, s)
-    return s
 
 
 def _close_parent(cfg: Config, target: Cell, s) -> None:

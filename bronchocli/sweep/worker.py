@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
 import signal
 import socket
 import sys
@@ -38,9 +37,11 @@ from ..errors import BronchoError, resumable
 from ..retry import retry
 from ..runs.client import MlflowBusy, client_for, experiment_id
 from ..runs.contract import RunInterrupted, checkpoint_dir, failure_reason, resume_file
+from ..runs.ownership import remove_checkpoint
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
 from .placement import pin_env
+from .record import finished_runs
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -237,8 +238,28 @@ class Worker:
             return "failed"
         return self._run_claim(claim)
 
+    def _finished_elsewhere(self, claim: Claim, cell: Cell) -> str | None:
+        """A FINISHED MLflow run of the cell (MLflow is the record: the claims table may be new or behind) is
+        recorded on the claim instead of training the cell again (``record.py``)."""
+        try:
+            run = finished_runs(self.cfg, [cell.key], self.sweep, self.client).get(cell.key)
+        except Exception as exc:  # noqa: BLE001 - cannot tell (a busy store too): the runner meets it and says so
+            log.warning("could not look up a FINISHED run of %s in MLflow: %s", cell.label, exc)
+            return None
+        if run is None:
+            return None
+        if not self._db(self.store.finish, claim.token, run.info.run_id, 0.0):
+            return self._lost(cell, None)
+        self.stats.finished += 1
+        log.info("%s: already FINISHED in MLflow (run %s); recorded, not trained again", cell.label, run.info.run_id)
+        return "finished"
+
     def _run_claim(self, claim: Claim) -> str:
         cell = self.cells[claim.row.cell_key]
+        done = self._finished_elsewhere(claim, cell)
+        if done is not None:
+            self.stats.outcomes.append((cell.key, done))
+            return done
         seen: dict[str, str] = {}
 
         def on_run_id(run_id: str) -> None:
@@ -398,8 +419,7 @@ def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:
     """Free the disk of a checkpoint no cell will resume (a takeover starts afresh; a last failure is final)."""
     folder = checkpoint_dir(cfg, run_id)
     if folder.is_dir():
-        shutil.rmtree(folder, ignore_errors=True)
-        log.info("removed the checkpoint folder %s of run %s (%s)", folder, run_id, why)
+        remove_checkpoint(folder, f"run {run_id} {why}")  # only what provably is the run's checkpoint
 
 
 # -- process entry point -----------------------------------------------------------

@@ -32,8 +32,9 @@ import torch
 
 from .. import io
 from ..errors import BronchoError, CheckpointWriteError, WriteFailed  # resumable kinds: defined with the others
+from ..runs.ownership import CHECKPOINT_FORMAT, mark
 
-FORMAT = 2
+FORMAT = CHECKPOINT_FORMAT  # runs.ownership reads it back (without torch) to prove a folder is a checkpoint's
 KEYS = ("format", "run_id", "cell_key", "model", "optimizer", "scheduler", "scaler", "step", "micro", "best_val",
         "best_step", "best_state", "bad", "history", "times", "rng")
 SPACE_FACTOR = 2  # free space a checkpoint needs, in multiples of its size (temporary copy beside the old file)
@@ -161,6 +162,8 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
     try:
         with io.atomic_path(path) as tmp:
             torch.save(state, tmp)
+        if state.get("run_id") == path.parent.name:  # proves the folder is this run's (runs.ownership: gc, cleanup)
+            mark(path.parent, state["run_id"], state.get("cell_key"))
     except (OSError, RuntimeError) as exc:
         if not _is_write_failure(exc):
             raise

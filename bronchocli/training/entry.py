@@ -5,18 +5,40 @@ from __future__ import annotations
 
 from rich.console import Console
 
+from .. import urls
 from ..cells import Cell
 from ..config import Config, check_paths
 from ..generation import ensure_dataset
+from ..runs.client import client_for
+from ..runs.records import finished_cell_runs
 from .run import run_cell
 
 
-def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool = True, console: Console) -> int:
+def finished_run(cfg: Config, cell: Cell) -> str | None:
+    """The id of a FINISHED MLflow run of ``cell`` (MLflow is the record of what finished), else None. A SQLite
+    store not created yet holds none; otherwise the store is opened as training opens it (relocated or refused)."""
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    if db is not None and not db.is_file():
+        return None
+    client = client_for(cfg)
+    exp = client.get_experiment_by_name(cfg.experiment_name)
+    run = finished_cell_runs(client, exp.experiment_id, cfg.name, [cell.key]).get(cell.key) if exp else None
+    return run.info.run_id if run is not None else None
+
+
+def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool = True, again: bool = False,
+          console: Console) -> int:
     """Train and evaluate ``cell`` as one MLflow run (``resume``: continue its latest, or this, KILLED/FAILED run
-    from its checkpoint); prints the run's headline against both image-blind references."""
+    from its checkpoint); prints the run's headline against both image-blind references. A cell with a FINISHED
+    run is not trained again unless ``again``."""
     if cfg.tune.applied:
         console.print(f"hyperparameters from {cfg.tune.applied}")
     check_paths(cfg)  # one line before anything is created
+    done = None if again or resume else finished_run(cfg, cell)
+    if done is not None:
+        console.print(f"cell {cell.label} (key {cell.key}) already has a FINISHED run {done} in experiment "
+                      f"{cfg.experiment_name}: not trained again (--again trains another run)", highlight=False)
+        return 0
     ensure_dataset(cfg)
     console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
     result = run_cell(cfg, cell, resume=resume, progress=progress)

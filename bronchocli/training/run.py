@@ -19,7 +19,6 @@ the run finish; ``RunResult.stop_requested`` passes it on.
 from __future__ import annotations
 
 import logging
-import shutil
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -43,6 +42,7 @@ from ..runs.contract import (
     failure_reason,
     resume_file,
 )
+from ..runs.ownership import remove_checkpoint
 from ..runs.processes import process_alive, process_tags, repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
 from . import artifacts, checkpoint
@@ -197,7 +197,7 @@ def run_cell(
     except RunStopped as exc:
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
-            shutil.rmtree(ckpt, ignore_errors=True)  # a pruned trial is never resumed
+            remove_checkpoint(ckpt, "pruned trial")  # a pruned trial is never resumed
         _end_run(client, run_id, "KILLED", str(exc))
         raise
     except KeyboardInterrupt:
@@ -209,13 +209,13 @@ def run_cell(
         reason = failure_reason(exc)
         _end_run(client, run_id, "FAILED", reason)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
-            shutil.rmtree(ckpt, ignore_errors=True)
+            remove_checkpoint(ckpt, "run failed, not resumable")
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
             raise exc from None
         if not isinstance(exc, BronchoError):
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
-    shutil.rmtree(ckpt, ignore_errors=True)  # resumable state is only needed while the run is unfinished
+    remove_checkpoint(ckpt, "run finished")  # resumable state is only needed while the run is unfinished
     client.set_terminated(run_id, "FINISHED")
     return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)

@@ -152,3 +152,18 @@ def test_the_dataset_reader_accepts_it(reference):
     rows = _csv(reference)
     np.testing.assert_allclose(ds.frames[["x", "y", "z"]].to_numpy()[0],
                                [float(rows[0][k]) for k in ("pos_x", "pos_y", "pos_z")])
+
+
+def test_a_failed_generation_removes_only_what_it_wrote(tmp_path):
+    """Issue 32, item 1: the stub of a failed generation goes, a file generation did not write stays."""
+    from bronchocli.generation import pipeline
+
+    for keep in (True, False):
+        root = tmp_path / f"gen{keep}"
+        for rel in (".work/manifest.json", ".generate.lock", "p00/airway.vtp", "p00.csv"):
+            (root / rel).parent.mkdir(parents=True, exist_ok=True)
+            (root / rel).write_text("x")
+        if keep:
+            (root / "notes.txt").write_text("mine")
+        pipeline._remove_stub(root, ["p00"])
+        assert (sorted(p.name for p in root.iterdir()) == ["notes.txt"]) if keep else not root.exists()

@@ -36,3 +36,25 @@ def test_a_successful_report_moves_every_file_into_place(cli, golden_store, tmp_
     names = sorted(p.name for p in out.iterdir())
     assert names and all(not n.startswith(".") for n in names) and "table2-personalized-accumulated.md" in names
     assert f"wrote {len(names)} file(s)" in out_text
+
+
+def test_a_staging_folder_left_by_a_killed_report_is_removed_by_the_next(tmp_path):
+    """Issue 32, item 7: only this host's staging folders whose report process is gone go; nothing else does."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()  # a pid that is gone
+    host = socket.gethostname()
+    out = tmp_path / "r"
+    keep = [f".report-{os.getpid()}-0123abcd@{host}.tmp",  # a report running now (this process)
+            f".report-{proc.pid}-0123abcd@another-host.tmp",  # another machine's: cannot tell, left alone
+            ".report-notes", "figures"]  # a user's folders
+    for name in [*keep, f".report-{proc.pid}-89abcdef@{host}.tmp"]:
+        (out / name).mkdir(parents=True)
+        (out / name / "table.md").write_text("x")
+    with report.staged_outputs(out) as stage:
+        assert stage.is_dir() and stage.name.endswith(f"@{host}.tmp")
+    assert sorted(p.name for p in out.iterdir()) == sorted(keep)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunInterrupted, RunResult, resume_file
+from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_SWEEP, cell_tags, log_metrics, search_runs
 
 HERE = Path(__file__).resolve().parent
@@ -74,7 +75,7 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
             return RunResult(run_id, "FAILED", failure_reason="fake failure", duration_s=time.perf_counter() - t0)
     except KeyboardInterrupt:  # like run_cell: a checkpoint, then KILLED
         ckpt = resume_file(cfg, run_id)
-        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        mark(ckpt.parent, run_id, cell.key)  # as checkpoint.save does: the folder is provably the run's
         ckpt.write_text("fake checkpoint")
         client.set_terminated(run_id, "KILLED")
         raise RunInterrupted(f"run {run_id} interrupted") from None

@@ -10,6 +10,7 @@ from tinydata import write_tiny_dataset
 
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import checkpoint_dir, resume_file
+from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import cell_tags
 from bronchocli.sweep import FINISHED, TAG_CLAIM, SweepStore, Worker, prepare
 from bronchocli.sweep.storage import cells_table
@@ -25,7 +26,7 @@ def test_taking_over_a_dead_workers_cell_removes_its_orphaned_checkpoint(make_co
     claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
     orphan = client.create_run(exp, tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
     store.set_run_id(claim.token, orphan)
-    resume_file(cfg, orphan).parent.mkdir(parents=True)
+    mark(resume_file(cfg, orphan).parent, orphan, cell.key)  # as checkpoint.save does with its first checkpoint
     resume_file(cfg, orphan).write_bytes(b"x" * 1000)  # the dead worker's last checkpoint
     other = checkpoint_dir(cfg, "someone-elses-run")
     other.mkdir(parents=True)

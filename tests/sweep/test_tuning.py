@@ -13,7 +13,7 @@ import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
-from bronchocli import cells
+from bronchocli import cells, urls
 from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
@@ -78,11 +78,10 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
                          "--only", "arch=baseline;rot_loss=mse;population=personalized")
     assert code == 0, err
     swept = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "cell"})
-    assert len(swept) == 2 and {r.data.tags["hparams_source"] for r in swept} == {cell_runs[0].data.tags["hparams_source"]}
+    # the tuned cell FINISHED by `train` is the same cell: MLflow is the record, the sweep does not train it again
+    assert [r.info.run_id for r in swept] == [cell_runs[0].info.run_id]
     sweep_parent = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "sweep"})
     assert len(sweep_parent) == 1 and sweep_parent[0].info.status == "FINISHED"  # the sweep's parent, ended with it
-    swept_now = [r for r in swept if r.info.run_id != cell_runs[0].info.run_id]
-    assert swept_now[0].data.tags["mlflow.parentRunId"] == sweep_parent[0].info.run_id
     assert "mlflow.parentRunId" not in cell_runs[0].data.tags  # `train` alone has no parent
 
     code, out, _ = cli("tune", "-c", str(project / "experiments.yaml"), "--study", study.study_name, "--show")
@@ -117,6 +116,9 @@ def test_two_processes_share_one_study_and_an_interrupted_study_resumes(project)
     out, _ = proc.communicate(timeout=300)
     assert proc.returncode == 130, out
     assert "Traceback" not in out
+    client = client_for(cfg)
+    (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
+    assert parent.info.status == "KILLED"  # an interrupted tune ends its study's parent run (issue 32, item 7)
     states = trial_states(cfg, name)
     assert states.count("FAIL") == 1 and states.count("COMPLETE") + states.count("PRUNED") == 3, states
     again = subprocess.run([*cmd[:-1], "4"], cwd=project, env=env, capture_output=True, text=True, timeout=600)
@@ -182,3 +184,78 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
     note = tags["mlflow.note.content"]  # the description says the same, best trial first
     assert f"Best: trial #{best.number}, val_best.loss {best.value:.5g}, with `train.lr` = " in note
     assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
+
+
+def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_other(project, monkeypatch):
+    """Issue 32, item 7: Ctrl-C in a trial's last steps (the run finishes its evaluation first) ends `tune` with
+    that trial counted, no next trial started, and the study's parent run KILLED, not left RUNNING."""
+    from bronchocli.runs.contract import RunInterrupted, RunResult
+    from bronchocli.training import run as training_run
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    started = []
+
+    def evaluated_under_sigint(cfg, cell, **kw):
+        started.append(cell.key)
+        return RunResult(f"run{len(started)}", "FINISHED", {"best_val_loss": 1.0}, stop_requested=signal.SIGINT)
+
+    monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
+    with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
+        tuning.tune(cfg, target, 3, progress=False)
+    assert len(started) == 1 and trial_states(cfg, tuning.study_name(cfg, target)) == ["COMPLETE"]
+    client = client_for(cfg)
+    (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
+    assert parent.info.status == "KILLED"
+
+
+def test_status_repair_ends_a_study_parent_whose_tune_was_killed(project, cli):
+    from bronchocli.runs.parents import start_parent
+    from bronchocli.runs.processes import TAG_PID
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    parent = tuning.study_parent_or_none(cfg, target, "s")
+    client = client_for(cfg)
+    start_parent(client, parent)  # as `tune` does; then the process is SIGKILLed:
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    client.set_tag(parent, TAG_PID, str(dead.pid))
+    code, out, err = cli("status", "-c", str(project / "experiments.yaml"), "--repair")
+    assert code == 0 and f"repaired run {parent}" in out, out + err
+    assert client.get_run(parent).info.status == "FAILED"
+
+
+def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project, monkeypatch):
+    """Issue 32, item 2: with the study's database deleted, `tune` counts the FINISHED trial runs in MLflow and
+    runs no trial again."""
+    from bronchocli.runs.contract import RunResult
+    from bronchocli.runs.records import cell_tags, log_metrics, log_params
+    from bronchocli.training import run as training_run
+
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    started = []
+
+    def trial_run(trial_cfg, cell, *, extra_tags=None, run_id_callback=None, **_):
+        client = client_for(trial_cfg)
+        run_id = client.create_run(experiment_id(client, trial_cfg),
+                                   tags=cell_tags(trial_cfg, cell, **(extra_tags or {}))).info.run_id
+        run_id_callback(run_id)
+        loss = trial_cfg.train.lr * 1000
+        log_params(client, run_id, {"train.lr": str(trial_cfg.train.lr)})
+        log_metrics(client, run_id, {"best_val_loss": loss})
+        client.set_terminated(run_id, "FINISHED")
+        started.append(run_id)
+        return RunResult(run_id, "FINISHED", {"best_val_loss": loss})
+
+    monkeypatch.setattr(training_run, "run_cell", trial_run)
+    first = tuning.tune(cfg, target, 2, progress=False)
+    best = (first.best_trial.params, first.best_value)
+    db = urls.sqlite_file(cfg.paths.storage_url)
+    for path in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
+        path.unlink(missing_ok=True)
+    again = tuning.tune(cfg, target, 2, progress=False)
+    assert len(started) == 2 and tuning.finished(again) == 2  # no trial ran again
+    assert (again.best_trial.params, again.best_value) == best
+    assert again.best_trial.user_attrs[tuning.ATTR_RUN] in started

@@ -7,6 +7,7 @@ from sqlalchemy import update
 from sweep_fakes import fake_runner, runs_by_cell
 
 from bronchocli.runs.client import MlflowBusy, client_for, experiment_id
+from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import TAG_FAILURE, cell_tags
 from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
 from bronchocli.sweep.storage import cells_table
@@ -165,7 +166,7 @@ def machine_failure(error_type, ckpt: bool = True):
         run_id = client.create_run(exp, tags=cell_tags(cfg, cell, **(extra_tags or {}))).info.run_id
         run_id_callback(run_id)
         if ckpt:
-            resume_file(cfg, run_id).parent.mkdir(parents=True, exist_ok=True)
+            mark(resume_file(cfg, run_id).parent, run_id, cell.key)  # as checkpoint.save does
             resume_file(cfg, run_id).write_text("checkpoint")
         seen.append(("failed", run_id))
         client.set_tag(run_id, TAG_FAILURE, f"{error_type.__name__}: the machine")

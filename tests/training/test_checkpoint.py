@@ -15,6 +15,7 @@ import torch
 from training.test_loop import settings, trainer
 
 from bronchocli.io import fmt_bytes
+from bronchocli.runs.ownership import MARKER
 from bronchocli.training import checkpoint
 from bronchocli.training.checkpoint import BadCheckpoint, CheckpointWriteError
 
@@ -180,7 +181,7 @@ def test_too_little_free_space_refuses_before_writing_and_names_what_is_needed(t
         t.save_resume()
     text = str(err.value)
     assert str(path) in text and fmt_bytes(need) in text and "\n" not in text
-    assert path.read_bytes() == before and list(path.parent.iterdir()) == [path]
+    assert path.read_bytes() == before and sorted(path.parent.iterdir()) == [path.parent / MARKER, path]  # the marker too
     free_space(monkeypatch, need)
     t.save_resume()  # exactly enough is enough
 
@@ -211,7 +212,7 @@ def test_a_failed_write_removes_its_temporary_file_and_keeps_the_old_checkpoint(
         t.save_resume()
     text = str(err.value)
     assert str(path) in text and "needs about" in text and "\n" not in text
-    assert path.read_bytes() == before and list(path.parent.iterdir()) == [path]
+    assert path.read_bytes() == before and sorted(path.parent.iterdir()) == [path.parent / MARKER, path]  # the marker too
 
 
 def test_a_real_small_file_system_fills_up_cleanly(tmp_path, small_fs):
