@@ -32,6 +32,7 @@ class Paths:
     pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
+    speed_settings: Path | None  # None: the shipped settings (bronchocli/speed.py)
     mlflow_uri: str
     storage_url: str
 
@@ -50,6 +51,7 @@ class Paths:
             sweep_logs=path(cfg.sweep.logs),
             pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained),
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy), centreline=path(gen.centreline),
+            speed_settings=path(cfg.train.speed_settings),
             mlflow_uri=urls.resolve(cfg.runs.uri, base), storage_url=urls.resolve(cfg.storage.url, base),
         )
 
