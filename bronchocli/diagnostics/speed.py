@@ -230,6 +230,8 @@ def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pair
     if any(ARCHITECTURES[a].temporal for a in archs) and pairs % min(WINDOW, pairs):
         raise BronchoError(f"--batch {pairs}: temporal models need a multiple of {WINDOW} pairs (or fewer)")
     started = time.perf_counter()
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # as training does (training.device.device_for)
     entry: dict[str, Any] = {"archs": {}}
     with tempfile.TemporaryDirectory(prefix="bronchopose-speed-") as tmp:
         cache = synthetic_cache(Path(tmp), frames=max(48, 4 * pairs), size=image_size)
