@@ -34,6 +34,7 @@ from ..config import Config, Stage, expand_grid, run_signature
 from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
+from .order import claim_order
 from .selection import settle_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
@@ -282,9 +283,10 @@ def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sw
 
 def add_cells(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: str | None = None,
               retry_failed: bool = False) -> Plan:
-    """Insert the cells' rows (idempotent) and return them with their state."""
+    """Insert the cells' rows (idempotent) in claim order (``order.claim_order``: the longest first) and return
+    them with their state."""
     sweep = sweep or cfg.name
-    store.add_cells(sweep, cells)
+    store.add_cells(sweep, claim_order(cfg, cells))
     if retry_failed:
         store.reset_failed(sweep, [c.key for c in cells])
     return read_plan(store, sweep, cells)
