@@ -5,10 +5,11 @@ order given here. A cell's expected cost is its budget (``train.steps`` x pairs 
 architecture's measured training rate (pairs/s of the setting the speed settings file chose; ``speed.py``),
 so the order is the longest-processing-time-first rule of list scheduling: the expensive cells start first and
 the cheap ones fill the gaps at the end, instead of one worker idling while the last expensive cell runs alone.
-Cells whose costs are within :data:`BAND` of each other are interleaved by architecture (round robin), so
-two workers train different architectures side by side: on a 2-core machine two ConvLSTM cells slow each
-other more than a ConvLSTM beside an OffsetNet (40-42 vs 61 pairs/s, issue 31). Without a measurement of the
-architectures (no settings for this device), the grid order stays.
+Consecutive cells alternate architectures where that costs little (the next one is of another architecture
+when it costs at least :data:`ALTERNATE` of the costliest cell left), so two workers train different
+architectures side by side: on a 2-core machine two ConvLSTM cells slow each other more than a ConvLSTM
+beside an OffsetNet (40-42 vs 61 pairs/s, issue 31). ``benchmarks/bench_claims.py`` simulates both effects.
+Without a measurement of the architectures (no settings for this device), the grid order stays.
 
 No torch here: the sweep's parent plans without loading it.
 """
@@ -21,7 +22,7 @@ from .. import speed
 from ..cells import Cell
 from ..config import Config
 
-BAND = 0.2  # cells within 20 % of the most expensive cell of their band count as equally expensive
+ALTERNATE = 0.5  # the next cell is of another architecture when it costs at least half the costliest left
 
 
 def measured_rates(cfg: Config) -> dict[str, float]:
@@ -50,28 +51,18 @@ def expected_costs(cfg: Config, cells: Sequence[Cell]) -> dict[str, float] | Non
 
 
 def claim_order(cfg: Config, cells: Sequence[Cell]) -> list[Cell]:
-    """``cells`` in the order workers should claim them (see the module doc); stable for equal costs."""
+    """``cells`` in the order workers should claim them (see the module doc); the grid order among equals."""
     costs = expected_costs(cfg, cells)
     if costs is None or len(cells) < 2:
         return list(cells)
-    ranked = sorted(cells, key=lambda c: -costs[c.key])  # stable: grid order among equal costs
+    left = sorted(cells, key=lambda c: -costs[c.key])  # stable: grid order among equal costs
     out: list[Cell] = []
-    while ranked:
-        head = costs[ranked[0].key]
-        band = [c for c in ranked if costs[c.key] >= (1 - BAND) * head]
-        ranked = ranked[len(band):]
-        out += _interleave(band)
-    return out
-
-
-def _interleave(cells: list[Cell]) -> list[Cell]:
-    """Round robin over the architectures of ``cells`` (each architecture's cells in their given order)."""
-    queues: dict[str, list[Cell]] = {}
-    for c in cells:
-        queues.setdefault(c.arch, []).append(c)
-    out: list[Cell] = []
-    while any(queues.values()):
-        for q in queues.values():
-            if q:
-                out.append(q.pop(0))
+    while left:
+        pick = left[0]
+        if out:  # the cell claimed next runs beside the one just ordered: another architecture if one is near
+            other = next((c for c in left if c.arch != out[-1].arch), None)
+            if other is not None and costs[other.key] >= ALTERNATE * costs[pick.key]:
+                pick = other
+        out.append(pick)
+        left.remove(pick)
     return out

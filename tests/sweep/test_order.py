@@ -33,7 +33,7 @@ def test_the_longest_cells_start_first_and_architectures_alternate(tmp_path):
     cells = expand_grid(cfg)
     order = [c.arch for c in claim_order(cfg, cells)]
     assert order[:2] == ["offsetnet", "offsetnet"]  # 3x the cost of the others: first, whatever the grid says
-    assert order[2:] == ["baseline", "convlstm", "baseline", "convlstm"]  # within 20 %: side by side, dearer first
+    assert order[2:] == ["baseline", "convlstm", "baseline", "convlstm"]  # close in cost: alternating, dearer first
 
 
 def test_claim_order_beats_grid_order_on_idle_time(tmp_path):
@@ -63,3 +63,10 @@ def test_the_claims_table_hands_cells_out_in_claim_order(tmp_path):
     while (claim := store.claim("t", [c.key for c in cells], "w", max_retries=0, stale_after_s=60)) is not None:
         claimed.append(claim.row.label.split("/")[0])
     assert [a[:9] for a in claimed][:2] == ["offsetnet", "offsetnet"]
+
+
+def test_architectures_alternate_when_the_other_costs_at_least_half(tmp_path):
+    rates = {"convlstm": 60.0, "offsetnet": 40.0}  # OffsetNet 1.5x the cost: the two run side by side
+    cfg = _cfg(tmp_path, rates, {"arch": ["convlstm", "offsetnet"], "rot_loss": ["mse"],
+                                 "population": ["personalized"], "seed": [0, 1, 2]})
+    assert [c.arch[0] for c in claim_order(cfg, expand_grid(cfg))] == list("ocococ")
