@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Optional
 
 import typer
 
@@ -15,11 +16,16 @@ def profile(
     arch: Annotated[
         list[str], typer.Option("--arch", "-a", help="Architecture to profile (repeatable), or 'all'.")
     ] = ["all"],  # noqa: B006 (typer copies the default)
-    image_size: Annotated[int, typer.Option("--image-size", help="Square input size (paper: 256).")] = 256,
+    image_size: Annotated[Optional[int], typer.Option("--image-size", help="Square input size (default: 256, "
+                                                      "the paper's; --speed: 128).")] = None,
     device: Annotated[str, typer.Option("--device", help="cpu or cuda.")] = "cpu",
-    batch: Annotated[int, typer.Option("--batch", help="Batch N for latency and memory.")] = 8,
-    repeats: Annotated[int, typer.Option("--repeats", help="Timed forwards per figure (the median is reported).")] = 10,
-    warmup: Annotated[int, typer.Option("--warmup", help="Untimed forwards before timing.")] = 2,
+    full: Annotated[bool, typer.Option("--full/--quick", help="Full: batch N 8, 10 timed forwards after 2 warm-ups. "
+                                       "Quick (default): batch N 2, 3 after 1 (the spread is in the JSON).")] = False,
+    batch: Annotated[Optional[int], typer.Option("--batch", help="Batch N for latency and memory (--speed: "
+                                                 "image pairs per training step, default 10).")] = None,
+    repeats: Annotated[Optional[int], typer.Option("--repeats", help="Timed forwards per figure (the median is "
+                                                   "reported).")] = None,
+    warmup: Annotated[Optional[int], typer.Option("--warmup", help="Untimed forwards before timing.")] = None,
     window: Annotated[int, typer.Option("--window", help="Image pairs per forward (paper: 10).")] = 10,
     precision: Annotated[str, typer.Option("--precision", help="32, 16-mixed (cuda) or bf16-mixed (autocast).")] = "32",
     channels_last: Annotated[
@@ -27,6 +33,12 @@ def profile(
     ] = True,
     threads: Annotated[int | None, typer.Option("--threads", help="torch CPU threads.")] = None,
     fmt: Annotated[ShowFormat, typer.Option("--format", help="Output format.")] = "table",
+    speed: Annotated[Optional[Path], typer.Option("--speed", help="Instead: measure training speed per setting "
+                                                  "(fp32/bf16 x channels-last on/off) with a loss-curve check, "
+                                                  "print a Markdown table and write the chosen per-architecture "
+                                                  "settings for this device into this file (train.speed_settings).")
+                      ] = None,
+    steps: Annotated[int, typer.Option("--steps", help="--speed: training steps per setting (>= 50).")] = 50,
 ) -> None:
     """Profile the architectures: parameters, GMAC per pair, latency per pair (batch 1 and N), peak memory.
 
@@ -35,11 +47,23 @@ def profile(
     torch's FLOP counter (MAC = FLOP/2, LSTMs analytically) over one batch-1
     window. Peak memory is what one batch-N forward allocates above the resting
     model (CUDA: max_memory_allocated; CPU: peak bytes of live tensors).
+    Quick by default (batch N 2, median of 3); --full for the paper table's settings.
+
+    --speed FILE trains every architecture for --steps steps in each candidate
+    setting, interleaved step by step, keeps those whose loss curve tracks fp32
+    and writes the fastest per architecture for this device into FILE (the
+    settings `train.precision: auto` / `model.channels_last: auto` use; the
+    project ships the CPU's). docs/training.md, "Speed settings".
     """
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
     from ..diagnostics import entry  # lazy: torch loads only when the command runs
 
-    entry.profile(arch, fmt=fmt, threads=threads, console=console, err_console=err_console, image_size=image_size,
-                  device=device, batch=batch, repeats=repeats, warmup=warmup, window=window, precision=precision,
-                  channels_last=channels_last)
+    if speed is not None:
+        entry.speed(arch, speed, device=device, image_size=image_size or 128, pairs=batch or 10, steps=steps,
+                    threads=threads, console=console, err_console=err_console)
+        return
+    entry.profile(arch, fmt=fmt, threads=threads, console=console, err_console=err_console,
+                  image_size=image_size or 256, device=device, batch=batch or (8 if full else 2),
+                  repeats=repeats or (10 if full else 3), warmup=(2 if full else 1) if warmup is None else warmup,
+                  window=window, precision=precision, channels_last=channels_last)

@@ -152,7 +152,7 @@ RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 
 # Settings that change how fast a run goes, not what it computes.
 NOT_IN_KEY = (("train", "threads"), ("train", "compile"), ("data", "workers"), ("data", "cache_dir"),
-              ("data", "frames_on_device"))
+              ("data", "frames_on_device"), ("train", "speed_settings"))
 
 
 def run_signature(cfg: Config) -> dict[str, Any]:

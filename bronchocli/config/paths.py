@@ -33,6 +33,7 @@ class Paths:
     pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
+    speed_settings: Path | None  # None: the shipped settings (bronchocli/speed.py)
     mlflow_uri: str
     storage_url: str
 
@@ -76,6 +77,7 @@ class Paths:
                                                                                               "model.pretrained"),
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy, "dataset.generate.anatomy"),
             centreline=path(gen.centreline, "dataset.generate.centreline"),
+            speed_settings=path(cfg.train.speed_settings, "train.speed_settings"),
             mlflow_uri=url(cfg.runs.uri, "runs.uri"), storage_url=url(cfg.storage.url, "storage.url"),
         )
 

@@ -177,7 +177,8 @@ class DataCfg(Section):
 class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
     pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
-    channels_last: bool = True
+    # channels-last memory format: auto = the measured per-architecture setting for the device (bronchocli/speed.py)
+    channels_last: bool | Literal["auto"] = "auto"
 
 
 class Train(Section):
@@ -197,7 +198,9 @@ class Train(Section):
     bn_recalibrate: int = Field(16, ge=0)  # training batches that re-estimate BatchNorm statistics per validation
     tbptt_chunks: int = Field(1, ge=1)  # K chunks of L pairs per training sequence
     rot_weight: float = Field(1.0, ge=0)
+    # auto = the measured per-architecture setting for the device (bronchocli/speed.py; docs/training.md, "Speed")
     precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
+    speed_settings: str | None = None  # a settings file of `bronchopose profile --speed`; None = the shipped one
     device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
     # torch.compile the network: false, true (= default) or an inductor mode; reduce-overhead captures the
     # forward and backward in CUDA graphs (docs/training.md, "GPU"; benchmarks/README.md)

@@ -4,7 +4,9 @@ this machine's training path, and print the tables."""
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from rich import box
@@ -15,6 +17,7 @@ from ..errors import BronchoError
 from ..models import ARCHITECTURES
 from ..models import profile as profiling
 from . import selftest as st
+from . import speed as sp
 
 
 def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = None, console: Console,
@@ -26,10 +29,14 @@ def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = N
     if threads is not None:
         profiling.set_threads(threads)
     rows = []
-    for name in names:
-        with err_console.status(f"profiling {name} at {kwargs['image_size']}x{kwargs['image_size']} on "
-                                f"{kwargs['device']} ..."):
+    started = time.perf_counter()
+    for i, name in enumerate(names, 1):
+        with err_console.status(f"[{i}/{len(names)}] profiling {name} at {kwargs['image_size']}x"
+                                f"{kwargs['image_size']} on {kwargs['device']} ..."):
             rows.append(profiling.profile_arch(name, **kwargs))
+        r = rows[-1]
+        err_console.print(f"[{i}/{len(names)}] {name}: {r['latency_ms_b1']:.2f} ms/pair at batch 1 (spread "
+                          f"{r['latency_spread_b1']:.0%}), {time.perf_counter() - started:.0f} s so far", highlight=False)
     if fmt == "json":
         console.file.write(json.dumps(rows, indent=2) + "\n")  # verbatim: no markup, wrapping or emoji codes
         return
@@ -71,3 +78,25 @@ def selftest(device: str = "auto", precision: str = "auto", archs: Sequence[str]
         return 1
     console.print(f"[green]selftest passed:[/] {len(checks)} checks on {dev} in {prec}")
     return 0
+
+
+def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pairs: int, steps: int,
+          threads: int | None, console: Console, err_console: Console) -> None:
+    """``profile --speed``: measure the speed settings of ``archs`` on ``device``, print the Markdown table and
+    write them into ``out`` (diagnostics/speed.py)."""
+    names = profiling.arch_names(archs)
+    dev = profiling.resolve_device(device)
+    if threads is not None:
+        profiling.set_threads(threads)
+    out = Path(out)
+    if out.is_dir():
+        raise BronchoError(f"--speed {out}: is a folder; give the settings file's path")
+    started = time.perf_counter()
+    with err_console.status("measuring ...") as status:
+        def progress(text: str) -> None:
+            line = f"[{time.perf_counter() - started:.0f} s] {text}"
+            status.update(line)
+            err_console.print(line, highlight=False)
+        table = sp.run(names, dev, out, image_size=image_size, pairs=pairs, steps=steps, progress=progress)
+    console.file.write(table + "\n")  # verbatim Markdown
+    console.print(f"wrote {out} ({time.perf_counter() - started:.0f} s)", highlight=False)

@@ -40,7 +40,7 @@ from ..data.cache import FrameCache
 from ..errors import BronchoError
 from ..models import ARCHITECTURES, build_model
 from ..training import checkpoint
-from ..training.engine import DeviceUnavailable, exact_fp32, seed_everything
+from ..training.device import DeviceUnavailable, exact_fp32, seed_everything
 from ..training.loop import Settings, Trainer
 from ..training.network import PoseRegressor
 

@@ -129,8 +129,10 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def time_forward(model: PoseNet, frames: torch.Tensor, repeats: int, warmup: int, precision: str) -> float:
-    """Median seconds of one forward over ``repeats`` runs after ``warmup`` untimed ones."""
+def time_forward(model: PoseNet, frames: torch.Tensor, repeats: int, warmup: int, precision: str,
+                 spread: list[float] | None = None) -> float:
+    """Median seconds of one forward over ``repeats`` runs after ``warmup`` untimed ones; ``spread`` receives
+    (slowest - fastest) / median of the timed runs (how precise the median is)."""
     device = frames.device
     times = []
     with torch.inference_mode(), autocast(device, precision):
@@ -141,7 +143,10 @@ def time_forward(model: PoseNet, frames: torch.Tensor, repeats: int, warmup: int
             _sync(device)
             if i >= warmup:
                 times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    median = statistics.median(times)
+    if spread is not None:
+        spread.append((max(times) - min(times)) / median if median > 0 else 0.0)
+    return median
 
 
 class _LiveTensorBytes(TorchDispatchMode):
@@ -213,8 +218,10 @@ def profile_arch(
     warmup: int = 2,
     precision: str = "32",
     channels_last: bool = True,
+    batch_n: bool = True,
 ) -> dict[str, Any]:
-    """One row of the ablation table for architecture ``name`` (keys documented in docs/models.md)."""
+    """One row of the ablation table for architecture ``name`` (keys documented in docs/models.md);
+    ``batch_n=False`` times batch 1 only (no batch-N latency, no peak memory: what the report's table shows)."""
     limits = (("--batch", batch, 1), ("--repeats", repeats, 1), ("--window", window, 1), ("--warmup", warmup, 0))
     for flag, value, low in limits:
         if value < low:
@@ -224,12 +231,16 @@ def profile_arch(
     model = build_model(name, image_size=image_size).eval().to(dev)
     if channels_last:
         model.to(memory_format=torch.channels_last)
-    macs = count_macs(model, random_frames(1, window, image_size, dev))
     one = random_frames(1, window, image_size, dev)
-    many = random_frames(batch, window, image_size, dev, seed=1)
-    t1 = time_forward(model, one, repeats, warmup, precision)
-    tn = time_forward(model, many, repeats, warmup, precision)
-    peak, method = peak_memory(model, many, precision)
+    macs = count_macs(model, one)  # its forward doubles as a warm-up of the batch-1 timing
+    many = random_frames(batch, window, image_size, dev, seed=1) if batch_n else None
+    spread: list[float] = []
+    t1 = time_forward(model, one, repeats, warmup, precision, spread)
+    if batch_n:
+        tn = time_forward(model, many, repeats, warmup, precision)
+        peak, method = peak_memory(model, many, precision)
+    else:
+        tn, peak, method = None, None, "not measured"
     weights = sum(t.numel() * t.element_size() for t in list(model.parameters()) + list(model.buffers()))
     params = n_params(model)
     return {
@@ -244,8 +255,10 @@ def profile_arch(
         "params_m": round(params / 1e6, 3),
         "gmacs_per_pair": macs / window / 1e9,
         "latency_ms_b1": t1 / window * 1e3,
-        "latency_ms_bN": tn / (batch * window) * 1e3,
-        "pairs_per_s_bN": batch * window / tn,
+        "latency_ms_bN": None if tn is None else tn / (batch * window) * 1e3,
+        "repeats": repeats,
+        "latency_spread_b1": spread[0],
+        "pairs_per_s_bN": None if tn is None else batch * window / tn,
         "peak_mem_mb": None if peak is None else peak / 2**20,
         "weights_mb": weights / 2**20,
         "memory_method": method,
@@ -287,7 +300,8 @@ def caption(rows: Sequence[dict[str, Any]]) -> str:
     return (
         f"{r['image_size']}x{r['image_size']}, {r['device']}, precision {r['precision']}, "
         f"channels_last {r['channels_last']}, torch {r['torch']}. GMAC: conv/linear multiply-accumulates per "
-        f"image pair. ms b1 / ms bN: median forward time per pair at batch 1 / batch N={r['batch']}, "
+        f"image pair. ms b1 / ms bN: median of {r.get('repeats', '?')} forward times per pair at batch 1 / "
+        f"batch N={r['batch']}, "
         f"a forward being a window of {r['window']} pairs. peak MB bN: {r['memory_method']} above the resting "
         f"model during one batch-N forward"
     )

@@ -7,6 +7,7 @@ folder, a ``--latency-from`` file: one line each, before minutes of work), loads
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -38,19 +39,25 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     if profiles is not None:
         ctx.profiler = profiles
     elif latency:
-        measure = rep.measuring_profiler(image_size or rep.default_image_size(cfg), latency_device)
+        size = image_size or rep.default_image_size(cfg)
+        measure = rep.measuring_profiler(size, latency_device, rep.latency_record(cfg, size, latency_device))
 
         def profiled(arch: str):
-            with err_console.status(f"profiling {arch} for the ablation table ..."):
+            with err_console.status(f"ablation latency of {arch} (recorded, else measured once) ..."):
                 return measure(arch)
         ctx.profiler = profiled
     else:
         ctx.profiler_note = "--no-latency"
     warnings: list[str] = []
+    started = time.perf_counter()
+
+    def progress(text: str) -> None:
+        err_console.print(f"[{time.perf_counter() - started:.1f} s] {text}", highlight=False)
     try:
         result = rep.make_report(
             ctx, names, evaluations, suffixes, out, loader=mlflow_loader(client, warnings) if figures else None,
             n_trajectories=trajectories, dataset_root=cfg.paths.dataset if figures else None, warnings=warnings,
+            progress=progress,
         )
     except OSError as exc:  # e.g. the disk filled up: each file is written atomically, none is left half-written
         raise BronchoError(f"--out {out}: cannot write {exc.filename or 'the report'} ({exc.strerror or exc})"

@@ -13,21 +13,22 @@ import re
 import shutil
 import socket
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 from ..config import Config
 from ..errors import BronchoError, DataError
-from ..io import TEMP_SUFFIX, save_figure, write_text
+from ..io import TEMP_SUFFIX, save_figure, write_json, write_text
 from ..runs.client import client_for, require_store
 from ..runs.parents import KIND_SWEEP, REPORT_FOLDER, find_parent, log_report
 from ..runs.relocation import writes_here
 from . import dataset_figures as dataset_figs
 from .collect import RunIndex, collect_runs
 from .context import NoData, Profiler
+from .figure_cache import RECORD, FigureCache, digest, files_key
 from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
 from .markdown import to_markdown
@@ -107,33 +108,61 @@ def make_report(
     n_trajectories: int = 4,
     dataset_root: Path | None = None,
     warnings: list[str] | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> ReportResult:
     """Tables (and, with a ``loader``, the run figures, skill figures and learning curve; with
     ``dataset_root``, the dataset figures) under ``out``.
 
     ``warnings`` (the list a loader reports into, if any) becomes ``result.warnings``, after the index's
-    notes and the skipped tables.
+    notes and the skipped tables. A figure group whose inputs did not change since the last report into
+    ``out`` is not redrawn (``figure_cache``); ``progress`` hears each phase.
     """
     warnings = warnings if warnings is not None else []
+    say = progress or (lambda text: None)
     notes: list[str] = list(ctx.index.notes)
+    say("building the tables")
     tables = build_tables(ctx, names, evaluations, notes)
     with staged_outputs(Path(out)) as stage:  # all files, or none: a failure half-way leaves ``out`` as it was
         result = ReportResult(tables, write_tables(tables, stage, suffixes), warnings)
         result.warnings[:0] = notes
+        figures = FigureCache(Path(out), stage)  # each group drawn only when its inputs changed
+        runs_key = digest(sorted(r.run_id for r in ctx.index.runs.values()), ctx.index.pose_frame, n_trajectories)
         if loader is not None:
-            result.files += make_figures(ctx.index, loader, stage, n_trajectories, result.warnings)
-            result.files += skill_figures(tables, stage, result.warnings)
-            result.files += learning_curve(ctx, stage, result.warnings)
+            say("figures: trajectories and errors per frame (reads the runs' predictions)")
+            result.files += figures.once("runs", runs_key, result.warnings, lambda: make_figures(
+                ctx.index, loader, stage, n_trajectories, result.warnings))
+            say("figures: skill per table, learning curve")
+            tables_key = files_key(p for p in result.files if p.suffix == ".md") + repr(
+                [t.key for t in tables])
+            result.files += figures.once("skill", tables_key, result.warnings,
+                                         lambda: skill_figures(tables, stage, result.warnings))
+            result.files += figures.once("learning-curve", runs_key, result.warnings,
+                                         lambda: learning_curve(ctx, stage, result.warnings))
         if dataset_root is not None:
-            result.files += dataset_figures(Path(dataset_root), stage, result.warnings)
+            say("figures: dataset frames and positions")
+            meta = Path(dataset_root) / "metadata.json"
+            data_key = digest(str(dataset_root), meta.read_bytes() if meta.is_file() else b"")
+            result.files += figures.once("dataset", data_key, result.warnings,
+                                         lambda: dataset_figures(Path(dataset_root), stage, result.warnings))
+        if figures.reused:
+            say(f"figures unchanged since the last report, not redrawn: {', '.join(figures.reused)}")
+        if loader is not None or dataset_root is not None:
+            figures.save()
         result.files = publish(stage, Path(out), result.files)
     return result
 
 
 def publish(stage: Path, out: Path, files: Sequence[Path]) -> list[Path]:
-    """Move the staged files into ``out`` (renames within one file system: no file is ever half-written)."""
+    """Move the staged files into ``out`` (renames within one file system: no file is ever half-written); files
+    already in ``out`` (figures not redrawn) stay where they are, and so does the staged figure record."""
     moved = []
+    record = stage / RECORD
+    if record.is_file():
+        os.replace(record, out / RECORD)
     for f in files:
+        if not Path(f).is_relative_to(stage):
+            moved.append(Path(f))
+            continue
         final = out / Path(f).relative_to(stage)
         final.parent.mkdir(parents=True, exist_ok=True)
         os.replace(f, final)
@@ -232,16 +261,37 @@ def profiles_from_json(path: Path) -> Profiler:
     return lambda arch: by_arch.get(arch)
 
 
-def measuring_profiler(image_size: int, device: str, batch: int = 1, repeats: int = 5) -> Profiler:
-    """``models.profile.profile_arch`` with fixed settings, imported only when the ablation table needs it.
+def measuring_profiler(image_size: int, device: str, record: Path | None = None, repeats: int = 3) -> Profiler:
+    """Batch-1 latency and GMAC per architecture from ``record`` (a JSON of rows this function measured before,
+    for this device and size), else measured (``models.profile.profile_arch``, batch 1 only, median of
+    ``repeats`` after one warm-up) and added to ``record``: a report times each architecture once per machine.
+    Delete the record (or pass ``--latency-from``) to measure again."""
+    recorded: dict[str, Any] = {}
+    if record is not None and record.is_file():
+        try:
+            recorded = json.loads(record.read_text())
+        except ValueError:
+            recorded = {}
 
-    The table shows batch-1 latency only, so batch N defaults to 1 (profile_arch times both).
-    """
     def profile(arch: str):
+        if arch in recorded:
+            return {**recorded[arch], "recorded": str(record)}
         from ..models.profile import profile_arch  # lazy: torch only when the ablation table is measured
 
-        return profile_arch(arch, image_size=image_size, device=device, batch=batch, repeats=repeats)
+        row = profile_arch(arch, image_size=image_size, device=device, batch=1, repeats=repeats, warmup=1,
+                           batch_n=False)
+        if record is not None:
+            recorded[arch] = row
+            record.parent.mkdir(parents=True, exist_ok=True)
+            write_json(record, recorded)
+        return row
     return profile
+
+
+def latency_record(cfg: Config, image_size: int, device: str) -> Path:
+    """Where the report keeps the latencies it measured for this device and input size (the frame cache's
+    folder: per machine, never committed)."""
+    return cfg.paths.cache / f"ablation-latency-{device}-{image_size}.json"
 
 
 def default_image_size(cfg: Config) -> int:

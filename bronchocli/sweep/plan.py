@@ -35,6 +35,7 @@ from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
 from .record import rebuild
+from .order import claim_order
 from .selection import settle_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 
@@ -283,9 +284,10 @@ def prepare(cfg: Config, store: SweepStore, only: Selection | None = None, *, sw
 
 def add_cells(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: str | None = None,
               retry_failed: bool = False) -> Plan:
-    """Insert the cells' rows (idempotent), record those FINISHED in MLflow, and return them with their state."""
+    """Insert the cells' rows (idempotent) in claim order (``order.claim_order``: the longest first), record
+    those FINISHED in MLflow, and return them with their state."""
     sweep = sweep or cfg.name
-    store.add_cells(sweep, cells)
+    store.add_cells(sweep, claim_order(cfg, cells))
     if retry_failed:
         store.reset_failed(sweep, [c.key for c in cells])
     rebuild(cfg, store, sweep, cells)  # cells FINISHED in MLflow are done, whatever the table knew (record.py)

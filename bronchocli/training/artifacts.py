@@ -73,9 +73,10 @@ def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
     return out
 
 
-def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> None:
+def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
+              extra_params: dict[str, str] | None = None) -> None:
     client.set_tag(run_id, TAG_FINGERPRINT, data.fingerprint)
-    log_params(client, run_id, run_params(cfg, cell))
+    log_params(client, run_id, {**run_params(cfg, cell), **(extra_params or {})})
     client.log_batch(run_id, tags=[RunTag(k, v) for k, v in {
         **environment_tags(), TAG_NOTE: describe(cell, dataset=cfg.paths.dataset.name)}.items()])
     client.log_inputs(run_id, datasets=dataset_inputs(cfg, data))

@@ -7,105 +7,27 @@ this module turns prepared data into a trained network and its test results.
 from __future__ import annotations
 
 import math
-import random
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
 import pandas as pd
 import torch
 
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
-from ..errors import BronchoError
 from ..models import build_model
 from ..runs.contract import cpu_threads, gpu_share
 from ..runs.processes import process_age_s
 from . import evaluate
+from .device import device_for, precision_for, seed_everything, speed_for
 from .loop import FitResult, Settings, Trainer
 from .network import PoseRegressor, round_to_export_
 from .prepare import RunData, sample_pairs
 
 EVAL_CHUNK = 64  # pairs per forward when evaluating pairwise models
-
-
-class DeviceUnavailable(BronchoError):
-    """``train.device`` names a device this machine does not have (one line, exit 2, before any MLflow run)."""
-
-
-def _fp32_flags() -> tuple[Any, ...]:
-    """Where torch keeps the TF32 switches (matmuls, cuDNN convolutions, cuDNN RNNs); the new API only:
-    mixing it with the legacy ``allow_tf32`` flags makes torch raise."""
-    return (torch.backends.cuda.matmul, torch.backends.cudnn.conv, torch.backends.cudnn.rnn)
-
-
-def set_tf32(enabled: bool) -> None:
-    for flags in _fp32_flags():
-        flags.fp32_precision = "tf32" if enabled else "ieee"
-
-
-@contextmanager
-def exact_fp32() -> Iterator[None]:
-    """fp32 matmuls and convolutions in full precision (no TF32) inside the block: what a CUDA-vs-CPU
-    comparison needs, since cuDNN uses TF32 for fp32 convolutions by default (10-bit mantissa, ~1e-3)."""
-    saved = [flags.fp32_precision for flags in _fp32_flags()]
-    set_tf32(False)
-    try:
-        yield
-    finally:
-        for flags, value in zip(_fp32_flags(), saved):
-            flags.fp32_precision = value
-
-
-def _mps_available() -> bool:
-    mps = getattr(torch.backends, "mps", None)
-    return bool(mps and mps.is_available())
-
-
-def device_for(cfg: Config) -> torch.device:
-    """The run's device: ``auto`` picks cuda > mps > cpu; an explicit device this machine lacks is an error."""
-    want = cfg.train.device
-    if want == "cuda" and not torch.cuda.is_available():
-        raise DeviceUnavailable(f"train.device: cuda, but torch {torch.__version__} sees no CUDA device here "
-                                f"(built for CUDA {torch.version.cuda or 'none'}); use train.device: auto or cpu")
-    if want == "mps" and not _mps_available():
-        raise DeviceUnavailable("train.device: mps, but this machine has no MPS device; use auto or cpu")
-    if want in ("auto", "cuda") and torch.cuda.is_available():
-        # Fixed input shapes: let cuDNN pick the fastest kernels once; TF32 for fp32 matmuls and convolutions.
-        torch.backends.cudnn.benchmark = True
-        set_tf32(True)
-        return torch.device("cuda")
-    if want == "mps" or (want == "auto" and _mps_available()):
-        return torch.device("mps")
-    return torch.device("cpu")
-
-
-def precision_for(cfg: Config, device: torch.device) -> str:
-    if cfg.train.precision != "auto":
-        return cfg.train.precision
-    if device.type == "cuda":
-        return "bf16-mixed" if torch.cuda.is_bf16_supported() else "16-mixed"
-    return "32"
-
-
-def device_name(device: torch.device) -> str:
-    """The accelerator's name (``NVIDIA H100 80GB HBM3``), or ``none`` on the CPU."""
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return "Apple MPS" if device.type == "mps" else "none"
-
-
-def env_tags(cfg: Config, device: torch.device) -> dict[str, str]:
-    """``env.device``, ``env.precision``, ``env.gpu_name``: where and how a run actually trained."""
-    precision = precision_for(cfg, device)
-    if precision == "32" and device.type == "cuda":
-        precision = "32 (tf32 matmuls and convolutions)"
-    return {"env.device": device.type, "env.precision": precision, "env.gpu_name": device_name(device)}
 
 
 def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
@@ -116,21 +38,15 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         steps=t.steps, micro_pairs=t.batch_size, accum=t.pairs_per_step // t.batch_size, chunk=chunk,
         val_every=min(t.val_every, t.steps), patience=t.patience, min_delta=t.min_delta, lr=t.lr,
         weight_decay=t.weight_decay, warmup_steps=int(round(t.warmup * t.steps)), schedule=t.schedule,
-        rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device),
+        rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
     )
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
 
 
 def build_network(cfg: Config, cell: Cell, data: RunData, device: torch.device) -> PoseRegressor:
     model = build_model(cell.arch, image_size=data.image_size, dropout=cfg.model.dropout,
                         pretrained=cfg.paths.pretrained)
-    if cfg.model.channels_last:
+    if speed_for(cfg, cell.arch, device).channels_last:
         model = model.to(memory_format=torch.channels_last)
     standardize = cfg.train.standardize_labels
     net = PoseRegressor(model, data.image_mean, data.image_std,
@@ -151,8 +67,10 @@ class Outcome:
 def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path | None = None,
                      resume_state: dict[str, Any] | None = None, stop: Any = None,
                      on_validation: Callable[[int, dict[str, float]], None] | None = None,
-                     on_step: Callable[[int, int], None] | None = None) -> Outcome:
-    """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split."""
+                     on_step: Callable[[int, int], None] | None = None,
+                     on_phase: Callable[[str], None] | None = None) -> Outcome:
+    """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split;
+    ``on_phase`` hears what happens after the last step (the test evaluation)."""
     t_start = time.perf_counter()
     torch.set_num_threads(cpu_threads(cfg))
     device = device_for(cfg)
@@ -177,6 +95,8 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         trainer.load_state(resume_state)
     fit = trainer.fit()
     round_to_export_(net, cfg.runs.model_artifact)  # test the weights the run ships (fp16: rounded)
+    if on_phase is not None:
+        on_phase(f"test evaluation ({len(data.split.test)} trajectories)")
     t0 = time.perf_counter()
     chunk = cfg.data.window if net.temporal else EVAL_CHUNK
     spacing = {p: data.dataset.spacing_mm(p) for p in data.dataset.patients}

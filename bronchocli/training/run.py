@@ -46,7 +46,8 @@ from ..runs.ownership import remove_checkpoint
 from ..runs.processes import process_alive, process_tags, repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
 from . import artifacts, checkpoint
-from .engine import device_for, env_tags, fit_and_evaluate
+from .device import device_for, env_tags, speed_for
+from .engine import fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
@@ -143,6 +144,13 @@ class _StepBar:
         if self.bar is not None and self.task is not None:
             self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {values['best_val_loss']:.4g})")
 
+    def phase(self, label: str, text: str) -> None:
+        """What the run does after its last step (test evaluation, logging): in the bar, else in the log."""
+        if self.bar is not None and self.task is not None:
+            self.bar.update(self.task, info=text + " ...")
+        else:
+            log.info("%s: %s ...", label, text)
+
     def close(self) -> None:
         if self.bar is not None and self.task is not None:
             self.bar.stop()
@@ -161,6 +169,7 @@ def run_cell(
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
+    fast = speed_for(cfg, cell.arch, device)  # a bad train.speed_settings file: one line, before any work
     check_reachable(cfg)  # a dead server fails within runs.timeout_s, before any work
     tags = dict(extra_tags or {})
     if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
@@ -169,7 +178,7 @@ def run_cell(
     client = client_for(cfg)
     exp_id = experiment_id(client, cfg)
     run_id, state = _open_run(client, exp_id, cfg, cell, resume, tags)
-    for key, value in env_tags(cfg, device).items():  # on a resume too: the device may have changed
+    for key, value in env_tags(cfg, device, cell.arch).items():  # on a resume too: the device may have changed
         client.set_tag(run_id, key, value)
     if run_id_callback:
         run_id_callback(run_id)
@@ -185,15 +194,18 @@ def run_cell(
 
     ckpt = checkpoint_dir(cfg, run_id)
     try:
-        if state is None:
-            artifacts.log_start(client, run_id, cfg, data, cell)
+        if state is None:  # the speed setting it trains with (measured per architecture and device, or the config's)
+            artifacts.log_start(client, run_id, cfg, data, cell, fast.params())
         with _stop_on_signals(flag):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
-                                           on_validation=validated, on_step=bar.step)
+                                           on_validation=validated, on_step=bar.step,
+                                           on_phase=lambda text: bar.phase(cell.label, text))
+                bar.phase(cell.label, "logging metrics, predictions" +
+                          ("" if cfg.runs.model_artifact == "none" else " and the MLflow Model"))
+                artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
             finally:
                 bar.close()
-            artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
     except RunStopped as exc:
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")

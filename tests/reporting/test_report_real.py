@@ -14,17 +14,28 @@ from bronchocli.runs.records import search_runs
 from bronchocli.runs.views import README_RATIO
 
 
-def test_the_measuring_profiler_returns_the_keys_the_ablation_table_reads():
+def test_the_measuring_profiler_returns_the_keys_the_ablation_table_reads_and_records_them(tmp_path, monkeypatch):
     import torch
 
+    from bronchocli.models import profile
+
+    record = tmp_path / "cache" / "ablation-latency-cpu-32.json"
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # on a busy 2-core machine, two spinning threads make one forward 15x slower
     try:
-        row = measuring_profiler(32, "cpu", batch=1, repeats=1)("baseline")
+        row = measuring_profiler(32, "cpu", record, repeats=1)("baseline")
     finally:
         torch.set_num_threads(threads)
     assert row["params"] > 1e6 and row["latency_ms_b1"] > 0 and row["gmacs_per_pair"] > 0
     assert {"device", "image_size", "window", "precision"} <= row.keys()
+    assert row["latency_ms_bN"] is None and row["peak_mem_mb"] is None  # batch 1 only: what the table shows
+
+    def no_timing(*a, **k):
+        raise AssertionError("a recorded architecture must not be timed again")
+
+    monkeypatch.setattr(profile, "profile_arch", no_timing)
+    again = measuring_profiler(32, "cpu", record)("baseline")  # a later report: read from the record
+    assert again["latency_ms_b1"] == row["latency_ms_b1"] and again["recorded"] == str(record)
 
 
 def test_report_after_a_tiny_real_sweep(cli, tmp_path):

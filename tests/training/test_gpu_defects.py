@@ -23,7 +23,7 @@ from bronchocli.models import build_model
 from bronchocli.runs.client import client_for
 from bronchocli.runs.contract import gpu_share
 from bronchocli.sweep.placement import pin_env, share_counts, smi_gpu_ids, visible_gpus
-from bronchocli.training import engine
+from bronchocli.training import device
 from bronchocli.training.loop import NothingTrained, Trainer, recalibrate_bn
 from bronchocli.training.network import PoseRegressor
 
@@ -78,10 +78,10 @@ def test_workers_sharing_a_gpu_each_keep_their_frame_cache_within_their_share(mo
 
 def test_explicit_cuda_without_cuda_is_an_error_and_auto_falls_back(tiny_cfg, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(engine.DeviceUnavailable, match="train.device: cuda, but torch .* sees no CUDA device"):
-        engine.device_for(tiny_cfg.with_values({"train.device": "cuda"}))
-    assert engine.device_for(tiny_cfg.with_values({"train.device": "auto"})).type in ("cpu", "mps")
-    assert engine.device_for(tiny_cfg.with_values({"train.device": "cpu"})).type == "cpu"
+    with pytest.raises(device.DeviceUnavailable, match="train.device: cuda, but torch .* sees no CUDA device"):
+        device.device_for(tiny_cfg.with_values({"train.device": "cuda"}))
+    assert device.device_for(tiny_cfg.with_values({"train.device": "auto"})).type in ("cpu", "mps")
+    assert device.device_for(tiny_cfg.with_values({"train.device": "cpu"})).type == "cpu"
 
 
 def test_train_with_cuda_on_a_machine_without_it_is_one_line_exit_2_and_leaves_no_run(cli, tiny_project,
@@ -102,42 +102,63 @@ def test_train_with_cuda_on_a_machine_without_it_is_one_line_exit_2_and_leaves_n
     assert not [r for r in runs if r.data.tags.get("cell_key")], "a run was left behind"
 
 
-def test_every_run_is_tagged_with_its_device_precision_and_gpu_name(tiny_cfg, monkeypatch):
-    cpu = engine.env_tags(tiny_cfg.with_values({"train.device": "cpu"}), torch.device("cpu"))
+def test_every_run_is_tagged_with_its_device_precision_and_gpu_name(tiny_cfg, monkeypatch, tmp_path):
+    (tmp_path / "none.json").write_text('{"version": 1, "devices": {}}')  # nothing measured: the defaults
+    tiny_cfg = tiny_cfg.with_values({"train.speed_settings": str(tmp_path / "none.json")})
+    cpu = device.env_tags(tiny_cfg.with_values({"train.device": "cpu"}), torch.device("cpu"), "baseline")
     assert cpu == {"env.device": "cpu", "env.precision": "32", "env.gpu_name": "none"}
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H100 80GB HBM3")
     monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: True)
-    tags = engine.env_tags(tiny_cfg, torch.device("cuda"))
+    tags = device.env_tags(tiny_cfg, torch.device("cuda"), "baseline")
     assert tags == {"env.device": "cuda", "env.precision": "bf16-mixed", "env.gpu_name": "NVIDIA H100 80GB HBM3"}
-    fp32 = engine.env_tags(tiny_cfg.with_values({"train.precision": "32"}), torch.device("cuda"))
+    fp32 = device.env_tags(tiny_cfg.with_values({"train.precision": "32"}), torch.device("cuda"), "baseline")
     assert fp32["env.precision"].startswith("32 (tf32")
 
 
-def test_a_finished_run_carries_the_device_tags(tiny_project, monkeypatch):
+def test_a_run_logs_the_measured_speed_setting_and_an_explicit_precision_wins(tiny_project, monkeypatch, tmp_path):
+    """``auto`` takes the architecture's measured setting for this device, logged as params and the env tag;
+    ``--set train.precision=32`` (a config value) wins over it and says so."""
+    from bronchocli import speed
     from bronchocli.config import load_config
     from bronchocli.training.run import run_cell
 
     monkeypatch.chdir(tiny_project)
-    cfg = load_config(tiny_project / "experiments.yaml").with_values({"train.steps": 2, "train.val_every": 2})
-    result = run_cell(cfg, cfg.cell(arch="offsetnet", rot_loss="mse", population="personalized"), progress=False)
-    assert result.status == "FINISHED", result.failure_reason
-    tags = client_for(cfg).get_run(result.run_id).data.tags
-    assert (tags["env.device"], tags["env.precision"], tags["env.gpu_name"]) == ("cpu", "32", "none")
-    assert result.metrics["train.skipped_steps"] == 0
+    monkeypatch.setattr(device, "bf16_fast", lambda dev: True)  # as on this project's CPU (avx512_bf16)
+    settings = tmp_path / "speed.json"
+    speed.write(settings, "cpu", {"measured": {"date": "2026-11-26"}, "archs": {
+        "offsetnet": {"precision": "bf16-mixed", "channels_last": False, "chosen": "bf16 contiguous",
+                      "pairs_per_s": {"bf16 contiguous": 10.0}}}})
+    cfg = load_config(tiny_project / "experiments.yaml").with_values(
+        {"train.steps": 2, "train.val_every": 2, "train.speed_settings": str(settings)})
+    cell = dict(arch="offsetnet", rot_loss="mse", population="personalized")
+    logged = []
+    for values in ({}, {"train.precision": "32"}):
+        c = cfg.with_values(values)
+        result = run_cell(c, c.cell(**cell), progress=False)
+        assert result.status == "FINISHED", result.failure_reason
+        run = client_for(c).get_run(result.run_id)
+        logged.append((run.data.tags, run.data.params))
+    (tags, params), (tags32, params32) = logged
+    assert (tags["env.device"], tags["env.precision"], tags["env.gpu_name"]) == ("cpu", "bf16-mixed", "none")
+    assert (params["speed.precision"], params["speed.channels_last"]) == ("bf16-mixed", "false")
+    assert params["speed.source"].startswith("measured (speed.json settings, cpu, 2026-11-26)")
+    assert tags32["env.precision"] == "32" and params32["speed.precision"] == "32"
+    assert params32["speed.channels_last"] == "false"  # still the measured memory format: only precision was set
+    assert "config overrides train.precision" in params32["speed.source"]
 
 
 # -- 4. the CUDA-vs-CPU comparison runs without TF32 -----------------------------------------------------------
 
 
 def test_exact_fp32_turns_tf32_off_inside_and_restores_it():
-    engine.set_tf32(True)
+    device.set_tf32(True)
     try:
-        with engine.exact_fp32():
+        with device.exact_fp32():
             assert torch.backends.cudnn.conv.fp32_precision == "ieee"
             assert torch.backends.cuda.matmul.fp32_precision == "ieee"
         assert torch.backends.cudnn.conv.fp32_precision == "tf32"
     finally:
-        engine.set_tf32(False)
+        device.set_tf32(False)
 
 
 def test_the_cuda_vs_cpu_comparison_runs_its_fp32_forward_without_tf32():
@@ -146,11 +167,11 @@ def test_the_cuda_vs_cpu_comparison_runs_its_fp32_forward_without_tf32():
     seen = []
     net = PoseRegressor(build_model("offsetnet", image_size=32), (0.5,) * 3, (0.25,) * 3).eval()
     net.model.head.register_forward_hook(lambda *a: seen.append(torch.backends.cudnn.conv.fp32_precision))
-    engine.set_tf32(True)  # what a CUDA run sets for training
+    device.set_tf32(True)  # what a CUDA run sets for training
     try:
         check = selftest.device_agreement(net, torch.device("cpu"), size=32)
     finally:
-        engine.set_tf32(False)
+        device.set_tf32(False)
     assert seen[:2] == ["tf32", "ieee"]  # the reference forward as configured, the compared one exact
     assert check.fp32_error == 0.0 and check.fp32_error <= check.fp32_tolerance
 

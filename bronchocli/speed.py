@@ -1,0 +1,128 @@
+"""Per-architecture speed settings per device: the precision and memory format a run uses when the config says
+``auto``, chosen by a measurement, never by hand.
+
+``bronchopose profile --speed FILE`` (``diagnostics/speed.py``) trains every architecture for a few dozen
+steps in each candidate setting (fp32 / bf16 autocast, channels-last on / off), keeps the candidates whose
+loss curve tracks the fp32 reference within :data:`LOSS_TOLERANCE`, and writes the fastest of those per
+architecture into a settings file under the device's key (``cpu``, or ``cuda:<GPU name>``). The project ships
+the file measured on its own CPU machine (``speed_settings.json`` beside this module); ``train.speed_settings``
+points at another one. A device the file does not name gets the old defaults (``DEFAULTS``).
+
+This module reads and writes the file only (no torch: the sweep orders its cells by the measured costs
+without loading torch).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import BronchoError
+from .io import write_json
+
+SHIPPED = Path(__file__).with_name("speed_settings.json")
+VERSION = 1
+LOSS_TOLERANCE = 0.05  # mean relative gap between a candidate's and fp32's training loss per 10-step block
+MIN_GAIN = 1.05  # a candidate replaces the default only when this much faster (below: noise on a shared machine)
+# What a device without a measurement gets (the defaults before measured settings existed): fp32 on the CPU,
+# bf16 autocast on a GPU that has it (else 16-mixed), channels-last everywhere.
+DEFAULTS = {"cpu": ("32", True), "cuda": ("bf16-mixed", True), "mps": ("32", True)}
+
+
+@dataclass(frozen=True)
+class SpeedSetting:
+    """What one run uses: precision, memory format, and where each came from (logged as run params)."""
+
+    precision: str  # "32", "bf16-mixed" or "16-mixed"
+    channels_last: bool
+    source: str  # "config", "measured (<file>, <device key>, <date>)" or "default (...)"
+
+    def params(self) -> dict[str, str]:
+        return {"speed.precision": self.precision, "speed.channels_last": str(self.channels_last).lower(),
+                "speed.source": self.source}
+
+
+def load(path: Path | None = None) -> dict[str, Any]:
+    """The settings file (``path``, else the shipped one); an unreadable or malformed file is one line, exit 2."""
+    path = Path(path) if path is not None else SHIPPED
+    if not path.is_file():
+        if path == SHIPPED:
+            return {"version": VERSION, "devices": {}}
+        raise BronchoError(f"train.speed_settings {path}: no such file (write one with "
+                           f"`bronchopose profile --speed {path}`)")
+    try:
+        data = json.loads(path.read_text())
+        if not isinstance(data.get("devices"), dict):
+            raise ValueError("no 'devices' mapping")
+    except (OSError, ValueError, AttributeError) as exc:
+        raise BronchoError(f"train.speed_settings {path}: not a speed settings file ({exc})") from None
+    return data
+
+
+def device_entry(data: dict[str, Any], key: str) -> dict[str, Any] | None:
+    return data["devices"].get(key)
+
+
+def choose(arch: str, key: str, precision: str, channels_last: bool | str, *, path: Path | None = None,
+           bf16_ok: bool = True) -> SpeedSetting:
+    """The setting for ``arch`` on device ``key`` given the config's ``train.precision`` and
+    ``model.channels_last`` (each ``auto`` or explicit: an explicit value always wins).
+
+    ``bf16_ok`` is False where the device cannot run bf16 fast (a CPU without avx512_bf16/AMX): a measured
+    bf16 setting then falls back to fp32."""
+    kind = key.split(":", 1)[0]
+    default_prec, default_cl = DEFAULTS.get(kind, ("32", True))
+    if kind == "cuda" and not bf16_ok:
+        default_prec = "16-mixed"
+    if precision != "auto" and channels_last != "auto":
+        return SpeedSetting(precision, bool(channels_last), "config")
+    entry = device_entry(load(path), key)
+    measured = (entry or {}).get("archs", {}).get(arch)
+    if measured is not None:
+        prec, cl = measured["precision"], bool(measured["channels_last"])
+        if prec == "bf16-mixed" and not bf16_ok:
+            prec = default_prec
+        where = path.name if path is not None else "shipped"
+        source = f"measured ({where} settings, {key}, {entry.get('measured', {}).get('date', '?')})"
+    else:
+        prec, cl = default_prec, default_cl
+        source = f"default (no measurement for {arch} on {key})"
+    if precision != "auto":
+        prec = precision
+    if channels_last != "auto":
+        cl = bool(channels_last)
+    if precision != "auto" or channels_last != "auto":
+        source += "; config overrides " + ("train.precision" if precision != "auto" else "model.channels_last")
+    return SpeedSetting(prec, cl, source)
+
+
+def training_rates(key: str = "cpu", path: Path | None = None) -> dict[str, float]:
+    """Measured training pairs/s of each architecture in its chosen setting on device ``key`` (may be empty)."""
+    try:
+        entry = device_entry(load(path), key)
+    except BronchoError:
+        return {}
+    out = {}
+    for arch, m in (entry or {}).get("archs", {}).items():
+        rate = m.get("pairs_per_s", {}).get(m.get("chosen", ""))
+        if rate:
+            out[arch] = float(rate)
+    return out
+
+
+def write(path: Path, key: str, entry: dict[str, Any]) -> None:
+    """Put ``entry`` under device ``key`` of the settings file at ``path`` (other devices kept), atomically."""
+    path = Path(path)
+    data: dict[str, Any] = {"version": VERSION, "devices": {}}
+    if path.is_file():
+        try:
+            data = json.loads(path.read_text())
+            data.setdefault("devices", {})
+        except ValueError:
+            raise BronchoError(f"--speed {path}: exists and is not a speed settings file; choose another path"
+                               ) from None
+    data["version"] = VERSION
+    data["devices"][key] = entry
+    write_json(path, data)
