@@ -191,6 +191,9 @@ class Train(Section):
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
     schedule: Literal["cosine", "constant"] = "cosine"  # after the warm-up
     val_every: int = Field(50, ge=1)  # steps between validations (best weights, early stopping, pruning)
+    # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard
+    # kill (OOM, node lost) loses at most this much training
+    checkpoint_every_s: float = Field(120.0, gt=0)
     patience: int | None = Field(None, ge=1)  # validations without improvement before stopping; None: never
     min_delta: float = Field(0.0, ge=0)
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction

@@ -9,9 +9,11 @@ tests and benchmarks use it for fast fakes. Workers are processes started by
 ``bronchopose sweep`` (multiprocessing ``spawn``; see ``pool.py``) or by anyone
 calling ``worker_process``.
 
-Signals: SIGINT/SIGTERM stop the worker. While a cell runs, ``run_cell``
-itself turns the signal into a KILLED MLflow run (``RunInterrupted``); outside
-its training loop the worker raises ``KeyboardInterrupt`` into the runner.
+Signals: SIGINT/SIGTERM (and SIGUSR1 in a Slurm task) stop the worker. While a
+cell trains, ``run_cell`` itself turns the signal into a checkpoint of the
+current step and a KILLED MLflow run (``RunInterrupted``, which carries the
+signal back here); outside its training loop the worker raises
+``KeyboardInterrupt`` into the runner.
 Either way the cell is released (pending again, attempt not counted) and the
 worker exits with 130. When the heartbeat finds the claim taken over (this
 worker looked dead), the worker interrupts its own run with SIGTERM, marks the
@@ -227,12 +229,12 @@ class Worker:
 
     def _handle(self, claim: Claim) -> str:
         if claim.previous is not None:
-            self._settle_orphans(claim.previous)
+            self._settle_orphans(claim.previous, keep=claim.released_run)
         if claim.exhausted:
             prev = claim.previous
             reason = (f"worker {prev.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s) on the last "
                       f"allowed attempt ({prev.attempts}); reset with --retry-failed")
-            self._db(self.store.fail, claim.token, reason)
+            self._db(self.store.fail, claim.token, reason, claim.released_run)
             self.stats.failed += 1
             return "failed"
         return self._run_claim(claim)
@@ -293,8 +295,10 @@ class Worker:
     def _record(self, claim: Claim, cell: Cell, result: Any, error: BaseException | None, run_id: str | None,
                 elapsed: float, lost: bool) -> str:
         if lost or isinstance(error, ClaimLost):
-            return self._lost(cell, run_id)
+            return self._lost(cell, run_id, claim.token)
         if error is not None and _is_interrupt(error):
+            if self.signals.requested is None and getattr(error, "signal", None) is not None:
+                self.signals.requested = error.signal  # run_cell's own handler caught it (SIGUSR1: requeue the task)
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
             self._db(self.store.release, claim.token)
             log.info("interrupted %s: released (%s)", cell.label, failure_reason(error))
@@ -310,7 +314,7 @@ class Worker:
         if result.status == "FINISHED":
             duration = getattr(result, "duration_s", None) or elapsed
             if not self._db(self.store.finish, claim.token, result.run_id, duration):
-                return self._lost(cell, run_id)
+                return self._lost(cell, run_id, claim.token)
             self.stats.finished += 1
             log.info("finished %s: run %s", cell.label, result.run_id)
             return "finished"
@@ -319,7 +323,7 @@ class Worker:
 
     def _fail(self, claim: Claim, cell: Cell, reason: str, run_id: str | None, elapsed: float) -> str:
         if not self._db(self.store.fail, claim.token, reason, run_id, elapsed):
-            return self._lost(cell, run_id)
+            return self._lost(cell, run_id, claim.token)
         self.stats.failed += 1
         log.warning("failed %s: %s", cell.label, reason)
         if run_id and claim.row.attempts > self.cfg.sweep.max_retries:  # no retry will resume it: free the disk
@@ -335,11 +339,12 @@ class Worker:
         self.signals.wait(self.cfg.sweep.poll_s)  # give the database a moment before claiming again
         return "released"
 
-    def _lost(self, cell: Cell, run_id: str | None) -> str:
+    def _lost(self, cell: Cell, run_id: str | None, token: str) -> str:
         self.stats.lost += 1
         log.warning("lost the claim of %s (no heartbeat for too long); its run %s is KILLED", cell.label, run_id)
         self._terminate(run_id, "KILLED", f"sweep worker {self.ident} lost its claim (no heartbeat for "
-                        f"{self.cfg.sweep.stale_after_s:g} s); the cell was taken over", ("RUNNING", "FINISHED"))
+                        f"{self.cfg.sweep.stale_after_s:g} s); the cell was taken over", ("RUNNING", "FINISHED"),
+                        token=token)
         return "lost"
 
     # -- MLflow side ---------------------------------------------------------------
@@ -366,20 +371,30 @@ class Worker:
         ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and resumable(reason))
         return run_id if ok else None
 
-    def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:
-        """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run)."""
+    def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str],
+                   token: str | None = None) -> None:
+        """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run).
+
+        ``token``: only while the run is still this claim's (a takeover may be resuming it under its own)."""
         if not run_id:
             return
         try:
             run = self.client.get_run(run_id)
+            if token is not None and run.data.tags.get(TAG_CLAIM, token) != token:
+                log.info("run %s is resumed under another claim now: left alone", run_id)
+                return
             if run.info.status in only:
                 self.client.set_tag(run_id, TAG_FAILURE, reason)
                 self.client.set_terminated(run_id, status)
         except Exception as exc:  # noqa: BLE001 - the MLflow store is best effort here; logged
             log.warning("could not mark run %s %s: %s", run_id, status, exc)
 
-    def _settle_orphans(self, previous: CellRow) -> None:
-        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell."""
+    def _settle_orphans(self, previous: CellRow, keep: str | None = None) -> None:
+        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell.
+
+        The checkpoint of ``keep`` (the cell's run, which this claim resumes) stays: a takeover never deletes a
+        resumable checkpoint. Only the checkpoints of other runs of the lost claim (none the cell will resume)
+        are orphans."""
         run_ids = {previous.run_id} if previous.run_id else set()
         try:
             exp = experiment_id(self.client, self.cfg)
@@ -391,7 +406,8 @@ class Worker:
                   f"cell taken over by {self.ident}")
         for run_id in sorted(run_ids):
             self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
-            _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
+            if run_id != keep:
+                _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
 
 
 def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:

@@ -6,10 +6,14 @@ evaluates (``engine``), logs everything (``artifacts``) and terminates the
 run. The dataset must exist: ``bronchopose train``/``sweep``/``tune``
 generate it first, as an explicit step of their start-up.
 
-Faults: SIGINT (Ctrl-C) or SIGTERM stops training after the current
-optimiser step, saves a resumable checkpoint and marks the run KILLED
-(``RunInterrupted`` is raised so callers stop too); ``resume=`` continues
-such a run from its checkpoint. An ``on_validation`` observer may raise
+Faults: SIGINT (Ctrl-C), SIGTERM (scancel, ``scontrol requeue``,
+preemption) or SIGUSR1 (Slurm's time-limit warning) stops training after the
+current optimiser step, saves a resumable checkpoint of that step and marks
+the run KILLED with the signal and the checkpoint's path as its reason
+(``RunInterrupted``, carrying the signal, is raised so callers stop too);
+``resume=`` continues such a run from its checkpoint. Between signals a
+checkpoint is written every ``train.checkpoint_every_s`` seconds, so a hard
+kill (OOM, ``kill -9``) loses at most that much. An ``on_validation`` observer may raise
 ``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
 or any other error marks the run FAILED with the reason in the
 ``failure_reason`` tag. A signal that arrives during the test evaluation lets
@@ -50,10 +54,14 @@ from .engine import device_for, env_tags, fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
+TAG_RESUMED = "resumed_from_step"  # a metric, one value per resume at step = the checkpoint's: the run's history
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # SIGUSR1: Slurm's time-limit warning
 
 
 class StopFlag:
-    """Turns the first SIGINT/SIGTERM into a request to stop after the current step; a second SIGINT aborts."""
+    """Turns the first stop signal into a request to stop after the current step; a second SIGINT aborts."""
 
     def __init__(self) -> None:
         self.signal: int | None = None
@@ -67,7 +75,7 @@ class StopFlag:
 @contextmanager
 def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
     try:
-        previous = {s: signal.signal(s, flag) for s in (signal.SIGINT, signal.SIGTERM)}
+        previous = {s: signal.signal(s, flag) for s in STOP_SIGNALS}
     except ValueError:  # not the main thread: leave signals alone
         yield
         return
@@ -117,8 +125,10 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
     client.update_run(run_id, "RUNNING")
     if repaired or TAG_FAILURE in run.data.tags:
         client.delete_tag(run_id, TAG_FAILURE)  # a resumed run has no failure (and no empty tag)
-    for key, value in process_tags().items():
+    for key, value in {**extra_tags, **process_tags()}.items():  # the worker, claim, attempt resuming it now
         client.set_tag(run_id, key, value)
+    log.info("resuming run %s from its checkpoint of step %d (%s)", run_id, state["step"], path)
+    client.log_metric(run_id, TAG_RESUMED, float(state["step"]), step=int(state["step"]))
     return run_id, state
 
 
@@ -216,7 +226,8 @@ def run_cell(
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
     shutil.rmtree(ckpt, ignore_errors=True)  # resumable state is only needed while the run is unfinished
     client.set_terminated(run_id, "FINISHED")
-    return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
+    before = sum(float(t) for t in state["times"]) if state is not None else 0.0  # the cell's time before a resume
+    return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0 + before,
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)
 
 

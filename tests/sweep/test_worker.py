@@ -207,3 +207,66 @@ def test_a_failed_run_keeps_its_checkpoint_only_while_its_cell_can_be_retried(ma
     row = rows(store, cfg)["baseline"]
     assert row.state == FAILED and row.failure_reason == "CheckpointWriteError: the machine"
     assert not (cfg.paths.checkpoints / seen[0][1]).exists()  # last attempt: nothing will resume it
+
+
+# -- a worker killed hard (kill -9, OOM) mid-cell (issue 30, item 2) ------------------------------------------
+
+
+def test_a_dead_workers_cell_shows_stale_and_is_resumed_from_its_checkpoint_by_whoever_takes_it_over(
+        make_config, fake_dir):
+    from rich.console import Console
+
+    from bronchocli.runs.contract import RunResult, resume_file
+    from bronchocli.sweep.status import show_status
+
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1, "stale_after_s": 30})
+    store, plan = setup(cfg)
+    (cell,) = plan.cells
+    client = client_for(cfg)
+    claim = store.claim(cfg.name, [cell.key], "node1:4242 slurm 7_0", max_retries=1, stale_after_s=30)
+    run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})
+                               ).info.run_id
+    store.set_run_id(claim.token, run_id)
+    ckpt = resume_file(cfg, run_id)
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_text("step 18 of 24")  # its last checkpoint; then kill -9: the run stays RUNNING
+
+    def status() -> str:
+        console = Console(width=250, record=True)
+        show_status(cfg, store, cfg.name, False, console)
+        return console.export_text()
+
+    assert "running 1" in status() and "stale" not in status()  # heartbeat fresh: alive as far as anyone knows
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 31))
+    shown = status()
+    assert "stale (worker lost" in shown and "running 0" in shown and "stale 1" in shown, shown
+
+    seen = []
+
+    def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        seen.append((resume, ckpt.is_file() and ckpt.read_text()))
+        client.update_run(resume, "RUNNING")
+        run_id_callback(resume)
+        client.set_terminated(resume, "FINISHED")
+        return RunResult(resume, "FINISHED", {"pair.pos_l2.mean": 1.0})
+
+    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    assert seen == [(run_id, "step 18 of 24")]  # resumed, its checkpoint there when the runner started
+    assert runs_by_cell(cfg, "FINISHED") == {cell.key: 1} and runs_by_cell(cfg, None) == {cell.key: 1}
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.run_id) == (FINISHED, run_id)
+
+
+def test_a_takeover_keeps_the_lost_runs_link_until_the_new_claim_names_its_run(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",))
+    store, plan = setup(cfg)
+    (cell,) = plan.cells
+    first = store.claim(cfg.name, [cell.key], "dead:1", max_retries=2, stale_after_s=30)
+    store.set_run_id(first.token, "run-of-the-dead")
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 31))
+    second = store.claim(cfg.name, [cell.key], "alive:2", max_retries=2, stale_after_s=30)
+    assert second.previous.worker == "dead:1" and second.released_run == "run-of-the-dead"
+    (row,) = store.rows(cfg.name)
+    assert row.run_id == "run-of-the-dead"  # sweep --gc sees the cell running with it: its checkpoint is needed
