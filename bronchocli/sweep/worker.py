@@ -36,7 +36,7 @@ from typing import Any
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, resumable
+from ..errors import BronchoError, MlflowUnreachable, resumable
 from ..retry import retry
 from ..runs.client import MlflowBusy, client_for, experiment_id
 from ..runs.contract import RunInterrupted, checkpoint_dir, failure_reason, resume_file
@@ -183,6 +183,7 @@ class Worker:
         self.stats = WorkerStats()
         self._client = None
         self._parent: str | None = None
+        self._unmarked: dict[str, tuple[str, str, tuple[str, ...], str | None]] = {}  # run -> how to end it
 
     @property
     def client(self):
@@ -213,6 +214,7 @@ class Worker:
         keys = list(self.cells)
         self.parent_run()  # looked up once, before any claim: never while a claim waits for its heartbeat
         while not self.signals.stop:
+            self.retry_unmarked()
             claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
                              stale_after_s=s.stale_after_s)
             if claim is None:
@@ -303,7 +305,7 @@ class Worker:
             self._db(self.store.release, claim.token)
             log.info("interrupted %s: released (%s)", cell.label, failure_reason(error))
             return "stop"
-        if isinstance(error, MlflowBusy):  # the database, not the cell: back without using an attempt
+        if isinstance(error, (MlflowBusy, MlflowUnreachable)):  # the store, not the cell: no attempt used
             return self._release_busy(claim, cell, failure_reason(error), run_id)
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
@@ -331,11 +333,14 @@ class Worker:
         return "failed"
 
     def _release_busy(self, claim: Claim, cell: Cell, reason: str, run_id: str | None) -> str:
-        """A run failed by a busy MLflow database: the cell goes back (attempt not counted) with the reason."""
-        self._terminate(run_id, "FAILED", reason, ("RUNNING",))
+        """A run failed by a busy or unreachable MLflow store: the cell goes back (attempt not counted) with the
+        reason and its checkpoint; its run is marked now if the store answers, else when it does (``_unmarked``),
+        else by whoever claims the cell next (``_resumable``)."""
+        self._terminate(run_id, "FAILED", reason, ("RUNNING",), token=claim.token, wait=False)
         self._db(self.store.release, claim.token, reason)
         self.stats.failed += 1
-        log.warning("released %s (MLflow database busy; attempt not counted): %s", cell.label, reason)
+        log.warning("released %s (MLflow store busy or unreachable; attempt not counted, its checkpoint kept): %s",
+                    cell.label, reason)
         self.signals.wait(self.cfg.sweep.poll_s)  # give the database a moment before claiming again
         return "released"
 
@@ -355,39 +360,54 @@ class Worker:
         database; ``errors.resumable``), or left RUNNING by a worker that released the cell without
         being able to close its run (the busy database again): that zombie is marked KILLED first.
         """
-        if not run_id or not resume_file(self.cfg, run_id).is_file():
+        if not run_id:
             return None
+        has_checkpoint = resume_file(self.cfg, run_id).is_file()
         try:
             run = self.client.get_run(run_id)
             if run.data.tags.get(TAG_CELL_KEY) != cell.key:
                 return None
             if run.info.status == "RUNNING":  # its cell was released, so no worker runs it any more
-                self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; resumed by "
-                                f"{self.ident}", ("RUNNING",))
-                return run_id
+                self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; "
+                                f"{'resumed' if has_checkpoint else 'replaced'} by {self.ident}", ("RUNNING",))
+                return run_id if has_checkpoint else None
         except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
+            return None
+        if not has_checkpoint:
             return None
         reason = run.data.tags.get(TAG_FAILURE, "")
         ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and resumable(reason))
         return run_id if ok else None
 
     def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str],
-                   token: str | None = None) -> None:
+                   token: str | None = None, wait: bool = True) -> None:
         """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run).
 
-        ``token``: only while the run is still this claim's (a takeover may be resuming it under its own)."""
+        ``token``: only while the run is still this claim's (a takeover may be resuming it under its own).
+        ``wait=False``: the store is known to be away: try once (no busy wait); if that fails, it is tried
+        again before each later claim of this worker (``retry_unmarked``)."""
         if not run_id:
             return
+        client = self.client if wait else getattr(self.client, "raw", self.client)
         try:
-            run = self.client.get_run(run_id)
+            run = client.get_run(run_id)
             if token is not None and run.data.tags.get(TAG_CLAIM, token) != token:
                 log.info("run %s is resumed under another claim now: left alone", run_id)
                 return
             if run.info.status in only:
-                self.client.set_tag(run_id, TAG_FAILURE, reason)
-                self.client.set_terminated(run_id, status)
+                client.set_tag(run_id, TAG_FAILURE, reason)
+                client.set_terminated(run_id, status)
+            self._unmarked.pop(run_id, None)
         except Exception as exc:  # noqa: BLE001 - the MLflow store is best effort here; logged
-            log.warning("could not mark run %s %s: %s", run_id, status, exc)
+            if not wait:
+                self._unmarked[run_id] = (status, reason, tuple(only), token)
+            log.warning("could not mark run %s %s: %s", run_id, status,
+                        str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)
+
+    def retry_unmarked(self) -> None:
+        """Mark the runs an outage left RUNNING (``_terminate(wait=False)``) now that the store may be back."""
+        for run_id, (status, reason, only, token) in list(self._unmarked.items()):
+            self._terminate(run_id, status, reason, only, token=token, wait=False)
 
     def _settle_orphans(self, previous: CellRow, keep: str | None = None) -> None:
         """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell.

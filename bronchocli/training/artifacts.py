@@ -83,13 +83,6 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> No
         _log_file(client, run_id, out / "split_manifest.csv")
 
 
-def validation_logger(client, run_id: str):
-    """A ``Trainer.on_validation`` callback logging the validation's values at step = optimiser step."""
-    def log(step: int, values: dict[str, float]) -> None:
-        log_metrics(client, run_id, values, step=step)
-    return log
-
-
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
     for batch in ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
         log_metrics(client, run_id, batch)

@@ -34,9 +34,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, resumable
+from ..errors import BronchoError, MlflowUnreachable, resumable
 from ..models import initialisation
-from ..runs.client import MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
+from ..runs.client import MetricBuffer, MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
 from ..runs.contract import (
     REJECTED_SUFFIX,
     RunInterrupted,
@@ -185,10 +185,15 @@ def run_cell(
         run_id_callback(run_id)
     flag = StopFlag()
     bar = _StepBar(progress, cell.label)
-    log_validation = artifacts.validation_logger(client, run_id)
+    metrics_out = MetricBuffer(client, run_id)  # an MLflow outage during training is waited out, not fatal
+    if state is not None:  # validations the checkpoint holds but MLflow lacks (buffered when the store went away)
+        logged = {m.step for m in client.get_metric_history(run_id, "val_loss")}
+        for h in state["history"]:
+            if int(h["step"]) not in logged:
+                metrics_out.log({k: v for k, v in h.items() if k != "step"}, int(h["step"]))
 
     def validated(step: int, values: dict[str, float]) -> None:
-        log_validation(step, values)
+        metrics_out.log(values, step)  # at step = optimiser step
         bar.validated(step, values)
         if on_validation is not None:
             on_validation(step, values)
@@ -203,7 +208,9 @@ def run_cell(
                                            on_validation=validated, on_step=bar.step)
             finally:
                 bar.close()
+            metrics_out.flush(wait=True)  # the store must be back (within runs.busy_timeout_s) to finish the run
             artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
+            client.set_terminated(run_id, "FINISHED")  # before the checkpoint goes: an outage here resumes it
     except RunStopped as exc:
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
@@ -216,7 +223,7 @@ def run_cell(
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
         reason = failure_reason(exc)
-        _end_run(client, run_id, "FAILED", reason)
+        _end_run(getattr(client, "raw", client) if isinstance(exc, OUTAGES) else client, run_id, "FAILED", reason)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             shutil.rmtree(ckpt, ignore_errors=True)
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
@@ -225,14 +232,14 @@ def run_cell(
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
     shutil.rmtree(ckpt, ignore_errors=True)  # resumable state is only needed while the run is unfinished
-    client.set_terminated(run_id, "FINISHED")
     before = sum(float(t) for t in state["times"]) if state is not None else 0.0  # the cell's time before a resume
     return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0 + before,
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)
 
 
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
-RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy)
+RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy, MlflowUnreachable)
+OUTAGES = (MlflowBusy, MlflowUnreachable)  # the store is away: marking the run is tried once, not waited for
 
 
 

@@ -270,3 +270,43 @@ def test_a_takeover_keeps_the_lost_runs_link_until_the_new_claim_names_its_run(m
     assert second.previous.worker == "dead:1" and second.released_run == "run-of-the-dead"
     (row,) = store.rows(cfg.name)
     assert row.run_id == "run-of-the-dead"  # sweep --gc sees the cell running with it: its checkpoint is needed
+
+
+# -- the MLflow store went away mid-cell (issue 30, item 3) -------------------------------------------------------
+
+
+def test_an_unreachable_store_releases_the_cell_without_an_attempt_and_the_run_is_marked_when_it_answers(
+        make_config, fake_dir, monkeypatch):
+    from bronchocli.errors import MlflowUnreachable
+    from bronchocli.runs.contract import RunResult
+
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0, "poll_s": 0.01})
+    store, plan = setup(cfg)
+    client = client_for(cfg)
+    made = []
+
+    def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **extra_tags)).info.run_id
+        run_id_callback(run_id)
+        made.append(run_id)
+        if len(made) == 1:  # the store went away mid-run: the run could not even be marked (left RUNNING)
+            raise MlflowUnreachable("runs.uri http://mlflow:5000: no answer within 10 s")
+        client.set_terminated(run_id, "FINISHED")
+        return RunResult(run_id, "FINISHED", {"pair.pos_l2.mean": 1.0})
+
+    worker = Worker(cfg, plan.cells, store, runner)
+    raw = worker.client.raw
+    real, outage = raw.set_terminated, [True]
+
+    def set_terminated(run_id, status=None, **kw):  # still away when the worker first tries to mark it
+        if outage.pop() if outage else False:
+            raise RuntimeError("API request failed: Max retries exceeded (too many 503 error responses)")
+        return real(run_id, status, **kw)
+
+    monkeypatch.setattr(raw, "set_terminated", set_terminated)
+    assert worker.run() == 0
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.attempts, row.run_id) == (FINISHED, 1, made[1])  # with max_retries 0: no attempt used
+    first = client.get_run(made[0])
+    assert first.info.status == "FAILED" and "MlflowUnreachable" in first.data.tags[TAG_FAILURE]  # not RUNNING
+    assert runs_by_cell(cfg, "RUNNING") == {} and runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
