@@ -20,6 +20,7 @@ from typing import Any
 
 os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")  # before mlflow is imported
 os.environ.setdefault("DO_NOT_TRACK", "true")
+os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")  # no "View run ... at" line per run end
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
@@ -117,8 +118,11 @@ class MetricBuffer:
 
 
 def _quiet() -> None:
-    for name in ("mlflow", "alembic", "urllib3"):
+    for name in ("mlflow", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # urllib3 warns at each of MLflow's HTTP retries ("Retrying (Retry(total=1 ...)) after connection broken");
+    # an outage is reported once, by the retry loop, in one line
+    logging.getLogger("urllib3").setLevel(logging.ERROR)
     # MLflow logs every database error with its traceback before raising it; we report it in one line.
     logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 

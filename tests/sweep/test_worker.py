@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import pytest
+from rich.console import Console
 from sqlalchemy import update
 from sweep_fakes import fake_runner, runs_by_cell
 
+from bronchocli.errors import MlflowUnreachable
 from bronchocli.runs.client import MlflowBusy, client_for, experiment_id
+from bronchocli.runs.contract import RunResult, resume_file
 from bronchocli.runs.records import TAG_FAILURE, cell_tags
 from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
+from bronchocli.sweep.status import show_status
 from bronchocli.sweep.storage import cells_table
 
 
@@ -214,11 +218,6 @@ def test_a_failed_run_keeps_its_checkpoint_only_while_its_cell_can_be_retried(ma
 
 def test_a_dead_workers_cell_shows_stale_and_is_resumed_from_its_checkpoint_by_whoever_takes_it_over(
         make_config, fake_dir):
-    from rich.console import Console
-
-    from bronchocli.runs.contract import RunResult, resume_file
-    from bronchocli.sweep.status import show_status
-
     cfg = make_config(archs=("baseline",), sweep={"max_retries": 1, "stale_after_s": 30})
     store, plan = setup(cfg)
     (cell,) = plan.cells
@@ -277,9 +276,6 @@ def test_a_takeover_keeps_the_lost_runs_link_until_the_new_claim_names_its_run(m
 
 def test_an_unreachable_store_releases_the_cell_without_an_attempt_and_the_run_is_marked_when_it_answers(
         make_config, fake_dir, monkeypatch):
-    from bronchocli.errors import MlflowUnreachable
-    from bronchocli.runs.contract import RunResult
-
     cfg = make_config(archs=("baseline",), sweep={"max_retries": 0, "poll_s": 0.01})
     store, plan = setup(cfg)
     client = client_for(cfg)
