@@ -86,7 +86,6 @@ def _is_interrupt(exc: BaseException) -> bool:
     return isinstance(exc, (KeyboardInterrupt, RunInterrupted))
 
 
-
 class StopSignals:
     """Turns SIGINT/SIGTERM into a stop request; interrupts the runner when one is in progress."""
 
@@ -261,7 +260,10 @@ class Worker:
         if self._parent is not None:
             tags[TAG_PARENT] = self._parent
         hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
-        resume = self._resumable(claim.released_run, cell)
+        try:
+            resume = self._resumable(claim.released_run, cell)
+        except (MlflowBusy, MlflowUnreachable) as exc:  # cannot tell whether to resume: never start afresh
+            return self._release_busy(claim, cell, failure_reason(exc), None)
         kw = {"resume": resume} if resume else {}
         log.info("claimed %s (key %s, attempt %d)%s", cell.label, cell.key, claim.row.attempts,
                  f", resuming run {resume}" if resume else "")
@@ -371,7 +373,9 @@ class Worker:
                 self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; "
                                 f"{'resumed' if has_checkpoint else 'replaced'} by {self.ident}", ("RUNNING",))
                 return run_id if has_checkpoint else None
-        except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
+        except (MlflowBusy, MlflowUnreachable):
+            raise
+        except Exception:  # noqa: BLE001 - deleted: start a fresh run
             return None
         if not has_checkpoint:
             return None
