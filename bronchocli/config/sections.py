@@ -299,6 +299,10 @@ class SlurmCfg(Section):
     logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
     shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
     exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+    # after the time-limit warning (SIGUSR1) the task checkpoints, gives its cell back, then `scontrol requeue`s
+    # itself (works detached; the watcher starts it after 3 s instead of Slurm's ~2 min hold) or just exits
+    # (the watcher, or running the command again, submits a new task)
+    on_time_limit: Literal["requeue", "exit"] = "requeue"
 
     @field_validator("partition", "account", "qos")
     @classmethod
