@@ -435,7 +435,8 @@ def test_the_tracking_database_away_for_30_s_costs_no_attempt_and_leaves_no_run_
 def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, tmp_path, pg_url, fake_dir, services):
     stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
     cfg = project(make_config, tmp_path, pg_url, name="stages", archs=("baseline", "lstm", "convlstm"),
-                  losses=("mse",), stages=stages, runs={"uri": services[1].url})
+                  losses=("mse",), stages=stages, runs={"uri": services[1].url},
+                  slurm={"gpus_per_task": 0})  # three stage-1 tasks at once on the two-GPU node
     for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
         (fake_dir / f"val-{arch}-mse").write_text(str(val))
         (fake_dir / f"block-{arch}").touch()
@@ -459,7 +460,8 @@ def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, t
     done = rows(cfg)
     first_done = max(r.finished_at for r in done if r.coords["seed"] == 0)
     assert all(r.claimed_at >= first_done for r in done if r.coords["seed"] == 1)  # stage 2 only after stage 1
-    assert "nothing to claim" not in task_logs(cfg)  # no stage-2 task started without work
+    stage_two = "".join(p.read_text() for p in (cfg.paths.base / "runs" / "slurm-logs").glob(f"{second}_*.log"))
+    assert "nothing to claim" not in stage_two  # no stage-2 task started while stage 1 ran
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in done}
     client = client_for(cfg)
     assert client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg))).info.status == "FINISHED"
