@@ -130,3 +130,21 @@ def test_the_workers_interpreter_and_its_venv_must_be_on_a_shared_path(make_conf
     monkeypatch.setattr(sys, "executable", "/tmp/x/bin/python")
     with pytest.raises(Exception, match="the Python running bronchopose .slurm.python. /tmp/x/bin/python"):
         launcher.check(make_config(**shared, runs=runs, dataset={"root": "/srv/data"}, slurm={"logs": "/srv/logs"}))
+
+
+def test_the_task_that_finds_the_sweep_done_ends_its_parent_run(make_config, fake_dir):
+    from sweep_fakes import fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import sweep_parent
+    from bronchocli.sweep.task import run_task
+
+    cfg = make_config(archs=("baseline",))
+    store = SweepStore(cfg.paths.storage_url)
+    prepare(cfg, store, dataset=False)
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+    assert client.get_run(parent).info.status == "RUNNING"
+    assert run_task(cfg, store, parse_only([]), fake_runner) == 0  # a detached sweep: no watcher
+    assert client.get_run(parent).info.status == "FINISHED"
