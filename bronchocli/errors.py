@@ -78,6 +78,12 @@ def out_of_memory(exc: BaseException) -> OutOfMemory | None:
                        "(train.batch_size, --workers)")
 
 
+class MlflowUnreachable(BronchoError):
+    """The MLflow server or database did not answer within ``runs.timeout_s`` (a sweep gives the cell back)."""
+
+    resumable = True
+
+
 # Kinds renamed since: a failure_reason recorded under the old name is still read as the new kind.
 RENAMED_KINDS = {"TrackingBusy": MlflowBusy}
 

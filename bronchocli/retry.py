@@ -5,7 +5,8 @@ an MLflow server answering 5xx, a slurmctld that refuses a request) goes through
 backoff, the bound and the log line are written once. The caller says what counts as transient and what
 to raise when the bound is spent.
 
-``is_transient_db`` is the shared judgement for databases (the claims table and MLflow's store alike).
+``is_transient_db`` is the shared judgement for databases (the claims table and MLflow's store alike);
+``is_transient_store`` adds an MLflow server's answers (5xx, dropped connections).
 """
 
 from __future__ import annotations
@@ -29,15 +30,33 @@ TRANSIENT_DB = ("database is locked", "database table is locked", "database sche
                 "too many connections", "remaining connection slots")
 
 
-def is_transient_db(exc: BaseException) -> bool:
-    """True for a busy or briefly unavailable database (the error, or one it was raised from)."""
+# Error texts of an MLflow server that is briefly away or whose own database is (MLflow's HTTP client retries
+# 429/5xx answers and connection errors itself, then raises "API request to ... failed with exception ...
+# Max retries exceeded ... too many 503 error responses"): worth retrying too, within the same bound.
+TRANSIENT_HTTP = ("max retries exceeded", "error responses", "failed with timeout exception", "read timed out",
+                  "connection aborted", "remotedisconnected", "temporarily_unavailable", "service unavailable",
+                  "bad gateway", "gateway timeout")
+
+
+def _chain_has(exc: BaseException, texts: tuple[str, ...]) -> bool:
     seen, e = 0, exc
     while e is not None and seen < 6:
         text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
-        if any(t in text for t in TRANSIENT_DB):
+        if any(t in text for t in texts):
             return True
         e, seen = e.__cause__ or e.__context__, seen + 1
     return False
+
+
+def is_transient_db(exc: BaseException) -> bool:
+    """True for a busy or briefly unavailable database (the error, or one it was raised from)."""
+    return _chain_has(exc, TRANSIENT_DB)
+
+
+def is_transient_store(exc: BaseException) -> bool:
+    """True for an MLflow store briefly away: its database (as ``is_transient_db``) or its server (HTTP 5xx,
+    connection errors, timeouts: ``TRANSIENT_HTTP``)."""
+    return _chain_has(exc, TRANSIENT_DB + TRANSIENT_HTTP)
 
 
 def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], what: str,

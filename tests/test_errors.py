@@ -14,7 +14,7 @@ from bronchocli.training import checkpoint
 
 PACKAGE = Path(errors.__file__).parent
 # Failures of the machine (docs/training.md, "Faults"): a FAILED run keeps its checkpoint and a retry resumes it.
-MACHINE = {"WriteFailed", "CheckpointWriteError", "MlflowBusy"}
+MACHINE = {"WriteFailed", "CheckpointWriteError", "MlflowBusy", "MlflowUnreachable"}
 
 
 @pytest.mark.parametrize("exc, expected", [
@@ -45,7 +45,8 @@ def test_the_resumable_kinds_are_those_of_the_machine_and_all_live_in_errors_py(
                     isinstance(s, ast.Assign) and [getattr(t, "id", None) for t in s.targets] == ["resumable"]
                     and getattr(s.value, "value", None) is True for s in node.body):
                 found[node.name] = path.name
-    assert found == {"WriteFailed": "errors.py", "MlflowBusy": "errors.py"}  # a reader needs no torch
+    assert found == {"WriteFailed": "errors.py", "MlflowBusy": "errors.py",  # a reader needs no torch
+                     "MlflowUnreachable": "errors.py"}
 
     def kinds(cls):
         return [cls] + [k for sub in cls.__subclasses__() for k in kinds(sub)]

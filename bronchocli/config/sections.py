@@ -192,6 +192,9 @@ class Train(Section):
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
     schedule: Literal["cosine", "constant"] = "cosine"  # after the warm-up
     val_every: int = Field(50, ge=1)  # steps between validations (best weights, early stopping, pruning)
+    # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard
+    # kill (OOM, node lost) loses at most this much training
+    checkpoint_every_s: float = Field(120.0, gt=0)
     patience: int | None = Field(None, ge=1)  # validations without improvement before stopping; None: never
     min_delta: float = Field(0.0, ge=0)
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
@@ -299,6 +302,10 @@ class SlurmCfg(Section):
     logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
     shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
     exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+    # after the time-limit warning (SIGUSR1) the task checkpoints, gives its cell back, then `scontrol requeue`s
+    # itself (works detached; the watcher starts it after 3 s instead of Slurm's ~2 min hold) or just exits
+    # (the watcher, or running the command again, submits a new task)
+    on_time_limit: Literal["requeue", "exit"] = "requeue"
 
     @field_validator("partition", "account", "qos")
     @classmethod

@@ -20,6 +20,7 @@ from typing import Any
 
 os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")  # before mlflow is imported
 os.environ.setdefault("DO_NOT_TRACK", "true")
+os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")  # no "View run ... at" line per run end
 
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
@@ -29,33 +30,34 @@ from sqlalchemy.pool import NullPool
 
 from .. import extras, urls
 from ..config import Config
-from ..errors import BronchoError, MlflowBusy  # MlflowBusy: a resumable kind, defined with the others
+from ..errors import BronchoError, MlflowBusy, MlflowUnreachable  # resumable kinds, defined with the others
 from ..io import file_lock
-from ..retry import is_transient_db, retry
-from .records import EXPERIMENT_TAGS
+from ..retry import is_transient_store, retry
+from .records import EXPERIMENT_TAGS, log_metrics
 from .relocation import relocate_artifacts
 from .sqlite_busy import set_busy_timeout
 
 # pg_advisory_lock key under which MLflow's first-time table creation runs (any fixed 64-bit number will do;
 # every bronchopose process on every machine must use the same one).
 MIGRATION_LOCK_KEY = 0x62726F6E63686F  # "broncho"
+log = logging.getLogger(__name__)
 HTTP_RETRIES = 2  # MLflow's HTTP client: retries of a failed request (each waits up to runs.timeout_s)
 _probed: set[str] = set()  # MLflow servers found answering by this process
 
 
-class MlflowUnreachable(BronchoError):
-    """The MLflow server or database did not answer within ``runs.timeout_s``."""
+def transient(exc: BaseException) -> bool:
+    """An MLflow store briefly away (locked or restarting database, server answering 5xx or not at all): worth
+    waiting for. A BronchoError (e.g. unreachable at the start: runs.timeout_s rules) is final."""
+    return not isinstance(exc, BronchoError) and is_transient_store(exc)
 
 
 def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> Any:
-    """``fn()``, retried while the database is busy or briefly away, for at most ``bound_s``; then MlflowBusy."""
-    def transient(exc: BaseException) -> bool:  # a BronchoError (e.g. unreachable: runs.timeout_s rules) is final
-        return not isinstance(exc, BronchoError) and is_transient_db(exc)
-
+    """``fn()``, retried while the MLflow store (its database or its server) is busy or briefly away, for at most
+    ``bound_s`` (``runs.busy_timeout_s``, the same bound as a SQLite lock); then MlflowBusy (resumable)."""
     def give_up(exc: BaseException) -> BaseException:
-        return MlflowBusy(f"runs.uri {shown}: the database stayed busy or unavailable for {bound_s:g} s "
-                          f"({urls.redact(_first_line(exc))}, during {what}); another process holds it: try again, "
-                          "or raise runs.busy_timeout_s")
+        return MlflowBusy(f"runs.uri {shown}: the MLflow store stayed busy or unavailable for {bound_s:g} s "
+                          f"({urls.redact(_first_line(exc))}, during {what}); try again when it is back, or raise "
+                          "runs.busy_timeout_s")
 
     return retry(fn, transient=transient, what=f"MLflow store busy ({what})", bound_s=bound_s, give_up=give_up)
 
@@ -78,9 +80,49 @@ class BusyRetryClient:
         return call
 
 
+class MetricBuffer:
+    """A run's metrics (per validation) kept in memory while the MLflow store is away, sent in order when it
+    answers again: an outage during training is not fatal. ``flush(wait=True)`` (the run's end) waits for the
+    store within runs.busy_timeout_s like any call, then raises MlflowBusy; a resumed run re-sends what its
+    checkpoint's history holds and MLflow lacks (``training.run``)."""
+
+    def __init__(self, client: Any, run_id: str) -> None:
+        self.client, self.run_id = client, run_id
+        self.pending: list[tuple[int, dict[str, float]]] = []
+        self._warned = False
+
+    def log(self, values: dict[str, float], step: int) -> None:
+        self.pending.append((step, dict(values)))
+        self.flush()
+
+    def flush(self, wait: bool = False) -> bool:
+        """Send what is pending; False (logged once per outage) when the store is away and ``wait`` is False."""
+        sender = self.client if wait else getattr(self.client, "raw", self.client)  # raw: no busy wait
+        while self.pending:
+            step, values = self.pending[0]
+            try:
+                log_metrics(sender, self.run_id, values, step=step)
+            except Exception as exc:  # noqa: BLE001 - kept for later when the store is briefly away
+                if wait or not transient(exc):
+                    raise
+                if not self._warned:
+                    log.warning("MLflow store unavailable (%s): metrics of step %d and later are kept in memory "
+                                "and sent when it answers", urls.redact(_first_line(exc))[:300], step)
+                self._warned = True
+                return False
+            self.pending.pop(0)
+        if self._warned:
+            log.info("MLflow store answers again: buffered metrics of run %s sent", self.run_id)
+        self._warned = False
+        return True
+
+
 def _quiet() -> None:
-    for name in ("mlflow", "alembic", "urllib3"):
+    for name in ("mlflow", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    # urllib3 warns at each of MLflow's HTTP retries ("Retrying (Retry(total=1 ...)) after connection broken");
+    # an outage is reported once, by the retry loop, in one line
+    logging.getLogger("urllib3").setLevel(logging.ERROR)
     # MLflow logs every database error with its traceback before raising it; we report it in one line.
     logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 

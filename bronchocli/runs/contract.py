@@ -42,9 +42,10 @@ class RunStopped(BronchoError):
 
 
 class RunInterrupted(RunStopped):
-    """Training was stopped by SIGINT/SIGTERM; the run is KILLED and can be resumed."""
+    """Training was stopped by a signal (SIGINT, SIGTERM, SIGUSR1); the run is KILLED and can be resumed."""
 
     exit_code = 130
+    signal: int | None = None  # the signal that stopped it: a sweep worker stops (and a Slurm task requeues) on it
 
 
 class RunPruned(RunStopped):

@@ -264,6 +264,18 @@ def cells_left(plan: Plan, max_retries: int) -> int:
     return sum(1 for c in plan.cells if not done(c))
 
 
+def claimable_now(plan: Plan, max_retries: int, now: float, stale_after_s: float) -> set[str]:
+    """Keys of the cells a worker could claim at database time ``now``: pending, failed with a retry left, or
+    running under a claim older than the staleness cut-off (its worker is dead). The storage's claim rule."""
+    out = set()
+    for c in plan.cells:
+        row = plan.rows.get(c.key)
+        if (row is None or row.state == PENDING or (row.state == FAILED and row.retryable(max_retries))
+                or (row.state == RUNNING and (row.heartbeat is None or row.heartbeat < now - stale_after_s))):
+            out.add(c.key)
+    return out
+
+
 def prepare_walk(cfg: Config, store: SweepStore, only: Selection | None = None, *, sweep: str | None = None,
                  dataset: bool = True, retry_failed: bool = False) -> tuple[StageWalk, Plan]:
     """Create the shared state once (MLflow store + experiment, dataset, claims tables), plan the stages and add

@@ -30,6 +30,7 @@ import os
 import shlex
 import shutil
 import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -40,15 +41,17 @@ from rich.live import Live
 
 from .. import urls
 from ..cells import Selection
-from ..config import Config
+from ..config import Config, Stage
 from ..errors import BronchoError
 from ..io import atomic_path
 from ..retry import retry
+from ..runs.client import client_for, experiment_id
+from ..runs.parents import set_parent_status, sweep_parent
 from . import summary
-from .plan import Plan, StageWalk, add_cells, cells_left, prepare_walk
+from .plan import Plan, StageWalk, add_cells, cells_left, claimable_now, prepare_walk, read_plan
 from .selection import describe_selection
-from .status import live_view, progress, summary_line
-from .storage import FINISHED, SweepStore
+from .status import live_view, progress, slurm_job, summary_line
+from .storage import FINISHED, RUNNING, SweepStore
 from .worker import EXIT_INTERRUPTED
 
 log = logging.getLogger(__name__)
@@ -57,6 +60,7 @@ NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node s
 ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
           "SUSPENDED", "STOPPED", "SIGNALING")
 REFRESH_S = 1.0
+RELEASE_AFTER_S = 3.0  # a requeued task is started this long after it entered its BeginTime hold
 
 
 class SlurmError(BronchoError):
@@ -64,7 +68,8 @@ class SlurmError(BronchoError):
 
 
 def job_name(sweep: str) -> str:
-    return f"bronchopose-{sweep}"
+    """``bronchopose-<sweep>``; a sweep already named ``bronchopose...`` keeps its name (no doubled prefix)."""
+    return sweep if sweep.startswith("bronchopose") else f"bronchopose-{sweep}"
 
 
 def storage_id(cfg: Config) -> str:
@@ -112,9 +117,24 @@ def _check_shared(cfg: Config) -> None:
         raise SlurmError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)}: a file/SQLite MLflow store cannot be "
                          f"shared by compute nodes; use a PostgreSQL database or an MLflow server, {hint}")
     for key, path in (("dataset.root", cfg.paths.dataset), ("runs.artifacts", cfg.paths.artifacts),
-                      ("runs.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg))):
+                      ("runs.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg)),
+                      *interpreter_paths(cfg)):
         if _node_local(path):
             raise SlurmError(f"{key} {path}: a node-local folder; compute nodes need it on shared storage, {hint}")
+
+
+def interpreter_paths(cfg: Config) -> list[tuple[str, Path]]:
+    """The workers' interpreter (``slurm.python``, else this one) and its virtual environment, as the shared-path
+    check names them: a node-local venv fails every task at its first import."""
+    python = Path(cfg.slurm.python or sys.executable)
+    key = "slurm.python" if cfg.slurm.python else "the Python running bronchopose (slurm.python)"
+    out = [(key, python)]
+    venv = python.parent.parent
+    if (venv / "pyvenv.cfg").is_file():
+        out.append((f"{key}'s virtual environment", venv))
+    elif not cfg.slurm.python and sys.prefix != sys.base_prefix:
+        out.append((f"{key}'s virtual environment", Path(sys.prefix)))
+    return out
 
 
 # -- squeue / sbatch / scancel ---------------------------------------------------------------------------
@@ -127,6 +147,7 @@ class Task:
     state: str
     stage: str
     count: int  # array tasks this line stands for
+    reason: str = ""  # squeue's reason of a pending task (BeginTime: a requeued task's hold)
 
 
 def _run(args: Sequence[str], what: str) -> str:
@@ -156,14 +177,14 @@ def _count(task_id: str) -> int:
 
 def sweep_tasks(cfg: Config) -> list[Task]:
     """The sweep's array tasks still queued or running (squeue; pending tasks of one array share a line)."""
-    out = _run(["squeue", "-h", "--name", job_name(cfg.name), "-o", "%i|%F|%T|%k"], "listing the sweep's jobs")
+    out = _run(["squeue", "-h", "--name", job_name(cfg.name), "-o", "%i|%F|%T|%k|%r"], "listing the sweep's jobs")
     prefix = f"bronchopose:{cfg.name}:{storage_id(cfg)}:"
     tasks = []
     for line in out.splitlines():
         parts = line.strip().split("|")
-        if len(parts) != 4 or not parts[3].startswith(prefix) or parts[2] not in ACTIVE:
+        if len(parts) != 5 or not parts[3].startswith(prefix) or parts[2] not in ACTIVE:
             continue
-        tasks.append(Task(parts[0], parts[1], parts[2], parts[3][len(prefix):], _count(parts[0])))
+        tasks.append(Task(parts[0], parts[1], parts[2], parts[3][len(prefix):], _count(parts[0]), parts[4]))
     return tasks
 
 
@@ -230,11 +251,43 @@ def cancel(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
 # -- submitting what is missing --------------------------------------------------------------------------
 
 
+def tasks_wanted(cfg: Config, runnable: int) -> int:
+    """Array tasks worth having for ``runnable`` cells: each task works through cells until none is claimable,
+    so tasks beyond those that run at once (``slurm.array_parallelism``, ``slurm.tasks``) would only start after
+    the work is done, each costing a scheduling round to find nothing."""
+    return max(0, min([runnable, cfg.slurm.array_parallelism, *([cfg.slurm.tasks] if cfg.slurm.tasks else [])]))
+
+
+def runnable_now(walk: StageWalk, stage: Stage, active: Sequence[Task]) -> int:
+    """Cells of ``stage`` tasks can work on now: claimable ones (pending, retryable, a dead worker's once its claim
+    is stale) plus those held by a live worker. A cell whose task is gone but whose claim is not stale yet counts
+    only once it goes stale: a task submitted earlier would find nothing to claim and exit."""
+    cfg = walk.cfg
+    plan = read_plan(walk.store, walk.sweep, walk.cells(stage) or [])
+    claimable = claimable_now(plan, cfg.sweep.max_retries, walk.store.db_now(), cfg.sweep.stale_after_s)
+    live = {t.id for t in active}
+    held = sum(1 for c in plan.cells if c.key not in claimable and (r := plan.rows.get(c.key)) is not None
+               and r.state == RUNNING and (slurm_job(r.worker) is None or slurm_job(r.worker) in live))
+    return len(claimable) + held
+
+
+def add_dependency(jobs: Sequence[str], earlier: Sequence[str]) -> None:
+    """Make queued later-stage arrays wait for every earlier-stage array, a re-submitted one included."""
+    for job in jobs:
+        try:
+            _run(["scontrol", "update", f"JobId={job}", "Dependency=afterany:" + ":".join(earlier)],
+                 f"adding job(s) {', '.join(earlier)} to job {job}'s dependency")
+        except SlurmError as exc:  # e.g. the job started meanwhile: nothing left to hold back
+            log.warning("%s", exc)
+
+
 def submit_missing(walk: StageWalk, command: Sequence[str], console: Console) -> list[str]:
     """Submit arrays for what the queued/running tasks will not cover; returns the new job ids (none: covered).
 
     Every task works through the stages in order, so the first stage with cells left counts every task labelled
-    with it or an earlier stage; a later stage's array waits (``afterany``) for the arrays before it."""
+    with it or an earlier stage, and wants a task per cell runnable now (``runnable_now``, at most
+    ``tasks_wanted``); a later stage's array waits (``afterany``) for the arrays before it, and an array queued
+    for a later stage is made to wait for an earlier stage's new array too (``add_dependency``)."""
     cfg = walk.cfg
     active = sweep_tasks(cfg)
     for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
@@ -242,17 +295,22 @@ def submit_missing(walk: StageWalk, command: Sequence[str], console: Console) ->
             console.print(describe_selection(step.settled), highlight=False)
             add_cells(cfg, walk.store, walk.cells(step.stage, mine=False) or [])
     order = [s.name for s in walk.stages]
-    cap = cfg.slurm.tasks
     submitted: list[str] = []
     earlier: list[str] = []  # array jobs labelled with an earlier stage (queued, running or just submitted)
     first = True
     for i, (stage, left) in enumerate(walk.work_left()):
         mine = [t for t in active if t.stage == stage.name]
+        if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=int)):
+            add_dependency(queued, earlier)
         if left:
-            want = min(left, cap) if cap else left
             have = sum(t.count for t in mine)
             if first:
                 have += sum(t.count for t in active if t.stage in order[:i])
+                want = tasks_wanted(cfg, runnable_now(walk, stage, active))
+                if not want and not have:  # only cells of dead tasks whose claims are not stale yet: wait
+                    break
+            else:
+                want = tasks_wanted(cfg, left)
             if want > have:
                 job = submit(cfg, stage.name, want - have, command, () if first else earlier)
                 submitted.append(job)
@@ -273,39 +331,66 @@ def launch(cfg: Config, store: SweepStore, only: Selection, command: Sequence[st
     console.print(f"[bold]sweep[/] {cfg.name} on Slurm  storage {store.redacted}  MLflow "
                   f"{urls.redact(cfg.paths.mlflow_uri)}  logs {logs_dir(cfg)}/<job>_<task>.log")
     walk, _ = prepare_walk(cfg, store, only, retry_failed=retry_failed)
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))  # the cells nest under it
+    client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
     jobs = submit_missing(walk, command, console)
     if not jobs:
         tasks = sweep_tasks(cfg)
         console.print(f"nothing new to submit: {sum(t.count for t in tasks)} task(s) of this sweep queued or running"
                       if tasks else "nothing left to run")
-    summary.record_sweep_parent(walk)  # the plan on the sweep's parent run; the outcome once watching ends
+    summary.record_parent(client, parent, walk)  # the plan on the sweep's parent run; the outcome once watching ends
     if detach:
         console.print("detached: `bronchopose status` shows progress, `bronchopose sweep --cancel` stops the jobs")
         return 0
     code = watch(walk, command, console)
-    summary.record_sweep_parent(walk, finished=True)
+    summary.record_parent(client, parent, walk, finished=True)
+    if code != EXIT_INTERRUPTED:  # stopped watching only: the jobs go on, so does the sweep
+        set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED (or FAILED) with it
     return code
 
 
-def _table_state(plan: Plan) -> tuple:
-    """What changes whenever a worker claims, releases, finishes or fails a cell (row versions)."""
-    return tuple(sorted((k, r.version) for k, r in plan.rows.items()))
+def _table_state(plan: Plan, claimable: set[str]) -> tuple:
+    """What changes whenever a worker claims, releases, finishes or fails a cell (row versions), or a dead
+    worker's claim goes stale (the cells claimable now)."""
+    return tuple(sorted((k, r.version) for k, r in plan.rows.items())), tuple(sorted(claimable))
+
+
+def release_held(tasks: Sequence[Task], held_since: dict[str, float], settle_s: float = RELEASE_AFTER_S) -> None:
+    """Start a requeued task now instead of after Slurm's BeginTime hold (``cred_expire``, ~2 min).
+
+    Not at once: slurmd revokes the killed instance's credential with one-second resolution and refuses a new
+    one from the same second; a few seconds are enough."""
+    now = time.monotonic()
+    held = {t.id for t in tasks if t.state == "PENDING" and t.reason == "BeginTime"}
+    for task in set(held_since) - held:
+        del held_since[task]
+    for task in held:
+        if now - held_since.setdefault(task, now) >= settle_s:
+            try:
+                _run(["scontrol", "update", f"JobId={task}", "StartTime=now"], f"releasing requeued task {task}")
+                log.info("requeued Slurm task %s started without waiting for its BeginTime hold", task)
+            except SlurmError as exc:
+                log.warning("%s", exc)
+            held_since[task] = now + 60.0  # not again for a minute
 
 
 def watch(walk: StageWalk, command: Sequence[str], console: Console) -> int:
-    """The live view of the table while the sweep's jobs run; tops up tasks when all ended with cells left but
-    progress was made since the last submission (a cancelled task's released cell); Ctrl-C stops watching only."""
+    """The live view of the table while the sweep's jobs run; starts requeued tasks without Slurm's hold
+    (``release_held``); tops up tasks when all ended with cells left but progress was made since the last
+    submission (a cancelled task's released cell), waiting for a dead task's claim to go stale first (a task
+    submitted before would find nothing to claim); Ctrl-C stops watching only."""
     cfg = walk.cfg
-    retries = cfg.sweep.max_retries
+    retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    last_line, plan = "", walk.rows()
-    seen_at_submit = _table_state(plan)
+    last_line, plan, held = "", walk.rows(), {}
+    seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
     if live is not None:
         live.start()
     try:
         while True:
             try:
-                plan = walk.rows()
+                plan, now = walk.rows(), walk.store.db_now()
                 tasks = sweep_tasks(cfg)
             except BronchoError as exc:  # a storage or slurmctld hiccup must not end the watch
                 log.warning("%s", exc)
@@ -314,22 +399,28 @@ def watch(walk: StageWalk, command: Sequence[str], console: Console) -> int:
             n = sum(t.count for t in tasks)
             if live is not None:
                 live.update(live_view(plan, retries, max(1, n)))
-            elif (line := summary_line(progress(plan, retries, max(1, n))).plain + f"  tasks {n}") != last_line:
+            elif (line := summary_line(progress(plan, retries, max(1, n), now, stale_s)).plain
+                  + f"  tasks {n}") != last_line:
                 console.print(line, highlight=False)
                 last_line = line
+            release_held(tasks, held)
             if not tasks:
                 left = cells_left(plan, retries)
                 if not left and walk.complete:
                     break
-                # tasks ended with cells left (a cancelled task gave its cell back, a stage was selected): submit
-                # again, but only when the table moved since the last submission (tasks that crash at start
-                # would otherwise be resubmitted for ever)
-                now_seen = _table_state(plan)
+                claimable = claimable_now(plan, retries, now, stale_s)
+                if left and not claimable:  # a dead task's cell: claimable once its claim is stale, not before
+                    time.sleep(REFRESH_S)
+                    continue
+                # tasks ended with cells left (a cancelled task gave its cell back, a stage was selected, a dead
+                # task's claim went stale): submit again, but only when the table moved since the last submission
+                # (tasks that crash at start would otherwise be resubmitted for ever)
+                now_seen = _table_state(plan, claimable)
                 if now_seen == seen_at_submit or not submit_missing(walk, command, console):
                     console.print(f"[yellow]no Slurm task of sweep {cfg.name} is left and {left} cell(s) are not "
                                   f"done[/]; see the task logs in {logs_dir(cfg)} and run the command again")
                     return 1
-                seen_at_submit = _table_state(walk.rows())
+                seen_at_submit = now_seen
             time.sleep(REFRESH_S)
     except KeyboardInterrupt:
         console.print("stopped watching: the Slurm jobs go on (`bronchopose sweep --cancel` stops them)")

@@ -160,4 +160,16 @@ def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: Sto
             if worker.idle:
                 log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
             return code
+    end_parent(cfg, store, only)  # every stage done: a detached sweep has no watcher to end its parent run
     return EXIT_OK
+
+
+def end_parent(cfg: Config, store: SweepStore, only: Selection) -> None:
+    """End the sweep's parent run like the sweep: FINISHED when every cell finished, else FAILED (best effort)."""
+    plan = planning.StageWalk(cfg, store, only).rows()
+    code = 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
+    try:
+        client = client_for(cfg)
+        set_parent_status(client, sweep_parent(client, cfg, experiment_id(client, cfg)), code)
+    except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
+        log.warning("could not end the sweep's parent run: %s", exc)

@@ -45,33 +45,45 @@ def fmt_duration(seconds: float | None) -> str:
     return f"{s // 3600}h{s % 3600 // 60:02d}m"
 
 
+def is_stale(row: CellRow | None, now: float | None, stale_after_s: float | None) -> bool:
+    """A running cell whose worker sent no heartbeat for ``stale_after_s`` (database clock ``now``): dead,
+    its cell waits for the next worker to take it over (and resume its checkpoint)."""
+    return (row is not None and row.state == RUNNING and now is not None and stale_after_s is not None
+            and (row.heartbeat is None or row.heartbeat < now - stale_after_s))
+
+
 @dataclass
 class Progress:
     total: int
     finished: int
-    running: int
+    running: int  # held by a live worker (stale ones are counted in ``stale``, not here)
     failed: int  # failed for good (no retry left)
     pending: int  # includes failed cells that will be retried
     mean_s: float | None  # mean runner time of finished cells
     eta_s: float | None
+    stale: int = 0  # running cells whose worker is dead (no heartbeat for sweep.stale_after_s)
 
 
-def progress(plan: Plan, max_retries: int, workers: int) -> Progress:
+def progress(plan: Plan, max_retries: int, workers: int, now: float | None = None,
+             stale_after_s: float | None = None) -> Progress:
     rows = [plan.rows.get(c.key) for c in plan.cells]
     fin = [r for r in rows if r and r.state == FINISHED]
-    running = sum(1 for r in rows if r and r.state == RUNNING)
+    stale = sum(1 for r in rows if is_stale(r, now, stale_after_s))
+    running = sum(1 for r in rows if r and r.state == RUNNING) - stale
     failed = sum(1 for r in rows if r and r.state == FAILED and not r.retryable(max_retries))
-    pending = len(rows) - len(fin) - running - failed
+    pending = len(rows) - len(fin) - running - stale - failed
     durations = [r.duration_s for r in fin if r.duration_s is not None]
     mean = sum(durations) / len(durations) if durations else None
-    eta = None if mean is None else mean * (pending + running) / max(1, workers)
-    return Progress(len(rows), len(fin), running, failed, pending, mean, eta)
+    eta = None if mean is None else mean * (pending + running + stale) / max(1, workers)
+    return Progress(len(rows), len(fin), running, failed, pending, mean, eta, stale)
 
 
 def summary_line(p: Progress) -> Text:
     t = Text()
     t.append(f"done {p.finished}/{p.total}", style="bold green")
     t.append(f"  running {p.running}", style="cyan")
+    if p.stale:
+        t.append(f"  stale {p.stale}", style="yellow")
     t.append(f"  failed {p.failed}", style="red" if p.failed else "")
     t.append(f"  pending {p.pending}", style="dim")
     if p.finished and p.mean_s is not None:
@@ -101,9 +113,12 @@ def plan_table(plan: Plan, max_retries: int, title: str = "") -> Table:
     return table
 
 
-def _state_label(row: CellRow | None, max_retries: int) -> str:
+def _state_label(row: CellRow | None, max_retries: int, now: float | None = None,
+                 stale_after_s: float | None = None) -> str:
     if row is None:
         return "new"
+    if is_stale(row, now, stale_after_s):
+        return "stale (worker lost, no heartbeat)"
     if row.state == FAILED and row.retryable(max_retries):
         return "failed (will retry)"
     return row.state
@@ -145,10 +160,12 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
 
 
 def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: int, budget_pairs: int | None = None,
-                 now: float | None = None, ckpt_bytes: dict[str, int] | None = None) -> Table:
+                 now: float | None = None, ckpt_bytes: dict[str, int] | None = None,
+                 stale_after_s: float | None = None) -> Table:
     """One row per cell. A running cell's duration is the time since it was claimed, with the share of its
     training budget (``budget_pairs`` image pairs) done at its last validation; ``ckpt_bytes`` (run id ->
-    bytes of its checkpoint folder on this machine) adds a checkpoint column."""
+    bytes of its checkpoint folder on this machine) adds a checkpoint column. With ``stale_after_s`` (and
+    ``now`` on the database's clock) a running cell without a heartbeat that long shows as stale."""
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     on_slurm = any(slurm_job(r.worker) for r in plan.rows.values())
@@ -165,12 +182,14 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
         dur = m.get("duration_s") if row and row.state == FINISHED else None
         dur = row.duration_s if dur is None and row else dur
         shown = fmt_duration(dur)
-        if row and row.state == RUNNING and row.claimed_at:
+        stale = is_stale(row, now, stale_after_s)
+        if row and row.state == RUNNING and row.claimed_at and not stale:
             shown = fmt_duration(now - row.claimed_at)
             if budget_pairs and m.get("pairs_seen") is not None:
                 shown += f", {min(1.0, m['pairs_seen'] / budget_pairs):.0%} trained"
         values = [
-            cell.label, Text(_state_label(row, max_retries), style=STYLE.get(row.state if row else PENDING, "")),
+            cell.label, Text(_state_label(row, max_retries, now, stale_after_s),
+                             style="yellow" if stale else STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
             (row.worker or "-") if row and row.state == RUNNING else "",
             *(((slurm_job(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
@@ -240,10 +259,11 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
                       "MLflow (new, lost, or behind)", highlight=False)
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
     held = inventory(cfg, store if store.exists() else None)
+    now = store.db_now() if store.exists() else None  # heartbeats are on the database's clock
     console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,
-                               cfg.train.steps * cfg.train.pairs_per_step,
-                               ckpt_bytes={c.run_id: c.bytes for c in held}))
-    console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1)))
+                               cfg.train.steps * cfg.train.pairs_per_step, now=now,
+                               ckpt_bytes={c.run_id: c.bytes for c in held}, stale_after_s=cfg.sweep.stale_after_s))
+    console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1, now, cfg.sweep.stale_after_s)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
     for label, reason in given_back(plan):

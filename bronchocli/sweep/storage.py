@@ -122,8 +122,8 @@ class CellRow:
 class Claim:
     """A won claim. ``previous`` is the row as it was when it was taken from a lost worker;
     ``exhausted`` means that cell used up its attempts: settle it and mark it failed, do not run it;
-    ``released_run`` is the last run of a cell given back (Ctrl-C, busy database) or failed with retries left
-    (a candidate for resuming: the worker decides from the run's status and reason)."""
+    ``released_run`` is the last run of a cell given back (Ctrl-C, busy database), failed with retries left or
+    left by a lost worker (a candidate for resuming: the worker decides from the run's status and reason)."""
 
     row: CellRow
     token: str
@@ -294,13 +294,16 @@ class SweepStore:
                     .where(c.sweep == sweep, c.cell_key == row.cell_key, c.version == row.version, claimable)
                     .values(state=RUNNING, token=token, worker=worker, version=c.version + 1,
                             attempts=c.attempts + (0 if exhausted else 1), heartbeat=self._now,
-                            claimed_at=self._now, finished_at=None, run_id=None, duration_s=None,
+                            claimed_at=self._now, finished_at=None, duration_s=None,
+                            # a takeover keeps the lost worker's run: resumable from its checkpoint, still the
+                            # cell's until this claim names its own run (set_run_id), so nothing deletes it meanwhile
+                            run_id=row.run_id if previous is not None else None,
                             failure_reason=row.failure_reason if exhausted else None)
                 )
                 if res.rowcount == 1:
                     won = CellRow(**{**row.__dict__, "state": RUNNING, "token": token, "worker": worker,
                                      "attempts": row.attempts + (0 if exhausted else 1), "version": row.version + 1})
-                    released = row.run_id if row.state in (PENDING, FAILED) else None
+                    released = row.run_id if row.state in (PENDING, FAILED) or previous is not None else None
                     return Claim(won, token, previous, exhausted, released)
             # lost the race for that row (optimistic path): look again
         return None

@@ -30,8 +30,7 @@ from typing import Any
 from ..cells import FIELDS, Cell
 from ..config import Select, Stage
 from ..io import save_figure
-from ..runs.client import client_for, experiment_id
-from ..runs.parents import log_plan_params, sweep_parent
+from ..runs.parents import log_plan_params
 from ..runs.records import TAG_NOTE, log_metrics
 from ..runs.views import README_RATIO
 from . import plan as planning
@@ -155,17 +154,6 @@ def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bo
             client.set_tag(parent, key, value)
     except Exception as exc:  # noqa: BLE001 - a summary must never turn a finished sweep into a failed one
         log.warning("could not record the sweep's plan on its parent run %s: %s", parent, exc)
-
-
-def record_sweep_parent(walk: planning.StageWalk, *, finished: bool = False) -> None:
-    """``record_parent`` on the sweep's parent run, found or created here (the Slurm driver holds no client)."""
-    try:
-        client = client_for(walk.cfg)
-        parent = sweep_parent(client, walk.cfg, experiment_id(client, walk.cfg), walk.sweep)
-    except Exception as exc:  # noqa: BLE001 - as in record_parent: best effort
-        log.warning("could not record the sweep's plan on its parent run: %s", exc)
-        return
-    record_parent(client, parent, walk, finished=finished)
 
 
 # -- a study's parent -----------------------------------------------------------------------------------

@@ -178,8 +178,12 @@ def run_task(cfg: Config, store: SweepStore, only: Selection, runner: Runner = d
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
     if signals.requested == signal.SIGUSR1 and (task := slurm_task()):
-        log.info("time limit near: requeueing Slurm task %s", task)
-        requeue(task)
+        if cfg.slurm.on_time_limit == "requeue":
+            log.info("time limit near: requeueing Slurm task %s", task)
+            requeue(task)
+        else:
+            log.info("time limit near: Slurm task %s exits (slurm.on_time_limit: exit); a new task takes the cell",
+                     task)
     return code
 
 

@@ -9,9 +9,11 @@ tests and benchmarks use it for fast fakes. Workers are processes started by
 ``bronchopose sweep`` (multiprocessing ``spawn``; see ``pool.py``) or by anyone
 calling ``worker_process``.
 
-Signals: SIGINT/SIGTERM stop the worker. While a cell runs, ``run_cell``
-itself turns the signal into a KILLED MLflow run (``RunInterrupted``); outside
-its training loop the worker raises ``KeyboardInterrupt`` into the runner.
+Signals: SIGINT/SIGTERM (and SIGUSR1 in a Slurm task) stop the worker. While a
+cell trains, ``run_cell`` itself turns the signal into a checkpoint of the
+current step and a KILLED MLflow run (``RunInterrupted``, which carries the
+signal back here); outside its training loop the worker raises
+``KeyboardInterrupt`` into the runner.
 Either way the cell is released (pending again, attempt not counted) and the
 worker exits with 130. When the heartbeat finds the claim taken over (this
 worker looked dead), the worker interrupts its own run with SIGTERM, marks the
@@ -25,7 +27,6 @@ import os
 import signal
 import socket
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -33,13 +34,14 @@ from typing import Any
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, resumable
+from ..errors import BronchoError, MlflowUnreachable, resumable
 from ..retry import retry
 from ..runs.client import MlflowBusy, client_for, experiment_id
-from ..runs.contract import RunInterrupted, checkpoint_dir, failure_reason, resume_file
+from ..runs.contract import checkpoint_dir, failure_reason, resume_file
 from ..runs.ownership import remove_checkpoint
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
+from .liveness import Heartbeat, StopSignals, is_interrupt
 from .placement import pin_env
 from .record import finished_runs
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
@@ -81,80 +83,6 @@ class ClaimLost(BronchoError):
     """This worker's claim was taken over by another worker (it had looked dead)."""
 
 
-def _is_interrupt(exc: BaseException) -> bool:
-    return isinstance(exc, (KeyboardInterrupt, RunInterrupted))
-
-
-
-class StopSignals:
-    """Turns SIGINT/SIGTERM into a stop request; interrupts the runner when one is in progress."""
-
-    def __init__(self, event: Any = None, parent_pid: int | None = None):
-        self.requested: int | None = None
-        self.installed = False  # only a process that handles SIGTERM itself may send it to itself
-        self.in_runner = False
-        self.self_term = False  # a SIGTERM we sent ourselves because the claim was lost
-        self.event, self.parent_pid = event, parent_pid
-
-    def install(self, extra: Sequence[int] = ()) -> None:
-        """Handle SIGINT, SIGTERM and ``extra`` (under Slurm: SIGUSR1, the time-limit warning) as a stop."""
-        for s in (signal.SIGINT, signal.SIGTERM, *extra):
-            signal.signal(s, self._handle)
-        self.installed = True
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.self_term and signum == signal.SIGTERM:
-            self.self_term = False
-        else:
-            self.requested = signum
-        if self.in_runner:
-            raise KeyboardInterrupt
-
-    def parent_gone(self) -> bool:
-        return self.parent_pid is not None and os.getppid() != self.parent_pid
-
-    @property
-    def stop(self) -> bool:
-        return self.requested is not None or (self.event is not None and self.event.is_set()) or self.parent_gone()
-
-    def wait(self, seconds: float) -> None:
-        end = time.monotonic() + seconds
-        while not self.stop and (left := end - time.monotonic()) > 0:
-            time.sleep(min(0.1, left))
-
-
-class Heartbeat(threading.Thread):
-    """Refreshes the claim every ``interval`` seconds; calls ``on_lost`` once if the claim is gone."""
-
-    def __init__(self, store: SweepStore, token: str, interval: float, on_lost: Callable[[], None],
-                 signals: StopSignals):
-        super().__init__(name="sweep-heartbeat", daemon=True)
-        self.store, self.token, self.interval, self.on_lost, self.signals = store, token, interval, on_lost, signals
-        self.lost = False
-        self._halt = threading.Event()
-
-    def run(self) -> None:
-        while not self._halt.wait(self.interval):
-            if self.signals.installed and self.signals.parent_gone() and self.signals.requested is None:
-                log.warning("parent process is gone: stopping")
-                self.signals.requested = signal.SIGTERM
-                os.kill(os.getpid(), signal.SIGTERM)
-            try:
-                alive = self.store.heartbeat(self.token)
-            except StorageError as exc:  # transient outage: the claim goes stale only after stale_after_s
-                log.warning("heartbeat failed: %s", exc)
-                continue
-            if not alive and not self._halt.is_set():
-                self.lost = True
-                self.on_lost()
-                return
-
-    def halt(self) -> None:
-        self._halt.set()
-        if self.is_alive():
-            self.join()
-
-
 @dataclass
 class WorkerStats:
     cells: int = 0
@@ -182,6 +110,7 @@ class Worker:
         self.stats = WorkerStats()
         self._client = None
         self._parent: str | None = None
+        self._unmarked: dict[str, tuple[str, str, tuple[str, ...], str | None]] = {}  # run -> how to end it
 
     @property
     def client(self):
@@ -212,6 +141,7 @@ class Worker:
         keys = list(self.cells)
         self.parent_run()  # looked up once, before any claim: never while a claim waits for its heartbeat
         while not self.signals.stop:
+            self.retry_unmarked()
             claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
                              stale_after_s=s.stale_after_s)
             if claim is None:
@@ -228,12 +158,12 @@ class Worker:
 
     def _handle(self, claim: Claim) -> str:
         if claim.previous is not None:
-            self._settle_orphans(claim.previous)
+            self._settle_orphans(claim.previous, keep=claim.released_run)
         if claim.exhausted:
             prev = claim.previous
             reason = (f"worker {prev.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s) on the last "
                       f"allowed attempt ({prev.attempts}); reset with --retry-failed")
-            self._db(self.store.fail, claim.token, reason)
+            self._db(self.store.fail, claim.token, reason, claim.released_run)
             self.stats.failed += 1
             return "failed"
         return self._run_claim(claim)
@@ -278,7 +208,10 @@ class Worker:
         if self._parent is not None:
             tags[TAG_PARENT] = self._parent
         hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
-        resume = self._resumable(claim.released_run, cell)
+        try:
+            resume = self._resumable(claim.released_run, cell)
+        except (MlflowBusy, MlflowUnreachable) as exc:  # cannot tell whether to resume: never start afresh
+            return self._release_busy(claim, cell, failure_reason(exc), None)
         kw = {"resume": resume} if resume else {}
         log.info("claimed %s (key %s, attempt %d)%s", cell.label, cell.key, claim.row.attempts,
                  f", resuming run {resume}" if resume else "")
@@ -314,13 +247,15 @@ class Worker:
     def _record(self, claim: Claim, cell: Cell, result: Any, error: BaseException | None, run_id: str | None,
                 elapsed: float, lost: bool) -> str:
         if lost or isinstance(error, ClaimLost):
-            return self._lost(cell, run_id)
-        if error is not None and _is_interrupt(error):
+            return self._lost(cell, run_id, claim.token)
+        if error is not None and is_interrupt(error):
+            if self.signals.requested is None and getattr(error, "signal", None) is not None:
+                self.signals.requested = error.signal  # run_cell's own handler caught it (SIGUSR1: requeue the task)
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} interrupted", ("RUNNING",))
             self._db(self.store.release, claim.token)
             log.info("interrupted %s: released (%s)", cell.label, failure_reason(error))
             return "stop"
-        if isinstance(error, MlflowBusy):  # the database, not the cell: back without using an attempt
+        if isinstance(error, (MlflowBusy, MlflowUnreachable)):  # the store, not the cell: no attempt used
             return self._release_busy(claim, cell, failure_reason(error), run_id)
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
@@ -331,7 +266,7 @@ class Worker:
         if result.status == "FINISHED":
             duration = getattr(result, "duration_s", None) or elapsed
             if not self._db(self.store.finish, claim.token, result.run_id, duration):
-                return self._lost(cell, run_id)
+                return self._lost(cell, run_id, claim.token)
             self.stats.finished += 1
             log.info("finished %s: run %s", cell.label, result.run_id)
             return "finished"
@@ -340,7 +275,7 @@ class Worker:
 
     def _fail(self, claim: Claim, cell: Cell, reason: str, run_id: str | None, elapsed: float) -> str:
         if not self._db(self.store.fail, claim.token, reason, run_id, elapsed):
-            return self._lost(cell, run_id)
+            return self._lost(cell, run_id, claim.token)
         self.stats.failed += 1
         log.warning("failed %s: %s", cell.label, reason)
         if run_id and claim.row.attempts > self.cfg.sweep.max_retries:  # no retry will resume it: free the disk
@@ -348,19 +283,23 @@ class Worker:
         return "failed"
 
     def _release_busy(self, claim: Claim, cell: Cell, reason: str, run_id: str | None) -> str:
-        """A run failed by a busy MLflow database: the cell goes back (attempt not counted) with the reason."""
-        self._terminate(run_id, "FAILED", reason, ("RUNNING",))
+        """A run failed by a busy or unreachable MLflow store: the cell goes back (attempt not counted) with the
+        reason and its checkpoint; its run is marked now if the store answers, else when it does (``_unmarked``),
+        else by whoever claims the cell next (``_resumable``)."""
+        self._terminate(run_id, "FAILED", reason, ("RUNNING",), token=claim.token, wait=False)
         self._db(self.store.release, claim.token, reason)
         self.stats.failed += 1
-        log.warning("released %s (MLflow database busy; attempt not counted): %s", cell.label, reason)
+        log.warning("released %s (MLflow store busy or unreachable; attempt not counted, its checkpoint kept): %s",
+                    cell.label, reason)
         self.signals.wait(self.cfg.sweep.poll_s)  # give the database a moment before claiming again
         return "released"
 
-    def _lost(self, cell: Cell, run_id: str | None) -> str:
+    def _lost(self, cell: Cell, run_id: str | None, token: str) -> str:
         self.stats.lost += 1
         log.warning("lost the claim of %s (no heartbeat for too long); its run %s is KILLED", cell.label, run_id)
         self._terminate(run_id, "KILLED", f"sweep worker {self.ident} lost its claim (no heartbeat for "
-                        f"{self.cfg.sweep.stale_after_s:g} s); the cell was taken over", ("RUNNING", "FINISHED"))
+                        f"{self.cfg.sweep.stale_after_s:g} s); the cell was taken over", ("RUNNING", "FINISHED"),
+                        token=token)
         return "lost"
 
     # -- MLflow side ---------------------------------------------------------------
@@ -371,36 +310,63 @@ class Worker:
         database; ``errors.resumable``), or left RUNNING by a worker that released the cell without
         being able to close its run (the busy database again): that zombie is marked KILLED first.
         """
-        if not run_id or not resume_file(self.cfg, run_id).is_file():
+        if not run_id:
             return None
+        has_checkpoint = resume_file(self.cfg, run_id).is_file()
         try:
             run = self.client.get_run(run_id)
             if run.data.tags.get(TAG_CELL_KEY) != cell.key:
                 return None
             if run.info.status == "RUNNING":  # its cell was released, so no worker runs it any more
-                self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; resumed by "
-                                f"{self.ident}", ("RUNNING",))
-                return run_id
-        except Exception:  # noqa: BLE001 - deleted or unreachable: start a fresh run
+                self._terminate(run_id, "KILLED", f"left RUNNING by a worker that released the cell; "
+                                f"{'resumed' if has_checkpoint else 'replaced'} by {self.ident}", ("RUNNING",))
+                return run_id if has_checkpoint else None
+        except (MlflowBusy, MlflowUnreachable):
+            raise
+        except Exception:  # noqa: BLE001 - deleted: start a fresh run
+            return None
+        if not has_checkpoint:
             return None
         reason = run.data.tags.get(TAG_FAILURE, "")
         ok = run.info.status == "KILLED" or (run.info.status == "FAILED" and resumable(reason))
         return run_id if ok else None
 
-    def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str]) -> None:
-        """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run)."""
+    def _terminate(self, run_id: str | None, status: str, reason: str, only: Sequence[str],
+                   token: str | None = None, wait: bool = True) -> None:
+        """Mark a run terminated unless it already ended otherwise (never leaves a second FINISHED run).
+
+        ``token``: only while the run is still this claim's (a takeover may be resuming it under its own).
+        ``wait=False``: the store is known to be away: try once (no busy wait); if that fails, it is tried
+        again before each later claim of this worker (``retry_unmarked``)."""
         if not run_id:
             return
+        client = self.client if wait else getattr(self.client, "raw", self.client)
         try:
-            run = self.client.get_run(run_id)
+            run = client.get_run(run_id)
+            if token is not None and run.data.tags.get(TAG_CLAIM, token) != token:
+                log.info("run %s is resumed under another claim now: left alone", run_id)
+                return
             if run.info.status in only:
-                self.client.set_tag(run_id, TAG_FAILURE, reason)
-                self.client.set_terminated(run_id, status)
+                client.set_tag(run_id, TAG_FAILURE, reason)
+                client.set_terminated(run_id, status)
+            self._unmarked.pop(run_id, None)
         except Exception as exc:  # noqa: BLE001 - the MLflow store is best effort here; logged
-            log.warning("could not mark run %s %s: %s", run_id, status, exc)
+            if not wait:
+                self._unmarked[run_id] = (status, reason, tuple(only), token)
+            log.warning("could not mark run %s %s: %s", run_id, status,
+                        str(exc).splitlines()[0][:300] if str(exc) else type(exc).__name__)
 
-    def _settle_orphans(self, previous: CellRow) -> None:
-        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell."""
+    def retry_unmarked(self) -> None:
+        """Mark the runs an outage left RUNNING (``_terminate(wait=False)``) now that the store may be back."""
+        for run_id, (status, reason, only, token) in list(self._unmarked.items()):
+            self._terminate(run_id, status, reason, only, token=token, wait=False)
+
+    def _settle_orphans(self, previous: CellRow, keep: str | None = None) -> None:
+        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell.
+
+        The checkpoint of ``keep`` (the cell's run, which this claim resumes) stays: a takeover never deletes a
+        resumable checkpoint. Only the checkpoints of other runs of the lost claim (none the cell will resume)
+        are orphans."""
         run_ids = {previous.run_id} if previous.run_id else set()
         try:
             exp = experiment_id(self.client, self.cfg)
@@ -412,7 +378,8 @@ class Worker:
                   f"cell taken over by {self.ident}")
         for run_id in sorted(run_ids):
             self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
-            _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
+            if run_id != keep:
+                _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
 
 
 def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:

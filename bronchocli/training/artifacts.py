@@ -88,13 +88,6 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
         _log_file(client, run_id, out / "split_manifest.csv")
 
 
-def validation_logger(client, run_id: str):
-    """A ``Trainer.on_validation`` callback logging the validation's values at step = optimiser step."""
-    def log(step: int, values: dict[str, float]) -> None:
-        log_metrics(client, run_id, values, step=step)
-    return log
-
-
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
     # The model first, so that the test metrics are logged once, as the run's and as the model's (on the test split).
     model_id = log_model(client, run_id, cfg, cell, data, outcome) if cfg.runs.model_artifact != "none" else None

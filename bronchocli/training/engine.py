@@ -40,6 +40,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         weight_decay=t.weight_decay, warmup_steps=int(round(t.warmup * t.steps)), schedule=t.schedule,
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
+        checkpoint_every_s=t.checkpoint_every_s,
     )
 
 

@@ -90,6 +90,7 @@ class Settings:
     augment: bool
     seed: int
     eval_batch: int = 64  # pairs per validation forward
+    checkpoint_every_s: float = math.inf  # seconds between checkpoints by time (train.checkpoint_every_s)
 
     @property
     def pairs_per_step(self) -> int:
@@ -214,6 +215,7 @@ class Trainer:
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
         self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
+        self._saved_at = time.monotonic()  # when the last checkpoint was written (checkpoints by time)
 
     # -- precision ------------------------------------------------------------------------------
     def autocast(self):
@@ -279,9 +281,23 @@ class Trainer:
         if self.on_step is not None:
             self.on_step(self.step, self.s.steps)
         if self.stop is not None and self.stop.signal is not None:
-            path = self.save_resume()
-            name = signal.Signals(self.stop.signal).name
-            raise RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}; checkpoint saved to {path}")
+            raise self._interrupted(self.stop.signal)
+        validates = self.step % self.s.val_every == 0 or self.step >= self.s.steps  # checkpoints there anyway
+        due = time.monotonic() - self._saved_at >= self.s.checkpoint_every_s
+        if self.ckpt_dir is not None and not validates and due:
+            log.info("checkpoint of step %d/%d saved to %s (every %g s)", self.step, self.s.steps,
+                     self.save_resume(), self.s.checkpoint_every_s)
+
+    def _interrupted(self, signum: int) -> RunInterrupted:
+        """Checkpoint the current step (between two optimiser steps) and say so: the run's KILLED reason."""
+        path = self.save_resume()
+        where = f"checkpoint of step {self.step} saved to {path}" if path is not None else "no checkpoint folder"
+        name = signal.Signals(signum).name
+        why = f" ({SIGNAL_MEANING[name]})" if name in SIGNAL_MEANING else ""
+        exc = RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}{why}; {where}")
+        exc.signal = signum
+        log.warning("%s", exc)
+        return exc
 
     def _check_finite(self) -> None:
         if not bool(torch.isfinite(self._loss_sum)):
@@ -424,4 +440,11 @@ class Trainer:
     def save_resume(self) -> Path | None:
         if self.ckpt_dir is None:
             return None
-        return checkpoint.save(self.ckpt_dir / RESUME_FILE, self.state())
+        path = checkpoint.save(self.ckpt_dir / RESUME_FILE, self.state())
+        self._saved_at = time.monotonic()
+        return path
+
+
+SIGNAL_MEANING = {"SIGUSR1": "Slurm's time-limit warning", "SIGTERM": "scancel, requeue or preemption",
+                  "SIGINT": "Ctrl-C"}  # what sends each stop signal, as a run's KILLED reason says it
+

@@ -6,10 +6,14 @@ evaluates (``engine``), logs everything (``artifacts``) and terminates the
 run. The dataset must exist: ``bronchopose train``/``sweep``/``tune``
 generate it first, as an explicit step of their start-up.
 
-Faults: SIGINT (Ctrl-C) or SIGTERM stops training after the current
-optimiser step, saves a resumable checkpoint and marks the run KILLED
-(``RunInterrupted`` is raised so callers stop too); ``resume=`` continues
-such a run from its checkpoint. An ``on_validation`` observer may raise
+Faults: SIGINT (Ctrl-C), SIGTERM (scancel, ``scontrol requeue``,
+preemption) or SIGUSR1 (Slurm's time-limit warning) stops training after the
+current optimiser step, saves a resumable checkpoint of that step and marks
+the run KILLED with the signal and the checkpoint's path as its reason
+(``RunInterrupted``, carrying the signal, is raised so callers stop too);
+``resume=`` continues such a run from its checkpoint. Between signals a
+checkpoint is written every ``train.checkpoint_every_s`` seconds, so a hard
+kill (OOM, ``kill -9``) loses at most that much. An ``on_validation`` observer may raise
 ``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
 or any other error marks the run FAILED with the reason in the
 ``failure_reason`` tag. A signal that arrives during the test evaluation lets
@@ -29,9 +33,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, OutOfMemory, out_of_memory, resumable
+from ..errors import BronchoError, MlflowUnreachable, OutOfMemory, out_of_memory, resumable
 from ..models import initialisation
-from ..runs.client import MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
+from ..runs.client import MetricBuffer, MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
 from ..runs.contract import (
     REJECTED_SUFFIX,
     RunInterrupted,
@@ -51,10 +55,14 @@ from .engine import fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
+TAG_RESUMED = "resumed_from_step"  # a metric, one value per resume at step = the checkpoint's: the run's history
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # SIGUSR1: Slurm's time-limit warning
 
 
 class StopFlag:
-    """Turns the first SIGINT/SIGTERM into a request to stop after the current step; a second SIGINT aborts."""
+    """Turns the first stop signal into a request to stop after the current step; a second SIGINT aborts."""
 
     def __init__(self) -> None:
         self.signal: int | None = None
@@ -68,7 +76,7 @@ class StopFlag:
 @contextmanager
 def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
     try:
-        previous = {s: signal.signal(s, flag) for s in (signal.SIGINT, signal.SIGTERM)}
+        previous = {s: signal.signal(s, flag) for s in STOP_SIGNALS}
     except ValueError:  # not the main thread: leave signals alone
         yield
         return
@@ -118,8 +126,10 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
     client.update_run(run_id, "RUNNING")
     if repaired or TAG_FAILURE in run.data.tags:
         client.delete_tag(run_id, TAG_FAILURE)  # a resumed run has no failure (and no empty tag)
-    for key, value in process_tags().items():
+    for key, value in {**extra_tags, **process_tags()}.items():  # the worker, claim, attempt resuming it now
         client.set_tag(run_id, key, value)
+    log.info("resuming run %s from its checkpoint of step %d (%s)", run_id, state["step"], path)
+    client.log_metric(run_id, TAG_RESUMED, float(state["step"]), step=int(state["step"]))
     return run_id, state
 
 
@@ -184,10 +194,15 @@ def run_cell(
         run_id_callback(run_id)
     flag = StopFlag()
     bar = _StepBar(progress, cell.label)
-    log_validation = artifacts.validation_logger(client, run_id)
+    metrics_out = MetricBuffer(client, run_id)  # an MLflow outage during training is waited out, not fatal
+    if state is not None:  # validations the checkpoint holds but MLflow lacks (buffered when the store went away)
+        logged = {m.step for m in client.get_metric_history(run_id, "val_loss")}
+        for h in state["history"]:
+            if int(h["step"]) not in logged:
+                metrics_out.log({k: v for k, v in h.items() if k != "step"}, int(h["step"]))
 
     def validated(step: int, values: dict[str, float]) -> None:
-        log_validation(step, values)
+        metrics_out.log(values, step)  # at step = optimiser step
         bar.validated(step, values)
         if on_validation is not None:
             on_validation(step, values)
@@ -203,9 +218,11 @@ def run_cell(
                                            on_phase=lambda text: bar.phase(cell.label, text))
                 bar.phase(cell.label, "logging metrics, predictions" +
                           ("" if cfg.runs.model_artifact == "none" else " and the MLflow Model"))
+                metrics_out.flush(wait=True)  # the store must be back (within runs.busy_timeout_s) to finish
                 artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)
             finally:
                 bar.close()
+            client.set_terminated(run_id, "FINISHED")  # before the checkpoint goes: an outage here resumes it
     except RunStopped as exc:
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
@@ -219,7 +236,7 @@ def run_cell(
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
         exc = out_of_memory(exc) or exc  # MemoryError, torch's allocator: one line, the run FAILED with it
         reason = failure_reason(exc)
-        _end_run(client, run_id, "FAILED", reason)
+        _end_run(getattr(client, "raw", client) if isinstance(exc, OUTAGES) else client, run_id, "FAILED", reason)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             remove_checkpoint(ckpt, "run failed, not resumable")
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
@@ -228,13 +245,14 @@ def run_cell(
             log.exception("run %s failed", run_id)
         return RunResult(run_id, "FAILED", failure_reason=reason, duration_s=time.perf_counter() - t0)
     remove_checkpoint(ckpt, "run finished")  # resumable state is only needed while the run is unfinished
-    client.set_terminated(run_id, "FINISHED")
-    return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0,
+    before = sum(float(t) for t in state["times"]) if state is not None else 0.0  # the cell's time before a resume
+    return RunResult(run_id, "FINISHED", outcome.metrics, duration_s=time.perf_counter() - t0 + before,
                      train_time_s=outcome.fit.train_time_s, stop_requested=flag.signal)
 
 
 # Raised on (after the run is FAILED) so `train` prints one line and exits 2 and a sweep worker can tell them apart.
-RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy, OutOfMemory)
+RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy, MlflowUnreachable, OutOfMemory)
+OUTAGES = (MlflowBusy, MlflowUnreachable)  # the store is away: marking the run is tried once, not waited for
 
 
 

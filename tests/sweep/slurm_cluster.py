@@ -26,6 +26,7 @@ import socket
 import subprocess
 import tempfile
 import time
+import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -213,3 +214,98 @@ def stop_cluster(cluster: SlurmCluster, keep: bool = False) -> None:
             os.kill(pid, signal.SIGKILL)
     if not keep:
         shutil.rmtree(cluster.root, ignore_errors=True)
+
+
+# -- the services a real cluster's sweep talks to: a PostgreSQL of its own, an MLflow tracking server ----------
+
+
+@dataclass
+class Postgres:
+    """A PostgreSQL instance of the test's own (initdb + pg_ctl as the ``postgres`` user, trust auth on loopback):
+    stopping it touches no other session's database. ``url(db)`` is a SQLAlchemy URL (psycopg 3)."""
+
+    root: Path
+    port: int
+    bin: Path
+
+    def _ctl(self, *args: str) -> subprocess.CompletedProcess:
+        cmd = [str(self.bin / "pg_ctl"), "-D", str(self.root / "data"), *args]
+        if os.getuid() == 0:
+            cmd = ["runuser", "-u", "postgres", "--", *cmd]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=True)
+
+    def start(self) -> None:
+        self._ctl("-l", str(self.root / "postgres.log"), "-o", f"-p {self.port} -k {self.root} -h 127.0.0.1",
+                  "-w", "start")
+
+    def stop(self) -> None:
+        self._ctl("-m", "fast", "-w", "stop")
+
+    def url(self, db: str = "postgres") -> str:
+        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/{db}"
+
+
+def start_postgres() -> Postgres:
+    """initdb in a folder the ``postgres`` user can reach (not pytest's mode-700 tmp_path), start on a free port."""
+    versions = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"))
+    if not versions:
+        raise RuntimeError("no PostgreSQL server binaries under /usr/lib/postgresql")
+    root = Path(tempfile.mkdtemp(prefix="bronchopose-pg-", dir="/tmp"))
+    os.chmod(root, 0o755)
+    if os.getuid() == 0:
+        pg = pwd.getpwnam("postgres")
+        os.chown(root, pg.pw_uid, pg.pw_gid)
+    init = [str(versions[-1]), "-D", str(root / "data"), "-A", "trust", "-U", "postgres", "--no-sync"]
+    if os.getuid() == 0:
+        init = ["runuser", "-u", "postgres", "--", *init]
+    subprocess.run(init, capture_output=True, text=True, timeout=120, check=True)
+    instance = Postgres(root, _free_port(), versions[-1].parent)
+    instance.start()
+    return instance
+
+
+def stop_postgres(instance: Postgres) -> None:
+    try:
+        instance.stop()
+    except subprocess.CalledProcessError:
+        pass
+    shutil.rmtree(instance.root, ignore_errors=True)
+
+
+@dataclass
+class MlflowServer:
+    process: subprocess.Popen
+    url: str
+    log: Path
+
+
+def start_mlflow_server(backend: str, artifacts: Path, python: str) -> MlflowServer:
+    """``mlflow server`` on loopback with ``backend`` (a PostgreSQL URL) and served artifacts; returns once it
+    answers /health."""
+    port = _free_port()
+    log = artifacts.parent / f"mlflow-server-{port}.log"
+    cmd = [python, "-m", "mlflow", "server", "--backend-store-uri", backend, "--serve-artifacts",
+           "--artifacts-destination", str(artifacts), "--host", "127.0.0.1", "--port", str(port), "--workers", "1"]
+    proc = subprocess.Popen(cmd, stdout=open(log, "w"), stderr=subprocess.STDOUT,  # noqa: SIM115 - the server's
+                            env={**os.environ, "MLFLOW_DISABLE_TELEMETRY": "true"})
+    url = f"http://127.0.0.1:{port}"
+
+    def up() -> bool:
+        if proc.poll() is not None:
+            raise RuntimeError(f"mlflow server exited: {log.read_text()[-2000:]}")
+        try:
+            urllib.request.urlopen(url + "/health", timeout=2).close()
+            return True
+        except OSError:
+            return False
+
+    _wait(up, "the MLflow server", 120)
+    return MlflowServer(proc, url, log)
+
+
+def stop_mlflow_server(server: MlflowServer) -> None:
+    server.process.terminate()
+    try:
+        server.process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        server.process.kill()

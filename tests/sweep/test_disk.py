@@ -16,7 +16,8 @@ from bronchocli.sweep import FINISHED, TAG_CLAIM, SweepStore, Worker, prepare
 from bronchocli.sweep.storage import cells_table
 
 
-def test_taking_over_a_dead_workers_cell_removes_its_orphaned_checkpoint(make_config, fake_dir):
+def test_taking_over_a_dead_workers_cell_resumes_its_checkpoint_and_touches_no_other(make_config, fake_dir):
+    """A takeover never deletes a resumable checkpoint (issue 30): the cell resumes the dead worker's run."""
     cfg = make_config(archs=("baseline",))
     store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
@@ -24,19 +25,19 @@ def test_taking_over_a_dead_workers_cell_removes_its_orphaned_checkpoint(make_co
     client = client_for(cfg)
     exp = experiment_id(client, cfg)
     claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
-    orphan = client.create_run(exp, tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
-    store.set_run_id(claim.token, orphan)
-    mark(resume_file(cfg, orphan).parent, orphan, cell.key)  # as checkpoint.save does with its first checkpoint
-    resume_file(cfg, orphan).write_bytes(b"x" * 1000)  # the dead worker's last checkpoint
+    lost = client.create_run(exp, tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})).info.run_id
+    store.set_run_id(claim.token, lost)
+    mark(resume_file(cfg, lost).parent, lost, cell.key)  # as checkpoint.save does with its first checkpoint
+    resume_file(cfg, lost).write_bytes(b"x" * 1000)  # the dead worker's last checkpoint
     other = checkpoint_dir(cfg, "someone-elses-run")
     other.mkdir(parents=True)
     with store.engine.begin() as conn:  # the worker died: its heartbeat is long gone
         conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
     assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
-    assert client.get_run(orphan).info.status == "KILLED"
-    assert not checkpoint_dir(cfg, orphan).exists()
-    assert other.is_dir()  # only the orphan's folder goes
-    assert store.rows(cfg.name)[0].state == FINISHED
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.run_id) == (FINISHED, lost)  # resumed (the fake runner reopens the run it is given)
+    assert client.get_run(lost).info.status == "FINISHED"
+    assert other.is_dir()  # nobody else's folder is touched
 
 
 def test_status_shows_the_size_of_the_local_stores_in_one_line(cli, make_config, tmp_path):

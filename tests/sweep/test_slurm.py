@@ -12,22 +12,34 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-from slurm_cluster import start_cluster, stop_cluster
+from slurm_cluster import (
+    start_cluster,
+    start_mlflow_server,
+    start_postgres,
+    stop_cluster,
+    stop_mlflow_server,
+    stop_postgres,
+)
 from sweep_fakes import FAKE, HERE, calls, runs_by_cell
 from tinydata import write_tiny_dataset
 
 from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import resume_file
+from bronchocli.runs.parents import sweep_parent
 from bronchocli.runs.records import TAG_KIND, search_runs
 from bronchocli.sweep import FINISHED, PENDING, SweepStore
 from bronchocli.sweep.plan import plan_key
 from bronchocli.sweep.storage import selections_table
+from bronchocli.training import checkpoint
 
 pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
 REPO = HERE.parents[1]
@@ -283,3 +295,173 @@ def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli
     assert runs_by_cell(cfg, "KILLED") == {rows(cfg)[0].cell_key: 1}
     code, out, _ = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
     assert code == 0 and "no Slurm job of sweep t is queued or running" in out
+
+
+# -- faults a cluster throws, with the configuration a real cluster uses (issue 30) ------------------------------
+# Claims on PostgreSQL, tracking through a real `mlflow server` backed by a PostgreSQL instance of this module's
+# own (start_postgres: stopping it touches no other database). Real training where a checkpoint matters.
+
+
+@pytest.fixture(scope="module")
+def services():
+    psycopg = pytest.importorskip("psycopg")
+    pg = start_postgres()
+    art = Path(tempfile.mkdtemp(prefix="bronchopose-mlflow-", dir="/tmp"))
+    server = None
+    try:
+        with psycopg.connect(host="127.0.0.1", port=pg.port, user="postgres", dbname="postgres",
+                             autocommit=True) as conn:
+            conn.execute("CREATE DATABASE mlflow")
+        server = start_mlflow_server(pg.url("mlflow"), art / "artifacts", sys.executable)
+        yield pg, server
+    finally:
+        if server is not None:
+            stop_mlflow_server(server)
+        stop_postgres(pg)
+        shutil.rmtree(art, ignore_errors=True)
+
+
+def cluster_project(make_config, tmp_path, pg_url, services, name: str, steps: int = 24, **kw):
+    """A one-cell project that really trains (a checkpoint to resume), tracked by the MLflow server."""
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+    sweep = {"heartbeat_s": 0.5, "stale_after_s": 10.0, "poll_s": 0.2, **kw.pop("sweep", {})}
+    return make_config(storage=pg_url, name=name, archs=("baseline",), losses=("mse",), sweep=sweep,
+                       runs={"uri": services[1].url, "checkpoints": "runs/checkpoints", **kw.pop("runs", {})},
+                       slurm=kw.pop("slurm", {"cpus_per_task": 1, "shared_filesystem": True}),
+                       splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
+                       data={"window": 3, "cache_dir": "cache"},
+                       train={"batch_size": 3, "steps": steps, "val_every": 6, "bn_recalibrate": 1, "threads": 1,
+                              "max_val_pairs": 6}, **kw)
+
+
+def watch_sweep(cfg, tmp_path) -> subprocess.Popen:
+    path = str(cfg.paths.base / "experiments.yaml")
+    return subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def finish(submitter: subprocess.Popen, cfg, limit: float = 420) -> str:
+    try:
+        out, _ = submitter.communicate(timeout=limit)
+    finally:
+        if submitter.poll() is None:
+            submitter.kill()
+    assert submitter.returncode == 0, out + task_logs(cfg)
+    return out
+
+
+def history(cfg, run_id: str, key: str) -> list[tuple[int, float]]:
+    return sorted((m.step, m.value) for m in client_for(cfg).get_metric_history(run_id, key))
+
+
+def one_finished_run(cfg, attempts: int = 1) -> None:
+    (row,) = rows(cfg)
+    assert row.state == FINISHED and row.attempts == attempts, row
+    assert runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1} and runs_by_cell(cfg, None) == {row.cell_key: 1}
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+    assert client.get_run(parent).info.status == "FINISHED"  # the sweep's parent run ends with the sweep
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("on_time_limit", ["requeue", "exit"])
+def test_the_time_limit_signal_checkpoints_its_step_and_the_resumed_run_trains_only_the_rest(
+        slurm, make_config, tmp_path, pg_url, services, on_time_limit):
+    cfg = cluster_project(make_config, tmp_path, pg_url, services, f"usr1-{on_time_limit}",
+                          slurm={"cpus_per_task": 1, "shared_filesystem": True, "on_time_limit": on_time_limit})
+    submitter = watch_sweep(cfg, tmp_path)
+    wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=300, cfg=cfg)
+    (row,) = rows(cfg)
+    task = row.worker.split()[2]
+    t0 = time.monotonic()
+    slurm.run("scancel", "--signal=USR1", "--batch", task)  # what --signal=B:USR1@<s> sends before the time limit
+    # no cluster= here: the hold of the requeued task is released by the watcher itself, not by the test
+    wait_for(lambda: (r := rows(cfg)[0]).state == "running" and r.token != row.token, "the cell running again",
+             limit=300, cfg=cfg)
+    back_s = time.monotonic() - t0
+    finish(submitter, cfg)
+    log = task_logs(cfg)
+    stopped = re.search(r"SIGUSR1 received at step (\d+)/24 \(Slurm's time-limit warning\); checkpoint of step "
+                        r"\1 saved to", log)
+    assert stopped, log
+    step = int(stopped.group(1))
+    (row,) = rows(cfg)
+    assert history(cfg, row.run_id, "resumed_from_step") == [(step, float(step))]  # resumed at the signal's step
+    assert [s for s, _ in history(cfg, row.run_id, "val_loss")] == [6, 12, 18, 24]  # no step trained twice
+    one_finished_run(cfg)
+    print(f"\nBENCH usr1 ({on_time_limit}): signal at step {step}/24, steps lost 0, cell running again after "
+          f"{back_s:.1f} s")
+
+
+@pytest.mark.slow
+def test_a_worker_killed_hard_is_resumed_from_its_checkpoint_after_the_cut_off(slurm, make_config, tmp_path, pg_url,
+                                                                             services):
+    cfg = cluster_project(make_config, tmp_path, pg_url, services, "kill9")
+    submitter = watch_sweep(cfg, tmp_path)
+    wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=300, cfg=cfg)
+    (row,) = rows(cfg)
+    os.kill(int(row.worker.split()[0].split(":")[1]), signal.SIGKILL)  # what an OOM kill does
+    killed_at = checkpoint.load(resume_file(cfg, row.run_id))["step"]
+    out = finish(submitter, cfg)
+    log = task_logs(cfg)
+    assert f"resuming run {row.run_id}" in log and "nothing to claim" not in log, log
+    assert len(re.findall(r"submitted Slurm array job \d+: 1 task", out)) == 2, out  # no task before the cut-off
+    assert history(cfg, row.run_id, "resumed_from_step") == [(killed_at, float(killed_at))]
+    assert [s for s, _ in history(cfg, row.run_id, "val_loss")] == [6, 12, 18, 24]
+    one_finished_run(cfg, attempts=2)  # a takeover counts as an attempt (a run that OOMs again fails for good)
+    print(f"\nBENCH kill9: checkpoint of step {killed_at} resumed")
+
+
+@pytest.mark.slow
+def test_the_tracking_database_away_for_30_s_costs_no_attempt_and_leaves_no_run_running(
+        slurm, make_config, tmp_path, pg_url, services):
+    pg, _ = services
+    cfg = cluster_project(make_config, tmp_path, pg_url, services, "outage", steps=36, runs={"busy_timeout_s": 15})
+    submitter = watch_sweep(cfg, tmp_path)
+    wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=300, cfg=cfg)
+    pg.stop()
+    try:
+        time.sleep(30)  # the scenario itself: the MLflow server's database is away this long
+    finally:
+        pg.start()
+    finish(submitter, cfg)
+    one_finished_run(cfg)
+    (row,) = rows(cfg)
+    assert [s for s, _ in history(cfg, row.run_id, "val_loss")] == [6, 12, 18, 24, 30, 36]  # none lost, none twice
+    assert runs_by_cell(cfg, "RUNNING") == {}
+
+
+@pytest.mark.slow
+def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, tmp_path, pg_url, fake_dir, services):
+    stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
+    cfg = project(make_config, tmp_path, pg_url, name="stages", archs=("baseline", "lstm", "convlstm"),
+                  losses=("mse",), stages=stages, runs={"uri": services[1].url},
+                  slurm={"gpus_per_task": 0})  # three stage-1 tasks at once on the two-GPU node
+    for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
+        (fake_dir / f"val-{arch}-mse").write_text(str(val))
+        (fake_dir / f"block-{arch}").touch()
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    assert code == 0, out + err
+    second = re.search(r"submitted Slurm array job (\d+): 1 task\(s\) for stage second", out).group(1)
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 3, "three stage-1 tasks in their cells", cluster=slurm,
+             cfg=cfg)
+    victim = next(r for r in rows(cfg) if r.state == "running")
+    slurm.run("scancel", victim.worker.split()[2])
+    wait_for(lambda: next(r for r in rows(cfg) if r.cell_key == victim.cell_key).state == PENDING,
+             "the cancelled task's cell given back", cluster=slurm, cfg=cfg)
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    new = re.search(r"submitted Slurm array job (\d+): 1 task\(s\) for stage first", out)
+    assert code == 0 and new, out + err
+    assert f"afterany:{new.group(1)}" in slurm.run("scontrol", "show", "job", second).stdout  # stage 2 waits for it
+    (fake_dir / "release").touch()
+    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", *FAKE)  # watches to the end
+    assert code == 0, out + err + task_logs(cfg)
+    done = rows(cfg)
+    first_done = max(r.finished_at for r in done if r.coords["seed"] == 0)
+    assert all(r.claimed_at >= first_done for r in done if r.coords["seed"] == 1)  # stage 2 only after stage 1
+    stage_two = "".join(p.read_text() for p in (cfg.paths.base / "runs" / "slurm-logs").glob(f"{second}_*.log"))
+    assert "nothing to claim" not in stage_two  # no stage-2 task started while stage 1 ran
+    assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in done}
+    client = client_for(cfg)
+    assert client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg))).info.status == "FINISHED"

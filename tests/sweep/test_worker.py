@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import pytest
+from rich.console import Console
 from sqlalchemy import update
 from sweep_fakes import fake_runner, runs_by_cell
 
+from bronchocli.errors import MlflowUnreachable
 from bronchocli.runs.client import MlflowBusy, client_for, experiment_id
+from bronchocli.runs.contract import RunResult, resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import TAG_FAILURE, cell_tags
 from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
+from bronchocli.sweep.status import show_status
 from bronchocli.sweep.storage import cells_table
 
 
@@ -208,3 +212,98 @@ def test_a_failed_run_keeps_its_checkpoint_only_while_its_cell_can_be_retried(ma
     row = rows(store, cfg)["baseline"]
     assert row.state == FAILED and row.failure_reason == "CheckpointWriteError: the machine"
     assert not (cfg.paths.checkpoints / seen[0][1]).exists()  # last attempt: nothing will resume it
+
+
+# -- a worker killed hard (kill -9, OOM) mid-cell (issue 30, item 2) ------------------------------------------
+
+
+def test_a_dead_workers_cell_shows_stale_and_is_resumed_from_its_checkpoint_by_whoever_takes_it_over(
+        make_config, fake_dir):
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1, "stale_after_s": 30})
+    store, plan = setup(cfg)
+    (cell,) = plan.cells
+    client = client_for(cfg)
+    claim = store.claim(cfg.name, [cell.key], "node1:4242 slurm 7_0", max_retries=1, stale_after_s=30)
+    run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})
+                               ).info.run_id
+    store.set_run_id(claim.token, run_id)
+    ckpt = resume_file(cfg, run_id)
+    ckpt.parent.mkdir(parents=True)
+    ckpt.write_text("step 18 of 24")  # its last checkpoint; then kill -9: the run stays RUNNING
+
+    def status() -> str:
+        console = Console(width=250, record=True)
+        show_status(cfg, store, cfg.name, False, console)
+        return console.export_text()
+
+    assert "running 1" in status() and "stale" not in status()  # heartbeat fresh: alive as far as anyone knows
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 31))
+    shown = status()
+    assert "stale (worker lost" in shown and "running 0" in shown and "stale 1" in shown, shown
+
+    seen = []
+
+    def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        seen.append((resume, ckpt.is_file() and ckpt.read_text()))
+        client.update_run(resume, "RUNNING")
+        run_id_callback(resume)
+        client.set_terminated(resume, "FINISHED")
+        return RunResult(resume, "FINISHED", {"pair.pos_l2.mean": 1.0})
+
+    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    assert seen == [(run_id, "step 18 of 24")]  # resumed, its checkpoint there when the runner started
+    assert runs_by_cell(cfg, "FINISHED") == {cell.key: 1} and runs_by_cell(cfg, None) == {cell.key: 1}
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.run_id) == (FINISHED, run_id)
+
+
+def test_a_takeover_keeps_the_lost_runs_link_until_the_new_claim_names_its_run(make_config, fake_dir):
+    cfg = make_config(archs=("baseline",))
+    store, plan = setup(cfg)
+    (cell,) = plan.cells
+    first = store.claim(cfg.name, [cell.key], "dead:1", max_retries=2, stale_after_s=30)
+    store.set_run_id(first.token, "run-of-the-dead")
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 31))
+    second = store.claim(cfg.name, [cell.key], "alive:2", max_retries=2, stale_after_s=30)
+    assert second.previous.worker == "dead:1" and second.released_run == "run-of-the-dead"
+    (row,) = store.rows(cfg.name)
+    assert row.run_id == "run-of-the-dead"  # sweep --gc sees the cell running with it: its checkpoint is needed
+
+
+# -- the MLflow store went away mid-cell (issue 30, item 3) -------------------------------------------------------
+
+
+def test_an_unreachable_store_releases_the_cell_without_an_attempt_and_the_run_is_marked_when_it_answers(
+        make_config, fake_dir, monkeypatch):
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0, "poll_s": 0.01})
+    store, plan = setup(cfg)
+    client = client_for(cfg)
+    made = []
+
+    def runner(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **extra_tags)).info.run_id
+        run_id_callback(run_id)
+        made.append(run_id)
+        if len(made) == 1:  # the store went away mid-run: the run could not even be marked (left RUNNING)
+            raise MlflowUnreachable("runs.uri http://mlflow:5000: no answer within 10 s")
+        client.set_terminated(run_id, "FINISHED")
+        return RunResult(run_id, "FINISHED", {"pair.pos_l2.mean": 1.0})
+
+    worker = Worker(cfg, plan.cells, store, runner)
+    raw = worker.client.raw
+    real, outage = raw.set_terminated, [True]
+
+    def set_terminated(run_id, status=None, **kw):  # still away when the worker first tries to mark it
+        if outage.pop() if outage else False:
+            raise RuntimeError("API request failed: Max retries exceeded (too many 503 error responses)")
+        return real(run_id, status, **kw)
+
+    monkeypatch.setattr(raw, "set_terminated", set_terminated)
+    assert worker.run() == 0
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.attempts, row.run_id) == (FINISHED, 1, made[1])  # with max_retries 0: no attempt used
+    first = client.get_run(made[0])
+    assert first.info.status == "FAILED" and "MlflowUnreachable" in first.data.tags[TAG_FAILURE]  # not RUNNING
+    assert runs_by_cell(cfg, "RUNNING") == {} and runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}

@@ -329,3 +329,30 @@ def test_a_store_locked_beyond_the_bound_fails_the_run_in_one_line_and_keeps_its
     # `status --repair` or the next run of the cell ends once that process is gone; its checkpoint is kept
     assert run.info.status == "RUNNING" and run.data.tags[TAG_PID] == str(os.getpid())
     assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()
+
+
+def test_slurms_time_limit_warning_checkpoints_the_step_it_lands_on_and_the_resume_trains_only_the_rest(tmp_path):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path, steps=8, val_every=4))
+    cell = cfg.cell(arch="baseline", rot_loss="mse", population="personalized")
+
+    def usr1_after_step_4(step, values):
+        if step == 4:
+            os.kill(os.getpid(), signal.SIGUSR1)  # --signal=B:USR1@<s>: between the validations of steps 4 and 8
+
+    with pytest.raises(RunInterrupted, match="SIGUSR1 received at step 5/8 .Slurm's time-limit warning.; "
+                                             "checkpoint of step 5 saved to") as info:
+        run_cell(cfg, cell, progress=False, on_validation=usr1_after_step_4, extra_tags={"sweep_worker": "first"})
+    assert info.value.signal == signal.SIGUSR1
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
+    run_id = run.info.run_id
+    assert run.info.status == "KILLED" and run.data.tags["failure_reason"].startswith("SIGUSR1 received")
+    assert checkpoint.load(cfg.paths.checkpoints / run_id / "last.pt")["step"] == 5
+
+    result = run_cell(cfg, cell, progress=False, resume=True, extra_tags={"sweep_worker": "second"})
+    assert result.status == "FINISHED" and result.run_id == run_id
+    run = client.get_run(run_id)
+    assert [(m.step, m.value) for m in client.get_metric_history(run_id, "resumed_from_step")] == [(5, 5.0)]
+    assert sorted(m.step for m in client.get_metric_history(run_id, "val_loss")) == [4, 8]  # nothing trained twice
+    assert run.data.tags["sweep_worker"] == "second"  # the worker that resumed it, not the first one

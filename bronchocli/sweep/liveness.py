@@ -1,0 +1,94 @@
+"""What keeps a sweep worker's claim alive and how the worker stops: the heartbeat thread and the stop signals.
+
+A worker (``worker.py``) installs ``StopSignals`` (SIGINT, SIGTERM, and SIGUSR1 in a Slurm task) and runs a
+``Heartbeat`` beside each cell it holds: the heartbeat refreshes the claim in the claims table, and tells the
+worker once when another worker has taken the claim over (this one looked dead).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from ..runs.contract import RunInterrupted
+from .storage import StorageError, SweepStore
+
+log = logging.getLogger(__name__)
+
+
+def is_interrupt(exc: BaseException) -> bool:
+    return isinstance(exc, (KeyboardInterrupt, RunInterrupted))
+
+
+class StopSignals:
+    """Turns SIGINT/SIGTERM into a stop request; interrupts the runner when one is in progress."""
+
+    def __init__(self, event: Any = None, parent_pid: int | None = None):
+        self.requested: int | None = None
+        self.installed = False  # only a process that handles SIGTERM itself may send it to itself
+        self.in_runner = False
+        self.self_term = False  # a SIGTERM we sent ourselves because the claim was lost
+        self.event, self.parent_pid = event, parent_pid
+
+    def install(self, extra: Sequence[int] = ()) -> None:
+        """Handle SIGINT, SIGTERM and ``extra`` (under Slurm: SIGUSR1, the time-limit warning) as a stop."""
+        for s in (signal.SIGINT, signal.SIGTERM, *extra):
+            signal.signal(s, self._handle)
+        self.installed = True
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.self_term and signum == signal.SIGTERM:
+            self.self_term = False
+        else:
+            self.requested = signum
+        if self.in_runner:
+            raise KeyboardInterrupt
+
+    def parent_gone(self) -> bool:
+        return self.parent_pid is not None and os.getppid() != self.parent_pid
+
+    @property
+    def stop(self) -> bool:
+        return self.requested is not None or (self.event is not None and self.event.is_set()) or self.parent_gone()
+
+    def wait(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while not self.stop and (left := end - time.monotonic()) > 0:
+            time.sleep(min(0.1, left))
+
+
+class Heartbeat(threading.Thread):
+    """Refreshes the claim every ``interval`` seconds; calls ``on_lost`` once if the claim is gone."""
+
+    def __init__(self, store: SweepStore, token: str, interval: float, on_lost: Callable[[], None],
+                 signals: StopSignals):
+        super().__init__(name="sweep-heartbeat", daemon=True)
+        self.store, self.token, self.interval, self.on_lost, self.signals = store, token, interval, on_lost, signals
+        self.lost = False
+        self._halt = threading.Event()
+
+    def run(self) -> None:
+        while not self._halt.wait(self.interval):
+            if self.signals.installed and self.signals.parent_gone() and self.signals.requested is None:
+                log.warning("parent process is gone: stopping")
+                self.signals.requested = signal.SIGTERM
+                os.kill(os.getpid(), signal.SIGTERM)
+            try:
+                alive = self.store.heartbeat(self.token)
+            except StorageError as exc:  # transient outage: the claim goes stale only after stale_after_s
+                log.warning("heartbeat failed: %s", exc)
+                continue
+            if not alive and not self._halt.is_set():
+                self.lost = True
+                self.on_lost()
+                return
+
+    def halt(self) -> None:
+        self._halt.set()
+        if self.is_alive():
+            self.join()

@@ -1,0 +1,150 @@
+"""The Slurm watcher's arithmetic after faults, without a cluster (squeue, sbatch, scontrol stood in for):
+array sizes, dependencies of a re-submit, a dead task's claim, requeued tasks' hold (issue 30, item 4)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+from sqlalchemy import update
+
+from bronchocli.sweep import SweepStore, prepare
+from bronchocli.sweep import slurm as launcher
+from bronchocli.sweep.plan import StageWalk
+from bronchocli.sweep.slurm import Task, job_name, release_held, submit_missing
+from bronchocli.sweep.storage import cells_table
+
+
+class FakeSlurm:
+    """squeue answers ``active``; sbatch hands out job ids 100, 101, ...; every scontrol call is recorded."""
+
+    def __init__(self, monkeypatch, active=()):
+        self.active, self.submitted, self.scontrol = list(active), [], []
+        monkeypatch.setattr(launcher, "sweep_tasks", lambda cfg: list(self.active))
+        monkeypatch.setattr(launcher, "submit", self.submit)
+        monkeypatch.setattr(launcher, "_run", self.run)
+
+    def submit(self, cfg, stage, tasks, command, dependency=()):
+        job = str(100 + len(self.submitted))
+        self.submitted.append((job, stage, tasks, tuple(dependency)))
+        return job
+
+    def run(self, args, what):
+        assert args[0] == "scontrol", args
+        self.scontrol.append(args[1:])
+        return ""
+
+
+def two_stages(make_config, **slurm):
+    stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
+    return make_config(archs=("baseline", "lstm", "convlstm"), stages=stages, slurm=slurm,
+                       sweep={"stale_after_s": 30.0, "max_retries": 1})
+
+
+def walk_of(cfg):
+    store = SweepStore(cfg.paths.storage_url)
+    prepare(cfg, store, dataset=False)
+    return StageWalk(cfg, store), store
+
+
+def quiet() -> Console:
+    return Console(file=open("/dev/null", "w"))  # noqa: SIM115 - closed with the process
+
+
+def test_a_resubmitted_earlier_stage_is_added_to_the_queued_later_stages_dependency(make_config, monkeypatch):
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    # stage 1's array was cancelled (its cells pending again); stage 2's array still waits in the queue
+    slurm = FakeSlurm(monkeypatch, [Task("20_[0]", "20", "PENDING", "second", 1, "Dependency")])
+    submit_missing(walk, ["python"], quiet())
+    assert slurm.submitted == [("100", "first", 3, ())]
+    assert slurm.scontrol == [["update", "JobId=20", "Dependency=afterany:100"]]  # stage 2 waits for it too
+
+
+def test_arrays_are_no_larger_than_the_tasks_that_can_run_at_once(make_config, monkeypatch):
+    cfg = two_stages(make_config, array_parallelism=2)
+    walk, store = walk_of(cfg)
+    slurm = FakeSlurm(monkeypatch)
+    submit_missing(walk, ["python"], quiet())
+    # 3 cells, 2 tasks at once: each task loops over cells, a third would start after the work is done
+    assert slurm.submitted == [("100", "first", 2, ()), ("101", "second", 1, ("100",))]
+    cfg = two_stages(make_config, tasks=1)
+    slurm = FakeSlurm(monkeypatch)
+    submit_missing(StageWalk(cfg, store), ["python"], quiet())
+    assert [s[2] for s in slurm.submitted] == [1, 1]
+
+
+def test_a_dead_tasks_cell_gets_a_task_only_once_its_claim_is_stale(make_config, monkeypatch):
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    keys = [c.key for c in walk.cells(walk.stages[0])]
+    for key, worker in zip(keys, ("n:1 slurm 7_0", "n:2 slurm 7_1", "n:3 slurm 7_2")):
+        store.claim(cfg.name, [key], worker, max_retries=1, stale_after_s=30)
+    for row in store.rows(cfg.name)[:2]:  # two of them finish; the third task was killed (kill -9): still RUNNING
+        store.finish(row.token, f"run-{row.cell_key}", 1.0)
+    slurm = FakeSlurm(monkeypatch)  # no task of the sweep is left
+    assert submit_missing(walk, ["python"], quiet()) == []  # before the cut-off: a task would find nothing
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 31))
+    submit_missing(walk, ["python"], quiet())
+    assert slurm.submitted[0][1:3] == ("first", 1)  # now claimable: one task takes it over
+
+
+def test_a_live_tasks_cell_is_counted_as_covered(make_config, monkeypatch):
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    key = walk.cells(walk.stages[0])[0].key
+    store.claim(cfg.name, [key], "n:1 slurm 7_0", max_retries=1, stale_after_s=30)
+    slurm = FakeSlurm(monkeypatch, [Task("7_0", "7", "RUNNING", "first", 1)])
+    submit_missing(walk, ["python"], quiet())
+    assert slurm.submitted[0][1:4] == ("first", 2, ())  # three cells: one held by the live task, two more tasks
+
+
+def test_a_requeued_task_is_started_after_a_few_seconds_not_after_slurms_hold(monkeypatch):
+    calls = []
+    monkeypatch.setattr(launcher, "_run", lambda args, what: calls.append(args[1:]) or "")
+    held: dict[str, float] = {}
+    tasks = [Task("7_1", "7", "PENDING", "first", 1, "BeginTime"), Task("7_2", "7", "PENDING", "first", 1, "None")]
+    release_held(tasks, held, settle_s=3600)
+    assert calls == [] and set(held) == {"7_1"}  # seen; too early (the killed instance's credential)
+    release_held(tasks, held, settle_s=0)
+    assert calls == [["update", "JobId=7_1", "StartTime=now"]]
+    release_held(tasks[1:], held, settle_s=0)
+    assert held == {}  # started: forgotten
+
+
+def test_the_job_name_does_not_double_its_prefix():
+    assert job_name("bronchopose-cpu") == "bronchopose-cpu" and job_name("t") == "bronchopose-t"
+
+
+def test_the_workers_interpreter_and_its_venv_must_be_on_a_shared_path(make_config, monkeypatch, tmp_path):
+    monkeypatch.setattr("shutil.which", lambda name: "/usr/bin/" + name)
+    shared = {"storage": "postgresql://u@db.example/sweeps"}
+    runs = {"uri": "http://mlflow.example:5000", "artifacts": "/srv/a", "checkpoints": "/srv/ck"}
+    venv = Path("/tmp/node-venv")
+    with pytest.raises(Exception, match="slurm.python /tmp/node-venv/bin/python: a node-local folder"):
+        launcher.check(make_config(**shared, runs=runs, dataset={"root": "/srv/data"},
+                                   slurm={"python": str(venv / "bin" / "python"), "logs": "/srv/logs"}))
+    monkeypatch.setattr(sys, "executable", "/tmp/x/bin/python")
+    with pytest.raises(Exception, match="the Python running bronchopose .slurm.python. /tmp/x/bin/python"):
+        launcher.check(make_config(**shared, runs=runs, dataset={"root": "/srv/data"}, slurm={"logs": "/srv/logs"}))
+
+
+def test_the_task_that_finds_the_sweep_done_ends_its_parent_run(make_config, fake_dir):
+    from sweep_fakes import fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import sweep_parent
+    from bronchocli.sweep.task import run_task
+
+    cfg = make_config(archs=("baseline",))
+    store = SweepStore(cfg.paths.storage_url)
+    prepare(cfg, store, dataset=False)
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+    assert client.get_run(parent).info.status == "RUNNING"
+    assert run_task(cfg, store, parse_only([]), fake_runner) == 0  # a detached sweep: no watcher
+    assert client.get_run(parent).info.status == "FINISHED"
