@@ -95,6 +95,19 @@ def non_empty(tags: Mapping[str, Any]) -> dict[str, str]:
     return {k: str(v) for k, v in tags.items() if v is not None and str(v) != ""}
 
 
+POPULATION_SHORT = {"personalized": "pers", "cross-subject": "xs"}
+
+
+def run_name(cell: Cell) -> str:
+    """The cell as a run name, most telling coordinates first and short: ``convlstm·ce·pers·s0·world``
+    (cross-subject: ``xs-p01``; ``·t5`` for a training-set size). The full label is in the description."""
+    parts = [cell.arch, cell.rot_loss, POPULATION_SHORT.get(cell.population, cell.population)
+             + (f"-{cell.fold}" if cell.fold else ""), f"s{cell.seed}", cell.pose_frame]
+    if cell.train_trajectories is not None:
+        parts.append(f"t{cell.train_trajectories}")
+    return "·".join(parts)
+
+
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
     """A cell run's tags: coordinates, key, sweep, provenance, MLflow's source fields (no empty values)."""
     tags: dict[str, Any] = cell.tags()
@@ -106,7 +119,7 @@ def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
         TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
         "profile": cfg.profile,
-        "mlflow.runName": cell.label.replace("/", "-"),
+        "mlflow.runName": run_name(cell),
         **source_tags(cfg),
         **python_tags(),
     })
@@ -135,7 +148,11 @@ def log_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> 
 
 def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0) -> None:
     now = int(time.time() * 1000)
-    items = [Metric(k, float(v), now, step) for k, v in metrics.items()]
+    log_metric_objects(client, run_id, [Metric(k, float(v), now, step) for k, v in metrics.items()])
+
+
+def log_metric_objects(client: MlflowClient, run_id: str, items: list[Metric]) -> None:
+    """``items`` in as few ``log_batch`` calls as MLflow allows (1000 metrics each)."""
     for i in range(0, len(items), 1000):
         client.log_batch(run_id, metrics=items[i : i + 1000])
 

@@ -36,7 +36,7 @@ from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
 from ..runs.contract import RunPruned, cpu_threads
 from ..runs.parents import set_parent_status, study_parent
-from ..runs.records import TAG_PARENT, log_metrics
+from ..runs.records import TAG_PARENT, log_metrics, run_name
 from .storage import StorageError
 
 log = logging.getLogger(__name__)
@@ -262,6 +262,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
                                 f"(val_loss {metrics['val_loss']:.4g})")
 
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
+                "mlflow.runName": f"trial-{trial.number}·{run_name(cell)}",
                 "hparams_source": f"optuna:{name}#{trial.number}"}
         if parent is not None:
             tags[TAG_PARENT] = parent
@@ -272,7 +273,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
             raise optuna.TrialPruned(str(exc)) from None
         if result.status != "FINISHED":
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
-        value = result.metrics.get("best_val_loss", math.nan)
+        value = result.metrics.get("val_best.loss", math.nan)
         if not math.isfinite(value):
             raise TrialFailed(f"trial {trial.number}: no finite validation loss")
         return value
@@ -316,7 +317,7 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
     """Tune with ``workers`` local processes (1: in this process); returns the study.
 
     The study's parent MLflow run is created before the workers start and ends with the best trial's
-    validation loss as its metric ``best_val_loss`` (tags ``best_trial``, ``best_run``).
+    validation loss as its metric ``val_best.loss`` (tags ``best_trial``, ``best_run``).
     """
     check_space(cfg)
     s = open_study(cfg, target, study=study)  # creates it once, before workers race
@@ -347,7 +348,7 @@ def _close_parent(cfg: Config, target: Cell, s) -> None:
     client = client_for(cfg)
     try:
         best = s.best_trial
-        log_metrics(client, parent, {"best_val_loss": best.value, "trials.finished": finished(s)},
+        log_metrics(client, parent, {"val_best.loss": best.value, "trials.finished": finished(s)},
                              step=best.number)
         for key, value in (("best_trial", str(best.number)), ("best_run", best.user_attrs.get(ATTR_RUN))):
             if value:

@@ -6,13 +6,19 @@
   (train/val/test as context, digest = the fingerprint), ``env.torch`` and
   ``env.cuda`` tags, the run description, ``config.yaml`` (the full resolved
   config, passwords redacted) and ``split_manifest.csv``;
-* per validation: ``train_loss``, ``val_loss``, ``val.*``, ``lr``, ``pairs_seen``,
-  ``epoch`` and ``best_val_loss`` at step = optimiser step;
+* training curves at step = optimiser step, every ``runs.log_every`` steps and
+  at every validation: ``train_loss`` (the mean since the previous point),
+  ``lr``, ``grad_norm`` (unscaled global L2 norm; at the ``log_every`` points)
+  and ``pairs_per_s`` (training throughput since the previous point), one
+  ``log_batch`` per validation;
+* per validation: ``val_loss``, ``val.*``, ``train.pairs_seen``,
+  ``train.epochs`` and ``train.skipped_steps`` (their last point is the run's
+  value: the end of a run is a validation, so they are not logged again);
 * at the end: the headline ratios and skills against both references
   (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
-  ``pred.std*``) and the budget (``train.steps``, ``train.pairs_seen``,
-  ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
+  ``pred.std*``) and the budget (``train.steps``, ``train.time_s``,
+  ``train.pairs_per_s`` averaged over the run, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
   per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
   ``runs.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
@@ -24,16 +30,17 @@ from __future__ import annotations
 
 import json
 import tempfile
+import time
 from pathlib import Path
 
 import torch
-from mlflow.entities import Dataset, DatasetInput, InputTag, RunTag
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, RunTag
 
 from ..cells import Cell
 from ..config import Config
 from ..io import save_figure
 from ..plots import trajectory_figure
-from ..runs.records import TAG_FINGERPRINT, TAG_NOTE, log_metrics, log_params
+from ..runs.records import TAG_FINGERPRINT, TAG_NOTE, log_metric_objects, log_metrics, log_params
 from ..runs.views import describe, ordered_metrics, run_params
 from .engine import Outcome
 from .evaluate import predictions_table
@@ -83,6 +90,10 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell) -> No
         _log_file(client, run_id, out / "split_manifest.csv")
 
 
+# Logged per validation (their last value is the run's value), so not again with the test metrics at the end.
+VALIDATION_LOGGED = ("train.pairs_seen", "train.epochs", "train.skipped_steps")
+
+
 def validation_logger(client, run_id: str):
     """A ``Trainer.on_validation`` callback logging the validation's values at step = optimiser step."""
     def log(step: int, values: dict[str, float]) -> None:
@@ -90,8 +101,18 @@ def validation_logger(client, run_id: str):
     return log
 
 
+def curves_logger(client, run_id: str):
+    """A ``Trainer.on_curves`` callback: the training-curve points since the last validation in one batch."""
+    def log(points: list[tuple[int, dict[str, float]]]) -> None:
+        now = int(time.time() * 1000)
+        log_metric_objects(client, run_id, [Metric(k, float(v), now, step) for step, row in points
+                                            for k, v in row.items()])
+    return log
+
+
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
-    for batch in ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
+    final = {k: v for k, v in outcome.metrics.items() if k not in VALIDATION_LOGGED}
+    for batch in ordered_metrics(final):  # headline first: the UI lists metrics as logged
         log_metrics(client, run_id, batch)
     client.set_tag(run_id, TAG_NOTE, describe(cell, outcome.metrics, cfg.paths.dataset.name))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)

@@ -45,6 +45,7 @@ from ..runs.contract import (
 )
 from ..runs.processes import process_alive, process_tags, repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
+from ..runs.system import system_metrics
 from . import artifacts, checkpoint
 from .engine import device_for, env_tags, fit_and_evaluate
 from .prepare import prepare
@@ -130,6 +131,7 @@ class _StepBar:
                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
                             transient=False) if show else None
         self.task = None
+        self.best = float("inf")
 
     def step(self, step: int, total: int) -> None:
         if self.bar is None:
@@ -140,8 +142,9 @@ class _StepBar:
         self.bar.update(self.task, completed=step)
 
     def validated(self, step: int, values: dict[str, float]) -> None:
+        self.best = min(self.best, values["val_loss"])
         if self.bar is not None and self.task is not None:
-            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {values['best_val_loss']:.4g})")
+            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {self.best:.4g})")
 
     def close(self) -> None:
         if self.bar is not None and self.task is not None:
@@ -187,10 +190,11 @@ def run_cell(
     try:
         if state is None:
             artifacts.log_start(client, run_id, cfg, data, cell)
-        with _stop_on_signals(flag):
+        with _stop_on_signals(flag), system_metrics(cfg, run_id, resume=state is not None):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
-                                           on_validation=validated, on_step=bar.step)
+                                           on_validation=validated, on_step=bar.step,
+                                           on_curves=artifacts.curves_logger(client, run_id))
             finally:
                 bar.close()
             artifacts.log_outcome(client, run_id, cfg, cell, data, outcome)

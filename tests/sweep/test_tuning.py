@@ -65,7 +65,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     parents = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
     assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
     assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
-    assert parents[0].data.metrics["best_val_loss"] == pytest.approx(study.best_value)
+    assert parents[0].data.metrics["val_best.loss"] == pytest.approx(study.best_value)
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
