@@ -33,10 +33,13 @@ from pathlib import Path
 import torch
 from engine_bench import bare_step_rate, engine_rate
 
-from bronchocli.config import load_config
+from bronchocli.config import Config, load_config
 from bronchocli.generation import ensure_dataset
 from bronchocli.models import build_model
 from bronchocli.registry import arch_names
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.system import system_metrics
+from bronchocli.training.artifacts import curves_logger
 from bronchocli.training.run import run_cell
 
 
@@ -83,13 +86,6 @@ def whole_run(steps: int) -> list[dict[str, float]]:
 
 def curve_overhead(steps: int, val_every: int, repeats: int, size: int = 64) -> None:
     """Step time with curve + system-metric logging on vs off (see the module doc, 4.)."""
-    from mlflow.entities import ViewType  # lazy: only this mode talks to MLflow directly
-
-    from bronchocli.config import Config
-    from bronchocli.runs.client import client_for, experiment_id
-    from bronchocli.runs.system import system_metrics
-    from bronchocli.training.artifacts import curves_logger
-
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Config(name="bench-curves").with_values({"runs.uri": f"sqlite:///{tmp}/mlflow.db",
                                                        "runs.artifacts": f"{tmp}/artifacts"})
@@ -111,7 +107,6 @@ def curve_overhead(steps: int, val_every: int, repeats: int, size: int = 64) -> 
                 times[mode].append((res.train_s / res.steps, (res.train_s + res.val_s) / res.steps))
                 run = client.get_run(run_id)
                 rows[mode].append(sum(len(client.get_metric_history(run_id, k)) for k in run.data.metrics))
-        assert client.search_runs([exp], run_view_type=ViewType.ALL)
     step = {m: statistics.median(t[0] for t in v) for m, v in times.items()}
     whole = {m: statistics.median(t[1] for t in v) for m, v in times.items()}
     print(f"\nbaseline {size}², 20 pairs/step, {steps} steps, a validation every {val_every}, {repeats} runs each")

@@ -7,8 +7,7 @@ import pytest
 from bronchocli.config import Config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.parents import set_parent_status, study_parent, sweep_parent
-from bronchocli.runs.records import source_name
-from bronchocli.runs.records import run_name
+from bronchocli.runs.records import run_name, source_name
 from bronchocli.runs.views import (
     HEADLINE,
     README_RATIO,
