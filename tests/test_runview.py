@@ -67,6 +67,7 @@ def test_description_states_the_cell_and_the_result():
     assert "offsetnet" in before and "test patient p02" in before and "seed 1" in before and "Test:" not in before
     after = describe(cell, METRICS)
     assert "0.84 × the training-mean reference" in after and "position 0.16" in after
+    assert after.startswith(f"**{HEADLINE} = 0.84**")  # the headline first
 
 
 def test_source_name_is_the_command():

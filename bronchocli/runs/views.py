@@ -129,7 +129,8 @@ def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
 
 
 def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "") -> str:
-    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result."""
+    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result,
+    the headline first."""
     lines = [f"**{cell.label}**: {cell.arch} trained with the {cell.rot_loss} rotation loss, {cell.population}"
              + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
              f"{cell.pose_frame}-frame relative poses"
@@ -138,6 +139,8 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
     if metrics and "pair.pos_l2.mean" in metrics:
         h = headline(metrics)
         ratio = h.get(README_RATIO, math.nan)
+        lines.insert(0, f"**{HEADLINE} = {ratio:.3g}** (the headline: pair position error ÷ the training-mean "
+                        "reference's; < 1 beats it, lower is better)")
         lines.append(f"Test: pair position error {metrics['pair.pos_l2.mean']:.4g} vox = {ratio:.3g} × the "
                      f"training-mean reference's (zero motion: {h.get('ratio.zero_motion.pair.pos_l2', math.nan):.3g}"
                      f" ×); skill vs the better reference: position {h.get('skill.pair.pos_l2', math.nan):.3g}, "
