@@ -54,7 +54,7 @@ def _extra_metrics(i: int) -> dict[str, float]:
            for s in ("mean", "std")}
     out |= {f"traj.{m}.{s}": 1.0 + i % 5 for m in ("ctf", "ctf_mm", "ate", "ate_mm", "rpe_trans", "rpe_rot", "drift")
             for s in ("mean", "std")}
-    out |= {"train.time_s": 100.0, "train.epochs": 10.0, "train.pairs_per_s": 300.0, "best_val_loss": 0.5,
+    out |= {"train.time_s": 100.0, "train.epochs": 10.0, "train.pairs_per_s": 300.0, "val_best.loss": 0.5,
             "eval.time_s": 5.0, "zero_motion.pair.pos_l2.mean": 1.0, "zero_motion.acc.pos_l2.mean": 9.0}
     return out
 

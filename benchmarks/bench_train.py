@@ -1,6 +1,7 @@
 """CPU training throughput (bare step vs engine), tracking latency, and the overhead of a whole tracked run.
 
     python benchmarks/bench_train.py [--sizes 64 128] [--threads 2] [--seconds 8] [--steps 40] [--skip-run]
+    python benchmarks/bench_train.py --curves [--steps 60] [--val-every 30] [--repeats 3]
 
 1. **Training pairs/s** per architecture and size (engine_bench.py says what is timed): the bare optimiser
    step on a fixed in-memory batch, and the engine (``Trainer.fit``: batch order, frame gathering,
@@ -12,6 +13,11 @@
    first creates the MLflow store and the frame cache; warm: the next, as in a sweep). Overhead = wall time
    minus training and validation time: start-up, data preparation, checkpoints, MLflow tracking, test
    evaluation (goal: < 10 % of the training time).
+4. **Curve logging** (``--curves``, instead of 1-3): ``Trainer.fit`` of the baseline at 64² with the training
+   curves (``runs.log_every`` 10) and system metrics (10 s samples) logged to a real SQLite MLflow run ("on")
+   vs curve points at validations only and no system metrics ("off"), interleaved ``--repeats`` times;
+   the median step time (training time / steps) and the time with validations and their logging, on / off;
+   and the MLflow metric rows each run gained.
 """
 
 from __future__ import annotations
@@ -27,10 +33,12 @@ from pathlib import Path
 import torch
 from engine_bench import bare_step_rate, engine_rate
 
-from bronchocli.config import load_config
+from bronchocli.config import Config, load_config
 from bronchocli.generation import ensure_dataset
 from bronchocli.models import build_model
 from bronchocli.registry import arch_names
+from bronchocli.runs.client import MetricBuffer, client_for, experiment_id
+from bronchocli.runs.system import system_metrics
 from bronchocli.training.run import run_cell
 
 
@@ -75,6 +83,40 @@ def whole_run(steps: int) -> list[dict[str, float]]:
     return out
 
 
+def curve_overhead(steps: int, val_every: int, repeats: int, size: int = 64) -> None:
+    """Step time with curve + system-metric logging on vs off (see the module doc, 4.)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = Config(name="bench-curves").with_values({"runs.uri": f"sqlite:///{tmp}/mlflow.db",
+                                                       "runs.artifacts": f"{tmp}/artifacts"})
+        client = client_for(cfg)
+        exp = experiment_id(client, cfg)
+        times: dict[str, list[tuple[float, float]]] = {"off": [], "on": []}
+        rows: dict[str, list[int]] = {"off": [], "on": []}
+        cpu = torch.device("cpu")
+        engine_rate("baseline", size, 20, cpu, "32", 3, val_every=3)  # warm-up: allocator, threads, kernels
+        for r in range(repeats):
+            for mode in ("off", "on") if r % 2 == 0 else ("on", "off"):
+                run_id = client.create_run(exp).info.run_id
+                log_every = 10 if mode == "on" else 0
+                sysm = cfg.with_values({"runs.system_metrics": mode == "on"})
+                with system_metrics(sysm, run_id):
+                    res = engine_rate("baseline", size, 20, cpu, "32", steps, val_every=val_every,
+                                      log_every=log_every, on_curves=MetricBuffer(client, run_id).log_points)
+                client.set_terminated(run_id)
+                times[mode].append((res.train_s / res.steps, (res.train_s + res.val_s) / res.steps))
+                run = client.get_run(run_id)
+                rows[mode].append(sum(len(client.get_metric_history(run_id, k)) for k in run.data.metrics))
+    step = {m: statistics.median(t[0] for t in v) for m, v in times.items()}
+    whole = {m: statistics.median(t[1] for t in v) for m, v in times.items()}
+    print(f"\nbaseline {size}², 20 pairs/step, {steps} steps, a validation every {val_every}, {repeats} runs each")
+    print("| logging | step ms (training) | step ms (with validations + logging) | MLflow metric rows per run |")
+    print("|---|---|---|---|")
+    for m in ("off", "on"):
+        print(f"| {m} | {1e3 * step[m]:.1f} | {1e3 * whole[m]:.1f} | {statistics.median(rows[m]):.0f} |")
+    print(f"| on / off | {step['on'] / step['off']:.3f} | {whole['on'] / whole['off']:.3f} | "
+          f"+{statistics.median(rows['on']) - statistics.median(rows['off']):.0f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128])
@@ -85,8 +127,13 @@ def main() -> None:
     parser.add_argument("--run-steps", type=int, default=150, help="steps of each whole run")
     parser.add_argument("--archs", nargs="+", default=list(arch_names()))
     parser.add_argument("--skip-run", action="store_true")
+    parser.add_argument("--curves", action="store_true", help="only: step time with curve logging on vs off")
+    parser.add_argument("--repeats", type=int, default=3, help="--curves: runs per mode")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.curves:
+        curve_overhead(args.steps, args.val_every, args.repeats)
+        return
     cpu = torch.device("cpu")
     print(f"machine: {platform.node()} {platform.processor() or platform.machine()}, torch {torch.__version__}, "
           f"{args.threads} threads")

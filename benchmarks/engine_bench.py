@@ -17,6 +17,7 @@ per step (``batch`` pairs: pairwise models that many pairs, temporal models
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 import time
 from dataclasses import dataclass
@@ -117,7 +118,7 @@ def synthetic_samples(n_frames: int, n_pairs: int, count: int, seed: int) -> Sam
 
 def engine_rate(arch: str, size: int, batch: int, device: torch.device, precision: str, steps: int,
                 val_every: int = 100, bn_recalibrate: int = 16, n_frames: int = 2496,
-                compile: bool = False) -> EngineResult:
+                compile: bool = False, log_every: int = 0, on_curves=None) -> EngineResult:
     """Pairs/s of ``Trainer.fit`` for ``steps`` optimiser steps over a synthetic cache of ``n_frames`` frames."""
     with tempfile.TemporaryDirectory() as tmp:
         cache = synthetic_cache(Path(tmp), n_frames, size)
@@ -128,8 +129,8 @@ def engine_rate(arch: str, size: int, batch: int, device: torch.device, precisio
         source = FrameSource(cache, device)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
-        trainer = Trainer(net, train, val, source, settings(steps, batch, precision, val_every, bn_recalibrate),
-                          device=device, compile=compile)
+        s = dataclasses.replace(settings(steps, batch, precision, val_every, bn_recalibrate), log_every=log_every)
+        trainer = Trainer(net, train, val, source, s, device=device, compile=compile, on_curves=on_curves)
         fit = trainer.fit()
         peak = torch.cuda.max_memory_allocated(device) / 2**20 if device.type == "cuda" else float("nan")
         return EngineResult(fit.pairs_seen / fit.train_time_s, fit.steps, fit.train_time_s, fit.val_time_s,

@@ -5,7 +5,10 @@ A GPU box that only trains, sweeps and reports needs none of them:
 * ``render``: VTK and scikit-image, for ``data generate`` (rendering, anatomy
   readers) and the dataset figures' centreline;
 * ``postgres``: psycopg, for ``postgresql://`` MLflow or sweep storage;
-* ``video``: PyAV, for reading video files.
+* ``video``: PyAV, for reading video files;
+* ``gpu``: nvidia-ml-py (NVML), for GPU utilisation, memory and power in each
+  run's system metrics; without it the runs log CPU, memory, disk and network
+  only (never an error: ``runs/system.py``).
 
 ``require(extra, what)`` checks before the first import (``importlib`` finds
 the module without loading it, so the check costs nothing when it is there);
@@ -23,6 +26,7 @@ EXTRAS: dict[str, tuple[tuple[str, ...], str]] = {
     "render": (("vtkmodules", "skimage"), "vtk, scikit-image"),
     "postgres": (("psycopg",), "psycopg"),
     "video": (("av",), "av (PyAV)"),
+    "gpu": (("pynvml",), "nvidia-ml-py"),
 }
 MODULE_EXTRA = {m.split(".")[0]: extra for extra, (mods, _) in EXTRAS.items() for m in mods} | {"vtk": "render"}
 

@@ -8,7 +8,7 @@ EXPECTED = (
     + [f"{ref}traj.{m}.{s}" for ref in ("", "zero_motion.", "train_mean.")
        for m in ("ctf", "ctf_mm", "ate", "ate_mm", "rpe_trans", "rpe_rot", "drift") for s in ("mean", "std")]
     + ["eval.ctf_position", "eval.ctf_position_mm", "eval.ctf_angle", "eval.rpe_gap"]
-    + ["test.n_pairs", "test.n_trajectories", "n_params", "best_val_loss", "pred.std.pos", "pred.std.rot",
+    + ["test.n_pairs", "test.n_trajectories", "n_params", "val_best.loss", "pred.std.pos", "pred.std.rot",
        "pred.std_ratio.pos", "pred.std_ratio.rot", "train.steps", "train.pairs_seen", "train.epochs",
        "train.best_step", "train.pairs_per_s", "train.train_pairs"]
 )

@@ -7,8 +7,18 @@ import pytest
 from bronchocli.config import Config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.parents import log_plan_params, set_parent_status, study_parent, sweep_parent
-from bronchocli.runs.records import source_name
-from bronchocli.runs.views import README_RATIO, describe, headline, ordered_metrics, run_params, runs_table_url
+from bronchocli.runs.records import run_name, source_name
+from bronchocli.runs.views import (
+    HEADLINE,
+    README_RATIO,
+    VIEW_METRICS,
+    describe,
+    headline,
+    headline_view,
+    ordered_metrics,
+    run_params,
+    runs_table_url,
+)
 
 METRICS = {  # a model and its two image-blind references, per pair and accumulated
     "pair.pos_l2.mean": 0.84, "zero_motion.pair.pos_l2.mean": 1.2, "train_mean.pair.pos_l2.mean": 1.0,
@@ -41,7 +51,7 @@ def test_headline_ratios_and_skills_against_both_references():
     assert list(h)[:3] == [README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2"]
     assert h["ratio.train_mean.pair.pos_l2"] == pytest.approx(0.84)  # the README's figure: 0.84 / 1.0
     assert h["ratio.zero_motion.pair.pos_l2"] == pytest.approx(0.7)
-    assert h["skill.zero_motion.pair.pos_l2"] == pytest.approx(0.3)
+    assert not any(k.startswith(("skill.zero_motion.", "skill.train_mean.")) for k in h)  # = 1 - ratio: not twice
     assert h["skill.pair.pos_l2"] == pytest.approx(1 - 0.84 / 1.0)  # vs the better (lower-error) reference
     assert h["skill.pair.rot_l2"] == pytest.approx(1 - 3.0 / 2.0)  # worse than zero motion: negative
     assert h["skill.acc.pos_l2"] == pytest.approx(1 - 10.0 / 8.0)
@@ -57,6 +67,7 @@ def test_description_states_the_cell_and_the_result():
     assert "offsetnet" in before and "test patient p02" in before and "seed 1" in before and "Test:" not in before
     after = describe(cell, METRICS)
     assert "0.84 × the training-mean reference" in after and "position 0.16" in after
+    assert after.startswith(f"**{HEADLINE} = 0.84**")  # the headline first
 
 
 def test_source_name_is_the_command():
@@ -66,9 +77,27 @@ def test_source_name_is_the_command():
     assert source_name(["train.py"]) == "train.py"
 
 
-def test_runs_table_url_opens_the_model_training_view():
-    assert runs_table_url("http://127.0.0.1:5000/", "3") == \
+def test_runs_table_url_opens_the_model_training_view_on_the_headline_view():
+    assert runs_table_url("http://127.0.0.1:5000/", "3", view=None) == \
         "http://127.0.0.1:5000/#/experiments/3/runs?workflowType=machine_learning"
+    assert runs_table_url("http://127.0.0.1:5000/", "3").endswith("&viewStateShareKey=bronchopose-headline")
+
+
+def test_headline_view_sorts_by_the_headline_and_shows_it_as_columns():
+    view = headline_view()
+    assert view["orderByKey"] == f"metrics.`{HEADLINE}`" and view["orderByAsc"] is True  # a ratio: lower is better
+    assert view["selectedColumns"][0] == f"metrics.`{HEADLINE}`"
+    assert all(f"metrics.`{m}`" in view["selectedColumns"] for m in VIEW_METRICS)
+    assert sorted(VIEW_METRICS)[0] == HEADLINE  # MLflow orders the columns by name: the headline comes first
+    assert "tags.run_kind != 'sweep'" in view["searchFilter"]  # parents (nothing trained) are not in the table
+
+
+def test_run_names_put_the_telling_coordinates_first():
+    cfg = Config(name="t")
+    assert run_name(cfg.cell(arch="convlstm", rot_loss="ce", population="personalized")) == \
+        "convlstm·ce·pers·s0·world"
+    assert run_name(cfg.cell(arch="lstm", rot_loss="mse", population="cross-subject", fold="p01", seed=3,
+                             pose_frame="camera", train_trajectories=5)) == "lstm·mse·xs-p01·s3·camera·t5"
 
 
 def test_parent_run_is_created_once_and_found_again(tmp_path):

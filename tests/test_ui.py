@@ -46,8 +46,11 @@ def test_ui_serves_the_store(tmp_path):
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?{query}",
                                     timeout=10) as response:
             experiment = json.load(response)["experiment"]
-        link = f"http://127.0.0.1:{port}/#/experiments/{experiment['experiment_id']}/runs?workflowType=machine_learning"
-        assert {t["key"]: t["value"] for t in experiment["tags"]}["mlflow.experimentKind"] == "custom_model_development"
+        link = (f"http://127.0.0.1:{port}/#/experiments/{experiment['experiment_id']}/runs?workflowType=machine_learning"
+                "&viewStateShareKey=bronchopose-headline")
+        tags = {t["key"]: t["value"] for t in experiment["tags"]}
+        assert tags["mlflow.experimentKind"] == "custom_model_development"
+        assert json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])["orderByAsc"] is True  # the view
         os.killpg(proc.pid, signal.SIGTERM)
         out = proc.communicate(timeout=30)[0]
         assert f"runs of experiment ui-test: {link}" in out

@@ -59,15 +59,15 @@ class Select(Section):
     """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
 
     top: int = Field(3, ge=1)
-    by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss> or best_val_loss
+    by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss>
     over: list[Literal["arch", "rot_loss", "pose_frame", "train_trajectories"]] = ["arch", "rot_loss"]
 
     @field_validator("by")
     @classmethod
     def _validation_only(cls, v: str) -> str:
-        if not (v.startswith("val_best.") or v == "best_val_loss"):
+        if not v.startswith("val_best."):
             raise ValueError("must be a validation metric (val_best.pos_l2, val_best.rot_l2, val_best.de, "
-                             "val_best.ce, val_best.loss or best_val_loss): selection never looks at test results")
+                             "val_best.ce or val_best.loss): selection never looks at test results")
         return v
 
     @field_validator("over")

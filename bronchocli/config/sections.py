@@ -41,6 +41,9 @@ class RunsCfg(Section):
     model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
     timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for MLflow servers and databases
     busy_timeout_s: float = Field(60.0, gt=0, le=86400)  # how long a locked/briefly-down database is waited for
+    log_every: int = Field(10, ge=0)  # optimiser steps between training-curve points (0: at validations only)
+    system_metrics: bool = True  # CPU, memory, disk, network (and GPU with the `gpu` extra) sampled per run
+    system_metrics_interval_s: float = Field(10.0, gt=0, le=3600)  # seconds between system-metric samples
 
 
 class Storage(Section):

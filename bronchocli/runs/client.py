@@ -95,6 +95,11 @@ class MetricBuffer:
         self.pending.append((step, dict(values)))
         self.flush()
 
+    def log_points(self, points: list[tuple[int, dict[str, float]]]) -> None:
+        """Several steps' metrics at once (the training-curve points of a validation window, ``Trainer.on_curves``)."""
+        self.pending.extend((step, dict(values)) for step, values in points)
+        self.flush()
+
     def flush(self, wait: bool = False) -> bool:
         """Send what is pending; False (logged once per outage) when the store is away and ``wait`` is False."""
         sender = self.client if wait else getattr(self.client, "raw", self.client)  # raw: no busy wait

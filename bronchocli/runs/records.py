@@ -96,6 +96,19 @@ def non_empty(tags: Mapping[str, Any]) -> dict[str, str]:
     return {k: str(v) for k, v in tags.items() if v is not None and str(v) != ""}
 
 
+POPULATION_SHORT = {"personalized": "pers", "cross-subject": "xs"}
+
+
+def run_name(cell: Cell) -> str:
+    """The cell as a run name, most telling coordinates first and short: ``convlstm·ce·pers·s0·world``
+    (cross-subject: ``xs-p01``; ``·t5`` for a training-set size). The full label is in the description."""
+    parts = [cell.arch, cell.rot_loss, POPULATION_SHORT.get(cell.population, cell.population)
+             + (f"-{cell.fold}" if cell.fold else ""), f"s{cell.seed}", cell.pose_frame]
+    if cell.train_trajectories is not None:
+        parts.append(f"t{cell.train_trajectories}")
+    return "·".join(parts)
+
+
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
     """A cell run's tags: coordinates, key, sweep, provenance, MLflow's source fields (no empty values)."""
     tags: dict[str, Any] = cell.tags()
@@ -107,7 +120,7 @@ def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
         TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
         "profile": cfg.profile,
-        "mlflow.runName": cell.label.replace("/", "-"),
+        "mlflow.runName": run_name(cell),
         **source_tags(cfg),
         **python_tags(),
     })

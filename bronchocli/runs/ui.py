@@ -3,7 +3,10 @@
 MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
 experiment's runs table in the model-training view (``runs_table_url``),
 and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
-so the UI's own navigation lands there too. The server is sized for the machine:
+so the UI's own navigation lands there too. The link names the saved view
+``views.headline_view`` (stored as an experiment tag here, before the server
+starts): the trained runs sorted by the headline, best first, with the headline
+figures as columns. The server is sized for the machine:
 ``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
 (``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
 judges and trace jobs that a training experiment never uses).
@@ -11,6 +14,7 @@ judges and trace jobs that a training experiment never uses).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -23,7 +27,7 @@ from .. import urls
 from ..config import Config
 from ..errors import BronchoError
 from ..runs.client import check_reachable, client_for, experiment_id, mark_training_experiment
-from ..runs.views import runs_table_url
+from ..runs.views import SHARED_VIEW_TAG, VIEW_KEY, headline_view, runs_table_url
 
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
 STORE_ENV = "MLFLOW_BACKEND_STORE_URI"  # `mlflow ui --backend-store-uri` read from the environment
@@ -90,6 +94,7 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
     client = client_for(cfg)
     exp_id = experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
     mark_training_experiment(client, exp_id)
+    client.set_experiment_tag(exp_id, SHARED_VIEW_TAG + VIEW_KEY, json.dumps(headline_view()))
     base = f"http://{host}:{port}"
     console.print(f"MLflow UI for {urls.redact(cfg.paths.mlflow_uri)} at {base} (Ctrl-C to stop)\n"
                   f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",

@@ -17,12 +17,25 @@ run, beside what its plan ran (``sweep/summary.py``: stages and cells, not the
 config's grid lists, which stages and selections override). The coordinates stay tags too: report, status and the
 sweep find runs by tags.
 
-Headline metrics (``headline``): the image-blind references as ratios and
-skills, ``ratio.<ref>.<eval>.<m> = error / reference error`` and
-``skill.<ref>.<eval>.<m> = 1 - ratio`` for both references, and
-``skill.<eval>.<m>`` against the better (lower-error) of the two, as the
-report's skill figures define it. ``ratio.train_mean.pair.pos_l2`` is the
-figure the README quotes. They are logged before the other test metrics.
+Headline metrics (``headline``): the image-blind references as ratios,
+``ratio.<ref>.<eval>.<m> = error / reference error`` for both references, and
+``skill.<eval>.<m> = 1 - error / reference error`` against the better
+(lower-error) of the two, as the report's skill figures define it (one name
+per figure: a skill against one reference is 1 - its ratio, so it is not
+logged). ``ratio.train_mean.pair.pos_l2`` (``HEADLINE``) is the figure the
+README quotes and the runs table's sort key. They are logged before the other
+test metrics.
+
+The runs table (``runs_table_url``, what ``bronchopose ui`` prints) opens on a
+saved view of the experiment (``headline_view``): MLflow 3 reads a view from
+the experiment tag ``mlflow.sharedViewState.<key>`` named by the URL's
+``viewStateShareKey`` (JSON of its search facets -- ``searchFilter``,
+``orderByKey``, ``orderByAsc``, ... -- and table state -- ``selectedColumns``,
+``columnWidths``, ...; its own "Share" button writes the same). The view shows
+the runs that trained (no sweep/study/selection parents, so nothing is nested
+and collapsed), sorted by the headline, best first, with the headline figures
+as columns. Run names (``records.run_name``) are the cell in a compact form whose
+first words tell cells apart where the table cuts names off.
 
 Parent runs are in ``parents.py``.
 """
@@ -43,6 +56,14 @@ REFERENCES = ("zero_motion", "train_mean")
 HEADLINE_EVALS = ("pair", "acc")
 HEADLINE_METRICS = ("pos_l2", "rot_l2")
 README_RATIO = "ratio.train_mean.pair.pos_l2"  # pair position error / the training-mean reference's
+HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
+# Metric columns of the runs table's view. MLflow shows a group's columns sorted by name (a saved column order
+# is not applied when the table opens), so these are chosen to sort headline first.
+VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l2", "skill.pair.rot_l2",
+                "val_best.loss")
+VIEW_KEY = "bronchopose-headline"
+SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
+PARENT_KINDS = ("sweep", "study", "selection")  # run_kind tags of runs that did not train
 
 
 # -- params -------------------------------------------------------------------------------------------
@@ -80,7 +101,8 @@ def parent_params(cfg: Config) -> dict[str, str]:
 
 
 def headline(metrics: Mapping[str, float]) -> dict[str, float]:
-    """Ratios and skills against both references, README ratio first (missing inputs: left out)."""
+    """Ratios against both references and skills against the better one, README ratio first (missing inputs:
+    left out)."""
     out: dict[str, float] = {}
     for ev in HEADLINE_EVALS:
         for m in HEADLINE_METRICS:
@@ -91,7 +113,6 @@ def headline(metrics: Mapping[str, float]) -> dict[str, float]:
             for r, ref in refs.items():
                 if ref is not None and ref > 0:
                     out[f"ratio.{r}.{ev}.{m}"] = err / ref
-                    out[f"skill.{r}.{ev}.{m}"] = 1.0 - err / ref
             known = [v for v in refs.values() if v is not None and v > 0]
             if known:
                 out[f"skill.{ev}.{m}"] = 1.0 - err / min(known)
@@ -109,7 +130,8 @@ def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
 
 
 def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "") -> str:
-    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result."""
+    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result,
+    the headline first."""
     lines = [f"**{cell.label}**: {cell.arch} trained with the {cell.rot_loss} rotation loss, {cell.population}"
              + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
              f"{cell.pose_frame}-frame relative poses"
@@ -118,6 +140,8 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
     if metrics and "pair.pos_l2.mean" in metrics:
         h = headline(metrics)
         ratio = h.get(README_RATIO, math.nan)
+        lines.insert(0, f"**{HEADLINE} = {ratio:.3g}** (the headline: pair position error ÷ the training-mean "
+                        "reference's; < 1 beats it, lower is better)")
         lines.append(f"Test: pair position error {metrics['pair.pos_l2.mean']:.4g} vox = {ratio:.3g} × the "
                      f"training-mean reference's (zero motion: {h.get('ratio.zero_motion.pair.pos_l2', math.nan):.3g}"
                      f" ×); skill vs the better reference: position {h.get('skill.pair.pos_l2', math.nan):.3g}, "
@@ -129,6 +153,26 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
 # -- the UI ------------------------------------------------------------------------------------------------
 
 
-def runs_table_url(base: str, experiment_id: str) -> str:
-    """The experiment's runs table in MLflow 3's model-training view (not the GenAI overview)."""
-    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+def _column(kind: str, name: str) -> str:
+    return f"{kind}.`{name}`"  # MLflow's canonical column/sort key (makeCanonicalSortKey)
+
+
+def headline_view() -> dict:
+    """The saved view the link opens: runs that trained, best headline first, headline figures as columns."""
+    metrics = [_column("metrics", m) for m in VIEW_METRICS]
+    return {
+        "searchFilter": " and ".join(f"tags.run_kind != '{k}'" for k in PARENT_KINDS),
+        "orderByKey": _column("metrics", HEADLINE),
+        "orderByAsc": True,
+        "selectedColumns": metrics,
+        # MLflow applies widths to the columns listed in columnOrder only (its order inside a group is ignored)
+        "columnOrder": [_column("attributes", "Run Name"), *metrics],
+        "columnWidths": {_column("attributes", "Run Name"): 210,  # run names whole
+                         **{c: 24 + 7 * len(m) for c, m in zip(metrics, VIEW_METRICS)}},  # headers whole
+    }
+
+
+def runs_table_url(base: str, experiment_id: str, view: str | None = VIEW_KEY) -> str:
+    """The experiment's runs table in MLflow 3's model-training view (not the GenAI overview), on ``view``."""
+    url = f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+    return url + (f"&viewStateShareKey={view}" if view else "")

@@ -34,8 +34,8 @@ from ..config import Config, Stage, expand_grid, run_signature
 from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
-from .record import rebuild
 from .order import claim_order
+from .record import rebuild
 from .selection import settle_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 

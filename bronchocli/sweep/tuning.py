@@ -36,7 +36,7 @@ from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
 from ..runs.contract import RunInterrupted, RunPruned, cpu_threads
 from ..runs.parents import set_parent_status, start_parent, study_parent
-from ..runs.records import TAG_PARENT
+from ..runs.records import TAG_PARENT, run_name
 from .record import rebuild_trials
 from .storage import StorageError
 from .summary import log_study
@@ -265,6 +265,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
                                 f"(val_loss {metrics['val_loss']:.4g})")
 
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
+                "mlflow.runName": f"trial-{trial.number}·{run_name(cell)}",
                 "hparams_source": f"optuna:{name}#{trial.number}"}
         if parent is not None:
             tags[TAG_PARENT] = parent
@@ -277,7 +278,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
         if result.stop_requested:  # Ctrl-C during the trial's last steps (evaluation): the trial counts, none follows
             run.stop_requested = (trial.number, result.stop_requested)
-        value = result.metrics.get("best_val_loss", math.nan)
+        value = result.metrics.get("val_best.loss", math.nan)
         if not math.isfinite(value):
             raise TrialFailed(f"trial {trial.number}: no finite validation loss")
         return value

@@ -6,13 +6,19 @@
   (train/val/test as context, digest = the fingerprint), ``env.torch`` and
   ``env.cuda`` tags, the run description, ``config.yaml`` (the full resolved
   config, passwords redacted) and ``split_manifest.csv``;
-* per validation: ``train_loss``, ``val_loss``, ``val.*``, ``lr``, ``pairs_seen``,
-  ``epoch`` and ``best_val_loss`` at step = optimiser step;
+* training curves at step = optimiser step, every ``runs.log_every`` steps and
+  at every validation: ``train_loss`` (the mean since the previous point),
+  ``lr``, ``grad_norm`` (unscaled global L2 norm; at the ``log_every`` points)
+  and ``pairs_per_s`` (training throughput since the previous point), one
+  ``log_batch`` per validation;
+* per validation: ``val_loss``, ``val.*``, ``train.pairs_seen``,
+  ``train.epochs`` and ``train.skipped_steps`` (their last point is the run's
+  value: the end of a run is a validation, so they are not logged again);
 * at the end: the headline ratios and skills against both references
   (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
-  ``pred.std*``) and the budget (``train.steps``, ``train.pairs_seen``,
-  ``train.epochs``, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
+  ``pred.std*``) and the budget (``train.steps``, ``train.time_s``,
+  ``train.pairs_per_s`` averaged over the run, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
   per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
   ``runs.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
@@ -88,11 +94,16 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
         _log_file(client, run_id, out / "split_manifest.csv")
 
 
+# Logged per validation (their last value is the run's value), so not again with the test metrics at the end.
+VALIDATION_LOGGED = ("train.pairs_seen", "train.epochs", "train.skipped_steps")
+
+
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
     # The model first, so that the test metrics are logged once, as the run's and as the model's (on the test split).
     model_id = log_model(client, run_id, cfg, cell, data, outcome) if cfg.runs.model_artifact != "none" else None
     test = (dataset_name(cfg, "test"), data.fingerprint[:DIGEST_CHARS])
-    for batch in ordered_metrics(outcome.metrics):  # headline first: the UI lists metrics as logged
+    final = {k: v for k, v in outcome.metrics.items() if k not in VALIDATION_LOGGED}
+    for batch in ordered_metrics(final):  # headline first: the UI lists metrics as logged
         log_metrics(client, run_id, batch, model_id=model_id, dataset=test)
     client.set_tag(run_id, TAG_NOTE, describe(cell, outcome.metrics, cfg.paths.dataset.name))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)

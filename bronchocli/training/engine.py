@@ -6,7 +6,6 @@ this module turns prepared data into a trained network and its test results.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +39,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         weight_decay=t.weight_decay, warmup_steps=int(round(t.warmup * t.steps)), schedule=t.schedule,
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
-        checkpoint_every_s=t.checkpoint_every_s,
+        checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every,
     )
 
 
@@ -69,9 +68,11 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
                      resume_state: dict[str, Any] | None = None, stop: Any = None,
                      on_validation: Callable[[int, dict[str, float]], None] | None = None,
                      on_step: Callable[[int, int], None] | None = None,
-                     on_phase: Callable[[str], None] | None = None) -> Outcome:
+                     on_phase: Callable[[str], None] | None = None,
+                     on_curves: Callable[[list[tuple[int, dict[str, float]]]], None] | None = None) -> Outcome:
     """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split;
-    ``on_phase`` hears what happens after the last step (the test evaluation)."""
+    ``on_phase`` hears what happens after the last step (the test evaluation), ``on_curves`` the training-curve
+    points of each validation window."""
     t_start = time.perf_counter()
     torch.set_num_threads(cpu_threads(cfg))
     device = device_for(cfg)
@@ -91,7 +92,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
 
     trainer = Trainer(net, data.train, data.val, source, settings(cfg, cell, device), device=device,
                       ckpt_dir=ckpt_dir, stop=stop, on_validation=on_validation, on_step=stepped,
-                      compile=cfg.train.compile, cell_key=cell.key)
+                      compile=cfg.train.compile, cell_key=cell.key, on_curves=on_curves)
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()
@@ -117,7 +118,6 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         "train.pairs_per_s": fit.pairs_seen / max(fit.train_time_s, 1e-9) if fit.steps else 0.0,
         "train.train_pairs": float(len(data.train) * data.train.n_pairs),
         "train.train_trajectories": float(len(data.split.train)),
-        "best_val_loss": fit.best_val_loss if math.isfinite(fit.best_val_loss) else float("nan"),
         "train.frames_on_device": float(source.resident),
         "train.skipped_steps": float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
     }

@@ -23,7 +23,11 @@ a GPU machine and a host sync per logged value). One optimiser step consumes
   run ends on the best weights, whatever stopped it.
 
 Losses, metrics and non-finite checks stay on the device between validations:
-nothing forces a host sync per step on CUDA.
+nothing forces a host sync per step on CUDA. Training curves (``train_loss``,
+``lr``, ``grad_norm``, ``pairs_per_s``) get a point every ``log_every`` steps
+and at every validation: the point's loss sum and gradient norm stay on the
+device until the validation (already a host sync) reads them all at once and
+hands them to ``on_curves``; the learning rate and the clock are host values.
 """
 
 from __future__ import annotations
@@ -91,6 +95,7 @@ class Settings:
     seed: int
     eval_batch: int = 64  # pairs per validation forward
     checkpoint_every_s: float = math.inf  # seconds between checkpoints by time (train.checkpoint_every_s)
+    log_every: int = 0  # optimiser steps between training-curve points (0: a point at each validation only)
 
     @property
     def pairs_per_step(self) -> int:
@@ -185,14 +190,15 @@ class Trainer:
                  *, device: torch.device, ckpt_dir: Path | None = None, stop: Any = None,
                  on_validation: Callable[[int, dict[str, float]], None] | None = None,
                  on_step: Callable[[int, int], None] | None = None, compile: bool | str = False,
-                 cell_key: str | None = None) -> None:
+                 cell_key: str | None = None,
+                 on_curves: Callable[[list[tuple[int, dict[str, float]]]], None] | None = None) -> None:
         self.cell_key = cell_key  # written into checkpoints: a resume checks the file is this cell's
         self.net, self.train_set, self.val_set, self.source, self.s = net, train, val, source, s
         # The compiled module shares the network's parameters; state dicts and checkpoints use ``net``.
         self.forward = compile_network(net, compile)
         self.cuda_graphs = compile == "reduce-overhead" and device.type == "cuda"
         self.device, self.ckpt_dir, self.stop = device, ckpt_dir, stop
-        self.on_validation, self.on_step = on_validation, on_step
+        self.on_validation, self.on_step, self.on_curves = on_validation, on_step, on_curves
         samples_per_micro = max(1, s.micro_pairs // train.n_pairs)
         self.order = BatchOrder(len(train), samples_per_micro, s.seed)
         self.photometric = Photometric() if s.augment else None
@@ -216,6 +222,9 @@ class Trainer:
         self._loss_n = 0
         self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
         self._saved_at = time.monotonic()  # when the last checkpoint was written (checkpoints by time)
+        # Curve points since the last validation: (step, loss-sum snapshot, chunks, grad norm, lr, pairs/s).
+        self._points: list[tuple[int, torch.Tensor, int, torch.Tensor | None, float, float]] = []
+        self._clock = (0, time.perf_counter())  # (step, time) of the last curve point or the window's start
 
     # -- precision ------------------------------------------------------------------------------
     def autocast(self):
@@ -251,7 +260,18 @@ class Trainer:
             state = detach_state(state)
             yield
 
+    def _grad_norm(self) -> torch.Tensor:
+        """The gradients' global L2 norm, unscaled, on the device (inf/NaN when the scaler will skip the step)."""
+        grads = [p.grad for p in self.net.parameters() if p.grad is not None]
+        norm = torch.nn.utils.get_total_norm(grads) if grads else torch.zeros((), device=self.device)
+        if self.scaler.is_enabled():
+            norm = norm / self.scaler._scale.float()  # the scale as a tensor: get_scale() would sync
+        return norm.float()
+
     def _optimiser_step(self) -> None:
+        point = self.s.log_every > 0 and (self.step + 1) % self.s.log_every == 0
+        norm = self._grad_norm() if point else None
+        lr = self.opt.param_groups[0]["lr"]  # the rate this step uses (a host float)
         self.scaler.step(self.opt)
         if self.scaler.is_enabled():  # counted on the device: fused Adam takes found_inf without a host sync
             for found in self.scaler._found_inf_per_device(self.opt).values():
@@ -261,9 +281,39 @@ class Trainer:
         self.sched.step()
         self.step += 1
         self.backwards = 0
+        if point:
+            self._point(norm, lr)
+
+    def _point(self, norm: torch.Tensor | None, lr: float) -> None:
+        """A training-curve point at this step: device values kept, read at the next validation."""
+        now = time.perf_counter()
+        last_step, last_time = self._clock
+        pairs = (self.step - last_step) * self.s.pairs_per_step
+        self._points.append((self.step, self._loss_sum.clone(), self._loss_n, norm, lr,
+                             pairs / max(now - last_time, 1e-9)))
+        self._clock = (self.step, now)
+
+    def _curves(self) -> list[tuple[int, dict[str, float]]]:
+        """The points since the last validation as host values (one transfer), the window's loss as a mean."""
+        if not self._points or self._points[-1][0] != self.step:  # every validation ends a point
+            self._point(None, self.opt.param_groups[0]["lr"])
+        norms = [p[3] if p[3] is not None else torch.full((), math.nan, device=self.device) for p in self._points]
+        values = torch.stack([torch.stack([p[1].float() for p in self._points]), torch.stack(norms)]).tolist()
+        rows, prev_sum, prev_n = [], 0.0, 0
+        for (step, _, n, norm, lr, rate), total, gnorm in zip(self._points, values[0], values[1]):
+            row = {"lr": lr, "pairs_per_s": rate}
+            if n > prev_n:
+                row["train_loss"] = (total - prev_sum) / (n - prev_n)
+            if norm is not None:
+                row["grad_norm"] = gnorm
+            rows.append((step, row))
+            prev_sum, prev_n = total, n
+        self._points = []
+        return rows
 
     def _train_until(self, target: int) -> None:
         self.net.train()
+        self._clock = (self.step, time.perf_counter())  # throughput counts training time only
         while self.step < target:
             frames, labels = self._batch(self.micro)
             self.micro += 1
@@ -338,13 +388,15 @@ class Trainer:
         self._recalibrate()
         values = self.validate()
         self._check_finite()
+        curves = self._curves()
         train_loss, skipped = torch.stack([self._loss_sum / max(self._loss_n, 1), self._skipped]).tolist()
         self._loss_sum.zero_()
         self._skipped.zero_()
         self._loss_n = 0
-        values |= {"train_loss": train_loss, "skipped_steps": float(self._count_skipped(int(skipped))),
-                   "lr": self.opt.param_groups[0]["lr"],
-                   "pairs_seen": float(self.step * self.s.pairs_per_step), "epoch": self.epochs}
+        if self.on_curves is not None:
+            self.on_curves(curves)
+        values |= {"train.skipped_steps": float(self._count_skipped(int(skipped))),
+                   "train.pairs_seen": float(self.step * self.s.pairs_per_step), "train.epochs": self.epochs}
         improved = values["val_loss"] < self.best_val - self.s.min_delta
         if improved or self.best_state is None:
             self.best_val = min(self.best_val, values["val_loss"])
@@ -353,8 +405,7 @@ class Trainer:
             self.bad = 0
         else:
             self.bad += 1
-        values["best_val_loss"] = self.best_val
-        self.history.append({"step": float(self.step), **values})
+        self.history.append({"step": float(self.step), "train_loss": train_loss, **values})
         self.val_time += time.perf_counter() - t0
         if self.on_validation is not None:
             self.on_validation(self.step, values)
@@ -365,7 +416,7 @@ class Trainer:
     def skipped_steps(self) -> int:
         """Optimiser steps the loss scaler skipped (inf/NaN gradients) as of the last validation; kept in the
         history, so a resumed run counts the steps skipped before its checkpoint too."""
-        return int(self.history[-1].get("skipped_steps", 0)) if self.history else 0
+        return int(self.history[-1].get("train.skipped_steps", 0)) if self.history else 0
 
     def _count_skipped(self, skipped: int) -> int:
         """The run's skipped steps so far. Said, never silent; a run whose every step was skipped trained nothing."""

@@ -49,6 +49,7 @@ from ..runs.contract import (
 from ..runs.ownership import remove_checkpoint
 from ..runs.processes import process_alive, process_tags, repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
+from ..runs.system import system_metrics
 from . import artifacts, checkpoint
 from .device import device_for, env_tags, speed_for
 from .engine import fit_and_evaluate
@@ -141,6 +142,7 @@ class _StepBar:
                             TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
                             transient=False) if show else None
         self.task = None
+        self.best = float("inf")
 
     def step(self, step: int, total: int) -> None:
         if self.bar is None:
@@ -151,8 +153,9 @@ class _StepBar:
         self.bar.update(self.task, completed=step)
 
     def validated(self, step: int, values: dict[str, float]) -> None:
+        self.best = min(self.best, values["val_loss"])
         if self.bar is not None and self.task is not None:
-            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {values['best_val_loss']:.4g})")
+            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {self.best:.4g})")
 
     def phase(self, label: str, text: str) -> None:
         """What the run does after its last step (test evaluation, logging): in the bar, else in the log."""
@@ -211,11 +214,12 @@ def run_cell(
     try:
         if state is None:  # the speed setting it trains with (measured per architecture and device, or the config's)
             artifacts.log_start(client, run_id, cfg, data, cell, fast.params())
-        with _stop_on_signals(flag):
+        with _stop_on_signals(flag), system_metrics(cfg, run_id, resume=state is not None):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
                                            on_validation=validated, on_step=bar.step,
-                                           on_phase=lambda text: bar.phase(cell.label, text))
+                                           on_phase=lambda text: bar.phase(cell.label, text),
+                                           on_curves=metrics_out.log_points)  # buffered like validations
                 bar.phase(cell.label, "logging metrics, predictions" +
                           ("" if cfg.runs.model_artifact == "none" else " and the MLflow Model"))
                 metrics_out.flush(wait=True)  # the store must be back (within runs.busy_timeout_s) to finish

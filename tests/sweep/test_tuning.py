@@ -198,7 +198,7 @@ def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_ot
 
     def evaluated_under_sigint(cfg, cell, **kw):
         started.append(cell.key)
-        return RunResult(f"run{len(started)}", "FINISHED", {"best_val_loss": 1.0}, stop_requested=signal.SIGINT)
+        return RunResult(f"run{len(started)}", "FINISHED", {"val_best.loss": 1.0}, stop_requested=signal.SIGINT)
 
     monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
     with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
@@ -244,10 +244,10 @@ def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project,
         run_id_callback(run_id)
         loss = trial_cfg.train.lr * 1000
         log_params(client, run_id, {"train.lr": str(trial_cfg.train.lr)})
-        log_metrics(client, run_id, {"best_val_loss": loss})
+        log_metrics(client, run_id, {"val_best.loss": loss})
         client.set_terminated(run_id, "FINISHED")
         started.append(run_id)
-        return RunResult(run_id, "FINISHED", {"best_val_loss": loss})
+        return RunResult(run_id, "FINISHED", {"val_best.loss": loss})
 
     monkeypatch.setattr(training_run, "run_cell", trial_run)
     first = tuning.tune(cfg, target, 2, progress=False)

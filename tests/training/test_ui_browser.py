@@ -1,0 +1,220 @@
+"""A reviewer's first look, in a real browser: `bronchopose ui` on a tiny finished sweep, driven by headless
+Chromium (Debian's `chromium`, installed by .ci/run) through Playwright (the PyPI package; no browser download).
+
+What is asserted is what the page shows or fetches: the printed link lands on the runs table with the headline
+metric as a column, its values visible without a click and sorted best first; a run's training-loss chart has a
+point per logged step. Screenshots of a failing page go to ``$BRONCHOPOSE_TEST_ARTIFACTS`` (default: the test's
+tmp folder, printed); ``BRONCHOPOSE_DOCS_SCREENSHOTS=1`` refreshes the screenshots in docs/img.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from bronchocli.config import load_config
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.records import TAG_PARENT
+from bronchocli.runs.views import HEADLINE
+from bronchocli.sweep import SweepStore, Worker
+from bronchocli.sweep.plan import add_cells
+from bronchocli.training.run import run_cell
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking"]
+MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
+STEPS = 30  # with runs.log_every 1: a training-loss point per step
+DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
+
+playwright = pytest.importorskip("playwright.sync_api", reason="the browser test needs `pip install playwright`")
+pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed (.ci/run does)")
+
+CONFIG = f"""\
+name: browse
+dataset: {{root: tiny}}
+splits: {{train: 1, val: 1, test: 1, cross_subject_val: 1}}
+data: {{window: 3, image_size: 32}}
+train: {{batch_size: 6, steps: {STEPS}, val_every: {STEPS}, bn_recalibrate: 2, threads: 1}}
+runs: {{model_artifact: none, log_every: 1, system_metrics_interval_s: 1}}
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def sweep(tiny_project):
+    """A finished two-cell sweep (two seeds) of the tiny project: (config, client, experiment id, cell runs)."""
+    path = tiny_project / "browse.yaml"
+    path.write_text(CONFIG)
+    cfg = load_config(path)
+    client = client_for(cfg)
+    exp = experiment_id(client, cfg)
+    store = SweepStore(cfg.paths.storage_url)
+    store.ensure_schema()
+    cells = [cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=s) for s in (0, 1)]
+    add_cells(cfg, store, cells)
+    assert Worker(cfg, cells, store, run_cell).run() == 0
+    runs = [client.get_run(r.run_id) for r in store.rows(cfg.name)]
+    assert all(r.info.status == "FINISHED" for r in runs)
+    return path, client, exp, runs
+
+
+@pytest.fixture(scope="module")
+def ui(sweep):
+    """`bronchopose ui` on the sweep's store: (base URL, the printed runs-table link)."""
+    path, *_ = sweep
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "-c", str(path), "--port", str(port)],
+                            cwd=path.parent, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True, env={**os.environ, "COLUMNS": "400"})
+    base = f"http://127.0.0.1:{port}"
+    try:
+        link = None
+        for line in proc.stdout:  # the link is printed before the server starts
+            if "runs of experiment" in line:
+                link = line.split(": ", 1)[1].strip()
+                break
+        assert link and link.startswith(base), link
+        deadline = time.monotonic() + 300
+        while True:
+            try:
+                with urllib.request.urlopen(f"{base}/health", timeout=2) as response:
+                    if response.status == 200:
+                        break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"the UI did not come up (exit {proc.poll()})")
+                time.sleep(0.5)
+        yield base, link
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=60)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser, request, tmp_path):
+    """A fresh page (no saved UI state); its screenshot is kept when the test fails."""
+    context = browser.new_context(viewport={"width": 1600, "height": 1000})
+    pg = context.new_page()
+    pg.set_default_timeout(120_000)  # a busy 2-core machine serves the first page slowly
+    failed_before = request.session.testsfailed
+    yield pg
+    if request.session.testsfailed > failed_before:  # this test's call failed
+        folder = Path(os.environ.get("BRONCHOPOSE_TEST_ARTIFACTS") or tmp_path)
+        folder.mkdir(parents=True, exist_ok=True)
+        shot = folder / f"{request.node.name}.png"
+        with contextlib.suppress(Exception):
+            pg.screenshot(path=str(shot), full_page=True)
+            print(f"screenshot of the failing page: {shot}")
+    context.close()
+
+
+def _docs_screenshot(page, name: str) -> None:
+    if os.environ.get("BRONCHOPOSE_DOCS_SCREENSHOTS") == "1":
+        page.screenshot(path=str(DOCS_IMG / name))
+
+
+# -- helpers (also for later assertions on the sweep's parent run) -----------------------------------------------
+
+
+def open_run_artifacts(page, base: str, experiment: str, run_id: str) -> list[str]:
+    """Open a run's Artifacts tab and return the paths its tree lists (folders opened, as a reviewer would)."""
+    listed: dict[str, bool] = {}
+
+    def seen(response) -> None:
+        if "/artifacts/list" in response.url and response.ok:
+            for f in response.json().get("files", []):
+                listed[f["path"]] = f["is_dir"]
+
+    page.on("response", seen)
+    try:
+        with page.expect_response(lambda r: "/artifacts/list" in r.url):
+            page.goto(f"{base}/#/experiments/{experiment}/runs/{run_id}/artifacts")
+        opened: set[str] = set()
+        while folders := [p for p, is_dir in listed.items() if is_dir and p not in opened]:
+            for folder in folders:
+                opened.add(folder)
+                node = page.get_by_test_id("artifact-tree-node").filter(has_text=folder.rsplit("/", 1)[-1]).first
+                with page.expect_response(lambda r: "/artifacts/list" in r.url and "path=" in r.url):
+                    node.click()
+        names = page.get_by_test_id("artifact-tree-node").all_inner_texts()
+    finally:
+        page.remove_listener("response", seen)
+    return sorted(p for p in listed if p.rsplit("/", 1)[-1] in {n.strip() for n in names})
+
+
+def open_parent_run_artifacts(page, base: str, client, experiment: str, run) -> list[str]:
+    """Open the sweep's parent run (the parent of the cell run ``run``) and list its artifacts."""
+    return open_run_artifacts(page, base, experiment, run.data.tags[TAG_PARENT])
+
+
+# -- the tests ---------------------------------------------------------------------------------------------------
+
+
+def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep, page):
+    base, link = ui
+    _, _, _, runs = sweep
+    page.goto(link)
+    column = f"metrics.`{HEADLINE}`"
+    header = page.locator(f'.ag-header-cell[col-id="{column}"]')
+    header.wait_for(state="visible")
+    box = header.bounding_box()
+    assert box is not None and box["x"] + box["width"] / 2 < page.viewport_size["width"]  # on screen, no scrolling
+    assert HEADLINE in header.inner_text()
+    rows = page.locator(".ag-center-cols-container .ag-row")
+    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n", arg=2)
+    cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows.all()}
+    shown = [float(cells[i]) for i in sorted(cells)]
+    expected = sorted(r.data.metrics[HEADLINE] for r in runs)  # the cells only: no parent row, nothing collapsed
+    assert shown == pytest.approx(expected, rel=1e-9)  # the values, best (lowest ratio) first
+    best = min(runs, key=lambda r: r.data.metrics[HEADLINE])
+    first_name = page.locator('.ag-row[row-index="0"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
+    assert first_name == best.info.run_name and re.fullmatch(r"baseline·mse·pers·s\d·world", first_name)
+    _docs_screenshot(page, "mlflow-runs-table.png")
+
+
+def test_a_runs_training_loss_chart_has_a_point_per_logged_step(ui, sweep, page):
+    base, _ = ui
+    _, _, exp, runs = sweep
+    page.goto(f"{base}/#/experiments/{exp}/runs/{runs[0].info.run_id}/model-metrics")
+    with page.expect_response(lambda r: "get-history" in r.url and "metric_key=train_loss" in r.url) as got:
+        page.get_by_placeholder("Search metric charts").fill("train_loss")
+    fetched = got.value.json()["metrics"]  # the REST answer the chart is drawn from
+    assert len(fetched) >= 30 and sorted(m["step"] for m in fetched) == list(range(1, STEPS + 1))
+    page.wait_for_function("() => [...document.querySelectorAll('.js-plotly-plot')].some(p => p.data && p.data.length)")
+    points = page.eval_on_selector_all(".js-plotly-plot", "els => els.flatMap(e => (e.data || []).map(t => "
+                                                          "(t.x || []).length))")
+    assert max(points) >= 30  # what the chart draws
+    _docs_screenshot(page, "mlflow-training-curve.png")
+
+
+def test_a_runs_artifacts_are_listed_as_the_reviewer_sees_them(ui, sweep, page):
+    base, _ = ui
+    _, client, exp, runs = sweep
+    files = open_run_artifacts(page, base, exp, runs[0].info.run_id)
+    assert {"config.yaml", "predictions.csv", "trajectories.png"} <= set(files)
+    assert runs[0].data.tags[TAG_PARENT] == runs[1].data.tags[TAG_PARENT]  # one sweep parent to open
+    assert isinstance(open_parent_run_artifacts(page, base, client, exp, runs[0]), list)
