@@ -218,3 +218,17 @@ def test_a_runs_artifacts_are_listed_as_the_reviewer_sees_them(ui, sweep, page):
     assert {"config.yaml", "predictions.csv", "trajectories.png"} <= set(files)
     assert runs[0].data.tags[TAG_PARENT] == runs[1].data.tags[TAG_PARENT]  # one sweep parent to open
     assert isinstance(open_parent_run_artifacts(page, base, client, exp, runs[0]), list)
+
+
+def test_the_sweep_parent_shows_the_reports_tables(ui, sweep, page, tmp_path):
+    """`report` logs its tables to the sweep's parent run: the reviewer finds them among the parent's artifacts."""
+    base, _ = ui
+    path, client, exp, runs = sweep
+    done = subprocess.run([sys.executable, "-c", MAIN, "report", "-c", str(path), "--table", "personalized",
+                           "--out", str(tmp_path / "report")], cwd=path.parent, capture_output=True, text=True,
+                          timeout=900, env={**os.environ, "COLUMNS": "400"})
+    assert done.returncode == 0, done.stdout + done.stderr
+    written = sorted(p.name for p in (tmp_path / "report").glob("table*-personalized-*.md"))
+    assert written, done.stdout
+    files = open_parent_run_artifacts(page, base, client, exp, runs[0])
+    assert {f"report/{name}" for name in written} <= set(files), files  # the paper's table, in the UI
