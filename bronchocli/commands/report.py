@@ -47,7 +47,7 @@ def report(
     latency_device: str = typer.Option("cpu", "--latency-device", help="Ablation profiling device: cpu or cuda."),
     image_size: Optional[int] = typer.Option(None, "--image-size", help="Ablation profiling input size "
                                              "(default: data.image_size or dataset.generate.image_size)."),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="Do not print the tables."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Do not print the tables nor the progress lines."),
     to_parent: bool = typer.Option(True, "--log-to-parent/--no-log-to-parent", help="Also log the written files "
                                    "to the sweep's parent MLflow run (artifacts report/), to read them in the UI."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),

@@ -57,7 +57,7 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
         result = rep.make_report(
             ctx, names, evaluations, suffixes, out, loader=mlflow_loader(client, warnings) if figures else None,
             n_trajectories=trajectories, dataset_root=cfg.paths.dataset if figures else None, warnings=warnings,
-            progress=progress,
+            progress=None if quiet else progress,
         )
     except OSError as exc:  # e.g. the disk filled up: each file is written atomically, none is left half-written
         raise BronchoError(f"--out {out}: cannot write {exc.filename or 'the report'} ({exc.strerror or exc})"

@@ -1,9 +1,8 @@
 """The training loop: a budget of optimiser steps, validation every N steps, the best weights kept.
 
-Plain PyTorch (no training framework: importing one cost 19 s of start-up on
-a GPU machine and a host sync per logged value). One optimiser step consumes
-``train.effective_batch`` image pairs for every architecture, so a budget of
-``train.steps`` steps is the same number of pairs seen whatever the model:
+Plain PyTorch (no training framework: importing one cost 19 s of start-up on a GPU machine and a host sync per
+logged value). One optimiser step consumes ``train.effective_batch`` image pairs for every architecture, so a
+budget of ``train.steps`` steps is the same number of pairs seen whatever the model:
 
 * a micro-batch is ``train.batch_size`` pairs: that many independent pairs for
   pairwise models, ``batch_size / L`` windows of L = ``data.window`` pairs for
@@ -22,13 +21,11 @@ a GPU machine and a host sync per logged value). One optimiser step consumes
   ``train.patience`` validations without improvement the run stops early. The
   run ends on the best weights, whatever stopped it.
 
-Losses, metrics and non-finite checks stay on the device between validations:
-nothing forces a host sync per step on CUDA. Training curves (``train_loss``,
-``lr``, ``grad_norm``, ``pairs_per_s``) get a point every ``log_every`` steps
-and at every validation: the point's loss sum and gradient norm stay on the
-device until the validation (already a host sync) reads them all at once and
-hands them to ``on_curves``; the learning rate and the clock are host values.
-"""
+Losses, metrics and non-finite checks stay on the device between validations: nothing forces a host sync per step
+on CUDA. Training curves (``train_loss``, ``lr``, ``grad_norm``, ``pairs_per_s``) get a point every ``log_every``
+steps and at every validation: the point's loss sum and gradient norm stay on the device until the validation
+(already a host sync) reads them all at once and hands them to ``on_curves``; the learning rate and the clock are
+host values. """
 
 from __future__ import annotations
 

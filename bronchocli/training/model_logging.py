@@ -50,7 +50,6 @@ from ..cells import Cell
 from ..config import Config
 from ..models.portable import SPEC_FILE, WEIGHTS_FILE
 from ..runs.records import redacted
-from ..runs.views import run_params
 from . import bundle, evaluate
 from .engine import EVAL_CHUNK, Outcome
 from .network import export
@@ -139,10 +138,10 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
     precision = cfg.runs.model_artifact
     spec = model_spec(cfg, cell, data, outcome, run_id)
     weights = export(outcome.network, cell, data.image_size, precision)
-    exp_id = client.get_run(run_id).info.experiment_id
+    run = client.get_run(run_id)  # its params as logged: the cell's, and the speed setting it trained with
     logged = client.create_logged_model(
-        exp_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
-        params=redacted(run_params(cfg, cell)),
+        run.info.experiment_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
+        params=redacted(run.data.params),
         tags={"arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision})
     try:
         client.log_outputs(run_id, [LoggedModelOutput(logged.model_id, step=0)])

@@ -66,7 +66,7 @@ def finished_project(make_config, tmp_path, monkeypatch):
     storage.engine.dispose()  # the last connection closes: SQLite moves its write-ahead log into the file
     fake = tmp_path / "fakebin"
     fake.mkdir()
-    (fake / "queue").write_text(f"812_[1-2]|812|PENDING|{job_comment(cfg, 'grid')}\n")
+    (fake / "queue").write_text(f"812_[1-2]|812|PENDING|{job_comment(cfg, 'grid')}|None\n")
     for name in (*ACTING, "squeue"):
         script = fake / name
         script.write_text(f'#!/bin/sh\necho "{name} $*" >> "{fake}/calls"\n'
