@@ -20,6 +20,8 @@ import multiprocessing as mp
 import re
 import time
 import warnings
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from functools import partial
 from typing import Any, Callable, Mapping, Sequence
 
@@ -227,6 +229,26 @@ def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int
     return s
 
 
+TRIAL_SLOT_LOCK_KEY = MIGRATION_LOCK_KEY + 2  # pg_advisory_lock key of "is one more trial needed?"
+
+
+@contextmanager
+def trial_slot(cfg: Config) -> Iterator[None]:
+    """Held while a worker counts the study's finished and running trials and starts one more: two processes
+    (or machines) sharing a study otherwise both see N-1 trials and both start the N-th."""
+    url = cfg.paths.storage_url
+    if urls.is_postgres(url):
+        with database_lock(url, cfg.runs.timeout_s, "storage.url", key=TRIAL_SLOT_LOCK_KEY):
+            yield
+        return
+    db = urls.sqlite_file(url)
+    if db is None:
+        yield
+        return
+    with file_lock(f"{db}.trials.lock"):
+        yield
+
+
 def finished(study) -> int:
     return len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,
                                                          optuna.trial.TrialState.PRUNED)))
@@ -253,6 +275,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
     parent = study_parent_or_none(cfg, target, name)
 
     def run(trial) -> float:
+        run.release()  # this trial now counts as RUNNING: another process may decide whether it needs one more
         values = suggest(trial, cfg.tune.space)
         trial_cfg = cfg.with_values(values)
         cell = trial_cfg.cell(**target.coords())
@@ -284,6 +307,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
         return value
 
     run.stop_requested = None  # (trial number, signal) once a stop request arrived while a trial evaluated
+    run.release = lambda: None  # tune_worker's trial slot (``trial_slot``), released when the trial starts
     return run
 
 
@@ -299,11 +323,20 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
     ran = 0
     # A trial that fails (not pruned) is retried by the next iteration; three in a row stop this worker.
     failures = 0
-    while finished(s) + _running(s) < trials and failures < 3:
+    while failures < 3:
         if deadline is not None and time.monotonic() >= deadline:
             break
+        slot = ExitStack()  # deciding that one more trial is needed and creating it: one step across processes
+        slot.enter_context(trial_slot(cfg))
+        if finished(s) + _running(s) >= trials:
+            slot.close()
+            break
+        fn.release = slot.close  # the objective releases the slot once its trial exists (RUNNING in the storage)
         before = finished(s)
-        s.optimize(fn, n_trials=1, catch=(TrialFailed,))
+        try:
+            s.optimize(fn, n_trials=1, catch=(TrialFailed,))
+        finally:
+            slot.close()  # idempotent: released already unless the trial never started
         if fn.stop_requested is not None:
             number, signum = fn.stop_requested
             raise RunInterrupted(f"tune interrupted (signal {signum} while trial #{number} was evaluated: that trial "
