@@ -22,7 +22,8 @@ from ..config import Config
 from ..io import file_lock
 from .client import MIGRATION_LOCK_KEY, database_lock
 from .processes import process_tags
-from .records import TAG_KIND, TAG_NOTE, TAG_SWEEP, log_params, non_empty, python_tags, search_runs, source_tags
+from .records import (TAG_KIND, TAG_NOTE, TAG_SWEEP, log_params, non_empty, python_tags, search_runs, set_tags,
+                      source_tags)
 from .views import cell_params, parent_params
 
 log = logging.getLogger(__name__)
@@ -94,8 +95,7 @@ def start_parent(client: MlflowClient, run_id: str) -> None:
     """A parent is RUNNING while its command runs, tagged with that command's process: a command killed outright
     (SIGKILL) leaves it RUNNING, and ``status --repair`` (or the next command) sees the process gone and ends it."""
     client.update_run(run_id, "RUNNING")
-    for key, value in process_tags().items():
-        client.set_tag(run_id, key, value)
+    set_tags(client, run_id, process_tags())  # every worker of a sweep tags the parent as it starts
 
 
 def set_parent_status(client: MlflowClient, run_id: str, code: int) -> None:
@@ -128,8 +128,7 @@ def log_plan_params(client: MlflowClient, run_id: str, params: Mapping[str, str]
     changed = {k: v for k, v in params.items() if k in have and have[k] != str(v)[:6000]}
     if new:
         log_params(client, run_id, new)
-    for key, value in changed.items():
-        client.set_tag(run_id, key, value)
+    set_tags(client, run_id, changed)
     if changed:
         log.warning("the plan changed since parent run %s logged it (%s): its params keep the first values, "
                     "its tags of the same names hold the latest", run_id, ", ".join(sorted(changed)))

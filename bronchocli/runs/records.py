@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from mlflow.entities import Metric, Param, Run
+from mlflow.entities import Metric, Param, Run, RunTag
 from mlflow.tracking import MlflowClient
 
 from .. import __version__, urls
@@ -149,6 +149,14 @@ def log_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> 
     items = [Param(k, v) for k, v in redacted(params).items()]
     for i in range(0, len(items), _PARAM_BATCH):
         client.log_batch(run_id, params=items[i : i + _PARAM_BATCH])
+
+
+def set_tags(client: MlflowClient, run_id: str, tags: Mapping[str, Any]) -> None:
+    """Set ``tags`` on a run that other processes may be tagging at the same moment (a sweep's parent, tagged by
+    every worker as it starts). One batch: MLflow's SQL store writes a batch's tags again when another process
+    inserted the same tag first, where ``set_tag`` fails on the unique key (``tag_pk``)."""
+    if tags:
+        client.log_batch(run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
 
 def log_metrics(client: MlflowClient, run_id: str, metrics: Mapping[str, float], step: int = 0,

@@ -31,7 +31,7 @@ from ..cells import FIELDS, Cell
 from ..config import Select, Stage
 from ..io import save_figure
 from ..runs.parents import log_plan_params
-from ..runs.records import TAG_NOTE, log_metrics
+from ..runs.records import TAG_NOTE, log_metrics, set_tags
 from ..runs.views import README_RATIO
 from . import plan as planning
 from .selection import describe_selection, finished_runs
@@ -150,8 +150,7 @@ def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bo
             metrics, best = outcome(walk)
             log_metrics(client, parent, metrics)
             tags |= best | {TAG_NOTE: describe_sweep(walk, metrics, best)}
-        for key, value in tags.items():
-            client.set_tag(parent, key, value)
+        set_tags(client, parent, tags)
     except Exception as exc:  # noqa: BLE001 - a summary must never turn a finished sweep into a failed one
         log.warning("could not record the sweep's plan on its parent run %s: %s", parent, exc)
 
@@ -182,9 +181,7 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
     if note:
         tags["importances"] = note
     tags[TAG_NOTE] = describe_study(info, n_finished, shown, note)
-    for key, value in tags.items():
-        if value:
-            client.set_tag(parent, key, value)
+    set_tags(client, parent, {k: v for k, v in tags.items() if v})  # several `tune` processes may end together
     if shown:
         with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
             path = importance_figure(shown, info["counts"].get("complete", 0), note,
