@@ -22,8 +22,17 @@ from ..config import Config
 from ..io import file_lock
 from .client import MIGRATION_LOCK_KEY, database_lock
 from .processes import process_tags
-from .records import (TAG_KIND, TAG_NOTE, TAG_SWEEP, log_params, non_empty, python_tags, search_runs, set_tags,
-                      source_tags)
+from .records import (
+    TAG_KIND,
+    TAG_NOTE,
+    TAG_SWEEP,
+    log_params,
+    non_empty,
+    python_tags,
+    search_runs,
+    set_tags,
+    source_tags,
+)
 from .views import cell_params, parent_params
 
 log = logging.getLogger(__name__)
