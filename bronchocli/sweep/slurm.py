@@ -188,10 +188,16 @@ def sweep_tasks(cfg: Config) -> list[Task]:
     return tasks
 
 
-def batch_script(cfg: Config, command: Sequence[str]) -> str:
-    """The array task's script: cd to where the sweep was submitted, the ``setup`` lines, then ``exec command``."""
+STAGE_ENV = "BRONCHOPOSE_SLURM_STAGE"  # the stage an array was submitted for: its tasks stop after it
+
+
+def batch_script(cfg: Config, command: Sequence[str], stage: str | None = None) -> str:
+    """The array task's script: cd to where the sweep was submitted, the ``setup`` lines, then ``exec command``;
+    with ``stage``, the tasks work the stages up to that one only (``STAGE_ENV``): a later stage has its own
+    array, sized to its cells, which would otherwise start to find its cells taken."""
     lines = ["#!/bin/bash", "# bronchopose sweep --launcher slurm: one array task = one sweep worker",
              f"cd {shlex.quote(str(Path.cwd()))}", *cfg.slurm.setup,
+             *([f"export {STAGE_ENV}={shlex.quote(stage)}"] if stage else []),
              "# exec: the worker is the batch shell, so --signal=B:USR1 and scancel's SIGTERM reach it",
              "exec " + shlex.join(command)]
     return "\n".join(lines) + "\n"
@@ -227,7 +233,7 @@ def submit(cfg: Config, stage: str, tasks: int, command: Sequence[str], dependen
     folder.mkdir(parents=True, exist_ok=True)
     script = folder / f"{cfg.name}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.sh"
     with atomic_path(script) as tmp:
-        Path(tmp).write_text(batch_script(cfg, command))
+        Path(tmp).write_text(batch_script(cfg, command, stage))
     out = _run([*sbatch_args(cfg, stage, tasks, dependency), str(script)], f"submitting stage {stage}")
     return out.strip().split(";")[0]
 
@@ -284,28 +290,27 @@ def add_dependency(jobs: Sequence[str], earlier: Sequence[str]) -> None:
 def submit_missing(walk: StageWalk, command: Sequence[str], console: Console) -> list[str]:
     """Submit arrays for what the queued/running tasks will not cover; returns the new job ids (none: covered).
 
-    Every task works through the stages in order, so the first stage with cells left counts every task labelled
-    with it or an earlier stage, and wants a task per cell runnable now (``runnable_now``, at most
-    ``tasks_wanted``); a later stage's array waits (``afterany``) for the arrays before it, and an array queued
-    for a later stage is made to wait for an earlier stage's new array too (``add_dependency``)."""
+    A task works the stages up to the one its array was submitted for (``STAGE_ENV``), never a later one, so
+    each stage counts the tasks labelled with it: the first stage with cells left wants a task per cell runnable
+    now (``runnable_now``, at most ``tasks_wanted``); a later stage's array waits (``afterany``) for the arrays
+    before it, and an array queued for a later stage is made to wait for an earlier stage's new array too
+    (``add_dependency``)."""
     cfg = walk.cfg
     active = sweep_tasks(cfg)
     for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
         if step.settled is not None:
             console.print(describe_selection(step.settled), highlight=False)
             add_cells(cfg, walk.store, walk.cells(step.stage, mine=False) or [])
-    order = [s.name for s in walk.stages]
     submitted: list[str] = []
     earlier: list[str] = []  # array jobs labelled with an earlier stage (queued, running or just submitted)
     first = True
-    for i, (stage, left) in enumerate(walk.work_left()):
+    for stage, left in walk.work_left():
         mine = [t for t in active if t.stage == stage.name]
         if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=int)):
             add_dependency(queued, earlier)
         if left:
             have = sum(t.count for t in mine)
             if first:
-                have += sum(t.count for t in active if t.stage in order[:i])
                 want = tasks_wanted(cfg, runnable_now(walk, stage, active))
                 if not want and not have:  # only cells of dead tasks whose claims are not stale yet: wait
                     break

@@ -18,6 +18,7 @@ from rich.console import Console
 from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
+from ..errors import BronchoError
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
@@ -139,11 +140,18 @@ def _final(console: Console, plan: planning.Plan, max_retries: int) -> int:
 
 
 def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: StopSignals,
-                runner: Runner = default_runner, exit_when_idle: bool = True) -> int:
+                runner: Runner = default_runner, exit_when_idle: bool = True, last_stage: str | None = None) -> int:
     """One worker taking the stages in order (a Slurm array task): claim the first stage's cells; go on to a later
     stage only once every cell before it is done, settling its selection first (recorded once, whichever task gets
     there first). Returns when nothing is left here: cells running elsewhere are theirs to finish, and with
-    ``exit_when_idle`` this worker does not wait for them (later stages' tasks start when those end)."""
+    ``exit_when_idle`` this worker does not wait for them (later stages' tasks start when those end).
+
+    With ``last_stage`` (the stage the task's array was submitted for) the worker stops after that stage: the
+    later stages have arrays of their own, sized to their cells, whose tasks would otherwise find them taken."""
+    names = [s.name for s in planning.stages_of(cfg)]
+    if last_stage is not None and last_stage not in names:
+        raise BronchoError(f"this task was submitted for stage {last_stage!r}, which the config's stages no longer "
+                           f"have ({', '.join(names)}); run `bronchopose sweep --cancel` and submit again")
     for step in planning.StageWalk(cfg, store, only).steps():
         if step.waits:
             log.info("stage %s waits: %d cell(s) of stage %s are not done", step.stage.name, step.waits,
@@ -151,15 +159,17 @@ def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: Sto
             return EXIT_OK
         if step.settled is not None:
             log.info("%s", describe_selection(step.settled))
-        if not step.cells:
-            continue
-        planning.add_cells(cfg, store, step.cells)
-        worker = Worker(cfg, step.cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
-        code = worker.run()
-        if code != EXIT_OK or worker.idle:
-            if worker.idle:
-                log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
-            return code
+        if step.cells:
+            planning.add_cells(cfg, store, step.cells)
+            worker = Worker(cfg, step.cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
+            code = worker.run()
+            if code != EXIT_OK or worker.idle:
+                if worker.idle:
+                    log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
+                return code
+        if step.stage.name == last_stage and last_stage != names[-1]:
+            log.info("stage %s done here: later stages are left to their own Slurm arrays", last_stage)
+            return EXIT_OK
     end_parent(cfg, store, only)  # every stage done: a detached sweep has no watcher to end its parent run
     return EXIT_OK
 

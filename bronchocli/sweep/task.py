@@ -9,8 +9,9 @@ onto the task's command line (``ps`` shows it to every user): ``seal`` moves
 those values into a file only the user can read (mode 0600, beside the task
 logs) and the spec shows them redacted and names that file. The task loads the same config the same way
 (``TaskSpec.load``, which the ``sweep`` command itself uses), checks its paths
-and runs one worker over the stage walk (``staged.work_stages``); it exits when
-nothing is left that it can claim. On SIGUSR1 (Slurm's time-limit warning,
+and runs one worker over the stage walk (``staged.work_stages``) up to the stage
+its array was submitted for (``slurm.STAGE_ENV``, set by the batch script); it
+exits when nothing is left there that it can claim. On SIGUSR1 (Slurm's time-limit warning,
 ``--signal=B:USR1@<s>``) the worker gives its cell back and the task requeues
 itself (``slurm.requeue``).
 
@@ -36,7 +37,7 @@ from ..cells import Selection, parse_only
 from ..config import Config, check_paths, load_config
 from ..errors import BronchoError
 from .pool import worker_config
-from .slurm import logs_dir, requeue
+from .slurm import STAGE_ENV, logs_dir, requeue
 from .staged import work_stages
 from .storage import SweepStore
 from .worker import EXIT_INTERRUPTED, Runner, StopSignals, default_runner, slurm_task
@@ -174,7 +175,8 @@ def run_task(cfg: Config, store: SweepStore, only: Selection, runner: Runner = d
     log.info("sweep worker %s, Slurm task %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, slurm_task(),
              os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
     try:
-        code = work_stages(wcfg, store, only, signals=signals, runner=runner, exit_when_idle=cfg.slurm.exit_when_idle)
+        code = work_stages(wcfg, store, only, signals=signals, runner=runner, exit_when_idle=cfg.slurm.exit_when_idle,
+                           last_stage=os.environ.get(STAGE_ENV) or None)
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
     if signals.requested == signal.SIGUSR1 and (task := slurm_task()):

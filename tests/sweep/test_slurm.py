@@ -462,6 +462,7 @@ def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, t
     assert all(r.claimed_at >= first_done for r in done if r.coords["seed"] == 1)  # stage 2 only after stage 1
     stage_two = "".join(p.read_text() for p in (cfg.paths.base / "runs" / "slurm-logs").glob(f"{second}_*.log"))
     assert "nothing to claim" not in stage_two  # no stage-2 task started while stage 1 ran
+    assert all(f" {second}_" in r.worker for r in done if r.coords["seed"] == 1)  # stage 2's cell: its own task
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in done}
     client = client_for(cfg)
     assert client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg))).info.status == "FINISHED"

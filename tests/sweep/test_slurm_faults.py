@@ -148,3 +148,46 @@ def test_the_task_that_finds_the_sweep_done_ends_its_parent_run(make_config, fak
     assert client.get_run(parent).info.status == "RUNNING"
     assert run_task(cfg, store, parse_only([]), fake_runner) == 0  # a detached sweep: no watcher
     assert client.get_run(parent).info.status == "FINISHED"
+
+
+def test_a_task_stops_after_the_stage_its_array_was_submitted_for(make_config, fake_dir, monkeypatch):
+    """A stage-1 task still alive when stage 1 ends must not take stage 2's cells: stage 2 has its own array, sized
+    to its cells, whose tasks would then start to find nothing (issue 30, item 4). Without a stage it goes on."""
+    from sweep_fakes import fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.sweep.task import run_task
+
+    cfg = two_stages(make_config)
+    for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
+        (fake_dir / f"val-{arch}-mse").write_text(str(val))
+    store = SweepStore(cfg.paths.storage_url)
+    prepare(cfg, store, dataset=False)
+    monkeypatch.setenv(launcher.STAGE_ENV, "first")
+    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    rows = store.rows(cfg.name)
+    assert sorted(r.coords["seed"] for r in rows) == [0, 0, 0] and {r.state for r in rows} == {"finished"}
+    monkeypatch.setenv(launcher.STAGE_ENV, "second")  # stage 2's task: the selection, then its cell
+    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    second = [r for r in store.rows(cfg.name) if r.coords["seed"] == 1]
+    assert [(r.coords["arch"], r.state) for r in second] == [("lstm", "finished")]
+    monkeypatch.setenv(launcher.STAGE_ENV, "third")
+    with pytest.raises(Exception, match="submitted for stage 'third', which the config's stages no longer have"):
+        run_task(cfg, store, parse_only([]), fake_runner)
+
+
+def test_a_later_stage_without_tasks_gets_its_array_though_earlier_stage_tasks_are_still_alive(
+        make_config, fake_dir, monkeypatch):
+    from sweep_fakes import fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.sweep.task import run_task
+
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    monkeypatch.setenv(launcher.STAGE_ENV, "first")
+    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    # stage 1 is done; its last task has not left the queue yet, and stage 2 has no array (cancelled)
+    slurm = FakeSlurm(monkeypatch, [Task("7_0", "7", "COMPLETING", "first", 1)])
+    submit_missing(walk, ["python"], quiet())
+    assert slurm.submitted == [("100", "second", 1, ())]  # the stage-1 task stops after stage 1: not counted

@@ -10,7 +10,7 @@ from sweep_fakes import fake_runner
 from bronchocli.errors import ConfigError
 from bronchocli.sweep import SweepStore, Worker, prepare, task
 from bronchocli.sweep import slurm as slurm_launcher
-from bronchocli.sweep.slurm import _count, batch_script, check, requeue, sbatch_args
+from bronchocli.sweep.slurm import STAGE_ENV, _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.status import slurm_job
 from bronchocli.sweep.task import TaskSpec
 
@@ -46,6 +46,9 @@ def test_the_batch_script_runs_setup_then_execs_one_worker(make_config):
     assert "arch=lstm;seed=0" in lines[-1] and "'" + spec.to_json() + "'" in lines[-1]  # quoted for the shell
     assert TaskSpec.from_json(shlex.split(lines[-1])[-1]) == spec  # the task reads back what the launcher wrote
     assert lines.index("module load cuda") < len(lines) - 1
+    assert not any(STAGE_ENV in line for line in lines)
+    staged = batch_script(cfg, task.command(cfg, spec), "second stage").splitlines()
+    assert f"export {STAGE_ENV}='second stage'" in staged and staged[-1] == lines[-1]  # its tasks stop there
 
 
 def test_an_array_task_loads_the_config_the_command_loaded_and_refuses_a_bad_spec(make_config, capsys):
