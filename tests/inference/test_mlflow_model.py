@@ -12,17 +12,13 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+from inference.pose_tolerance import assert_close, close
 from PIL import Image
 
 from bronchocli.inference.loading import resolve
 from bronchocli.inference.mlflow_model import FrameSizeWarning, ModelInputError, check_frames
 from bronchocli.runs.client import client_for
 from bronchocli.training.evaluate import POSE_COLS
-
-# Evaluation scored the fp16-rounded weights the model ships (training.network.round_to_export_), in fp32, in the
-# same chunks: what remains is the kernels' summation order. Evaluation ran channels-last, the model runs
-# contiguous (conftest pins the thread count, the other source): ~1e-4 of these untrained networks' output scale.
-TOL = dict(rtol=5e-3, atol=1e-2)
 
 
 def frames_of(run, key: str) -> np.ndarray:
@@ -52,7 +48,7 @@ def test_pyfunc_predicts_the_runs_logged_predictions_of_every_test_trajectory(ti
         frames = frames_of(tiny_run, key)
         out = pyfunc.predict(frames)
         assert out.shape == (len(frames) - 1, 6) and out.dtype == np.float64
-        np.testing.assert_allclose(out, logged_relative(tiny_run, key), **TOL)
+        assert_close(out, logged_relative(tiny_run, key))
 
 
 def test_a_temporal_model_predicts_in_the_chunks_evaluation_used(tiny_temporal_run):
@@ -63,9 +59,9 @@ def test_a_temporal_model_predicts_in_the_chunks_evaluation_used(tiny_temporal_r
     assert model.get_raw_model().chunk == 3
     for key in run.test_keys():
         frames = frames_of(run, key)
-        np.testing.assert_allclose(model.predict(frames), logged_relative(run, key), **TOL)
+        assert_close(model.predict(frames), logged_relative(run, key))
     whole = model.get_raw_model().net(torch.from_numpy(frames.transpose(0, 3, 1, 2)).unsqueeze(0))[0][0]
-    assert not np.allclose(whole.detach().double().numpy(), logged_relative(run, key), **TOL)  # chunks matter
+    assert not close(whole.detach().double().numpy(), logged_relative(run, key))  # chunks matter
 
 
 def test_the_model_has_a_signature_an_input_example_fp16_weights_and_its_spec(tiny_run, pyfunc):
@@ -144,5 +140,4 @@ assert not any(m.startswith(("vtk", "bronchocli.render", "bronchocli.generation"
     env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
-    np.testing.assert_allclose(np.load(tmp_path / "out.npy"), logged_relative(tiny_run, tiny_run.test_keys()[0]),
-                               **TOL)
+    assert_close(np.load(tmp_path / "out.npy"), logged_relative(tiny_run, tiny_run.test_keys()[0]))

@@ -23,16 +23,13 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+from inference.pose_tolerance import assert_close
 from mlflow.models import Model
 
 from bronchocli import api
 from bronchocli.inference.loading import resolve
 from bronchocli.runs.client import client_for
 from bronchocli.training import bundle
-
-# Same fp16 weights and fp32 compute on both sides; only the kernels' summation order (thread count, another
-# torch build's kernels) may differ, which an untrained 4-step network amplifies to ~1e-3 relative.
-TOL = dict(rtol=5e-3, atol=1e-2)
 
 SCRIPT = """\
 import importlib.util, json, sys
@@ -90,7 +87,7 @@ def test_a_logged_model_loads_and_predicts_with_only_torch_and_mlflow(tiny_run, 
     example = Model.load(str(local)).load_input_example(str(local))
     ours = api.predict(api.load_model(tiny_run.run_id, mlflow_uri=tiny_run.cfg.paths.mlflow_uri), example)
     assert bare.shape == ours.shape == (len(example) - 1, 6) and bare.dtype == np.float64
-    np.testing.assert_allclose(bare, ours, **TOL)
+    assert_close(bare, ours)  # same weights, fp32: kernels' summation order only
 
 
 def test_mlflow_loads_the_model_where_bronchocli_cannot_be_imported(tiny_run, tmp_path):
@@ -105,7 +102,7 @@ def test_mlflow_loads_the_model_where_bronchocli_cannot_be_imported(tiny_run, tm
     local = Path(mlflow.artifacts.download_artifacts(resolve(client_for(tiny_run.cfg), tiny_run.run_id).location))
     example = Model.load(str(local)).load_input_example(str(local))
     ours = api.predict(api.load_model(tiny_run.run_id, mlflow_uri=tiny_run.cfg.paths.mlflow_uri), example)
-    np.testing.assert_allclose(np.load(out), ours, **TOL)
+    assert_close(np.load(out), ours)
 
 
 def test_the_model_carries_the_projects_own_model_code_and_lists_what_it_imports(tiny_run):

@@ -21,7 +21,7 @@ def columns(errors: pd.DataFrame, source: str) -> list[str]:
     return [c for c in errors.columns if c.startswith(f"{source}.")]
 
 
-FP16 = 5e-3  # relative tolerance of the model's errors (see test_mlflow_model.TOL); references are exact
+FP16 = 5e-3  # relative tolerance of the model's errors (see pose_tolerance.py); references are exact
 
 
 def trajectory_path(run, key: str) -> Path:
