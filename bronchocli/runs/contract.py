@@ -48,6 +48,12 @@ class RunInterrupted(RunStopped):
     signal: int | None = None  # the signal that stopped it: a sweep worker stops (and a Slurm task requeues) on it
 
 
+class RunTakenOver(RunStopped):
+    """This process no longer owns its run: it stalled past the sweep's staleness cut-off and another worker took
+    the cell over (resuming the same run from the same checkpoint). Nothing more of this process is written to
+    the run or its checkpoint; the run is left to its new owner."""
+
+
 class RunPruned(RunStopped):
     """An observer (the Optuna pruner) stopped the run after a validation; KILLED, tagged ``pruned``."""
 

@@ -2,12 +2,15 @@
 
 A worker (``worker.py``) installs ``StopSignals`` (SIGINT, SIGTERM, and SIGUSR1 in a Slurm task) and runs a
 ``Heartbeat`` beside each cell it holds: the heartbeat refreshes the claim in the claims table, and tells the
-worker once when another worker has taken the claim over (this one looked dead).
+worker once when another worker has taken the claim over (this one looked dead); ``Heartbeat.holds`` is what
+the run asks before it writes a checkpoint or ends, so a worker that stalled past the cut-off and woke up
+never writes over the run of the worker that took its cell over.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import signal
 import threading
@@ -66,11 +69,31 @@ class Heartbeat(threading.Thread):
     """Refreshes the claim every ``interval`` seconds; calls ``on_lost`` once if the claim is gone."""
 
     def __init__(self, store: SweepStore, token: str, interval: float, on_lost: Callable[[], None],
-                 signals: StopSignals):
+                 signals: StopSignals, lease_s: float = math.inf):
         super().__init__(name="sweep-heartbeat", daemon=True)
         self.store, self.token, self.interval, self.on_lost, self.signals = store, token, interval, on_lost, signals
+        self.lease_s = lease_s  # sweep.stale_after_s: how long after its last heartbeat a claim can be taken over
         self.lost = False
+        self.renewed_at = time.monotonic()
         self._halt = threading.Event()
+
+    def holds(self) -> bool:
+        """Whether this worker still holds the claim, asked before the run writes a checkpoint or ends: renews it
+        (so no takeover can start for ``lease_s``) and answers False once another worker took it over. With the
+        claims database away it holds while its last renewal is well within ``lease_s`` (nobody can have
+        taken it over yet), and not after: past that, a worker cut off from the database may have lost it."""
+        if self.lost:
+            return False
+        try:
+            alive = self.store.heartbeat(self.token)
+        except StorageError as exc:
+            log.warning("claim not renewed: %s", exc)
+            return time.monotonic() - self.renewed_at < 0.8 * self.lease_s
+        if alive:
+            self.renewed_at = time.monotonic()
+        else:
+            self.lost = True
+        return alive
 
     def run(self) -> None:
         while not self._halt.wait(self.interval):
@@ -83,7 +106,9 @@ class Heartbeat(threading.Thread):
             except StorageError as exc:  # transient outage: the claim goes stale only after stale_after_s
                 log.warning("heartbeat failed: %s", exc)
                 continue
-            if not alive and not self._halt.is_set():
+            if alive:
+                self.renewed_at = time.monotonic()
+            elif not self._halt.is_set():
                 self.lost = True
                 self.on_lost()
                 return

@@ -37,7 +37,7 @@ from ..config import Config
 from ..errors import BronchoError, MlflowUnreachable, resumable
 from ..retry import retry
 from ..runs.client import MlflowBusy, client_for, experiment_id
-from ..runs.contract import checkpoint_dir, failure_reason, resume_file
+from ..runs.contract import RunTakenOver, checkpoint_dir, failure_reason, resume_file
 from ..runs.ownership import remove_checkpoint
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
@@ -207,7 +207,8 @@ class Worker:
         tags = {TAG_CLAIM: claim.token, TAG_WORKER: self.ident, TAG_ATTEMPT: str(claim.row.attempts)}
         if self._parent is not None:
             tags[TAG_PARENT] = self._parent
-        hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals)
+        hb = Heartbeat(self.store, claim.token, self.cfg.sweep.heartbeat_s, on_lost, self.signals,
+                       lease_s=self.cfg.sweep.stale_after_s)
         try:
             resume = self._resumable(claim.released_run, cell)
         except (MlflowBusy, MlflowUnreachable) as exc:  # cannot tell whether to resume: never start afresh
@@ -220,7 +221,8 @@ class Worker:
         hb.start()
         try:
             self.signals.in_runner = True
-            result = self.runner(self.cfg, cell, extra_tags=tags, progress=False, run_id_callback=on_run_id, **kw)
+            result = self.runner(self.cfg, cell, extra_tags=tags, progress=False, run_id_callback=on_run_id,
+                                 owns=hb.holds, **kw)
         except BaseException as exc:  # noqa: BLE001 - every outcome must be recorded on the row
             error = exc
         finally:
@@ -246,7 +248,7 @@ class Worker:
 
     def _record(self, claim: Claim, cell: Cell, result: Any, error: BaseException | None, run_id: str | None,
                 elapsed: float, lost: bool) -> str:
-        if lost or isinstance(error, ClaimLost):
+        if lost or isinstance(error, (ClaimLost, RunTakenOver)):
             return self._lost(cell, run_id, claim.token)
         if error is not None and is_interrupt(error):
             if self.signals.requested is None and getattr(error, "signal", None) is not None:

@@ -45,7 +45,7 @@ from .. import metrics
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
-from ..runs.contract import RESUME_FILE, RunInterrupted
+from ..runs.contract import RESUME_FILE, RunInterrupted, RunTakenOver
 from . import checkpoint
 from .network import PoseRegressor
 
@@ -488,6 +488,8 @@ class Trainer:
     def save_resume(self) -> Path | None:
         if self.ckpt_dir is None:
             return None
+        if (owns := getattr(self.stop, "owns", None)) is not None and not owns():  # never overwrite the new owner's
+            raise RunTakenOver(f"step {self.step}: another sweep worker took the run over; no checkpoint written")
         path = checkpoint.save(self.ckpt_dir / RESUME_FILE, self.state())
         self._saved_at = time.monotonic()
         return path

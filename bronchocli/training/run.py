@@ -14,7 +14,9 @@ the run KILLED with the signal and the checkpoint's path as its reason
 ``resume=`` continues such a run from its checkpoint. Between signals a
 checkpoint is written every ``train.checkpoint_every_s`` seconds, so a hard
 kill (OOM, ``kill -9``) loses at most that much. An ``on_validation`` observer may raise
-``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. A NaN/inf loss
+``RunPruned`` (the tuner's pruner): KILLED, tagged ``pruned``. With ``owns`` (a sweep worker's claim,
+asked before every checkpoint and before the run is ended) a process that lost its run to another worker
+stops writing to it (``RunTakenOver``: no checkpoint, no status; the run is the new owner's). A NaN/inf loss
 or any other error marks the run FAILED with the reason in the
 ``failure_reason`` tag. A signal that arrives during the test evaluation lets
 the run finish; ``RunResult.stop_requested`` passes it on.
@@ -42,6 +44,7 @@ from ..runs.contract import (
     RunPruned,
     RunResult,
     RunStopped,
+    RunTakenOver,
     checkpoint_dir,
     failure_reason,
     resume_file,
@@ -63,10 +66,15 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # SIGUSR1: Slurm
 
 
 class StopFlag:
-    """Turns the first stop signal into a request to stop after the current step; a second SIGINT aborts."""
+    """Turns the first stop signal into a request to stop after the current step; a second SIGINT aborts.
 
-    def __init__(self) -> None:
+    ``owns`` (from a sweep worker) says whether this process still owns the run; the training loop asks it
+    before each checkpoint it writes (``RunTakenOver`` when not), so a worker that stalled and lost its cell
+    never overwrites the checkpoint of the worker that took the run over."""
+
+    def __init__(self, owns: Callable[[], bool] | None = None) -> None:
         self.signal: int | None = None
+        self.owns = owns
 
     def __call__(self, signum, frame) -> None:
         if self.signal is not None and signum == signal.SIGINT:
@@ -178,8 +186,10 @@ def run_cell(
     progress: bool = True,
     on_validation: Callable[[int, dict[str, float]], None] | None = None,
     run_id_callback: Callable[[str], None] | None = None,
+    owns: Callable[[], bool] | None = None,
 ) -> RunResult:
-    """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc)."""
+    """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc), unless ``owns``
+    says another worker took it over."""
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
     fast = speed_for(cfg, cell.arch, device)  # a bad train.speed_settings file: one line, before any work
@@ -195,7 +205,10 @@ def run_cell(
         client.set_tag(run_id, key, value)
     if run_id_callback:
         run_id_callback(run_id)
-    flag = StopFlag()
+    flag = StopFlag(owns)
+
+    def still_ours() -> bool:
+        return owns is None or owns()
     bar = _StepBar(progress, cell.label)
     metrics_out = MetricBuffer(client, run_id)  # an MLflow outage during training is waited out, not fatal
     if state is not None:  # validations the checkpoint holds but MLflow lacks (buffered when the store went away)
@@ -220,6 +233,9 @@ def run_cell(
                                            on_validation=validated, on_step=bar.step,
                                            on_phase=lambda text: bar.phase(cell.label, text),
                                            on_curves=metrics_out.log_points)  # buffered like validations
+                if not still_ours():  # stalled past the cut-off while evaluating: the outcome is the new owner's
+                    raise RunTakenOver(f"run {run_id} was taken over by another sweep worker; its outcome is not "
+                                       "logged by this one")
                 bar.phase(cell.label, "logging metrics, predictions" +
                           ("" if cfg.runs.model_artifact == "none" else " and the MLflow Model"))
                 metrics_out.flush(wait=True)  # the store must be back (within runs.busy_timeout_s) to finish
@@ -227,6 +243,9 @@ def run_cell(
             finally:
                 bar.close()
             client.set_terminated(run_id, "FINISHED")  # before the checkpoint goes: an outage here resumes it
+    except RunTakenOver as exc:
+        log.warning("%s", exc)  # nothing written: the run, its status and its checkpoint are the new owner's
+        raise
     except RunStopped as exc:
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
@@ -234,12 +253,17 @@ def run_cell(
         _end_run(client, run_id, "KILLED", str(exc))
         raise
     except KeyboardInterrupt:
-        _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
+        if still_ours():
+            _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
         exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
         exc = out_of_memory(exc) or exc  # MemoryError, torch's allocator: one line, the run FAILED with it
         reason = failure_reason(exc)
+        if not still_ours():  # a stalled process failing after the takeover: the run is the new owner's
+            log.warning("run %s failed here (%s) after another sweep worker took it over; left to that one",
+                        run_id, reason)
+            raise RunTakenOver(f"run {run_id} was taken over by another sweep worker ({reason})") from None
         _end_run(getattr(client, "raw", client) if isinstance(exc, OUTAGES) else client, run_id, "FAILED", reason)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             remove_checkpoint(ckpt, "run failed, not resumable")

@@ -307,3 +307,33 @@ def test_an_unreachable_store_releases_the_cell_without_an_attempt_and_the_run_i
     first = client.get_run(made[0])
     assert first.info.status == "FAILED" and "MlflowUnreachable" in first.data.tags[TAG_FAILURE]  # not RUNNING
     assert runs_by_cell(cfg, "RUNNING") == {} and runs_by_cell(cfg, "FINISHED") == {row.cell_key: 1}
+
+
+def test_a_claim_is_held_through_a_database_outage_only_while_nobody_can_have_taken_it_over(monkeypatch):
+    from bronchocli.sweep import liveness
+    from bronchocli.sweep.liveness import Heartbeat, StopSignals
+    from bronchocli.sweep.storage import StorageError
+
+    class Store:
+        answer: bool | None = True  # None: the claims database is away
+
+        def heartbeat(self, token):
+            if self.answer is None:
+                raise StorageError("could not connect")
+            return self.answer
+
+    now = [100.0]
+    monkeypatch.setattr(liveness.time, "monotonic", lambda: now[0])
+    store = Store()
+    hb = Heartbeat(store, "t", 1.0, lambda: None, StopSignals(), lease_s=60.0)
+    assert hb.holds()  # renewed at 100
+    store.answer, now[0] = None, 140.0
+    assert hb.holds()  # 40 s without the database: nobody can have taken it over yet
+    now[0] = 150.0
+    assert not hb.holds()  # 50 s: near the cut-off, another worker may have
+    store.answer = True
+    assert hb.holds() and not hb.lost  # back: renewed
+    store.answer = False
+    assert not hb.holds() and hb.lost  # taken over: for good
+    store.answer = True
+    assert not hb.holds()

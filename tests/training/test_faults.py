@@ -356,3 +356,32 @@ def test_slurms_time_limit_warning_checkpoints_the_step_it_lands_on_and_the_resu
     assert [(m.step, m.value) for m in client.get_metric_history(run_id, "resumed_from_step")] == [(5, 5.0)]
     assert sorted(m.step for m in client.get_metric_history(run_id, "val_loss")) == [4, 8]  # nothing trained twice
     assert run.data.tags["sweep_worker"] == "second"  # the worker that resumed it, not the first one
+
+
+def test_a_run_cell_that_lost_its_run_to_another_worker_leaves_the_run_and_checkpoint_alone(tmp_path):
+    """A stalled sweep worker woken after the takeover: its run_cell writes neither a checkpoint nor a status
+    over the run the new owner now trains (issue 30: it used to mark the new owner's run KILLED)."""
+    from bronchocli.runs.contract import RunTakenOver
+
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=12, image_size=32)
+    cfg = load_config(write_config(tmp_path, steps=8, val_every=2))
+    cell = cfg.cell(arch="baseline", rot_loss="ce", population="personalized")
+    client = client_for(cfg)
+    taken: dict[str, str] = {}
+
+    def owns() -> bool:
+        return not taken
+
+    def taken_over_after_step_4(step, values):
+        if step == 4:  # the new owner reopened the run (RUNNING, its claim) and wrote its checkpoint
+            run_id = search_runs(client, [experiment_id(client, cfg)])[0].info.run_id
+            client.set_tag(run_id, "sweep_claim", "the new owner")
+            (cfg.paths.checkpoints / run_id / "last.pt").write_bytes(b"the new owner's checkpoint")
+            taken["run_id"] = run_id
+            os.kill(os.getpid(), signal.SIGTERM)  # what the heartbeat's on_lost sends its own worker
+
+    with pytest.raises(RunTakenOver):
+        run_cell(cfg, cell, progress=False, on_validation=taken_over_after_step_4, owns=owns)
+    run = client.get_run(taken["run_id"])
+    assert run.info.status == "RUNNING" and "failure_reason" not in run.data.tags  # the new owner's, untouched
+    assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").read_bytes() == b"the new owner's checkpoint"

@@ -69,3 +69,26 @@ def test_checkpoints_are_written_by_time_independently_of_validation(tmp_path, m
     saved.clear()
     never.fit()
     assert saved == [6]  # the default (no time given to the loop): only the validation's
+
+
+def test_a_run_taken_over_by_another_worker_never_overwrites_its_checkpoint(tmp_path):
+    """A sweep worker that stalled past the cut-off lost its cell to another worker, which resumed the same run
+    from the same checkpoint folder; woken up, the stalled one must not write its stale state over it."""
+    from bronchocli.runs.contract import RunTakenOver
+
+    flag = Flag()
+    flag.owns = lambda: not taken
+    taken = False
+    theirs = tmp_path / "last.pt"
+
+    def on_step(step, total):
+        nonlocal taken
+        if step == 5:  # the other worker took the run over and wrote its checkpoint; ours is then stopped
+            taken = True
+            theirs.write_bytes(b"the new owner's checkpoint")
+            flag.signal = signal.SIGTERM
+
+    t = trainer(settings(steps=12, val_every=4), ckpt_dir=tmp_path, stop=flag, on_step=on_step)
+    with pytest.raises(RunTakenOver, match="step 5: another sweep worker took the run over"):
+        t.fit()
+    assert theirs.read_bytes() == b"the new owner's checkpoint"
