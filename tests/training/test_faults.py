@@ -17,6 +17,7 @@ from training.test_checkpoint import plant
 
 from bronchocli.config import load_config
 from bronchocli.errors import DataError
+from bronchocli.runs import client as client_module
 from bronchocli.runs.client import MlflowBusy, client_for, experiment_id, retry_busy
 from bronchocli.runs.contract import RunInterrupted
 from bronchocli.runs.processes import TAG_PID
@@ -283,15 +284,23 @@ def test_a_store_locked_mid_run_is_waited_for_and_the_run_finishes(tmp_path, mon
     write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
     cfg = load_config(write_config(tmp_path)).with_values({"runs.busy_timeout_s": 60})
     lock, waited = StoreLock(cfg.paths.base / "runs" / "mlflow.db"), []
-    real = retry_busy
+    real_retry, real_log = retry_busy, client_module.log_metrics
 
-    def retry(fn, what, bound, shown):  # the first MLflow call after the lock: release it from a thread, later
+    def meet(what: str) -> None:  # the first MLflow call after the lock: release it from a thread, later
         if lock.conn is not None and not waited:
             waited.append(what)
             threading.Timer(0.3, lock.release).start()
-        return real(fn, what, bound, shown)
 
-    monkeypatch.setattr("bronchocli.runs.client.retry_busy", retry)
+    def retry(fn, what, bound, shown):  # every call of the busy-waiting client
+        meet(what)
+        return real_retry(fn, what, bound, shown)
+
+    def log_metrics(client, run_id, metrics, **kw):  # the metric buffer's calls (no busy wait: kept in memory)
+        meet("metrics")
+        return real_log(client, run_id, metrics, **kw)
+
+    monkeypatch.setattr(client_module, "retry_busy", retry)
+    monkeypatch.setattr(client_module, "log_metrics", log_metrics)
 
     def locked_after_step_2(step, values):
         if step == 2:
