@@ -81,3 +81,34 @@ def test_the_shipped_file_is_valid_and_names_every_architecture_it_measured():
         for arch, m in entry["archs"].items():
             assert m["precision"] in ("32", "bf16-mixed", "16-mixed") and isinstance(m["channels_last"], bool)
             assert m["chosen"] in m["pairs_per_s"], (key, arch)
+
+
+ZEN4 = "processor\t: 0\nmodel name\t: AMD EPYC 9R14\nflags\t\t: fpu sse2 avx avx2 avx512f avx512bw avx512_bf16 fma\n"
+ZEN3 = "processor\t: 0\nmodel name\t: AMD EPYC 7R13\nflags\t\t: fpu sse2 avx avx2 fma\n"
+SAPPHIRE = "flags\t\t: sse2 avx2 avx512f amx_bf16 amx_tile\n"
+GRAVITON3 = "processor\t: 0\nFeatures\t: fp asimd sve bf16 i8mm\n"
+
+
+@pytest.mark.parametrize("info, key", [(ZEN4, "cpu:AVX512+bf16"), (ZEN3, "cpu:AVX2"),
+                                       (SAPPHIRE, "cpu:AVX512+bf16"), (GRAVITON3, "cpu:NEON+bf16")])
+def test_a_cpu_is_keyed_by_its_vector_instructions(info, key):
+    assert speed.cpu_key(info) == key
+
+
+def test_settings_measured_on_one_cpu_do_not_apply_to_a_cpu_with_other_instructions(tmp_path):
+    """The shipped CPU settings were measured on a Zen 4 (native bf16); an AVX2 CPU where bf16 is emulated and
+    other kernels win must not inherit them (the main job ran 3x slower in the measured-elsewhere setting)."""
+    path = _file(tmp_path, ENTRY, key="cpu:AVX512+bf16")
+    assert speed.choose("offsetnet", "cpu:AVX512+bf16", "auto", "auto", path=path).precision == "bf16-mixed"
+    s = speed.choose("offsetnet", "cpu:AVX2", "auto", "auto", path=path)
+    assert (s.precision, s.channels_last) == ("32", True) and s.source.startswith("default (no measurement")
+    assert speed.training_rates("cpu:AVX2", path) == {}
+    (tmp_path / "old").mkdir()
+    legacy = _file(tmp_path / "old", ENTRY, key="cpu")  # written before the keys named the instructions
+    s = speed.choose("offsetnet", "cpu:AVX2", "auto", "auto", path=legacy)
+    assert s.precision == "bf16-mixed" and s.source.startswith("measured (speed.json settings, cpu, ")  # any CPU
+
+
+def test_the_shipped_file_names_each_cpu_by_its_instructions():
+    keys = set(speed.load()["devices"])
+    assert keys and all(k.startswith("cuda:") or k.startswith("cpu:") for k in keys), keys

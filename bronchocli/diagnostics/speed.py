@@ -216,7 +216,16 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
 def _device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    return f"{platform.processor() or platform.machine()} CPU, {torch.get_num_threads()} thread(s)"
+    model = next((line.split(":", 1)[1].strip() for line in _cpuinfo().splitlines() if line.startswith("model name")),
+                 platform.processor() or platform.machine())
+    return f"{model} ({speed.cpu_key()}), {torch.get_num_threads()} thread(s)"
+
+
+def _cpuinfo() -> str:
+    try:
+        return Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ""
 
 
 def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pairs: int, steps: int,

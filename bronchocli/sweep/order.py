@@ -27,7 +27,7 @@ ALTERNATE = 0.5  # the next cell is of another architecture when it costs at lea
 
 def measured_rates(cfg: Config) -> dict[str, float]:
     """Training pairs/s per architecture for the device the config trains on: a measured CUDA device when
-    ``train.device`` says cuda (the first one the settings file names), else the CPU."""
+    ``train.device`` says cuda (the first one the settings file names), else this CPU (``speed.cpu_key``)."""
     path = cfg.paths.speed_settings
     if cfg.train.device in ("cuda", "auto"):
         try:
@@ -36,7 +36,7 @@ def measured_rates(cfg: Config) -> dict[str, float]:
             keys = []
         if keys and cfg.train.device == "cuda":
             return speed.training_rates(keys[0], path)
-    return speed.training_rates("cpu", path)
+    return speed.training_rates(speed.cpu_key(), path)
 
 
 def expected_costs(cfg: Config, cells: Sequence[Cell]) -> dict[str, float] | None:

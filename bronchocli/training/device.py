@@ -80,8 +80,11 @@ def bf16_fast(device: torch.device) -> bool:
 
 
 def device_key(device: torch.device) -> str:
-    """The key of ``device`` in a speed settings file: ``cpu``, ``mps`` or ``cuda:<GPU name>``."""
-    return f"cuda:{torch.cuda.get_device_name(device)}" if device.type == "cuda" else device.type
+    """The key of ``device`` in a speed settings file: ``cuda:<GPU name>``, ``mps``, or this CPU's vector
+    instructions (``speed.cpu_key``: ``cpu:AVX512+bf16``, ``cpu:AVX2``, ...)."""
+    if device.type == "cuda":
+        return f"cuda:{torch.cuda.get_device_name(device)}"
+    return speed.cpu_key() if device.type == "cpu" else device.type
 
 
 def speed_for(cfg: Config, arch: str, device: torch.device) -> speed.SpeedSetting:
