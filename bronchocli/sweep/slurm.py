@@ -59,6 +59,7 @@ log = logging.getLogger(__name__)
 NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node sees
 ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
           "SUSPENDED", "STOPPED", "SIGNALING")
+ENDING = ("COMPLETING",)  # listed by squeue but ending (a cancelled task): covers no cell
 REFRESH_S = 1.0
 RELEASE_AFTER_S = 3.0  # a requeued task is started this long after it entered its BeginTime hold
 
@@ -296,7 +297,8 @@ def submit_missing(walk: StageWalk, command: Sequence[str], console: Console) ->
     before it, and an array queued for a later stage is made to wait for an earlier stage's new array too
     (``add_dependency``)."""
     cfg = walk.cfg
-    active = sweep_tasks(cfg)
+    # A task being cancelled (scancel: COMPLETING until its processes are gone) claims nothing more: not cover.
+    active = [t for t in sweep_tasks(cfg) if t.state not in ENDING]
     for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
         if step.settled is not None:
             console.print(describe_selection(step.settled), highlight=False)

@@ -191,3 +191,19 @@ def test_a_later_stage_without_tasks_gets_its_array_though_earlier_stage_tasks_a
     slurm = FakeSlurm(monkeypatch, [Task("7_0", "7", "COMPLETING", "first", 1)])
     submit_missing(walk, ["python"], quiet())
     assert slurm.submitted == [("100", "second", 1, ())]  # the stage-1 task stops after stage 1: not counted
+
+
+def test_a_cancelled_task_still_listed_as_completing_covers_no_cell(make_config, monkeypatch):
+    """`scancel` then the submit command at once: the cancelled task is still in squeue (COMPLETING) while its
+    cell is pending again; it must not count as the cell's task (the real-Slurm test once found "nothing new")."""
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    keys = [c.key for c in walk.cells(walk.stages[0])]
+    for key, task in zip(keys[:2], ("7_0", "7_1")):
+        store.claim(cfg.name, [key], f"n:1 slurm {task}", max_retries=1, stale_after_s=30)
+    slurm = FakeSlurm(monkeypatch, [Task("7_0", "7", "RUNNING", "first", 1), Task("7_1", "7", "RUNNING", "first", 1),
+                                    Task("7_2", "7", "COMPLETING", "first", 1),
+                                    Task("8_[0]", "8", "PENDING", "second", 1, "Dependency")])
+    submit_missing(walk, ["python"], quiet())
+    assert slurm.submitted == [("100", "first", 1, ())]  # the released cell gets a task
+    assert slurm.scontrol == [["update", "JobId=8", "Dependency=afterany:100:7"]]  # and stage 2 waits for it
