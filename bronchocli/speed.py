@@ -130,7 +130,7 @@ def choose(arch: str, key: str, precision: str, channels_last: bool | str, *, pa
         source = f"measured ({where} settings, {entry_key(data, key)}, {entry.get('measured', {}).get('date', '?')})"
     else:
         prec, cl = default_prec, default_cl
-        source = f"default (no measurement for {arch} on {key})"
+        source = f"default (no measurement of this architecture on {key})"  # the arch is a param already
     if precision != "auto":
         prec = precision
     if channels_last != "auto":

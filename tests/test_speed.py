@@ -101,7 +101,7 @@ def test_settings_measured_on_one_cpu_do_not_apply_to_a_cpu_with_other_instructi
     path = _file(tmp_path, ENTRY, key="cpu:AVX512+bf16")
     assert speed.choose("offsetnet", "cpu:AVX512+bf16", "auto", "auto", path=path).precision == "bf16-mixed"
     s = speed.choose("offsetnet", "cpu:AVX2", "auto", "auto", path=path)
-    assert (s.precision, s.channels_last) == ("32", True) and s.source.startswith("default (no measurement")
+    assert (s.precision, s.channels_last) == ("32", True) and s.source.startswith("default (no measurement of this architecture on cpu:AVX2")
     assert speed.training_rates("cpu:AVX2", path) == {}
     (tmp_path / "old").mkdir()
     legacy = _file(tmp_path / "old", ENTRY, key="cpu")  # written before the keys named the instructions

@@ -33,7 +33,9 @@ def project(make_config, tmp_path, fake_dir):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     for (arch, loss), value in VALIDATION.items():
         (fake_dir / f"val-{arch}-{loss}").write_text(str(value))
-    return make_config(stages=STAGES, grid={"seed": [0, 1], "folds": ["p00"]})
+    # No takeover is wanted here (each cell's runner is counted): a 2 s cut-off let a worker starved by a loaded
+    # machine lose its claim and the cell run twice (one FINISHED run, two runner calls).
+    return make_config(stages=STAGES, grid={"seed": [0, 1], "folds": ["p00"]}, sweep={"stale_after_s": 60.0})
 
 
 def count_calls(monkeypatch, owner, name: str) -> list[int]:
