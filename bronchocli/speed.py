@@ -66,15 +66,20 @@ def load(path: Path | None = None) -> dict[str, Any]:
     return data
 
 
+def cpu_info() -> str:
+    """The text of ``/proc/cpuinfo`` ("" where there is none)."""
+    try:
+        return Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ""
+
+
 def cpu_key(cpuinfo: str | None = None) -> str:
     """This CPU's key in a settings file: ``cpu:<vector instructions>``, ``+bf16`` where it has native bf16
     (``avx512_bf16`` or AMX on x86, ``bf16`` on Arm), from ``/proc/cpuinfo`` (``cpuinfo``: its text); else
     ``cpu:<machine>`` (no torch needed: the sweep's planner reads the measured rates with it)."""
     if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
+        cpuinfo = cpu_info()
     flags: set[str] = set()
     for line in cpuinfo.splitlines():
         name, _, value = line.partition(":")

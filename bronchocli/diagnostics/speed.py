@@ -216,16 +216,10 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
 def _device_name(device: torch.device) -> str:
     if device.type == "cuda":
         return torch.cuda.get_device_name(device)
-    model = next((line.split(":", 1)[1].strip() for line in _cpuinfo().splitlines() if line.startswith("model name")),
+    info = speed.cpu_info()
+    model = next((line.split(":", 1)[1].strip() for line in info.splitlines() if line.startswith("model name")),
                  platform.processor() or platform.machine())
-    return f"{model} ({speed.cpu_key()}), {torch.get_num_threads()} thread(s)"
-
-
-def _cpuinfo() -> str:
-    try:
-        return Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return ""
+    return f"{model} ({speed.cpu_key(info)}), {torch.get_num_threads()} thread(s)"
 
 
 def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pairs: int, steps: int,

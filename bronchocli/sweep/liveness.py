@@ -85,15 +85,18 @@ class Heartbeat(threading.Thread):
         if self.lost:
             return False
         try:
-            alive = self.store.heartbeat(self.token)
+            return self._renew()
         except StorageError as exc:
             log.warning("claim not renewed: %s", exc)
             return time.monotonic() - self.renewed_at < 0.8 * self.lease_s
-        if alive:
+
+    def _renew(self) -> bool:
+        """One heartbeat: True when the claim is still ours (renewed now), False (for good) when it is not."""
+        if self.store.heartbeat(self.token):
             self.renewed_at = time.monotonic()
-        else:
-            self.lost = True
-        return alive
+            return True
+        self.lost = True
+        return False
 
     def run(self) -> None:
         while not self._halt.wait(self.interval):
@@ -102,15 +105,13 @@ class Heartbeat(threading.Thread):
                 self.signals.requested = signal.SIGTERM
                 os.kill(os.getpid(), signal.SIGTERM)
             try:
-                alive = self.store.heartbeat(self.token)
+                alive = self._renew()
             except StorageError as exc:  # transient outage: the claim goes stale only after stale_after_s
                 log.warning("heartbeat failed: %s", exc)
                 continue
-            if alive:
-                self.renewed_at = time.monotonic()
-            elif not self._halt.is_set():
-                self.lost = True
-                self.on_lost()
+            if not alive:
+                if not self._halt.is_set():
+                    self.on_lost()
                 return
 
     def halt(self) -> None:
