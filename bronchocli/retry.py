@@ -6,7 +6,9 @@ backoff, the bound and the log line are written once. The caller says what count
 to raise when the bound is spent.
 
 ``is_transient_db`` is the shared judgement for databases (the claims table and MLflow's store alike);
-``is_transient_store`` adds an MLflow server's answers (5xx, dropped connections).
+``is_transient_store`` adds an MLflow server's answers (5xx, dropped connections); ``is_write_race`` is a
+write that lost a race to an equal one (a unique key taken a moment earlier), worth a few more tries only
+(``with_races``).
 """
 
 from __future__ import annotations
@@ -38,6 +40,17 @@ TRANSIENT_HTTP = ("max retries exceeded", "error responses", "failed with timeou
                   "bad gateway", "gateway timeout")
 
 
+# Error texts of a write that lost a race to an equal write (MLflow's store reads, then inserts: two runs
+# logging the same dataset input at once both find no row and both insert it, on PostgreSQL behind an MLflow
+# server "BAD_REQUEST: (psycopg2.errors.UniqueViolation) duplicate key value violates unique constraint
+# "dataset_pk""; SQLite "UNIQUE constraint failed"; MySQL "Duplicate entry"). The row exists now, so the same
+# call again succeeds: an infrastructure hiccup, never the run's failure. A conflict that outlasts
+# RACE_RETRIES tries is a real one and is raised.
+WRITE_RACE = ("uniqueviolation", "duplicate key value violates unique constraint", "unique constraint failed",
+              "duplicate entry")
+RACE_RETRIES = 3
+
+
 def _chain_has(exc: BaseException, texts: tuple[str, ...]) -> bool:
     seen, e = 0, exc
     while e is not None and seen < 6:
@@ -57,6 +70,28 @@ def is_transient_store(exc: BaseException) -> bool:
     """True for an MLflow store briefly away: its database (as ``is_transient_db``) or its server (HTTP 5xx,
     connection errors, timeouts: ``TRANSIENT_HTTP``)."""
     return _chain_has(exc, TRANSIENT_DB + TRANSIENT_HTTP)
+
+
+def is_write_race(exc: BaseException) -> bool:
+    """True for a unique-key conflict (the error, or one it was raised from): an equal write got there first."""
+    return _chain_has(exc, WRITE_RACE)
+
+
+def with_races(transient: Callable[[BaseException], bool], races: int = RACE_RETRIES
+               ) -> Callable[[BaseException], bool]:
+    """``transient``, and also a write race (``is_write_race``) for its first ``races`` occurrences: a predicate
+    for one :func:`retry` call (it counts), so a lost race is tried again but a lasting conflict is raised."""
+    seen = [0]
+
+    def judge(exc: BaseException) -> bool:
+        if transient(exc):
+            return True
+        if is_write_race(exc) and seen[0] < races:
+            seen[0] += 1
+            return True
+        return False
+
+    return judge
 
 
 def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], what: str,

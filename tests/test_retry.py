@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bronchocli.retry import is_transient_db, retry
+from bronchocli.retry import RACE_RETRIES, is_transient_db, is_transient_store, is_write_race, retry, with_races
 
 
 class Flaky:
@@ -79,3 +79,74 @@ def test_a_transient_cause_makes_the_wrapping_error_transient():
             raise RuntimeError("store request failed") from inner
     except RuntimeError as outer:
         assert is_transient_db(outer)
+
+
+# -- a write that lost a unique-key race (issue 37.1) ----------------------------------------------------------
+
+def sqlite_unique_violation() -> BaseException:
+    """SQLAlchemy's IntegrityError from a real SQLite insert of a key that is there already."""
+    from sqlalchemy import create_engine, text
+
+    engine = create_engine("sqlite://")
+    with engine.begin() as conn:
+        conn.execute(text("CREATE TABLE datasets (name TEXT PRIMARY KEY)"))
+        conn.execute(text("INSERT INTO datasets VALUES ('tiny')"))
+    try:
+        with engine.begin() as conn:
+            conn.execute(text("INSERT INTO datasets VALUES ('tiny')"))
+    except Exception as exc:  # noqa: BLE001 - the error under test
+        return exc
+    raise AssertionError("the duplicate insert succeeded")
+
+
+@pytest.mark.parametrize("exc, race", [
+    (RuntimeError('RestException: BAD_REQUEST: (psycopg2.errors.UniqueViolation) duplicate key value violates '
+                  'unique constraint "dataset_pk"\nDETAIL:  Key (experiment_id, name, digest)=(1, t, d) exists.'),
+     True),
+    (sqlite_unique_violation(), True),
+    (RuntimeError("(pymysql.err.IntegrityError) (1062, \"Duplicate entry '1-t' for key 'PRIMARY'\")"), True),
+    (RuntimeError('insert or update on table "inputs" violates foreign key constraint "fk_run"'), False),
+    (RuntimeError("INVALID_PARAMETER_VALUE: Changing param values is not allowed"), False),
+    (RuntimeError("database is locked"), False)])
+def test_a_unique_key_conflict_is_judged_a_write_race(exc, race):
+    assert is_write_race(exc) is race
+    assert not is_transient_store(exc) or not race  # not an outage: its own, shorter allowance
+
+
+def test_a_write_race_is_retried_a_few_times_then_raised_like_any_conflict():
+    lost = sqlite_unique_violation()
+    once = Flaky(1, lost)  # the row exists now: the same call succeeds
+    assert retry(once, transient=with_races(lambda e: False), what="t", attempts=10, first_delay_s=0.001) == "ok"
+    assert once.calls == 2
+    always = Flaky(10**9, lost)  # a lasting conflict is a real one: raised after RACE_RETRIES more tries
+    with pytest.raises(type(lost)):
+        retry(always, transient=with_races(lambda e: False), what="t", attempts=100, first_delay_s=0.001)
+    assert always.calls == RACE_RETRIES + 1
+    outage = Flaky(5, ConnectionError("refused"))  # the wrapped judgement still rules outages, uncounted
+    assert retry(outage, transient=with_races(lambda e: isinstance(e, ConnectionError)), what="t", attempts=10,
+                 first_delay_s=0.001) == "ok"
+
+
+def test_the_platforms_mlflow_client_retries_a_lost_race_and_an_outage_but_no_other_error():
+    from mlflow.exceptions import MlflowException
+
+    from bronchocli.runs.client import BusyRetryClient
+
+    class Store:
+        def __init__(self, errors):
+            self.errors, self.calls = list(errors), 0
+
+        def log_inputs(self, run_id, datasets=None):
+            self.calls += 1
+            if self.errors:
+                raise self.errors.pop(0)
+            return run_id
+
+    race = MlflowException('(psycopg2.errors.UniqueViolation) duplicate key value violates unique constraint '
+                           '"dataset_pk"')
+    store = Store([race])
+    assert BusyRetryClient(store, 5.0, "http://mlflow").log_inputs("r1") == "r1" and store.calls == 2
+    wrong = Store([MlflowException("INVALID_PARAMETER_VALUE: run r1 is not active")])
+    with pytest.raises(MlflowException, match="not active"):
+        BusyRetryClient(wrong, 5.0, "http://mlflow").log_inputs("r1")
+    assert wrong.calls == 1

@@ -32,7 +32,7 @@ from .. import extras, urls
 from ..config import Config
 from ..errors import BronchoError, MlflowBusy, MlflowUnreachable  # resumable kinds, defined with the others
 from ..io import file_lock
-from ..retry import is_transient_store, retry
+from ..retry import is_transient_store, retry, with_races
 from .records import EXPERIMENT_TAGS, log_metrics
 from .relocation import relocate_artifacts
 from .sqlite_busy import set_busy_timeout
@@ -53,13 +53,16 @@ def transient(exc: BaseException) -> bool:
 
 def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> Any:
     """``fn()``, retried while the MLflow store (its database or its server) is busy or briefly away, for at most
-    ``bound_s`` (``runs.busy_timeout_s``, the same bound as a SQLite lock); then MlflowBusy (resumable)."""
+    ``bound_s`` (``runs.busy_timeout_s``, the same bound as a SQLite lock); then MlflowBusy (resumable). A write
+    that lost a unique-key race (two runs logging the same dataset input at once: the row exists now) is tried
+    again too, a few times (``retry.with_races``): the platform's race, never the cell's failure."""
     def give_up(exc: BaseException) -> BaseException:
         return MlflowBusy(f"runs.uri {shown}: the MLflow store stayed busy or unavailable for {bound_s:g} s "
                           f"({urls.redact(_first_line(exc))}, during {what}); try again when it is back, or raise "
                           "runs.busy_timeout_s")
 
-    return retry(fn, transient=transient, what=f"MLflow store busy ({what})", bound_s=bound_s, give_up=give_up)
+    return retry(fn, transient=with_races(transient), what=f"MLflow store busy ({what})", bound_s=bound_s,
+                 give_up=give_up)
 
 
 class BusyRetryClient:
