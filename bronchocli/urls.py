@@ -113,7 +113,8 @@ _checked: dict[str, str] = {}  # setting -> the SQLite file this process last op
 
 def sqlite_damage(path: Path) -> str | None:
     """Why the SQLite file ``path`` cannot be a sound database, read from its 100-byte header (None: it looks
-    sound, is empty or does not exist yet): not SQLite at all, or shorter than the pages its header counts."""
+    sound, is empty or does not exist yet): not SQLite at all, or shorter than the pages its header counts (unless
+    its ``-wal`` file holds the rest: ``_wal_makes_whole``)."""
     try:
         size = os.path.getsize(path)
         if size == 0:
@@ -128,8 +129,27 @@ def sqlite_damage(path: Path) -> str | None:
     page_size = 65536 if page_size == 1 else page_size
     pages = int.from_bytes(head[28:32], "big")
     if head[24:28] == head[92:96] and pages and size < pages * page_size:  # the page count is valid: truncated
+        if _wal_makes_whole(path):  # WAL mode: the newest pages live in <file>-wal (a checkpoint cut short)
+            return None
         return f"database disk image is malformed: {size} bytes, its header counts {pages * page_size}"
     return None
+
+
+def _wal_makes_whole(path: Path) -> bool:
+    """Whether SQLite itself accepts ``path`` together with its ``-wal`` file (``PRAGMA integrity_check`` ok).
+
+    In WAL mode the database file alone may be shorter than its header counts: a checkpoint that a full disk cut
+    short wrote page 1 but not the pages after it, which the WAL still holds. Read-only: nothing is checkpointed."""
+    try:
+        if os.path.getsize(f"{path}-wal") == 0:
+            return False
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=1)
+        try:
+            return db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        finally:
+            db.close()
+    except (OSError, sqlite3.Error):
+        return False
 
 
 def damaged_sqlite(path: Path | str, setting: str, why: str) -> BronchoError:

@@ -141,3 +141,50 @@ def test_urls_are_normalised_and_errors_hide_passwords():
     with pytest.raises(BronchoError) as exc:
         store.ensure_schema()
     assert "hunter2" not in str(exc.value) and "alice:***@" in str(exc.value)
+
+
+def wal_cut_short(db, snap):
+    """``snap``: the claims database ``db`` as a full disk leaves it in WAL mode (issue 37.3): the rows live in
+    ``snap``-wal, and a checkpoint wrote page 1 (the header counting every page) but none of the pages after it."""
+    import shutil
+    import sqlite3
+
+    store = SweepStore(f"sqlite:///{db}")
+    store.ensure_schema()  # WAL mode from its first connection on
+    hold = sqlite3.connect(db, isolation_level=None)  # another process's connection: no checkpoint on close
+    hold.execute("PRAGMA wal_autocheckpoint = 0")
+    hold.execute(f"SELECT count(*) FROM {cells_table.name}").fetchone()
+    store.add_cells("t", CELLS)
+    store.close()
+    shutil.copy(db, snap)
+    shutil.copy(f"{db}-wal", f"{snap}-wal")  # the rows are here, not yet in the database file
+    hold.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    hold.close()
+    page_size = int.from_bytes(db.read_bytes()[16:18], "big")
+    snap.write_bytes(db.read_bytes()[:page_size])  # the checkpoint's first page written, then the disk was full
+    return snap
+
+
+def test_a_database_whose_wal_holds_the_rest_is_not_damaged_but_one_without_it_is(tmp_path):
+    import os
+    import sqlite3
+
+    from bronchocli.urls import sqlite_damage
+
+    (tmp_path / "ok").mkdir()
+    snap = wal_cut_short(tmp_path / "sweep.db", tmp_path / "ok" / "sweep.db")
+    header_pages = int.from_bytes(snap.read_bytes()[28:32], "big")
+    assert header_pages > 1 and snap.stat().st_size < header_pages * 4096  # the file alone is short
+    with sqlite3.connect(f"file:{snap}?mode=ro", uri=True) as ref:  # SQLite's own verdict: sound
+        assert ref.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+    assert sqlite_damage(snap) is None
+    store = SweepStore(f"sqlite:///{snap}")  # opens, and every row is there
+    assert [r.cell_key for r in store.rows("t")] == KEYS and claim(store) is not None
+    store.close()
+
+    (tmp_path / "bad").mkdir()
+    lost = wal_cut_short(tmp_path / "again.db", tmp_path / "bad" / "sweep.db")
+    os.remove(f"{lost}-wal")  # the same file without the WAL that completes it: damaged, one line
+    assert "header counts" in sqlite_damage(lost)
+    with pytest.raises(BronchoError, match="damaged SQLite database"):
+        SweepStore(f"sqlite:///{lost}")
