@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import nn
 
 from bronchocli.data.batches import Samples
 from bronchocli.training.loop import Settings
@@ -34,3 +35,22 @@ def settings(**kw) -> Settings:
                 weight_decay=0.0, warmup_steps=0, schedule="constant", rot_loss="mse", rot_weight=1.0,
                 precision="32", bn_recalibrate=0, augment=False, seed=0)
     return Settings(**{**base, **kw})
+
+
+class TinyNet(nn.Module):
+    """A pair network small enough for unit tests: conv + BN on both frames, linear head."""
+
+    temporal = False
+    recurrent = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(6, 4, 3, padding=1)
+        self.bn = nn.BatchNorm2d(4)
+        self.head = nn.Linear(4, 6)
+
+    def forward(self, x, state=None):
+        b, t = x.shape[:2]
+        pairs = torch.cat([x[:, 1:], x[:, :-1]], dim=2).reshape(b * (t - 1), 6, *x.shape[-2:])
+        z = torch.relu(self.bn(self.conv(pairs))).mean((2, 3))
+        return self.head(z).view(b, t - 1, 6), None

@@ -47,6 +47,7 @@ from ..errors import BronchoError
 from ..models import detach_state
 from ..runs.contract import RESUME_FILE, RunInterrupted, RunTakenOver
 from . import checkpoint
+from .batchnorm import freeze_bn, mode_gap, recalibrate_bn
 from .network import PoseRegressor
 
 log = logging.getLogger(__name__)
@@ -93,10 +94,17 @@ class Settings:
     eval_batch: int = 64  # pairs per validation forward
     checkpoint_every_s: float = math.inf  # seconds between checkpoints by time (train.checkpoint_every_s)
     log_every: int = 0  # optimiser steps between training-curve points (0: a point at each validation only)
+    bn_freeze: float = 0.0  # the last fraction of the steps trains with BatchNorm statistics fixed (batchnorm.py)
+    mode_gap_batches: int = 4  # training batches of each validation's mode gap (0: not measured)
 
     @property
     def pairs_per_step(self) -> int:
         return self.micro_pairs * self.accum
+
+    @property
+    def freeze_step(self) -> int:
+        """The first step trained with BatchNorm statistics fixed (``steps``: never)."""
+        return self.steps - int(round(self.bn_freeze * self.steps))
 
 
 @dataclass
@@ -121,42 +129,6 @@ def lr_factor(step: int, s: Settings) -> float:
         return 1.0
     span = max(1, s.steps - s.warmup_steps)
     return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - s.warmup_steps) / span)))
-
-
-def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
-    return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
-
-
-@torch.no_grad()
-def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) -> int:
-    """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``.
-
-    The average is built with an explicit momentum of ``1 / (k + 1)`` for batch ``k`` (``r <- (1 - m) r + m x``
-    gives the running mean of the ``k + 1`` batch statistics), computed on the host from a counter kept here:
-    PyTorch's own cumulative mode (``momentum=None``) reads ``num_batches_tracked`` back from the device in
-    every BatchNorm of every batch (a host sync each: 1,744 per validation for the baseline on CUDA).
-    """
-    bns = batchnorms(net)
-    if not bns:
-        return 0
-    momenta = [m.momentum for m in bns]
-    for m in bns:
-        m.reset_running_stats()
-    was_training = net.training
-    net.train()
-    n = 0
-    try:
-        for frames in batches:
-            for m in bns:
-                m.momentum = 1.0 / (n + 1)
-            with autocast():
-                net(frames)
-            n += 1
-    finally:
-        for m, mom in zip(bns, momenta):
-            m.momentum = mom
-        net.train(was_training)
-    return n
 
 
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
@@ -310,6 +282,8 @@ class Trainer:
 
     def _train_until(self, target: int) -> None:
         self.net.train()
+        if self.step >= self.s.freeze_step:  # on the statistics re-estimated by the validation at freeze_step
+            freeze_bn(self.net)
         self._clock = (self.step, time.perf_counter())  # throughput counts training time only
         while self.step < target:
             frames, labels = self._batch(self.micro)
@@ -352,7 +326,7 @@ class Trainer:
 
     # -- validation ---------------------------------------------------------------------------------
     def _recalibrate(self) -> None:
-        if self.s.bn_recalibrate <= 0:
+        if self.s.bn_recalibrate <= 0 or self.step > self.s.freeze_step:  # frozen: the statistics it trains with
             return
         # Batches far from the training stream's position, so recalibration does not re-use what was just seen.
         start = 10_000_000 + self.step * 131
@@ -363,8 +337,9 @@ class Trainer:
         samples = samples or self.val_set
         self.net.eval()
         per = max(1, self.s.eval_batch // samples.n_pairs)
-        sums = torch.zeros(1 + len(VAL_METRICS), dtype=torch.float64, device=self.device)
+        sums = torch.zeros(2 + len(VAL_METRICS), dtype=torch.float64, device=self.device)
         n = 0
+        mean = torch.from_numpy(self.train_set.labels.reshape(-1, 6).mean(0)).to(self.device)  # the reference
         for k in range(0, len(samples), per):
             frames = self.source(samples.frames[k: k + per])
             labels = torch.from_numpy(samples.labels[k: k + per]).to(self.device)
@@ -374,16 +349,24 @@ class Trainer:
             loss = self.net.loss(out, labels, self.s.rot_loss, self.s.rot_weight)
             pairs = labels.shape[0] * labels.shape[1]
             vals = [loss] + [metrics.METRICS[m](out, labels).mean() for m in VAL_METRICS]
+            vals.append(metrics.METRICS["pos_l2"](mean.expand_as(labels), labels).mean())
             sums += torch.stack([v.double() for v in vals]) * pairs
             n += pairs
         means = (sums / max(n, 1)).tolist()  # the one host sync of a validation
-        return {"val_loss": means[0], **{f"val.{m}": v for m, v in zip(VAL_METRICS, means[1:])}}
+        # val.ratio.pos_l2: position error ÷ the training-mean predictor's on the same pairs (the headline, on val)
+        return {"val_loss": means[0], **{f"val.{m}": v for m, v in zip(VAL_METRICS, means[1:])},
+                "val.ratio.pos_l2": means[1] / means[-1] if means[-1] > 0 else float("nan")}
 
     def _validation(self) -> bool:
         """Validate, keep the best weights, checkpoint; True when early stopping says stop."""
         t0 = time.perf_counter()
         self._recalibrate()
         values = self.validate()
+        if self.s.mode_gap_batches:  # training batches far from the stream's position and the recalibration's
+            batches = [self._batch(20_000_000 + k) for k in range(self.s.mode_gap_batches)]
+            gap = mode_gap(self.net, batches, lambda out, y: self.net.loss(out, y, self.s.rot_loss, self.s.rot_weight),
+                           self.autocast)
+            values |= {f"val.{k}": v for k, v in gap.items()}
         self._check_finite()
         curves = self._curves()
         train_loss, skipped = torch.stack([self._loss_sum / max(self._loss_n, 1), self._skipped]).tolist()
@@ -439,6 +422,8 @@ class Trainer:
         self.check_space()  # a full disk fails the run now, not at its first validation
         while self.step < self.s.steps:
             target = min(self.s.steps, (self.step // self.s.val_every + 1) * self.s.val_every)
+            if self.step < self.s.freeze_step:  # a validation (and its re-estimation) where the freeze starts
+                target = min(target, self.s.freeze_step)
             t0 = time.perf_counter()
             self._train_until(target)
             if self.device.type == "cuda":

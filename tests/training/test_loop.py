@@ -7,32 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from loopfakes import FakeSource, samples, settings
+from loopfakes import FakeSource, TinyNet, samples, settings
 from torch import nn
 
 from bronchocli.data.batches import Samples
 from bronchocli.training import checkpoint
 from bronchocli.training.loop import NonFiniteLoss, Settings, Trainer, lr_factor, recalibrate_bn
 from bronchocli.training.network import PoseRegressor
-
-
-class TinyNet(nn.Module):
-    """A pair network small enough for unit tests: conv + BN on both frames, linear head."""
-
-    temporal = False
-    recurrent = False
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.conv = nn.Conv2d(6, 4, 3, padding=1)
-        self.bn = nn.BatchNorm2d(4)
-        self.head = nn.Linear(4, 6)
-
-    def forward(self, x, state=None):
-        b, t = x.shape[:2]
-        pairs = torch.cat([x[:, 1:], x[:, :-1]], dim=2).reshape(b * (t - 1), 6, *x.shape[-2:])
-        z = torch.relu(self.bn(self.conv(pairs))).mean((2, 3))
-        return self.head(z).view(b, t - 1, 6), None
 
 
 def trainer(s: Settings, seed: int = 0, train: Samples | None = None, **kw) -> Trainer:
