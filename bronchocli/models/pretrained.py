@@ -3,6 +3,9 @@
 ``model.pretrained`` (config) / ``build_model(pretrained=...)``:
 
 * unset (None): random initialisation (torchvision's init scheme), reproducible offline;
+* ``imagenet-if-present``: ``imagenet`` where its file is already in the hub cache (downloaded, or installed with
+  ``bronchopose weights install``), else random initialisation with a warning; the run's ``init`` tag and the
+  report's captions say which it was (the ``gpu-bench`` profile: the paper's setting wherever it can be had);
 * ``imagenet``: the weights the BronchoPose authors started from (torchvision ``efficientnet_b0(pretrained=True)``
   and ``resnet34(pretrained=True)``), the files torchvision publishes, fetched once into PyTorch's own hub cache
   (``torch.hub.get_dir()/checkpoints``: ``$TORCH_HOME/hub/checkpoints``, by default ``~/.cache/torch``) with
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import warnings
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from urllib.error import URLError
@@ -37,13 +41,17 @@ from urllib.parse import urlparse
 import torch
 from torch import Tensor
 
+from .backbones import EfficientNetB0Features, ResNet34
 from .base import PoseNet
 from .errors import ModelError
 
 _IGNORED_PREFIXES = {"efficientnet_b0": ("classifier.",), "resnet34": ()}
 _SHOW = 5  # offending keys named in the error
+BACKBONES = {"efficientnet_b0": EfficientNetB0Features, "resnet34": ResNet34}  # torchvision's key names
 
 IMAGENET = "imagenet"  # model.pretrained value: torchvision's published ImageNet weights
+IMAGENET_IF_PRESENT = "imagenet-if-present"  # ImageNet's when cached, else random (with a warning)
+NAMED = (IMAGENET, IMAGENET_IF_PRESENT)  # model.pretrained values that name weights rather than a file
 WEIGHTS_URL_ENV = "BRONCHOPOSE_WEIGHTS_URL"  # another download base (a mirror, or a test server)
 WEIGHTS_BASE = "https://download.pytorch.org/models/"
 # torchvision's IMAGENET1K_V1 files; the 8 hex digits are the start of the file's sha256 (torch.hub checks them).
@@ -99,6 +107,8 @@ def load_pretrained(model: PoseNet, path: str | os.PathLike) -> PoseNet:
     """Copy the file's weights (or ``imagenet``'s, from the hub cache) into both backbones of ``model`` (strict)."""
     kind = model.backbone_kind
     path = weights_file(path, kind)
+    if path is None:  # imagenet-if-present without the file: random initialisation
+        return model
     state = {k: v for k, v in read_state_dict(path).items() if not k.startswith(_IGNORED_PREFIXES[kind])}
     for backbone in model.backbones():
         expected = backbone.state_dict()
@@ -154,6 +164,13 @@ def weights_file(pretrained: str | os.PathLike | None, kind: str) -> Path | None
         return None
     if str(pretrained) == IMAGENET:
         return fetch_imagenet(kind)
+    if str(pretrained) == IMAGENET_IF_PRESENT:
+        cached = hub_checkpoints() / IMAGENET_FILES[kind]
+        if not cached.is_file():
+            warnings.warn(f"model.pretrained: imagenet-if-present: {cached} not found: {kind} starts from random "
+                          "weights (bronchopose weights install FILE puts torchvision's file there)", stacklevel=2)
+            return None
+        return cached
     return Path(pretrained)
 
 
@@ -161,7 +178,7 @@ def ensure_weights(pretrained: str | os.PathLike | None, kinds: Iterable[str]) -
     """Fetch (or find) the weights every backbone kind needs, so a missing file fails before any run starts."""
     for kind in dict.fromkeys(kinds):
         path = weights_file(pretrained, kind)
-        if path is not None and not path.is_file():
+        if path is not None and not path.is_file():  # (imagenet-if-present: None without the file)
             raise ModelError(f"model.pretrained: {path}: file not found")
 
 
@@ -172,11 +189,64 @@ def describe(pretrained: str | os.PathLike | None, kind: str) -> str:
     """
     if pretrained is None:
         return "random"
+    if str(pretrained) == IMAGENET_IF_PRESENT:
+        found = (hub_checkpoints() / IMAGENET_FILES[kind]).is_file()
+        return f"{IMAGENET}:{IMAGENET_FILES[kind]}" if found else "random"
     if str(pretrained) == IMAGENET:
         return f"{IMAGENET}:{IMAGENET_FILES[kind]}"
     path = Path(pretrained)
+    return f"file:{path.name}#{sha256_of(path)[:12]}"
+
+
+# -- installing weights a user brings ---------------------------------------------------------------------
+
+
+def sha256_of(path: Path) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as fh:
         for block in iter(lambda: fh.read(1 << 20), b""):
             digest.update(block)
-    return f"file:{path.name}#{digest.hexdigest()[:12]}"
+    return digest.hexdigest()
+
+
+def kind_of(state: Mapping[str, Tensor], path: Path) -> str:
+    """Which torchvision backbone a state dict belongs to, by its keys (ModelError when neither)."""
+    if any(k.startswith("features.") for k in state):
+        return "efficientnet_b0"
+    if any(k.startswith("layer1.") for k in state) and "fc.weight" in state:
+        return "resnet34"
+    raise ModelError(f"{path}: neither torchvision's efficientnet_b0 (features.*) nor its resnet34 (layer1.*, fc.*) "
+                     "state dict")
+
+
+def install_weights(path: str | os.PathLike) -> tuple[str, Path]:
+    """Copy torchvision's ImageNet weights file ``path`` (a copy the user brings) into PyTorch's hub cache under
+    torchvision's name, where ``model.pretrained: imagenet`` reads it: loadable, the backbone's exact keys and
+    shapes (checked against ``backbone``'s, a PoseNet class of that kind) and torchvision's checksum (the sha256
+    must start with the hex digits in torchvision's file name). Returns (kind, where it lies now)."""
+    path = Path(path)
+    state = read_state_dict(path)
+    kind = kind_of(state, path)
+    name = IMAGENET_FILES[kind]
+    want = name.rsplit("-", 1)[-1].split(".")[0]
+    got = sha256_of(path)
+    if not got.startswith(want):
+        raise ModelError(f"{path}: sha256 {got[:12]}... is not torchvision's {name} (its sha256 starts with {want}); "
+                         "to start from other weights set model.pretrained to the file instead")
+    expected = BACKBONES[kind]().state_dict()
+    check_compatible({k: v for k, v in state.items() if not k.startswith(_IGNORED_PREFIXES[kind])}, expected,
+                     kind, path)
+    dest = hub_checkpoints() / name
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_name(f".{name}.{os.getpid()}.part")
+    try:
+        with open(path, "rb") as src, open(tmp, "wb") as out:
+            for block in iter(lambda: src.read(1 << 20), b""):
+                out.write(block)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, dest)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise ModelError(f"cannot write {dest} ({exc.strerror or exc})") from None
+    return kind, dest
