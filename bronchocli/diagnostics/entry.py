@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -16,8 +17,18 @@ from rich.table import Table
 from ..errors import BronchoError
 from ..models import ARCHITECTURES
 from ..models import profile as profiling
+from ..runs import cores
 from . import selftest as st
 from . import speed as sp
+
+
+@contextmanager
+def cpu_share(threads: int | None) -> Iterator[int]:
+    """The torch CPU threads of a command that trains or times models: ``--threads`` when given, else its share
+    of the cores beside the project's other processes (``runs.cores``), claimed while the block runs."""
+    with cores.CoreShare(threads, explicit_from="--threads") as share:
+        profiling.set_threads(share.check().threads)
+        yield share.threads
 
 
 def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = None, console: Console,
@@ -26,17 +37,8 @@ def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = N
     ``kwargs`` are ``profile_arch``'s (image_size, device, batch, repeats, warmup, window, precision,
     channels_last)."""
     names = profiling.arch_names(archs)
-    if threads is not None:
-        profiling.set_threads(threads)
-    rows = []
-    started = time.perf_counter()
-    for i, name in enumerate(names, 1):
-        with err_console.status(f"[{i}/{len(names)}] profiling {name} at {kwargs['image_size']}x"
-                                f"{kwargs['image_size']} on {kwargs['device']} ..."):
-            rows.append(profiling.profile_arch(name, **kwargs))
-        r = rows[-1]
-        err_console.print(f"[{i}/{len(names)}] {name}: {r['latency_ms_b1']:.2f} ms/pair at batch 1 (spread "
-                          f"{r['latency_spread_b1']:.0%}), {time.perf_counter() - started:.0f} s so far", highlight=False)
+    with cpu_share(threads):
+        rows = _profile_rows(names, err_console, **kwargs)
     if fmt == "json":
         console.file.write(json.dumps(rows, indent=2) + "\n")  # verbatim: no markup, wrapping or emoji codes
         return
@@ -48,15 +50,33 @@ def profile(archs: Sequence[str], *, fmt: str = "table", threads: int | None = N
     console.print(table)
 
 
+def _profile_rows(names: Sequence[str], err_console: Console, **kwargs: Any) -> list[dict[str, Any]]:
+    rows = []
+    started = time.perf_counter()
+    for i, name in enumerate(names, 1):
+        with err_console.status(f"[{i}/{len(names)}] profiling {name} at {kwargs['image_size']}x"
+                                f"{kwargs['image_size']} on {kwargs['device']} ..."):
+            rows.append(profiling.profile_arch(name, **kwargs))
+        r = rows[-1]
+        err_console.print(f"[{i}/{len(names)}] {name}: {r['latency_ms_b1']:.2f} ms/pair at batch 1 (spread "
+                          f"{r['latency_spread_b1']:.0%}), {time.perf_counter() - started:.0f} s so far", highlight=False)
+    return rows
+
+
 def selftest(device: str = "auto", precision: str = "auto", archs: Sequence[str] | None = None, *,
-             threads: int = 1, console: Console) -> int:
+             threads: int | None = 1, console: Console) -> int:
+    """``_selftest`` holding its claim on the cores (``cpu_share``: ``--threads``, else a share) while it runs."""
+    with cpu_share(threads):
+        return _selftest(device, precision, archs, console=console)
+
+
+def _selftest(device: str, precision: str, archs: Sequence[str] | None, *, console: Console) -> int:
     """The environment, then every check (train each architecture, resume, CUDA vs CPU, throughput); exit code
     0 when all passed, 1 when some failed."""
     unknown = [a for a in archs or [] if a not in ARCHITECTURES]
     if unknown:
         raise BronchoError(f"--arch {', '.join(unknown)}: unknown (valid: {', '.join(ARCHITECTURES)})")
     dev = st.resolve_device(device)
-    st.torch.set_num_threads(threads)
     prec = st.resolve_precision(precision, dev)
     env = Table(title="selftest: what this machine offers", box=box.SIMPLE_HEAD, show_header=False)
     for what, value in st.environment(dev, prec):
@@ -86,13 +106,11 @@ def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pair
     write them into ``out`` (diagnostics/speed.py)."""
     names = profiling.arch_names(archs)
     dev = profiling.resolve_device(device)
-    if threads is not None:
-        profiling.set_threads(threads)
     out = Path(out)
     if out.is_dir():
         raise BronchoError(f"--speed {out}: is a folder; give the settings file's path")
     started = time.perf_counter()
-    with err_console.status("measuring ...") as status:
+    with cpu_share(threads), err_console.status("measuring ...") as status:
         def progress(text: str) -> None:
             line = f"[{time.perf_counter() - started:.0f} s] {text}"
             status.update(line)

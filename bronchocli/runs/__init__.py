@@ -5,7 +5,8 @@
 * ``relocation`` — copied or moved projects read and write their own artifacts;
 * ``records`` — tags, params and metrics a run carries, and finding runs again by tags;
 * ``processes`` — which process runs a run, and ending runs whose process died;
-* ``contract`` — what the sweep and the training engine agree on (result, stop exceptions, checkpoints, threads);
+* ``contract`` — what the sweep and the training engine agree on (result, stop exceptions, checkpoints, GPU share);
+* ``cores`` — how many CPU threads each training process takes: its share beside the project's other processes;
 * ``views`` — what a run shows in the MLflow UI (comparable params, headline metrics, description, the link);
 * ``parents`` — the parent runs of sweeps and studies.
 

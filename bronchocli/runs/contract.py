@@ -1,7 +1,7 @@
 """The run contract: what the sweep and the training engine agree on about a run, without importing torch.
 
-Where a run's checkpoints live, how many CPU threads it gets, what a run returns, and the exceptions that
-stop a run early (a sweep worker catches them by type).
+Where a run's checkpoints live, how many processes share its GPU, what a run returns, and the exceptions that
+stop a run early (a sweep worker catches them by type). How many CPU threads it takes is ``cores``'s.
 """
 
 from __future__ import annotations
@@ -70,8 +70,3 @@ def checkpoint_dir(cfg: Config, run_id: str) -> Path:
 
 def resume_file(cfg: Config, run_id: str) -> Path:
     return checkpoint_dir(cfg, run_id) / RESUME_FILE
-
-
-def cpu_threads(cfg: Config, workers: int = 1) -> int:
-    """torch CPU threads of one run: ``train.threads``, else the cores shared by ``workers`` runs."""
-    return cfg.train.threads or max(1, (os.cpu_count() or 1) // max(1, workers))

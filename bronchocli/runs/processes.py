@@ -1,4 +1,7 @@
-"""Runs left RUNNING by a process that died: which process runs a run, whether it lives, ending the dead ones."""
+"""Runs left RUNNING by a process that died: which process runs a run, whether it lives, ending the dead ones.
+
+The liveness test (a pid and its start tick) is also what ``cores`` uses to ignore dead processes' entries.
+"""
 
 from __future__ import annotations
 
@@ -26,23 +29,32 @@ def _process_start(pid: int) -> str | None:
 def process_tags() -> dict[str, str]:
     """Which process runs a run (host, pid, start tick): lets the next process tell a live run from a dead one."""
     pid = os.getpid()
-    return {TAG_HOST: socket.gethostname(), TAG_PID: str(pid), TAG_PSTART: _process_start(pid) or "?"}
+    return {TAG_HOST: socket.gethostname(), TAG_PID: str(pid), TAG_PSTART: process_start()}
 
 
-def process_alive(tags: Mapping[str, str]) -> bool | None:
-    """Whether the process a run's tags name is alive: True/False on this host, None when it cannot be told."""
-    if tags.get(TAG_HOST) != socket.gethostname() or not str(tags.get(TAG_PID, "")).isdigit():
-        return None
-    pid = int(tags[TAG_PID])
+def process_start() -> str:
+    """This process's start tick (``/proc``; "?" where it cannot be read): with the pid, names one process."""
+    return _process_start(os.getpid()) or "?"
+
+
+def pid_alive(pid: int, start: str | None) -> bool:
+    """Whether process ``pid`` of this host lives and is the one that started at tick ``start`` (None or "?":
+    not compared), not another process that reused the pid."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:
         pass  # another user's live process
-    start = _process_start(pid)
-    want = tags.get(TAG_PSTART)
-    return not (start is not None and want not in (None, "?") and start != want)  # pid reused by another process
+    now = _process_start(pid)
+    return not (now is not None and start not in (None, "?") and now != start)  # pid reused by another process
+
+
+def process_alive(tags: Mapping[str, str]) -> bool | None:
+    """Whether the process a run's tags name is alive: True/False on this host, None when it cannot be told."""
+    if tags.get(TAG_HOST) != socket.gethostname() or not str(tags.get(TAG_PID, "")).isdigit():
+        return None
+    return pid_alive(int(tags[TAG_PID]), tags.get(TAG_PSTART))
 
 
 def repair_zombie(client: Any, run: Run, who: str) -> bool:

@@ -2,7 +2,8 @@
 
 Workers are ``multiprocessing`` processes started with ``spawn`` (a fresh
 interpreter: no forked CUDA/MLflow/SQLAlchemy state, same behaviour on Linux
-and macOS). Each gets the config with ``train.threads`` = cores / N so N
+and macOS). Each takes at most cores / N torch threads (its share of the
+cores beside every other process of the project: ``runs.cores``) so N
 workers share the CPU instead of oversubscribing it, and logs to its own
 file under ``sweep.logs``. The parent only watches: it polls the claims table
 (so it also sees cells run by other machines) and the worker processes.
@@ -32,7 +33,6 @@ from rich.live import Live
 from .. import urls
 from ..config import Config
 from ..errors import BronchoError
-from ..runs.contract import cpu_threads
 from .placement import assign, share_counts
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
@@ -43,10 +43,8 @@ REFRESH_S = 0.5
 
 
 def worker_config(cfg: Config, workers: int) -> Config:
-    """The config workers run with: CPU threads split between workers; no secrets in what MLflow logs."""
+    """The config workers run with: no secrets in what MLflow logs (their CPU threads: ``WorkerSpec.cpu_workers``)."""
     values: dict[str, Any] = {"storage.url": urls.redact(cfg.storage.url)}
-    if cfg.train.threads is None:
-        values["train.threads"] = cpu_threads(cfg, workers)
     return cfg.with_values(values)
 
 
@@ -103,7 +101,7 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
         for i, (gpu, share) in enumerate(zip(placed, share_counts(placed))):
             log_path = log_dir / f"{socket.gethostname()}-{os.getpid()}-w{i}.log"
             spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path), gpu,
-                              share)
+                              share, cpu_workers=workers)
             procs.append(spawn_worker(spec, event))
         plan = _watch(store, plan, procs, cfg, workers, console, on_refresh)
     except BaseException:  # the parent is failing: stop the workers (they release their cells) before waiting

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import multiprocessing as mp
+import os
 import re
 import time
 import warnings
@@ -36,7 +37,8 @@ from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
-from ..runs.contract import RunInterrupted, RunPruned, cpu_threads
+from ..runs import cores
+from ..runs.contract import RunInterrupted, RunPruned
 from ..runs.parents import set_parent_status, start_parent, study_parent
 from ..runs.records import TAG_PARENT, run_name
 from .record import rebuild_trials
@@ -350,7 +352,8 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
 
 
 def _worker_entry(args: tuple) -> None:
-    cfg, target, trials, study, timeout, worker = args
+    cfg, target, trials, study, timeout, worker, workers = args
+    os.environ[cores.WORKERS_ENV] = str(workers)  # each trial takes at most cores / workers threads (runs/cores.py)
     tune_worker(cfg, target, trials, study=study, timeout=timeout, worker=worker)
 
 
@@ -387,9 +390,8 @@ def _run_workers(cfg: Config, target: Cell, trials: int, s, *, study: str | None
         return
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
-    per = cfg.with_values({"train.threads": cpu_threads(cfg, workers)})
     ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_worker_entry, args=((per, target, trials, study, timeout, i),))
+    procs = [ctx.Process(target=_worker_entry, args=((cfg, target, trials, study, timeout, i, workers),))
              for i in range(workers)]
     for p in procs:
         p.start()

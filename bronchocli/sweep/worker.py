@@ -36,6 +36,7 @@ from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError, MlflowUnreachable, resumable
 from ..retry import retry
+from ..runs import cores
 from ..runs.client import MlflowBusy, client_for, experiment_id
 from ..runs.contract import RunTakenOver, checkpoint_dir, failure_reason, resume_file
 from ..runs.ownership import remove_checkpoint
@@ -407,6 +408,7 @@ class WorkerSpec:
     log_path: str | None = None
     gpu: str | None = None  # this worker's GPU (its CUDA_VISIBLE_DEVICES); None: leave the environment alone
     gpu_share: int = 1  # workers pinned to that GPU (this one included)
+    cpu_workers: int | None = None  # workers of its sweep on this machine: each takes at most cores / N threads
 
 
 def _redirect_output(path: str | None) -> None:
@@ -427,6 +429,8 @@ def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
             if key != "CUDA_DEVICE_ORDER" or key not in os.environ:  # a user's own device order stands
                 os.environ[key] = value
         os.environ["BRONCHOPOSE_WORKER_GPU"] = spec.gpu
+    if spec.cpu_workers:
+        os.environ[cores.WORKERS_ENV] = str(spec.cpu_workers)  # its runs' thread cap (runs/cores.py)
     if spec.parent_pid is not None:
         os.setpgrp()  # a terminal Ctrl-C reaches the parent only; it stops the workers once, with SIGTERM
     _redirect_output(spec.log_path)

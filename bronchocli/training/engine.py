@@ -18,7 +18,7 @@ from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
 from ..models import build_model
-from ..runs.contract import cpu_threads, gpu_share
+from ..runs.contract import gpu_share
 from ..runs.processes import process_age_s
 from . import evaluate
 from .device import device_for, precision_for, seed_everything, speed_for
@@ -55,6 +55,15 @@ def build_network(cfg: Config, cell: Cell, data: RunData, device: torch.device) 
     return net.to(device)
 
 
+def _both(first: Callable[[int, dict[str, float]], None] | None,
+          then: Callable[[int, dict[str, float]], None]) -> Callable[[int, dict[str, float]], None]:
+    def both(step: int, values: dict[str, float]) -> None:
+        if first is not None:
+            first(step, values)
+        then(step, values)
+    return both
+
+
 @dataclass
 class Outcome:
     metrics: dict[str, float]
@@ -69,12 +78,19 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
                      on_validation: Callable[[int, dict[str, float]], None] | None = None,
                      on_step: Callable[[int, int], None] | None = None,
                      on_phase: Callable[[str], None] | None = None,
-                     on_curves: Callable[[list[tuple[int, dict[str, float]]]], None] | None = None) -> Outcome:
+                     on_curves: Callable[[list[tuple[int, dict[str, float]]]], None] | None = None,
+                     threads: Callable[[], int] | None = None) -> Outcome:
     """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split;
     ``on_phase`` hears what happens after the last step (the test evaluation), ``on_curves`` the training-curve
-    points of each validation window."""
+    points of each validation window; ``threads`` says the torch CPU threads to use, asked at the start and
+    after each validation (``runs.cores``: the share of the machine's cores)."""
     t_start = time.perf_counter()
-    torch.set_num_threads(cpu_threads(cfg))
+
+    def share_cores(*_: Any) -> None:
+        if threads is not None and threads() != torch.get_num_threads():
+            torch.set_num_threads(threads())
+
+    share_cores()
     device = device_for(cfg)
     seed_everything(cell.seed)
     net = build_network(cfg, cell, data, device)
@@ -91,7 +107,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
             on_step(step, total)
 
     trainer = Trainer(net, data.train, data.val, source, settings(cfg, cell, device), device=device,
-                      ckpt_dir=ckpt_dir, stop=stop, on_validation=on_validation, on_step=stepped,
+                      ckpt_dir=ckpt_dir, stop=stop, on_validation=_both(on_validation, share_cores), on_step=stepped,
                       compile=cfg.train.compile, cell_key=cell.key, on_curves=on_curves)
     if resume_state is not None:
         trainer.load_state(resume_state)

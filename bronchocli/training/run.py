@@ -37,6 +37,7 @@ from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError, MlflowUnreachable, OutOfMemory, out_of_memory, resumable
 from ..models import initialisation
+from ..runs import cores
 from ..runs.client import MetricBuffer, MlflowBusy, check_reachable, client_for, experiment_id, redacted_uri
 from ..runs.contract import (
     REJECTED_SUFFIX,
@@ -189,7 +190,17 @@ def run_cell(
     owns: Callable[[], bool] | None = None,
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc), unless ``owns``
-    says another worker took it over."""
+    says another worker took it over. From its start the process holds a claim on its share of the CPU cores
+    (``runs.cores``), decided when training starts and again at each validation."""
+    with cores.for_run(cfg) as share:
+        return _run_cell(cfg, cell, resume=resume, extra_tags=extra_tags, progress=progress,
+                         on_validation=on_validation, run_id_callback=run_id_callback, owns=owns, share=share)
+
+
+def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags: dict[str, str] | None,
+              progress: bool, on_validation: Callable[[int, dict[str, float]], None] | None,
+              run_id_callback: Callable[[str], None] | None, owns: Callable[[], bool] | None,
+              share: cores.CoreShare) -> RunResult:
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
     fast = speed_for(cfg, cell.arch, device)  # a bad train.speed_settings file: one line, before any work
@@ -218,21 +229,23 @@ def run_cell(
                 metrics_out.log({k: v for k, v in h.items() if k != "step"}, int(h["step"]))
 
     def validated(step: int, values: dict[str, float]) -> None:
-        metrics_out.log(values, step)  # at step = optimiser step
+        metrics_out.log({**values, "threads": float(share.check().threads)}, step)  # at step = optimiser step
         bar.validated(step, values)
         if on_validation is not None:
             on_validation(step, values)
 
     ckpt = checkpoint_dir(cfg, run_id)
+    threads = share.check()  # as late as possible: processes started at the same time have all claimed by now
     try:
         if state is None:  # the speed setting it trains with (measured per architecture and device, or the config's)
-            artifacts.log_start(client, run_id, cfg, data, cell, fast.params())
+            artifacts.log_start(client, run_id, cfg, data, cell, {**fast.params(), **threads.params()})
         with _stop_on_signals(flag), system_metrics(cfg, run_id, resume=state is not None):
             try:
                 outcome = fit_and_evaluate(cfg, cell, data, ckpt_dir=ckpt, resume_state=state, stop=flag,
                                            on_validation=validated, on_step=bar.step,
                                            on_phase=lambda text: bar.phase(cell.label, text),
-                                           on_curves=metrics_out.log_points)  # buffered like validations
+                                           on_curves=metrics_out.log_points,  # buffered like validations
+                                           threads=lambda: share.threads)
                 if not still_ours():  # stalled past the cut-off while evaluating: the outcome is the new owner's
                     raise RunTakenOver(f"run {run_id} was taken over by another sweep worker; its outcome is not "
                                        "logged by this one")

@@ -39,6 +39,7 @@ def test_compare_view_params_differ_in_arch_and_seed(swept):
     assert {"arch", "seed"} <= differ
     assert differ <= {"arch", "seed"}  # everything else the two runs share (the grid is not a run param)
     assert len(a.data.params) < 30  # not the flattened config (119 keys before)
+    assert (a.data.params["threads"], a.data.params["threads.source"]) == ("1", "explicit (train.threads)")
 
 
 def test_the_rest_api_gives_the_ui_the_same_params(swept, monkeypatch):
