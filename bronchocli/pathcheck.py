@@ -6,6 +6,9 @@
   ``Path.resolve``, ``open``/``stat`` raise OSError ELOOP) is one line naming the setting. ``is_loop`` tells
   either exception apart, so the command line's last-resort handler words a loop met elsewhere the same way.
 * ``check_writable_root``: an output root (artifacts, checkpoints, caches, logs) is never a system folder.
+* ``check_output``: the one check of a path a command is about to write (a config's output root, a database
+  file, ``--out`` of every command): not a system folder, the right kind if it exists, and creatable (its
+  nearest existing folder writable, on a writable file system); creates nothing.
 * ``outside``: names (a patient, a frame's ``filename``) that leave the folder they are relative to.
 """
 
@@ -80,3 +83,45 @@ def outside(root: str | os.PathLike, paths: Sequence[str]) -> list[int]:
 def plain_name(name: str) -> bool:
     """A name that stays in its folder as a file name: no separator, not ``.``/``..``, not empty."""
     return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and "\0" not in name
+
+
+def _why_not_writable(folder: Path) -> str | None:
+    """Why nothing can be created in the existing folder ``folder`` (None: it can)."""
+    try:
+        if os.statvfs(folder).f_flag & os.ST_RDONLY:
+            return "read-only file system"
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return "permission denied"
+    return None
+
+
+def check_output(path: Path, setting: str, kind: str = "folder") -> None:
+    """``path`` (a ``folder``, or a file to create: ``kind`` names it, e.g. "database file") can be written:
+    BronchoError naming ``setting`` otherwise. Creates nothing.
+
+    Refused, one line each: a system folder or a path inside the OS's trees (``check_writable_root``), a symlink
+    loop, an existing path of the other kind, a path under a file, a nearest existing folder this user may not
+    write in or on a read-only file system.
+    """
+    check_writable_root(path, setting)
+    if path.exists():
+        if kind == "folder" and not path.is_dir():
+            raise BronchoError(f"{setting} {path}: is a file, not a folder; point {setting} at a folder")
+        if kind != "folder" and path.is_dir():
+            raise BronchoError(f"{setting} {path}: is a folder, not a {kind}; point {setting} at a file")
+        target = path if path.is_dir() else path.parent
+        why = _why_not_writable(target)
+        if why is not None:
+            raise BronchoError(f"{setting} {path}: cannot write there ({why}); point {setting} at a writable place")
+        return
+    nearest = path.parent
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise BronchoError(f"{setting} {path}: {nearest} is a file, so no {kind} can be created there")
+    why = _why_not_writable(nearest)
+    if why is not None:
+        raise BronchoError(f"{setting} {path}: cannot create it in {nearest} ({why}); point {setting} at a "
+                           "writable place")

@@ -199,6 +199,10 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "ui on a refused PostgreSQL store": (lambda p: ["ui", *C(p), "--set", "runs.uri=postgresql://bob:hunter2@"
                                                     "127.0.0.1:1/db"], 2, "runs.uri postgresql://bob:***@"),
     "ui for a remote server": (lambda p: ["ui", *C(p), "--set", f"runs.uri={hung(p)}"], 2, "already a server"),
+    # issue 37.6: the UI has no authentication: another interface than loopback only when asked for
+    "ui --host 0.0.0.0 without --expose": (lambda p: ["ui", *C(p), "--host", "0.0.0.0", "--port", str(free_port())],
+                                           2, "--host 0.0.0.0: not a loopback address; MLflow's UI has no "
+                                              "authentication"),
 }
 
 
@@ -473,6 +477,22 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         "numeric string for a rate": (lambda p: ["config", *C(p), "--set", "train.lr='0.1'"],
                                       "train.lr: \"0.1\": input should be a valid number", ()),
         "fraction for a count": (lambda p: ["config", *C(p), "--set", "train.steps=2.5"], "train.steps", ()),
+        # issue 37.4: every number has a range, named in the one line
+        "train.steps=10^32 (config)": (lambda p: ["config", *C(p), "--set", f"train.steps={10**32}"],
+                                       f"train.steps: {10**32}: input should be less than or equal to 10000000 "
+                                       "(allowed range [1, 10000000])", ()),
+        "train.batch_size=10^20 (train)": (lambda p: ["train", *RUN, *C(p), "--set", f"train.batch_size={10**20}"],
+                                           "(allowed range [1, 65536])", ()),
+        "dataset.generate.patients=10^12 (data generate)": (
+            lambda p: ["data", "generate", *C(p), "--out", str(p.root / "gen"), *TINY_GENERATE, "--patients",
+                       str(10**12)], "dataset.generate.patients: 1000000000000", ()),
+        "dataset.generate.workers=10^8 (data generate)": (
+            lambda p: ["data", "generate", *C(p), "--out", str(p.root / "gen"), *TINY_GENERATE, "--set",
+                       f"dataset.generate.workers={10**8}"], "(allowed range [1, 1024])", ()),
+        # issue 40.2: a choice that matches no spelling names the choices and the spellings
+        "train.precision=64 (config)": (lambda p: ["config", *C(p), "--set", "train.precision=64"],
+                                        "train.precision: 64: must be one of 'auto', '32', '16-mixed' or 'bf16-mixed' "
+                                        "(also written: 32 as a number", ()),
     },
     "tune.space": {
         "unknown key (config)": (lambda p: ["config", *C(p), "--set", "tune.space={train.lrr: {type: float, "
@@ -501,6 +521,12 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
                                   ("runs",)),  # the frame cache's folder and lock
         "text file named .png (data preview)": (lambda p: ["data", "preview", str(_text_frame(p)), "--out",
                                                            str(p.root / "prev.png")], "cannot decode frame", ()),
+        # issue 37.4: a pose beyond its bound is corruption, not a camera (data stats printed an inf step)
+        "pose x=1e308 (data stats)": (lambda p: ["data", "stats", str(_pose(p, "pos_x", "1e308"))],
+                                      "p00.csv line 2: out-of-range pose value x=1e+308 (allowed: finite, positions "
+                                      "within ±1,000,000 voxels)", ()),
+        "angle beyond 720° (train)": (lambda p: [*_(_pose(p, "Rz", "5000")), "train", *RUN, *C(p)],
+                                      "p00.csv line 2: out-of-range pose value rz=5000", ("runs",)),
     },
     # issue 32.5: a symlink loop is one line wherever a path is read (pathcheck.resolve; the CLI's last resort)
     "symlink loops": {
@@ -522,6 +548,11 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         "data generate --out": (lambda p: ["data", "generate", *C(p), "--out", str(loop(p) / "gen"),
                                            *TINY_GENERATE], "--out", ()),
         "the config file": (lambda p: ["config", "-c", str(loop(p))], "symbolic link loop", ()),
+        # issue 37.5: a loop at a dataset's own files is a loop, not "not found"
+        "dataset.json (data stats)": (lambda p: ["data", "stats", str(_looped(p, "dataset.json"))],
+                                      "dataset.json: a symbolic link loop", ()),
+        "p00.csv (data stats)": (lambda p: ["data", "stats", str(_looped(p, "p00.csv"))],
+                                 "p00.csv: a symbolic link loop", ()),
     },
     # issue 32.5: a dataset reads only its own files; outputs never go to system folders
     "paths leaving their root": {
@@ -539,6 +570,17 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
                                        "runs.checkpoints /: a system folder", ()),
         "runs.artifacts under /usr (train)": (lambda p: ["train", *RUN, *C(p), "--set", "runs.artifacts=/usr/lib/x"],
                                               "a system folder", ()),
+        # issue 37.5: the same rules for every path every command writes or reads
+        "lobe ../.. in dataset.json (data stats)": (lambda p: ["data", "stats", str(_lobe(p, "../.."))],
+                                                    "dataset.json: lobes[1] '../..': a lobe name is a folder name", ()),
+        "data generate --out /etc/bp": (lambda p: ["data", "generate", *C(p), "--out", "/etc/bp", *TINY_GENERATE],
+                                        "--out /etc/bp: a system folder", ()),
+        "report --out /usr/share/bp": (lambda p: ["report", *C(p), "--out", "/usr/share/bp"],
+                                       "--out /usr/share/bp: a system folder", ()),
+        "data preview --out /etc/x.png": (lambda p: ["data", "preview", str(p.root / "data" / "tiny"), "--out",
+                                                     "/etc/x.png"], "--out /etc/x.png: a system folder", ()),
+        "runs.uri in /etc (config)": (lambda p: ["config", *C(p), "--set", "runs.uri=sqlite:////etc/bp/m.db"],
+                                      "runs.uri /etc/bp/m.db: a system folder", ()),
     },
     # issue 32.6: a damaged SQLite store names the file and what to do
     "damaged stores": {
@@ -591,6 +633,34 @@ def loop(p: Project) -> Path:
     if not link.is_symlink():
         link.symlink_to(link)
     return link
+
+
+def _looped(p: Project, name: str) -> Path:
+    """The tiny dataset with its ``name`` replaced by a symbolic link to itself."""
+    root = p.root / "data" / "tiny"
+    (root / name).unlink()
+    (root / name).symlink_to(root / name)
+    return root
+
+
+def _pose(p: Project, column: str, value: str) -> Path:
+    """The tiny dataset whose first CSV row has ``value`` in ``column``."""
+    root = p.root / "data" / "tiny"
+    csv = root / "p00.csv"
+    lines = csv.read_text().splitlines()
+    header, row = lines[0].split(","), lines[1].split(",")
+    row[header.index(column)] = value
+    lines[1] = ",".join(row)
+    csv.write_text("\n".join(lines) + "\n")
+    return root
+
+
+def _lobe(p: Project, name: str) -> Path:
+    root = p.root / "data" / "tiny"
+    meta = __import__("json").loads((root / "dataset.json").read_text())
+    meta["lobes"] = [*meta.get("lobes", ["ur"]), name]
+    (root / "dataset.json").write_text(__import__("json").dumps(meta))
+    return root
 
 
 def _patient(p: Project, name: str) -> Path:
@@ -867,6 +937,11 @@ ROOTS: dict[str, tuple[list[str], str]] = {
     "checkpoints holding the artifacts (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=runs"],
                                                "runs.checkpoints {root}/runs: contains runs.artifacts"),
     "checkpoints holding the artifacts (train)": (["train", *RUN, "--set", "runs.checkpoints=runs"],
+                                                  "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    # issue 37.5: `config` validates what `sweep` validates
+    "checkpoints holding the artifacts (config)": (["config", "--set", "runs.checkpoints=runs"],
+                                                   "runs.checkpoints {root}/runs: contains runs.artifacts"),
+    "checkpoints holding the artifacts (sweep)": (["sweep", "--set", "runs.checkpoints=runs"],
                                                   "runs.checkpoints {root}/runs: contains runs.artifacts"),
     "cache is the checkpoints folder (sweep)": (["sweep", "--set", "data.cache_dir=runs/checkpoints"],
                                                 "data.cache_dir {root}/runs/checkpoints: is the same folder as runs.checkpoints"),

@@ -182,7 +182,7 @@ def test_empty_grid_axes_and_bad_training_sizes_are_rejected(tmp_path):
     assert "4 problems" in msg
     assert f"{path}:3: grid.arch: []: " in msg and "must list at least one value" in msg
     assert f"{path}:4: grid.seed: " in msg and "lists a value twice" in msg
-    assert f"{path}:5: grid.train_trajectories: " in msg and "every value must be >= 1" in msg
+    assert f"{path}:5: grid.train_trajectories: " in msg and "every value must be in [1, 10000]" in msg
     assert "effective_batch (10) must be a multiple of batch_size (4)" in msg
 
 
@@ -295,3 +295,192 @@ def test_a_set_grid_field_the_stages_decide_is_refused_or_warned_never_dropped(t
         cfg = C.load_config(path, overrides=["grid.seed=[1,2]"])
     assert not caplog.records and cfg.stages[1].stage_grid(cfg.grid).seed == [1, 2]
     assert C.load_config(write(tmp_path, "name: t\n"), overrides=["grid.arch=[conv3d]"]).grid.arch == ["conv3d"]
+
+
+# -- issue 40.2: enum-like values written the common ways ---------------------------------------------------------
+
+SPELLINGS = [  # (key, as written in YAML, canonical value)
+    ("train.precision", "32", "32"), ("train.precision", "32.0", "32"), ("train.precision", "fp32", "32"),
+    ("train.precision", "FP32", "32"), ("train.precision", "32-true", "32"), ("train.precision", "16", "16-mixed"),
+    ("train.precision", "fp16", "16-mixed"), ("train.precision", "half", "16-mixed"),
+    ("train.precision", "bf16", "bf16-mixed"), ("train.precision", "BF16_Mixed", "bf16-mixed"),
+    ("train.precision", "bfloat16", "bf16-mixed"), ("train.precision", "'32'", "32"),
+    ("runs.model_artifact", "16", "fp16"), ("runs.model_artifact", "float32", "fp32"),
+    ("runs.model_artifact", "NONE", "none"), ("data.frames_on_device", "yes", "yes"),
+    ("data.frames_on_device", "no", "no"), ("data.frames_on_device", "Auto", "auto"),
+    ("model.channels_last", "AUTO", "auto"), ("model.channels_last", "true", True),
+    ("train.compile", "reduce_overhead", "reduce-overhead"), ("train.compile", "false", False),
+    ("train.device", "CUDA", "cuda"), ("train.schedule", "Cosine", "cosine"),
+    ("dataset.csv.angle_units", "degrees", "deg"), ("dataset.csv.position_units", "millimetres", "mm"),
+    ("dataset.csv.camera_forward", "+Z", "z"), ("dataset.csv.camera_up", "-Y", "-y"),
+    ("dataset.format", "CSV", "csv"), ("tune.pruner", "None", "none"), ("sweep.launcher", "Slurm", "slurm"),
+    ("grid.population", "[Cross_Subject, personalised]", ["cross-subject", "personalized"]),
+    ("grid.arch", "[ConvLSTM, Conv3D, offset-net]", ["convlstm", "conv3d", "offsetnet"]),
+    ("grid.rot_loss", "[MSE]", ["mse"]), ("grid.pose_frame", "Camera", ["camera"]),
+    ("dataset.generate.lobes", "[UR, bl]", ["ur", "bl"]),
+]
+
+
+@pytest.mark.parametrize("key, written, canonical", SPELLINGS, ids=[f"{k}={w}" for k, w, _ in SPELLINGS])
+def test_enum_values_written_the_common_ways_read_as_the_canonical_one(tmp_path, key, written, canonical):
+    leaf, extra = written, []
+    if key.startswith("dataset.csv.camera"):  # the two axes must differ
+        other = "camera_up" if key.endswith("forward") else "camera_forward"
+        leaf, extra = f"{written}, {other}: x", [f"dataset.csv.{other}=x"]
+
+    def flow(parts: list[str]) -> str:  # a.b.c -> "a: {b: {c: <written>}}"
+        return f"{parts[0]}: {leaf}" if len(parts) == 1 else f"{parts[0]}: {{{flow(parts[1:])}}}"
+
+    yaml_text = f"name: t\n{flow(key.split('.'))}\n"
+    for cfg in (C.load_config(write(tmp_path, yaml_text)), C.load_config(write(tmp_path, "name: t\n"),
+                                                                            overrides=[f"{key}={written}", *extra])):
+        value = cfg
+        for part in key.split("."):
+            value = getattr(value, part)
+        assert value == canonical, (key, written, value)
+
+
+def test_precision_32_as_a_yaml_number_is_fp32_in_the_resolved_config(tmp_path):
+    cfg = C.load_config(write(tmp_path, "name: t\ntrain: {precision: 32}\n"))
+    assert cfg.train.precision == "32" and "precision: '32'" in cfg.to_yaml()
+    assert C.load_config(write(tmp_path, "name: t\n"), overrides=["train.precision=32"]).train.precision == "32"
+    # the canonical value keys the cell: how it was written changes nothing
+    a = C.load_config(write(tmp_path, "name: t\ntrain: {precision: fp32}\ngrid: {folds: [p00]}\n"))
+    b = C.load_config(write(tmp_path, "name: t\ntrain: {precision: '32'}\ngrid: {folds: [p00]}\n"))
+    assert C.expand_grid(a, ["p00"])[0].key == C.expand_grid(b, ["p00"])[0].key
+
+
+@pytest.mark.parametrize("override, choices, spelling", [
+    ("train.precision=64", "'auto', '32', '16-mixed' or 'bf16-mixed'", "32 as a number, fp32"),
+    ("data.frames_on_device=maybe", "'auto', 'yes' or 'no'", "true"),
+    ("model.channels_last=7", "'auto', true or false", "any case"),
+    ("grid.arch=[lstm, transformer]", "'baseline', 'lstm', 'convlstm', 'conv3d' or 'offsetnet'", "any case"),
+])
+def test_an_unmatched_choice_is_one_line_naming_the_choices_and_spellings(tmp_path, override, choices, spelling):
+    with pytest.raises(ConfigError) as info:
+        C.load_config(write(tmp_path, "name: t\n"), overrides=[override])
+    message = str(info.value)
+    assert len(message.splitlines()) == 1 and f"must be one of {choices}" in message and spelling in message, message
+    key = override.split("=")[0]
+    assert f"--set {override}: {key}" in message, message
+    if key == "grid.arch":
+        assert 'grid.arch[1]: "transformer"' in message  # the item, not the list
+
+
+def _enum_fields(model=C.Config, prefix: str = "") -> list[tuple[str, object]]:
+    """(dotted path, annotation) of every setting whose annotation holds a Literal (in a union or a list)."""
+    from typing import Annotated, Literal, Union, get_args, get_origin
+
+    from pydantic import BaseModel
+
+    def literal_in(a) -> bool:
+        if get_origin(a) is Literal:
+            return True
+        if get_origin(a) is Annotated:
+            return literal_in(get_args(a)[0])
+        return any(literal_in(x) for x in get_args(a)) if get_origin(a) in (Union, __import__("types").UnionType,
+                                                                               list) else False
+
+    out = []
+    for name, field in model.model_fields.items():
+        ann = field.annotation
+        for sub in [ann, *get_args(ann)]:
+            if isinstance(sub, type) and issubclass(sub, BaseModel):
+                out += _enum_fields(sub, f"{prefix}{name}.")
+        if literal_in(ann) or name == "arch":
+            out.append((f"{prefix}{name}", ann, list(field.metadata)))
+    return out
+
+
+def test_every_enum_like_setting_is_read_the_common_ways():
+    """A new Literal setting joins the spellings (``spelled``), or this fails naming it."""
+    from bronchocli.config.spellings import speller_of
+
+    def spelled(ann, metadata) -> bool:
+        from typing import get_args
+        if speller_of(ann) or any(getattr(getattr(m, "func", None), "__class__", None).__name__ == "Speller"
+                                  for m in metadata):
+            return True
+        return any(speller_of(a) for a in get_args(ann))  # list[spelled(...)]
+
+    fields = _enum_fields()
+    assert {"train.precision", "grid.arch", "data.frames_on_device", "stages.select.over"} <= {p for p, *_ in fields}
+    missing = [p for p, ann, meta in fields if p != "grid.folds" and not spelled(ann, meta)]  # folds: patient names
+    assert not missing, missing
+
+
+# -- issue 37.4: every number has a documented range -------------------------------------------------------------
+
+VALIDATED_RANGES = {  # bounded by a validator of their own (tuples, nullable lists): the range as documented
+    "dataset.generate.step_mm": "(0, 100] each, min ≤ max", "dataset.csv.spacing_mm": "(0, 100] each",
+    "grid.train_trajectories": "[1, 10000] each, or null",
+}
+
+
+def _numeric_settings(model=C.Config, prefix: str = "") -> list[str]:
+    from typing import Annotated, Literal, Union, get_args, get_origin
+
+    from pydantic import BaseModel
+
+    def kinds(a) -> set:
+        if get_origin(a) is Annotated:
+            return kinds(get_args(a)[0])
+        if get_origin(a) in (Union, __import__("types").UnionType, list, tuple):
+            return set().union(*(kinds(x) for x in get_args(a)))
+        return {a} if a in (int, float) else set()
+
+    out = []
+    for name, field in model.model_fields.items():
+        ann, path = field.annotation, f"{prefix}{name}"
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            out += _numeric_settings(ann, f"{path}.")
+        elif kinds(ann) and get_origin(ann) is not Literal:
+            out.append(path)
+    return out
+
+
+def test_every_number_has_a_finite_range_documented_in_config_md(repo):
+    from bronchocli.config.messages import allowed_range
+
+    settings = _numeric_settings()
+    assert {"train.steps", "train.batch_size", "train.effective_batch", "dataset.generate.patients",
+            "dataset.generate.trajectories", "dataset.generate.workers", "data.workers", "data.image_size",
+            "train.lr", "train.val_every", "grid.seed", "slurm.mem_gb"} <= set(settings)
+    docs = (repo / "docs" / "config.md").read_text()
+    table = dict(line.split(" | ")[:2] for line in docs.split("## Ranges", 1)[1].splitlines()
+                 if line.startswith("| `"))
+    table = {k.strip("|` "): v.strip(" |") for k, v in table.items()}
+    for path in settings:
+        documented = VALIDATED_RANGES.get(path) or allowed_range(C.Config, tuple(path.split(".")))
+        assert documented is not None and "∞" not in documented, f"{path}: no upper or lower bound"
+        assert table.get(path) == documented, f"docs/config.md, Ranges: {path} says {table.get(path)!r}, " \
+                                              f"the schema {documented!r}"
+
+
+@pytest.mark.parametrize("override, shown", [
+    ("train.steps=100000000000000000000000000000000", "[1, 10000000]"),
+    ("train.batch_size=100000000000000000000", "[1, 65536]"),
+    ("train.effective_batch=2000000000", "[1, 1048576]"),
+    ("dataset.generate.patients=1000000000000", "[1, 1000]"),
+    ("dataset.generate.workers=100000000", "[1, 1024]"),
+    ("dataset.generate.trajectories=100001", "[1, 10000]"),
+    ("data.image_size=4096", "[16, 1024]"),
+    ("train.lr=1000", "(0, 10]"),
+    ("train.val_every=0", "[1, 10000000]"),
+    ("slurm.signal_delay_s=70000", "[1, 65535]"),
+])
+def test_a_number_out_of_its_range_is_one_line_naming_key_value_and_range(tmp_path, override, shown):
+    key, value = override.split("=")
+    with pytest.raises(ConfigError) as info:
+        C.load_config(write(tmp_path, "name: t\n"), overrides=[override])
+    message = str(info.value)
+    assert len(message.splitlines()) == 1 and f"{key}: {value}: " in message, message
+    assert f"(allowed range {shown})" in message, message
+
+
+def test_the_ranges_admit_every_shipped_config_and_the_paper_scale(repo):
+    """The bounds are generous: the paper's profile (4,608 pairs per step, 256² frames) is well inside them."""
+    cfg = C.load_config(repo / "experiments.yaml", "paper")
+    assert cfg.train.pairs_per_step == 4608 and cfg.data.image_size in (None, 256)
+    C.load_config(repo / "experiments.yaml", overrides=["train.steps=10000000", "train.batch_size=65536",
+                                                        "train.effective_batch=1048576", "train.lr=10"])

@@ -88,3 +88,101 @@ def test_the_store_uri_goes_to_the_server_through_its_environment_never_its_argv
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=1)
     assert "hunter2" not in " ".join(argv) and "--backend-store-uri" not in argv  # `ps` shows argv to everyone
     assert ui.server_env({}, store_uri=cfg.paths.mlflow_uri)[ui.STORE_ENV] == uri  # what `mlflow ui` reads
+
+
+# -- issue 37.6: loopback unless asked, with a warning naming the risk ---------------------------------------------
+
+def _listening(port: int) -> set[str]:
+    """The local addresses listening on TCP ``port`` (``/proc/net/tcp`` and ``tcp6``), e.g. {"127.0.0.1"}."""
+    import ipaddress
+
+    found = set()
+    for name, size in (("tcp", 4), ("tcp6", 16)):
+        path = f"/proc/net/{name}"
+        if not os.path.exists(path):
+            continue
+        with open(path) as f:
+            for line in f.readlines()[1:]:
+                local, state = line.split()[1], line.split()[3]
+                address, _, hexport = local.partition(":")
+                if state != "0A" or int(hexport, 16) != port:  # 0A: LISTEN
+                    continue
+                raw = bytes.fromhex(address)
+                raw = b"".join(raw[i:i + 4][::-1] for i in range(0, size, 4))  # each 32-bit word little-endian
+                found.add(str(ipaddress.ip_address(raw)))
+    return found
+
+
+@pytest.fixture
+def exec_argv(monkeypatch):
+    """What `bronchopose ui` would become: the argv it hands to os.execve (nothing is started)."""
+    from bronchocli.runs import ui
+
+    seen: list[list[str]] = []
+
+    def fake_exec(path, argv, env):
+        seen.append(list(argv))
+        raise SystemExit(0)
+
+    monkeypatch.setattr(ui.os, "execve", fake_exec)
+    return seen
+
+
+def test_the_ui_listens_on_loopback_by_default(tmp_path, cli, exec_argv):
+    (tmp_path / "experiments.yaml").write_text("name: t\n")
+    code, out, err = cli("ui", "-c", str(tmp_path / "experiments.yaml"), "--port", str(free_port()))
+    assert code == 0 and not err.strip(), err
+    (argv,) = exec_argv
+    assert argv[argv.index("--host") + 1] == "127.0.0.1"
+
+
+def test_the_real_server_listens_on_loopback_only(tmp_path):
+    """The default `bronchopose ui` process: its socket is bound to 127.0.0.1, not to every interface."""
+    if not os.path.exists("/proc/net/tcp"):
+        pytest.skip("no /proc/net/tcp on this system")
+    (tmp_path / "experiments.yaml").write_text("name: t\n")
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port), "--workers", "1"], cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not _listening(port):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
+            time.sleep(0.2)
+        assert _listening(port) == {"127.0.0.1"}
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+
+
+@pytest.mark.parametrize("host", ["0.0.0.0", "::"])
+def test_another_host_without_expose_is_one_line_and_exit_2(tmp_path, cli, exec_argv, host):
+    (tmp_path / "experiments.yaml").write_text("name: t\n")
+    code, out, err = cli("ui", "-c", str(tmp_path / "experiments.yaml"), "--host", host, "--port", str(free_port()))
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and not exec_argv, err
+    assert lines[0].startswith(f"error: --host {host}: not a loopback address") and "--expose" in lines[0]
+    assert "no authentication" in lines[0]
+    assert not (tmp_path / "runs").exists()  # refused before the store is touched
+
+
+def test_expose_listens_there_and_warns_naming_the_risk(tmp_path, cli, exec_argv):
+    (tmp_path / "experiments.yaml").write_text("name: t\n")
+    code, out, err = cli("ui", "-c", str(tmp_path / "experiments.yaml"), "--host", "0.0.0.0", "--expose",
+                         "--port", str(free_port()))
+    assert code == 0, err
+    (argv,) = exec_argv
+    assert argv[argv.index("--host") + 1] == "0.0.0.0"
+    (warning,) = [line for line in err.splitlines() if line.strip()]
+    assert warning.startswith("warning: --expose: listening on 0.0.0.0") and "no authentication" in warning
+    assert "basic-auth" in warning and "reverse proxy" in warning
+
+
+@pytest.mark.parametrize("host, loopback", [("127.0.0.1", True), ("127.0.0.2", True), ("localhost", True),
+                                            ("::1", True), ("0.0.0.0", False), ("::", False),
+                                            ("no-such-host.invalid", None)])
+def test_what_counts_as_loopback(host, loopback):
+    from bronchocli.runs.ui import is_loopback
+
+    assert is_loopback(host) is loopback

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Annotated, Literal, Optional
 
 import typer
 from rich.console import Console
 
+from .. import pathcheck
 from ..config import DEFAULT_CONFIG, Config, load_config, parse_override
-from ..errors import BronchoError
 
 console = Console()
 err_console = Console(stderr=True)
@@ -42,19 +41,13 @@ def load_or_defaults(config: Path, profile: str | None, overrides: list[str] | N
     return load(config, profile, overrides)
 
 
-def output_folder(path: Path, flag: str) -> Path:
-    """``path`` checked as a folder to write into (existing, or creatable); creates nothing.
+def output_folder(path: Path, flag: str, kind: str = "folder") -> Path:
+    """``path`` (``~`` expanded) checked as a ``folder`` (or a file) to write, by the one check every output goes
+    through (``pathcheck.check_output``: no system folder, the right kind, creatable); creates nothing.
 
-    BronchoError (one line) when it is a file, lies under a file, or its nearest existing folder is not writable.
+    BronchoError (one line) when it is a system folder, a file (a folder), lies under a file, or its nearest
+    existing folder is not writable.
     """
     path = path.expanduser()
-    if path.exists() and not path.is_dir():
-        raise BronchoError(f"{flag} {path}: is a file, not a folder; choose a folder path")
-    nearest = path
-    while not nearest.exists() and nearest != nearest.parent:
-        nearest = nearest.parent
-    if not nearest.is_dir():
-        raise BronchoError(f"{flag} {path}: {nearest} is a file, so no folder can be created there")
-    if not os.access(nearest, os.W_OK | os.X_OK):
-        raise BronchoError(f"{flag} {path}: {nearest} is not writable by this user")
+    pathcheck.check_output(path, flag, kind)
     return path

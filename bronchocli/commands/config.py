@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ..config import DEFAULT_CONFIG
+from ..config import DEFAULT_CONFIG, check_paths
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
@@ -18,9 +18,12 @@ def config(
 ) -> None:
     """Validate experiments.yaml (with --profile and --set applied) and print it resolved, or its cells.
 
-    Exits with code 2 and one message listing every problem when the config is invalid.
+    Exits with code 2 and one message listing every problem when the config is invalid, or one line when a
+    path it names could not be written: the same checks `sweep` makes before it starts (creates nothing, contacts
+    no server).
     """
     cfg = load(config, profile, set_)
+    check_paths(cfg, storage=True, logs=True)  # what `sweep` checks: roots inside each other, unwritable paths
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return

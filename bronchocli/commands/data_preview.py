@@ -30,7 +30,7 @@ def preview(
         raise BronchoError(f"--out {target}: is a folder; give the montage's file name, e.g. {target / 'montage.png'}")
     if target.suffix.lower() not in (".png", ".pdf"):
         target = target.with_suffix(".png")
-    output_folder(target.parent, "--out")
+    output_folder(target, "--out", "file")  # the montage file itself (its folder may be /tmp)
     formats = ["png", "pdf"] if pdf else [target.suffix.lstrip(".").lower()]
     for path in draw(root, target, columns=columns, formats=formats):
         console.print(f"wrote {path}")

@@ -1,5 +1,5 @@
 """`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured tracking store, opened on the runs table
-(``runs.ui.serve``)."""
+(``runs.ui.serve``); another interface only with ``--expose``, which warns (MLflow's UI has no authentication)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,15 @@ from typing import Optional
 import typer
 
 from ..config import DEFAULT_CONFIG
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load
 
 
 def ui(
     port: int = typer.Option(5000, "--port", help="Port to listen on."),
-    host: str = typer.Option("127.0.0.1", "--host", help="Interface (127.0.0.1 keeps it local)."),
+    host: str = typer.Option("127.0.0.1", "--host", help="Interface to listen on (127.0.0.1 keeps it local; any "
+                             "other needs --expose)."),
+    expose: bool = typer.Option(False, "--expose", help="Listen on a non-loopback --host although MLflow's UI has "
+                                "no authentication (put it behind some: docs/training.md)."),
     workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, help="Server worker processes "
                                           "(default: half the cores, 1 to 4)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
@@ -27,7 +30,11 @@ def ui(
     view: tick two or more runs and press Compare to see the params that differ (arch,
     seed, ...). Sweeps and Optuna studies are parent runs with their cells/trials nested.
     Filter with e.g. `params.arch = 'convlstm' and params.population = 'personalized'`.
+
+    It listens on 127.0.0.1: MLflow's UI has no authentication. Another --host needs --expose
+    (it prints a warning); see docs/training.md for putting it behind authentication.
     """
     from ..runs import ui as mlflow_ui  # lazy: mlflow loads only when the UI starts
 
-    mlflow_ui.serve(load(config, profile, set_), host, port, workers, console)
+    mlflow_ui.serve(load(config, profile, set_), host, port, workers, console, expose=expose,
+                    warn=lambda line: err_console.print(line, markup=False, highlight=False, soft_wrap=True))

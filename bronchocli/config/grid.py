@@ -18,18 +18,23 @@ from pydantic import Field, field_validator
 from .. import registry
 from ..cells import POPULATIONS, ROT_LOSSES, ArchName, Cell, Population, PoseFrame, RotLoss, Seed
 from ..errors import ConfigError
-from .sections import Section, _listify
+from .sections import MAX_TRAJECTORIES, Section, _listify
+from .spellings import speller_of, spelled
 
 if TYPE_CHECKING:
     from .schema import Config
 
+# An architecture registered now, written the common ways (``ConvLSTM``, ``conv-lstm``: convlstm)
+ArchNameSpelled = spelled(ArchName, choices=registry.arch_names)
+
+
 class Grid(Section):
-    arch: list[ArchName] = Field(default_factory=lambda: list(registry.arch_names()))  # every one registered
-    rot_loss: list[RotLoss] = list(ROT_LOSSES)
-    population: list[Population] = list(POPULATIONS)
+    arch: list[ArchNameSpelled] = Field(default_factory=lambda: list(registry.arch_names()))  # every one registered
+    rot_loss: list[spelled(RotLoss)] = list(ROT_LOSSES)
+    population: list[spelled(Population)] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
     seed: list[Seed] = [0, 1, 2]
-    pose_frame: list[PoseFrame] = ["world"]
+    pose_frame: list[spelled(PoseFrame)] = ["world"]
     train_trajectories: list[int | None] = [None]  # training trajectories per patient and lobe (None: splits.train)
 
     _wrap = field_validator("arch", "rot_loss", "population", "seed", "pose_frame", "folds", "train_trajectories",
@@ -47,8 +52,8 @@ class Grid(Section):
     @field_validator("train_trajectories")
     @classmethod
     def _positive(cls, v: list) -> list:
-        if any(n is not None and n < 1 for n in v):
-            raise ValueError("every value must be >= 1 (or null for splits.train)")
+        if any(n is not None and not 1 <= n <= MAX_TRAJECTORIES for n in v):
+            raise ValueError(f"every value must be in [1, {MAX_TRAJECTORIES}] (or null for splits.train)")
         return v
 
 
@@ -58,9 +63,9 @@ SELECTABLE = ("arch", "rot_loss", "pose_frame", "train_trajectories")  # what a 
 class Select(Section):
     """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
 
-    top: int = Field(3, ge=1)
+    top: int = Field(3, ge=1, le=1000)
     by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss>
-    over: list[Literal["arch", "rot_loss", "pose_frame", "train_trajectories"]] = ["arch", "rot_loss"]
+    over: list[spelled(Literal["arch", "rot_loss", "pose_frame", "train_trajectories"])] = ["arch", "rot_loss"]
 
     @field_validator("by")
     @classmethod
@@ -109,7 +114,9 @@ class Stage(Section):
             unknown = sorted(set(entry) - set(SELECTABLE))
             if unknown:
                 raise ValueError(f"{entry}: unknown field(s) {unknown} (allowed: {', '.join(SELECTABLE)})")
-        return v
+        spellers = {f: speller_of(Grid.model_fields[f].annotation.__args__[0]) for f in SELECTABLE}
+        # each value read the common ways (an unmatched one is refused with the cell's own message later)
+        return [{k: (spellers[k].match(x) or x) if spellers[k] else x for k, x in entry.items()} for entry in v]
 
     def stage_grid(self, base: "Grid") -> "Grid":
         return Grid.model_validate({**base.model_dump(), **self.grid})

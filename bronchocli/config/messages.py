@@ -6,7 +6,7 @@ A value may hold a URL with a password: every message is redacted before it is s
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, get_args
 
 from pydantic import ValidationError
 
@@ -23,6 +23,46 @@ def _allowed_keys(root: Any, loc: tuple) -> list[str]:
     return sorted(getattr(model, "model_fields", {}))
 
 
+BOUND_ERRORS = ("greater_than", "greater_than_equal", "less_than", "less_than_equal")
+
+
+def _constraints(annotation: Any, metadata: list[Any]) -> dict[str, Any]:
+    """ge/gt/le/lt of a field: its own metadata, else that of the ``Annotated`` item type of a list (``list[Seed]``)."""
+    found = {k: getattr(m, k) for m in metadata for k in ("ge", "gt", "le", "lt") if getattr(m, k, None) is not None}
+    if found:
+        return found
+    for arg in get_args(annotation):
+        inner = list(getattr(arg, "__metadata__", ()))
+        inner += [c for m in inner for c in getattr(m, "metadata", ())]  # Field(ge=...) inside Annotated
+        found = _constraints(arg, inner)
+        if found:
+            return found
+    return {}
+
+
+def allowed_range(root: Any, loc: tuple) -> str | None:
+    """The documented range of the numeric setting at ``loc`` in interval notation, e.g. ``[1, 10000000]``,
+    ``(0, 10]``, ``[0, ∞)``; None when it has no bounds (or ``loc`` is not a setting)."""
+    model: Any = root
+    field = None
+    for part in (p for p in loc if isinstance(p, str)):
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return None
+        model = field.annotation
+    if field is None:
+        return None
+    c = _constraints(field.annotation, list(field.metadata))
+    if not c:
+        return None
+    def num(v: float) -> str:
+        return str(int(v)) if float(v).is_integer() else repr(v)
+
+    low = f"[{num(c['ge'])}" if "ge" in c else f"({num(c['gt'])}" if "gt" in c else "(-∞"
+    high = f"{num(c['le'])}]" if "le" in c else f"{num(c['lt'])})" if "lt" in c else "∞)"
+    return f"{low}, {high}"
+
+
 def _describe(root: Any, error: dict[str, Any]) -> str:
     loc = tuple(error["loc"])
     if error["type"] == "extra_forbidden":
@@ -35,6 +75,8 @@ def _describe(root: Any, error: dict[str, Any]) -> str:
     msg = error["msg"]
     if error["type"] == "literal_error":
         msg = f"must be one of {error['ctx']['expected']}"
+    if error["type"] in BOUND_ERRORS and (allowed := allowed_range(root, loc)) is not None:
+        msg += f" (allowed range {allowed})"
     return f"{shown}: {msg[0].lower() + msg[1:]}"
 
 

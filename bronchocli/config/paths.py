@@ -2,7 +2,8 @@
 
 ``Paths.of(cfg, base)`` expands ``${VAR}`` and ``~`` and resolves relative paths against the config file's
 folder (not the working directory). ``check_paths`` looks at every folder and database file a command
-would write, before any of them is created, and names the setting of the first that cannot be written.
+would write, before any of them is created, and names the setting of the first that cannot be written; each
+goes through ``pathcheck.check_output``, the one check of a path to write that ``--out`` flags use too.
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ from typing import TYPE_CHECKING
 
 from .. import pathcheck, urls
 from ..errors import BronchoError, ConfigError
+from ..pathcheck import check_output
+
+DATASET_JSON = "dataset.json"  # what a generated dataset folder holds once complete (data/naming.py, a higher layer)
 
 if TYPE_CHECKING:
     from .schema import Config
@@ -73,8 +77,8 @@ class Paths:
             artifacts=path(cfg.runs.artifacts, "runs.artifacts", output=True),
             sweep_logs=path(cfg.sweep.logs, "sweep.logs", output=True),
             slurm_logs=path(cfg.slurm.logs, "slurm.logs", output=True),
-            pretrained=cfg.model.pretrained if cfg.model.pretrained == "imagenet" else path(cfg.model.pretrained,
-                                                                                              "model.pretrained"),
+            pretrained=cfg.model.pretrained if cfg.model.pretrained in ("imagenet", "imagenet-if-present")
+            else path(cfg.model.pretrained, "model.pretrained"),  # names of weights, not files (models/pretrained.py)
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy, "dataset.generate.anatomy"),
             centreline=path(gen.centreline, "dataset.generate.centreline"),
             speed_settings=path(cfg.train.speed_settings, "train.speed_settings"),
@@ -84,52 +88,14 @@ class Paths:
 
 # -- pre-flight: one line before anything is created -----------------------------------------------------------
 
-def _why_not_writable(folder: Path) -> str | None:
-    """Why nothing can be created in the existing folder ``folder`` (None: it can)."""
-    try:
-        if os.statvfs(folder).f_flag & os.ST_RDONLY:
-            return "read-only file system"
-    except OSError as exc:
-        return exc.strerror or str(exc)
-    if not os.access(folder, os.W_OK | os.X_OK):
-        return "permission denied"
-    return None
-
-
-def check_output(path: Path, setting: str, kind: str = "folder") -> None:
-    """``path`` (a folder, or a ``file`` to create) can be written: BronchoError naming the setting otherwise.
-
-    Creates nothing: the nearest existing ancestor must be a folder this user may write in, on a writable
-    file system, and ``path`` itself, if it exists, must be of the right kind (and writable).
-    """
-    if path.exists():
-        if kind == "folder" and not path.is_dir():
-            raise BronchoError(f"{setting} {path}: is a file, not a folder; point {setting} at a folder")
-        if kind == "file" and path.is_dir():
-            raise BronchoError(f"{setting} {path}: is a folder, not a database file; point {setting} at a file")
-        target = path if path.is_dir() else path.parent
-        why = _why_not_writable(target)
-        if why is not None:
-            raise BronchoError(f"{setting} {path}: cannot write there ({why}); point {setting} at a writable place")
-        return
-    nearest = path.parent
-    while not nearest.exists() and nearest != nearest.parent:
-        nearest = nearest.parent
-    if not nearest.is_dir():
-        raise BronchoError(f"{setting} {path}: {nearest} is a file, so no {kind} can be created there")
-    why = _why_not_writable(nearest)
-    if why is not None:
-        raise BronchoError(f"{setting} {path}: cannot create it in {nearest} ({why}); point {setting} at a "
-                           "writable place")
-
-
 def check_dataset_root(cfg: Config) -> None:
-    """``dataset.root`` is a folder (or missing, to be generated): a file there is one line, before anything runs."""
+    """``dataset.root`` is a folder (or missing, to be generated): a file there is one line, before anything runs;
+    a folder the dataset will be generated into passes ``check_output`` (never a system folder)."""
     root = cfg.paths.dataset
     if root.exists() and not root.is_dir():
         raise BronchoError(f"dataset.root {root}: is a file, not a dataset folder; point dataset.root at the "
                            "folder holding dataset.json (or at a new folder to generate one there)")
-    if not root.exists():
+    if not root.exists() or (cfg.dataset.format == "bronchopose" and not (root / DATASET_JSON).exists()):
         check_output(root, "dataset.root")
 
 
@@ -175,13 +141,13 @@ def check_paths(cfg: Config, *, storage: bool = False, logs: bool = False) -> No
     outputs = [(cfg.paths.checkpoints, "runs.checkpoints", "folder"), (cfg.paths.cache, "data.cache_dir", "folder")]
     mlflow_db = urls.sqlite_file(cfg.paths.mlflow_uri)
     if mlflow_db is not None:
-        outputs += [(mlflow_db, "runs.uri", "file"), (cfg.paths.artifacts, "runs.artifacts", "folder")]
+        outputs += [(mlflow_db, "runs.uri", "database file"), (cfg.paths.artifacts, "runs.artifacts", "folder")]
     elif not urls.is_server(cfg.paths.mlflow_uri) and not urls.is_postgres(cfg.paths.mlflow_uri):
         outputs.append((cfg.paths.artifacts, "runs.artifacts", "folder"))
     storage_db = urls.sqlite_file(cfg.paths.storage_url)
     if logs:
         outputs.append((cfg.paths.sweep_logs, "sweep.logs", "folder"))
     if storage_db is not None and storage:
-        outputs.append((storage_db, "storage.url", "file"))
+        outputs.append((storage_db, "storage.url", "database file"))
     for path, setting, kind in outputs:
         check_output(path, setting, kind)

@@ -13,6 +13,18 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from ..cells import LOBES, Lobe, Seed
+from .spellings import spelled
+
+# Upper bounds shared by several settings (docs/config.md, "Ranges"): generous for any real experiment, small
+# enough that a typo (``steps: 1e32``, ``batch_size: 100000000000``) is refused when the config loads instead of
+# hanging a run or exhausting memory.
+MAX_STEPS = 10_000_000  # optimiser steps (and anything counted in steps)
+MAX_BATCH = 65_536  # image pairs per micro-batch
+MAX_EFFECTIVE_BATCH = 1_048_576  # image pairs per optimiser step (the paper's: 4,608)
+MAX_TRAJECTORIES = 10_000  # trajectories per patient and lobe
+MAX_WORKERS = 1024  # processes or threads of one machine
+MAX_MM = 100.0  # lengths of one camera step and voxel sizes, in mm
+DAY_S = 86_400
 
 
 class Section(BaseModel):
@@ -38,10 +50,10 @@ class RunsCfg(Section):
     experiment: str | None = None  # MLflow experiment name; defaults to the config's name
     artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
     checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
-    model_artifact: Literal["fp32", "fp16", "none"] = "fp16"  # the trained weights a FINISHED run keeps in MLflow
+    model_artifact: spelled(Literal["fp32", "fp16", "none"]) = "fp16"  # the trained weights a FINISHED run keeps in MLflow
     timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for MLflow servers and databases
     busy_timeout_s: float = Field(60.0, gt=0, le=86400)  # how long a locked/briefly-down database is waited for
-    log_every: int = Field(10, ge=0)  # optimiser steps between training-curve points (0: at validations only)
+    log_every: int = Field(10, ge=0, le=MAX_STEPS)  # optimiser steps between training-curve points (0: at validations only)
     system_metrics: bool = True  # CPU, memory, disk, network (and GPU with the `gpu` extra) sampled per run
     system_metrics_interval_s: float = Field(10.0, gt=0, le=3600)  # seconds between system-metric samples
 
@@ -62,30 +74,30 @@ class Generate(Section):
 
     anatomy: str = "procedural"  # 'procedural' or a path to a .vtu/.vtp/.nii/.nii.gz/.mhd/.nrrd/.stl/.obj file
     centreline: str | None = None  # centreline graph for a surface-mesh anatomy (computed when absent)
-    patients: int = Field(3, ge=1)  # procedural patients (seeds seed, seed+1, ...)
+    patients: int = Field(3, ge=1, le=1000)  # procedural patients (seeds seed, seed+1, ...)
     seed: Seed = 0
-    lobes: list[Lobe] = list(LOBES)
-    lobe_generation: int | None = Field(6, ge=2)  # lobe paths end at this generation (paper: 4-6); None: deepest
-    trajectories: int = Field(6, ge=1)  # per patient and lobe
+    lobes: list[spelled(Lobe)] = list(LOBES)
+    lobe_generation: int | None = Field(6, ge=2, le=64)  # lobe paths end at this generation (paper: 4-6); None: deepest
+    trajectories: int = Field(6, ge=1, le=MAX_TRAJECTORIES)  # per patient and lobe
     image_size: int = Field(64, ge=16, le=1024)
     fov_deg: float = Field(70.0, gt=10, lt=170)
-    voxel_mm: float = Field(0.5, gt=0)  # world voxel size for procedural anatomies
-    offset_voxels: int = Field(2, ge=0)  # position variations in [-k, k] voxels per axis
+    voxel_mm: float = Field(0.5, gt=0, le=10)  # world voxel size for procedural anatomies
+    offset_voxels: int = Field(2, ge=0, le=100)  # position variations in [-k, k] voxels per axis
     roll_deg: float = Field(45.0, ge=0, le=180)  # roll variations in [-r, r] ...
-    roll_step_deg: float = Field(15.0, gt=0)  # ... in steps of this
-    look_ahead_mm: float = Field(10.0, gt=0)  # the camera looks at the centreline this far ahead
+    roll_step_deg: float = Field(15.0, gt=0, le=360)  # ... in steps of this
+    look_ahead_mm: float = Field(10.0, gt=0, le=1000)  # the camera looks at the centreline this far ahead
     step_mm: _pair(float, 2) = (1.0, 3.0)  # arc-length increment per frame (speeds), min and max
-    base_step_mm: float = Field(0.5, gt=0)  # arc-length grid of base points; increments are multiples of it
-    wall_margin_mm: float = Field(0.4, ge=0)  # camera stays this far inside the local lumen radius
-    max_frames: int | None = Field(None, ge=2)  # cap on frames per trajectory
+    base_step_mm: float = Field(0.5, gt=0, le=MAX_MM)  # arc-length grid of base points; increments are multiples of it
+    wall_margin_mm: float = Field(0.4, ge=0, le=100)  # camera stays this far inside the local lumen radius
+    max_frames: int | None = Field(None, ge=2, le=1_000_000)  # cap on frames per trajectory
     realism: Realism = Realism()
-    workers: int = Field(2, ge=1)
+    workers: int = Field(2, ge=1, le=MAX_WORKERS)
 
     @field_validator("step_mm")
     @classmethod
     def _step_range(cls, v: tuple[float, float]) -> tuple[float, float]:
-        if not (0 < v[0] <= v[1]):
-            raise ValueError("must be [min, max] with 0 < min <= max")
+        if not (0 < v[0] <= v[1] <= MAX_MM):
+            raise ValueError(f"must be [min, max] with 0 < min <= max <= {MAX_MM:g} (mm)")
         return v
 
     @field_validator("base_step_mm")
@@ -97,7 +109,7 @@ class Generate(Section):
         return v
 
 
-CameraAxis = Literal["x", "y", "z", "-x", "-y", "-z"]
+CameraAxis = spelled(Literal["x", "y", "z", "-x", "-y", "-z"])
 
 
 class CsvColumns(Section):
@@ -120,9 +132,9 @@ class CsvImport(Section):
     files: list[str] = []  # CSV paths or globs, relative to dataset.root; empty: every *.csv in it
     frames: str = "."  # directory the filename column is relative to (relative to dataset.root)
     columns: CsvColumns = CsvColumns()
-    angle_units: Literal["deg", "rad"] = "deg"
+    angle_units: spelled(Literal["deg", "rad"]) = "deg"
     euler: str = "XYZ"  # SciPy convention of the angle columns (e.g. 'xyz' extrinsic, 'ZYX' intrinsic)
-    position_units: Literal["voxel", "mm"] = "voxel"
+    position_units: spelled(Literal["voxel", "mm"]) = "voxel"
     spacing_mm: _pair(float, 3) = (1.0, 1.0, 1.0)  # voxel size; mm positions are divided by it
     camera_forward: CameraAxis = "x"  # the imported camera's optical axis (OpenCV-style cameras: z)
     camera_up: CameraAxis = "z"  # its image-up axis (OpenCV-style cameras, y pointing down: -y)
@@ -133,6 +145,13 @@ class CsvImport(Section):
             raise ValueError(f"camera_forward ({self.camera_forward}) and camera_up ({self.camera_up}) must be "
                              "different axes")
         return self
+
+    @field_validator("spacing_mm")
+    @classmethod
+    def _spacing(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if not all(0 < s <= MAX_MM for s in v):
+            raise ValueError(f"each voxel size must be in (0, {MAX_MM:g}] mm")
+        return v
 
     @field_validator("euler")
     @classmethod
@@ -145,27 +164,28 @@ class CsvImport(Section):
 
 class DatasetCfg(Section):
     root: str = "data/synthetic"
-    format: Literal["bronchopose", "csv"] = "bronchopose"
+    format: spelled(Literal["bronchopose", "csv"]) = "bronchopose"
     generate: Generate = Generate()
     csv: CsvImport = CsvImport()
 
 
 class Splits(Section):
-    train: int = Field(15, ge=1)  # personalized: trajectories per patient and lobe
-    val: int = Field(3, ge=1)
-    test: int = Field(3, ge=1)
-    cross_subject_val: int = Field(3, ge=1)  # cross-subject: val trajectories per training patient and lobe
+    train: int = Field(15, ge=1, le=MAX_TRAJECTORIES)  # personalized: trajectories per patient and lobe
+    val: int = Field(3, ge=1, le=MAX_TRAJECTORIES)
+    test: int = Field(3, ge=1, le=MAX_TRAJECTORIES)
+    # cross-subject: validation trajectories per training patient and lobe
+    cross_subject_val: int = Field(3, ge=1, le=MAX_TRAJECTORIES)
     seed: Seed = 0
 
 
 
 class DataCfg(Section):
     image_size: int | None = Field(None, ge=16, le=1024)  # network input; None = the dataset's
-    window: int = Field(10, ge=1)  # L image pairs per training window of temporal models
-    overlap: int = Field(0, ge=0)  # pairs shared by consecutive windows
-    workers: int = Field(0, ge=0)  # frame cache decoding threads (0: one per core, at most 8)
+    window: int = Field(10, ge=1, le=1000)  # L image pairs per training window of temporal models
+    overlap: int = Field(0, ge=0, le=999)  # pairs shared by consecutive windows
+    workers: int = Field(0, ge=0, le=MAX_WORKERS)  # frame cache decoding threads (0: one per core, at most 8)
     cache_dir: str = "runs/cache"  # decoded-frame cache (uint8, memory-mapped)
-    frames_on_device: Literal["auto", "yes", "no"] = "auto"  # CUDA: keep the whole frame cache in GPU memory
+    frames_on_device: spelled(Literal["auto", "yes", "no"]) = "auto"  # CUDA: keep the whole frame cache in GPU memory
     augment: bool = False  # photometric augmentation of training frames
 
     @field_validator("overlap")
@@ -181,38 +201,38 @@ class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
     pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
     # channels-last memory format: auto = the measured per-architecture setting for the device (bronchocli/speed.py)
-    channels_last: bool | Literal["auto"] = "auto"
+    channels_last: spelled(bool | Literal["auto"]) = "auto"
 
 
 class Train(Section):
     """The training budget and optimiser; docs/training.md explains each choice."""
 
-    steps: int = Field(400, ge=1)  # optimiser steps: the budget, identical for every cell of a sweep
-    batch_size: int = Field(20, ge=1)  # image pairs per micro-batch (temporal models: batch_size / window windows)
-    effective_batch: int | None = Field(None, ge=1)  # image pairs per optimiser step (gradient accumulation)
-    lr: float = Field(1e-3, gt=0)
-    weight_decay: float = Field(0.0, ge=0)  # > 0: AdamW (decoupled), else Adam
+    steps: int = Field(400, ge=1, le=MAX_STEPS)  # optimiser steps: the budget, identical for every cell of a sweep
+    batch_size: int = Field(20, ge=1, le=MAX_BATCH)  # image pairs per micro-batch (temporal models: batch_size / window windows)
+    effective_batch: int | None = Field(None, ge=1, le=MAX_EFFECTIVE_BATCH)  # image pairs per optimiser step (gradient accumulation)
+    lr: float = Field(1e-3, gt=0, le=10)
+    weight_decay: float = Field(0.0, ge=0, le=10)  # > 0: AdamW (decoupled), else Adam
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
-    schedule: Literal["cosine", "constant"] = "cosine"  # after the warm-up
-    val_every: int = Field(50, ge=1)  # steps between validations (best weights, early stopping, pruning)
+    schedule: spelled(Literal["cosine", "constant"]) = "cosine"  # after the warm-up
+    val_every: int = Field(50, ge=1, le=MAX_STEPS)  # steps between validations (best weights, early stopping, pruning)
     # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard
     # kill (OOM, node lost) loses at most this much training
-    checkpoint_every_s: float = Field(120.0, gt=0)
-    patience: int | None = Field(None, ge=1)  # validations without improvement before stopping; None: never
-    min_delta: float = Field(0.0, ge=0)
+    checkpoint_every_s: float = Field(120.0, gt=0, le=DAY_S)
+    patience: int | None = Field(None, ge=1, le=MAX_STEPS)  # validations without improvement before stopping; None: never
+    min_delta: float = Field(0.0, ge=0, le=1000)
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
-    bn_recalibrate: int = Field(16, ge=0)  # training batches that re-estimate BatchNorm statistics per validation
-    tbptt_chunks: int = Field(1, ge=1)  # K chunks of L pairs per training sequence
-    rot_weight: float = Field(1.0, ge=0)
+    bn_recalibrate: int = Field(16, ge=0, le=100_000)  # training batches that re-estimate BatchNorm statistics per validation
+    tbptt_chunks: int = Field(1, ge=1, le=1000)  # K chunks of L pairs per training sequence
+    rot_weight: float = Field(1.0, ge=0, le=1e6)
     # auto = the measured per-architecture setting for the device (bronchocli/speed.py; docs/training.md, "Speed")
-    precision: Literal["auto", "32", "16-mixed", "bf16-mixed"] = "auto"
+    precision: spelled(Literal["auto", "32", "16-mixed", "bf16-mixed"]) = "auto"
     speed_settings: str | None = None  # a settings file of `bronchopose profile --speed`; None = the shipped one
-    device: Literal["auto", "cpu", "cuda", "mps"] = "auto"
+    device: spelled(Literal["auto", "cpu", "cuda", "mps"]) = "auto"
     # torch.compile the network: false, true (= default) or an inductor mode; reduce-overhead captures the
     # forward and backward in CUDA graphs (docs/training.md, "GPU"; benchmarks/README.md)
-    compile: bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"] = False
-    max_val_pairs: int | None = Field(None, ge=1)  # cap on validation pairs (evenly spread, the same every time)
-    threads: int | None = Field(None, ge=1)  # torch CPU threads; None = all cores / sweep workers
+    compile: spelled(bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]) = False
+    max_val_pairs: int | None = Field(None, ge=1, le=1_000_000_000)  # cap on validation pairs (evenly spread, the same every time)
+    threads: int | None = Field(None, ge=1, le=MAX_WORKERS)  # torch CPU threads; None = all cores / sweep workers
 
     @model_validator(mode="after")
     def _accumulation(self) -> "Train":
@@ -230,14 +250,14 @@ class Train(Section):
 class EvalCfg(Section):
     """Camera-tracking metrics of the test evaluation (odometry.py; docs/reports.md, tracking table)."""
 
-    ctf_position: float = Field(5.0, gt=0)  # voxels: a frame is tracked below this position error ...
-    ctf_position_mm: float = Field(5.0, gt=0)  # ... (ctf_mm: the same in mm, from the dataset's voxel spacing)
+    ctf_position: float = Field(5.0, gt=0, le=1e6)  # voxels: a frame is tracked below this position error ...
+    ctf_position_mm: float = Field(5.0, gt=0, le=1e6)  # ... (ctf_mm: the same in mm, from the dataset's voxel spacing)
     ctf_angle: float = Field(10.0, gt=0, le=180)  # ... and below this rotation error (degrees, geodesic)
-    rpe_gap: int = Field(10, ge=1)  # frames between the two poses of a relative pose error
+    rpe_gap: int = Field(10, ge=1, le=1_000_000)  # frames between the two poses of a relative pose error
 
 
 class TuneParam(Section):
-    type: Literal["float", "int", "categorical"]
+    type: spelled(Literal["float", "int", "categorical"])
     low: float | None = None
     high: float | None = None
     log: bool = False
@@ -246,13 +266,13 @@ class TuneParam(Section):
 
 
 class Tune(Section):
-    trials: int = Field(20, ge=1)
-    timeout: float | None = Field(None, gt=0)
-    sampler: Literal["tpe", "random"] = "tpe"
+    trials: int = Field(20, ge=1, le=100_000)
+    timeout: float | None = Field(None, gt=0, le=365 * DAY_S)
+    sampler: spelled(Literal["tpe", "random"]) = "tpe"
     seed: Seed = 0
-    pruner: Literal["median", "hyperband", "none"] = "median"
-    warmup_validations: int = Field(1, ge=0)  # validations a trial always runs before it may be pruned
-    startup_trials: int = Field(2, ge=0)  # trials before TPE models and the median pruner prunes
+    pruner: spelled(Literal["median", "hyperband", "none"]) = "median"
+    warmup_validations: int = Field(1, ge=0, le=100_000)  # validations a trial always runs before it may be pruned
+    startup_trials: int = Field(2, ge=0, le=100_000)  # trials before TPE models and the median pruner prunes
     applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
     space: dict[str, TuneParam] = {
         "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
@@ -261,12 +281,12 @@ class Tune(Section):
 
 
 class SweepCfg(Section):
-    max_retries: int = Field(1, ge=0)  # automatic re-runs of a FAILED cell (a lost worker counts as a failure)
-    heartbeat_s: float = Field(10.0, gt=0)  # a worker refreshes its claim this often
-    stale_after_s: float = Field(60.0, gt=0)  # a claim without heartbeat this long is reclaimed
-    poll_s: float = Field(2.0, gt=0)  # an idle worker looks again this often (cells held elsewhere)
+    max_retries: int = Field(1, ge=0, le=100)  # automatic re-runs of a FAILED cell (a lost worker counts as a failure)
+    heartbeat_s: float = Field(10.0, gt=0, le=3600)  # a worker refreshes its claim this often
+    stale_after_s: float = Field(60.0, gt=0, le=DAY_S)  # a claim without heartbeat this long is reclaimed
+    poll_s: float = Field(2.0, gt=0, le=3600)  # an idle worker looks again this often (cells held elsewhere)
     logs: str = "runs/sweep-logs"  # one log file per worker process
-    launcher: Literal["local", "slurm"] = "local"  # slurm: submit array tasks as workers (slurm section)
+    launcher: spelled(Literal["local", "slurm"]) = "local"  # slurm: submit array tasks as workers (slurm section)
 
     @field_validator("stale_after_s")
     @classmethod
@@ -292,13 +312,13 @@ class SlurmCfg(Section):
     partition: str | None = None
     account: str | None = None
     qos: str | None = None
-    timeout_min: int = Field(60, ge=1)  # --time of every array task
-    gpus_per_task: int = Field(1, ge=0)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
-    cpus_per_task: int = Field(2, ge=1)  # also the worker's torch threads (train.threads unset)
-    mem_gb: float | None = Field(None, gt=0)  # --mem per task; None: the cluster's DefMemPerCPU
-    tasks: int | None = Field(None, ge=1)  # array tasks (workers) at most per stage; None: one per cell left
-    array_parallelism: int = Field(256, ge=1)  # tasks of one array running at once (--array=0-N%K)
-    signal_delay_s: int = Field(120, ge=1)  # SIGUSR1 this long before the time limit: checkpoint, requeue
+    timeout_min: int = Field(60, ge=1, le=365 * 24 * 60)  # --time of every array task
+    gpus_per_task: int = Field(1, ge=0, le=64)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
+    cpus_per_task: int = Field(2, ge=1, le=MAX_WORKERS)  # also the worker's torch threads (train.threads unset)
+    mem_gb: float | None = Field(None, gt=0, le=65536)  # --mem per task; None: the cluster's DefMemPerCPU
+    tasks: int | None = Field(None, ge=1, le=100_000)  # array tasks (workers) at most per stage; None: one per cell left
+    array_parallelism: int = Field(256, ge=1, le=100_000)  # tasks of one array running at once (--array=0-N%K)
+    signal_delay_s: int = Field(120, ge=1, le=65535)  # SIGUSR1 this long before the time limit: checkpoint, requeue
     setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
     additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
     python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
@@ -308,7 +328,7 @@ class SlurmCfg(Section):
     # after the time-limit warning (SIGUSR1) the task checkpoints, gives its cell back, then `scontrol requeue`s
     # itself (works detached; the watcher starts it after 3 s instead of Slurm's ~2 min hold) or just exits
     # (the watcher, or running the command again, submits a new task)
-    on_time_limit: Literal["requeue", "exit"] = "requeue"
+    on_time_limit: spelled(Literal["requeue", "exit"]) = "requeue"
 
     @field_validator("partition", "account", "qos")
     @classmethod

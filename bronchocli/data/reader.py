@@ -8,7 +8,7 @@ Two layouts are read into the same ``Dataset``:
   :mod:`bronchocli.data.importer` (``dataset.format: csv``).
 
 Both go through :func:`assemble`, which checks what training relies on (finite
-poses, unique frame numbers, at least two frames per trajectory, every frame
+poses within their bounds, unique frame numbers, at least two frames per trajectory, every frame
 file present) and raises ``DataError`` naming the file and line of the first
 bad row. Frames are sorted by patient, lobe, trajectory and frame; the row
 number of that table is the *global frame index* the frame cache uses, so the
@@ -157,14 +157,29 @@ def _where(table: pd.DataFrame, i: int) -> str:
     return f"{table['source'].iat[i]} line {table['line'].iat[i]}"
 
 
-def _check_finite(table: pd.DataFrame) -> None:
+# What a pose value may be: beyond these it is a corrupt file (1e308 overflows every difference taken from it),
+# not a camera. Positions are voxels (a CT volume is < 1e4 voxels a side); angles are Euler degrees, which a
+# file may write unwrapped, so two full turns either way are allowed.
+MAX_POSITION = 1e6  # |x|, |y|, |z| in voxels
+MAX_ANGLE = 720.0  # |rx|, |ry|, |rz| in degrees
+
+
+def _check_poses(table: pd.DataFrame) -> None:
+    """Every pose value finite and within its bound (``MAX_POSITION``, ``MAX_ANGLE``): DataError naming the file,
+    line, column and value of the first bad one otherwise."""
     values = table[list(POSE_COLUMNS)].to_numpy(np.float64)
-    bad = ~np.isfinite(values)
+    limit = np.array([MAX_POSITION] * 3 + [MAX_ANGLE] * 3)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(values) | (np.abs(values) > limit)
     if bad.any():
-        i, j = np.argwhere(bad)[0]
-        n = int(bad.any(1).sum())
-        more = f" ({n - 1} more rows)" if n > 1 else ""
-        raise DataError(f"{_where(table, i)}: non-finite pose value {POSE_COLUMNS[j]}={values[i, j]}{more}")
+        rows = np.flatnonzero(bad.any(1))
+        i = int(min(rows, key=lambda k: (table["source"].iat[k], table["line"].iat[k])))  # first in file order
+        j = int(np.flatnonzero(bad[i])[0])
+        more = f" ({len(rows) - 1} more rows)" if len(rows) > 1 else ""
+        what = "non-finite" if not np.isfinite(values[i, j]) else "out-of-range"
+        rule = f"positions within ±{MAX_POSITION:,.0f} voxels" if j < 3 else f"angles within ±{MAX_ANGLE:g}°"
+        raise DataError(f"{_where(table, i)}: {what} pose value {POSE_COLUMNS[j]}={values[i, j]:g} (allowed: "
+                        f"finite, {rule}){more}")
 
 
 def _sort(table: pd.DataFrame, patients: Sequence[str]) -> pd.DataFrame:
@@ -256,7 +271,7 @@ def assemble(table: pd.DataFrame, patients: Sequence[str] | None = None,
     if table.empty:
         raise DataError(f"{', '.join(sorted(set(table['source'])) or ['dataset'])}: no frames")
     patients = list(patients) if patients is not None else sorted(table["patient"].unique(), key=natural_key)
-    _check_finite(table)
+    _check_poses(table)
     table = _sort(table, patients)
     starts = _group_starts(table)
     _check_groups(table, starts)
@@ -304,7 +319,7 @@ def _read_meta(root: Path) -> dict[str, Any]:
     path = root / DATASET_JSON
     if not root.is_dir():
         raise DataError(f"{root}: dataset directory not found")
-    if not path.is_file():
+    if not _read_file(path, "dataset file").is_file():
         raise DataError(f"{path}: not found (an incomplete generation, or not a bronchopose dataset: "
                         "for a foreign CSV set dataset.format: csv)")
     try:
@@ -345,7 +360,7 @@ def _frame_shape(meta: dict[str, Any], path: Path) -> tuple[int, int]:
 
 def read_patient_csv(root: Path, patient: str) -> pd.DataFrame:
     """``<root>/<patient>.csv`` -> normalised frames table (with source/line for errors)."""
-    path = root / f"{patient}.csv"
+    path = _read_file(root / f"{patient}.csv", "patient file")
     if not path.is_file():
         raise DataError(f"{path}: not found ({DATASET_JSON} lists patient {patient!r})")
     try:
@@ -365,6 +380,7 @@ def read_patient_csv(root: Path, patient: str) -> pd.DataFrame:
     table.insert(3, "frame", integer_column(raw["frame"], "frame", path))
     table["source"], table["line"] = str(path), np.arange(len(raw)) + 2  # line 1 is the header
     _check_text(table, ("patient", "lobe", "trajectory", "filename"), path)
+    _check_row_names(table, ("lobe", "trajectory"), path)
     wrong = np.flatnonzero(table["patient"].to_numpy() != patient)
     if len(wrong):
         raise DataError(f"{path} line {wrong[0] + 2}: patient {table['patient'].iat[wrong[0]]!r}, expected {patient!r}")
@@ -430,21 +446,43 @@ def _warn_empty_lobes(root: Path, patients: Sequence[str], lobes: Sequence[str],
                   "training, validation and test go on without them")
 
 
+def _check_names(path: Path, key: str, names: Sequence[str], why: str) -> None:
+    """Every name of ``path``'s ``key`` list a plain file name (``pathcheck.plain_name``): one line otherwise."""
+    for i, name in enumerate(names):
+        if not pathcheck.plain_name(name):
+            raise DataError(f"{path}: {key}[{i}] {name!r}: {why} (no '/', '\\' or '..')")
+
+
+def _check_row_names(table: pd.DataFrame, columns: Sequence[str], path: Path) -> None:
+    """The lobe and trajectory of every row plain names (they name folders: ``<patient>/<lobe>/<trajectory>``)."""
+    for c in columns:
+        values = table[c].astype(str)
+        bad = [v for v in values.unique() if not pathcheck.plain_name(v)]
+        if bad:
+            row = int(np.flatnonzero(values.isin(bad).to_numpy())[0])
+            raise DataError(f"{path} line {row + 2}: {c} {values.iat[row]!r}: a {c} is a folder name in the "
+                            "dataset (no '/', '\\' or '..')")
+
+
+def _read_file(path: Path, what: str) -> Path:
+    """``path`` if it is a file; a symbolic link loop there is one line saying so (``is_file`` alone says no)."""
+    pathcheck.resolve(path, what)
+    return path
+
+
 def open_dataset_dir(root: str | os.PathLike) -> Dataset:
     """Read a dataset in the project's layout (``dataset.json`` + one CSV per patient)."""
     root = pathcheck.resolve(root, "dataset")
     meta = _read_meta(root)
     meta_path = root / DATASET_JSON
     patients = [str(p) for p in meta["patients"]]
-    for i, p in enumerate(patients):  # <patient>.csv must be a file of this folder
-        if not pathcheck.plain_name(p):
-            raise DataError(f"{meta_path}: patients[{i}] {p!r}: a patient name is a file name in the dataset "
-                            "folder (no '/', '\\' or '..')")
+    _check_names(meta_path, "patients", patients, "a patient name is a file name in the dataset folder")
     table = pd.concat([read_patient_csv(root, p) for p in patients], ignore_index=True)
     frames, trajectories = assemble(table, patients)
     csvs = {p: (root / f"{p}.csv").read_bytes() for p in patients}
     fingerprint = _fingerprint(root, meta, csvs, frames["path"])
     lobes = [str(lb) for lb in meta.get("lobes") or lobe_order(frames["lobe"].unique())]
+    _check_names(meta_path, "lobes", lobes, "a lobe name is a folder name in the dataset (<patient>/<lobe>/...)")
     _warn_empty_lobes(root, patients, lobes, frames)
     return Dataset(root=root, format="bronchopose", patients=patients, lobes=lobes,
                    frame_shape=_frame_shape(meta, meta_path), fingerprint=str(fingerprint), frames=frames,

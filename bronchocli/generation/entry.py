@@ -12,7 +12,7 @@ from rich.table import Table
 
 from .. import pathcheck
 from ..config import Config
-from ..errors import BronchoError, Interrupted
+from ..errors import Interrupted
 
 
 def summary(root: Path, seconds: float, already: bool) -> Table:
@@ -40,8 +40,7 @@ def generate(cfg: Config, out: Path | None = None, *, workers: int | None = None
     from .pipeline import generate_dataset  # lazy: VTK loads only when generating
 
     root = pathcheck.resolve(out, "--out") if out is not None else cfg.paths.dataset
-    if root.exists() and not root.is_dir():
-        raise BronchoError(f"--out {root}: is a file, not a dataset folder; choose a folder path")
+    pathcheck.check_output(root, "--out" if out is not None else "dataset.root")  # never /etc/..., one line
     already = (root / "dataset.json").is_file()
     start = time.perf_counter()
     try:

@@ -1,5 +1,7 @@
 """The MLflow UI on this machine for the config's tracking store, opened on the runs table (``bronchopose ui``).
 
+It listens on 127.0.0.1 unless asked with ``--expose`` (``check_host``): MLflow's UI has no authentication.
+
 MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
 experiment's runs table in the model-training view (``runs_table_url``),
 and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
@@ -14,11 +16,13 @@ judges and trace jobs that a training experiment never uses).
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import os
 import shutil
 import socket
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from rich.console import Console
@@ -81,8 +85,36 @@ def check_port(host: str, port: int) -> None:
                                "`bronchopose ui` or MLflow server running? pick another port with --port") from None
 
 
-def serve(cfg: Config, host: str, port: int, workers: int | None, console: Console) -> None:
-    """Check the store and the port, print the runs-table link and become `mlflow ui` (never returns)."""
+def is_loopback(host: str) -> bool | None:
+    """Whether every address ``host`` names is a loopback one (127.0.0.0/8, ::1); None: not a name of any address
+    (``check_port`` words that). ``0.0.0.0`` and ``::`` (every interface) are not loopback."""
+    try:
+        found = {info[4][0] for info in socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)}
+    except (socket.gaierror, UnicodeError):
+        return None
+    return bool(found) and all(ipaddress.ip_address(a.partition("%")[0]).is_loopback for a in found)
+
+
+def check_host(host: str, expose: bool, warn: Callable[[str], None]) -> None:
+    """The UI listens on loopback unless ``expose``: MLflow's UI has no authentication, so any other interface
+    lets whoever reaches it read, change and delete every run. BronchoError without ``expose``; a warning with it."""
+    if is_loopback(host) is not False:
+        return
+    risk = (f"MLflow's UI has no authentication: anyone who can reach {host}:<port> can read, change and delete "
+            "every experiment, run and artifact of this store")
+    if not expose:
+        raise BronchoError(f"--host {host}: not a loopback address; {risk}. Keep the default 127.0.0.1 (reach it "
+                           "from elsewhere through `ssh -L`), or add --expose to listen there anyway, behind "
+                           "authentication (docs/training.md, \"Serving the UI to others\")")
+    warn(f"warning: --expose: listening on {host}; {risk}. Put it behind authentication (MLflow's basic-auth app "
+         "or a reverse proxy: docs/training.md, \"Serving the UI to others\")")
+
+
+def serve(cfg: Config, host: str, port: int, workers: int | None, console: Console, *, expose: bool = False,
+          warn: Callable[[str], None] | None = None) -> None:
+    """Check the host (``check_host``), the store and the port, print the runs-table link and become `mlflow ui`
+    (never returns)."""
+    check_host(host, expose, warn or (lambda line: print(line, file=sys.stderr, flush=True)))
     if urls.is_server(cfg.paths.mlflow_uri):
         raise BronchoError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)} is already a server: open it in a browser")
     check_port(host, port)

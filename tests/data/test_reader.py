@@ -147,3 +147,68 @@ def test_bad_dataset_json_is_reported(small):
     (small / "dataset.json").write_text(json.dumps(meta))
     with pytest.raises(DataError, match=r"dataset.json: voxel_grid.p01.spacing_mm"):
         open_dataset_dir(small)
+
+
+# -- issue 37.4/37.5: absurd poses, names that leave the dataset, symlink loops ---------------------------------
+
+def _set_pose(column: str, value: float, row: int = 5):
+    def breaker(root):
+        def edit(df):
+            df[column] = df[column].astype(np.float64)
+            df.loc[row, column] = value
+            return df
+        _edit_csv(root, "p00", edit)
+    return breaker
+
+
+@pytest.mark.parametrize("column, value, expected", [
+    ("pos_x", 1e308, ["p00.csv line 7", "out-of-range pose value x=1e+308", "±1,000,000 voxels"]),
+    ("pos_z", -1.5e6, ["p00.csv line 7", "z=-1.5e+06", "positions within ±1,000,000 voxels"]),
+    ("Rx", 721.0, ["p00.csv line 7", "rx=721", "angles within ±720°"]),
+    ("Rz", -1e9, ["p00.csv line 7", "rz=-1e+09", "angles within ±720°"]),
+    ("Ry", np.inf, ["p00.csv line 7", "non-finite pose value ry=inf"]),
+])
+def test_absurd_pose_values_are_one_line_naming_file_line_and_value(small, column, value, expected):
+    _set_pose(column, value)(small)
+    with pytest.raises(DataError) as err:
+        open_dataset_dir(small)
+    message = str(err.value)
+    assert "\n" not in message and all(text in message for text in expected), message
+
+
+def test_poses_at_the_bounds_are_read(small):
+    _set_pose("pos_y", -1e6, row=2)(small)
+    _set_pose("Rz", 720.0, row=3)(small)
+    ds = open_dataset_dir(small)
+    assert ds.frames["y"].min() == -1e6  # an extreme but finite position is data, not corruption
+
+
+@pytest.mark.parametrize("name", ["../..", "..", "a/b", ""])
+def test_a_lobe_of_dataset_json_that_is_not_a_plain_name_is_refused(small, name):
+    meta = json.loads((small / "dataset.json").read_text())
+    meta["lobes"] = ["ur", name]
+    (small / "dataset.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match=r"dataset.json: lobes\[1\] .*: a lobe name is a folder name"):
+        open_dataset_dir(small)
+
+
+@pytest.mark.parametrize("column, value", [("lobe", "../x"), ("trajectory", "a/b")])
+def test_a_lobe_or_trajectory_of_a_row_that_leaves_its_folder_is_refused(small, column, value):
+    def edit(df):
+        df[column] = df[column].astype(object)
+        df.loc[4, column] = value
+        return df
+    _edit_csv(small, "p00", edit)
+    with pytest.raises(DataError, match=rf"p00.csv line 6: {column} '{value}': a {column} is a folder name"):
+        open_dataset_dir(small)
+
+
+@pytest.mark.parametrize("name", ["dataset.json", "p00.csv"])
+def test_a_symlink_loop_in_a_dataset_file_is_named_a_loop_not_missing(small, name):
+    from bronchocli.errors import BronchoError
+
+    (small / name).unlink()
+    (small / name).symlink_to(small / name)
+    with pytest.raises(BronchoError) as err:
+        open_dataset_dir(small)
+    assert "symbolic link loop" in str(err.value) and name in str(err.value) and "not found" not in str(err.value)
