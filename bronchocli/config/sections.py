@@ -50,10 +50,12 @@ class RunsCfg(Section):
     experiment: str | None = None  # MLflow experiment name; defaults to the config's name
     artifacts: str = "runs/artifacts"  # artifact root for experiments created on a local store
     checkpoints: str = "runs/checkpoints"  # resumable training state, one folder per unfinished MLflow run
-    model_artifact: spelled(Literal["fp32", "fp16", "none"]) = "fp16"  # the trained weights a FINISHED run keeps in MLflow
+    # the trained weights a FINISHED run keeps in MLflow
+    model_artifact: spelled(Literal["fp32", "fp16", "none"]) = "fp16"
     timeout_s: float = Field(10.0, gt=0, le=3600)  # connect/answer limit for MLflow servers and databases
     busy_timeout_s: float = Field(60.0, gt=0, le=86400)  # how long a locked/briefly-down database is waited for
-    log_every: int = Field(10, ge=0, le=MAX_STEPS)  # optimiser steps between training-curve points (0: at validations only)
+    # optimiser steps between training-curve points (0: at validations only)
+    log_every: int = Field(10, ge=0, le=MAX_STEPS)
     system_metrics: bool = True  # CPU, memory, disk, network (and GPU with the `gpu` extra) sampled per run
     system_metrics_interval_s: float = Field(10.0, gt=0, le=3600)  # seconds between system-metric samples
 
@@ -208,8 +210,10 @@ class Train(Section):
     """The training budget and optimiser; docs/training.md explains each choice."""
 
     steps: int = Field(400, ge=1, le=MAX_STEPS)  # optimiser steps: the budget, identical for every cell of a sweep
-    batch_size: int = Field(20, ge=1, le=MAX_BATCH)  # image pairs per micro-batch (temporal models: batch_size / window windows)
-    effective_batch: int | None = Field(None, ge=1, le=MAX_EFFECTIVE_BATCH)  # image pairs per optimiser step (gradient accumulation)
+    # image pairs per micro-batch (temporal models: batch_size / window windows)
+    batch_size: int = Field(20, ge=1, le=MAX_BATCH)
+    # image pairs per optimiser step (gradient accumulation)
+    effective_batch: int | None = Field(None, ge=1, le=MAX_EFFECTIVE_BATCH)
     lr: float = Field(1e-3, gt=0, le=10)
     weight_decay: float = Field(0.0, ge=0, le=10)  # > 0: AdamW (decoupled), else Adam
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
@@ -218,10 +222,12 @@ class Train(Section):
     # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard
     # kill (OOM, node lost) loses at most this much training
     checkpoint_every_s: float = Field(120.0, gt=0, le=DAY_S)
-    patience: int | None = Field(None, ge=1, le=MAX_STEPS)  # validations without improvement before stopping; None: never
+    # validations without improvement before stopping; None: never
+    patience: int | None = Field(None, ge=1, le=MAX_STEPS)
     min_delta: float = Field(0.0, ge=0, le=1000)
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
-    bn_recalibrate: int = Field(16, ge=0, le=100_000)  # training batches that re-estimate BatchNorm statistics per validation
+    # training batches that re-estimate BatchNorm statistics per validation
+    bn_recalibrate: int = Field(16, ge=0, le=100_000)
     tbptt_chunks: int = Field(1, ge=1, le=1000)  # K chunks of L pairs per training sequence
     rot_weight: float = Field(1.0, ge=0, le=1e6)
     # auto = the measured per-architecture setting for the device (bronchocli/speed.py; docs/training.md, "Speed")
@@ -231,7 +237,8 @@ class Train(Section):
     # torch.compile the network: false, true (= default) or an inductor mode; reduce-overhead captures the
     # forward and backward in CUDA graphs (docs/training.md, "GPU"; benchmarks/README.md)
     compile: spelled(bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]) = False
-    max_val_pairs: int | None = Field(None, ge=1, le=1_000_000_000)  # cap on validation pairs (evenly spread, the same every time)
+    # cap on validation pairs (evenly spread, the same every time)
+    max_val_pairs: int | None = Field(None, ge=1, le=1_000_000_000)
     threads: int | None = Field(None, ge=1, le=MAX_WORKERS)  # torch CPU threads; None = all cores / sweep workers
 
     @model_validator(mode="after")
@@ -316,7 +323,8 @@ class SlurmCfg(Section):
     gpus_per_task: int = Field(1, ge=0, le=64)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
     cpus_per_task: int = Field(2, ge=1, le=MAX_WORKERS)  # also the worker's torch threads (train.threads unset)
     mem_gb: float | None = Field(None, gt=0, le=65536)  # --mem per task; None: the cluster's DefMemPerCPU
-    tasks: int | None = Field(None, ge=1, le=100_000)  # array tasks (workers) at most per stage; None: one per cell left
+    # array tasks (workers) at most per stage; None: one per cell left
+    tasks: int | None = Field(None, ge=1, le=100_000)
     array_parallelism: int = Field(256, ge=1, le=100_000)  # tasks of one array running at once (--array=0-N%K)
     signal_delay_s: int = Field(120, ge=1, le=65535)  # SIGUSR1 this long before the time limit: checkpoint, requeue
     setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
