@@ -3,10 +3,10 @@
 Every finished file of the project is written through :func:`atomic_path`: to
 a unique temporary name in the target's own directory, then moved into place
 with ``os.replace``, so a reader (or a crash) never sees half a file.
-:func:`file_lock` serialises first-time set-up between processes of one
+:func:`file_lock` (the ``filelock`` package) serialises first-time set-up between processes of one
 machine (building a frame cache, generating a dataset, creating a SQLite
 store's tables). :func:`folder_bytes` and :func:`fmt_bytes` size and print
-what lies on disk (``status``, ``sweep --gc``, a checkpoint's space check).
+what lies on disk (``status``, ``sweep gc``, a checkpoint's space check).
 """
 
 from __future__ import annotations
@@ -20,12 +20,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from .errors import DataError
+from filelock import FileLock
 
-try:
-    import fcntl
-except ImportError:  # pragma: no cover - Windows
-    fcntl = None
+from .errors import DataError
 
 TEMP_SUFFIX = ".tmp"
 
@@ -36,26 +33,38 @@ def temp_name(path: Path) -> Path:
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path to write; on success it replaces ``path``, on error it is removed."""
+def atomic_path(path: str | os.PathLike, private: bool = False) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces ``path``, on error it is removed.
+
+    ``private``: the temporary file exists already, readable and writable by this user only (0600) from its
+    first byte (a secret is never readable by others, not even while it is written)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_name(path)
     try:
+        if private:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+            os.chmod(tmp, 0o600)  # O_CREAT's mode is masked by the umask; 0600 is never wider than asked
         yield tmp
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
+def write_bytes(path: str | os.PathLike, data: bytes, private: bool = False) -> Path:
+    """Write ``data`` to ``path`` atomically (``private``: mode 0600 from the first byte, and flushed to disk)."""
+    with atomic_path(path, private) as tmp:
+        with open(tmp, "r+b" if private else "wb") as f:
+            f.write(data)
+            if private:
+                f.truncate()
+                f.flush()
+                os.fsync(f.fileno())
     return Path(path)
 
 
-def write_text(path: str | os.PathLike, text: str) -> Path:
-    return write_bytes(path, text.encode("utf-8"))
+def write_text(path: str | os.PathLike, text: str, private: bool = False) -> Path:
+    return write_bytes(path, text.encode("utf-8"), private)
 
 
 def write_json(path: str | os.PathLike, data: Any) -> Path:
@@ -112,24 +121,13 @@ def fmt_bytes(n: float | None) -> str:
 def file_lock(path: str | os.PathLike) -> Iterator[None]:
     """Hold an exclusive advisory lock on ``path`` (created, never deleted) for the ``with`` block.
 
-    POSIX ``flock``; where the platform or file system has none the lock is a
-    no-op and callers rely on their atomic renames.
+    The ``filelock`` package's ``FileLock`` (``flock`` on POSIX, ``msvcrt`` on Windows); a file system without
+    locks raises instead of silently not locking.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if fcntl is None:  # pragma: no cover - Windows
+    with FileLock(str(path)):
         yield
-        return
-    with open(path, "a+b") as fh:
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX)
-        except OSError:  # a file system without locks
-            yield
-            return
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def save_figure(fig, path: str | os.PathLike, formats: Sequence[str] = ("png",), dpi: int = 130) -> list[Path]:

@@ -1,4 +1,4 @@
-"""MLflow conventions: URL redaction, flattening, tags."""
+"""MLflow run records: the printed tracking URI redacted, config flattening, a cell's tags (runs.records, runs.client)."""
 
 from __future__ import annotations
 
