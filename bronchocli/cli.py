@@ -41,13 +41,12 @@ COMMANDS = {
     "tune": tune_cmd.tune,
     "report": report_cmd.report,
     "profile": profile_cmd.profile,
-    "sweep": sweep_cmd.sweep,
     "status": status_cmd.status,
     "track": track_cmd.track,
     "selftest": selftest_cmd.selftest,
 }
 # Command groups with subcommands (name -> Typer app).
-GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app}
+GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app}
 
 for _name, _fn in COMMANDS.items():
     app.command(name=_name)(_fn)

@@ -138,7 +138,7 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "sweep --workers 0": (lambda p: ["sweep", *C(p), "--workers", "0"], 2, "--workers"),
     "unknown option": (lambda p: ["status", *C(p), "--colour"], 2, "No such option: --colour"),
     "unknown command": (lambda p: ["trian"], 2, "No such command 'trian'"),
-    "unknown --only key": (lambda p: ["sweep", *C(p), "--dry-run", "--only", "colour=red"], 2, "colour"),
+    "unknown --only key": (lambda p: ["sweep", "plan", *C(p), "--only", "colour=red"], 2, "colour"),
     "unknown arch flag": (lambda p: ["train", *C(p), "-a", "transformer", "-l", "mse", "-P", "personalized"], 2,
                           "arch 'transformer': must be one of"),
     "ui --port 99999": (lambda p: ["ui", *C(p), "--port", "99999"], 2, "--port 99999: must be between 1 and 65535"),
@@ -360,7 +360,7 @@ def test_random_set_overrides_never_escape_as_anything_but_a_config_error(projec
         pass
 
 
-@pytest.mark.parametrize("args", [["config"], ["config", "--grid"], ["sweep", "--dry-run"]])
+@pytest.mark.parametrize("args", [["config"], ["config", "--grid"], ["sweep", "plan"]])
 def test_no_printed_form_of_the_config_shows_a_password(cli, project, args, monkeypatch):
     monkeypatch.setenv("BP_SECRET", "hunter2")
     code, out, err = cli(*args, *C(project), "--set", "runs.uri=http://alice:${BP_SECRET}@127.0.0.1:9/mlflow",
@@ -411,7 +411,7 @@ def frame_folder(p: Project) -> Path:
 
 
 COMMANDS_THAT_WRITE: dict[str, list[str]] = {
-    "train": ["train", *RUN], "sweep": ["sweep"], "sweep --dry-run": ["sweep", "--dry-run"],
+    "train": ["train", *RUN], "sweep": ["sweep"], "sweep plan": ["sweep", "plan"],
     "tune": ["tune", *RUN, "-n", "1"],
 }
 
@@ -506,7 +506,7 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
         "a choice the setting refuses": (lambda p: ["config", *C(p), "--set", "tune.space={train.schedule: "
                                                     "{type: categorical, choices: [cosine, zigzag]}}"],
                                          "tune.space.train.schedule", ()),
-        "a range past the setting's bound": (lambda p: ["sweep", "--dry-run", *C(p), "--set", "tune.space="
+        "a range past the setting's bound": (lambda p: ["sweep", "plan", *C(p), "--set", "tune.space="
                                                         "{model.dropout: {type: float, low: 0.1, high: 1.5}}"],
                                              "tune.space.model.dropout", ()),
         "not a run setting": (lambda p: ["config", *C(p), "--set", "tune.space={sweep.poll_s: {type: float, "
@@ -934,7 +934,7 @@ def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record
 # -- roots that hold each other or a system folder (issue 32, item 1) -------------------------------------------
 
 ROOTS: dict[str, tuple[list[str], str]] = {
-    "checkpoints holding the artifacts (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=runs"],
+    "checkpoints holding the artifacts (gc)": (["sweep", "gc", "--set", "runs.checkpoints=runs"],
                                                "runs.checkpoints {root}/runs: contains runs.artifacts"),
     "checkpoints holding the artifacts (train)": (["train", *RUN, "--set", "runs.checkpoints=runs"],
                                                   "runs.checkpoints {root}/runs: contains runs.artifacts"),
@@ -945,12 +945,12 @@ ROOTS: dict[str, tuple[list[str], str]] = {
                                                   "runs.checkpoints {root}/runs: contains runs.artifacts"),
     "cache is the checkpoints folder (sweep)": (["sweep", "--set", "data.cache_dir=runs/checkpoints"],
                                                 "data.cache_dir {root}/runs/checkpoints: is the same folder as runs.checkpoints"),
-    "logs inside the cache (sweep --dry-run)": (["sweep", "--dry-run", "--set", "sweep.logs=runs/cache/logs"],
+    "logs inside the cache (sweep plan)": (["sweep", "plan", "--set", "sweep.logs=runs/cache/logs"],
                                                 "data.cache_dir {root}/runs/cache: contains sweep.logs"),
     "artifacts in /etc (tune)": (["tune", *RUN, "--set", "runs.artifacts=/etc/bronchopose"],
                                  "runs.artifacts /etc/bronchopose: a system folder"),
-    "checkpoints at / (gc)": (["sweep", "--gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: a system folder"),
-    "checkpoints at home (gc)": (["sweep", "--gc", "--set", "runs.checkpoints='~'"], "a system folder"),
+    "checkpoints at / (gc)": (["sweep", "gc", "--set", "runs.checkpoints=/"], "runs.checkpoints /: a system folder"),
+    "checkpoints at home (gc)": (["sweep", "gc", "--set", "runs.checkpoints='~'"], "a system folder"),
 }
 
 

@@ -29,7 +29,7 @@ def status(
     or another `--sweep` name lists every stored cell instead. Failed cells are listed
     with their reason. The checkpoint column and line show the disk each cell's
     resumable state takes on this machine, and how much no live cell needs
-    (`bronchopose sweep --gc` frees it).
+    (`bronchopose sweep gc` frees it).
     """
     from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import wide

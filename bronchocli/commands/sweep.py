@@ -1,19 +1,24 @@
-"""`bronchopose sweep`: run every cell of the plan exactly once with local workers over shared storage.
+"""`bronchopose sweep run | plan | status | gc | cancel`: a sweep's verbs, each with only its own options.
 
-Parses the flags, loads the config and calls one mode of ``sweep.entry`` (run, dry_run, gc, launch_slurm,
-cancel); docs/sweep.md, "Modes".
+``bronchopose sweep`` with no verb (or with run's options only) is ``sweep run``. The modes that were flags
+(``--gc``, ``--cancel``, ``--dry-run``) are verbs; given as flags they are refused in one line, exit 2. Each verb
+parses its flags, loads the config and calls one library call of ``sweep.entry``; docs/sweep.md, "Verbs".
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
+from typer._click import Context  # Typer 0.29 vendors click (pyproject pins typer < 0.30)
+from typer._click.exceptions import UsageError
+from typer.core import TyperGroup
 
 from ..cells import FIELDS
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
+from . import status as status_cmd
 from .common import ConfigOpt, ProfileOpt, SetOpt
 from .common import console as _console
 
@@ -21,32 +26,69 @@ ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' 
              f"({', '.join(FIELDS)}), e.g. --only 'arch=lstm,conv3d;population=personalized'.")
 STORAGE_HELP = ("Claims database URL, overriding storage.url (sqlite:///runs/sweep.db; "
                 "postgresql://user:${PGPASSWORD}@host/db for many machines).")
+DEFAULT_VERB = "run"
+# The modes that were flags of `bronchopose sweep`, and the verb each is now.
+OLD_FLAGS = {"--gc": "gc", "--cancel": "cancel", "--dry-run": "plan"}
 
 
-def sweep(
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1,
-                                          help="Local worker processes (torch threads = cores / N). Default: "
-                                          "GPUs x --per-gpu on a GPU machine, else 1."),
-    gpus: str = typer.Option("auto", "--gpus", help="GPUs for the workers, round-robin: auto (every visible "
-                             "one, honouring CUDA_VISIBLE_DEVICES), none, or a list such as 0,1."),
-    per_gpu: int = typer.Option(1, "--per-gpu", min=1, help="Cells run at once on each GPU (small cells leave "
-                                "a GPU idle; packing several raises throughput)."),
-    storage: Optional[str] = typer.Option(None, "--storage", help=STORAGE_HELP),
-    only: Optional[list[str]] = typer.Option(None, "--only", help=ONLY_HELP),
-    dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cells and their state) and exit; with "
-                                 "--gc: what would be removed; with --cancel: the jobs that would be cancelled. "
-                                 "Changes nothing, with any other flag."),
+class SweepGroup(TyperGroup):
+    """A group whose default verb is ``run``: ``sweep [run's options]`` is ``sweep run [...]``."""
+
+    def parse_args(self, ctx: Context, args: list[str]) -> list[str]:
+        if not args or (args[0] not in self.commands and args[0] not in ctx.help_option_names):
+            args = [DEFAULT_VERB, *args]
+        old = [a for a in args if a.split("=", 1)[0] in OLD_FLAGS] if args[0] == DEFAULT_VERB else []
+        if old:
+            verbs = ", ".join(f"{a} is `bronchopose sweep {OLD_FLAGS[a.split('=', 1)[0]]}`" for a in old)
+            raise UsageError(f"{' '.join(old)}: the sweep's modes are verbs, one at a time: {verbs}", ctx)
+        return super().parse_args(ctx, args)
+
+
+app = typer.Typer(cls=SweepGroup, no_args_is_help=False,
+                  help="Run a sweep's plan exactly once per cell and manage it: run (the default), plan, status, "
+                  "gc, cancel.")
+
+
+def _spec(config: Path, profile: str | None, set_: list[str] | None, storage: str | None,
+          use_tuned: str | None = None, only: list[str] | None = None, runner: str | None = None) -> Any:
+    from ..sweep.task import TaskSpec  # lazy: keeps `bronchopose --help` fast
+
+    return TaskSpec(config=str(config), profile=profile, overrides=tuple(set_ or ()), storage=storage,
+                    use_tuned=use_tuned, only=tuple(only or ()), runner=runner)
+
+
+def _wide() -> Any:
+    from ..sweep.status import wide  # lazy: keeps `bronchopose --help` fast
+
+    return wide(_console)
+
+
+WorkersOpt = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes (torch threads = cores / N). "
+                          "Default: GPUs x --per-gpu on a GPU machine, else 1.")
+GpusOpt = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (every visible one, "
+                       "honouring CUDA_VISIBLE_DEVICES; the default), none, or a list such as 0,1.")
+PerGpuOpt = typer.Option(None, "--per-gpu", min=1, help="Cells run at once on each GPU (default 1; small cells "
+                         "leave a GPU idle, packing several raises throughput).")
+StorageOpt = typer.Option(None, "--storage", help=STORAGE_HELP)
+OnlyOpt = typer.Option(None, "--only", help=ONLY_HELP)
+UseTunedOpt = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study to every cell.")
+
+
+@app.command(name="run")
+def run(
+    workers: Optional[int] = WorkersOpt,
+    gpus: Optional[str] = GpusOpt,
+    per_gpu: Optional[int] = PerGpuOpt,
+    storage: Optional[str] = StorageOpt,
+    only: Optional[list[str]] = OnlyOpt,
     retry_failed: bool = typer.Option(False, "--retry-failed",
                                       help="Reset FAILED cells (and their retry budget) first."),
-    gc: bool = typer.Option(False, "--gc", help="Remove the checkpoints no live cell needs (finished, orphaned, "
-                            "failed for good), print what was freed, and exit."),
-    use_tuned: Optional[str] = typer.Option(None, "--use-tuned",
-                                            help="Apply the best trial of this Optuna study to every cell."),
-    launcher: Optional[str] = typer.Option(None, "--launcher", help="local: worker processes here; slurm: "
-                                           "submit Slurm job arrays of workers (slurm section, docs/cluster.md). "
-                                           "Default: sweep.launcher."),
-    detach: bool = typer.Option(False, "--detach", help="Slurm: return once submitted instead of watching."),
-    cancel: bool = typer.Option(False, "--cancel", help="Slurm: cancel this sweep's queued and running jobs."),
+    use_tuned: Optional[str] = UseTunedOpt,
+    launcher: Optional[str] = typer.Option(None, "--launcher", help="Where the workers run: local (processes "
+                                           "here), slurm (Slurm job arrays; slurm section, docs/cluster.md), or "
+                                           "another registered launcher. Default: sweep.launcher."),
+    detach: bool = typer.Option(False, "--detach", help="A launcher whose workers outlive this command (slurm): "
+                                "return once submitted instead of watching."),
     runner: Optional[str] = typer.Option(None, "--runner", help="Run each cell with this function instead of "
                                          "training: module:function with run_cell's signature, importable by the "
                                          "workers (e.g. on PYTHONPATH); docs/sweep.md, \"Cell runners\"."),
@@ -60,40 +102,94 @@ def sweep(
     not FINISHED with N local worker processes and shows live progress. A stage that
     selects from an earlier one (top-k combinations by a validation metric) starts
     once that stage is done; the selection is recorded and printed. Any number of
-    `bronchopose sweep` processes, on any machines, pointed at the same storage
+    `bronchopose sweep run` processes, on any machines, pointed at the same storage
     cooperate: each cell is claimed by one worker and yields one FINISHED MLflow run.
     Re-running resumes (FINISHED cells are skipped); FAILED cells are retried up to
     sweep.max_retries; a killed worker's cell is taken over after sweep.stale_after_s.
     With `--launcher slurm` every worker is a Slurm array task instead (docs/cluster.md):
     re-running submits only what the sweep's queued and running jobs do not cover,
-    `--detach` returns at once, `--cancel` cancels the sweep's jobs.
-    `--runner module:function` runs each cell with that function instead of training.
+    `--detach` returns at once (`bronchopose sweep cancel` stops the jobs).
     Exit code 0 when every cell finished, 1 when some failed, 130 when interrupted.
     """
     from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.status import wide
-    from ..sweep.task import TaskSpec
 
-    spec = TaskSpec(config=str(config), profile=profile, overrides=tuple(set_ or ()), storage=storage,
-                    use_tuned=use_tuned, only=tuple(only or ()), runner=runner)
+    spec = _spec(config, profile, set_, storage, use_tuned, only, runner)
     cfg = spec.load()  # as every Slurm array task loads it
     selection, cell_runner = spec.selection(), spec.cell_runner()
-    if launcher not in (None, "local", "slurm"):
-        raise BronchoError(f"--launcher {launcher}: must be local or slurm")
-    use_slurm = (launcher or cfg.sweep.launcher) == "slurm"
-    if (detach or cancel) and not use_slurm:
-        raise BronchoError(f"{'--detach' if detach else '--cancel'}: only with --launcher slurm "
-                           "(or sweep.launcher: slurm)")
-    console = wide(_console)
-    if gc:
-        code = entry.gc(cfg, console, dry_run=dry_run)
-    elif cancel:
-        code = entry.cancel(cfg, console, dry_run=dry_run)
-    elif use_slurm and not dry_run:
-        code = entry.launch_slurm(cfg, spec, detach=detach, retry_failed=retry_failed, console=console)
-    elif dry_run:
-        code = entry.dry_run(cfg, selection, workers=workers, gpus=gpus, per_gpu=per_gpu, console=console)
+    kind = entry.launcher_kind(cfg, launcher)
+    if kind.name != "local":
+        given = [f for f, v in (("--workers", workers), ("--gpus", gpus), ("--per-gpu", per_gpu)) if v is not None]
+        if given:
+            raise BronchoError(f"{', '.join(given)}: options of the local launcher; launcher {kind.name} sizes "
+                               f"its workers itself (docs/cluster.md)")
+    if detach and not kind.detachable:
+        raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
+                           "whose workers outlive it (slurm) can detach")
+    console = _wide()
+    if kind.name == "local":
+        code = entry.run(cfg, selection, workers=workers, gpus=gpus or "auto", per_gpu=per_gpu or 1,
+                         retry_failed=retry_failed, runner=cell_runner, console=console)
     else:
-        code = entry.run(cfg, selection, workers=workers, gpus=gpus, per_gpu=per_gpu, retry_failed=retry_failed,
-                         runner=cell_runner, console=console)
+        code = entry.launch(cfg, spec, kind, detach=detach, retry_failed=retry_failed, console=console)
     raise typer.Exit(code)
+
+
+@app.command(name="plan")
+def plan(
+    workers: Optional[int] = WorkersOpt,
+    gpus: Optional[str] = GpusOpt,
+    per_gpu: Optional[int] = PerGpuOpt,
+    storage: Optional[str] = StorageOpt,
+    only: Optional[list[str]] = OnlyOpt,
+    use_tuned: Optional[str] = UseTunedOpt,
+    config: ConfigOpt = Path(DEFAULT_CONFIG),
+    profile: ProfileOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Print the plan: per stage its cells and their state, and the local workers `run` would start.
+
+    Changes nothing anywhere: no job submitted, no file or row written.
+    """
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+
+    spec = _spec(config, profile, set_, storage, use_tuned, only)
+    cfg = spec.load()
+    raise typer.Exit(entry.dry_run(cfg, spec.selection(), workers=workers, gpus=gpus or "auto",
+                                   per_gpu=per_gpu or 1, console=_wide()))
+
+
+@app.command(name="gc")
+def gc(
+    dry_run: bool = typer.Option(False, "--dry-run", help="List what would be removed; remove nothing."),
+    storage: Optional[str] = StorageOpt,
+    config: ConfigOpt = Path(DEFAULT_CONFIG),
+    profile: ProfileOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Remove the checkpoints no live cell needs on this machine (finished, orphaned, failed for good, refused
+    files) and print what was freed; only what a run provably wrote is ever removed."""
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+
+    cfg = _spec(config, profile, set_, storage).load()
+    raise typer.Exit(entry.gc(cfg, _wide(), dry_run=dry_run))
+
+
+@app.command(name="cancel")
+def cancel(
+    launcher: Optional[str] = typer.Option(None, "--launcher", help="The launcher whose workers to stop "
+                                           "(default: sweep.launcher)."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="List the workers that would be stopped; stop nothing."),
+    storage: Optional[str] = StorageOpt,
+    config: ConfigOpt = Path(DEFAULT_CONFIG),
+    profile: ProfileOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Stop this sweep's queued and running workers (Slurm: scancel its jobs); running cells are released and
+    resume from their checkpoints when the sweep is run again."""
+    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+
+    cfg = _spec(config, profile, set_, storage).load()
+    raise typer.Exit(entry.cancel(cfg, entry.launcher_kind(cfg, launcher), _wide(), dry_run=dry_run))
+
+
+app.command(name="status")(status_cmd.status)  # the same command as `bronchopose status`

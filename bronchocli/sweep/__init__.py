@@ -1,29 +1,34 @@
 """Sweeps: a grid of cells run exactly once each by cooperating workers over shared SQL storage.
 
 - ``storage``: the claims table (SQLite on one machine, PostgreSQL for many) and its atomic transitions;
-- ``worker``: the claim -> run -> record loop with its heartbeat and signal handling; the cell runner;
+- ``worker``: the claim -> run -> record loop with its heartbeat and signal handling; ``WorkerId``;
+- ``liveness``: the heartbeat and the stop signals;
 - ``plan``: the stages and their cells, ``StageWalk`` (the one walk through the stages every launcher uses),
   the claims rows and the shared state prepared once before workers start;
 - ``selection``: a selecting stage's ranking by a validation metric, recorded once and logged to MLflow;
-- ``pool``: local worker processes and the parent's live view;
-- ``staged``: the local launcher (stages in order, each with the worker pool) and one worker's walk;
-- ``slurm``: the Slurm driver (sbatch, squeue, scancel, scontrol, the batch script) and the launcher's watch;
-- ``task``: a Slurm array task's entry point (``python -m bronchocli.sweep.task <spec>``);
-- ``entry``: ``bronchopose sweep``'s modes as library calls (run, dry_run, gc, launch_slurm, cancel);
+- ``launchers``: where workers run, one protocol (``launchers.base.Launcher``) and its implementations, each in
+  its own module: ``local`` (child processes here), ``slurm`` (job arrays); a registry of their names;
+- ``stagework``: the one worker entry every launcher starts (``worker_main``: one worker through the stages);
+- ``task``: a detached worker's command (``python -m bronchocli.sweep.task <spec>``) and its spec;
+- ``pool``, ``staged``: ``sweep run`` with the local launcher (stages in order, each with the pool's live view);
+- ``launch``: ``sweep run`` with a launcher whose workers outlive the command (submit what is missing, watch);
+- ``entry``: the sweep's verbs as library calls (run, launch, dry_run, gc, cancel), ``status``, ``tune``;
 - ``record``: MLflow as the record of what finished (claims rows rebuilt from FINISHED runs, the check before
-  training, the read-only view for ``--dry-run`` and ``status``);
-- ``placement``, ``housekeeping``: GPUs for local workers; checkpoints on disk (inventory, --gc, --repair; what
-  is provably a checkpoint is ``runs.ownership``'s call);
-- ``status``: tables for the plan, the live view and ``bronchopose status``;
-- ``tuning``: Optuna studies on the same storage, one MLflow run per trial.
+  training, the read-only view for ``sweep plan`` and ``status``);
+- ``placement``, ``housekeeping``: GPUs for local workers; checkpoints on disk (inventory, ``sweep gc``,
+  ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
+- ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``
+  and the parent runs;
+- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers through the local pool.
 
 See docs/sweep.md for the model and the exactly-once argument.
 """
 
 from .plan import Plan, plan_cells, prepare, read_plan
-from .pool import PoolResult, run_pool, spawn_worker, worker_config
+from .pool import PoolResult, run_pool
+from .stagework import WorkerJob, worker_config, worker_main
 from .storage import FAILED, FINISHED, PENDING, RUNNING, TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
-from .worker import TAG_ATTEMPT, TAG_WORKER, StopSignals, Worker, WorkerSpec, worker_process
+from .worker import TAG_ATTEMPT, TAG_WORKER, StopSignals, Worker, WorkerId
 
 __all__ = [
     "FAILED",
@@ -41,12 +46,12 @@ __all__ = [
     "StorageError",
     "SweepStore",
     "Worker",
-    "WorkerSpec",
+    "WorkerId",
+    "WorkerJob",
     "plan_cells",
     "prepare",
     "read_plan",
     "run_pool",
-    "spawn_worker",
     "worker_config",
-    "worker_process",
+    "worker_main",
 ]

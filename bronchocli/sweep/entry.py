@@ -1,17 +1,18 @@
-"""The library calls behind ``bronchopose sweep``, ``status``, ``tune`` and ``config --grid``: each command parses
-its flags, loads the config and calls exactly one of these.
+"""The library calls behind ``bronchopose sweep run | plan | status | gc | cancel``, ``status``, ``tune`` and
+``config --grid``: each command parses its flags, loads the config and calls exactly one of these.
 
-``sweep``'s modes (the config loaded by ``task.TaskSpec.load``, the same call an array task makes):
+The sweep's verbs (the config loaded by ``task.TaskSpec.load``, the same call a detached worker makes):
 
-- ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``);
-- ``dry_run``: the plan and each cell's state; nothing is started;
+- ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``, the local launcher);
+- ``launch``: with a launcher whose workers outlive the command (Slurm): submit them, then watch
+  (``launch.launch``);
+- ``dry_run`` (``sweep plan``): the plan and each cell's state; nothing is started;
 - ``gc``: remove the checkpoints no live cell needs on this machine (``dry_run``: list them);
-- ``launch_slurm``: submit the workers as Slurm job arrays, then watch (``slurm.launch``);
-- ``cancel``: scancel the sweep's Slurm jobs (``dry_run``: list them).
+- ``cancel``: stop the sweep's workers of a launcher (``dry_run``: list them).
 
-Every mode with ``--dry-run`` changes nothing anywhere: no job submitted or cancelled, no file or row written.
+Every verb with ``--dry-run`` changes nothing anywhere: no job submitted or cancelled, no file or row written.
 
-A Slurm array task is not a mode of the command: it starts
+A detached worker is not a verb of the command: it starts
 ``python -m bronchocli.sweep.task '<spec>'`` (``task.main``). The others:
 ``status`` (``bronchopose status``), ``grid`` (``config --grid``), ``tune`` and
 ``show_study`` (``tune`` and ``tune --show``).
@@ -20,6 +21,7 @@ A Slurm array task is not a mode of the command: it starts
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 from rich.console import Console
 from rich.table import Table
@@ -30,16 +32,22 @@ from ..config import Config, check_paths, check_roots
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
-from . import placement, slurm, staged, task
+from ..runs.client import client_for, experiment_id
+from . import launch as launching
+from . import placement, staged
 from .housekeeping import collect_garbage, foreign, repair_zombies
-from .plan import StageWalk
+from .launchers import Launcher, launcher_class, reference
+from .plan import StageWalk, open_store
 from .status import show_status
 from .storage import SweepStore
+from .summary import record_cancel
+from .task import TaskSpec, command
 from .worker import Runner, default_runner
 
 
-def open_store(cfg: Config) -> SweepStore:
-    return SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
+def launcher_kind(cfg: Config, name: str | None) -> type[Launcher]:
+    """The launcher ``--launcher`` names (default: ``sweep.launcher``); one line naming the registered ones."""
+    return launcher_class(name or cfg.sweep.launcher, "--launcher" if name else "sweep.launcher")
 
 
 def _local_store(cfg: Config) -> SweepStore:
@@ -93,24 +101,31 @@ def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
         shown = ", ".join(p.name for p in others[:8]) + (", ..." if len(others) > 8 else "")
         console.print(f"left alone: {len(others)} entr{'y' if len(others) == 1 else 'ies'} in "
                       f"{cfg.paths.checkpoints} not provably a checkpoint of this project ({shown})", highlight=False)
-    console.print(f"--gc{' --dry-run' if dry_run else ''}: {verb} {fmt_bytes(sum(n for _, n in freed))} in "
+    console.print(f"gc{' --dry-run' if dry_run else ''}: {verb} {fmt_bytes(sum(n for _, n in freed))} in "
                   f"{len(freed)} checkpoint folder(s)" + ("; nothing was removed" if dry_run else ""))
     return 0
 
 
-def launch_slurm(cfg: Config, spec: task.TaskSpec, *, detach: bool = False, retry_failed: bool = False,
-                 console: Console) -> int:
-    """Submit the plan's workers as Slurm job arrays (each task: ``task.command`` with ``spec``) and, unless
-    ``detach``, watch them; re-running submits only what the queued and running tasks do not cover."""
+def launch(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, detach: bool = False, retry_failed: bool = False,
+           console: Console) -> int:
+    """Submit the plan's workers with launcher ``kind`` (each: ``task.command`` with ``spec``) and, unless
+    ``detach``, watch them; re-running submits only what the queued and running workers do not cover."""
     check_paths(cfg, storage=True, logs=True)
-    return slurm.launch(cfg, open_store(cfg), spec.selection(), task.command(cfg, spec), detach=detach,
-                        console=console, retry_failed=retry_failed)
+    launcher = kind(cfg, command(cfg, replace(spec, launcher=reference(kind))))
+    return launching.launch(cfg, open_store(cfg), spec.selection(), launcher, detach=detach, console=console,
+                            retry_failed=retry_failed)
 
 
-def cancel(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
-    """scancel every queued or running job of the sweep (running workers release their cells); ``dry_run``: list
-    them (squeue only) and cancel nothing."""
-    return slurm.cancel(cfg, console, dry_run=dry_run)
+def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool = False) -> int:
+    """Stop every queued or running worker of the sweep (running ones release their cells); ``dry_run``: list
+    them and stop nothing."""
+    if not kind.detachable:
+        raise BronchoError(f"--launcher {kind.name}: its workers are the `sweep run` command's own processes; stop "
+                           "that command (Ctrl-C) instead")
+    if not dry_run:  # recorded first: a watcher that sees the workers go never submits them again
+        client = client_for(cfg)
+        record_cancel(client, experiment_id(client, cfg), cfg.name)
+    return launching.cancel(kind(cfg), console, dry_run=dry_run)
 
 
 # -- bronchopose status, config --grid -----------------------------------------------------------------
@@ -175,25 +190,29 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
     console.print(table)
     if info.get("importances_note"):
         console.print(f"importances unavailable: {info['importances_note']}")
-    console.print(f"apply it: bronchopose sweep --use-tuned {study}  (or train --use-tuned {study})")
+    console.print(f"apply it: bronchopose sweep run --use-tuned {study}  (or train --use-tuned {study})")
 
 
 def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | None = None,
-         timeout: float | None = None, workers: int = 1, progress: bool = True, console: Console) -> None:
-    """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials, then
-    show its best trial."""
-    from . import tuning  # lazy: optuna only when the command runs
+         timeout: float | None = None, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
+         progress: bool = True, console: Console) -> None:
+    """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials with
+    its workers placed like a sweep's (``--workers``, ``--gpus``, ``--per-gpu``), then show its best trial."""
+    from . import tunepool, tuning  # lazy: optuna only when the command runs
 
-    check_paths(cfg, storage=True)  # one line before anything is created
+    check_paths(cfg, storage=True, logs=True)  # one line before anything is created
+    n, devices = _workers(workers, gpus, per_gpu)
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
         initialisation(cfg.paths.pretrained, [target.arch])
-    n = trials or cfg.tune.trials
+    trials = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
-    console.print(f"[bold]tune[/] {name}: {n} trials, {workers} worker(s), storage {urls.redact(cfg.paths.storage_url)}")
-    s = tuning.tune(cfg, target, n, study=study, timeout=timeout or cfg.tune.timeout, workers=workers,
-                    progress=progress)
+    console.print(f"[bold]tune[/] {name}: {trials} trials, {n} worker(s)"
+                  + (f" on GPUs {','.join(devices)}" if devices else "")
+                  + f", storage {urls.redact(cfg.paths.storage_url)}")
+    s = tunepool.tune(cfg, target, trials, study=study, timeout=timeout or cfg.tune.timeout, workers=n,
+                      gpus=devices if n > 1 or gpus != "auto" else (), progress=progress)
     console.print(f"{tuning.finished(s)} finished trials in study {name}")
     show_study(cfg, name, None, "table", console)

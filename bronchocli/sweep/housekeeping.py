@@ -1,4 +1,4 @@
-"""Which checkpoints are still needed, what they cost on disk, and removing the rest (``sweep --gc``);
+"""Which checkpoints are still needed, what they cost on disk, and removing the rest (``sweep gc``);
 zombie runs (left RUNNING by a process that died) repaired (``status --repair``).
 
 A checkpoint folder (``<runs.checkpoints>/<run_id>/``) is needed while

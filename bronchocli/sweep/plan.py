@@ -8,8 +8,8 @@ with its other grid axes; ``add`` appends fixed combinations. A cell wanted by
 several stages is one cell (one key, one run).
 
 ``StageWalk`` is the one walk through the stages that every launcher uses:
-the local pool (``staged.run_sweep``), a Slurm array task's worker
-(``staged.work_stages``) and the Slurm submission (``slurm.submit_missing``).
+the local sweep (``staged.run_sweep``), every worker (``stagework.work_stages``)
+and a detached launcher's submission (``launch.submit_missing``).
 It plans once (the patient list read once), reads the recorded selections once
 per decision, and holds the selection rule: a selecting stage's cells are
 known once its selection is recorded; it is settled (computed and recorded,
@@ -191,7 +191,7 @@ class StageWalk:
             if step.waits:
                 return
 
-    # -- Slurm: what arrays to size ----------------------------------------------------------------------
+    # -- a detached launcher: what submissions to size ----------------------------------------------------------------------
     def estimate(self, stage: Stage) -> int:
         """Cells of a stage whose selection is not known yet: ``top`` combinations of its source's cells."""
         sel = stage.select
@@ -213,7 +213,7 @@ class StageWalk:
             if cells is None:
                 out.append((stage, self.estimate(stage)))
             else:
-                plan = add_cells(self.cfg, self.store, cells, sweep=self.sweep)
+                plan = ensure_rows(self.cfg, self.store, cells, sweep=self.sweep)
                 out.append((stage, cells_left(plan, self.cfg.sweep.max_retries)))
         return out
 
@@ -304,3 +304,16 @@ def add_cells(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: s
         store.reset_failed(sweep, [c.key for c in cells])
     rebuild(cfg, store, sweep, cells)  # cells FINISHED in MLflow are done, whatever the table knew (record.py)
     return read_plan(store, sweep, cells)
+
+
+def ensure_rows(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: str | None = None) -> Plan:
+    """The cells' rows, added (``add_cells``) only when some are missing: a stage settled just now, or one whose
+    selection a process recorded before it could add them; cells prepared already are not asked MLflow again."""
+    plan = read_plan(store, sweep or cfg.name, cells)
+    return plan if len(plan.rows) == len(plan.cells) else add_cells(cfg, store, cells, sweep=sweep)
+
+
+def open_store(cfg: Config, url: str | None = None) -> SweepStore:
+    """The claims table of ``cfg`` (``url``: the real URL where ``cfg``'s is redacted, as in a worker's config)."""
+    return SweepStore(url or cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
+

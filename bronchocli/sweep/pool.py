@@ -1,58 +1,40 @@
-"""Local worker processes of one ``bronchopose sweep`` and the parent's live view of the shared table.
+"""One stage of a local sweep: start its workers (``launchers.local``) and watch the shared table until they exit.
 
-Workers are ``multiprocessing`` processes started with ``spawn`` (a fresh
-interpreter: no forked CUDA/MLflow/SQLAlchemy state, same behaviour on Linux
-and macOS). Each takes at most cores / N torch threads (its share of the
-cores beside every other process of the project: ``runs.cores``) so N
-workers share the CPU instead of oversubscribing it, and logs to its own
-file under ``sweep.logs``. The parent only watches: it polls the claims table
-(so it also sees cells run by other machines) and the worker processes.
+Each worker takes at most cores / N torch threads (its share of the cores
+beside every other process of the project: ``runs.cores``) so N workers share
+the CPU instead of oversubscribing it, and logs to its own file under
+``sweep.logs``. The parent only watches: it polls the claims table (so it also
+sees cells run by other machines) and the worker processes.
 
 Ctrl-C: workers sit in their own process group, so the terminal's SIGINT
-reaches the parent alone; it sets the shared stop event and sends every
-worker one SIGTERM (a second Ctrl-C sends SIGINT: abort without waiting for
-a checkpoint). Workers release their cells and exit 130; so does the parent.
+reaches the parent alone; it stops the workers once (``LocalProcesses.stop``:
+the shared stop event and one SIGTERM each; a second Ctrl-C sends SIGINT: abort
+without waiting for a checkpoint). Workers release their cells and exit 130;
+so does the parent.
 """
 
 from __future__ import annotations
 
-import multiprocessing as mp
-import os
 import signal
-import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
 from rich.live import Live
 
-from .. import urls
+from ..cells import Selection
 from ..config import Config
 from ..errors import BronchoError
-from .placement import assign, share_counts
+from .launchers.local import LocalLauncher, LocalProcesses
 from .plan import Plan, read_plan
 from .status import live_view, progress, summary_line
 from .storage import FINISHED, SweepStore
-from .worker import EXIT_INTERRUPTED, Runner, WorkerSpec, default_runner, worker_process
+from .worker import EXIT_INTERRUPTED, Runner, default_runner
 
 REFRESH_S = 0.5
-
-
-def worker_config(cfg: Config, workers: int) -> Config:
-    """The config workers run with: no secrets in what MLflow logs (their CPU threads: ``WorkerSpec.cpu_workers``)."""
-    values: dict[str, Any] = {"storage.url": urls.redact(cfg.storage.url)}
-    return cfg.with_values(values)
-
-
-def spawn_worker(spec: WorkerSpec, stop_event: Any = None) -> mp.Process:
-    ctx = mp.get_context("spawn")
-    proc = ctx.Process(target=worker_process, args=(spec, stop_event), name="bronchopose-sweep-worker")
-    proc.start()
-    return proc
 
 
 @dataclass
@@ -65,61 +47,34 @@ class PoolResult:
     log_dir: Path
 
 
-class _ParentSignals:
-    def __init__(self, procs: list[mp.Process], event: Any):
-        self.procs, self.event, self.count = procs, event, 0
-
-    def __call__(self, signum: int, frame: Any) -> None:
-        self.count += 1
-        self.event.set()
-        forward = signal.SIGTERM if self.count == 1 else signal.SIGINT
-        for p in self.procs:
-            if p.is_alive() and p.pid:
-                try:
-                    os.kill(p.pid, forward)
-                except ProcessLookupError:
-                    pass
-
-
 def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner: Runner = default_runner,
-             console: Console | None = None, sweep: str | None = None, gpus: Sequence[str] = (),
-             on_refresh: Callable[[Plan], None] | None = None) -> PoolResult:
-    """Run every cell of ``plan`` with ``workers`` local processes (pinned round-robin to ``gpus``); returns when
-    none is left to run here."""
+             console: Console | None = None, gpus: Sequence[str] = (), only: Selection | None = None,
+             stage: str | None = None, on_refresh: Callable[[Plan], None] | None = None) -> PoolResult:
+    """Run ``plan``'s cells (those of ``stage``, or of every stage, selected by ``only``) with ``workers`` local
+    processes pinned round-robin to ``gpus``; returns when none is left to run here."""
     t0 = time.perf_counter()
-    sweep = sweep or plan.sweep
     console = console or Console()
-    log_dir = cfg.paths.sweep_logs / sweep
-    log_dir.mkdir(parents=True, exist_ok=True)
-    wcfg = worker_config(cfg, workers)
-    event = mp.get_context("spawn").Event()
-    procs: list[mp.Process] = []
-    handler = _ParentSignals(procs, event)
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    launcher = LocalLauncher(cfg, storage_url=store.url, only=only, runner=runner, gpus=gpus,
+                             log_dir=cfg.paths.sweep_logs / plan.sweep)
+    procs = launcher.processes
+    previous = {s: signal.signal(s, lambda signum, frame: procs.stop()) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        placed = assign(workers, gpus)
-        for i, (gpu, share) in enumerate(zip(placed, share_counts(placed))):
-            log_path = log_dir / f"{socket.gethostname()}-{os.getpid()}-w{i}.log"
-            spec = WorkerSpec(wcfg, store.url, list(plan.cells), runner, sweep, os.getpid(), str(log_path), gpu,
-                              share, cpu_workers=workers)
-            procs.append(spawn_worker(spec, event))
+        launcher.submit(workers, stage or "")
         plan = _watch(store, plan, procs, cfg, workers, console, on_refresh)
     except BaseException:  # the parent is failing: stop the workers (they release their cells) before waiting
-        if handler.count == 0:
-            handler(signal.SIGTERM, None)
+        if procs.stops == 0:
+            procs.stop()
         raise
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
-        for p in procs:
-            p.join()
-    codes = [p.exitcode for p in procs]
-    interrupted = handler.count > 0 or EXIT_INTERRUPTED in codes
+        codes = procs.join()
+    interrupted = procs.stops > 0 or EXIT_INTERRUPTED in codes
     return PoolResult(_exit_code(plan, cfg.sweep.max_retries, interrupted), plan, time.perf_counter() - t0,
-                      interrupted, codes, log_dir)
+                      interrupted, codes, procs.log_dir)
 
 
-def _watch(store: SweepStore, plan: Plan, procs: list[mp.Process], cfg: Config, workers: int,
+def _watch(store: SweepStore, plan: Plan, procs: LocalProcesses, cfg: Config, workers: int,
            console: Console, on_refresh: Callable[[Plan], None] | None) -> Plan:
     """Poll the table until every local worker has exited: a live view on a terminal, a line per change otherwise."""
     retries = cfg.sweep.max_retries
@@ -147,8 +102,8 @@ def _watch(store: SweepStore, plan: Plan, procs: list[mp.Process], cfg: Config, 
     if live is not None:
         live.start()
     try:
-        while any(p.is_alive() for p in procs):
-            wait_any([p.sentinel for p in procs if p.is_alive()], timeout=REFRESH_S)
+        while sentinels := procs.sentinels():
+            wait_any(sentinels, timeout=REFRESH_S)
             plan = refresh()
         return refresh()
     finally:

@@ -8,7 +8,7 @@ again, whatever the claims table says: a lost or new claims database, a table be
   rows that are pending or failed but FINISHED in MLflow are recorded FINISHED, with that run (worker column
   ``REBUILT``), before any worker can claim them;
 * ``Worker`` checks the cell it just claimed, and records the FINISHED run instead of training;
-* ``overlay``: ``sweep --dry-run`` and ``status`` show the same, without writing anything.
+* ``overlay``: ``sweep plan`` and ``status`` show the same, without writing anything.
 
 A study that is new in its storage gets the trials MLflow records FINISHED for it (``rebuild_trials``).
 """

@@ -1,11 +1,11 @@
-"""``bronchopose sweep`` as a library call: run the plan's stages in order, each with the local worker pool.
+"""``bronchopose sweep run`` with the local launcher: the plan's stages in order, each with the local worker pool.
 
 Every stage's cells are claimed exactly once across all processes and machines
 (the claims table); a stage that selects from an earlier one waits until all
 of that stage's cells are done (FINISHED, or FAILED with no retry left), then
 settles its selection and runs the chosen cells (both decided by the one stage
 walk, ``plan.StageWalk``). Cells already FINISHED (in any stage) are never run
-again. ``work_stages`` is the same walk for one worker (a Slurm array task).
+again. Each worker walks the same stages up to the one it was started for (``stagework.work_stages``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from rich.console import Console
 from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
-from ..errors import BronchoError
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
@@ -28,8 +27,8 @@ from .pool import EXIT_INTERRUPTED, run_pool
 from .selection import describe_selection
 from .status import failures, plan_table, progress, summary_line
 from .storage import FINISHED, SweepStore
-from .summary import record_parent
-from .worker import EXIT_OK, Runner, StopSignals, Worker, default_runner
+from .summary import record_parent, uncancel
+from .worker import Runner, default_runner
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +82,11 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))
     start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
+    uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
     code = 1
     try:
         record_parent(client, parent, walk)  # the plan; the outcome when the sweep ends (finally)
-        code = _run_stages(walk, workers=workers, console=console, gpus=gpus, runner=runner)
+        code = _run_stages(walk, workers=workers, console=console, gpus=gpus, runner=runner, only=only)
         return code
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
@@ -97,7 +97,7 @@ def run_sweep(cfg: Config, store: SweepStore, *, only: Selection, workers: int, 
 
 
 def _run_stages(walk: planning.StageWalk, *, workers: int, console: Console, gpus: Sequence[str],
-                runner: Runner) -> int:
+                runner: Runner, only: Selection) -> int:
     cfg, store = walk.cfg, walk.store
     code, ran_any = 0, False
     for step in walk.steps():
@@ -110,13 +110,14 @@ def _run_stages(walk: planning.StageWalk, *, workers: int, console: Console, gpu
             console.print(describe_selection(step.settled), highlight=False)
         if not step.cells:
             continue
-        plan = planning.add_cells(cfg, store, step.cells)
+        plan = planning.ensure_rows(cfg, store, step.cells)  # prepared once; a stage settled now: added here
         left = cells_left(plan, cfg.sweep.max_retries)
         n_workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
         _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(step.stage, len(walk.stages)))
         if left:
             ran_any = True
-            result = run_pool(cfg, store, plan, workers=n_workers, runner=runner, console=console, gpus=gpus)
+            result = run_pool(cfg, store, plan, workers=n_workers, runner=runner, console=console, gpus=gpus,
+                              only=only, stage=step.stage.name)
             if result.interrupted:
                 console.print("[yellow]interrupted:[/] running cells were released; run the same command again "
                               "to resume")
@@ -137,49 +138,3 @@ def _final(console: Console, plan: planning.Plan, max_retries: int) -> int:
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
     states = [plan.state(c) for c in plan.cells]
     return 0 if all(s == FINISHED for s in states) else 1
-
-
-def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: StopSignals,
-                runner: Runner = default_runner, exit_when_idle: bool = True, last_stage: str | None = None) -> int:
-    """One worker taking the stages in order (a Slurm array task): claim the first stage's cells; go on to a later
-    stage only once every cell before it is done, settling its selection first (recorded once, whichever task gets
-    there first). Returns when nothing is left here: cells running elsewhere are theirs to finish, and with
-    ``exit_when_idle`` this worker does not wait for them (later stages' tasks start when those end).
-
-    With ``last_stage`` (the stage the task's array was submitted for) the worker stops after that stage: the
-    later stages have arrays of their own, sized to their cells, whose tasks would otherwise find them taken."""
-    names = [s.name for s in planning.stages_of(cfg)]
-    if last_stage is not None and last_stage not in names:
-        raise BronchoError(f"this task was submitted for stage {last_stage!r}, which the config's stages no longer "
-                           f"have ({', '.join(names)}); run `bronchopose sweep --cancel` and submit again")
-    for step in planning.StageWalk(cfg, store, only).steps():
-        if step.waits:
-            log.info("stage %s waits: %d cell(s) of stage %s are not done", step.stage.name, step.waits,
-                     step.source.name)
-            return EXIT_OK
-        if step.settled is not None:
-            log.info("%s", describe_selection(step.settled))
-        if step.cells:
-            planning.add_cells(cfg, store, step.cells)
-            worker = Worker(cfg, step.cells, store, runner, signals=signals, exit_when_idle=exit_when_idle)
-            code = worker.run()
-            if code != EXIT_OK or worker.idle:
-                if worker.idle:
-                    log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
-                return code
-        if step.stage.name == last_stage and last_stage != names[-1]:
-            log.info("stage %s done here: later stages are left to their own Slurm arrays", last_stage)
-            return EXIT_OK
-    end_parent(cfg, store, only)  # every stage done: a detached sweep has no watcher to end its parent run
-    return EXIT_OK
-
-
-def end_parent(cfg: Config, store: SweepStore, only: Selection) -> None:
-    """End the sweep's parent run like the sweep: FINISHED when every cell finished, else FAILED (best effort)."""
-    plan = planning.StageWalk(cfg, store, only).rows()
-    code = 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
-    try:
-        client = client_for(cfg)
-        set_parent_status(client, sweep_parent(client, cfg, experiment_id(client, cfg)), code)
-    except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
-        log.warning("could not end the sweep's parent run: %s", exc)

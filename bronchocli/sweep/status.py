@@ -6,7 +6,6 @@ rows point at); nothing writes.
 
 from __future__ import annotations
 
-import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -29,6 +28,9 @@ from .plan import Plan, StageWalk, read_plan, source_of
 from .record import overlay, rebuilt_count
 from .selection import describe_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
+from .launchers import names as launcher_names
+from .launchers import launcher_class
+from .worker import WorkerId, job_of
 
 HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
@@ -168,9 +170,10 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     ``now`` on the database's clock) a running cell without a heartbeat that long shows as stale."""
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
-    on_slurm = any(slurm_job(r.worker) for r in plan.rows.values())
+    launchers = sorted({w.launcher for r in plan.rows.values() if (w := WorkerId.parse(r.worker)) and w.job})
+    on_slurm = bool(launchers)  # workers with a job of their launcher (Slurm: the array task)
     cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
-            *((("Slurm task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
+            *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
             ("acc pos L2", "right"))
     for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
@@ -192,7 +195,7 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
                              style="yellow" if stale else STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
             (row.worker or "-") if row and row.state == RUNNING else "",
-            *(((slurm_job(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
+            *(((job_of(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
               if on_slurm else ()),
             shown, _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
         ]
@@ -203,10 +206,9 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     return table
 
 
-def slurm_job(worker: str | None) -> str | None:
-    """The Slurm array job and task (``812_3``) in a worker id written by an array task, else None."""
-    m = re.search(r" slurm (\S+)", worker or "")
-    return m.group(1) if m else None
+def _title(launcher: str | None) -> str:
+    """How messages name a launcher ("Slurm"); a name no longer registered as it is."""
+    return launcher_class(launcher).title if launcher in launcher_names() else str(launcher)
 
 
 def _num(v: float | None) -> str:
@@ -287,7 +289,7 @@ def checkpoint_line(held: Sequence[Checkpoint]) -> str:
     text = f"checkpoints: {len(held)} folder(s), {fmt_bytes(sum(c.bytes for c in held))} in all"
     if waste:
         text += (f"; {fmt_bytes(waste)} ({len(spare)} folder(s)) needed by no live cell: "
-                 "`bronchopose sweep --gc` frees it")
+                 "`bronchopose sweep gc` frees it")
     return text
 
 

@@ -17,12 +17,18 @@ and a selection override those):
 
 The local sweep records the plan when it starts and everything when it ends (``staged.run_sweep``); the
 Slurm driver when it stops watching. Recording is best effort: the cells' own runs carry the results.
+
+A cancel is recorded there too, in the store every submitter, watcher and worker shares: ``sweep cancel``
+tags the parent ``sweep_cancelled`` (``TAG_CANCELLED``) and ends it KILLED before it stops any worker; a
+watcher that finds the tag stops re-submitting and exits, a worker that finishes the last stage leaves the
+parent KILLED; the next explicit ``sweep run`` removes the tag (``uncancel``).
 """
 
 from __future__ import annotations
 
 import logging
 import tempfile
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,7 +36,7 @@ from typing import Any
 from ..cells import FIELDS, Cell
 from ..config import Select, Stage
 from ..io import save_figure
-from ..runs.parents import log_plan_params
+from ..runs.parents import KIND_SWEEP, find_parent, log_plan_params, set_parent_status
 from ..runs.records import TAG_NOTE, log_metrics, set_tags
 from ..runs.views import README_RATIO
 from . import plan as planning
@@ -38,6 +44,35 @@ from .selection import describe_selection, finished_runs
 from .storage import FAILED, FINISHED
 
 log = logging.getLogger(__name__)
+
+TAG_CANCELLED = "sweep_cancelled"  # on the sweep's parent run: when `sweep cancel` ran (UTC); removed by `sweep run`
+
+
+def record_cancel(client, exp_id: str, sweep: str) -> str | None:
+    """``sweep cancel``: tag the sweep's parent run cancelled and end it KILLED (before any worker is stopped, so
+    a watcher never re-submits what is being cancelled); its id, or None when the sweep has no parent yet."""
+    parent = find_parent(client, exp_id, KIND_SWEEP, sweep)
+    if parent is not None:
+        client.set_tag(parent, TAG_CANCELLED, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+        set_parent_status(client, parent, 130)
+    return parent
+
+
+def cancelled(client, parent: str | None) -> bool:
+    """Whether ``sweep cancel`` ran since the sweep was last run (a store that does not answer: not known, no)."""
+    if parent is None:
+        return False
+    try:
+        return TAG_CANCELLED in client.get_run(parent).data.tags
+    except Exception as exc:  # noqa: BLE001 - a busy store must not end a watch; asked again next time
+        log.warning("could not read the sweep's parent run %s: %s", parent, exc)
+        return False
+
+
+def uncancel(client, parent: str) -> None:
+    """An explicit ``sweep run``: the sweep is no longer cancelled."""
+    if TAG_CANCELLED in client.get_run(parent).data.tags:
+        client.delete_tag(parent, TAG_CANCELLED)
 HEADLINES = (README_RATIO, "pair.pos_l2.mean")  # the test figures shown next to each stage's best cell
 
 

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import logging
 import math
-import multiprocessing as mp
 import os
 import re
+import socket
 import time
 import warnings
 from collections.abc import Iterator
@@ -37,13 +37,12 @@ from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
 from ..io import file_lock
 from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, database_lock, experiment_id
-from ..runs import cores
 from ..runs.contract import RunInterrupted, RunPruned
-from ..runs.parents import set_parent_status, start_parent, study_parent
+from ..runs.parents import study_parent
 from ..runs.records import TAG_PARENT, run_name
-from .record import rebuild_trials
 from .storage import StorageError
-from .summary import log_study
+from .stagework import GPU_ENV
+from .worker import WorkerId
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +54,7 @@ class TrialFailed(BronchoError):
 OPTUNA_LOCK_KEY = MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation
 ATTR_RUN = "mlflow_run_id"
 ATTR_CELL = "cell"
+ATTR_WORKER = "worker"  # the process (and GPU) that ran the trial, as a sweep's claims show a worker
 
 
 def study_name(cfg: Config, cell: Cell) -> str:
@@ -282,6 +282,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
         trial_cfg = cfg.with_values(values)
         cell = trial_cfg.cell(**target.coords())
         trial.set_user_attr(ATTR_CELL, cell.key)
+        trial.set_user_attr(ATTR_WORKER, str(WorkerId(socket.gethostname(), os.getpid(), gpu=os.environ.get(GPU_ENV))))
 
         def on_validation(step: int, metrics: dict[str, float]) -> None:
             trial.report(metrics["val_loss"], step)
@@ -315,8 +316,9 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
 
 def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
                 timeout: float | None = None, worker: int = 0, progress: bool = False,
-                enqueue: Sequence[Mapping[str, Any]] = ()) -> int:
-    """Run trials of the study until it holds ``trials`` finished ones (or the timeout); returns trials run here."""
+                enqueue: Sequence[Mapping[str, Any]] = (), stop: Callable[[], bool] = lambda: False) -> int:
+    """Run trials of the study until it holds ``trials`` finished ones (or the timeout, or ``stop()``: a stop
+    request that arrived between trials); returns trials run here."""
     s = open_study(cfg, target, study=study, worker=worker)
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
@@ -325,7 +327,7 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
     ran = 0
     # A trial that fails (not pruned) is retried by the next iteration; three in a row stop this worker.
     failures = 0
-    while failures < 3:
+    while failures < 3 and not stop():
         if deadline is not None and time.monotonic() >= deadline:
             break
         slot = ExitStack()  # deciding that one more trial is needed and creating it: one step across processes
@@ -349,67 +351,6 @@ def tune_worker(cfg: Config, target: Cell, trials: int, *, study: str | None = N
         ran += 1
         failures = 0 if finished(s) > before else failures + 1
     return ran
-
-
-def _worker_entry(args: tuple) -> None:
-    cfg, target, trials, study, timeout, worker, workers = args
-    os.environ[cores.WORKERS_ENV] = str(workers)  # each trial takes at most cores / workers threads (runs/cores.py)
-    tune_worker(cfg, target, trials, study=study, timeout=timeout, worker=worker)
-
-
-def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None,
-         timeout: float | None = None, workers: int = 1, progress: bool = True,
-         enqueue: Sequence[Mapping[str, Any]] = ()) -> Any:
-    """Tune with ``workers`` local processes (1: in this process); returns the study.
-
-    The study's parent MLflow run is created before the workers start and ends with the best trial's
-    validation loss as its metric ``val_best.loss`` (tags ``best_trial``, ``best_run``).
-    """
-    check_space(cfg)
-    s = open_study(cfg, target, study=study)  # creates it once, before workers race
-    rebuild_trials(cfg, s, ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
-    parent = study_parent_or_none(cfg, target, s.study_name)  # created here once, found by the workers
-    if parent is not None:
-        start_parent(client_for(cfg), parent)  # RUNNING with this process: `status --repair` ends it if killed
-    try:
-        _run_workers(cfg, target, trials, s, study=study, timeout=timeout, workers=workers, progress=progress,
-                     enqueue=enqueue)
-    except BaseException as exc:  # an interrupted or failed tune ends its parent run too (KILLED / FAILED)
-        if parent is not None:
-            interrupted = isinstance(exc, (KeyboardInterrupt, RunInterrupted))
-            set_parent_status(client_for(cfg), parent, 130 if interrupted else 1)
-        raise
-    _close_parent(cfg, target, s)
-    return s
-
-
-def _run_workers(cfg: Config, target: Cell, trials: int, s, *, study: str | None, timeout: float | None,
-                 workers: int, progress: bool, enqueue: Sequence[Mapping[str, Any]]) -> None:
-    if workers <= 1:
-        tune_worker(cfg, target, trials, study=study, timeout=timeout, progress=progress, enqueue=enqueue)
-        return
-    for params in enqueue:
-        s.enqueue_trial(dict(params), skip_if_exists=True)
-    ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_worker_entry, args=((cfg, target, trials, study, timeout, i, workers),))
-             for i in range(workers)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join()
-
-
-def _close_parent(cfg: Config, target: Cell, s) -> None:
-    """The study's outcome on its parent run (``summary.log_study``), which ends FINISHED (best effort)."""
-    parent = study_parent_or_none(cfg, target, s.study_name)
-    if parent is None:
-        return
-    client = client_for(cfg)
-    try:
-        log_study(client, parent, describe_study(s), finished(s))
-    except Exception as exc:  # noqa: BLE001 - the trials' runs and the study hold the results either way
-        log.warning("could not record study %s on its parent run %s: %s", s.study_name, parent, exc)
-    set_parent_status(client, parent, 0)
 
 
 def _no_storage(cfg: Config) -> bool:

@@ -1,15 +1,14 @@
 """A sweep worker: claim a cell, run it with a heartbeat, record the outcome only while still holding the claim.
 
 The cell runner is injectable: any function with ``run_cell``'s signature,
-``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runlayout.RunResult``.
-The real one trains (``default_runner``); ``bronchopose sweep --runner
+``runner(cfg, cell, *, extra_tags, progress, run_id_callback) -> runs.contract.RunResult``.
+The real one trains (``default_runner``); ``bronchopose sweep run --runner
 module:function`` names another (``task.load_runner``), which reaches spawned
 worker processes by reference and Slurm array tasks through their task spec;
-tests and benchmarks use it for fast fakes. Workers are processes started by
-``bronchopose sweep`` (multiprocessing ``spawn``; see ``pool.py``) or by anyone
-calling ``worker_process``.
+tests and benchmarks use it for fast fakes. Workers are started by a launcher
+(``launchers``), each through the one worker entry (``stagework.worker_main``).
 
-Signals: SIGINT/SIGTERM (and SIGUSR1 in a Slurm task) stop the worker. While a
+Signals: SIGINT/SIGTERM (and a launcher's own, e.g. SIGUSR1 in a Slurm task) stop the worker. While a
 cell trains, ``run_cell`` itself turns the signal into a checkpoint of the
 current step and a KILLED MLflow run (``RunInterrupted``, which carries the
 signal back here); outside its training loop the worker raises
@@ -26,7 +25,6 @@ import logging
 import os
 import signal
 import socket
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -34,16 +32,14 @@ from typing import Any
 
 from ..cells import Cell
 from ..config import Config
-from ..errors import BronchoError, MlflowUnreachable, resumable
+from ..errors import BronchoError, MlflowUnreachable, WriteFailed, resumable
 from ..retry import retry
-from ..runs import cores
 from ..runs.client import MlflowBusy, client_for, experiment_id
 from ..runs.contract import RunTakenOver, checkpoint_dir, failure_reason, resume_file
 from ..runs.ownership import remove_checkpoint
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
 from .liveness import Heartbeat, StopSignals, is_interrupt
-from .placement import pin_env
 from .record import finished_runs
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
@@ -63,21 +59,39 @@ def default_runner(cfg: Config, cell: Cell, **kw: Any) -> Any:
     return run_cell(cfg, cell, **kw)
 
 
-def slurm_task() -> str | None:
-    """This process's Slurm job as ``<array job>_<task>`` (or ``<job>``); None outside Slurm."""
-    job = os.environ.get("SLURM_ARRAY_JOB_ID") or os.environ.get("SLURM_JOB_ID")
-    task = os.environ.get("SLURM_ARRAY_TASK_ID")
-    if not job:
-        return None
-    return f"{job}_{task}" if task and os.environ.get("SLURM_ARRAY_JOB_ID") else job
+@dataclass(frozen=True)
+class WorkerId:
+    """Who holds a claim: host, pid, the launcher and its job for this worker (Slurm: ``812_3``), the GPU.
+
+    Stored in the claims row as its text, ``host:pid [<launcher> <job>] [gpu<id>]`` (``node7:4242 slurm 812_3
+    gpu0``), which ``parse`` reads back (the one reader: ``status`` and the watch ask it for the job)."""
+
+    host: str
+    pid: int
+    launcher: str | None = None  # a launcher whose workers have a job id of their own (None: a local process)
+    job: str | None = None
+    gpu: str | None = None
+
+    def __str__(self) -> str:
+        return (f"{self.host}:{self.pid}" + (f" {self.launcher} {self.job}" if self.launcher and self.job else "")
+                + (f" gpu{self.gpu}" if self.gpu else ""))
+
+    @classmethod
+    def parse(cls, text: str | None) -> WorkerId | None:
+        """The id a claims row holds (None: no worker, or not one this project wrote)."""
+        parts = (text or "").split()
+        host, _, pid = parts[0].rpartition(":") if parts else ("", "", "")
+        if not host or not pid.isdigit():
+            return None
+        gpu = parts.pop()[3:] if len(parts) > 1 and parts[-1].startswith("gpu") else None
+        launcher, job = (parts[1], parts[2]) if len(parts) == 3 else (None, None)
+        return cls(host, int(pid), launcher, job, gpu)
 
 
-def worker_id() -> str:
-    """``host:pid``, the Slurm job of an array-task worker and the GPU the worker is pinned to
-    (``host:pid slurm 812_3 gpu1``), as claims and status show it."""
-    job = slurm_task()
-    gpu = os.environ.get("BRONCHOPOSE_WORKER_GPU") or (os.environ.get("CUDA_VISIBLE_DEVICES") if job else None)
-    return f"{socket.gethostname()}:{os.getpid()}" + (f" slurm {job}" if job else "") + (f" gpu{gpu}" if gpu else "")
+def job_of(worker: str | None) -> str | None:
+    """The launcher's job (Slurm: ``812_3``) of the worker that holds or held a claim, else None."""
+    wid = WorkerId.parse(worker)
+    return wid.job if wid else None
 
 
 class ClaimLost(BronchoError):
@@ -106,7 +120,7 @@ class Worker:
         self.exit_when_idle, self.idle = exit_when_idle, False
         self.cells = {c.key: c for c in cells}
         self.sweep = sweep or cfg.name
-        self.ident = ident or worker_id()
+        self.ident = ident or str(WorkerId(socket.gethostname(), os.getpid()))
         self.signals = signals or StopSignals()
         self.stats = WorkerStats()
         self._client = None
@@ -260,6 +274,10 @@ class Worker:
             return "stop"
         if isinstance(error, (MlflowBusy, MlflowUnreachable)):  # the store, not the cell: no attempt used
             return self._release_busy(claim, cell, failure_reason(error), run_id)
+        if isinstance(error, WriteFailed):  # a full disk: FAILED, no attempt used, its checkpoint kept; the worker
+            self._terminate(run_id, "FAILED", failure_reason(error), ("RUNNING",))  # stops (every cell meets it)
+            self._db(self.store.fail, claim.token, failure_reason(error), run_id, elapsed, spent=False)
+            raise error
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):
                 log.error("runner failed on %s", cell.label, exc_info=error)
@@ -390,63 +408,3 @@ def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:
     folder = checkpoint_dir(cfg, run_id)
     if folder.is_dir():
         remove_checkpoint(folder, f"run {run_id} {why}")  # only what provably is the run's checkpoint
-
-
-# -- process entry point -----------------------------------------------------------
-
-
-@dataclass
-class WorkerSpec:
-    """Everything a spawned worker process needs (picklable)."""
-
-    cfg: Config  # storage URL already redacted: the config is logged to MLflow
-    storage_url: str
-    cells: list[Cell]
-    runner: Runner = default_runner
-    sweep: str | None = None
-    parent_pid: int | None = None
-    log_path: str | None = None
-    gpu: str | None = None  # this worker's GPU (its CUDA_VISIBLE_DEVICES); None: leave the environment alone
-    gpu_share: int = 1  # workers pinned to that GPU (this one included)
-    cpu_workers: int | None = None  # workers of its sweep on this machine: each takes at most cores / N threads
-
-
-def _redirect_output(path: str | None) -> None:
-    if path is None:
-        return
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os.dup2(fd, 1)
-    os.dup2(fd, 2)
-    os.close(fd)
-
-
-def worker_process(spec: WorkerSpec, stop_event: Any = None) -> None:
-    """Entry point of a worker process: run the loop, exit 0 (nothing left) or 130 (stopped)."""
-    if spec.gpu is not None:  # before anything imports torch: the run sees one device, cuda:0
-        for key, value in pin_env(spec.gpu, spec.gpu_share).items():
-            if key != "CUDA_DEVICE_ORDER" or key not in os.environ:  # a user's own device order stands
-                os.environ[key] = value
-        os.environ["BRONCHOPOSE_WORKER_GPU"] = spec.gpu
-    if spec.cpu_workers:
-        os.environ[cores.WORKERS_ENV] = str(spec.cpu_workers)  # its runs' thread cap (runs/cores.py)
-    if spec.parent_pid is not None:
-        os.setpgrp()  # a terminal Ctrl-C reaches the parent only; it stops the workers once, with SIGTERM
-    _redirect_output(spec.log_path)
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
-                        format=f"%(asctime)s {worker_id()} %(levelname)s %(name)s: %(message)s")
-    signals = StopSignals(stop_event, spec.parent_pid)
-    signals.install()
-    code = EXIT_INTERRUPTED
-    try:
-        store = SweepStore(spec.storage_url, spec.cfg.runs.timeout_s, spec.cfg.runs.busy_timeout_s)
-        code = Worker(spec.cfg, spec.cells, store, spec.runner, signals=signals, sweep=spec.sweep).run()
-    except KeyboardInterrupt:
-        code = EXIT_INTERRUPTED
-    except BronchoError as exc:
-        log.error("%s", exc)
-        code = 2
-    finally:
-        logging.shutdown()
-    sys.exit(code)

@@ -30,7 +30,7 @@ def cells_of(cfg):
 def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, project, fake_dir):
     path = str(project.paths.base / "experiments.yaml")
     (fake_dir / "fail-lstm").write_text("1")  # lstm fails its first run; max_retries=0: no automatic retry
-    code, out, err = cli("sweep", "-c", path, "--dry-run")
+    code, out, err = cli("sweep", "plan", "-c", path)
     assert code == 0 and "2 cells: 0 finished" in out and "dry run" in out
     assert not (project.paths.base / "sweep.db").exists()  # a dry run writes nothing
     code, out, err = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--workers", "2", *FAKE)
@@ -51,21 +51,21 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--only", "arch=transformer"], "arch 'transformer' must be one of"),
-    (["--only", "arch=offsetnet"], "no cell of the plan has that arch"),
-    (["--only", "colour=red"], "key one of arch, rot_loss"),
-    (["--workers", "0"], ""),
-    (["--runner", "no_such_module:run"], "--runner no_such_module:run: cannot import no_such_module"),
-    (["--runner", "sweep_fakes"], "must be module:function"),
-    (["--runner", "sweep_fakes:no_such_runner"], "module sweep_fakes has no no_such_runner"),
+    (["plan", "--only", "arch=transformer"], "arch 'transformer' must be one of"),
+    (["plan", "--only", "arch=offsetnet"], "no cell of the plan has that arch"),
+    (["plan", "--only", "colour=red"], "key one of arch, rot_loss"),
+    (["plan", "--workers", "0"], ""),
+    (["run", "--runner", "no_such_module:run"], "--runner no_such_module:run: cannot import no_such_module"),
+    (["run", "--runner", "sweep_fakes"], "must be module:function"),
+    (["run", "--runner", "sweep_fakes:no_such_runner"], "module sweep_fakes has no no_such_runner"),
 ])
 def test_bad_input_exits_2(cli, project, args, message):
-    code, _, err = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", *args)
+    code, _, err = cli("sweep", *args, "-c", str(project.paths.base / "experiments.yaml"))
     assert code == 2 and message in err
 
 
 def test_only_selects_cells(cli, project):
-    code, out, _ = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--dry-run", "--only", "arch=lstm")
+    code, out, _ = cli("sweep", "plan", "-c", str(project.paths.base / "experiments.yaml"), "--only", "arch=lstm")
     assert code == 0 and "1 cells" in out and "lstm/mse" in out and "baseline/mse" not in out
 
 
@@ -97,9 +97,9 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
 def test_storage_passwords_never_appear_in_output_logs_or_runs(cli, project, fake_dir, pg_url):
     url = pg_url.replace("postgresql+psycopg://postgres@", "postgresql://postgres:topsecret@")  # trust auth ignores it
     path = str(project.paths.base / "experiments.yaml")
-    assert worker_config(project.with_values({"storage.url": url}), 2).storage.url.count("topsecret") == 0
+    assert worker_config(project.with_values({"storage.url": url})).storage.url.count("topsecret") == 0
     outputs = []
-    for args in (["sweep", "--dry-run"], ["sweep", *FAKE], ["status"]):
+    for args in (["sweep", "plan"], ["sweep", *FAKE], ["status"]):
         code, out, err = cli(*args, "-c", path, "--storage", url)
         assert code == 0, out + err
         outputs.append(out + err)

@@ -1,4 +1,5 @@
-"""Dry runs never act (issue 32, item 3): every flag combination of `sweep --dry-run` leaves the claims table, the
+"""Dry runs never act (issue 32, item 3): `sweep plan` with each of its options, `sweep gc --dry-run` and `sweep
+cancel --dry-run` leave the claims table, the
 MLflow store and every folder byte for byte as they were, and calls no Slurm command that changes anything
 (fake `sbatch`, `scancel`, `scontrol` and `squeue` on PATH record each call; `squeue` only reads)."""
 
@@ -14,19 +15,17 @@ from bronchocli.runs.contract import resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import cell_tags
 from bronchocli.sweep import SweepStore, prepare, tuning
-from bronchocli.sweep.slurm import job_comment
+from bronchocli.sweep.launchers.slurm import job_comment
 
-DRY_RUNS = [
-    ["--dry-run"],
-    ["--dry-run", "--gc"],
-    ["--dry-run", "--gc", "--launcher", "slurm"],
-    ["--dry-run", "--cancel", "--launcher", "slurm"],  # issued a real scancel before
-    ["--dry-run", "--launcher", "slurm"],
-    ["--dry-run", "--launcher", "slurm", "--detach"],
-    ["--dry-run", "--launcher", "slurm", "--retry-failed"],
-    ["--dry-run", "--retry-failed"],
-    ["--dry-run", "--only", "arch=lstm", "--workers", "2", "--gpus", "none"],
-    ["--dry-run", "--use-tuned", "s"],
+DRY_RUNS = [  # (the old `sweep --dry-run` with --launcher slurm, --detach, --retry-failed: refused, exit 2)
+    ["plan"],
+    ["gc", "--dry-run"],
+    ["gc", "--dry-run", "--set", "sweep.launcher=slurm"],
+    ["cancel", "--dry-run", "--launcher", "slurm"],  # issued a real scancel before
+    ["cancel", "--dry-run", "--set", "sweep.launcher=slurm"],
+    ["plan", "--set", "sweep.launcher=slurm"],
+    ["plan", "--only", "arch=lstm", "--workers", "2", "--gpus", "none"],
+    ["plan", "--use-tuned", "s"],
 ]
 ACTING = ("sbatch", "scancel", "scontrol")
 
@@ -80,20 +79,20 @@ def finished_project(make_config, tmp_path, monkeypatch):
 def test_a_dry_run_changes_nothing_and_calls_no_slurm_command_that_acts(cli, finished_project, tmp_path, flags):
     cfg, fake = finished_project
     before = snapshot(tmp_path)
-    code, out, err = cli("sweep", "-c", str(tmp_path / "experiments.yaml"), *flags)
+    code, out, err = cli("sweep", *flags, "-c", str(tmp_path / "experiments.yaml"))
     assert code == 0, out + err
     calls = (fake / "calls").read_text().splitlines() if (fake / "calls").exists() else []
     assert not [c for c in calls if c.split()[0] in ACTING], calls
     assert snapshot(tmp_path) == before
-    if "--cancel" in flags:
+    if "cancel" in flags:
         assert "would cancel Slurm job(s) 812" in out and "nothing cancelled" in out
-    if "--gc" in flags:
+    if "gc" in flags:
         assert "would free" in out and "nothing was removed" in out
 
 
 def test_a_dry_run_with_a_study_that_does_not_exist_creates_no_database(cli, make_config, tmp_path):
     make_config()
     before = snapshot(tmp_path)
-    code, out, err = cli("sweep", "-c", str(tmp_path / "experiments.yaml"), "--dry-run", "--use-tuned", "nosuch")
+    code, out, err = cli("sweep", "plan", "-c", str(tmp_path / "experiments.yaml"), "--use-tuned", "nosuch")
     assert code == 2 and "no Optuna study named 'nosuch'" in err and len(err.strip().splitlines()) == 1, out + err
     assert snapshot(tmp_path) == before and not (tmp_path / "sweep.db").exists()

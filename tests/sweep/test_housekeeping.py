@@ -1,4 +1,4 @@
-"""Orphan checkpoints (issue 22, item 6): status shows their disk per cell and in all, `sweep --gc` removes what no
+"""Orphan checkpoints (issue 22, item 6): status shows their disk per cell and in all, `sweep gc` removes what no
 live cell needs; zombie runs (left RUNNING by a dead process) are repaired by `status --repair` and by the next
 run of their cell."""
 
@@ -70,23 +70,23 @@ def test_status_shows_checkpoint_disk_and_gc_removes_only_what_no_live_cell_need
     # finished, both failed runs, the taken-over one, the missing one, and the rejected file
     sizes = {p.name: folder_bytes(p) for p in cfg.paths.checkpoints.iterdir()}
     spare = sum(v for k, v in sizes.items() if k not in (released, by_train)) + 13000
-    assert "7 folder(s)" in out and "needed by no live cell" in out and "sweep --gc" in out
+    assert "7 folder(s)" in out and "needed by no live cell" in out and "sweep gc" in out
 
-    code, out, err = cli("sweep", "-c", path, "--gc", "--dry-run")
+    code, out, err = cli("sweep", "gc", "-c", path, "--dry-run")
     assert code == 0, err
     assert sorted(p.name for p in cfg.paths.checkpoints.iterdir()) == sorted(sizes)  # nothing removed
     assert (resume_file(cfg, by_train).parent / "last.pt.rejected").exists()
-    assert f"--gc --dry-run: would free {fmt_bytes(spare)}" in out and "nothing was removed" in out, out
+    assert f"gc --dry-run: would free {fmt_bytes(spare)}" in out and "nothing was removed" in out, out
 
-    code, out, err = cli("sweep", "-c", path, "--gc")
+    code, out, err = cli("sweep", "gc", "-c", path)
     assert code == 0, err
     left = sorted(p.name for p in cfg.paths.checkpoints.iterdir())
     assert left == sorted([released, by_train])
     assert not (resume_file(cfg, by_train).parent / "last.pt.rejected").exists()
     assert resume_file(cfg, by_train).is_file() and resume_file(cfg, released).is_file()
-    assert f"--gc: freed {fmt_bytes(spare)}" in out and finished in out and "no such MLflow run" in out
-    code, out, _ = cli("sweep", "-c", path, "--gc")
-    assert code == 0 and "--gc: freed 0 B in 0 checkpoint folder(s)" in out
+    assert f"gc: freed {fmt_bytes(spare)}" in out and finished in out and "no such MLflow run" in out
+    code, out, _ = cli("sweep", "gc", "-c", path)
+    assert code == 0 and "gc: freed 0 B in 0 checkpoint folder(s)" in out
 
 
 def dead_pid() -> int:
@@ -147,7 +147,7 @@ def test_gc_removes_only_provable_checkpoints_never_other_folders(cli, make_conf
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_bytes(data)
     (root / "link").symlink_to(root / "thesis")
-    code, out, err = cli("sweep", "-c", str(cfg.paths.base / "experiments.yaml"), "--gc")
+    code, out, err = cli("sweep", "gc", "-c", str(cfg.paths.base / "experiments.yaml"))
     assert code == 0, err
     assert all(path.read_bytes() == data for path, data in planted.items())
     assert (root / "link").is_symlink() and not (root / finished).exists()

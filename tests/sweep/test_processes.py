@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import signal
 import time
@@ -12,16 +13,21 @@ from sweep_fakes import calls, fake_runner, runs_by_cell
 
 from bronchocli.runs.client import client_for
 from bronchocli.runs.records import TAG_FAILURE
-from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, WorkerSpec, prepare, spawn_worker, worker_config
+from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, WorkerJob, prepare, worker_config
+from bronchocli.sweep.launchers import LocalLauncher
+from bronchocli.sweep.stagework import local_process
 
 
 def start(cfg, plan, n: int, log_dir: Path, first: int = 0) -> list:
-    wcfg = worker_config(cfg, n)
+    """``n`` worker processes as the local launcher starts them: the one worker entry, each with its log."""
+    wcfg = worker_config(cfg)
     procs = []
     for i in range(first, first + n):
-        log = str(log_dir / f"w{i}.log")
-        spec = WorkerSpec(wcfg, cfg.paths.storage_url, plan.cells, fake_runner, cfg.name, os.getpid(), log)
-        procs.append(spawn_worker(spec))
+        job = WorkerJob(wcfg, cfg.paths.storage_url, None, LocalLauncher, fake_runner, exit_when_idle=False,
+                        ends_parent=False, log_path=str(log_dir / f"w{i}.log"), parent_pid=os.getpid(), cpu_workers=n)
+        proc = mp.get_context("spawn").Process(target=local_process, args=(job, None))
+        proc.start()
+        procs.append(proc)
     return procs
 
 

@@ -34,7 +34,7 @@ def test_a_lost_claims_database_is_rebuilt_from_mlflow_and_no_cell_trains_again(
     for name in ("sweep.db", "sweep.db-wal", "sweep.db-shm"):
         (tmp_path / name).unlink(missing_ok=True)
 
-    code, out, err = cli("sweep", "-c", path, "--dry-run")  # shown finished, nothing written
+    code, out, err = cli("sweep", "plan", "-c", path)  # shown finished, nothing written
     assert code == 0 and "2 cells: 2 finished" in out and "FINISHED in MLflow" in out, out + err
     assert not (tmp_path / "sweep.db").exists()
     code, out, err = cli("status", "-c", path)

@@ -1,4 +1,4 @@
-"""`bronchopose sweep --launcher slurm` on a real single-node Slurm cluster (slurm_cluster.py) with two fake GPUs.
+"""`bronchopose sweep run --launcher slurm` on a real single-node Slurm cluster (slurm_cluster.py) with two fake GPUs.
 
 Nothing stands in for sbatch, squeue, scancel or scontrol: the daemons run for
 the session and every array task is a real worker process that Slurm starts.
@@ -111,12 +111,12 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     path = str(cfg.paths.base / "experiments.yaml")
     for arch in ("baseline", "lstm", "convlstm"):
         (fake_dir / f"block-{arch}").touch()  # every cell waits at the gate: two tasks hold cells at once
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     assert re.search(r"submitted Slurm array job \d+: 2 task\(s\)", out), out
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "two tasks inside cells", cluster=slurm, cfg=cfg)
     queued = sorted(j["id"] for j in slurm.jobs())
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)  # again, while queued/running
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)  # again, while queued/running
     assert code == 0 and "nothing new to submit: 2 task(s)" in out and "submitted" not in out, out + err
     assert sorted(j["id"] for j in slurm.jobs()) == queued
     started = sorted(fake_dir.glob("started-*"))
@@ -134,7 +134,7 @@ def test_a_six_cell_sweep_runs_each_cell_once_on_its_own_gpu_and_resubmitting_ad
     code, out, _ = cli("status", "-c", path)
     assert code == 0 and "Slurm task" in out
     assert all(re.search(rf"{r.run_id}.*{re.escape(r.worker.split()[2])}", out) for r in finished), out
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", *FAKE)
     assert code == 0 and "nothing left to run" in out and not slurm.jobs(), out + err
 
 
@@ -144,7 +144,7 @@ def test_a_requeued_task_gives_its_cell_back_and_no_cell_finishes_twice(slurm, c
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
     (fake_dir / "block-lstm").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both tasks inside their cells", cluster=slurm,
              cfg=cfg)
@@ -173,7 +173,7 @@ def test_a_two_stage_plan_runs_stage_two_after_its_selection_is_recorded_once(sl
     for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
         (fake_dir / f"val-{arch}-mse").write_text(str(val))
     path = str(cfg.paths.base / "experiments.yaml")
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     jobs = re.findall(r"submitted Slurm array job (\d+): (\d+) task\(s\) for stage (\w+)", out)
     assert [(n, s) for _, n, s in jobs] == [("3", "first"), ("1", "second")], out
@@ -211,13 +211,13 @@ def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm
         bad = tmp_path / f"bad-{len(name)}.yaml"
         merged = {**data, **{k: {**data.get(k, {}), **v} for k, v in over.items()}}
         bad.write_text(yaml.safe_dump(merged))
-        code, out, err = cli("sweep", "-c", str(bad), "--launcher", "slurm", "--detach")
+        code, out, err = cli("sweep", "run", "-c", str(bad), "--launcher", "slurm", "--detach")
         lines = [x for x in (out + err).splitlines() if x.strip()]
         assert code == 2 and len(lines) == 1 and expected in lines[0], (name, out + err)
         assert not slurm.jobs(), name
     assert not (tmp_path / "sweep.db").exists()  # refused before anything was created
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach")
     assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1
     assert not slurm.jobs()
 
@@ -234,7 +234,7 @@ def test_scancel_mid_cell_the_cell_is_resumed_from_its_checkpoint_by_another_tas
                       train={"batch_size": 3, "steps": 12, "val_every": 3, "bn_recalibrate": 1, "threads": 1,
                              "max_val_pairs": 6})
     path = str(cfg.paths.base / "experiments.yaml")
-    submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"],
+    submitter = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "run", "-c", path, "--launcher", "slurm"],
                                  cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: any(cfg.paths.checkpoints.glob("*/last.pt")), "the first checkpoint", limit=180, cfg=cfg)
@@ -264,7 +264,7 @@ def test_the_time_limit_warning_releases_the_cell_and_requeues_the_task(slurm, c
     cfg = project(make_config, tmp_path, pg_url, archs=("baseline",), losses=("mse",))
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
     (row,) = rows(cfg)
@@ -285,15 +285,15 @@ def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli
     cfg = project(make_config, tmp_path, pg_url, archs=("baseline", "lstm"), losses=("mse",), slurm={"tasks": 1})
     path = str(cfg.paths.base / "experiments.yaml")
     (fake_dir / "block-baseline").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 1, "the task inside its cell", cluster=slurm, cfg=cfg)
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    code, out, err = cli("sweep", "cancel", "-c", path, "--launcher", "slurm")
     assert code == 0 and "cancelled Slurm job(s)" in out, out + err
     slurm.wait_idle_queue(LIMIT)
     assert [r.state for r in rows(cfg)] == [PENDING, PENDING]  # released, not failed; the other never started
     assert runs_by_cell(cfg, "KILLED") == {rows(cfg)[0].cell_key: 1}
-    code, out, _ = cli("sweep", "-c", path, "--launcher", "slurm", "--cancel")
+    code, out, _ = cli("sweep", "cancel", "-c", path, "--launcher", "slurm")
     assert code == 0 and "no Slurm job of sweep t is queued or running" in out
 
 
@@ -336,7 +336,7 @@ def cluster_project(make_config, tmp_path, pg_url, services, name: str, steps: i
 
 def watch_sweep(cfg, tmp_path) -> subprocess.Popen:
     path = str(cfg.paths.base / "experiments.yaml")
-    return subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "-c", path, "--launcher", "slurm"], cwd=tmp_path,
+    return subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "run", "-c", path, "--launcher", "slurm"], cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
@@ -441,7 +441,7 @@ def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, t
         (fake_dir / f"val-{arch}-mse").write_text(str(val))
         (fake_dir / f"block-{arch}").touch()
     path = str(cfg.paths.base / "experiments.yaml")
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     assert code == 0, out + err
     second = re.search(r"submitted Slurm array job (\d+): 1 task\(s\) for stage second", out).group(1)
     wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 3, "three stage-1 tasks in their cells", cluster=slurm,
@@ -450,12 +450,12 @@ def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, t
     slurm.run("scancel", victim.worker.split()[2])
     wait_for(lambda: next(r for r in rows(cfg) if r.cell_key == victim.cell_key).state == PENDING,
              "the cancelled task's cell given back", cluster=slurm, cfg=cfg)
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
     new = re.search(r"submitted Slurm array job (\d+): 1 task\(s\) for stage first", out)
     assert code == 0 and new, out + err
     assert f"afterany:{new.group(1)}" in slurm.run("scontrol", "show", "job", second).stdout  # stage 2 waits for it
     (fake_dir / "release").touch()
-    code, out, err = cli("sweep", "-c", path, "--launcher", "slurm", *FAKE)  # watches to the end
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", *FAKE)  # watches to the end
     assert code == 0, out + err + task_logs(cfg)
     done = rows(cfg)
     first_done = max(r.finished_at for r in done if r.coords["seed"] == 0)

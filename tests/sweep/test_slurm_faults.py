@@ -11,10 +11,21 @@ from rich.console import Console
 from sqlalchemy import update
 
 from bronchocli.sweep import SweepStore, prepare
-from bronchocli.sweep import slurm as launcher
+from bronchocli.sweep import launch
+from bronchocli.sweep.launchers import Workers
+from bronchocli.sweep.launchers import slurm as launcher
+from bronchocli.sweep.launchers.slurm import SlurmLauncher, job_name, release_held
 from bronchocli.sweep.plan import StageWalk
-from bronchocli.sweep.slurm import Task, job_name, release_held, submit_missing
 from bronchocli.sweep.storage import cells_table
+
+
+def Task(task: str, job: str, state: str, stage: str, count: int, reason: str = "") -> Workers:  # noqa: N802
+    """A line of squeue as the Slurm launcher reads it."""
+    return Workers(task, job, state, stage, count, reason, ending=state in launcher.ENDING)
+
+
+def submit_missing(walk, command, console):
+    return launch.submit_missing(walk, SlurmLauncher(walk.cfg, command), console)
 
 
 class FakeSlurm:
@@ -138,7 +149,7 @@ def test_the_task_that_finds_the_sweep_done_ends_its_parent_run(make_config, fak
     from bronchocli.cells import parse_only
     from bronchocli.runs.client import client_for, experiment_id
     from bronchocli.runs.parents import sweep_parent
-    from bronchocli.sweep.task import run_task
+    from bronchocli.sweep.task import run_task as run_one
 
     cfg = make_config(archs=("baseline",))
     store = SweepStore(cfg.paths.storage_url)
@@ -146,7 +157,7 @@ def test_the_task_that_finds_the_sweep_done_ends_its_parent_run(make_config, fak
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))
     assert client.get_run(parent).info.status == "RUNNING"
-    assert run_task(cfg, store, parse_only([]), fake_runner) == 0  # a detached sweep: no watcher
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0  # a detached sweep: no watcher
     assert client.get_run(parent).info.status == "FINISHED"
 
 
@@ -156,7 +167,7 @@ def test_a_task_stops_after_the_stage_its_array_was_submitted_for(make_config, f
     from sweep_fakes import fake_runner
 
     from bronchocli.cells import parse_only
-    from bronchocli.sweep.task import run_task
+    from bronchocli.sweep.task import run_task as run_one
 
     cfg = two_stages(make_config)
     for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
@@ -164,16 +175,16 @@ def test_a_task_stops_after_the_stage_its_array_was_submitted_for(make_config, f
     store = SweepStore(cfg.paths.storage_url)
     prepare(cfg, store, dataset=False)
     monkeypatch.setenv(launcher.STAGE_ENV, "first")
-    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
     rows = store.rows(cfg.name)
     assert sorted(r.coords["seed"] for r in rows) == [0, 0, 0] and {r.state for r in rows} == {"finished"}
     monkeypatch.setenv(launcher.STAGE_ENV, "second")  # stage 2's task: the selection, then its cell
-    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
     second = [r for r in store.rows(cfg.name) if r.coords["seed"] == 1]
     assert [(r.coords["arch"], r.state) for r in second] == [("lstm", "finished")]
     monkeypatch.setenv(launcher.STAGE_ENV, "third")
     with pytest.raises(Exception, match="submitted for stage 'third', which the config's stages no longer have"):
-        run_task(cfg, store, parse_only([]), fake_runner)
+        run_one(cfg, parse_only([]), fake_runner, "slurm")
 
 
 def test_a_later_stage_without_tasks_gets_its_array_though_earlier_stage_tasks_are_still_alive(
@@ -181,12 +192,12 @@ def test_a_later_stage_without_tasks_gets_its_array_though_earlier_stage_tasks_a
     from sweep_fakes import fake_runner
 
     from bronchocli.cells import parse_only
-    from bronchocli.sweep.task import run_task
+    from bronchocli.sweep.task import run_task as run_one
 
     cfg = two_stages(make_config)
     walk, store = walk_of(cfg)
     monkeypatch.setenv(launcher.STAGE_ENV, "first")
-    assert run_task(cfg, store, parse_only([]), fake_runner) == 0
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
     # stage 1 is done; its last task has not left the queue yet, and stage 2 has no array (cancelled)
     slurm = FakeSlurm(monkeypatch, [Task("7_0", "7", "COMPLETING", "first", 1)])
     submit_missing(walk, ["python"], quiet())
@@ -207,3 +218,26 @@ def test_a_cancelled_task_still_listed_as_completing_covers_no_cell(make_config,
     submit_missing(walk, ["python"], quiet())
     assert slurm.submitted == [("100", "first", 1, ())]  # the released cell gets a task
     assert slurm.scontrol == [["update", "JobId=8", "Dependency=afterany:100:7"]]  # and stage 2 waits for it
+
+
+def test_a_later_stages_task_that_finds_an_earlier_stage_unfinished_takes_none_of_its_cells(make_config, fake_dir,
+                                                                                             monkeypatch):
+    """Issue 37, item 3: stage 1's array cancelled, stage 2's (afterany) starts before the re-submitted stage 1: its
+    tasks exit at once instead of running stage 1's cells on resources sized for stage 2."""
+    from sweep_fakes import calls, fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.sweep.task import run_task as run_one
+
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    first = walk.cells(walk.stages[0])
+    store.claim(cfg.name, [first[0].key], "n:1 slurm 7_0", max_retries=1, stale_after_s=30)  # one still running
+    monkeypatch.setenv(launcher.STAGE_ENV, "second")
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    rows = {r.cell_key: r for r in store.rows(cfg.name)}
+    assert [calls(c.key) for c in first] == [0, 0, 0] and rows[first[0].key].worker == "n:1 slurm 7_0"
+    assert [rows[c.key].state for c in first[1:]] == ["pending", "pending"]
+    monkeypatch.setenv(launcher.STAGE_ENV, "first")  # stage 1's own task takes them
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    assert [calls(c.key) for c in first] == [0, 1, 1]

@@ -1,4 +1,4 @@
-"""Issue 32.4: a password given to `sweep --launcher slurm` never reaches the batch script, the sbatch argv, the
+"""Issue 32.4: a password given to `sweep run --launcher slurm` never reaches the batch script, the sbatch argv, the
 task's command line (what `ps` shows) or the console; the task gets it from a file only the user can read."""
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def test_no_password_reaches_the_batch_script_the_sbatch_argv_or_the_task_comman
     cfg = make_config(slurm={"shared_filesystem": True})
     url = _planted_url(pg_url)
     given = ["--set", f"storage.url={url}"] if how == "--set" else ["--storage", url]
-    code, out, err = cli("sweep", "-c", str(cfg.paths.base / "experiments.yaml"), "--launcher", "slurm",
+    code, out, err = cli("sweep", "run", "-c", str(cfg.paths.base / "experiments.yaml"), "--launcher", "slurm",
                          "--detach", *given, "--set", "train.lr=0.001")
     assert code == 0, out + err
     calls = (fake_slurm / "calls").read_text()

@@ -9,9 +9,9 @@ from sweep_fakes import fake_runner
 
 from bronchocli.errors import ConfigError
 from bronchocli.sweep import SweepStore, Worker, prepare, task
-from bronchocli.sweep import slurm as slurm_launcher
-from bronchocli.sweep.slurm import STAGE_ENV, _count, batch_script, check, requeue, sbatch_args
-from bronchocli.sweep.status import slurm_job
+from bronchocli.sweep.launchers import STAGE_ENV
+from bronchocli.sweep.launchers import slurm as slurm_launcher
+from bronchocli.sweep.launchers.slurm import _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.task import TaskSpec
 
 
@@ -95,12 +95,14 @@ def test_the_checks_refuse_stores_and_folders_compute_nodes_cannot_share(make_co
 
 
 def test_status_reads_the_slurm_task_from_the_worker_id():
-    assert slurm_job("node7:4242 slurm 812_3 gpu0") == "812_3"
-    assert slurm_job("node7:4242 gpu0") is None and slurm_job(None) is None
+    from bronchocli.sweep.worker import job_of
+
+    assert job_of("node7:4242 slurm 812_3 gpu0") == "812_3"
+    assert job_of("node7:4242 gpu0") is None and job_of(None) is None
 
 
 def test_a_worker_that_exits_when_idle_does_not_wait_for_cells_held_elsewhere(make_config, fake_dir):
-    cfg = make_config(archs=("baseline",), sweep={"poll_s": 30.0})
+    cfg = make_config(archs=("baseline",), sweep={"poll_s": 30.0, "stale_after_s": 600.0})  # held, never stale
     store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
     claim = store.claim(cfg.name, [c.key for c in plan.cells], "elsewhere:1", max_retries=1, stale_after_s=60)
@@ -114,9 +116,9 @@ def test_launcher_flags_are_checked_and_the_config_can_choose_slurm(cli, make_co
     cfg = make_config(sweep={"launcher": "slurm"})
     path = str(cfg.paths.base / "experiments.yaml")
     code, out, err = cli("sweep", "-c", path, "--launcher", "local", "--detach")
-    assert code == 2 and "--detach: only with --launcher slurm" in out + err
+    assert code == 2 and "--detach: launcher local runs its workers in this command" in out + err
     code, out, err = cli("sweep", "-c", path, "--launcher", "pbs")
-    assert code == 2 and "--launcher pbs: must be local or slurm" in out + err
+    assert code == 2 and "--launcher pbs: must be one of local, slurm" in out + err
     monkeypatch.setenv("PATH", str(tmp_path / "empty"))
     code, out, err = cli("sweep", "-c", path)  # sweep.launcher: slurm, and no sbatch here
     assert code == 2 and "sbatch not found" in out + err and len((out + err).strip().splitlines()) == 1

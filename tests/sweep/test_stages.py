@@ -52,7 +52,7 @@ def count_calls(monkeypatch, owner, name: str) -> list[int]:
 
 def test_stages_select_by_validation_and_run_each_cell_once(cli, project, fake_dir):
     path = str(project.paths.base / "experiments.yaml")
-    code, out, _ = cli("sweep", "-c", path, "--dry-run")
+    code, out, _ = cli("sweep", "plan", "-c", path)
     assert code == 0 and "12 cells" in out and "cells known once stage personalized is done" in out
 
     with pytest.MonkeyPatch.context() as mp:

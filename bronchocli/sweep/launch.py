@@ -1,0 +1,207 @@
+"""``bronchopose sweep run`` with a launcher whose workers outlive the command (``Launcher.detachable``: Slurm, or
+any registered one): check, prepare the shared state, submit what the launcher's queued and running workers do not
+cover, and (unless ``--detach``) watch the table until they are gone, topping up when workers ended with cells
+left; ``cancel`` stops them. The launcher is the protocol (``launchers.base``); nothing here is Slurm's.
+
+A worker works the stages up to the one it was submitted for (``STAGE_ENV``), never a later one, so each
+stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+
+from rich.console import Console
+from rich.live import Live
+
+from .. import urls
+from ..cells import Selection
+from ..config import Config, Stage
+from ..errors import BronchoError
+from ..runs.client import client_for, experiment_id
+from ..runs.parents import set_parent_status, sweep_parent
+from . import summary
+from .launchers.base import Launcher, Workers
+from .plan import Plan, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
+from .selection import describe_selection
+from .status import live_view, progress, summary_line
+from .storage import FINISHED, RUNNING, SweepStore
+from .worker import EXIT_INTERRUPTED, job_of
+
+log = logging.getLogger(__name__)
+
+REFRESH_S = 1.0
+CANCEL_CHECK_S = 10.0  # how often a watch asks whether the sweep was cancelled while its workers run
+
+
+def _job_order(job: str) -> tuple:
+    return (0, int(job), "") if job.isdigit() else (1, 0, job)
+
+
+def runnable_now(walk: StageWalk, stage: Stage, active: Sequence[Workers]) -> int:
+    """Cells of ``stage`` workers can work on now: claimable ones (pending, retryable, a dead worker's once its
+    claim is stale) plus those held by a live worker. A cell whose worker is gone but whose claim is not stale yet
+    counts only once it goes stale: a worker submitted earlier would find nothing to claim and exit."""
+    cfg = walk.cfg
+    plan = read_plan(walk.store, walk.sweep, walk.cells(stage) or [])
+    claimable = claimable_now(plan, cfg.sweep.max_retries, walk.store.db_now(), cfg.sweep.stale_after_s)
+    live = {t.id for t in active}
+    held = sum(1 for c in plan.cells if c.key not in claimable and (r := plan.rows.get(c.key)) is not None
+               and r.state == RUNNING and ((job := job_of(r.worker)) is None or job in live))
+    return len(claimable) + held
+
+
+def submit_missing(walk: StageWalk, launcher: Launcher, console: Console) -> list[str]:
+    """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered).
+
+    The first stage with cells left wants a worker per cell runnable now (``runnable_now``, at most
+    ``launcher.capacity``); a later stage's submission waits (``after``) for the ones before it, and one queued
+    for a later stage is made to wait for an earlier stage's new submission too (``launcher.follow``)."""
+    # Workers being stopped (scancel: COMPLETING until their processes are gone) claim nothing more: not cover.
+    active = [t for t in launcher.active() if not t.ending]
+    for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
+        if step.settled is not None:
+            console.print(describe_selection(step.settled), highlight=False)
+            ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [])
+    submitted: list[str] = []
+    earlier: list[str] = []  # submissions labelled with an earlier stage (queued, running or just submitted)
+    first = True
+    for stage, left in walk.work_left():
+        mine = [t for t in active if t.stage == stage.name]
+        if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=_job_order)):
+            launcher.follow(queued, earlier)
+        if left:
+            have = sum(t.count for t in mine)
+            if first:
+                want = launcher.capacity(runnable_now(walk, stage, active))
+                if not want and not have:  # only cells of dead workers whose claims are not stale yet: wait
+                    break
+            else:
+                want = launcher.capacity(left)
+            if want > have:
+                job = launcher.submit(want - have, stage.name, () if first else earlier)
+                submitted.append(job)
+                earlier.append(job)
+                console.print(f"submitted {launcher.job_word} {job}: {want - have} {launcher.task_word}(s) for stage "
+                              f"{stage.name}" + ("" if first else f", after job(s) {', '.join(earlier[:-1])}"),
+                              highlight=False)
+            first = False
+        earlier += sorted({t.job for t in mine} - set(earlier), key=_job_order)
+    return submitted
+
+
+def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, *, detach: bool,
+           console: Console, retry_failed: bool = False) -> int:
+    """``bronchopose sweep run --launcher NAME``: check, prepare the shared state, submit workers for what is
+    missing, and (unless ``detach``) watch the table until the sweep's workers are gone."""
+    launcher.check()  # before touching storage: one line, nothing created, nothing submitted
+    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
+    console.print(f"[bold]sweep[/] {cfg.name} {launcher.describe()}  storage {store.redacted}  MLflow "
+                  f"{urls.redact(cfg.paths.mlflow_uri)}", highlight=False)
+    walk, _ = prepare_walk(cfg, store, only, retry_failed=retry_failed)
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))  # the cells nest under it
+    client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
+    summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
+    jobs = submit_missing(walk, launcher, console)
+    if not jobs:
+        tasks = launcher.active()
+        console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of this sweep "
+                      "queued or running" if tasks else "nothing left to run")
+    summary.record_parent(client, parent, walk)  # the plan on the sweep's parent run; the outcome once watching ends
+    if detach:
+        console.print("detached: `bronchopose status` shows progress, `bronchopose sweep cancel` stops the workers")
+        return 0
+    code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent))
+    summary.record_parent(client, parent, walk, finished=True)
+    if code != EXIT_INTERRUPTED:  # stopped watching only: the workers go on, so does the sweep
+        set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED (or FAILED) with it
+    return code
+
+
+def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
+    """``bronchopose sweep cancel``: stop every worker of this sweep (running ones release their cells);
+    ``dry_run``: only list them."""
+    cfg, what = launcher.cfg, f"{launcher.title} job"
+    jobs = launcher.cancel(dry_run=dry_run)
+    if not jobs:
+        console.print(f"no {what} of sweep {cfg.name} is queued or running")
+    elif dry_run:
+        console.print(f"dry run: would cancel {what}(s) {', '.join(jobs)} of sweep {cfg.name}; nothing cancelled")
+    else:
+        console.print(f"cancelled {what}(s) {', '.join(jobs)} of sweep {cfg.name}: running cells are released "
+                      "(their runs resume from the checkpoint when the sweep is run again)")
+    return 0
+
+
+def _table_state(plan: Plan, claimable: set[str]) -> tuple:
+    """What changes whenever a worker claims, releases, finishes or fails a cell (row versions), or a dead
+    worker's claim goes stale (the cells claimable now)."""
+    return tuple(sorted((k, r.version) for k, r in plan.rows.items())), tuple(sorted(claimable))
+
+
+def watch(walk: StageWalk, launcher: Launcher, console: Console,
+          cancelled: Callable[[], bool] = lambda: False) -> int:
+    """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
+    requeued tasks without its hold); tops up workers when all ended with cells left but progress was made since
+    the last submission (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first
+    (a worker submitted before would find nothing to claim); Ctrl-C stops watching only."""
+    cfg = walk.cfg
+    retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
+    live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
+    last_line, plan, asked = "", walk.rows(), time.monotonic()
+    seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
+    if live is not None:
+        live.start()
+    try:
+        while True:
+            try:
+                plan, now = walk.rows(), walk.store.db_now()
+                tasks = launcher.active()
+            except BronchoError as exc:  # a storage or scheduler hiccup must not end the watch
+                log.warning("%s", exc)
+                time.sleep(REFRESH_S)
+                continue
+            n = sum(t.count for t in tasks)
+            if live is not None:
+                live.update(live_view(plan, retries, max(1, n)))
+            elif (line := summary_line(progress(plan, retries, max(1, n), now, stale_s)).plain
+                  + f"  {launcher.task_word}s {n}") != last_line:
+                console.print(line, highlight=False)
+                last_line = line
+            launcher.tick(tasks)
+            if not tasks or time.monotonic() - asked > CANCEL_CHECK_S:  # never a top-up after a cancel
+                asked = time.monotonic()
+                if cancelled():
+                    console.print(f"[yellow]sweep {cfg.name} was cancelled[/] (`bronchopose sweep cancel`): nothing "
+                                  "is submitted again; `bronchopose sweep run` resumes it")
+                    return EXIT_INTERRUPTED
+            if not tasks:
+                left = cells_left(plan, retries)
+                if not left and walk.complete:
+                    break
+                claimable = claimable_now(plan, retries, now, stale_s)
+                if left and not claimable:  # a dead worker's cell: claimable once its claim is stale, not before
+                    time.sleep(REFRESH_S)
+                    continue
+                # workers ended with cells left (a cancelled one gave its cell back, a stage was selected, a dead
+                # one's claim went stale): submit again, but only when the table moved since the last submission
+                # (workers that crash at start would otherwise be resubmitted for ever)
+                now_seen = _table_state(plan, claimable)
+                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console):
+                    console.print(f"[yellow]no {launcher.title} {launcher.task_word} of sweep {cfg.name} is left and "
+                                  f"{left} cell(s) are not done[/]; see the logs ({launcher.describe()}) and run the "
+                                  "command again")
+                    return 1
+                seen_at_submit = now_seen
+            time.sleep(REFRESH_S)
+    except KeyboardInterrupt:
+        console.print(f"stopped watching: the {launcher.title} jobs go on (`bronchopose sweep cancel` stops them)")
+        return EXIT_INTERRUPTED
+    finally:
+        if live is not None:
+            live.stop()
+    console.print(summary_line(progress(plan, retries, 1)))
+    return 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1

@@ -1,0 +1,139 @@
+"""The launcher protocol: where a sweep's workers run, and nothing about which cell each runs.
+
+A launcher starts, lists and stops *workers*; the claims table still decides
+which cell each worker runs, exactly once (docs/sweep.md, "Launchers"). The
+protocol follows submitit's ``Executor`` (submit jobs, find them again, cancel
+them) with the sweep's claims model in place of job results:
+
+- ``submit(n, stage, after)``: start ``n`` workers that work the stages up to
+  ``stage`` (the worker entry ``task.worker_main``, told the stage in
+  ``STAGE_ENV``), started only once the submissions ``after`` have ended;
+  returns the submission's id;
+- ``active()``: this sweep's workers still queued or running, as ``Workers``
+  groups (a submission's id, its stage, how many);
+- ``cancel(dry_run)``: stop every worker of this sweep (they release their
+  cells); returns the submissions stopped (``dry_run``: those it would stop);
+- ``describe()``: one line saying where the workers run and where they log.
+
+What a launcher needs beyond that has a default: ``check`` (refuse what would
+make workers fail, before anything is created), ``capacity`` (workers worth
+starting for ``runnable`` cells), ``follow`` (make queued later-stage
+submissions wait for a new earlier one), ``tick`` (called on every refresh of
+the watch). The worker side: ``worker_signals`` (extra stop signals),
+``worker_job`` (this worker's id in the launcher, recorded in its ``WorkerId``),
+``worker_threads``, ``worker_exits_when_idle`` and ``worker_done`` (after the
+worker loop; Slurm requeues a task warned of its time limit).
+
+``detachable``: the workers outlive the command that submitted them (``sweep run
+--detach``, ``sweep cancel``, the generic watch of ``sweep.launch``); the local
+launcher's do not (its workers are the command's own child processes).
+"""
+
+from __future__ import annotations
+
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+from ...config import Config
+
+STAGE_ENV = "BRONCHOPOSE_SWEEP_STAGE"  # the stage a worker was submitted for: it stops after that stage
+
+
+@dataclass(frozen=True)
+class Workers:
+    """Workers of this sweep that a launcher started and still sees."""
+
+    id: str  # as the launcher names them (Slurm: 812_3, or 812_[4-9] for tasks not started yet)
+    job: str  # the submission they belong to (what ``submit`` returned)
+    state: str  # PENDING (not started yet), RUNNING, or the launcher's own word
+    stage: str  # the stage they were submitted for
+    count: int = 1  # workers this entry stands for
+    reason: str = ""  # why a pending one waits (Slurm: BeginTime, a requeued task's hold)
+    ending: bool = False  # being stopped (Slurm: COMPLETING after scancel): covers no cell
+
+
+class Launcher(ABC):
+    """One way of starting a sweep's workers. Subclass it in one module, then register it
+    (``launchers.register``)."""
+
+    name: ClassVar[str]
+    detachable: ClassVar[bool] = True
+    title: ClassVar[str] = ""  # how messages name it ("Slurm"; default: its name)
+    job_word: ClassVar[str] = "job"  # one submission in messages ("Slurm array job")
+    task_word: ClassVar[str] = "worker"  # one worker in messages ("task")
+    worker_signals: ClassVar[tuple[int, ...]] = ()  # stop signals a worker of this launcher also handles
+
+    def __init__(self, cfg: Config, command: Sequence[str] = ()):
+        """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``)."""
+        self.cfg, self.command = cfg, list(command)
+
+    def __init_subclass__(cls, **kw: Any) -> None:
+        super().__init_subclass__(**kw)
+        if "name" in cls.__dict__ and "title" not in cls.__dict__:
+            cls.title = cls.name
+        if "name" in cls.__dict__ and "job_word" not in cls.__dict__:
+            cls.job_word = f"{cls.title} job"
+
+    # -- the submitting side -------------------------------------------------------------------------------
+    @abstractmethod
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        """Start ``n`` workers for the stages up to ``stage``, once the submissions ``after`` have ended."""
+
+    @abstractmethod
+    def active(self) -> list[Workers]:
+        """This sweep's workers still queued or running."""
+
+    @abstractmethod
+    def cancel(self, dry_run: bool = False) -> list[str]:
+        """Stop every worker of this sweep; the submissions stopped (``dry_run``: would be; nothing is stopped)."""
+
+    @abstractmethod
+    def describe(self) -> str:
+        """One line: where the workers run and where their logs are."""
+
+    def check(self) -> None:
+        """Refuse (one line, ``BronchoError``) what would make every worker fail, before anything is created."""
+
+    def capacity(self, runnable: int) -> int:
+        """Workers worth starting for ``runnable`` cells (each works through cells until none is claimable)."""
+        return max(0, runnable)
+
+    def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
+        """Make the ``queued`` later-stage submissions wait for the ``earlier`` ones too (a re-submitted stage)."""
+
+    def tick(self, active: Sequence[Workers]) -> None:
+        """Called on every refresh of the watch with what ``active`` listed."""
+
+    @classmethod
+    def logs(cls, cfg: Config) -> Path:
+        """The folder of its workers' logs (and of a sealed spec's 0600 secrets file)."""
+        return cfg.paths.sweep_logs / cfg.name
+
+    @classmethod
+    def python(cls, cfg: Config) -> str:
+        """The interpreter its workers run (default: the one running this command)."""
+        return sys.executable
+
+    # -- the worker side (inside a worker this launcher started) ----------------------------------------------
+    @classmethod
+    def worker_job(cls) -> str | None:
+        """This worker's id in the launcher (Slurm: ``812_3``), recorded in its ``WorkerId``; None: none."""
+        return None
+
+    @classmethod
+    def worker_threads(cls) -> int | None:
+        """The CPU threads this worker was given (Slurm: ``SLURM_CPUS_PER_TASK``); None: the config decides."""
+        return None
+
+    @classmethod
+    def worker_exits_when_idle(cls, cfg: Config) -> bool:
+        """Exit when nothing is claimable now instead of waiting for cells held elsewhere."""
+        return True
+
+    @classmethod
+    def worker_done(cls, cfg: Config, signals: Any) -> None:
+        """After the worker loop (``signals``: the ``StopSignals`` it ran with)."""

@@ -1,0 +1,120 @@
+"""The local launcher: a sweep's workers as child processes of the command, pinned round-robin to this machine's
+GPUs (``placement``), each logging to its own file under ``sweep.logs``.
+
+Workers are ``multiprocessing`` processes started with ``spawn`` (a fresh
+interpreter: no forked CUDA/MLflow/SQLAlchemy state, same behaviour on Linux
+and macOS), each running the one worker entry (``stagework.worker_main``) with
+its ``WorkerJob``. They sit in their own process group, so a terminal's Ctrl-C
+reaches the command alone; ``stop`` sets the shared stop event and sends every
+worker one SIGTERM (a second ``stop`` sends SIGINT: abort without waiting for a
+checkpoint). ``LocalProcesses`` is the same placement, logs and stop for any
+worker function (``tune --workers`` runs its trials through it).
+
+Not ``detachable``: the workers are the command's own children, so the command
+walks the stages itself (``staged.run_sweep``: one ``submit`` per stage).
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import socket
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from ...cells import Selection
+from ...config import Config
+from ..placement import assign, share_counts
+from ..stagework import WorkerJob, local_process, worker_config
+from ..worker import Runner, default_runner
+from .base import Launcher, Workers
+
+
+class LocalProcesses:
+    """Worker processes of one command: placed on GPUs round-robin, one log file each, stopped together."""
+
+    def __init__(self, log_dir: Path, gpus: Sequence[str] = (), name: str = "bronchopose-sweep-worker"):
+        self.log_dir, self.gpus, self.name = log_dir, list(gpus), name
+        self.ctx = mp.get_context("spawn")
+        self.event = self.ctx.Event()  # set by ``stop``: workers start nothing new
+        self.procs: list[tuple[mp.Process, str, str]] = []  # (process, submission, stage)
+        self.stops = 0
+
+    def start(self, n: int, target: Callable[..., Any], job: Callable[[str | None, int, str], Any],
+              stage: str = "") -> str:
+        """Start ``n`` processes running ``target(job(gpu, share, log_path), stop_event)``; the submission's id."""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        sub = f"{os.getpid()}-{len({s for _, s, _ in self.procs})}"
+        placed = assign(n, self.gpus)
+        for gpu, share in zip(placed, share_counts(placed)):
+            log_path = self.log_dir / f"{socket.gethostname()}-{os.getpid()}-w{len(self.procs)}.log"
+            proc = self.ctx.Process(target=target, args=(job(gpu, share, str(log_path)), self.event), name=self.name)
+            proc.start()
+            self.procs.append((proc, sub, stage))
+        return sub
+
+    def alive(self) -> list[tuple[mp.Process, str, str]]:
+        return [(p, sub, stage) for p, sub, stage in self.procs if p.is_alive()]
+
+    def sentinels(self) -> list[int]:
+        return [p.sentinel for p, _, _ in self.alive()]
+
+    def stop(self) -> None:
+        """Tell every worker to stop: the first time SIGTERM (release the cell at a checkpoint), then SIGINT."""
+        self.stops += 1
+        self.event.set()
+        forward = signal.SIGTERM if self.stops == 1 else signal.SIGINT
+        for p, _, _ in self.alive():
+            if p.pid:
+                try:
+                    os.kill(p.pid, forward)
+                except ProcessLookupError:
+                    pass
+
+    def join(self) -> list[int | None]:
+        for p, _, _ in self.procs:
+            p.join()
+        return [p.exitcode for p, _, _ in self.procs]
+
+
+class LocalLauncher(Launcher):
+    """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``."""
+
+    name = "local"
+    detachable = False
+
+    def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
+                 only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
+                 log_dir: Path | None = None):
+        super().__init__(cfg, command)
+        self.storage_url = storage_url or cfg.paths.storage_url
+        self.only, self.runner = only, runner
+        self.processes = LocalProcesses(log_dir or cfg.paths.sweep_logs / cfg.name, gpus)
+        self.wcfg = worker_config(cfg)
+
+    def describe(self) -> str:
+        gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
+        return f"here{gpus}, logs {self.processes.log_dir}"
+
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
+            return WorkerJob(self.wcfg, self.storage_url, self.only, LocalLauncher, self.runner, last_stage=stage or None,
+                             exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
+                             parent_pid=os.getpid(), cpu_workers=n)
+
+        return self.processes.start(n, local_process, job, stage)
+
+    def active(self) -> list[Workers]:
+        return [Workers(str(p.pid), sub, "RUNNING", stage) for p, sub, stage in self.processes.alive()]
+
+    def cancel(self, dry_run: bool = False) -> list[str]:
+        subs = sorted({w.job for w in self.active()})
+        if subs and not dry_run:
+            self.processes.stop()
+        return subs
+
+    @classmethod
+    def worker_exits_when_idle(cls, cfg: Config) -> bool:
+        return False  # a local worker waits for cells held elsewhere: the command's stage ends when they are done

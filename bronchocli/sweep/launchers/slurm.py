@@ -1,0 +1,343 @@
+"""The Slurm launcher: a sweep's workers as Slurm job arrays, one worker per array task (docs/cluster.md).
+
+Slurm schedules, allocates GPUs, requeues and signals; the claims table still
+decides which cell each worker runs, exactly once. Everything Slurm-specific
+lives here, behind the launcher protocol (``base.Launcher``): the up-front
+checks (sbatch on PATH, shared filesystems, ``sbatch --test-only``), the batch
+script, sbatch/squeue/scancel/scontrol, and the worker side (Slurm's job id,
+``SLURM_CPUS_PER_TASK``, SIGUSR1 and ``scontrol requeue``). What to run in
+each task is the caller's ``command`` (``task.command``: ``python -m
+bronchocli.sweep.task <spec>``, ``exec``-ed by the batch script so that
+Slurm's signals reach it); how many tasks each stage needs is the generic
+watch's arithmetic (``sweep.launch``).
+
+A sweep's jobs are found again through their name (``bronchopose-<sweep>``) and
+comment (``bronchopose:<sweep>:<storage id>:<stage>``), so running the command
+again submits only what is missing: tasks for the cells left beyond the
+tasks already queued or running, and one array per later stage, held by
+``--dependency=afterany`` on the arrays before it.
+
+Signals: ``--signal=B:USR1@<signal_delay_s>`` warns the worker before the time
+limit: it checkpoints, releases its cell (the attempt is not counted) and
+requeues its own task (``scontrol requeue``). SIGTERM (``scancel``, preemption,
+node shutdown) also releases the cell; ``--requeue`` lets Slurm put a preempted
+or failed-node task back in the queue. Whoever claims a released cell next
+resumes its run from the checkpoint on the shared checkpoint path.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from ... import urls
+from ...config import Config
+from ...errors import BronchoError
+from ...io import write_text
+from ...retry import retry
+from .base import STAGE_ENV, Launcher, Workers
+
+log = logging.getLogger(__name__)
+
+NODE_LOCAL = ("/tmp", "/var/tmp", "/dev/shm", "/run")  # folders no other node sees
+ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEUE_HOLD", "REQUEUE_FED", "RESIZING",
+          "SUSPENDED", "STOPPED", "SIGNALING")
+ENDING = ("COMPLETING",)  # listed by squeue but ending (a cancelled task): covers no cell
+RELEASE_AFTER_S = 3.0  # a requeued task is started this long after it entered its BeginTime hold
+
+class SlurmError(BronchoError):
+    """sbatch, squeue or scancel failed, or the config cannot run on Slurm (one line)."""
+
+
+def job_name(sweep: str) -> str:
+    """``bronchopose-<sweep>``; a sweep already named ``bronchopose...`` keeps its name (no doubled prefix)."""
+    return sweep if sweep.startswith("bronchopose") else f"bronchopose-{sweep}"
+
+
+def storage_id(cfg: Config) -> str:
+    """Tells sweeps of the same name on different storages apart (the URL's hash, password left out)."""
+    return hashlib.sha256(urls.redact(cfg.paths.storage_url).encode()).hexdigest()[:8]
+
+
+def job_comment(cfg: Config, stage: str) -> str:
+    return f"bronchopose:{cfg.name}:{storage_id(cfg)}:{stage}"
+
+
+def logs_dir(cfg: Config) -> Path:
+    return cfg.paths.slurm_logs
+
+
+# -- up-front checks ------------------------------------------------------------------------------------
+
+
+def _local_store(url: str) -> bool:
+    """A store only this machine's filesystem holds: SQLite, ``file:`` or a bare path (MLflow's file store)."""
+    return url.startswith(("sqlite", "file:")) or "://" not in url
+
+
+def _node_local(path: Path) -> bool:
+    return any(path == Path(p) or Path(p) in path.parents for p in NODE_LOCAL)
+
+
+def check(cfg: Config) -> None:
+    """Everything that would make array tasks fail or disagree, before anything is submitted (one line each)."""
+    if shutil.which("sbatch") is None:
+        raise SlurmError("--launcher slurm: sbatch not found on PATH; run on a Slurm login node (or install Slurm)")
+    if not cfg.slurm.shared_filesystem:
+        _check_shared(cfg)
+    # the cluster's own verdict on partition, account, qos, GPUs, memory, time: nothing is queued
+    args = [a for a in sbatch_args(cfg, "check", 1) if a != "--parsable"]
+    _run([*args, "--test-only", "--wrap", "true"], "slurm: the cluster refuses the slurm section")
+
+
+def _check_shared(cfg: Config) -> None:
+    hint = "or set slurm.shared_filesystem: true if every node sees this path (docs/cluster.md)"
+    if _local_store(cfg.paths.storage_url):
+        raise SlurmError(f"storage.url {urls.redact(cfg.paths.storage_url)}: a SQLite claims table cannot be shared "
+                         f"by compute nodes; use postgresql://user:${{PGPASSWORD}}@host/db, {hint}")
+    if _local_store(cfg.paths.mlflow_uri):
+        raise SlurmError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)}: a file/SQLite MLflow store cannot be "
+                         f"shared by compute nodes; use a PostgreSQL database or an MLflow server, {hint}")
+    for key, path in (("dataset.root", cfg.paths.dataset), ("runs.artifacts", cfg.paths.artifacts),
+                      ("runs.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg)),
+                      *interpreter_paths(cfg)):
+        if _node_local(path):
+            raise SlurmError(f"{key} {path}: a node-local folder; compute nodes need it on shared storage, {hint}")
+
+
+def interpreter_paths(cfg: Config) -> list[tuple[str, Path]]:
+    """The workers' interpreter (``slurm.python``, else this one) and its virtual environment, as the shared-path
+    check names them: a node-local venv fails every task at its first import."""
+    python = Path(cfg.slurm.python or sys.executable)
+    key = "slurm.python" if cfg.slurm.python else "the Python running bronchopose (slurm.python)"
+    out = [(key, python)]
+    venv = python.parent.parent
+    if (venv / "pyvenv.cfg").is_file():
+        out.append((f"{key}'s virtual environment", venv))
+    elif not cfg.slurm.python and sys.prefix != sys.base_prefix:
+        out.append((f"{key}'s virtual environment", Path(sys.prefix)))
+    return out
+
+
+# -- squeue / sbatch / scancel ---------------------------------------------------------------------------
+
+
+def _run(args: Sequence[str], what: str) -> str:
+    try:
+        out = subprocess.run(list(args), capture_output=True, text=True, timeout=60)
+    except FileNotFoundError:
+        raise SlurmError(f"{args[0]} not found on PATH: run on a Slurm login node") from None
+    except subprocess.TimeoutExpired:
+        raise SlurmError(f"{what}: {args[0]} did not answer in 60 s (is slurmctld up?)") from None
+    if out.returncode != 0:
+        first = (out.stderr.strip() or out.stdout.strip() or f"exit code {out.returncode}").splitlines()[-1]
+        raise SlurmError(f"{what}: {args[0]} failed: {first}")
+    return out.stdout
+
+
+def _count(task_id: str) -> int:
+    """Tasks in one squeue id: 812_3 -> 1, 812_[4-9%2] -> 6, 812_[1,3-4] -> 3."""
+    if "[" not in task_id:
+        return 1
+    spec = task_id.split("[", 1)[1].rstrip("]").split("%", 1)[0]
+    n = 0
+    for part in spec.split(","):
+        lo, _, hi = part.partition("-")
+        n += int(hi) - int(lo) + 1 if hi else 1
+    return n
+
+
+def sweep_tasks(cfg: Config) -> list[Workers]:
+    """The sweep's array tasks still queued or running (squeue; pending tasks of one array share a line)."""
+    out = _run(["squeue", "-h", "--name", job_name(cfg.name), "-o", "%i|%F|%T|%k|%r"], "listing the sweep's jobs")
+    prefix = f"bronchopose:{cfg.name}:{storage_id(cfg)}:"
+    tasks = []
+    for line in out.splitlines():
+        parts = line.strip().split("|")
+        if len(parts) != 5 or not parts[3].startswith(prefix) or parts[2] not in ACTIVE:
+            continue
+        tasks.append(Workers(parts[0], parts[1], parts[2], parts[3][len(prefix):], _count(parts[0]), parts[4],
+                             ending=parts[2] in ENDING))
+    return tasks
+
+
+def batch_script(cfg: Config, command: Sequence[str], stage: str | None = None) -> str:
+    """The array task's script: cd to where the sweep was submitted, the ``setup`` lines, then ``exec command``;
+    with ``stage``, the tasks work the stages up to that one only (``STAGE_ENV``): a later stage has its own
+    array, sized to its cells, which would otherwise start to find its cells taken."""
+    lines = ["#!/bin/bash", "# bronchopose sweep run --launcher slurm: one array task = one sweep worker",
+             f"cd {shlex.quote(str(Path.cwd()))}", *cfg.slurm.setup,
+             *([f"export {STAGE_ENV}={shlex.quote(stage)}"] if stage else []),
+             "# exec: the worker is the batch shell, so --signal=B:USR1 and scancel's SIGTERM reach it",
+             "exec " + shlex.join(command)]
+    return "\n".join(lines) + "\n"
+
+
+def sbatch_args(cfg: Config, stage: str, tasks: int, dependency: Sequence[str] = ()) -> list[str]:
+    s = cfg.slurm
+    args = ["sbatch", "--parsable", f"--job-name={job_name(cfg.name)}", f"--comment={job_comment(cfg, stage)}",
+            f"--array=0-{tasks - 1}%{s.array_parallelism}", f"--output={logs_dir(cfg) / '%A_%a.log'}",
+            "--open-mode=append", f"--signal=B:USR1@{s.signal_delay_s}", "--requeue", f"--time={s.timeout_min}",
+            f"--cpus-per-task={s.cpus_per_task}", "--export=ALL"]
+    if s.gpus_per_task:
+        args.append(f"--gres=gpu:{s.gpus_per_task}")
+    if s.mem_gb is not None:
+        args.append(f"--mem={max(1, round(s.mem_gb * 1024))}M")
+    for key in ("partition", "account", "qos"):
+        if getattr(s, key):
+            args.append(f"--{key}={getattr(s, key)}")
+    for key, value in s.additional.items():
+        name = key.replace("_", "-")
+        if value is True:
+            args.append(f"--{name}")
+        elif value is not False:
+            args.append(f"--{name}={value}")
+    if dependency:
+        args.append("--dependency=afterany:" + ":".join(dependency))
+    return args
+
+
+def submit(cfg: Config, stage: str, tasks: int, command: Sequence[str], dependency: Sequence[str] = ()) -> str:
+    """Submit one array of ``tasks`` tasks that each run ``command``; returns its job id."""
+    folder = logs_dir(cfg)
+    folder.mkdir(parents=True, exist_ok=True)
+    script = folder / f"{cfg.name}-{stage}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}.sh"
+    write_text(script, batch_script(cfg, command, stage))
+    out = _run([*sbatch_args(cfg, stage, tasks, dependency), str(script)], f"submitting stage {stage}")
+    return out.strip().split(";")[0]
+
+
+def release_held(tasks: Sequence[Workers], held_since: dict[str, float], settle_s: float = RELEASE_AFTER_S) -> None:
+    """Start a requeued task now instead of after Slurm's BeginTime hold (``cred_expire``, ~2 min).
+
+    Not at once: slurmd revokes the killed instance's credential with one-second resolution and refuses a new
+    one from the same second; a few seconds are enough."""
+    now = time.monotonic()
+    held = {t.id for t in tasks if t.state == "PENDING" and t.reason == "BeginTime"}
+    for task in set(held_since) - held:
+        del held_since[task]
+    for task in held:
+        if now - held_since.setdefault(task, now) >= settle_s:
+            try:
+                _run(["scontrol", "update", f"JobId={task}", "StartTime=now"], f"releasing requeued task {task}")
+                log.info("requeued Slurm task %s started without waiting for its BeginTime hold", task)
+            except SlurmError as exc:
+                log.warning("%s", exc)
+            held_since[task] = now + 60.0  # not again for a minute
+
+
+def requeue(task: str, tries: int = 3) -> bool:
+    """``scontrol requeue`` this task (slurmctld then kills it and queues it again after ``cred_expire``); a
+    refusal is logged (and retried): the cell is already released, so the sweep goes on either way."""
+    def once() -> None:
+        out = subprocess.run(["scontrol", "requeue", task], capture_output=True, text=True, timeout=60)
+        if out.returncode != 0:
+            why = (out.stderr.strip() or out.stdout.strip() or f"exit code {out.returncode}").splitlines()[-1]
+            raise SlurmError(why)
+
+    try:
+        retry(once, transient=lambda e: isinstance(e, (SlurmError, OSError, subprocess.TimeoutExpired)),
+              what=f"scontrol requeue {task}", attempts=tries, first_delay_s=2.0, max_delay_s=6.0)
+        return True
+    except (SlurmError, OSError, subprocess.TimeoutExpired) as exc:
+        log.error("Slurm task %s was not requeued (%s); its released cell waits for the next task "
+                  "(`bronchopose sweep run --launcher slurm` submits one)", task, exc)
+        return False
+
+
+def slurm_task() -> str | None:
+    """This process's Slurm job as ``<array job>_<task>`` (or ``<job>``); None outside Slurm."""
+    job = os.environ.get("SLURM_ARRAY_JOB_ID") or os.environ.get("SLURM_JOB_ID")
+    task = os.environ.get("SLURM_ARRAY_TASK_ID")
+    if not job:
+        return None
+    return f"{job}_{task}" if task and os.environ.get("SLURM_ARRAY_JOB_ID") else job
+
+
+class SlurmLauncher(Launcher):
+    """Workers as Slurm array tasks: ``submit`` is one ``sbatch --array``, ``active`` is ``squeue``, ``cancel``
+    is ``scancel``; a task warned of its time limit (SIGUSR1) requeues itself."""
+
+    name = "slurm"
+    title, job_word, task_word = "Slurm", "Slurm array job", "task"
+    worker_signals = (signal.SIGUSR1,)
+
+    def __init__(self, cfg: Config, command: Sequence[str] = ()):
+        super().__init__(cfg, command)
+        self._held: dict[str, float] = {}
+
+    def describe(self) -> str:
+        return f"on Slurm, logs {logs_dir(self.cfg)}/<job>_<task>.log"
+
+    @classmethod
+    def logs(cls, cfg: Config) -> Path:
+        return logs_dir(cfg)
+
+    @classmethod
+    def python(cls, cfg: Config) -> str:
+        return cfg.slurm.python or sys.executable
+
+    def check(self) -> None:
+        check(self.cfg)
+
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        return submit(self.cfg, stage, n, self.command, after)
+
+    def active(self) -> list[Workers]:
+        return sweep_tasks(self.cfg)
+
+    def cancel(self, dry_run: bool = False) -> list[str]:
+        jobs = sorted({t.job for t in sweep_tasks(self.cfg)}, key=int)
+        if jobs and not dry_run:
+            _run(["scancel", *jobs], "cancelling the sweep's jobs")
+        return jobs
+
+    def capacity(self, runnable: int) -> int:
+        """Tasks beyond those that run at once (``slurm.array_parallelism``, ``slurm.tasks``) would only start
+        after the work is done, each costing a scheduling round to find nothing."""
+        s = self.cfg.slurm
+        return max(0, min([runnable, s.array_parallelism, *([s.tasks] if s.tasks else [])]))
+
+    def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
+        for job in queued:
+            try:
+                _run(["scontrol", "update", f"JobId={job}", "Dependency=afterany:" + ":".join(earlier)],
+                     f"adding job(s) {', '.join(earlier)} to job {job}'s dependency")
+            except SlurmError as exc:  # e.g. the job started meanwhile: nothing left to hold back
+                log.warning("%s", exc)
+
+    def tick(self, active: Sequence[Workers]) -> None:
+        release_held(active, self._held)
+
+    @classmethod
+    def worker_job(cls) -> str | None:
+        return slurm_task()
+
+    @classmethod
+    def worker_threads(cls) -> int | None:
+        threads = os.environ.get("SLURM_CPUS_PER_TASK")
+        return int(threads) if threads and threads.isdigit() else None
+
+    @classmethod
+    def worker_exits_when_idle(cls, cfg: Config) -> bool:
+        return cfg.slurm.exit_when_idle
+
+    @classmethod
+    def worker_done(cls, cfg: Config, signals: Any) -> None:
+        if signals.requested == signal.SIGUSR1 and (task := slurm_task()):
+            if cfg.slurm.on_time_limit == "requeue":
+                log.info("time limit near: requeueing Slurm task %s", task)
+                requeue(task)
+            else:
+                log.info("time limit near: Slurm task %s exits (slurm.on_time_limit: exit); a new task takes the "
+                         "cell", task)

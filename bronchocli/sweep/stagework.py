@@ -1,0 +1,200 @@
+"""The one worker entry every launcher starts: ``worker_main`` runs one sweep worker through the stages.
+
+A local worker process (``launchers.local``) and a detached one (a Slurm array
+task, a test's subprocess worker: ``python -m bronchocli.sweep.task <spec>``)
+both end up here with a ``WorkerJob``: pinned to its GPU (``placement.pin_env``,
+before anything imports torch), its output in its log file, its stop signals
+installed (and the launcher's own, e.g. Slurm's SIGUSR1), its ``WorkerId``
+(host, pid, the launcher's job id, GPU) on every claim and log line. It walks
+the stages in order (``work_stages``): claims the first stage's cells; goes on
+to a later stage only once every cell before it is done, settling its selection
+first; stops after the stage it was submitted for. Exit code 0 (nothing left
+here), 130 (stopped), 2 (a user error, logged in one line).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+from .. import urls
+from ..cells import Selection
+from ..config import Config
+from ..errors import BronchoError
+from ..runs.client import client_for, experiment_id
+from ..runs import cores
+from ..runs.parents import set_parent_status, sweep_parent
+from . import plan as planning
+from .launchers.base import Launcher
+from .liveness import StopSignals
+from .placement import pin_env
+from .selection import describe_selection
+from .storage import FINISHED, SweepStore
+from .summary import cancelled
+from .worker import EXIT_INTERRUPTED, EXIT_OK, Runner, Worker, WorkerId, default_runner
+
+log = logging.getLogger(__name__)
+
+GPU_ENV = "BRONCHOPOSE_WORKER_GPU"  # the GPU a local worker was pinned to (its WorkerId shows it)
+
+
+def worker_config(cfg: Config) -> Config:
+    """The config workers run with: no secrets in what MLflow logs (their CPU threads: ``WorkerJob.cpu_workers``)."""
+    return cfg.with_values({"storage.url": urls.redact(cfg.storage.url)})
+
+
+@dataclass
+class WorkerJob:
+    """Everything one worker needs, whichever launcher started it (picklable: local workers get it by spawn)."""
+
+    cfg: Config  # storage URL redacted: the config is logged to MLflow
+    storage_url: str  # the real one
+    only: Selection
+    launcher: type[Launcher]  # its worker-side hooks: extra signals, job id, threads, what to do at the end
+    runner: Runner = default_runner
+    last_stage: str | None = None  # stop after this stage (None: every stage)
+    exit_when_idle: bool = True  # exit when nothing is claimable now instead of waiting for cells held elsewhere
+    ends_parent: bool = True  # the last stage done: end the sweep's parent run (no watcher may be left to do it)
+    log_path: str | None = None  # stdout and stderr go there (None: left as they are)
+    gpu: str | None = None  # this worker's GPU (its CUDA_VISIBLE_DEVICES); None: the environment is left alone
+    gpu_share: int = 1  # workers pinned to that GPU (this one included)
+    parent_pid: int | None = None  # a local worker: its own process group; it stops when that process is gone
+    cpu_workers: int = 1  # workers its command runs on this machine: each takes at most cores / N (runs.cores)
+
+
+def this_worker(launcher: type[Launcher]) -> WorkerId:
+    """This process as a claims row and a log line name it."""
+    job = launcher.worker_job()
+    gpu = os.environ.get(GPU_ENV) or (os.environ.get("CUDA_VISIBLE_DEVICES") if job else None)
+    return WorkerId(socket.gethostname(), os.getpid(), launcher.name if job else None, job, gpu or None)
+
+
+def _redirect_output(path: str | None) -> None:
+    if path is None:
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+
+
+def prepare_process(gpu: str | None, share: int, log_path: str | None, parent_pid: int | None,
+                    cpu_workers: int) -> None:
+    """A worker process's first steps, before anything imports torch: its share of the cores (``runs.cores``),
+    its GPU (``placement.pin_env``: the run sees one device, cuda:0), its own process group (a local worker: the
+    terminal's Ctrl-C reaches the parent only, which stops the workers once, with SIGTERM), its log file."""
+    os.environ[cores.WORKERS_ENV] = str(max(1, cpu_workers))  # each takes at most cores / workers threads
+    if gpu is not None:
+        for key, value in pin_env(gpu, share).items():
+            if key != "CUDA_DEVICE_ORDER" or key not in os.environ:  # a user's own device order stands
+                os.environ[key] = value
+        os.environ[GPU_ENV] = gpu
+    if parent_pid is not None:
+        os.setpgrp()
+    _redirect_output(log_path)
+
+
+def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
+    """Run one worker through the stages; its exit code (0 nothing left here, 130 stopped)."""
+    prepare_process(job.gpu, job.gpu_share, job.log_path, job.parent_pid, job.cpu_workers)
+    ident = this_worker(job.launcher)
+    if job.log_path is not None:
+        logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
+                            format=f"%(asctime)s {ident} %(levelname)s %(name)s: %(message)s")
+    cfg = job.cfg
+    if cfg.train.threads is None and (threads := job.launcher.worker_threads()):
+        cfg = cfg.with_values({"train.threads": threads})
+    signals = StopSignals(stop_event, job.parent_pid)
+    signals.install(extra=job.launcher.worker_signals)
+    log.info("sweep worker %s, %s %s %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, job.launcher.title,
+             job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
+    code = EXIT_INTERRUPTED
+    try:
+        store = planning.open_store(cfg, job.storage_url)
+        code = work_stages(cfg, store, job.only, signals=signals, runner=job.runner,
+                           exit_when_idle=job.exit_when_idle, last_stage=job.last_stage, ident=str(ident),
+                           ends_parent=job.ends_parent)
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+    finally:  # a user error (BronchoError) goes on to the caller: one line where its output is read
+        job.launcher.worker_done(cfg, signals)
+    return code
+
+
+def local_process(job: WorkerJob, stop_event: Any = None) -> None:
+    """A spawned local worker process: ``worker_main``, then exit with its code (a user error: logged, 2)."""
+    code = EXIT_INTERRUPTED
+    try:
+        code = worker_main(job, stop_event)
+    except BronchoError as exc:
+        log.error("%s", urls.redact(str(exc)))
+        code = exc.exit_code
+    finally:
+        logging.shutdown()
+    sys.exit(code)
+
+
+def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: StopSignals,
+                runner: Runner = default_runner, exit_when_idle: bool = True, last_stage: str | None = None,
+                ident: str | None = None, ends_parent: bool = True) -> int:
+    """One worker taking the stages in order: claim the first stage's cells; go on to a later stage only once
+    every cell before it is done, settling its selection first (recorded once, whichever worker gets there
+    first). Returns when nothing is left here: with ``exit_when_idle`` this worker does not wait for cells running
+    elsewhere (later stages' workers start when those end).
+
+    With ``last_stage`` (the stage the worker was submitted for) the worker stops after that stage: the later
+    stages have workers of their own, sized to their cells, which would otherwise find them taken. It never
+    takes an earlier stage's work either: a worker that finds an earlier stage unfinished (its workers were
+    cancelled, and a dependency on them let this one start) exits at once, leaving those cells to that stage's
+    workers (issue 37: a stage-2 task started before the re-submitted stage 1 ran stage 1's cells)."""
+    names = [s.name for s in planning.stages_of(cfg)]
+    if last_stage is not None and last_stage not in names:
+        raise BronchoError(f"this task was submitted for stage {last_stage!r}, which the config's stages no longer "
+                           f"have ({', '.join(names)}); run `bronchopose sweep cancel` and submit again")
+    for step in planning.StageWalk(cfg, store, only).steps():
+        if step.waits:
+            log.info("stage %s waits: %d cell(s) of stage %s are not done", step.stage.name, step.waits,
+                     step.source.name)
+            return EXIT_OK
+        if step.settled is not None:
+            log.info("%s", describe_selection(step.settled))
+        if step.cells:
+            plan = planning.ensure_rows(cfg, store, step.cells)
+            if (last_stage is not None and names.index(step.stage.name) < names.index(last_stage)
+                    and (left := planning.cells_left(plan, cfg.sweep.max_retries))):
+                log.info("stage %s is not done (%d cell(s) left): this worker was submitted for stage %s and leaves "
+                         "them to stage %s's workers; exiting", step.stage.name, left, last_stage, step.stage.name)
+                return EXIT_OK
+            worker = Worker(cfg, step.cells, store, runner, signals=signals, exit_when_idle=exit_when_idle,
+                            ident=ident)
+            code = worker.run()
+            if code != EXIT_OK or worker.idle:
+                if worker.idle:
+                    log.info("nothing to claim in stage %s (its other cells run elsewhere): exiting", step.stage.name)
+                return code
+        if step.stage.name == last_stage and last_stage != names[-1]:
+            log.info("stage %s done here: later stages are left to their own workers", last_stage)
+            return EXIT_OK
+    if ends_parent:
+        end_parent(cfg, store, only)  # every stage done: a detached sweep has no watcher to end its parent run
+    return EXIT_OK
+
+
+def end_parent(cfg: Config, store: SweepStore, only: Selection) -> None:
+    """End the sweep's parent run like the sweep: FINISHED when every cell finished, else FAILED (best effort)."""
+    plan = planning.StageWalk(cfg, store, only).rows()
+    code = 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
+    try:
+        client = client_for(cfg)
+        parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+        if cancelled(client, parent):  # `sweep cancel` ended it KILLED: a worker that got to the end leaves it so
+            return
+        set_parent_status(client, parent, code)
+    except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
+        log.warning("could not end the sweep's parent run: %s", exc)

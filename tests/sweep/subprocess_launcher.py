@@ -1,0 +1,82 @@
+"""A third launcher, written against the protocol alone (docs/sweep.md, "Adding a launcher"): ``n`` detached
+worker processes on this machine, each ``python -m bronchocli.sweep.task <spec>`` in its own session.
+
+One file plus one registration (the ``register`` call at the end); nothing in bronchocli names it. Its workers are
+found again through one small JSON record per worker under the sweep's log folder, so a later command (``sweep
+cancel``) sees them too. ``after``: a worker of a later stage waits for the earlier submissions' processes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from bronchocli.sweep.launchers import STAGE_ENV, Launcher, Workers, register
+
+JOB_ENV = "SUBPROCESS_LAUNCHER_JOB"  # the worker's job id, as its launcher knows it
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return False
+    return state not in ("Z", "X")  # a zombie has exited
+
+
+class SubprocessLauncher(Launcher):
+    name = "subprocess"
+    children: dict[int, subprocess.Popen] = {}  # started by this process: reaped when they exit
+
+    def folder(self) -> Path:
+        return self.logs(self.cfg) / "subprocess"
+
+    def describe(self) -> str:
+        return f"as detached processes here, logs {self.logs(self.cfg)}"
+
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        folder = self.folder()
+        folder.mkdir(parents=True, exist_ok=True)
+        job = f"{os.getpid()}.{len(list(folder.glob('*.json')))}"
+        waits = [str(w.id) for w in self.active() if w.job in after]
+        for i in range(n):
+            env = {**os.environ, STAGE_ENV: stage, JOB_ENV: f"{job}_{i}", "PYTHONPATH": os.pathsep.join(sys.path)}
+            wait = f"while kill -0 {' '.join(waits)} 2>/dev/null; do sleep 1; done; " if waits else ""
+            log = open(self.logs(self.cfg) / f"{job}_{i}.log", "ab")  # noqa: SIM115 - the child holds it
+            proc = subprocess.Popen(["sh", "-c", wait + 'exec "$@"', "sh", *self.command], env=env, stdout=log,
+                                    stderr=subprocess.STDOUT, start_new_session=True)
+            log.close()
+            self.children[proc.pid] = proc
+            (folder / f"{proc.pid}.json").write_text(json.dumps({"job": job, "stage": stage, "pid": proc.pid}))
+        return job
+
+    def active(self) -> list[Workers]:
+        out = []
+        for record in sorted(self.folder().glob("*.json")) if self.folder().is_dir() else []:
+            data = json.loads(record.read_text())
+            proc = self.children.get(data["pid"])
+            if proc.poll() is None if proc is not None else _alive(data["pid"]):
+                out.append(Workers(str(data["pid"]), data["job"], "RUNNING", data["stage"]))
+            else:
+                record.unlink(missing_ok=True)
+        return out
+
+    def cancel(self, dry_run: bool = False) -> list[str]:
+        workers = self.active()
+        if not dry_run:
+            for w in workers:
+                os.kill(int(w.id), signal.SIGTERM)
+        return sorted({w.job for w in workers})
+
+    @classmethod
+    def worker_job(cls) -> str | None:
+        return os.environ.get(JOB_ENV)
+
+
+register(SubprocessLauncher)
+

@@ -1,0 +1,135 @@
+"""The launcher seam (issue 38, item 1): a launcher written in one file plus one registration runs a sweep exactly
+once; the worker id is structured data; the sweep's verbs take only their own options (item 2)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from sweep_fakes import FAKE, calls, runs_by_cell
+from tinydata import write_tiny_dataset
+
+from bronchocli.sweep import FINISHED, SweepStore, WorkerId
+from bronchocli.sweep.launchers import launcher_class, names
+
+
+@pytest.fixture
+def project(make_config, tmp_path):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    return make_config()
+
+
+def test_a_launcher_in_one_file_plus_one_registration_runs_a_two_cell_sweep_exactly_once(cli, project, fake_dir):
+    import subprocess_launcher  # its one registration: `register(SubprocessLauncher)` at its end
+
+    assert "subprocess" in names() and launcher_class("subprocess") is subprocess_launcher.SubprocessLauncher
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "subprocess", *FAKE)
+    assert code == 0, out + err
+    assert re.search(r"submitted subprocess job \S+: 2 worker\(s\) for stage grid", out), out
+    rows = SweepStore(project.paths.storage_url).rows(project.name)
+    assert len(rows) == 2 and {r.state for r in rows} == {FINISHED}
+    assert [calls(r.cell_key) for r in rows] == [1, 1]  # each cell ran once
+    assert runs_by_cell(project) == {r.cell_key: 1 for r in rows}  # and left one FINISHED MLflow run
+    workers = [WorkerId.parse(r.worker) for r in rows]  # who finished each cell: a worker of that launcher
+    assert all(w is not None and w.launcher == "subprocess" and w.job for w in workers), [r.worker for r in rows]
+    code, out, _ = cli("sweep", "run", "-c", path, "--launcher", "subprocess", *FAKE)  # nothing left
+    assert code == 0 and "nothing left to run" in out and [calls(r.cell_key) for r in rows] == [1, 1]
+    code, out, _ = cli("sweep", "cancel", "-c", path, "--launcher", "subprocess")
+    assert code == 0 and "no subprocess job of sweep t is queued or running" in out
+
+
+@pytest.mark.parametrize("worker", [
+    WorkerId("node7", 4242, "slurm", "812_3", "0"), WorkerId("node7", 4242), WorkerId("h.example", 1, gpu="GPU-3f"),
+    WorkerId("n", 9, "subprocess", "77.0_1"),
+])
+def test_a_worker_id_reads_back_as_it_was_written(worker):
+    assert WorkerId.parse(str(worker)) == worker
+
+
+def test_the_worker_id_text_is_what_status_always_showed():
+    assert str(WorkerId("node7", 4242, "slurm", "812_3", "0")) == "node7:4242 slurm 812_3 gpu0"
+    assert WorkerId.parse("node7:4242 gpu0").job is None and WorkerId.parse(None) is None
+    assert WorkerId.parse("not a worker id") is None
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--gc", "--cancel"], "--gc --cancel: the sweep's modes are verbs, one at a time"),
+    (["--launcher", "slurm", "--gc", "--cancel", "--dry-run", "--workers", "3", "--detach"], "--dry-run is "
+     "`bronchopose sweep plan`"),
+    (["run", "--dry-run"], "--dry-run is `bronchopose sweep plan`"),
+    (["gc", "--cancel"], "No such option: --cancel"),
+    (["plan", "--retry-failed"], "No such option: --retry-failed"),
+    (["cancel", "--workers", "2"], "No such option: --workers"),
+    (["run", "--launcher", "local", "--detach"], "--detach: launcher local runs its workers in this command"),
+    (["run", "--launcher", "slurm", "--workers", "2"], "--workers: options of the local launcher"),
+    (["run", "--launcher", "pbs"], "--launcher pbs: must be one of local, slurm"),
+    (["cancel", "--launcher", "local"], "--launcher local: its workers are the `sweep run` command's own"),
+])
+def test_combinations_that_make_no_sense_are_refused_in_one_line(cli, project, args, message):
+    code, out, err = cli("sweep", *args, "-c", str(project.paths.base / "experiments.yaml"))
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, (out, err)
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("verb, has, lacks", [
+    ("run", ["--workers", "--launcher", "--detach", "--retry-failed", "--runner"], ["--gc", "--cancel", "--dry-run"]),
+    ("plan", ["--only", "--workers"], ["--detach", "--retry-failed", "--launcher", "--runner", "--gc"]),
+    ("gc", ["--dry-run", "--storage"], ["--workers", "--only", "--launcher", "--detach"]),
+    ("cancel", ["--launcher", "--dry-run"], ["--workers", "--only", "--detach", "--retry-failed"]),
+    ("status", ["--sweep", "--all", "--repair"], ["--workers", "--launcher", "--dry-run"]),
+])
+def test_each_verbs_help_lists_only_its_options(cli, verb, has, lacks):
+    code, out, _ = cli("sweep", verb, "--help")
+    options = set(re.findall(r"(--[a-z][a-z-]*)", out))
+    assert code == 0 and set(has) <= options and not set(lacks) & options, options
+
+
+def test_sweep_alone_is_run(cli, project, fake_dir):
+    code, out, err = cli("sweep", "-c", str(project.paths.base / "experiments.yaml"), "--workers", "1", *FAKE)
+    assert code == 0 and "done 2/2" in out, out + err
+
+
+def test_a_cancel_is_recorded_so_the_watcher_stops_and_a_later_run_resumes(cli, project, fake_dir, tmp_path):
+    """Issue 37, item 2: `sweep cancel` while a submitter watches in another shell: the watcher submits nothing
+    again and exits, the sweep's parent run ends KILLED; a later explicit `sweep run` un-cancels and finishes each
+    cell exactly once (their runs resumed, not repeated)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import KIND_SWEEP, find_parent
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    kind = "subprocess_launcher:SubprocessLauncher"  # how a launcher outside the package is named
+    path = str(project.paths.base / "experiments.yaml")
+    for arch in ("baseline", "lstm"):
+        (fake_dir / f"block-{arch}").write_text("")
+    main = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path), "COLUMNS": "200"}
+    watcher = subprocess.Popen([sys.executable, "-c", main, "sweep", "run", "-c", path, "--launcher", kind, *FAKE],
+                               cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    end = time.monotonic() + 300  # an event the test waits for (both cells running); the limit guards a hang
+    while len(list(fake_dir.glob("started-*"))) < 2:
+        assert watcher.poll() is None and time.monotonic() < end, watcher.stdout.read()
+        time.sleep(0.05)
+    code, out, err = cli("sweep", "cancel", "-c", path, "--launcher", kind)
+    assert code == 0 and "cancelled subprocess job(s)" in out, out + err
+    out, _ = watcher.communicate(timeout=300)
+    assert watcher.returncode == 130 and "was cancelled" in out, out
+    assert len(re.findall(r"submitted subprocess job", out)) == 1, out  # nothing submitted again
+    client = client_for(project)
+    parent = client.get_run(find_parent(client, experiment_id(client, project), KIND_SWEEP, project.name))
+    assert parent.info.status == "KILLED" and TAG_CANCELLED in parent.data.tags
+    rows = SweepStore(project.paths.storage_url).rows(project.name)
+    assert {r.state for r in rows} == {"pending"}  # the stopped workers gave their cells back
+
+    (fake_dir / "release").write_text("")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", kind, *FAKE)
+    assert code == 0, out + err
+    parent = client.get_run(parent.info.run_id)
+    assert parent.info.status == "FINISHED" and TAG_CANCELLED not in parent.data.tags
+    rows = SweepStore(project.paths.storage_url).rows(project.name)
+    assert {r.state for r in rows} == {FINISHED} and runs_by_cell(project) == {r.cell_key: 1 for r in rows}
