@@ -29,7 +29,12 @@ def tune(
                                             help="Stop starting trials after this many seconds."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL (default: storage.url)."),
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
-    workers: int = typer.Option(1, "--workers", "-w", min=1, help="Local worker processes tuning the study."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes tuning the "
+                                          "study, placed like a sweep's (torch threads = cores / N). Default: GPUs x "
+                                          "--per-gpu on a GPU machine, else 1 (in this process)."),
+    gpus: str = typer.Option("auto", "--gpus", help="GPUs for the workers, round-robin: auto (every visible one, "
+                             "honouring CUDA_VISIBLE_DEVICES), none, or a list such as 0,1."),
+    per_gpu: int = typer.Option(1, "--per-gpu", min=1, help="Trials run at once on each GPU."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
     fmt: ShowFormat = typer.Option("table", "--format", help="--show output."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
@@ -42,7 +47,9 @@ def tune(
     Every trial is an MLflow run (tags run_kind=trial, study, trial); the pruner
     (`tune.pruner`: median or hyperband) stops poor trials from their validation loss
     (every train.val_every steps). The study lives in the shared storage, so several processes
-    or machines can tune it together and an interrupted study resumes. With
+    or machines can tune it together and an interrupted study resumes. `--workers N`
+    runs N worker processes here, placed on the GPUs like a sweep's workers
+    (`--gpus`, `--per-gpu`), each logging to sweep.logs/<study>. With
     --show, print the best trial and parameter importances (no training).
     """
     from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
@@ -63,5 +70,5 @@ def tune(
     elif target is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     else:
-        entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, progress=not quiet,
-                   console=console)
+        entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus,
+                   per_gpu=per_gpu, progress=not quiet, console=console)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import tuning
+from bronchocli.sweep import WorkerId, tunepool, tuning
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
@@ -48,7 +49,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
         "tune.space={train.rot_weight: {type: categorical, choices: [0.0, 1000000.0]}}"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
     # Trial 1's loss is 1e6 x the rotation error, far above trial 0's: the median pruner must prune it.
-    study = tuning.tune(cfg, target, 4, progress=False,
+    study = tunepool.tune(cfg, target, 4, progress=False,
                         enqueue=[{"train.rot_weight": 0.0}, {"train.rot_weight": 1000000.0}])
     trials = study.get_trials(deepcopy=False)
     assert tuning.finished(study) == 4
@@ -74,7 +75,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert cell_runs[0].data.tags["hparams_source"] == f"optuna:{study.study_name}#{study.best_trial.number}"
     assert float(cell_runs[0].data.params["train.rot_weight"]) == 0.0
 
-    code, out, err = cli("sweep", "-c", str(project / "experiments.yaml"), "--use-tuned", study.study_name,
+    code, out, err = cli("sweep", "run", "-c", str(project / "experiments.yaml"), "--use-tuned", study.study_name,
                          "--only", "arch=baseline;rot_loss=mse;population=personalized")
     assert code == 0, err
     swept = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "cell"})
@@ -202,7 +203,7 @@ def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_ot
 
     monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
     with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
-        tuning.tune(cfg, target, 3, progress=False)
+        tunepool.tune(cfg, target, 3, progress=False)
     assert len(started) == 1 and trial_states(cfg, tuning.study_name(cfg, target)) == ["COMPLETE"]
     client = client_for(cfg)
     (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
@@ -250,12 +251,27 @@ def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project,
         return RunResult(run_id, "FINISHED", {"val_best.loss": loss})
 
     monkeypatch.setattr(training_run, "run_cell", trial_run)
-    first = tuning.tune(cfg, target, 2, progress=False)
+    first = tunepool.tune(cfg, target, 2, progress=False)
     best = (first.best_trial.params, first.best_value)
     db = urls.sqlite_file(cfg.paths.storage_url)
     for path in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
         path.unlink(missing_ok=True)
-    again = tuning.tune(cfg, target, 2, progress=False)
+    again = tunepool.tune(cfg, target, 2, progress=False)
     assert len(started) == 2 and tuning.finished(again) == 2  # no trial ran again
     assert (again.best_trial.params, again.best_value) == best
     assert again.best_trial.user_attrs[tuning.ATTR_RUN] in started
+
+
+def test_two_tune_workers_on_two_gpus_each_see_their_own_device(project):
+    """`tune --workers 2` places its workers like a sweep's (issue 38, item 3): on two (faked) GPUs, each worker
+    process sees one device, a different one, logs to its own file, and each trial records the worker that ran it."""
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    study = tunepool.tune(cfg, target, 2, workers=2, gpus=["3", "5"], progress=False)
+    assert tuning.finished(study) == 2
+    logs = sorted((cfg.paths.sweep_logs / study.study_name).glob("*.log"))
+    seen = [re.search(r"tune worker \d of study .*, CUDA_VISIBLE_DEVICES=(\S+)", p.read_text()) for p in logs]
+    assert len(logs) == 2 and sorted(m.group(1) for m in seen if m) == ["3", "5"], [p.read_text() for p in logs]
+    workers = [WorkerId.parse(t.user_attrs[tuning.ATTR_WORKER]) for t in study.get_trials(deepcopy=False)]
+    assert all(w is not None and w.gpu in ("3", "5") for w in workers)
+    assert len({(w.pid, w.gpu) for w in workers}) == len({w.pid for w in workers})  # a process keeps its GPU
