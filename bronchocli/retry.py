@@ -8,17 +8,23 @@ to raise when the bound is spent.
 ``is_transient_db`` is the shared judgement for databases (the claims table and MLflow's store alike);
 ``is_transient_store`` adds an MLflow server's answers (5xx, dropped connections); ``is_write_race`` is a
 write that lost a race to an equal one (a unique key taken a moment earlier), worth a few more tries only
-(``with_races``).
+(``with_races``). ``disk_full`` is the one recogniser of a full (or failing) disk under a write: never
+transient, never worth an attempt of a cell (the callers turn it into one line naming the folder).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
+import shutil
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 from . import urls
+from .io import fmt_bytes
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -70,6 +76,42 @@ def is_transient_store(exc: BaseException) -> bool:
     """True for an MLflow store briefly away: its database (as ``is_transient_db``) or its server (HTTP 5xx,
     connection errors, timeouts: ``TRANSIENT_HTTP``)."""
     return _chain_has(exc, TRANSIENT_DB + TRANSIENT_HTTP)
+
+
+# A write the disk refused: full, over quota, read-only or failing (an OSError's errno; SQLite's and the
+# drivers' texts, also when SQLAlchemy or MLflow wrapped them). Not transient: it lasts until space is freed.
+DISK_ERRNOS = (errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS)
+DISK_TEXTS = ("database or disk is full", "disk i/o error", "no space left on device", "read-only file system",
+              "disk quota exceeded")
+
+
+def disk_full(exc: BaseException) -> tuple[str, str | None] | None:
+    """``(why, file)`` when ``exc`` (or one it was raised from) is a write the disk refused (``file``: the path an
+    OSError names, else None); None for anything else."""
+    seen, e = 0, exc
+    while e is not None and seen < 8:
+        if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
+            return os.strerror(e.errno), (str(e.filename) if e.filename else None)
+        text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
+        found = next((t for t in DISK_TEXTS if t in text), None)
+        if found:
+            return found, None
+        e, seen = e.__cause__ or e.__context__, seen + 1
+    return None
+
+
+def disk_full_line(where: str | os.PathLike, why: str, need: int | None = None) -> str:
+    """One line for a full disk: the file or folder written (``where``), why, the space free in its folder (the
+    nearest that exists) and, when known, the space needed (``need`` bytes)."""
+    folder = Path(where)
+    while not folder.is_dir() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        free = f"{fmt_bytes(shutil.disk_usage(folder).free)} free" + ("" if folder == Path(where) else f" in {folder}")
+    except OSError:
+        free = "free space unknown"
+    needs = f"; needs about {fmt_bytes(need)} free there" if need else ""
+    return f"{where}: disk full ({why}; {free}){needs}"
 
 
 def is_write_race(exc: BaseException) -> bool:

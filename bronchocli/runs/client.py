@@ -30,9 +30,9 @@ from sqlalchemy.pool import NullPool
 
 from .. import extras, urls
 from ..config import Config
-from ..errors import BronchoError, MlflowBusy, MlflowUnreachable  # resumable kinds, defined with the others
+from ..errors import BronchoError, MlflowBusy, MlflowUnreachable, WriteFailed  # resumable kinds: defined there
 from ..io import file_lock
-from ..retry import is_transient_store, retry, with_races
+from ..retry import disk_full, disk_full_line, is_transient_store, retry, with_races
 from .records import EXPERIMENT_TAGS, log_metrics
 from .relocation import relocate_artifacts
 from .sqlite_busy import set_busy_timeout
@@ -61,8 +61,22 @@ def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> 
                           f"({urls.redact(_first_line(exc))}, during {what}); try again when it is back, or raise "
                           "runs.busy_timeout_s")
 
-    return retry(fn, transient=with_races(transient), what=f"MLflow store busy ({what})", bound_s=bound_s,
-                 give_up=give_up)
+    try:
+        return retry(fn, transient=with_races(transient), what=f"MLflow store busy ({what})", bound_s=bound_s,
+                     give_up=give_up)
+    except Exception as exc:
+        if isinstance(exc, BronchoError) or (full := disk_full(exc)) is None:
+            raise
+        raise store_full(shown, what, *full) from None
+
+
+def store_full(shown: str, what: str, why: str, file: str | None) -> WriteFailed:
+    """A write of the MLflow store refused by a full disk, in one line (MLflow and SQLAlchemy raise it with the
+    SQL statement and its parameters on several lines): the folder, the space free there, what was written."""
+    where = file or urls.sqlite_file(shown)
+    place = disk_full_line(where, why) if where is not None else f"the MLflow server's disk is full ({why})"
+    return WriteFailed(f"runs.uri {shown}: {place}, during {what}; free space there and run the same command "
+                       "again (an unfinished run resumes from its checkpoint)")
 
 
 class BusyRetryClient:

@@ -53,4 +53,5 @@ def system_metrics(cfg: Config, run_id: str, resume: bool = False) -> Iterator[N
             try:
                 _stop(monitor)
             except Exception as exc:  # noqa: BLE001 - the run's result matters more than its last sample
-                log.warning("system metrics of run %s: last sample not logged (%s)", run_id, exc)
+                log.warning("system metrics of run %s: last sample not logged (%s)", run_id,  # one line, no SQL
+                            (str(getattr(exc, "orig", None) or exc).strip().splitlines() or [type(exc).__name__])[0])

@@ -48,7 +48,7 @@ from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, Program
 from .. import extras, urls
 from ..cells import Cell
 from ..errors import BronchoError
-from ..retry import retry
+from ..retry import disk_full, disk_full_line, retry
 
 TABLE = "bronchopose_sweep_cells"
 SELECTIONS = "bronchopose_sweep_selections"
@@ -173,6 +173,11 @@ class SweepStore:
         self.engine.dispose()
 
     def _problem(self, exc: BaseException) -> str:
+        if (full := disk_full(exc)) is not None:  # one line naming the folder, not SQLAlchemy's SQL and parameters
+            where = full[1] or urls.sqlite_file(self.url)
+            place = disk_full_line(where, full[0]) if where is not None else f"the database server's disk is full "\
+                f"({full[0]})"
+            return f"sweep storage {self.redacted}: {place}; free space there and run the same command again"
         text = f"sweep storage {self.redacted}: {_first_line(exc)}"
         if self.dialect != "sqlite" and "connect" in text.lower():  # a server that is down, elsewhere or misnamed
             text += "; check the host, port, database name and credentials, and that the server is running"
@@ -328,11 +333,15 @@ class SweepStore:
             return self._by_token(conn, token, state=FINISHED, run_id=run_id, duration_s=duration_s,
                                   finished_at=self._now, failure_reason=None, version=c.version + 1)
 
-    def fail(self, token: str, reason: str, run_id: str | None = None, duration_s: float | None = None) -> bool:
+    def fail(self, token: str, reason: str, run_id: str | None = None, duration_s: float | None = None,
+             spent: bool = True) -> bool:
+        """FAILED with ``reason``; ``spent=False`` (a failure of the machine, e.g. a full disk): the attempt is not
+        counted, so the next sweep retries (resumes) the cell even when this was its last attempt."""
         c = cells_table.c
         with self._tx(write=True) as conn:
             return self._by_token(conn, token, state=FAILED, run_id=run_id, duration_s=duration_s,
-                                  finished_at=self._now, failure_reason=reason[:4000], version=c.version + 1)
+                                  finished_at=self._now, failure_reason=reason[:4000], version=c.version + 1,
+                                  **({} if spent else {"attempts": c.attempts - 1}))
 
     def release(self, token: str, reason: str | None = None) -> bool:
         """Give the cell back (Ctrl-C, a busy database): pending again, the attempt not counted, ``reason`` kept."""
@@ -364,6 +373,17 @@ class SweepStore:
         with self._tx() as conn:
             text = conn.execute(q).scalar_one_or_none()
         return None if text is None else json.loads(text)
+
+    def running(self, sweep: str, stale_after_s: float) -> list[CellRow]:
+        """The cells of ``sweep`` a live worker runs now (RUNNING, heartbeat within ``stale_after_s``); none when
+        the table does not exist (a report of runs made without a sweep)."""
+        if not self.exists():
+            return []
+        c = cells_table.c
+        q = select(cells_table).where(c.sweep == sweep, c.state == RUNNING,
+                                      c.heartbeat >= self._now - float(stale_after_s)).order_by(c.ord)
+        with self._tx() as conn:
+            return [CellRow.from_mapping(m) for m in conn.execute(q).mappings()]
 
     def all_done(self, sweep: str, keys: Sequence[str], max_retries: int) -> bool:
         """True when every cell is finished or failed with no retry left (nothing left to run or wait for)."""

@@ -30,8 +30,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import io
+from .. import io, urls
+from ..config import Config
 from ..errors import BronchoError, CheckpointWriteError, WriteFailed  # resumable kinds: defined with the others
+from ..retry import disk_full, disk_full_line
 from ..runs.ownership import CHECKPOINT_FORMAT, mark
 
 FORMAT = CHECKPOINT_FORMAT  # runs.ownership reads it back (without torch) to prove a folder is a checkpoint's
@@ -45,25 +47,92 @@ class BadCheckpoint(BronchoError):
     """A checkpoint file that is not a valid checkpoint of this run (refused, never executed)."""
 
 
-DISK_ERRNOS = (errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS)
-DISK_TEXTS = ("database or disk is full", "disk i/o error", "no space left on device", "read-only file system")
+def as_write_failure(exc: BaseException, need: int | None = None, where: Path | None = None) -> WriteFailed | None:
+    """A WriteFailed (one line naming the folder, the space free there and, given ``need`` in bytes, the space the
+    run needs) for an error of the disk under the run (its own or one it was raised from); None for any other.
+    ``where``: the folder to name when the error names no file (SQLite's "database or disk is full")."""
+    if isinstance(exc, WriteFailed):
+        if need and "needs about" not in str(exc):
+            return type(exc)(f"{exc}; the run needs about {io.fmt_bytes(need)} free to finish")
+        return exc
+    full = disk_full(exc)
+    if full is None:
+        return None
+    why, file = full
+    line = disk_full_line(file or where, why, need) if (file or where) else _first_line(exc)
+    return WriteFailed(f"{line}; free space there and run the same command again: it resumes the run from its "
+                       "checkpoint")
 
 
-def as_write_failure(exc: BaseException) -> WriteFailed | None:
-    """A WriteFailed (one line) for an error of the disk under the run (its own or one it was raised from)."""
-    seen, e = 0, exc
-    while e is not None and seen < 6:
-        if isinstance(e, WriteFailed):
-            return e
-        if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
-            where = f"{e.filename}: " if e.filename else ""
-            return WriteFailed(f"{where}{os.strerror(e.errno)}; free space there (or fix the file system) and "
-                               "resume the run")
-        text = str(e).lower()
-        if any(t in text for t in DISK_TEXTS):
-            return WriteFailed(f"{_first_line(e)}; free space under the MLflow store and resume the run")
-        e, seen = e.__cause__ or e.__context__, seen + 1
-    return None
+# -- a reserve on the stores' disk ------------------------------------------------------------------------------
+# A full disk must not leave the run RUNNING: the writes that end it (its status, its failure reason, the sweep's
+# claims row) need a few pages of the SQLite stores. A small file beside them holds that room while the run
+# trains; a run that meets a full disk deletes it before ending the run, and the next run puts it back.
+
+RESERVE_NAME = ".bronchopose-reserve"
+RESERVE_BYTES = 4 << 20
+RESERVE_ONLY_ABOVE = 256 << 20  # never the reserve that fills a nearly full disk
+
+
+def reserve(folders: list[Path]) -> None:
+    """Put a RESERVE_BYTES file in each existing folder (one per file system) that lacks one and has room."""
+    for folder in _one_per_disk(folders):
+        path = folder / RESERVE_NAME
+        try:
+            if path.is_file() or shutil.disk_usage(folder).free < RESERVE_ONLY_ABOVE:
+                continue
+            with io.atomic_path(path) as tmp:
+                with open(tmp, "wb") as f:
+                    f.write(b"\0" * RESERVE_BYTES)  # written, not sparse: the blocks are really held
+        except OSError:
+            continue  # a reserve is a courtesy: never the run's failure
+
+
+def release_reserve(folders: list[Path]) -> bool:
+    """Delete the reserves of ``folders`` (a full disk met): True when one was there."""
+    freed = False
+    for folder in folders:
+        try:
+            (folder / RESERVE_NAME).unlink()
+            freed = True
+        except OSError:
+            pass
+    return freed
+
+
+def store_folders(cfg: Config) -> list[Path]:
+    """The folders of the config's SQLite stores (MLflow's, the sweep's claims): where a reserve is kept."""
+    dbs = [urls.sqlite_file(u) for u in (cfg.paths.mlflow_uri, cfg.paths.storage_url)]
+    return list(dict.fromkeys(db.parent for db in dbs if db is not None))
+
+
+def failure_folder(cfg: Config) -> Path:
+    """The folder a full disk is named by when the error names no file (SQLite's "database or disk is full"):
+    the MLflow SQLite store's, else the checkpoints'."""
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    return db.parent if db is not None else cfg.paths.checkpoints
+
+
+def run_needs(ckpt_dir: Path) -> int | None:
+    """Bytes a run that met a full disk needs to finish: about its checkpoint's size (the model it still has to
+    log, its predictions and its next checkpoint are smaller); None before its first checkpoint."""
+    try:
+        return (Path(ckpt_dir) / "last.pt").stat().st_size
+    except OSError:
+        return None
+
+
+def _one_per_disk(folders: list[Path]) -> list[Path]:
+    seen, out = set(), []
+    for folder in folders:
+        try:
+            dev = folder.stat().st_dev
+        except OSError:
+            continue
+        if dev not in seen:
+            seen.add(dev)
+            out.append(folder)
+    return out
 
 
 # -- RNG states as plain data -------------------------------------------------------------------------------

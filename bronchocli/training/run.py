@@ -235,6 +235,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
             on_validation(step, values)
 
     ckpt = checkpoint_dir(cfg, run_id)
+    checkpoint.reserve(checkpoint.store_folders(cfg))  # room to end the run if the disk fills (the failure path)
     threads = share.check()  # as late as possible: processes started at the same time have all claimed by now
     try:
         if state is None:  # the speed setting it trains with (measured per architecture and device, or the config's)
@@ -270,7 +271,10 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
             _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
         raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
-        exc = checkpoint.as_write_failure(exc) or exc  # a full disk anywhere under the run: one line, resumable
+        full = checkpoint.as_write_failure(exc, checkpoint.run_needs(ckpt), checkpoint.failure_folder(cfg))
+        if full is not None:  # a full disk anywhere under the run: one line (the folder, the space), resumable;
+            checkpoint.release_reserve(checkpoint.store_folders(cfg))  # the room to end the run FAILED
+            exc = full
         exc = out_of_memory(exc) or exc  # MemoryError, torch's allocator: one line, the run FAILED with it
         reason = failure_reason(exc)
         if not still_ours():  # a stalled process failing after the takeover: the run is the new owner's

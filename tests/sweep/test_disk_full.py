@@ -1,0 +1,104 @@
+"""A full disk (issue 37.3): the run ends FAILED in one line naming the folder and the space needed, its checkpoint
+kept and no attempt of its cell used; the worker stops; after space is freed the same command resumes it once."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+from tinydata import write_tiny_dataset
+
+from bronchocli.errors import WriteFailed
+from bronchocli.runs.client import client_for, experiment_id
+from bronchocli.runs.contract import RunResult, resume_file
+from bronchocli.runs.ownership import mark
+from bronchocli.runs.records import TAG_FAILURE, cell_tags
+from bronchocli.sweep import FAILED, FINISHED, SweepStore, Worker, prepare
+
+
+def test_a_full_disk_fails_the_cell_without_using_an_attempt_and_the_next_sweep_resumes_it(make_config, tmp_path):
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})  # no attempt to spare: a used one is final
+    store = SweepStore(cfg.paths.storage_url)
+    plan = prepare(cfg, store, dataset=False)
+    (cell,) = plan.cells
+    calls: list[str | None] = []
+
+    def full_disk(cfg, cell, *, resume=None, extra_tags=None, run_id_callback=None, **_):
+        """What run_cell does when the disk fills: the run FAILED with the reason, its checkpoint kept, raised."""
+        calls.append(resume)
+        client = client_for(cfg)
+        run_id = resume or client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **extra_tags)
+                                             ).info.run_id
+        run_id_callback(run_id)
+        if resume:
+            client.update_run(run_id, "RUNNING")
+            client.set_terminated(run_id, "FINISHED")
+            return RunResult(run_id, "FINISHED", {"pair.pos_l2.mean": 1.0})
+        mark(resume_file(cfg, run_id).parent, run_id, cell.key)
+        resume_file(cfg, run_id).write_bytes(b"x" * 1000)
+        error = WriteFailed(f"{tmp_path}: disk full (no space left on device; 0 B free); needs about 1.0 KB free")
+        client.set_tag(run_id, TAG_FAILURE, f"WriteFailed: {error}")
+        client.set_terminated(run_id, "FAILED")
+        raise error
+
+    with pytest.raises(WriteFailed, match="disk full"):  # the worker stops: every cell would meet the full disk
+        Worker(cfg, plan.cells, store, full_disk).run()
+    (row,) = store.rows(cfg.name)
+    assert (row.state, row.attempts) == (FAILED, 0) and row.failure_reason.startswith("WriteFailed: ")
+    assert resume_file(cfg, row.run_id).is_file()  # kept for the resume
+    assert client_for(cfg).get_run(row.run_id).info.status == "FAILED"
+
+    assert Worker(cfg, plan.cells, store, full_disk).run() == 0  # space freed: the same sweep again
+    assert calls == [None, row.run_id]  # resumed, once
+    (done,) = store.rows(cfg.name)
+    assert (done.state, done.run_id) == (FINISHED, row.run_id)
+
+
+@pytest.fixture
+def disk(tmp_path):
+    """A 600 MB tmpfs (the tiny baseline's checkpoint is ~225 MB and needs twice that free to be written)."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600m", "tmpfs", str(mount)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip() or done.returncode}")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
+
+
+@pytest.mark.slow  # ~3 min on 2 busy cores: two real trainings of the tiny baseline
+def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_once_space_is_freed(
+        cli, make_config, tmp_path, fake_dir, disk):
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+    cfg = make_config(
+        archs=("baseline",), sweep={"heartbeat_s": 1.0, "stale_after_s": 30.0},
+        runs={"uri": f"sqlite:///{disk}/mlflow.db", "artifacts": f"{disk}/artifacts",
+              "checkpoints": f"{disk}/checkpoints"},
+        storage=f"sqlite:///{disk}/sweep.db",
+        splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1}, data={"window": 3, "cache_dir": "cache"},
+        train={"batch_size": 3, "steps": 8, "val_every": 4, "bn_recalibrate": 1, "threads": 1,
+               "checkpoint_every_s": 0.1})
+    command = ("sweep", "-c", str(cfg.paths.base / "experiments.yaml"), "--runner", "disk_fakes:fill_then_train")
+    (fake_dir / "fill").touch()
+    code, out, err = cli(*command)
+    logs = "\n".join(p.read_text() for p in cfg.paths.sweep_logs.rglob("*.log"))
+    assert code == 1, out + err + logs
+    assert "Traceback" not in out + err and "[SQL:" not in out + err and err.strip() == "", out + err
+    (line,) = [s for s in out.splitlines() if s.startswith("failed ")]  # the cell's failure: one line
+    assert "WriteFailed" in line and "disk full" in line and f"free in {disk})" in line and "needs about" in line, line
+    (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
+    assert (row.state, row.attempts) == (FAILED, 0)
+    client = client_for(cfg)
+    assert client.get_run(row.run_id).info.status == "FAILED"  # not RUNNING: the reserve gave the room to end it
+    assert resume_file(cfg, row.run_id).is_file()
+
+    (disk / "filler").unlink()  # space freed
+    (fake_dir / "fill").unlink()
+    code, out, err = cli(*command)
+    assert code == 0, out + err + "\n".join(p.read_text() for p in cfg.paths.sweep_logs.rglob("*.log"))
+    (done,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
+    assert (done.state, done.run_id) == (FINISHED, row.run_id)  # the same run, resumed
+    assert len(client.get_metric_history(row.run_id, "resumed_from_step")) == 1  # once
+    assert client.get_run(row.run_id).info.status == "FINISHED" and not resume_file(cfg, row.run_id).exists()
