@@ -20,6 +20,7 @@ from .commands import track as track_cmd
 from .commands import train as train_cmd
 from .commands import tune as tune_cmd
 from .commands import ui as ui_cmd
+from .commands import weights as weights_cmd
 from .commands.common import err_console
 from .errors import BronchoError, Interrupted, out_of_memory
 
@@ -46,7 +47,7 @@ COMMANDS = {
     "selftest": selftest_cmd.selftest,
 }
 # Command groups with subcommands (name -> Typer app).
-GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app}
+GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app, "weights": weights_cmd.app}
 
 for _name, _fn in COMMANDS.items():
     app.command(name=_name)(_fn)

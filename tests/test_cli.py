@@ -20,7 +20,7 @@ def run_console_script(*args: str, cwd=None) -> subprocess.CompletedProcess:
 
 
 EXPECTED_COMMANDS = {"config", "data", "train", "tune", "ui", "sweep", "status", "report", "profile", "track",
-                     "selftest"}
+                     "selftest", "weights"}
 
 
 def test_the_command_list_is_explicit_and_matches_help():

@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Optional
 
 import typer
 
-from .common import console
+from ..cells import RotLoss
+from ..config import DEFAULT_CONFIG
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
 
 
 def selftest(
@@ -16,8 +19,17 @@ def selftest(
                                   "without, 32 on the CPU), 32, bf16-mixed or 16-mixed."),
     arch: Optional[list[str]] = typer.Option(None, "--arch", "-a", help="Architectures to train (repeatable; "
                                              "default: all five)."),
-    threads: int = typer.Option(1, "--threads", min=1, help="torch CPU threads (the synthetic inputs are tiny: "
-                                "one thread beats a team whose waits collide on a busy machine)."),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch CPU threads (default 1: the "
+                                          "synthetic inputs are tiny, one thread beats a team whose waits collide "
+                                          "on a busy machine; --learn: a fair share of the cores)."),
+    learn: bool = typer.Option(False, "--learn", help="Instead: can --arch (default convlstm) learn on the "
+                               "configured dataset? Memorise 30 of its training pairs and compare eval-mode with "
+                               "batch-statistics loss; one line per architecture."),
+    rot_loss: RotLoss = typer.Option("ce", "--rot-loss", "-l", help="With --learn: the rotation loss."),
+    steps: int = typer.Option(100, "--steps", min=1, help="With --learn: optimiser steps of the memorisation."),
+    config: ConfigOpt = Path(DEFAULT_CONFIG),
+    profile: ProfileOpt = None,
+    set_: SetOpt = None,
 ) -> None:
     """Check this machine's training path: what it sees, each architecture training, resume, numerics, speed.
 
@@ -29,7 +41,19 @@ def selftest(
     throughput line (engine pairs/s against the bare step). Exit code 0 when every
     check passed, 1 naming those that failed, 2 for a device this machine lacks.
     docs/training.md ("GPU") explains how to read it.
+
+    With --learn it answers another question, on the configured dataset
+    (--config, --profile, --set; generated first if missing): can this
+    architecture learn here? Through the platform's own training path it
+    memorises 30 training pairs and checks that evaluation (re-estimated
+    BatchNorm) reproduces training (eval-mode ÷ batch-statistics loss); one line
+    per architecture, exit code 1 when one cannot (docs/training.md, "Can it
+    learn here?").
     """
     from ..diagnostics import entry  # lazy: torch loads only when the command runs
 
-    raise typer.Exit(entry.selftest(device, precision, arch, threads=threads, console=console))
+    if learn:
+        raise typer.Exit(entry.learn(load(config, profile, set_), arch or ["convlstm"], rot_loss, steps=steps,
+                                     threads=threads, console=console))
+
+    raise typer.Exit(entry.selftest(device, precision, arch, threads=threads or 1, console=console))

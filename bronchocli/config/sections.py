@@ -228,6 +228,9 @@ class Train(Section):
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
     # training batches that re-estimate BatchNorm statistics per validation
     bn_recalibrate: int = Field(16, ge=0, le=100_000)
+    # the last fraction of the steps trains with BatchNorm statistics fixed (eval mode), so evaluation computes
+    # the function training optimised (training/batchnorm.py; docs/training.md, "Evaluation consistent with training")
+    bn_freeze: float = Field(0.0, ge=0, lt=1)
     tbptt_chunks: int = Field(1, ge=1, le=1000)  # K chunks of L pairs per training sequence
     rot_weight: float = Field(1.0, ge=0, le=1e6)
     # auto = the measured per-architecture setting for the device (bronchocli/speed.py; docs/training.md, "Speed")

@@ -14,10 +14,13 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from ..config import Config, check_paths
 from ..errors import BronchoError
+from ..generation import ensure_dataset
 from ..models import ARCHITECTURES
 from ..models import profile as profiling
 from ..runs import cores
+from . import learning
 from . import selftest as st
 from . import speed as sp
 
@@ -118,3 +121,23 @@ def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pair
         table = sp.run(names, dev, out, image_size=image_size, pairs=pairs, steps=steps, progress=progress)
     console.file.write(table + "\n")  # verbatim Markdown
     console.print(f"wrote {out} ({time.perf_counter() - started:.0f} s)", highlight=False)
+
+
+def learn(cfg: Config, archs: Sequence[str], rot_loss: str, *, steps: int, threads: int | None, console: Console) -> int:
+    """``selftest --learn``: for each architecture, can it memorise a handful of the configured dataset's pairs,
+    and does its evaluation agree with its training (``learning.check``)? One line each; exit 1 when one cannot."""
+    unknown = [a for a in archs if a not in ARCHITECTURES]
+    if unknown:
+        raise BronchoError(f"--arch {', '.join(unknown)}: unknown (valid: {', '.join(ARCHITECTURES)})")
+    check_paths(cfg)
+    ensure_dataset(cfg)
+    failed = 0
+    with cpu_share(threads):
+        for arch in archs:
+            cell = cfg.cell(arch=arch, rot_loss=rot_loss, population="personalized", seed=0)
+            with console.status(f"{arch}: memorising {learning.PAIRS} training pairs for {steps} steps ..."):
+                verdict = learning.check(cfg, cell, steps=steps)
+            colour = "green" if verdict.ok else "bold red"
+            console.print(f"[{colour}]{verdict.line()}[/]", highlight=False)
+            failed += not verdict.ok
+    return 1 if failed else 0

@@ -29,13 +29,23 @@ def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
 
 
 @torch.no_grad()
-def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) -> int:
+def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast, *, biased: bool = False) -> int:
     """Re-estimate every BatchNorm's running statistics as the plain average over ``batches``.
+
+    Dropout and stochastic depth are off while the statistics are measured: evaluation runs without them, and
+    statistics measured with them describe another distribution (dropout's variance shift; stochastic depth
+    drops whole residual branches). Measured with them on, the baseline at 32² memorised 28 pairs to 0.15 × the
+    mean predictor's loss in eval mode against 0.03 with batch statistics (a mode gap of 5).
 
     The average is built with an explicit momentum of ``1 / (k + 1)`` for batch ``k`` (``r <- (1 - m) r + m x``
     gives the running mean of the ``k + 1`` batch statistics), computed on the host from a counter kept here:
     PyTorch's own cumulative mode (``momentum=None``) reads ``num_batches_tracked`` back from the device in
     every BatchNorm of every batch (a host sync each: 1,744 per validation for the baseline on CUDA).
+
+    The running variance is PyTorch's unbiased one (× m / (m - 1), m values per channel and batch): the
+    population's. ``biased``: the plain average of the batch variances training normalised with instead — what
+    evaluation on the very batches it was measured on must use to reproduce them (at 1×1 maps and 28 pairs the
+    factor alone made eval-mode loss 1.43× the batch-statistics loss of a memorised set).
     """
     bns = batchnorms(net)
     if not bns:
@@ -44,8 +54,16 @@ def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) ->
     for m in bns:
         m.reset_running_stats()
     was_training = net.training
-    net.train()
+    net.eval()  # dropout and stochastic depth off: the statistics of the network that is evaluated ...
+    for m in bns:
+        m.train()  # ... each BatchNorm measuring its batch
     n = 0
+    counts: dict[int, int] = {}  # values per channel and batch, for ``biased``
+
+    def count(m: nn.Module, args: tuple[torch.Tensor, ...]) -> None:
+        counts.setdefault(id(m), args[0].numel() // args[0].shape[1])
+
+    hooks = [m.register_forward_pre_hook(count) for m in bns] if biased else []
     try:
         for frames in batches:
             for m in bns:
@@ -54,9 +72,14 @@ def recalibrate_bn(net: nn.Module, batches: Iterator[torch.Tensor], autocast) ->
                 net(frames)
             n += 1
     finally:
+        for h in hooks:
+            h.remove()
         for m, mom in zip(bns, momenta):
             m.momentum = mom
         net.train(was_training)
+    for m in bns:
+        if biased and counts.get(id(m), 0) > 1:
+            m.running_var.mul_((counts[id(m)] - 1) / counts[id(m)])
     return n
 
 

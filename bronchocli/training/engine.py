@@ -39,7 +39,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         weight_decay=t.weight_decay, warmup_steps=int(round(t.warmup * t.steps)), schedule=t.schedule,
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
-        checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every,
+        checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every, bn_freeze=t.bn_freeze,
     )
 
 
@@ -125,6 +125,8 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     if best is not None:  # validation metrics of the weights that were tested: what a staged sweep selects by
         metrics |= {"val_best.loss": best["val_loss"],
                     **{f"val_best.{k[4:]}": v for k, v in best.items() if k.startswith("val.")}}
+        if "val.mode_gap" in best:  # eval-mode ÷ batch-statistics loss on training batches, the tested weights
+            metrics["eval.mode_gap"] = best["val.mode_gap"]
     n_params = sum(p.numel() for p in net.model.parameters())
     metrics |= {
         "n_params": float(n_params), "eval.time_s": time.perf_counter() - t0,

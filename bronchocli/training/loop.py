@@ -16,10 +16,16 @@ budget of ``train.steps`` steps is the same number of pairs seen whatever the mo
 * every ``train.val_every`` steps (and at the end) BatchNorm statistics are
   re-estimated on ``train.bn_recalibrate`` training batches (running averages
   after a few hundred steps describe weights that no longer exist, and
-  eval-mode outputs collapse), the validation loss is computed, the best
-  weights so far are kept and a resumable checkpoint is written; after
-  ``train.patience`` validations without improvement the run stops early. The
-  run ends on the best weights, whatever stopped it.
+  eval-mode outputs collapse), the validation loss, ``val.ratio.pos_l2`` (÷ the
+  training mean's) and the mode gap (eval-mode ÷ batch-statistics loss on
+  training batches, ``batchnorm.py``) are computed, the best weights so far are
+  kept and a resumable checkpoint is written; after ``train.patience``
+  validations without improvement the run stops early. The run ends on the best
+  weights, whatever stopped it;
+* ``train.bn_freeze``: the last fraction of the steps trains with BatchNorm in
+  eval mode on the statistics re-estimated by a validation held where the
+  freeze starts (then no more re-estimation): the evaluated function is the
+  trained one.
 
 Losses, metrics and non-finite checks stay on the device between validations: nothing forces a host sync per step
 on CUDA. Training curves (``train_loss``, ``lr``, ``grad_norm``, ``pairs_per_s``) get a point every ``log_every``
