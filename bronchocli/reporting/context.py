@@ -66,6 +66,7 @@ class ReportContext:
     profiler: Profiler | None = None  # arch -> profiling.profile_arch's dict; None: no latency/GMAC
     profiler_note: str = ""  # why there is no profiler, for the caption
     errors: Loader | None = None  # run -> trajectory_errors table; None: logged means only
+    history: Callable[[str, str], Any] | None = None  # (run id, metric) -> [(step, value)]: fig-training-curves
     settings: Settings = field(default_factory=Settings)
     default_train_trajectories: int | None = None  # what train_trajectories "" means (config's splits.train)
     _profiles: dict[str, Mapping[str, Any] | None] = field(default_factory=dict)
@@ -249,8 +250,11 @@ def provenance(ctx: ReportContext, c: Collector) -> str:
 def references_text() -> str:
     return ("Zero motion / Training mean: image-blind references (every relative pose zero / the training set's "
             "mean relative pose), scored on the same test trajectories and averaged over the table's runs; "
-            "† = the row's interval does not lie below the better reference's mean (it has not beaten an "
-            "image-blind model).")
+            "reference intervals are over the test units only (trajectories, or patients for a new patient; the "
+            "references do not depend on the seed). † = the row has not beaten an image-blind model: the interval "
+            "of its paired comparison with the better reference on the shared test units (skill = 1 − error / "
+            "reference error; for CTF the difference) does not lie above 0 — the same verdict colours the skill "
+            "figure; per cell, no multiplicity correction.")
 
 
 IGNORES_TEXT = "‡ after a row's loss: its predictions vary less than 5% of the ground truth's (pred.std_ratio.pos " \

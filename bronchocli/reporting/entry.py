@@ -15,9 +15,11 @@ from rich.console import Console
 
 from ..config import Config
 from ..errors import BronchoError
+from ..sweep.storage import SweepStore
 from . import report as rep
 from . import tables as tbl
 from .context import Profiler
+from .curves import history_loader
 from .figures import errors_loader, mlflow_loader
 from .markdown import to_rich
 
@@ -32,9 +34,10 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     are measured (``latency``) at ``image_size`` on ``latency_device``, else stay empty. With ``to_parent``
     the written files are also logged to the sweep's parent MLflow run (``report/`` artifacts)."""
     client = rep.open_store(cfg)
+    refuse_while_running(cfg, sweep or cfg.name)
     index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
     console.print(rep.summary_index(index))
-    ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client),
+    ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client), history=history_loader(client),
                             default_train_trajectories=None if sweep else cfg.splits.train)
     if profiles is not None:
         ctx.profiler = profiles
@@ -70,3 +73,20 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     console.print(f"wrote {len(result.files)} file(s) to {out}/: " + ", ".join(p.name for p in result.files))
     if to_parent and result.files:
         console.print(rep.log_to_parent(client, cfg, index.sweep, out, result.files), highlight=False)
+
+
+def refuse_while_running(cfg: Config, sweep: str) -> None:
+    """One line, before any work, when cells of ``sweep`` still run (a live worker's claim): their rows would be
+    rows of —. A claims storage that cannot be asked (none, unreachable) refuses nothing."""
+    try:
+        store = SweepStore(cfg.paths.storage_url, cfg.runs.timeout_s, cfg.runs.busy_timeout_s)
+        try:
+            running = store.running(sweep, cfg.sweep.stale_after_s)
+        finally:
+            store.close()
+    except BronchoError:
+        return
+    if running:
+        shown = ", ".join(r.label for r in running[:3]) + (", ..." if len(running) > 3 else "")
+        raise BronchoError(f"report: sweep {sweep} has {len(running)} cell(s) still running ({shown}); their rows "
+                           "would be empty (—): run the report when `bronchopose status` shows them done")

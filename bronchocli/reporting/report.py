@@ -33,6 +33,7 @@ from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
 from .markdown import to_markdown
 from .scope import config_plan
+from .curves import training_curves
 from .skill_figures import learning_curve, skill_figures
 from .table_model import Table
 from .tables import ONCE, TABLES, ReportContext
@@ -138,6 +139,9 @@ def make_report(
                                          lambda: skill_figures(tables, stage, result.warnings))
             result.files += figures.once("learning-curve", runs_key, result.warnings,
                                          lambda: learning_curve(ctx, stage, result.warnings))
+            if ctx.history is not None:
+                result.files += figures.once("training-curves", runs_key, result.warnings, lambda: training_curves(
+                    list(ctx.index.runs.values()), ctx.history, stage, result.warnings))
         if dataset_root is not None:
             say("figures: dataset frames and positions")
             meta = Path(dataset_root) / "metadata.json"

@@ -1,0 +1,73 @@
+"""``fig-training-curves``: what each run learnt as it trained, from the metrics every validation logs.
+
+Per run (one line each, labelled by cell): ``val.ratio.pos_l2`` — validation pair position error ÷ the
+training-mean predictor's on the same pairs, below 1 when the model beats that image-blind reference — and
+``val.mode_gap`` — eval-mode ÷ batch-statistics loss on training batches (1: evaluation computes what training
+optimised; training/batchnorm.py) — against the image pairs seen. The runs' final test ratio
+(``ratio.train_mean.pair.pos_l2``) is marked at their last point. Drawn when some run has at least two
+validations with these metrics (older runs did not log them); the learning-curve profile's figure
+(benchmarks/README.md, "Learning from scratch").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+
+from ..io import save_figure
+from .collect import RunRecord
+
+CURVES = ("val.ratio.pos_l2", "val.mode_gap")
+PAIRS = "train.pairs_seen"
+TEST = "ratio.train_mean.pair.pos_l2"
+FORMATS = ("png", "pdf")
+History = Callable[[str, str], Sequence[tuple[int, float]]]  # (run id, metric) -> [(step, value)]
+
+
+def history_loader(client) -> History:
+    """(run id, metric) -> its logged (step, value) points, from MLflow."""
+    def load(run_id: str, key: str) -> list[tuple[int, float]]:
+        return sorted((m.step, m.value) for m in client.get_metric_history(run_id, key))
+    return load
+
+
+def curves(runs: Sequence[RunRecord], history: History) -> dict[str, dict[str, list[tuple[float, float]]]]:
+    """label -> metric -> [(pairs seen, value)] for the runs with at least two validations of ``CURVES``."""
+    out = {}
+    for run in runs:
+        pairs = dict(history(run.run_id, PAIRS))
+        per = {key: [(pairs[s], v) for s, v in history(run.run_id, key) if s in pairs] for key in CURVES}
+        if len(per[CURVES[0]]) >= 2:
+            out[run.label] = per
+    return out
+
+
+def training_curves(runs: Sequence[RunRecord], history: History, out: Path, warnings: list[str]) -> list[Path]:
+    """Write fig-training-curves (nothing when no run has two validations of the curve metrics)."""
+    data = curves(runs, history)
+    if not data:
+        return []
+    final = {r.label: r.metrics.get(TEST) for r in runs}
+    fig, (ratio_ax, gap_ax) = plt.subplots(1, 2, figsize=(11, 4))
+    for label, per in sorted(data.items()):
+        xs, ys = zip(*per[CURVES[0]])
+        line, = ratio_ax.plot(xs, ys, marker="o", ms=3, lw=1.2, label=label)
+        if final.get(label) is not None:
+            ratio_ax.plot([xs[-1]], [final[label]], marker="*", ms=10, color=line.get_color(), ls="none")
+        if per[CURVES[1]]:
+            gx, gy = zip(*per[CURVES[1]])
+            gap_ax.plot(gx, gy, marker="o", ms=3, lw=1.2, color=line.get_color(), label=label)
+    ratio_ax.axhline(1.0, color="black", lw=0.8, ls="--", label="training-mean predictor")
+    gap_ax.axhline(1.0, color="black", lw=0.8, ls="--")
+    gap_ax.axhline(1.1, color="grey", lw=0.8, ls=":", label="1.10")
+    ratio_ax.set_ylabel("validation pair position L2 ÷ training mean's")
+    gap_ax.set_ylabel("mode gap: eval-mode ÷ batch-statistics loss")
+    for ax in (ratio_ax, gap_ax):
+        ax.set_xlabel("image pairs seen")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.suptitle("Training curves: every validation (★ the run's test ratio, at its end)", fontsize=9)
+    fig.tight_layout()
+    return save_figure(fig, Path(out) / "fig-training-curves", FORMATS)
