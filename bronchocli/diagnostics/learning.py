@@ -30,9 +30,9 @@ import torch
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
+from ..training.batchnorm import mode_gap, recalibrate_bn
 from ..training.device import device_for, seed_everything
 from ..training.engine import build_network, settings
-from ..training.batchnorm import mode_gap, recalibrate_bn
 from ..training.loop import Trainer
 from ..training.prepare import prepare
 
