@@ -34,7 +34,13 @@ def test_two_trains_started_at_once_split_the_cores(tmp_path):
             [sys.executable, "-c", MAIN, "train", "--arch", "baseline", "--rot-loss", "ce", "--population",
              "personalized", "--quiet", "--set", "train.threads=null"],
             cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
-    outs = [p.communicate(timeout=600)[0] for p in procs]
+    try:
+        outs = [p.communicate(timeout=1200)[0] for p in procs]  # a bound for a stuck process, not a timing
+    finally:
+        for p in procs:
+            if p.poll() is None:  # timed out: leave no training process behind
+                p.kill()
+                p.wait()
     assert [p.returncode for p in procs] == [0, 0], outs
     params = []
     for root in projects:
