@@ -111,7 +111,9 @@ def launch(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, detach: bool = 
     """Submit the plan's workers with launcher ``kind`` (each: ``task.command`` with ``spec``) and, unless
     ``detach``, watch them; re-running submits only what the queued and running workers do not cover."""
     check_paths(cfg, storage=True, logs=True)
-    launcher = kind(cfg, command(cfg, replace(spec, launcher=reference(kind))))
+    launcher = kind(cfg)
+    launcher.check()  # first: a refused submission writes no 0600 secrets file (``command`` seals the spec)
+    launcher.command = command(cfg, replace(spec, launcher=reference(kind)))
     return launching.launch(cfg, open_store(cfg), spec.selection(), launcher, detach=detach, console=console,
                             retry_failed=retry_failed)
 
