@@ -54,12 +54,37 @@ def test_a_full_disk_fails_the_cell_without_using_an_attempt_and_the_next_sweep_
     assert (done.state, done.run_id) == (FINISHED, row.run_id)
 
 
+def test_gc_keeps_a_disk_full_runs_checkpoint_until_its_cell_is_failed_for_good(make_config, tmp_path):
+    from sqlalchemy import update
+
+    from bronchocli.sweep.housekeeping import collect_garbage
+    from bronchocli.sweep.storage import cells_table
+
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1})
+    store = SweepStore(cfg.paths.storage_url)
+    (cell,) = prepare(cfg, store, dataset=False).cells
+    client = client_for(cfg)
+    claim = store.claim(cfg.name, [cell.key], "w", max_retries=1, stale_after_s=60)
+    run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell)).info.run_id
+    mark(resume_file(cfg, run_id).parent, run_id, cell.key)
+    resume_file(cfg, run_id).write_bytes(b"x" * 1000)
+    reason = "WriteFailed: /runs: disk full (no space left on device; 0 B free)"
+    client.set_tag(run_id, TAG_FAILURE, reason)
+    client.set_terminated(run_id, "FAILED")
+    assert store.fail(claim.token, reason, run_id, spent=False)  # as the worker records a full disk
+    assert collect_garbage(cfg, store, client) == [] and resume_file(cfg, run_id).is_file()  # kept: resumable
+    with store.engine.begin() as conn:  # later attempts failed too: the cell is failed for good
+        conn.execute(update(cells_table).values(attempts=5))
+    (freed,) = collect_garbage(cfg, store, client)
+    assert freed[0].run_id == run_id and freed[1] >= 1000 and not resume_file(cfg, run_id).exists()
+
+
 @pytest.fixture
 def disk(tmp_path):
-    """A 600 MB tmpfs (the tiny baseline's checkpoint is ~225 MB and needs twice that free to be written)."""
+    """An 800 MB tmpfs (the tiny baseline's checkpoint is ~225 MB; the next one needs twice that free beside it)."""
     mount = tmp_path / "disk"
     mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=600m", "tmpfs", str(mount)], capture_output=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=800m", "tmpfs", str(mount)], capture_output=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip() or done.returncode}")
     try:
