@@ -3,6 +3,7 @@ kept and no attempt of its cell used; the worker stops; after space is freed the
 
 from __future__ import annotations
 
+import re
 import subprocess
 
 import pytest
@@ -111,8 +112,8 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     logs = "\n".join(p.read_text() for p in cfg.paths.sweep_logs.rglob("*.log"))
     assert code == 1, out + err + logs
     assert "Traceback" not in out + err and "[SQL:" not in out + err and err.strip() == "", out + err
-    (line,) = [s for s in out.splitlines() if s.startswith("failed ")]  # the cell's failure: one line
-    assert "WriteFailed" in line and "disk full" in line and f"free in {disk})" in line and "needs about" in line, line
+    line = re.sub(r"\s+", "", out[out.index("failed "):])  # the cell's failure (one line, wrapped by the console)
+    assert "WriteFailed:" in line and "diskfull(" in line and f"freein{disk})" in line and "needsabout" in line, out
     (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
     assert (row.state, row.attempts) == (FAILED, 0)
     client = client_for(cfg)
