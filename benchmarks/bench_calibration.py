@@ -65,7 +65,16 @@ from scipy import stats as sps
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bronchocli.reporting.stats import ALPHA, MIN_PATIENTS, MIN_SEEDS, collapse, combine, positive_interval  # noqa: E402
+from bronchocli.reporting.stats import (  # noqa: E402
+    ALPHA,
+    MIN_PATIENTS,
+    MIN_SEEDS,
+    collapse,
+    combine,
+    holm_array,
+    positive_interval,
+    tied_with_best,
+)
 
 SHARED = 0.8  # share of the trajectory variance common to the two rows of a comparison
 MU = 10.0
@@ -82,6 +91,8 @@ class Regime:
     interaction: float = 0.0  # seed x patient
     seed_skew: str = ""  # "lognormal": a multiplicative lognormal seed factor (sigma = seed); "shifted": additive
     traj_skew: str = ""  # "lognormal": a multiplicative lognormal trajectory factor (sigma = traj)
+    patient_skew: str = ""  # "lognormal": a multiplicative lognormal patient factor (sigma = patient)
+    zeros: float = 0.0  # share of trajectories whose error is exactly 0 for every row and seed (an ATE-type 0)
     seeds: tuple[int, ...] = (3, 5)
 
 
@@ -95,6 +106,9 @@ REGIMES = {
     "lognormal trajectories": replace(BASE["trajectory-dominated"], traj_skew="lognormal"),
     "seed x patient, 3 patients": Regime(0.3, 0.5, 0.5, patients=3, patient=0.5, interaction=0.8),
     "seed x patient, 5 patients": Regime(0.3, 0.5, 0.5, patients=5, patient=0.5, interaction=0.8),
+    "lognormal patients, 3 patients": Regime(0.5, 0.5, 0.5, patients=3, patient=1.0, patient_skew="lognormal"),
+    "lognormal patients, 5 patients": Regime(0.5, 0.5, 0.5, patients=5, patient=1.0, patient_skew="lognormal"),
+    "lognormal trajectories, 20 % zeros": replace(BASE["trajectory-dominated"], traj_skew="lognormal", zeros=0.2),
     "2 seeds": replace(BASE["mixed"], seeds=(2,)),
     "shifted lognormal seeds": replace(BASE["seed-dominated"], seed_skew="shifted"),
 }
@@ -130,12 +144,28 @@ class Experiments:
 def simulate(rng: np.random.Generator, n: int, seeds: int, trajectories: int, g: Regime, shift: float = 0.0,
              w: np.ndarray | None = None) -> Experiments:
     """Two rows ``(n, seeds, trajectories)``; the second row's mean is ``MU + shift``."""
+    (a, b), these = simulate_rows(rng, n, seeds, trajectories, g, (0.0, shift), w)
+    return Experiments(a, b, these)
+
+
+def simulate_rows(rng: np.random.Generator, n: int, seeds: int, trajectories: int, g: Regime,
+                  shifts: tuple[float, ...], w: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Rows ``(n, seeds, trajectories)`` of one table column on the same test trajectories, row i's mean
+    ``MU + shifts[i]``; and the first row's mean over these patients."""
     groups = groups_of(trajectories, g.patients)
     w = np.ones(trajectories) if w is None else w
     shared_z = rng.standard_normal((n, 1, trajectories)) * np.sqrt(SHARED)
     patient = _effect(rng, (n, 1, max(g.patients, 1)), g.patient)[..., groups]
+    if g.patient_skew == "lognormal":  # the patient level is the factor; its additive effect is not drawn again
+        patient_factor = _factor(patient / g.patient, g.patient)
+        patient = np.zeros_like(patient)
+
+    keep = (rng.random((n, 1, trajectories)) >= g.zeros) if g.zeros else np.ones((1, 1, 1), dtype=bool)
 
     def row(mean: float) -> np.ndarray:
+        return parts(mean) * keep
+
+    def parts(mean: float) -> np.ndarray:
         traj_z = shared_z + rng.standard_normal((n, 1, trajectories)) * np.sqrt(1.0 - SHARED)
         seed = _effect(rng, (n, seeds, 1), g.seed, g.seed_skew == "shifted")
         inter = _effect(rng, (n, seeds, max(g.patients, 1)), g.interaction)[..., groups]
@@ -144,10 +174,48 @@ def simulate(rng: np.random.Generator, n: int, seeds: int, trajectories: int, g:
             return (mean + traj_z * g.traj + patient + inter + noise) * _factor(seed / g.seed, g.seed)
         if g.traj_skew == "lognormal":
             return (mean + patient + seed + inter + noise) * _factor(traj_z, g.traj)
+        if g.patient_skew == "lognormal":  # errors = (mean + the other parts) x a patient factor of mean 1
+            return (mean + traj_z * g.traj + seed + inter + noise) * patient_factor
         return mean + traj_z * g.traj + patient + seed + inter + noise
 
-    these = MU + (patient[:, 0, :] @ (w / w.sum()))
-    return Experiments(row(MU), row(MU + shift), these)
+    level = MU * patient_factor[:, 0, :] if g.patient_skew == "lognormal" else MU + patient[:, 0, :]
+    these = (level @ (w / w.sum())) * (1.0 - g.zeros)
+    return [row(MU + x) for x in shifts], these
+
+
+TIE_ROWS = (3, 6, 12)  # rows of a column (Table 6: 2; Tables 2/3: 12)
+TIE_REGIMES = ("mixed", "seed-dominated", "trajectory-dominated")
+
+
+def tied_group(rng: np.random.Generator, n: int, seeds: int, trajectories: int, g: Regime, k: int,
+               w: np.ndarray | None = None) -> dict[str, float]:
+    """k truly equal rows of a column: the share of experiments in which the report's tied group (the best by
+    mean, Holm over every pair: ``stats.tied_with_best``) leaves one of them out, and the same for the previous
+    rule (Holm over best vs each other row only)."""
+    w = np.ones(trajectories) if w is None else w
+    rows, _ = simulate_rows(rng, n, seeds, trajectories, g, (0.0,) * k, w)
+    means = np.stack([(x @ (w / w.sum())).mean(-1) for x in rows], -1)
+    pair_p = np.ones((n, k, k))
+    for i in range(k):
+        for j in range(i + 1, k):
+            pair_p[:, i, j] = pair_p[:, j, i] = combine([rows[i], rows[j]], w, [1.0, -1.0]).p
+    _, _, tied = tied_with_best(means, pair_p)
+    best = np.argmin(means, -1)
+    vs_best = np.take_along_axis(pair_p, best[:, None, None], 1)[:, 0, :]
+    others = np.where(np.arange(k) == best[:, None], np.inf, vs_best)  # the best itself sorts last
+    old = holm_array(np.sort(others, -1)[:, : k - 1])  # Holm over the k - 1 comparisons with the best
+    return {"report": float(np.mean(~tied.all(-1))), "old": float(np.mean((old < ALPHA).any(-1)))}
+
+
+def run_ties(experiments: int, trajectories: int, seed: int = 1, w: np.ndarray | None = None) -> dict:
+    """{(seeds, regime, k): tied_group(...)} over TIE_REGIMES x TIE_ROWS at 3 and 5 seeds."""
+    out = {}
+    for name in TIE_REGIMES:
+        for seeds in (3, 5):
+            for k in TIE_ROWS:
+                rng = np.random.default_rng([seed, seeds, k, list(REGIMES).index(name), 7])
+                out[(seeds, name, k)] = tied_group(rng, experiments, seeds, trajectories, REGIMES[name], k, w)
+    return out
 
 
 def _units(x: np.ndarray, w: np.ndarray, patients: int, unit: str) -> tuple[np.ndarray, np.ndarray]:
@@ -264,6 +332,62 @@ def graded(results: dict) -> list[dict[str, float]]:
             and printed(seeds, REGIMES[name].patients, est)]
 
 
+def _both(values: list[float], fmt: str) -> str:
+    return " / ".join(format(v, fmt) for v in values)
+
+
+def docs_table(results: dict, ties: dict) -> list[str]:
+    """The calibration tables of docs/reports.md, as the benchmark prints them (``--check-docs`` compares)."""
+    lines = ["| seeds | regime | estimand | coverage | FPR | power (1 seed-SD) | median width |",
+             "|---:|---|---|---:|---:|---:|---:|"]
+    groups: dict[tuple[str, str], list[tuple[int, dict]]] = {}
+    for (proc, seeds, name, est), m in results.items():
+        if proc == "report":
+            groups.setdefault((name, est), []).append((seeds, m))
+    for (name, est), got in groups.items():
+        seeds = " / ".join(str(x) for x, _ in got)
+        ms = [m for _, m in got]
+        regime = name + (" (not graded)" if name in UNGRADED else "")
+        if est.startswith("old"):
+            lines.append(f"| {seeds} | {regime} | *{est}* | {_both([m['coverage'] for m in ms], '.3f')} | | | |")
+        elif not printed(got[0][0], REGIMES[name].patients, est):
+            lines.append(f"| {seeds} | {regime} | {est} | refused (would be {_both([m['coverage'] for m in ms], '.3f')})"
+                         f" | refused ({_both([m['fpr'] for m in ms], '.3f')}) | | |")
+        else:
+            lines.append(f"| {seeds} | {regime} | {est} | {_both([m['coverage'] for m in ms], '.3f')} | "
+                         f"{_both([m['fpr'] for m in ms], '.3f')} | {_both([m['power'] for m in ms], '.3f')} | "
+                         f"{_both([m['width'] for m in ms], '.3g')} |")
+    if ties:
+        lines += ["", "| seeds | regime | rows (all equal) | a truly equal row left out of the tied group | "
+                  "previous rule (Holm over best vs others) |", "|---:|---|---:|---:|---:|"]
+        for (seeds, name, k), m in ties.items():
+            lines.append(f"| {seeds} | {name} | {k} | {m['report']:.3f} | {m['old']:.3f} |")
+    lines += ["", summary(results, ties)]
+    return lines
+
+
+def summary(results: dict, ties: dict) -> str:
+    ours = graded(results)
+    fpr = [m["fpr"] for m in ours] + [m["report"] for m in ties.values()]
+    return (f"min coverage {min(m['coverage'] for m in ours):.3f}, "
+            f"max false-positive rate {max(fpr):.3f}")
+
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "reports.md"
+BEGIN, END = "<!-- bench_calibration: begin -->", "<!-- bench_calibration: end -->"
+
+
+def check_docs(lines: list[str], path: Path = DOCS) -> list[str]:
+    """The lines where docs/reports.md's calibration block differs from ``lines`` (empty: they agree)."""
+    text = path.read_text(encoding="utf-8")
+    if BEGIN not in text or END not in text:
+        return [f"{path}: no {BEGIN} ... {END} block"]
+    block = text.split(BEGIN, 1)[1].split(END, 1)[0].strip("\n").splitlines()
+    block = [x for x in block if x.strip() not in ("```", "```text")]
+    return [f"docs: {a!r}\nbench: {b!r}" for a, b in zip(block + [""] * len(lines), lines + [""] * len(block))
+            if a.strip() != b.strip()]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--experiments", type=int, default=2000,
@@ -273,13 +397,29 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"regimes to run (default all): {', '.join(REGIMES)}")
     ap.add_argument("--baseline", type=int, default=400, metavar="N",
                     help="experiments for the two earlier procedures (old bootstrap, seed-level t); 0 skips them")
+    ap.add_argument("--ties", type=int, default=1000, metavar="N",
+                    help="experiments per tied-group row (k truly equal rows of a column); 0 skips them")
     ap.add_argument("--pair-weights", action="store_true",
                     help="weight the trajectories by unequal pair counts (the per-pair tables)")
+    ap.add_argument("--check-docs", action="store_true",
+                    help="run with the defaults and exit 1 when docs/reports.md's calibration tables differ")
     args = ap.parse_args(argv)
+    if args.check_docs:
+        args = ap.parse_args([])
+        results, ties = run(2000, 12, None, 0), run_ties(1000, 12)
+        diff = check_docs(docs_table(results, ties))
+        for line in diff:
+            print(line)
+        print("docs/reports.md matches the benchmark" if not diff else f"{len(diff)} line(s) of docs/reports.md "
+              "differ from the benchmark: paste the block it prints without --check-docs")
+        return 1 if diff else 0
     start = time.perf_counter()
     results = run(args.experiments, args.trajectories, args.regimes, args.baseline, pair_weights=args.pair_weights)
-    print(f"{args.experiments} experiments per row of the report's procedure ({args.baseline} for the others), "
-          f"{args.trajectories} test trajectories ({'weighted by pairs' if args.pair_weights else 'equal weights'}), "
+    w = pair_counts(args.trajectories) if args.pair_weights else None
+    ties = run_ties(args.ties, args.trajectories, w=w) if args.ties else {}
+    print(f"{args.experiments} experiments per row of the report's procedure ({args.baseline} for the others, "
+          f"{args.ties} per tied-group row), {args.trajectories} test trajectories "
+          f"({'weighted by pairs' if args.pair_weights else 'equal weights'}), "
           f"alpha {ALPHA:g}; power = detection of a difference of one seed-SD")
     print("| procedure | seeds | regime | estimand | coverage | false-positive rate | power | median width |")
     print("|---|---:|---|---|---:|---:|---:|---:|")
@@ -289,10 +429,10 @@ def main(argv: list[str] | None = None) -> int:
         if not shown:
             cells = " | ".join(f"refused ({x})" for x in cells.split(" | "))
         print(f"| {proc} | {seeds} | {name} | {est} | {cells} |")
-    ours = graded(results)
+    print(f"\nThe block of docs/reports.md ({BEGIN}):\n")
+    print("\n".join(docs_table(results, ties)))
     print(f"({time.perf_counter() - start:.1f} s)")
-    print(f"min coverage {min(m['coverage'] for m in ours):.3f}, "
-          f"max false-positive rate {max(m['fpr'] for m in ours):.3f}")
+    print(summary(results, ties))
     return 0
 
 

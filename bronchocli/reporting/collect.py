@@ -53,12 +53,13 @@ class RunRecord:
     tags: Mapping[str, str]
     metrics: Mapping[str, float]
     artifact_uri: str = ""
+    params: Mapping[str, str] = field(default_factory=dict)  # e.g. speed.precision (the captions' numerics)
 
     @classmethod
     def from_run(cls, run: "Run") -> "RunRecord":
         info = run.info
         return cls(info.run_id, info.status, int(info.start_time or 0), dict(run.data.tags),
-                   dict(run.data.metrics), info.artifact_uri or "")
+                   dict(run.data.metrics), info.artifact_uri or "", dict(run.data.params))
 
     def tag(self, name: str) -> str:
         return self.tags.get(name, "") or ""

@@ -185,7 +185,10 @@ def n_text(rows: Sequence[Row], evaluation: str, folds: Sequence[str] = ()) -> s
     trajs = [r.info["trajectories"] for r in model if r.info.get("trajectories")]
     pairs = [r.info["pairs"] for r in model if r.info.get("pairs")]
     text = f"n per cell = {_span(reps)} seed{'s' if max(reps) > 1 else ''}"
-    if trajs:
+    if trajs and evaluation == "trajectory":  # camera tracking: frames, the first pose of each trajectory given
+        text += (f" × {_span(trajs)} test trajectories ({_span(pairs)} frames after each trajectory's given first "
+                 f"pose: what CTF scores; ATE also counts the {_span(trajs)} first frames)")
+    elif trajs:
         text += f" × {_span(trajs)} test trajectories ({_span(pairs)} pairs)"
         if folds:
             text += f" of {len(folds)} held-out patient{'s' if len(folds) > 1 else ''}"
@@ -245,6 +248,30 @@ def provenance(ctx: ReportContext, c: Collector) -> str:
     return (f"Sweep '{idx.sweep}' (MLflow experiment '{idx.experiment}'): {source}; pose frame '{c.frame}'{size}; "
             f"seed{'s' if len(seeds) != 1 else ''} {', '.join(seeds) or '-'}. The MLflow run ids are listed with "
             f"the table.")
+
+
+PRECISION_NAMES = {"32": "fp32", "bf16-mixed": "bf16 autocast", "16-mixed": "fp16 autocast"}
+
+
+def precision_text(table: Table) -> tuple[str, str]:
+    """The caption's numerics statement and, when the rows trained at different precisions, a one-line warning.
+    From each run's ``speed.precision`` param; ("", "") when no run logged it (runs made before speed settings)."""
+    rows = {}
+    for r in table.rows:
+        got = sorted({PRECISION_NAMES.get(p, p) for run in r.info.get("runs", ())
+                      if (p := getattr(run, "params", {}).get("speed.precision"))})
+        if r.kind == "model" and got:
+            rows[r.name] = "/".join(got)
+    if not rows:
+        return "", ""
+    kinds = sorted(set(rows.values()))
+    if len(kinds) == 1:
+        return f"Numerics: every row trained at {kinds[0]} (speed.precision).", ""
+    named = "; ".join(f"{name}: {p}" for name, p in rows.items())
+    return (f"Numerics differ between rows ({named}; speed.precision, the per-architecture speed settings): a "
+            f"difference between these rows includes their numerics."), (
+            f"{table.key}: rows trained at different precisions ({', '.join(kinds)}): the caption names each row's; "
+            f"set train.precision in the config to compare at equal numerics")
 
 
 def references_text() -> str:

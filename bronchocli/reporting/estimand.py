@@ -52,6 +52,12 @@ def estimand_text(unit: str, rows: Sequence[Row]) -> str:
     patients = sorted({k[0] for s in _samples(rows) for k in s.keys})
     if not patients:
         return ""
+    reps = {r.info.get("replicates") for r in rows if r.kind == "model" and r.info.get("replicates")}
+    if reps == {1}:  # one seed everywhere: the estimand is the trained model, said once
+        over = (f"new test trajectories of the {_names(patients)} tested" if unit == TRAJECTORY else
+                f"new patients and their trajectories (it rests on {_names(patients)})")
+        return (f"Estimand: the one trained model of each row (one seed) — every interval and test is about its "
+                f"mean over {over}; seed-to-seed variation is not measured, so it is not a claim about new seeds.")
     if unit == TRAJECTORY:
         return (f"Estimand: these patients — every interval and test is about the mean over new seeds and new test "
                 f"trajectories of the {_names(patients)} tested (seeds and trajectories are the variance levels); "

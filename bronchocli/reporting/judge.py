@@ -6,21 +6,27 @@ adds the two image-blind reference rows, and decides the marks of every error
 column (``judge_column``):
 
 1. the row with the lowest mean is the candidate best;
-2. it is compared with every other row of the column by the paired t test
+2. every two rows of the column are compared by the paired t test
    (``stats.paired_p``: variance components over seeds and the shared test
    trajectories, Satterthwaite df), and the p-values are Holm-adjusted over
-   those comparisons;
+   all those pairs (the best is chosen by the data, so the family is every
+   pair: ``stats.tied_with_best``);
 3. the rows whose adjusted p is >= alpha are tied with it. Alone, it is the
    ``best``; otherwise every row of the tied group is marked ``tie`` and the
    caption says that no row is significantly best at that number of seeds.
 
 A row whose sample ``stats.refusal`` refuses (2 seeds, or too few patients for
 a new-patient estimand) shows its mean only and takes no part in the marks or
-skill (estimand.py). A row whose interval does not lie entirely below the
-better reference's mean is marked ``noskill``; a row whose predictions vary less than
-``IGNORES_RATIO`` of the ground truth's (``pred.std_ratio.pos``) is flagged
-``ignores``. Skill = 1 - error / better-reference error, with its interval
-from the same variance components (delta method, ``stats.skill``).
+skill (estimand.py). Each row is compared with the better reference (the
+lower mean; the higher for CTF) by one paired comparison on their shared test
+units (``versus_reference``): skill = 1 - error / reference error with its
+interval on the log-ratio scale (delta method, ``stats.skill``), for CTF the
+difference. A row whose paired interval does not lie above 0 is marked
+``noskill`` (†), and the skill figure colours a bar by the same verdict
+(``beats_reference``): one rule, per cell, no multiplicity correction. Rows
+without per-trajectory errors (logged means) fall back to their mean against
+the reference's. A row whose predictions vary less than ``IGNORES_RATIO`` of
+the ground truth's (``pred.std_ratio.pos``) is flagged ``ignores``.
 """
 
 from __future__ import annotations
@@ -119,21 +125,24 @@ def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence
 
 def judge_column(samples: Sequence[stats.Sample | None], s: Settings, higher: bool = False
                  ) -> tuple[list[set[str]], dict[int, float]]:
-    """Marks of one column (per row) and the Holm-adjusted p of each row against the best (the lowest mean;
-    the highest where ``higher`` is better, e.g. CTF)."""
+    """Marks of one column (per row) and the adjusted p of each row against the best (the lowest mean; the
+    highest where ``higher`` is better, e.g. CTF), Holm over every pair of the judged rows (stats.tied_with_best)."""
     out: list[set[str]] = [set() for _ in samples]
     samples = [judged(x) for x in samples]
     cand = [i for i, x in enumerate(samples) if x is not None]
     if len(cand) < 2:
         return out, {}
-    sign = -1.0 if higher else 1.0
-    best = min(cand, key=lambda i: sign * samples[i].mean)  # type: ignore[union-attr]
-    others = [i for i in cand if i != best]
-    raw = [stats.paired_p(samples[best], samples[i]) for i in others]  # type: ignore[arg-type]
-    adjusted = dict(zip(others, stats.holm(raw)))
-    tied = [best] + [i for i in others if adjusted[i] >= s.alpha]
-    for i in tied:
-        out[i].add("best" if len(tied) == 1 else "tie")
+    k = len(cand)
+    pair_p = np.ones((k, k))
+    for a in range(k):
+        for b in range(a + 1, k):
+            pair_p[a, b] = pair_p[b, a] = stats.paired_p(samples[cand[a]], samples[cand[b]])  # type: ignore[arg-type]
+    means = np.array([samples[i].mean for i in cand])  # type: ignore[union-attr]
+    best, vs_best, tied = stats.tied_with_best(means, pair_p, s.alpha, higher)
+    adjusted = {cand[j]: float(vs_best[j]) for j in range(k) if j != int(best)}
+    group = [cand[j] for j in range(k) if tied[j]]
+    for i in group:
+        out[i].add("best" if len(group) == 1 else "tie")
     return out, adjusted
 
 
@@ -145,10 +154,27 @@ def better_reference(refs: dict[str, list], j: int, higher: bool = False) -> sta
 
 
 def _no_skill(v: Estimate, bar: float, higher: bool) -> bool:
-    """The row's interval does not lie beyond the better reference's mean (below it; above it if higher)."""
+    """Without paired data (a row shown from logged means): the row's value does not lie beyond the better
+    reference's mean (below it; above it if higher)."""
     if higher:
         return (v.lo if v.has_interval else v.mean) <= bar  # type: ignore[operator]
     return (v.hi if v.has_interval else v.mean) >= bar  # type: ignore[operator]
+
+
+def versus_reference(model: stats.Sample, reference: stats.Sample, s: Settings, higher: bool = False
+                     ) -> stats.Derived:
+    """The one paired comparison of a row with the better reference on their shared test units: for an error,
+    the skill 1 - error / reference error (interval on the log-ratio scale); for a higher-is-better figure
+    (CTF), the difference model - reference. Both are > 0 where the row is better. ValueError: no shared unit."""
+    if higher:
+        return stats.derived([model, reference], lambda m, r: m - r, s.level)
+    return stats.skill(model, reference, s.level)
+
+
+def beats_reference(d: stats.Derived) -> bool:
+    """The verdict the † mark and the skill figure's colour share: the paired 95% interval lies above 0 (per
+    cell, no multiplicity correction: each cell's claim is about that row alone)."""
+    return d.lo > 0
 
 
 def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], evaluation: str, *,
@@ -178,14 +204,21 @@ def metric_rows(lines: Sequence[Line], frames: Frames, metrics: Sequence[str], e
         for i, row in enumerate(rows):
             marks[i][n_extra + j] |= column_marks[i]
             v = row.values[n_extra + j]
-            refused = col[i] is not None and judged(col[i]) is None  # means only: no † either
-            if bar is not None and isinstance(v, Estimate) and not refused and _no_skill(v, bar, up):
-                marks[i][n_extra + j].add("noskill")
-            if metric in skill_metrics and judged(col[i]) is not None and best_ref is not None:
+            if col[i] is not None and judged(col[i]) is None:  # means only: no † either
+                continue
+            verdict = None
+            if judged(col[i]) is not None and best_ref is not None:
                 try:
-                    skill.setdefault(row.name, {})[metric] = stats.skill(col[i], best_ref, s.level)
+                    verdict = versus_reference(col[i], best_ref, s, up)  # type: ignore[arg-type]
                 except ValueError:  # no shared trajectory with the reference
-                    pass
+                    verdict = None
+            if verdict is not None and not math.isnan(verdict.lo):
+                if not beats_reference(verdict):
+                    marks[i][n_extra + j].add("noskill")
+                if metric in skill_metrics and not up:
+                    skill.setdefault(row.name, {})[metric] = verdict
+            elif bar is not None and isinstance(v, Estimate) and _no_skill(v, bar, up):
+                marks[i][n_extra + j].add("noskill")
     fallback = [r.name for r in rows if r.runs and all(x is None for x in r.info["samples"])]
     return Built(rows + ref_rows, marks, skill, refs, fallback, unsettled)
 
@@ -196,10 +229,10 @@ def method_text(s: Settings) -> str:
             f"levels (variance components, Satterthwaite df), on the log scale of the errors (Cox's lognormal-mean "
             f"interval: above 0, longer upwards where errors are skewed) and the logit scale of percentages "
             f"(inside 0-100); calibrated by simulation at 3 and 5 seeds, also with skewed errors and few patients, "
-            f"docs/reports.md]. Best: the row with the lowest mean, "
-            f"compared with every other row of its column by a paired t test on the shared test trajectories "
-            f"(patients, for a new patient; seeds independent per row; two-sided), Holm-corrected over those "
-            f"comparisons; bold = significantly "
+            f"docs/reports.md]. Best: the row with the lowest mean; every two rows of a column are compared by a "
+            f"paired t test on the shared test trajectories (patients, for a new patient; seeds independent per "
+            f"row; two-sided), Holm-corrected over all those pairs (the best is chosen by the data); "
+            f"bold = significantly "
             f"better than every other row (adjusted p < {s.alpha:g}); bold with ≈ = tied group, not significantly "
             f"different from the lowest mean (adjusted p >= {s.alpha:g}).")
 
@@ -217,7 +250,11 @@ def unsettled_text(metrics: Sequence[str], names: dict[str, str], rows: Sequence
 
 
 def one_seed_text(rows: Sequence[Row]) -> str:
-    if any(r.kind == "model" and r.info.get("replicates") == 1 for r in rows):
-        return ("A row with one seed: its interval and tests cover the test-trajectory variation only "
-                "(seed-to-seed variation is not measured).")
-    return ""
+    """Rows with one seed among rows with more: their estimand is that one trained model (the caption's estimand
+    sentence covers a table where every row has one seed: estimand.estimand_text)."""
+    model = [r for r in rows if r.kind == "model" and r.info.get("replicates")]
+    single = [r.name for r in model if r.info["replicates"] == 1]
+    if not single or len(single) == len(model):
+        return ""
+    return (f"Rows with one seed ({', '.join(single)}): their estimand is that one trained model — their intervals "
+            f"and tests cover the test units only, not new seeds.")

@@ -25,7 +25,7 @@ from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
 from .context import LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext, arch_names
 from .estimand import ESTIMAND_NAMES, unit_of
-from .judge import metric_rows
+from .judge import beats_reference, metric_rows
 from .table_model import Estimate, Table
 
 FORMATS = ("png", "pdf")
@@ -45,7 +45,7 @@ def skill_figure(table: Table):
         x = np.arange(len(names))
         val = np.array([np.nan if s is None else s.value for s in d])
         err = np.array([[0.0, 0.0] if s is None else [s.value - s.lo, s.hi - s.value] for s in d]).T
-        colors = ["tab:blue" if s is not None and s.lo > 0 else "0.6" for s in d]
+        colors = ["tab:blue" if s is not None and beats_reference(s) else "0.6" for s in d]  # the † verdict
         ax.bar(x, val, color=colors, yerr=err, capsize=3)
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xticks(x, names, rotation=60, ha="right", fontsize=7)
@@ -54,8 +54,8 @@ def skill_figure(table: Table):
         ax.grid(axis="y", alpha=0.3)
     units = {x.unit for r in table.rows if r.kind == "model" for x in r.info.get("samples", ()) if x is not None}
     about = ESTIMAND_NAMES.get(units.pop() if len(units) == 1 else "", "its table's estimand")
-    fig.suptitle(f"{table.title}\nbars: skill with 95% interval (estimand: {about}); blue = interval above 0; "
-                 f"rows with 2 seeds show no skill", fontsize=8)
+    fig.suptitle(f"{table.title}\nbars: skill with 95% interval (estimand: {about}); blue = interval above 0 "
+                 f"(beats the better reference: no † in the table); rows with 2 seeds show no skill", fontsize=8)
     fig.tight_layout()
     return fig
 

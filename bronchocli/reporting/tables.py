@@ -51,6 +51,7 @@ from .context import (
     init_text,
     model_name,
     n_text,
+    precision_text,
     provenance,
     references_text,
 )
@@ -96,9 +97,12 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
-    parts += [budget_text(every), init_text(every), units, provenance(ctx, c)]
+    numerics, mixed = precision_text(table)
+    parts += [numerics, budget_text(every), init_text(every), units, provenance(ctx, c)]
     table.caption = " ".join(p for p in parts if p)
     finish(table, c, expected_empty)
+    if mixed:
+        table.warnings.append(mixed)
     if built.fallback:
         table.warnings.append(f"{table.key}: no trajectory_errors.csv for {', '.join(built.fallback)} "
                               f"({_why_missing(every, frames)}): logged means shown without interval, not ranked")

@@ -134,3 +134,83 @@ def test_positive_errors_keep_their_interval_above_zero():
     assert pos[1] - s.mean > s.mean - pos[0]  # longer upwards: the errors are right-skewed
     one = stats.Sample(s.keys[:1], np.ones(1), errors[:1, :1])
     assert math.isnan(stats.interval(one, scale=stats.POSITIVE)[0])  # one seed, one trajectory: nothing measured
+
+
+def _keys(n: int):
+    return tuple(("p", "l", f"t{i}") for i in range(n))
+
+
+def test_an_all_zero_percentage_gets_an_honest_upper_bound_and_no_warning():
+    import warnings
+
+    zero = stats.Sample(_keys(12), np.ones(12), np.zeros((3, 12)))
+    full = stats.Sample(_keys(12), np.ones(12), np.full((3, 12), 100.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the RuntimeWarning of the earlier [0, 0]
+        lo, hi = stats.interval(zero, scale=stats.PERCENT)
+        assert lo == 0.0 and hi == pytest.approx(100 * (1 - 0.025 ** (1 / 12)))  # 26.5 %, not 0
+        assert stats.interval(full, scale=stats.PERCENT) == (pytest.approx(100 - hi), 100.0)
+        assert all(math.isnan(x) for x in stats.interval(zero, scale=stats.POSITIVE))  # an error of 0: no width
+        assert stats.paired_p(zero, zero) == 1.0
+
+
+def test_errors_with_exact_zeros_stay_on_the_log_scale():
+    # ATE-type: some trajectories have error 0 in every seed, the others are right-skewed. The interval is the
+    # shifted-log one (stats.zeros_interval), not the linear fallback: above 0, longer upwards, the mean inside.
+    rng = np.random.default_rng(4)
+    errors = np.exp(1.0 * rng.standard_normal((1, 16))) * np.exp(0.1 * rng.standard_normal((3, 1)))
+    errors[:, :4] = 0.0
+    s = stats.Sample(_keys(16), np.ones(16), errors)
+    lo, hi = stats.interval(s, scale=stats.POSITIVE)
+    c = stats.ZERO_SHIFT * s.mean
+    ref = stats.positive_interval(errors + c, np.ones(16))
+    assert (lo, hi) == (pytest.approx(max(float(ref[0]) - c, 0.0)), pytest.approx(float(ref[1]) - c))
+    assert 0.0 <= lo < s.mean < hi and hi - s.mean > s.mean - lo
+    lin = stats.interval(s, scale=stats.LINEAR)
+    assert hi > lin[1]  # longer upwards than the linear interval where zeros and a long right tail meet
+
+
+def test_one_seed_states_its_estimand_once():
+    m = MemRuns(seed=21)
+    m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=0)
+    m.add("convlstm", "ce", (2.3, 11.0, 0.11, 0.011), seed=0)
+    t = personalized(m.context(), "accumulated")
+    assert "Estimand: the one trained model of each row (one seed)" in t.caption
+    assert "new seeds and new test trajectories" not in t.caption and "Rows with one seed" not in t.caption
+    for seed in (1, 2):
+        m.add("convlstm", "ce", (2.3, 11.0, 0.11, 0.011), seed=seed)
+    t = personalized(m.context(), "accumulated")
+    assert "Estimand: these patients" in t.caption
+    assert "Rows with one seed (+LSTM MSE+CE): their estimand is that one trained model" in t.caption
+
+
+def test_captions_say_reference_intervals_are_over_test_units_and_tracking_counts_frames():
+    m = MemRuns(seed=22)
+    for seed in (0, 1, 2):
+        m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
+    t = tracking(m.context(), "accumulated")
+    assert "reference intervals are over the test units only" in t.caption
+    assert "pairs)" not in t.caption and "frames after each trajectory's given first pose: what CTF scores" in t.caption
+
+
+def test_rows_at_different_precisions_are_named_in_the_caption_with_one_warning():
+    import dataclasses
+
+    m = MemRuns(seed=23)
+    for seed in (0, 1, 2):
+        m.add("offsetnet", "mse", (5.0, 20.0, 0.3, 0.05), seed=seed)
+        m.add("convlstm", "ce", (2.3, 11.0, 0.11, 0.011), seed=seed)
+    m.records = [dataclasses.replace(r, params={"speed.precision": "bf16-mixed" if r.tags["arch"] == "offsetnet"
+                                                else "32"}) for r in m.records]
+    from bronchocli.reporting.tables import sota
+
+    t = sota(m.context(), "accumulated")
+    assert "Numerics differ between rows (" in t.caption
+    assert "OffsetNet (MSE+MSE): bf16 autocast" in t.caption and ": fp32" in t.caption
+    assert [w for w in t.warnings if "different precisions" in w] == [
+        "table6-sota-accumulated: rows trained at different precisions (bf16 autocast, fp32): the caption names "
+        "each row's; set train.precision in the config to compare at equal numerics"]
+    m.records = [dataclasses.replace(r, params={"speed.precision": "32"}) for r in m.records]
+    t = sota(m.context(), "accumulated")
+    assert "Numerics: every row trained at fp32 (speed.precision)." in t.caption
+    assert not [w for w in t.warnings if "precision" in w]

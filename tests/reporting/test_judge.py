@@ -39,19 +39,31 @@ def test_a_clearly_better_row_is_the_single_best():
         assert t.marks[a][j] == {"best"} and t.marks[b][j] == set()
 
 
-def test_holm_decides_between_best_and_tie_on_three_rows(monkeypatch):
-    # Raw p of the best against the two others: 0.03 and 0.04, both < 0.05; Holm: 2*0.03 = 0.06,
-    # max(0.06, 0.04) = 0.06 -> neither is significant after correction: the three rows tie.
+def test_holm_over_every_pair_decides_between_best_and_tie_on_three_rows(monkeypatch):
+    # The best is chosen by the data, so the family is every pair of rows (3 pairs here), not only best vs others.
     samples = [stats.Sample((("p", "l", "t"),), np.ones(1), np.array([[v]])) for v in (1.0, 2.0, 3.0)]
-    p_of = {2.0: 0.03, 3.0: 0.04}
-    monkeypatch.setattr(stats, "paired_p", lambda a, b, *_: p_of[b.mean])
+    p_of = {(1.0, 2.0): 0.01, (1.0, 3.0): 0.02, (2.0, 3.0): 0.5}
+    monkeypatch.setattr(stats, "paired_p", lambda a, b, *_: p_of[tuple(sorted((a.mean, b.mean)))])
+    marks, adjusted = judge.judge_column(samples, judge.Settings())
+    # Holm over 3: 3 * 0.01 = 0.03, max(0.03, 2 * 0.02) = 0.04, 0.5 -> both significant: a single best
+    assert adjusted == {1: pytest.approx(0.03), 2: pytest.approx(0.04)}
+    assert marks == [{"best"}, set(), set()]
+    # raw 0.02 and 0.024: Holm over the two best-vs-other comparisons gave 0.04 / 0.04 (a single best); over the
+    # three pairs 0.06 / 0.06: the selection of the best is paid for, the three rows tie
+    p_of.update({(1.0, 2.0): 0.02, (1.0, 3.0): 0.024})
     marks, adjusted = judge.judge_column(samples, judge.Settings())
     assert adjusted == {1: pytest.approx(0.06), 2: pytest.approx(0.06)}
     assert marks == [{"tie"}, {"tie"}, {"tie"}]
-    p_of.update({2.0: 0.02, 3.0: 0.024})  # Holm: 0.04 and 0.04 -> both significant: a single best
-    marks, adjusted = judge.judge_column(samples, judge.Settings())
-    assert adjusted == {1: pytest.approx(0.04), 2: pytest.approx(0.04)}
-    assert marks == [{"best"}, set(), set()]
+
+
+def test_tied_with_best_is_batched_and_picks_the_highest_where_higher_is_better():
+    means = np.array([[1.0, 2.0, 3.0], [3.0, 2.0, 1.0]])
+    p = np.array([[[1, 0.001, 0.001], [0.001, 1, 0.9], [0.001, 0.9, 1]]] * 2)
+    best, vs_best, tied = stats.tied_with_best(means, p)
+    assert best.tolist() == [0, 2] and tied.tolist() == [[True, False, False], [False, True, True]]
+    assert vs_best[0].tolist() == pytest.approx([1.0, 0.003, 0.003])
+    best, _, tied = stats.tied_with_best(means, p, higher=True)
+    assert best.tolist() == [2, 0] and tied.tolist() == [[False, True, True], [True, False, False]]
 
 
 def test_reference_rows_are_present_for_every_metric_and_both_evaluations():
@@ -172,3 +184,62 @@ def test_the_tracking_table_is_built_once_with_both_references():
     assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]
     assert all(isinstance(v, Estimate) and v.has_interval for r in t.rows for v in r.values)
     assert tables.evaluations("both") == ["accumulated", "pair"]
+
+
+def _shared_difficulty_runs(factor: float, seed: int = 13):
+    """3 seeds of OffsetNet and ConvLSTM/CE at ``factor`` x the better reference on every metric, on trajectories
+    whose difficulty varies e-fold and is shared with the references (what the pairing cancels)."""
+    from report_fakes import difficulty
+
+    m = MemRuns(seed=seed)
+    m.hard = difficulty(m.keys, seed=seed, spread=0.8)
+    near = tuple(factor * min(z, t) for z, t in zip(REFS["zero_motion"], REFS["train_mean"]))
+    for s in (0, 1, 2):
+        m.add("offsetnet", "mse", near, seed=s, noise=0.02)
+        m.add("convlstm", "ce", near, seed=s, noise=0.02)
+    return m
+
+
+def _bar_colours(fig) -> list[list[bool]]:
+    """Per axis (metric), whether each bar is blue (the figure's 'beats the reference')."""
+    from matplotlib.colors import to_rgba
+
+    blue = to_rgba("tab:blue")
+    return [[p.get_facecolor() == blue for p in ax.patches] for ax in fig.axes]
+
+
+def test_dagger_and_skill_colour_are_one_paired_verdict_where_the_unpaired_rule_disagreed():
+    # The row is 10 % better than the reference on every trajectory, but trajectories differ e-fold in difficulty:
+    # its own interval (over seeds and trajectories) reaches above the reference's mean, so the earlier rule (row
+    # interval vs reference mean) marked † while the paired skill interval lay above 0 (blue) - the issue's
+    # OffsetNet Rotation L2 0.463 [0.145, 0.662] with †. Now both come from the paired comparison.
+    from bronchocli.reporting.skill_figures import skill_figure
+
+    m = _shared_difficulty_runs(0.9)
+    t = sota(m.context(), "accumulated")
+    ref_mean = min(r.values[1].mean for r in t.rows if r.kind == "reference")
+    i = next(i for i, r in enumerate(t.rows) if r.name.startswith("OffsetNet"))
+    cell = t.rows[i].values[1]  # Position L2 (after Params)
+    assert cell.hi >= ref_mean  # the old rule's †
+    d = t.skill[t.rows[i].name]["pos_l2"]
+    assert d.lo > 0 and judge.beats_reference(d)
+    assert "noskill" not in t.marks[i][1]
+    fig = skill_figure(t)
+    names = [r.name for r in t.rows if r.kind == "model" and r.name in t.skill]
+    for ax_blue, metric in zip(_bar_colours(fig), ("pos_l2", "rot_l2")):
+        for name, blue in zip(names, ax_blue):
+            row = next(k for k, r in enumerate(t.rows) if r.name == name)
+            column = 1 + ["pos_l2", "rot_l2", "de", "ce"].index(metric)
+            assert blue == ("noskill" not in t.marks[row][column]) == judge.beats_reference(t.skill[name][metric])
+
+
+def test_a_row_at_the_references_level_is_dagger_and_grey_by_the_same_test():
+    from bronchocli.reporting.skill_figures import skill_figure
+
+    m = _shared_difficulty_runs(1.0, seed=14)
+    t = sota(m.context(), "accumulated")
+    for i, r in enumerate(t.rows):
+        if r.kind == "model":
+            assert all("noskill" in t.marks[i][j] for j in range(1, 5))
+            assert not any(judge.beats_reference(d) for d in t.skill[r.name].values())
+    assert not any(any(col) for col in _bar_colours(skill_figure(t)))
