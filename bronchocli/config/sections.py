@@ -242,7 +242,7 @@ class Train(Section):
     compile: spelled(bool | Literal["default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs"]) = False
     # cap on validation pairs (evenly spread, the same every time)
     max_val_pairs: int | None = Field(None, ge=1, le=1_000_000_000)
-    threads: int | None = Field(None, ge=1, le=MAX_WORKERS)  # torch CPU threads; None = all cores / sweep workers
+    threads: int | None = Field(None, ge=1, le=MAX_WORKERS)  # torch CPU threads; None = a fair share of the cores (runs/cores.py)
 
     @model_validator(mode="after")
     def _accumulation(self) -> "Train":
