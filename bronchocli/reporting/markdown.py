@@ -40,8 +40,9 @@ def legend_parts(table: Table, bold: str) -> list[str]:
         parts += [f"{bold} = best of its column, significantly better than every other network row (paired t test, "
                   f"Holm-adjusted p < {ALPHA:g}; the image-blind references are judged by {NOSKILL} alone)",
                   f"{bold}{TIE} = tied for best: not significantly different from the row with the lowest mean",
-                  f"{NOSKILL} = does not beat the better image-blind reference (its interval does not lie below "
-                  f"the reference's mean; above it where higher is better)"]
+                  f"{NOSKILL} = does not beat the better image-blind reference (the interval of its paired "
+                  f"comparison with that reference on the shared test units does not lie above 0; a row with "
+                  f"logged means only: its interval does not lie below the reference's mean)"]
         if any("ignores" in r.flags for r in table.rows):
             parts.append(f"{IGNORES} = ignores its input (prediction std < 5% of the ground truth's)")
     parts.append(f"{MISSING} = no FINISHED run (see warnings)")

@@ -90,8 +90,12 @@ def test_table2_marks_follow_the_planted_values(built):
     assert _cells(md, "+ConvRNN", "MSE+MSE")[1].endswith("**≈")
     assert "≈" not in _cells(md, "+ConvRNN", "MSE+CE")[1]
     assert sum(line.count("**≈") for line in md.splitlines() if line.startswith("|")) == 2
-    # conv3d MSE+MSE ignores its input and does not beat the references; conv3d MSE+CE only FAILED.
-    assert "| +3D | MSE+MSE ‡ |" in md and all(c.endswith("†") for c in _cells(md, "+3D", "MSE+MSE ‡"))
+    # conv3d MSE+MSE ignores its input; it does not beat the training mean where its planted errors lie above
+    # the reference's (position L2, DE), and does where they lie below it on every shared test trajectory
+    # (rotation L2 22.1 vs 23.0, CE): the paired comparison (issue 36) sees what the unpaired rule missed.
+    # conv3d MSE+CE only FAILED.
+    cells = _cells(md, "+3D", "MSE+MSE ‡")
+    assert "| +3D | MSE+MSE ‡ |" in md and [c.endswith("†") for c in cells] == [True, False, True, False]
     assert _cells(md, "+3D", "MSE+CE") == ["—"] * 4
     assert not any(c.endswith("†") for c in _cells(md, "+ConvRNN", "MSE+CE"))
     for ref in ("Zero motion", "Training mean"):
