@@ -193,24 +193,28 @@ def test_a_busy_database_releases_the_cell_without_using_an_attempt_and_the_retr
 def test_a_full_disk_fails_the_cell_with_its_reason_and_the_retry_resumes_the_checkpoint(make_config, fake_dir):
     from bronchocli.training.checkpoint import CheckpointWriteError
 
-    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1})
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
     store, plan = setup(cfg)
     runner, seen = machine_failure(CheckpointWriteError)
-    assert Worker(cfg, plan.cells, store, runner).run() == 0
+    with pytest.raises(CheckpointWriteError):  # a full disk meets every cell: the worker stops (issue 37.3)
+        Worker(cfg, plan.cells, store, runner).run()
     row = rows(store, cfg)["baseline"]
-    assert (row.state, row.attempts) == (FINISHED, 2)
+    assert row.state == FAILED and row.failure_reason == "CheckpointWriteError: the machine"
+    assert (cfg.paths.checkpoints / seen[0][1]).exists()  # kept: the machine failed, not the cell
+    assert Worker(cfg, plan.cells, store, runner).run() == 0  # space freed, the same command: resumed once
+    assert rows(store, cfg)["baseline"].state == FINISHED
     assert [s[0] for s in seen] == ["failed", "resumed"] and seen[0][1] == seen[1][1]
 
 
 def test_a_failed_run_keeps_its_checkpoint_only_while_its_cell_can_be_retried(make_config, fake_dir):
-    from bronchocli.training.checkpoint import CheckpointWriteError
+    from bronchocli.training.loop import NonFiniteLoss
 
     cfg = make_config(archs=("baseline",), sweep={"max_retries": 0})
     store, plan = setup(cfg)
-    runner, seen = machine_failure(CheckpointWriteError)
+    runner, seen = machine_failure(NonFiniteLoss)  # the cell's own failure: its attempt is spent
     assert Worker(cfg, plan.cells, store, runner).run() == 0
     row = rows(store, cfg)["baseline"]
-    assert row.state == FAILED and row.failure_reason == "CheckpointWriteError: the machine"
+    assert row.state == FAILED and row.failure_reason == "NonFiniteLoss: the machine"
     assert not (cfg.paths.checkpoints / seen[0][1]).exists()  # last attempt: nothing will resume it
 
 
