@@ -23,6 +23,7 @@ from bronchocli.runs.contract import RunInterrupted
 from bronchocli.runs.processes import TAG_PID
 from bronchocli.runs.records import cell_tags, search_runs
 from bronchocli.training import checkpoint
+from bronchocli.training.network import PoseRegressor
 from bronchocli.training.run import run_cell
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -92,13 +93,12 @@ def test_resume_of_an_unknown_run_id_is_a_clear_error(tiny_project, cli):
     assert code == 2 and "--run-id 0123abcd: no such MLflow run" in err and len(err.strip().splitlines()) == 1
 
 
-def test_non_finite_loss_fails_the_run_with_its_reason(tmp_path):
-    root = write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8,
-                              image_size=32)
-    for csv in root.glob("p*.csv"):  # finite on disk, but the squared error overflows to inf
-        table = pd.read_csv(csv)
-        table.loc[table.frame % 2 == 1, "pos_x"] = 1e200
-        table.to_csv(csv, index=False)
+def test_non_finite_loss_fails_the_run_with_its_reason(tmp_path, monkeypatch):
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    # Poses that overflow the loss are refused by the reader now (|position| <= 1e6 voxels): a loss that turns NaN
+    # stands for a diverging run.
+    loss = PoseRegressor.loss
+    monkeypatch.setattr(PoseRegressor, "loss", lambda self, *a, **k: loss(self, *a, **k) * float("nan"))
     cfg = load_config(write_config(tmp_path))
     result = run_cell(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized"), progress=False)
     assert result.status == "FAILED"
