@@ -8,6 +8,7 @@ import os
 from pathlib import Path
 
 import pytest
+from mounts import tmpfs
 
 REPO = Path(__file__).resolve().parents[1]
 # A copy of ../shared/data/airways (CT-derived tree of the Chaste project, BSD-3, licence beside it),
@@ -67,18 +68,9 @@ def cli(monkeypatch):
 
 @pytest.fixture
 def small_fs(tmp_path):
-    """A 1 MB tmpfs mounted at ``tmp_path/small`` (needs root and a kernel that allows it; skipped otherwise)."""
-    import subprocess
-
-    mount = tmp_path / "small"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip() or done.returncode}")
-    try:
+    """A 1 MB tmpfs mounted at ``tmp_path/small``."""
+    with tmpfs(tmp_path / "small", "1m") as mount:
         yield mount
-    finally:
-        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
 
 
 def pytest_collection_modifyitems(config, items):

@@ -4,9 +4,9 @@ kept and no attempt of its cell used; the worker stops; after space is freed the
 from __future__ import annotations
 
 import re
-import subprocess
 
 import pytest
+from mounts import tmpfs
 from tinydata import write_tiny_dataset
 
 from bronchocli.errors import WriteFailed
@@ -83,15 +83,8 @@ def test_gc_keeps_a_disk_full_runs_checkpoint_until_its_cell_is_failed_for_good(
 @pytest.fixture
 def disk(tmp_path):
     """An 800 MB tmpfs (the tiny baseline's checkpoint is ~225 MB; the next one needs twice that free beside it)."""
-    mount = tmp_path / "disk"
-    mount.mkdir()
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=800m", "tmpfs", str(mount)], capture_output=True)
-    if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip() or done.returncode}")
-    try:
+    with tmpfs(tmp_path / "disk", "800m") as mount:
         yield mount
-    finally:
-        subprocess.run(["umount", "-l", str(mount)], capture_output=True)
 
 
 @pytest.mark.slow  # ~3 min on 2 busy cores: two real trainings of the tiny baseline
