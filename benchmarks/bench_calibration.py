@@ -1,7 +1,8 @@
 """Calibration of the report's intervals and paired test, by simulation with known true means.
 
     python benchmarks/bench_calibration.py [--experiments 2000] [--trajectories 12] [--regimes NAME ...]
-                                           [--baseline 400] [--pair-weights]
+                                           [--baseline 400] [--ties 1000] [--pair-weights]
+    python benchmarks/bench_calibration.py --check-docs   # exit 1 when docs/reports.md's block differs
 
 Each simulated experiment is one table cell (and, for the test, two rows on the
 same test trajectories):
@@ -19,19 +20,28 @@ split as evenly as possible over the patients):
 | seed-dominated | 1.0 | - | - | 0.3 | 0.3 | 3, 5 |
 | mixed | 0.5 | - | - | 0.5 | 0.5 | 3, 5 |
 | trajectory-dominated | 0.1 | - | - | 1.0 | 0.5 | 3, 5 |
-| 3 patients / 5 patients | 0.5 | 0.8 | - | 0.8 | 0.5 | 3, 5 |
+| 3 patients / 5 patients | 0.5 | 0.8 | - | 0.5 | 0.5 | 3, 5 |
 | lognormal seeds | 1.0, lognormal | - | - | 0.3 | 0.3 | 3, 5 |
 | lognormal trajectories | 0.1 | - | - | 1.0, lognormal | 0.5 | 3, 5 |
 | seed x patient, 3 / 5 patients | 0.3 | 0.5 | 0.8 | 0.5 | 0.5 | 3, 5 |
+| lognormal patients, 3 / 5 patients | 0.5 | 1.0, lognormal | - | 0.5 | 0.5 | 3, 5 |
+| lognormal trajectories, 20 % zeros | 0.1 | - | - | 1.0, lognormal | 0.5 | 3, 5 |
 | 2 seeds | 0.5 | - | - | 0.5 | 0.5 | 2 |
+| shifted lognormal seeds (not graded) | 1.0, shifted | - | - | 0.3 | 0.3 | 3, 5 |
 
 "lognormal" = a standardised lognormal with sigma 1 (skewness 6.2) scaled to
 the SD: positive, right-skewed errors (where seeds dominate this is the same,
-up to location and scale, as a multiplicative lognormal seed factor).
+up to location and scale, as a multiplicative lognormal seed factor), except
+in "shifted lognormal seeds", where it is an additive effect; a lognormal
+patient or trajectory level is a multiplicative factor of mean 1 with that
+sigma. "20 % zeros": a fifth of the trajectories have an error of exactly 0 for
+every row and seed.
 
 Two estimands, each scored by the procedure the report uses for it
-(``stats.combine`` on the trajectories, or on the patient means, with the
-bounds of a positive figure: ``Inference.bounded("positive")``):
+(the interval of a positive figure, ``stats.positive_interval`` -- Cox's
+lognormal-mean interval, ``stats.zeros_interval`` where some errors are 0 --
+and the paired test ``stats.combine(...).p``, on the trajectories or on the
+patient means, ``stats.collapse``):
 
 * **these patients** (personalized tables): the mean over new seeds and new
   trajectories of the simulated patients, mu + their patients' mean effect;
@@ -48,8 +58,12 @@ have given. ``old: trajectories for a new patient`` is the previous report's
 procedure (trajectories as units) scored against a new patient: the blind spot
 the patient level fixes. ``--baseline N`` also runs the two procedures the
 report used before (two-level percentile bootstrap, seed-level t) on the three
-original regimes. The last line is ``min coverage <x>, max false-positive rate
-<y>`` over every row where the report prints an interval.
+original regimes. ``--ties N`` measures the tied group (``stats.tied_with_best``)
+of 3, 6 and 12 truly equal rows. ``--check-docs`` runs the defaults and
+compares the block it prints with docs/reports.md's (between the
+``bench_calibration`` markers). The last line is ``min coverage <x>, max false-positive rate
+<y>`` over every row where the report prints an interval (``KNOWN_SHORT`` rows
+named after it instead).
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ seed and trajectory effects; a seed x patient interaction; 2 seeds) is simulated
 scored with the report's own ``stats`` functions, for both estimands (these patients, a new patient). The small
 simulation (400 experiments, fixed seed: deterministic; Monte Carlo SE of a 0.95 coverage ≈ 0.011) must cover
 >= 0.90 wherever the report prints an interval; the full one (2,000, SE ≈ 0.005) meets the acceptance bounds
-0.93 / 0.06.
+0.93 / 0.06. docs/reports.md's calibration block is what the benchmark prints (``--check-docs``).
 """
 
 from __future__ import annotations
@@ -74,3 +74,24 @@ def test_the_old_bootstrap_fails_where_the_issue_says(bench):
     results = bench.run(150, 12, ["seed-dominated"], baseline=150)
     assert results[("old bootstrap", 3, "seed-dominated", "these patients")]["coverage"] < 0.85
     assert results[("old bootstrap", 3, "seed-dominated", "these patients")]["fpr"] > 0.10
+
+
+def test_docs_reports_calibration_block_is_what_the_benchmark_prints(bench):
+    """docs/reports.md's tables between the bench_calibration markers equal the benchmark's output at its defaults
+    (what ``bench_calibration.py --check-docs`` runs: 2,000 experiments per row, 1,000 per tied-group row; ≈ 5 s).
+    Any change to the statistics that moves a printed digit fails here until the block is pasted again."""
+    results, ties = bench.run(2000, 12, None, 0), bench.run_ties(1000, 12)
+    diff = bench.check_docs(bench.docs_table(results, ties))
+    assert not diff, "docs/reports.md differs from bench_calibration.py (paste its block):\n" + "\n".join(diff)
+
+
+def test_check_docs_names_a_changed_line_and_a_missing_block(bench, tmp_path):
+    """The comparison itself: a digit changed in the docs, a row missing, or no markers are all reported."""
+    lines = ["| a | 0.950 |", "| b | 0.931 |", "", "min coverage 0.931, max false-positive rate 0.050"]
+    doc = tmp_path / "reports.md"
+    doc.write_text("text\n" + bench.BEGIN + "\n" + "\n".join(lines) + "\n" + bench.END + "\nmore\n")
+    assert bench.check_docs(lines, doc) == []
+    assert bench.check_docs(["| a | 0.950 |", "| b | 0.929 |", *lines[2:]], doc)  # one digit differs
+    assert bench.check_docs(lines + ["| c | 0.940 |"], doc)  # a row the docs lack
+    doc.write_text("no block here\n")
+    assert bench.check_docs(lines, doc) == [f"{doc}: no {bench.BEGIN} ... {bench.END} block"]
