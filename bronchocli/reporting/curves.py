@@ -6,7 +6,9 @@ training-mean predictor's on the same pairs, below 1 when the model beats that i
 optimised; training/batchnorm.py) — against the image pairs seen. The runs' final test ratio
 (``ratio.train_mean.pair.pos_l2``) is marked at their last point. Drawn when some run has at least two
 validations with these metrics (older runs did not log them); the learning-curve profile's figure
-(benchmarks/README.md, "Learning from scratch").
+(benchmarks/README.md, "Learning from scratch"). ``fig-training-curves.csv`` holds the same points (one row
+per run and validation: step, pairs seen, both curves and the training loss logged at that step), so the
+numbers quoted from a curve come from the report, not from a query of the store.
 """
 
 from __future__ import annotations
@@ -16,11 +18,12 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from ..io import save_figure
+from ..io import save_figure, write_text
 from .collect import RunRecord
 
 CURVES = ("val.ratio.pos_l2", "val.mode_gap")
 PAIRS = "train.pairs_seen"
+TRAIN_LOSS = "train_loss"
 TEST = "ratio.train_mean.pair.pos_l2"
 FORMATS = ("png", "pdf")
 History = Callable[[str, str], Sequence[tuple[int, float]]]  # (run id, metric) -> [(step, value)]
@@ -44,11 +47,32 @@ def curves(runs: Sequence[RunRecord], history: History) -> dict[str, dict[str, l
     return out
 
 
+def curve_rows(runs: Sequence[RunRecord], history: History) -> list[tuple]:
+    """(run, step, pairs seen, ratio, mode gap, training loss) per validation of the runs ``curves`` keeps; a
+    value not logged at that step is None."""
+    rows = []
+    for run in sorted(runs, key=lambda r: r.label):
+        per = {key: dict(history(run.run_id, key)) for key in (PAIRS, *CURVES, TRAIN_LOSS)}
+        if len([s for s in per[CURVES[0]] if s in per[PAIRS]]) < 2:
+            continue
+        rows += [(run.label, step, per[PAIRS][step], ratio, per[CURVES[1]].get(step), per[TRAIN_LOSS].get(step))
+                 for step, ratio in sorted(per[CURVES[0]].items()) if step in per[PAIRS]]
+    return rows
+
+
+def write_curve_csv(rows: Sequence[tuple], path: Path) -> Path:
+    cell = lambda v: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else str(v))  # noqa: E731
+    head = ("run", "step", PAIRS, *CURVES, TRAIN_LOSS)
+    return write_text(path, "".join(",".join(map(cell, r)) + "\n" for r in [head, *rows]))
+
+
 def training_curves(runs: Sequence[RunRecord], history: History, out: Path, warnings: list[str]) -> list[Path]:
-    """Write fig-training-curves (nothing when no run has two validations of the curve metrics)."""
+    """Write fig-training-curves (png, pdf and its points as csv; nothing when no run has two validations of
+    the curve metrics)."""
     data = curves(runs, history)
     if not data:
         return []
+    table = write_curve_csv(curve_rows(runs, history), Path(out) / "fig-training-curves.csv")
     final = {r.label: r.metrics.get(TEST) for r in runs}
     fig, (ratio_ax, gap_ax) = plt.subplots(1, 2, figsize=(11, 4))
     for label, per in sorted(data.items()):
@@ -70,4 +94,4 @@ def training_curves(runs: Sequence[RunRecord], history: History, out: Path, warn
         ax.legend(fontsize=6)
     fig.suptitle("Training curves: every validation (★ the run's test ratio, at its end)", fontsize=9)
     fig.tight_layout()
-    return save_figure(fig, Path(out) / "fig-training-curves", FORMATS)
+    return [*save_figure(fig, Path(out) / "fig-training-curves", FORMATS), table]

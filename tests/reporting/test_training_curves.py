@@ -28,6 +28,21 @@ def test_the_figure_is_drawn_from_two_validations_and_skipped_for_runs_without_t
     history = fake_history({"a": {"train.pairs_seen": [(1, 20.0), (2, 40.0)], "val.ratio.pos_l2": [(1, 1.0), (2, 0.9)]},
                             "old": {"train.pairs_seen": [(1, 20.0)], "val_loss": [(1, 1.0)]}})
     files = training_curves(runs, history, tmp_path, [])
-    assert sorted(p.name for p in files) == ["fig-training-curves.pdf", "fig-training-curves.png"]
-    assert all(p.stat().st_size > 1000 for p in files)
+    assert sorted(p.name for p in files) == ["fig-training-curves.csv", "fig-training-curves.pdf",
+                                             "fig-training-curves.png"]
+    assert all(p.stat().st_size > 1000 for p in files if p.suffix != ".csv")
     assert training_curves(runs[1:], history, tmp_path / "none", []) == []
+
+
+def test_the_csv_holds_each_validation_of_the_kept_runs_with_the_loss_logged_at_its_step(tmp_path):
+    runs = [RunRecord("a", "FINISHED", 0, TAGS, {}), RunRecord("old", "FINISHED", 0, {**TAGS, "seed": "1"}, {})]
+    history = fake_history({"a": {"train.pairs_seen": [(250, 5000.0), (500, 10000.0)],
+                                  "val.ratio.pos_l2": [(250, 0.97), (500, 0.93)],
+                                  "val.mode_gap": [(500, 1.01)],
+                                  "train_loss": [(100, 2.0), (250, 1.5), (500, 1.25)]},
+                            "old": {"train.pairs_seen": [(1, 20.0)], "val.ratio.pos_l2": [(1, 1.0)]}})
+    files = training_curves(runs, history, tmp_path, [])
+    csv = next(p for p in files if p.suffix == ".csv").read_text().splitlines()
+    assert csv == ["run,step,train.pairs_seen,val.ratio.pos_l2,val.mode_gap,train_loss",
+                   "baseline/ce/personalized/s0/camera,250,5000,0.97,,1.5",
+                   "baseline/ce/personalized/s0/camera,500,10000,0.93,1.01,1.25"]
