@@ -85,6 +85,15 @@ def plain_name(name: str) -> bool:
     return bool(name) and name not in (".", "..") and "/" not in name and "\\" not in name and "\0" not in name
 
 
+def nearest_existing(path: str | os.PathLike) -> Path:
+    """``path`` or its nearest ancestor that exists (where a path to be created would go; whose file system's
+    free space a write to it would use)."""
+    p = Path(path)
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
 def _why_not_writable(folder: Path) -> str | None:
     """Why nothing can be created in the existing folder ``folder`` (None: it can)."""
     try:
@@ -116,9 +125,7 @@ def check_output(path: Path, setting: str, kind: str = "folder") -> None:
         if why is not None:
             raise BronchoError(f"{setting} {path}: cannot write there ({why}); point {setting} at a writable place")
         return
-    nearest = path.parent
-    while not nearest.exists() and nearest != nearest.parent:
-        nearest = nearest.parent
+    nearest = nearest_existing(path.parent)
     if not nearest.is_dir():
         raise BronchoError(f"{setting} {path}: {nearest} is a file, so no {kind} can be created there")
     why = _why_not_writable(nearest)

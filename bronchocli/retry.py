@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
-from . import urls
+from . import pathcheck, urls
 from .io import fmt_bytes
 
 T = TypeVar("T")
@@ -103,9 +103,8 @@ def disk_full(exc: BaseException) -> tuple[str, str | None] | None:
 def disk_full_line(where: str | os.PathLike, why: str, need: int | None = None) -> str:
     """One line for a full disk: the file or folder written (``where``), why, the space free in its folder (the
     nearest that exists) and, when known, the space needed (``need`` bytes)."""
-    folder = Path(where)
-    while not folder.is_dir() and folder != folder.parent:
-        folder = folder.parent
+    folder = pathcheck.nearest_existing(where)
+    folder = folder if folder.is_dir() else folder.parent  # a file that exists: the space of its folder
     try:
         free = f"{fmt_bytes(shutil.disk_usage(folder).free)} free" + ("" if folder == Path(where) else f" in {folder}")
     except OSError:
@@ -164,11 +163,6 @@ def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], wh
                     raise
                 raise replacement from None
             if not quiet:
-                log.warning("%s: %s; retrying", what, urls.redact(_first_line(exc)))  # a URL may hold a password
+                log.warning("%s: %s; retrying", what, urls.error_line(exc))  # a URL may hold a password
             time.sleep(delay if left is None else min(delay, left))
             delay = min(2 * delay, max_delay_s)
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-    return lines[0] if lines else type(exc).__name__

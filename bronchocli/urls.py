@@ -61,6 +61,13 @@ def redact(text: str) -> str:
     return text
 
 
+def error_line(exc: BaseException, limit: int | None = None) -> str:
+    """What a one-line message shows of an exception: its first non-blank line (the database driver's own under
+    SQLAlchemy's wrapper, ``exc.orig``), passwords redacted, at most ``limit`` characters; its type when empty."""
+    lines = [s for s in str(getattr(exc, "orig", None) or exc).strip().splitlines() if s.strip()]
+    return redact(lines[0] if lines else type(exc).__name__)[:limit]
+
+
 def has_secret(text: str) -> bool:
     """Whether ``text`` holds a password :func:`redact` would hide (a URL or a ``--set`` override)."""
     return redact(text) != text

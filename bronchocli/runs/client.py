@@ -58,7 +58,7 @@ def retry_busy(fn: Callable[[], Any], what: str, bound_s: float, shown: str) -> 
     again too, a few times (``retry.with_races``): the platform's race, never the cell's failure."""
     def give_up(exc: BaseException) -> BaseException:
         return MlflowBusy(f"runs.uri {shown}: the MLflow store stayed busy or unavailable for {bound_s:g} s "
-                          f"({urls.redact(_first_line(exc))}, during {what}); try again when it is back, or raise "
+                          f"({urls.error_line(exc)}, during {what}); try again when it is back, or raise "
                           "runs.busy_timeout_s")
 
     try:
@@ -129,7 +129,7 @@ class MetricBuffer:
                     raise
                 if not self._warned:
                     log.warning("MLflow store unavailable (%s): metrics of step %d and later are kept in memory "
-                                "and sent when it answers", urls.redact(_first_line(exc))[:300], step)
+                                "and sent when it answers", urls.error_line(exc, 300), step)
                 self._warned = True
                 return False
             self.pending.pop(0)
@@ -225,7 +225,7 @@ def _client(uri: str) -> MlflowClient:
     try:
         return MlflowClient(tracking_uri=uri)
     except MlflowException as exc:
-        raise BronchoError(f"runs.uri {urls.redact(uri)}: {urls.redact(_first_line(exc))}") from None
+        raise BronchoError(f"runs.uri {urls.redact(uri)}: {urls.error_line(exc)}") from None
 
 
 def _open(uri: str) -> MlflowClient:
@@ -233,11 +233,6 @@ def _open(uri: str) -> MlflowClient:
     client = _client(uri)
     client.search_experiments(max_results=1)
     return client
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-    return lines[0] if lines else type(exc).__name__
 
 
 def set_http_limits(timeout_s: float) -> None:
@@ -287,7 +282,7 @@ def database_lock(url: str, timeout_s: float, what: str = "database", key: int =
         conn = engine.connect()
     except (SQLAlchemyError, ImportError, ValueError) as exc:
         raise MlflowUnreachable(
-            f"{what} {shown}: cannot connect within {limit} s ({urls.redact(_first_line(exc))}); check the "
+            f"{what} {shown}: cannot connect within {limit} s ({urls.error_line(exc)}); check the "
             "host, port, database name and credentials, and that the server is running") from None
     try:
         conn.execute(text("SELECT pg_advisory_lock(:key)"), {"key": key})

@@ -150,7 +150,7 @@ class SweepStore:
         try:
             self.engine: Engine = _make_engine(self.url, timeout_s, busy_timeout_s)
         except (SQLAlchemyError, ImportError, ValueError) as exc:
-            raise BronchoError(f"storage.url {self.redacted}: {_first_line(exc)}") from None
+            raise BronchoError(f"storage.url {self.redacted}: {urls.error_line(exc)}") from None
         self.dialect = self.engine.dialect.name
         self._now = literal_column(_now_sql(self.dialect), Float)
 
@@ -178,7 +178,7 @@ class SweepStore:
             place = disk_full_line(where, full[0]) if where is not None else f"the database server's disk is full "\
                 f"({full[0]})"
             return f"sweep storage {self.redacted}: {place}; free space there and run the same command again"
-        text = f"sweep storage {self.redacted}: {_first_line(exc)}"
+        text = f"sweep storage {self.redacted}: {urls.error_line(exc)}"
         if self.dialect != "sqlite" and "connect" in text.lower():  # a server that is down, elsewhere or misnamed
             text += "; check the host, port, database name and credentials, and that the server is running"
         return text
@@ -398,11 +398,6 @@ class SweepStore:
 
 class StorageError(BronchoError):
     """The sweep storage could not be reached or queried (URL shown with its password hidden)."""
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-    return urls.redact(text[0] if text else type(exc).__name__)
 
 
 def _now_sql(dialect: str) -> str:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import io, urls
+from .. import io, pathcheck, urls
 from ..config import Config
 from ..errors import BronchoError, CheckpointWriteError, WriteFailed  # resumable kinds: defined with the others
 from ..retry import disk_full, disk_full_line
@@ -59,7 +59,7 @@ def as_write_failure(exc: BaseException, need: int | None = None, where: Path | 
     if full is None:
         return None
     why, file = full
-    line = disk_full_line(file or where, why, need) if (file or where) else _first_line(exc)
+    line = disk_full_line(file or where, why, need) if (file or where) else urls.error_line(exc, 200)
     return WriteFailed(f"{line}; free space there and run the same command again: it resumes the run from its "
                        "checkpoint")
 
@@ -185,18 +185,10 @@ def nbytes(obj: Any) -> int:
     return sum(seen.values()) + OVERHEAD
 
 
-def existing_folder(path: Path) -> Path:
-    """``path`` or its nearest existing ancestor (where the file system's free space is measured)."""
-    p = Path(path)
-    while not p.exists() and p != p.parent:
-        p = p.parent
-    return p
-
-
 def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
     """CheckpointWriteError (one line) unless the file system of ``path`` has ``need`` bytes free."""
     try:
-        free = shutil.disk_usage(existing_folder(path.parent)).free
+        free = shutil.disk_usage(pathcheck.nearest_existing(path.parent)).free
     except OSError:  # cannot tell (e.g. a file system without statvfs): let the write itself decide
         return
     if free < need:
@@ -237,16 +229,11 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
         if not _is_write_failure(exc):
             raise
         code = getattr(exc, "errno", None)
-        why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else _first_line(exc)
+        why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else urls.error_line(exc, 200)
         raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about "
                                    f"{io.fmt_bytes(need)} free there; free space or point runs.checkpoints "
                                    "elsewhere") from None
     return path
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = [s for s in str(exc).strip().splitlines() if s.strip()]
-    return (lines[0] if lines else type(exc).__name__)[:200]
 
 
 def read_plain(path: Path, what: str, fix: str) -> Any:
@@ -256,7 +243,7 @@ def read_plain(path: Path, what: str, fix: str) -> Any:
         return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - unpickling refused, truncated, not a zip, I/O error: all mean "bad"
         why = "it holds objects other than tensors and plain data (refused unloaded)" \
-            if "weights_only" in str(exc) or "Unsupported global" in str(exc) else _first_line(exc)
+            if "weights_only" in str(exc) or "Unsupported global" in str(exc) else urls.error_line(exc, 200)
         raise BadCheckpoint(f"{what} {path}: not a valid {what}: {why}; {fix}") from None
 
 
