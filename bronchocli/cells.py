@@ -9,7 +9,7 @@ line naming the field and the allowed values, before any work starts. Its
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Annotated, Any, Literal, get_args
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
@@ -19,27 +19,32 @@ from . import registry
 from .errors import ConfigError
 
 
-def _registered_arch(value: Any) -> Any:
-    """An architecture registered now (registry.py), refused in the words pydantic uses for a Literal."""
-    names = registry.arch_names()
-    if value not in names:
-        shown = [repr(n) for n in names]
-        raise PydanticCustomError("literal_error", "Input should be {expected}",
-                                  {"expected": f"{', '.join(shown[:-1])} or {shown[-1]}" if len(shown) > 1
-                                   else "".join(shown)})
-    return value
+def _registered(kind: str, names: Callable[[], tuple[str, ...]]) -> BeforeValidator:
+    """A value registered now (registry.py), refused in the words pydantic uses for a Literal."""
+
+    def check(value: Any) -> Any:
+        allowed = names()
+        if value not in allowed:
+            shown = [repr(n) for n in allowed]
+            raise PydanticCustomError("literal_error", "Input should be {expected}",
+                                      {"expected": f"{', '.join(shown[:-1])} or {shown[-1]}" if len(shown) > 1
+                                       else "".join(shown)})
+        return value
+
+    check.__name__ = f"registered_{kind}"
+    return BeforeValidator(check)
 
 
-# A cell's architecture: any name registered in registry.py when the value is checked.
-ArchName = Annotated[str, BeforeValidator(_registered_arch)]
-# The same as a Literal, for the CLI's --arch choices (--help lists them, the shell completes them).
+# A cell's architecture / rotation loss: any name registered in registry.py when the value is checked.
+ArchName = Annotated[str, _registered("arch", registry.arch_names)]
+RotLossName = Annotated[str, _registered("rot_loss", registry.rot_loss_names)]
+# The same as Literals, for the CLI's --arch / --rot-loss choices (--help lists them, the shell completes them).
 Arch = Literal[registry.arch_names()]  # type: ignore[valid-type]
-RotLoss = Literal[tuple(s.name for s in registry.ROT_LOSSES)]  # type: ignore[misc]
+RotLoss = Literal[registry.rot_loss_names()]  # type: ignore[valid-type]
 Population = Literal["personalized", "cross-subject"]
 PoseFrame = Literal["world", "camera"]
 Lobe = Literal["ur", "br", "ul", "bl"]
 
-ROT_LOSSES: tuple[str, ...] = get_args(RotLoss)
 POPULATIONS: tuple[str, ...] = get_args(Population)
 POSE_FRAMES: tuple[str, ...] = get_args(PoseFrame)
 LOBES: tuple[str, ...] = get_args(Lobe)
@@ -58,7 +63,7 @@ class Cell(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     arch: ArchName
-    rot_loss: RotLoss
+    rot_loss: RotLossName
     population: Population
     fold: str | None = None  # held-out patient (cross-subject only)
     seed: Seed = 0
@@ -97,8 +102,9 @@ class Cell(BaseModel):
 
 
 def choices() -> dict[str, tuple[str, ...]]:
-    """The allowed values of each field that has a fixed set (architectures: those registered now)."""
-    return {"arch": registry.arch_names(), "rot_loss": ROT_LOSSES, "population": POPULATIONS,
+    """The allowed values of each field that has a fixed set (architectures, rotation losses: those registered
+    now)."""
+    return {"arch": registry.arch_names(), "rot_loss": registry.rot_loss_names(), "population": POPULATIONS,
             "pose_frame": POSE_FRAMES}
 
 

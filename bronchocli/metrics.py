@@ -5,7 +5,8 @@ positions in voxels and XYZ Euler angles in degrees (geometry.py), and return
 one value per pose ``(...)``. They are differentiable torch code, so the same
 function is a training loss (after ``.mean()``) and an evaluation metric.
 
-* ``pos_mse``  mean squared position error (voxels^2), ``pos_l2`` its norm (voxels);
+* ``pos_mse``  mean squared position error (voxels^2), ``pos_l2`` its norm (voxels),
+  ``pos_l2_mm`` the same in mm (the dataset's voxel spacing);
 * ``rot_mse``  mean squared wrapped angle error (deg^2), ``rot_l2`` its norm (deg);
 * ``de``       direction error arccos(v_E . v_GT), v = R (1,0,0), radians.  DE
   only sees where the optical axis points, so it is blind to a roll about that
@@ -13,6 +14,10 @@ function is a training loss (after ``.mean()``) and an evaluation metric.
 * ``ce``       cosine error mean_i (1 - cos(theta_E,i - theta_GT,i)), the
   angles converted to radians first (the authors' code fed degrees to cos);
 * ``geodesic`` angle of R_E^T R_GT in degrees.
+
+Which of them are metrics and rotation losses, under which names, units, labels
+and directions, is registry.py's (``register_metric``, ``register_rot_loss``):
+this module holds the functions and applies every registered per-pose metric.
 
 Rotation L2 and CE compare Euler triples angle by angle, which only compares
 rotations when both triples are in the same (canonical) form: wherever a
@@ -72,12 +77,19 @@ def pos_l2(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return _safe_norm(_pos_err(pred, gt))
 
 
-def rot_mse(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    return (_rot_err(pred, gt) ** 2).mean(-1)
+def rot_mse(pred: torch.Tensor, gt: torch.Tensor, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """``scale`` (3,): divide each angle error by it first (the training labels' std: pose_loss)."""
+    err = _rot_err(pred, gt)
+    return ((err if scale is None else err / scale) ** 2).mean(-1)
 
 
 def rot_l2(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return _safe_norm(_rot_err(pred, gt))
+
+
+def pos_l2_mm(pred: torch.Tensor, gt: torch.Tensor, spacing_mm: torch.Tensor) -> torch.Tensor:
+    """Position L2 in mm: the error's voxel axes scaled by the voxel spacing ``(..., 3)`` first."""
+    return torch.linalg.vector_norm(_pos_err(pred, gt) * spacing_mm, dim=-1)
 
 
 def direction_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
@@ -97,49 +109,30 @@ def geodesic(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(_safe_acos((trace - 1.0) / 2.0))
 
 
-# name -> per-pose function; the reported metrics and their units.
-METRICS: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
-    "pos_l2": pos_l2,
-    "rot_l2": rot_l2,
-    "de": direction_error,
-    "ce": cosine_error,
-    "geodesic": geodesic,
-}
-UNITS: dict[str, str] = {
-    "pos_l2": "voxels",
-    "pos_l2_mm": "mm",
-    "rot_l2": "degrees",
-    "de": "radians",
-    "ce": "unitless",
-    "geodesic": "degrees",
-}
-
-# The rotation losses by name (registry.ROT_LOSSES names them and the function of this module for each).
-ROT_LOSSES: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
-    spec.name: globals()[spec.function] for spec in registry.ROT_LOSSES
-}
+def metric_functions() -> dict[str, Callable[..., torch.Tensor]]:
+    """Every registered per-pose metric (registry.metric_specs): name -> its function, in registration order."""
+    return {spec.name: registry.resolve(spec, globals()) for spec in registry.metric_specs(per="pose")}
 
 
 def pose_loss(pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float = 1.0,
               scale: torch.Tensor | None = None) -> torch.Tensor:
     """Training loss L_pos(MSE) + w * L_rot, averaged over every pose in the batch.
 
-    ``scale`` (6,): divide the position errors, and the rotation errors of the MSE
-    rotation loss, by these (the training labels' std when labels are standardised),
-    so each component weighs the same whatever its unit. DE and CE are bounded
-    angular losses and are never scaled.
+    ``rot_loss``: a registered rotation loss (registry.register_rot_loss). ``scale`` (6,): divide the
+    position errors, and the rotation errors of a ``scaled`` rotation loss (MSE), by these (the training
+    labels' std when labels are standardised), so each component weighs the same whatever its unit. DE and
+    CE are bounded angular losses and are never scaled.
     """
     try:
-        rot = ROT_LOSSES[rot_loss]
+        spec = registry.rot_loss(rot_loss)
     except KeyError:
-        raise ValueError(f"rotation loss {rot_loss!r} is not one of {', '.join(ROT_LOSSES)}") from None
+        raise ValueError(f"rotation loss {rot_loss!r} is not one of {', '.join(registry.rot_loss_names())}"
+                         ) from None
+    rot = registry.resolve(spec, globals())
     if scale is None:
         return pos_mse(pred, gt).mean() + rot_weight * rot(pred, gt).mean()
     pos = ((_pos_err(pred, gt) / scale[:3]) ** 2).mean(-1)
-    if rot_loss == "mse":
-        rot_term = ((_rot_err(pred, gt) / scale[3:]) ** 2).mean(-1)
-    else:
-        rot_term = rot(pred, gt)
+    rot_term = rot(pred, gt, scale=scale[3:]) if spec.scaled else rot(pred, gt)
     return pos.mean() + rot_weight * rot_term.mean()
 
 
@@ -165,7 +158,8 @@ def _to_tensor(x) -> torch.Tensor:
 
 def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None, *,
                     rotations: bool = False) -> dict[str, np.ndarray]:
-    """Every metric for each pose of ``pred``/``gt`` ``(N, 6)``, as float64 arrays of length N.
+    """Every registered per-pose metric for each pose of ``pred``/``gt`` ``(N, 6)``, as float64 arrays of length N
+    (the ``spacing`` ones, in mm, only with ``spacing_mm``).
 
     ``rotations``: the angle triples stand for rotations (absolute poses, ``camera``-frame deltas); both are
     made canonical first, so rotation L2 and CE compare rotations, not whichever triple was written.
@@ -173,11 +167,15 @@ def per_pose_errors(pred, gt, spacing_mm: Sequence[float] | None = None, *,
     p, g = _to_tensor(pred).reshape(-1, 6), _to_tensor(gt).reshape(-1, 6)
     if rotations:
         p, g = geometry.canonical_pose(p), geometry.canonical_pose(g)
+    scale = None if spacing_mm is None else _to_tensor(spacing_mm)
+    out = {}
     with torch.no_grad():
-        out = {name: fn(p, g).numpy() for name, fn in METRICS.items()}
-        if spacing_mm is not None:
-            scale = _to_tensor(spacing_mm)
-            out["pos_l2_mm"] = torch.linalg.vector_norm((p[:, :3] - g[:, :3]) * scale, dim=-1).numpy()
+        for spec in registry.metric_specs(per="pose"):
+            fn = registry.resolve(spec, globals())
+            if not spec.spacing:
+                out[spec.name] = fn(p, g).numpy()
+            elif scale is not None:  # a metric in mm: only where the voxel spacing is known
+                out[spec.name] = fn(p, g, scale).numpy()
     return out
 
 

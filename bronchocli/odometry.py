@@ -24,8 +24,11 @@ degrees):
 * ``drift``: the final position error as a percentage of the ground-truth path
   length (sum of the distances between consecutive true positions).
 
-The names avoid ``tracking``: in this project that word means MLflow run
-tracking (tracking.py).
+Each metric is a function of :class:`TrackErrors` (the per-frame and
+relative-pose errors of one trajectory, computed once) registered in
+registry.py with its unit, label and direction; :func:`trajectory_metrics`
+applies every registered one. The names avoid ``tracking``: in this project
+that word means MLflow run tracking (the ``runs`` package).
 """
 
 from __future__ import annotations
@@ -35,12 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import geometry
-
-METRICS = ("ctf", "ctf_mm", "ate", "ate_mm", "rpe_trans", "rpe_rot", "drift")
-HIGHER_IS_BETTER = frozenset({"ctf", "ctf_mm"})
-UNITS = {"ctf": "%", "ctf_mm": "%", "ate": "voxels", "ate_mm": "mm", "rpe_trans": "voxels", "rpe_rot": "degrees",
-         "drift": "% of path"}
+from . import geometry, registry
 
 
 @dataclass(frozen=True)
@@ -104,21 +102,62 @@ def path_length(gt) -> float:
     return float(np.linalg.norm(np.diff(gt[:, :3], axis=0), axis=1).sum())
 
 
-def trajectory_metrics(pred, gt, spacing_mm=None, thresholds: Thresholds = Thresholds()) -> dict[str, float]:
-    """Every metric of the module doc for one trajectory (``pred``/``gt`` ``(N, 6)``, the same first pose)."""
+@dataclass(frozen=True)
+class TrackErrors:
+    """One trajectory's errors, what every per-trajectory metric is computed from (:func:`track_errors`)."""
+
+    pos: np.ndarray  # (N,) position error per frame, voxels
+    pos_mm: np.ndarray  # (N,) the same in mm (voxels where the spacing is unknown)
+    rot: np.ndarray  # (N,) geodesic rotation error per frame, degrees
+    rpe_trans: np.ndarray  # relative pose errors over the gap: translation (voxels) ...
+    rpe_rot: np.ndarray  # ... and rotation (degrees); empty when the trajectory is shorter than the gap
+    length: float  # ground-truth path length, voxels
+    thresholds: Thresholds
+
+
+def track_errors(pred, gt, spacing_mm=None, thresholds: Thresholds = Thresholds()) -> TrackErrors:
     e = frame_errors(pred, gt, spacing_mm)
-    later = slice(1, None)
-    ok_rot = e["rot"][later] < thresholds.angle
-    tracked = (e["pos"][later] < thresholds.position) & ok_rot
-    tracked_mm = (e["pos_mm"][later] < thresholds.position_mm) & ok_rot
     trans, rot = relative_pose_errors(pred, gt, thresholds.gap)
-    length = path_length(gt)
-    return {
-        "ctf": 100.0 * float(tracked.mean()) if tracked.size else math.nan,
-        "ctf_mm": 100.0 * float(tracked_mm.mean()) if tracked_mm.size else math.nan,
-        "ate": _rmse(e["pos"]),
-        "ate_mm": _rmse(e["pos_mm"]),
-        "rpe_trans": _rmse(trans),
-        "rpe_rot": _rmse(rot),
-        "drift": 100.0 * float(e["pos"][-1]) / length if length > 0 else math.nan,
-    }
+    return TrackErrors(e["pos"], e["pos_mm"], e["rot"], trans, rot, path_length(gt), thresholds)
+
+
+def _tracked_share(pos: np.ndarray, bound: float, e: TrackErrors) -> float:
+    """Percent of frames 1..N-1 with a position error below ``bound`` and a rotation error below the angle."""
+    later = slice(1, None)
+    tracked = (pos[later] < bound) & (e.rot[later] < e.thresholds.angle)
+    return 100.0 * float(tracked.mean()) if tracked.size else math.nan
+
+
+def ctf(e: TrackErrors) -> float:
+    return _tracked_share(e.pos, e.thresholds.position, e)
+
+
+def ctf_mm(e: TrackErrors) -> float:
+    return _tracked_share(e.pos_mm, e.thresholds.position_mm, e)
+
+
+def ate(e: TrackErrors) -> float:
+    return _rmse(e.pos)
+
+
+def ate_mm(e: TrackErrors) -> float:
+    return _rmse(e.pos_mm)
+
+
+def rpe_trans(e: TrackErrors) -> float:
+    return _rmse(e.rpe_trans)
+
+
+def rpe_rot(e: TrackErrors) -> float:
+    return _rmse(e.rpe_rot)
+
+
+def drift(e: TrackErrors) -> float:
+    return 100.0 * float(e.pos[-1]) / e.length if e.length > 0 else math.nan
+
+
+def trajectory_metrics(pred, gt, spacing_mm=None, thresholds: Thresholds = Thresholds()) -> dict[str, float]:
+    """Every registered per-trajectory metric (registry.metric_specs, the module doc's) for one trajectory
+    (``pred``/``gt`` ``(N, 6)``, the same first pose), in registration order."""
+    e = track_errors(pred, gt, spacing_mm, thresholds)
+    return {spec.name: float(registry.resolve(spec, globals())(e)) for spec in registry.metric_specs(per="trajectory")}

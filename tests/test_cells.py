@@ -7,10 +7,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from bronchocli import cells
-from bronchocli.cells import POPULATIONS, POSE_FRAMES, ROT_LOSSES, Cell, parse_only, select
+from bronchocli.cells import POPULATIONS, POSE_FRAMES, Cell, parse_only, select
 from bronchocli.config import Config, expand_grid
 from bronchocli.errors import ConfigError
-from bronchocli.registry import arch_names
+from bronchocli.registry import arch_names, rot_loss_names
 
 CFG = Config.model_validate({"name": "t", "grid": {"folds": ["p00", "p01"], "seed": [0]}})
 CELLS = expand_grid(CFG, ["p00", "p01", "p02"])  # 5 archs x 3 losses x (personalized + 2 folds) = 45
@@ -86,7 +86,7 @@ def test_an_unknown_value_names_what_the_plan_has():
         select(CELLS, parse_only(["fold=p07"]))
 
 
-VALUES = {"arch": arch_names(), "rot_loss": ROT_LOSSES, "population": POPULATIONS, "pose_frame": POSE_FRAMES}
+VALUES = {"arch": arch_names(), "rot_loss": rot_loss_names(), "population": POPULATIONS, "pose_frame": POSE_FRAMES}
 
 
 @given(st.dictionaries(st.sampled_from(sorted(VALUES)), st.sets(st.integers(0, 4), min_size=1), min_size=1),

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 from pydantic import Field, field_validator
 
 from .. import registry
-from ..cells import POPULATIONS, ROT_LOSSES, ArchName, Cell, Population, PoseFrame, RotLoss, Seed
+from ..cells import POPULATIONS, ArchName, Cell, Population, PoseFrame, RotLossName, Seed
 from ..errors import ConfigError
 from .sections import MAX_TRAJECTORIES, Section, _listify
 from .spellings import speller_of, spelled
@@ -26,11 +26,12 @@ if TYPE_CHECKING:
 
 # An architecture registered now, written the common ways (``ConvLSTM``, ``conv-lstm``: convlstm)
 ArchNameSpelled = spelled(ArchName, choices=registry.arch_names)
+RotLossSpelled = spelled(RotLossName, choices=registry.rot_loss_names)  # a rotation loss registered now
 
 
 class Grid(Section):
     arch: list[ArchNameSpelled] = Field(default_factory=lambda: list(registry.arch_names()))  # every one registered
-    rot_loss: list[spelled(RotLoss)] = list(ROT_LOSSES)
+    rot_loss: list[RotLossSpelled] = Field(default_factory=lambda: list(registry.rot_loss_names()))
     population: list[spelled(Population)] = list(POPULATIONS)
     folds: Literal["all"] | list[str] = "all"  # cross-subject held-out patients
     seed: list[Seed] = [0, 1, 2]
@@ -64,15 +65,16 @@ class Select(Section):
     """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
 
     top: int = Field(3, ge=1, le=1000)
-    by: str = "val_best.pos_l2"  # a run metric: val_best.<pos_l2|rot_l2|de|ce|loss>
+    by: str = "val_best.pos_l2"  # a validation metric: val_best.loss or val_best.<m>, m registered with validation
     over: list[spelled(Literal["arch", "rot_loss", "pose_frame", "train_trajectories"])] = ["arch", "rot_loss"]
 
     @field_validator("by")
     @classmethod
     def _validation_only(cls, v: str) -> str:
         if not v.startswith("val_best."):
-            raise ValueError("must be a validation metric (val_best.pos_l2, val_best.rot_l2, val_best.de, "
-                             "val_best.ce or val_best.loss): selection never looks at test results")
+            named = ", ".join(f"val_best.{m}" for m in registry.metric_names(validation=True))
+            raise ValueError(f"must be a validation metric ({named} or val_best.loss): selection never looks at "
+                             "test results")
         return v
 
     @field_validator("over")

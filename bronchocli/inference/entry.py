@@ -17,12 +17,12 @@ from mlflow.tracking import MlflowClient
 from rich.console import Console
 from rich.table import Table
 
+from .. import registry
 from ..config import Config
 from ..runs.client import client_for, require_store
 from . import loading, trajectory
 from .reader import FrameInput, GroundTruth
 
-METRIC_UNITS = {"pos_l2": "vox", "pos_l2_mm": "mm", "rot_l2": "deg", "de": "rad", "ce": "", "geodesic": "deg"}
 SOURCES = ("model", "zero_motion", "train_mean")
 
 
@@ -32,7 +32,8 @@ def errors_table(errors) -> Table:
     table = Table(title="errors: per pair (mean) and accumulated (endpoint after chaining)")
     for name in ("metric", "evaluation", *SOURCES):
         table.add_column(name.replace("_", " "), justify="left" if name in ("metric", "evaluation") else "right")
-    for metric, unit in METRIC_UNITS.items():
+    for spec in registry.metric_specs(per="pose"):
+        metric, unit = spec.name, spec.symbol
         if f"model.pair.{metric}" not in row:
             continue
         for ev, text in (("pair", "per pair"), ("acc", "accumulated")):

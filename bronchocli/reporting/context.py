@@ -22,13 +22,9 @@ from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, 
 from .judge import Line, Settings
 from .table_model import Row, Table, missing_cells
 
-LOSSES = {s.name: s.label for s in registry.ROT_LOSSES}  # rotation loss -> its label, in the paper's order
-METRICS = {"pos_l2": ("Position L2", "vox"), "rot_l2": ("Rotation L2", "°"), "de": ("DE", "rad"), "ce": ("CE", "")}
-SKILL_METRICS = ("pos_l2", "rot_l2")
 BRONCHOTRACK = ("convlstm", "ce")  # the paper's BronchoTrack, when no sota stage selected one
 OFFSETNET = ("offsetnet", "mse")  # OffsetNet's own loss (Sganga et al.): MSE on position and rotation
 ABLATION_LOSS = "ce"  # every architecture with BronchoTrack's loss, so the rows differ in architecture only
-UNITS = "Units: position L2 in voxels, rotation L2 in degrees, DE in radians, CE unitless; lower is better."
 EVAL_TEXT = {
     "accumulated": "Accumulated evaluation: the predicted relative poses of each test trajectory are chained from "
                    "its true first pose and only the last pose is scored",
@@ -36,6 +32,40 @@ EVAL_TEXT = {
     "trajectory": "Camera tracking: the predicted relative poses of each test trajectory are chained from its true "
                   "first pose and every frame is scored (per trajectory, then mean over trajectories)",
 }
+
+
+def losses() -> dict[str, str]:
+    """Rotation loss -> its row label, in registration order, the paper's first (registry.py, read at each call:
+    a registered loss has rows too)."""
+    return {name: registry.rot_loss(name).label for name in registry.rot_loss_names()}
+
+
+def metrics_of(table: str) -> list[str]:
+    """The metrics a report table group shows ("paper", "ablation", "skill", "frames", "tracking"), in column
+    order (registry.py, read at each call: a registered metric is a column too)."""
+    return list(registry.metric_names(table=table))
+
+
+def heading(metric: str) -> tuple[str, str]:
+    """A metric's column heading and the unit shown under it: ("Position L2", "vox")."""
+    spec = registry.metric(metric)
+    return spec.label, spec.symbol
+
+
+def _prose(label: str) -> str:
+    """A label inside a sentence: "Position L2" -> "position L2"; an acronym ("DE") stays as it is."""
+    return label[0].lower() + label[1:] if label[1:2].islower() else label
+
+
+def units_text(table: str = "paper") -> str:
+    """The caption's units of a table group's metrics: "Units: position L2 in voxels, ..., CE unitless; lower is
+    better." (the direction of each, from registry.py)."""
+    specs = registry.metric_specs(table=table)
+    parts = [f"{_prose(s.label)} {s.unit}" if s.unit == "unitless" else f"{_prose(s.label)} in {s.unit}"
+             for s in specs]
+    higher = [s.label for s in specs if s.higher_is_better]
+    direction = "lower is better" + (f" except {', '.join(higher)} (higher is better)" if higher else "")
+    return f"Units: {', '.join(parts)}; {direction}."
 
 
 def arch_names(paper_tables: bool = False) -> dict[str, str]:

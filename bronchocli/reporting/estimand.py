@@ -20,10 +20,10 @@ from __future__ import annotations
 
 from typing import Sequence
 
+from .. import registry
 from .stats import MIN_PATIENTS, MIN_SEEDS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
 from .table_model import Row
 
-PERCENT_METRICS = frozenset({"ctf", "ctf_mm"})  # bounded in [0, 100]
 ESTIMAND_NAMES = {TRAJECTORY: "these patients", PATIENT: "a new patient"}
 
 
@@ -33,8 +33,9 @@ def unit_of(population: str) -> str:
 
 
 def scale_of(metric: str) -> str:
-    """The scale an interval of ``metric`` is built on (stats.interval): logit for percentages, log otherwise."""
-    return PERCENT if metric in PERCENT_METRICS else POSITIVE
+    """The scale an interval of ``metric`` is built on (stats.interval): logit for a share in % (a metric
+    registered with unit "%", registry.py: CTF), log otherwise."""
+    return PERCENT if metric in registry.metric_names() and registry.metric(metric).unit == "%" else POSITIVE
 
 
 def _samples(rows: Sequence[Row]) -> list[Sample]:

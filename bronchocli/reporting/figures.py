@@ -31,7 +31,7 @@ from ..io import save_figure
 from ..plots import error_curve_figure, trajectory_figure
 from .aggregate import ERRORS_CSV, read_errors
 from .collect import RunIndex, RunRecord
-from .context import ABLATION_LOSS, LOSSES, OFFSETNET, arch_names, bronchotrack
+from .context import ABLATION_LOSS, OFFSETNET, arch_names, bronchotrack, losses
 
 POSE = ("x", "y", "z", "rx", "ry", "rz")
 KEY = ("patient", "lobe", "trajectory")
@@ -137,7 +137,7 @@ def frame_errors(df) -> tuple[np.ndarray, np.ndarray]:
 def error_figures(models: Mapping[str, object]) -> dict[str, object]:
     """``{"position": fig, "rotation": fig}``: error of the accumulated pose vs frame, one curve per model."""
     errors = {name: frame_errors(df) for name, df in models.items()}
-    title = f"personalized, {LOSSES[ABLATION_LOSS]}: mean ± std over test trajectories"
+    title = f"personalized, {losses()[ABLATION_LOSS]}: mean ± std over test trajectories"
     labels = {"position": "accumulated position error (voxels)", "rotation": "accumulated rotation error (degrees)"}
     return {kind: error_curve_figure({n: e[k] for n, e in errors.items()}, label, title)
             for k, (kind, label) in enumerate(labels.items())}

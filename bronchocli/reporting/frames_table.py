@@ -15,16 +15,27 @@ from __future__ import annotations
 
 import math
 
+from .. import registry
 from .aggregate import model_sample, replicates
 from .collect import FRAME, LOSS, POP
-from .context import EVAL_TEXT, LOSSES, Collector, NoData, ReportContext, arch_names, budget_text, finish, init_text
+from .context import (
+    EVAL_TEXT,
+    Collector,
+    NoData,
+    ReportContext,
+    arch_names,
+    budget_text,
+    finish,
+    init_text,
+    losses,
+    metrics_of,
+)
 from .estimand import estimand_text, refused_text, unit_of
 from .judge import judged, metric_rows
 from .stats import Sample, common_keys, derived, holm, skill
 from .table_model import Column, Estimate, Row, Table, Value
 
 FRAMES = ("world", "camera")
-FRAME_METRICS = {"pos_l2": "Position", "rot_l2": "Rotation"}
 
 
 def _population(ctx: ReportContext) -> str:
@@ -73,15 +84,16 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
                      f"not both world and camera")
     population = _population(ctx)
     unit = unit_of(population)
-    metrics = list(FRAME_METRICS)
+    metrics = metrics_of("frames")
     per_frame = {}
     collectors = {}
     for frame in FRAMES:
         c = Collector(ctx, "frames", population, frame=frame)
-        archs, losses = c.combos()
-        losses = [lo for lo in LOSSES if lo in losses and any(i[LOSS] == lo and i[FRAME] == frame
-                                                                for i in ctx.index.runs)]
-        lines = [c.line(name, LOSSES[lo], a, lo) for a, name in arch_names().items() if a in archs for lo in losses]
+        archs, used = c.combos()
+        labels = losses()
+        used = [lo for lo in labels if lo in used and any(i[LOSS] == lo and i[FRAME] == frame
+                                                          for i in ctx.index.runs)]
+        lines = [c.line(name, labels[lo], a, lo) for a, name in arch_names().items() if a in archs for lo in used]
         lines = [ln for ln in lines if ln.runs]
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=False, settings=ctx.settings,
@@ -120,7 +132,9 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         runs = per_frame["world"][0][k].runs + per_frame["camera"][0][k].runs
         rows.append(Row("", label, values, [r.run_id for r in runs]))
     columns = []
-    for m, name in FRAME_METRICS.items():
+    for m in metrics:
+        spec = registry.metric(m)
+        name = spec.short_label or spec.label
         columns += [Column(f"{name} skill, world", highlight=False), Column(f"{name} skill, camera", highlight=False),
                     Column(f"{name} p", highlight=False)]
     table = Table(f"table8-frames-{evaluation}", f"Table 8. Pose-frame convention: skill with world vs camera "

@@ -15,7 +15,7 @@ import numpy as np
 
 Key = tuple[str, str, str]  # (patient, lobe, trajectory)
 TRAJECTORY, PATIENT = "trajectory", "patient"  # the sampling unit: "these patients" / "a new patient"
-UNITS = (TRAJECTORY, PATIENT)
+SAMPLING_UNITS = (TRAJECTORY, PATIENT)  # what an interval generalises over (not units of measure)
 MIN_SEEDS = 3  # 2 seeds: no interval, no test (1 seed: the units only, said so)
 MIN_PATIENTS = 3  # a new-patient interval needs 3 patients (2 df)
 
@@ -33,8 +33,8 @@ class Sample:
     def __post_init__(self) -> None:
         if self.errors.ndim != 2 or self.errors.shape[1] != len(self.keys) or len(self.weights) != len(self.keys):
             raise ValueError(f"errors {self.errors.shape} do not match {len(self.keys)} keys / weights")
-        if self.unit not in UNITS:
-            raise ValueError(f"unit {self.unit!r} is not one of {', '.join(UNITS)}")
+        if self.unit not in SAMPLING_UNITS:
+            raise ValueError(f"unit {self.unit!r} is not one of {', '.join(SAMPLING_UNITS)}")
 
     @property
     def replicates(self) -> int:

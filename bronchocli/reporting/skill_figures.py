@@ -23,7 +23,7 @@ import numpy as np
 from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
-from .context import LOSSES, METRICS, SKILL_METRICS, Collector, ReportContext, arch_names
+from .context import Collector, ReportContext, arch_names, heading, losses, metrics_of
 from .estimand import ESTIMAND_NAMES, unit_of
 from .judge import beats_reference, metric_rows
 from .table_model import Estimate, Table
@@ -37,7 +37,7 @@ def skill_figure(table: Table):
     names = [r.name for r in table.rows if r.kind == "model" and r.name in table.skill]
     if not names:
         return None
-    metrics = [m for m in SKILL_METRICS if any(m in table.skill[n] for n in names)]
+    metrics = [m for m in metrics_of("skill") if any(m in table.skill[n] for n in names)]
     fig, axes = plt.subplots(1, len(metrics), figsize=(max(4.0, 0.55 * len(names) + 2.0) * len(metrics), 3.8),
                              squeeze=False)
     for ax, m in zip(axes[0], metrics):
@@ -49,8 +49,8 @@ def skill_figure(table: Table):
         ax.bar(x, val, color=colors, yerr=err, capsize=3)
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xticks(x, names, rotation=60, ha="right", fontsize=7)
-        ax.set_ylabel(f"skill, {METRICS[m][0]}")
-        ax.set_title(f"{METRICS[m][0]}: 1 − error / better reference", fontsize=9)
+        ax.set_ylabel(f"skill, {heading(m)[0]}")
+        ax.set_title(f"{heading(m)[0]}: 1 − error / better reference", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
     units = {x.unit for r in table.rows if r.kind == "model" for x in r.info.get("samples", ()) if x is not None}
     about = ESTIMAND_NAMES.get(units.pop() if len(units) == 1 else "", "its table's estimand")
@@ -65,7 +65,7 @@ def skill_figures(tables: Sequence[Table], out: Path, warnings: list[str]) -> li
     for t in tables:
         fig = skill_figure(t)
         if fig is None:
-            skill_columns = {METRICS[m][0] for m in SKILL_METRICS}
+            skill_columns = {heading(m)[0] for m in metrics_of("skill")}
             if t.judged and any(c.title in skill_columns for c in t.columns):  # tracking: no skill columns by design
                 warnings.append(f"figures: fig-skill-{t.key} skipped (no row with per-trajectory errors)")
             continue
@@ -91,16 +91,17 @@ def curve_points(ctx: ReportContext) -> dict:
     points = {}
     for size in sizes:
         c = Collector(ctx, "learning", population, size=size)
-        archs, losses = c.combos()
-        several = len(losses) > 1
-        lines = [c.line(name, LOSSES.get(lo, lo) if several else "", a, lo)
-                 for a, name in arch_names().items() if a in archs for lo in LOSSES if lo in losses]
+        archs, used = c.combos()
+        several = len(used) > 1
+        labels = losses()
+        lines = [c.line(name, labels.get(lo, lo) if several else "", a, lo)
+                 for a, name in arch_names().items() if a in archs for lo in labels if lo in used]
         lines = [ln for ln in lines if ln.runs]
         if not lines:
             continue
         every = [r for ln in lines for r in ln.runs]
-        built = metric_rows(lines, ctx.frames(every), list(SKILL_METRICS), CURVE_EVAL, grouped=False,
-                            settings=ctx.settings, skill_metrics=SKILL_METRICS, unit=unit_of(population))
+        built = metric_rows(lines, ctx.frames(every), metrics_of("skill"), CURVE_EVAL, grouped=False,
+                            settings=ctx.settings, skill_metrics=metrics_of("skill"), unit=unit_of(population))
         pairs = [r.metrics["train.train_pairs"] for r in every if "train.train_pairs" in r.metrics]
         points[size] = {"x": float(np.mean(pairs)) if pairs else float("nan"), "rows": built.rows,
                         "skill": built.skill, "label": _size_label(size, ctx)}
@@ -117,9 +118,10 @@ def learning_curve_figure(ctx: ReportContext):
     xs = np.array([points[s]["x"] for s in sizes])
     if np.isnan(xs).any():  # runs without train.train_pairs: fall back to the size order
         xs = np.arange(len(sizes), dtype=float) + 1.0
-    fig, axes = plt.subplots(len(SKILL_METRICS), 2, figsize=(10, 3.6 * len(SKILL_METRICS)), squeeze=False)
+    skill_metrics = metrics_of("skill")
+    fig, axes = plt.subplots(len(skill_metrics), 2, figsize=(10, 3.6 * len(skill_metrics)), squeeze=False)
     series = sorted({r.name for s in sizes for r in points[s]["rows"] if r.kind == "model"})
-    for j, m in enumerate(SKILL_METRICS):
+    for j, m in enumerate(skill_metrics):
         err_ax, skill_ax = axes[j]
         for name in series:
             est = [next((r.values[j] for r in points[s]["rows"] if r.name == name), None) for s in sizes]
@@ -131,8 +133,8 @@ def learning_curve_figure(ctx: ReportContext):
             ys = [e.mean if isinstance(e, Estimate) else np.nan for e in est]
             err_ax.plot(xs, ys, style, color="black", lw=1, label=ref)
         skill_ax.axhline(0.0, color="black", lw=0.8, ls="--", label="better reference")
-        title = METRICS[m][0]
-        err_ax.set_ylabel(f"{title} per pair ({METRICS[m][1]})")
+        title, symbol = heading(m)
+        err_ax.set_ylabel(f"{title} per pair ({symbol})")
         skill_ax.set_ylabel(f"skill, {title}")
         for ax in (err_ax, skill_ax):
             ax.set_xscale("log")

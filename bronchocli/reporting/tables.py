@@ -1,6 +1,6 @@
 """The paper's tables built from a sweep's runs: a name -> builder registry.
 
-``TABLES[name](ctx, evaluation)`` returns a ``layout.Table``; ``evaluation``
+``TABLES[name](ctx, evaluation)`` returns a ``table_model.Table``; ``evaluation``
 is ``accumulated`` or ``pair``. A builder raises ``NoData`` when the table
 does not apply to the runs (the report skips it with one warning). What each
 table holds is documented in docs/reports.md; in short:
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from typing import Callable, Mapping, Sequence
 
-from .. import odometry
+from .. import registry
 from ..errors import BronchoError
 from .aggregate import EVALS, nonfinite_rows
 from .collect import RunRecord
@@ -36,11 +36,7 @@ from .context import (
     ABLATION_LOSS,
     EVAL_TEXT,
     IGNORES_TEXT,
-    LOSSES,
-    METRICS,
     OFFSETNET,
-    SKILL_METRICS,
-    UNITS,
     Collector,
     NoData,
     ReportContext,
@@ -48,12 +44,16 @@ from .context import (
     bronchotrack,
     budget_text,
     finish,
+    heading,
     init_text,
+    losses,
+    metrics_of,
     model_name,
     n_text,
     precision_text,
     provenance,
     references_text,
+    units_text,
 )
 from .estimand import estimand_text, refused_text, unit_of
 from .frames_table import frames
@@ -63,17 +63,18 @@ from .table_model import Column, Row, Table, Value
 NUMBERS = {("personalized", "accumulated"): 2, ("personalized", "pair"): 3,
            ("cross-subject", "accumulated"): 4, ("cross-subject", "pair"): 5}
 
-__all__ = ["TABLES", "ReportContext", "NoData", "table_names", "evaluations", "arch_names", "LOSSES"]
+__all__ = ["TABLES", "ReportContext", "NoData", "table_names", "evaluations", "arch_names", "losses"]
 
 
-def _metric_columns(names: Sequence[str] = tuple(METRICS)) -> list[Column]:
-    return [Column(*METRICS[m]) for m in names]
+def _metric_columns(names: Sequence[str]) -> list[Column]:
+    return [Column(*heading(m)) for m in names]
 
 
 def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line], metrics: Sequence[str],
-           evaluation: str, extra: str = "", expected_empty: Sequence[str] = (), units: str = UNITS,
-           higher: Sequence[str] = (), population: str = "personalized") -> Table:
-    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings.
+           evaluation: str, extra: str = "", expected_empty: Sequence[str] = (), units: str = "",
+           population: str = "personalized") -> Table:
+    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings. ``units``: the
+    caption's units (default: the paper tables' metrics, registry.py); each metric's direction is registry.py's.
 
     No line at all (none of the config's cells belongs to this table, e.g. Table 4 of a sweep without
     cross-subject cells): ``NoData``, so the report skips it with one warning instead of printing a table of
@@ -84,21 +85,22 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     every = [r for line in lines for r in line.runs]
     frames = ctx.frames(every)
     unit = unit_of(population)
+    higher = [m for m in metrics if registry.metric(m).higher_is_better]
     built = metric_rows(lines, frames, metrics, evaluation, grouped=table.grouped,
-                        settings=ctx.settings, skill_metrics=SKILL_METRICS, higher=higher, unit=unit)
+                        settings=ctx.settings, skill_metrics=metrics_of("skill"), higher=higher, unit=unit)
     table.rows, table.marks, table.skill, table.judged = built.rows, built.marks, built.skill, True
     parts = [f"{EVAL_TEXT[evaluation]}.", estimand_text(unit, table.rows), method_text(ctx.settings),
              n_text(table.rows, evaluation, sorted(c.folds)), refused_text(table.rows)]
     if extra:
         parts.append(extra)
-    names = {m: (METRICS.get(m) or TRACKING_METRICS[m])[0] for m in metrics}
+    names = {m: heading(m)[0] for m in metrics}
     parts.append(unsettled_text(built.unsettled, names, table.rows))
     parts.append(one_seed_text(table.rows))
     parts.append(references_text())
     if any("ignores" in r.flags for r in table.rows):
         parts.append(IGNORES_TEXT)
     numerics, mixed = precision_text(table)
-    parts += [numerics, budget_text(every), init_text(every), units, provenance(ctx, c)]
+    parts += [numerics, budget_text(every), init_text(every), units or units_text(), provenance(ctx, c)]
     table.caption = " ".join(p for p in parts if p)
     finish(table, c, expected_empty)
     if mixed:
@@ -127,7 +129,7 @@ def _why_missing(runs: Sequence[RunRecord], frames: Mapping[str, object]) -> str
 def _grid_lines(c: Collector) -> list[Line]:
     """The paper's architecture x loss layout, restricted to the combinations of the table's cells."""
     return [c.line(group, label, arch, loss)
-            for arch, group in arch_names(paper_tables=True).items() for loss, label in LOSSES.items()
+            for arch, group in arch_names(paper_tables=True).items() for loss, label in losses().items()
             if c.has(arch, loss)]
 
 
@@ -135,45 +137,51 @@ def personalized(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "personalized", "personalized")
     n = NUMBERS[("personalized", evaluation)]
     table = Table(f"table{n}-personalized-{evaluation}", f"Table {n}. Personalized population, {evaluation} "
-                  "evaluation", ("Network", "Loss"), _metric_columns(), [])
-    return _build(ctx, c, table, _grid_lines(c), list(METRICS), evaluation)
+                  "evaluation", ("Network", "Loss"), _metric_columns(metrics_of("paper")), [])
+    return _build(ctx, c, table, _grid_lines(c), metrics_of("paper"), evaluation)
 
 
-def _mean_rank(rows: Sequence[Row]) -> list[float]:
-    """Per row, the mean over metric columns of its rank (1 = lowest mean; ties share the average rank)."""
+def _mean_rank(rows: Sequence[Row], metrics: Sequence[str]) -> list[float]:
+    """Per row, the mean over the metric columns of its rank (1 = the best mean: the lowest, the highest where
+    higher is better; ties share the average rank)."""
     ranks = [0.0] * len(rows)
-    for j in range(len(METRICS)):
-        means = [r.values[j].mean for r in rows]  # type: ignore[union-attr]
+    for j, metric in enumerate(metrics):
+        sign = -1.0 if registry.metric(metric).higher_is_better else 1.0
+        means = [sign * r.values[j].mean for r in rows]  # type: ignore[union-attr]
         for i, m in enumerate(means):
             ranks[i] += sum(x < m for x in means) + (sum(x == m for x in means) + 1) / 2
-    return [r / len(METRICS) for r in ranks]
+    return [r / len(metrics) for r in ranks]
 
 
-def _keep_best(table: Table, best: int) -> str:
-    """Keep the best N model rows (and the reference rows) by mean rank over the four metric means."""
+def _keep_best(table: Table, best: int, metrics: Sequence[str]) -> str:
+    """Keep the best N model rows (and the reference rows) by mean rank over the metric means."""
     model = [i for i, r in enumerate(table.rows) if r.kind == "model"
              and all(v is not None and not math.isnan(v.mean) for v in r.values)]  # type: ignore[union-attr]
-    ranks = dict(zip(model, _mean_rank([table.rows[i] for i in model])))
+    ranks = dict(zip(model, _mean_rank([table.rows[i] for i in model], metrics)))
     chosen = set(sorted(model, key=lambda i: (ranks[i], table.rows[i].values[0].mean))[:best])  # type: ignore
     keep = [i for i, r in enumerate(table.rows) if i in chosen or r.kind != "model"]
     table.rows = [table.rows[i] for i in keep]
     table.marks = [table.marks[i] for i in keep] if table.marks is not None else None
     return (f"Showing the best {len(chosen)} of {len(model)} complete network/loss combinations, ranked by the "
-            f"mean of their ranks over the four metric means (marks computed over all of them).")
+            f"mean of their ranks over the {_count(len(metrics))} metric means (marks computed over all of them).")
+
+
+def _count(n: int) -> str:
+    return ("one", "two", "three", "four", "five", "six", "seven", "eight", "nine")[n - 1] if 0 < n < 10 else str(n)
 
 
 def cross_subject(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "cross-subject", "cross-subject")
     n = NUMBERS[("cross-subject", evaluation)]
     table = Table(f"table{n}-cross-subject-{evaluation}", f"Table {n}. Cross-subject population, {evaluation} "
-                  "evaluation", ("Network", "Loss"), _metric_columns(), [])
+                  "evaluation", ("Network", "Loss"), _metric_columns(metrics_of("paper")), [])
     lines = _grid_lines(c)
     pooled = ("Leave-one-patient-out: a replicate is one seed's runs over every held-out patient (held-out: "
               f"{', '.join(sorted(c.folds)) or '-'}); its value is the metric over the union of their test "
               f"{'pairs' if evaluation == 'pair' else 'trajectories'}.")
-    _build(ctx, c, table, lines, list(METRICS), evaluation, pooled, population="cross-subject")
+    _build(ctx, c, table, lines, metrics_of("paper"), evaluation, pooled, population="cross-subject")
     if ctx.best > 0:
-        note = _keep_best(table, ctx.best)
+        note = _keep_best(table, ctx.best, metrics_of("paper"))
         table.caption = table.caption.replace(pooled, f"{pooled} {note}")
     return table
 
@@ -191,7 +199,7 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "sota", "personalized")
     arch, loss, how = bronchotrack(ctx.index)
     lines = []
-    for (a, lo), name in (((arch, loss), f"BronchoTrack ({model_name(arch)}, {LOSSES.get(loss, loss)})"),
+    for (a, lo), name in (((arch, loss), f"BronchoTrack ({model_name(arch)}, {losses().get(loss, loss)})"),
                           (OFFSETNET, "OffsetNet (MSE+MSE)")):
         if c.expected is not None and not c.wanted(a, lo):
             c.warn(f"sota: this config has no {a}/{lo} personalized cell, so the {name} row is empty")
@@ -199,11 +207,12 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
         line.extra = [_params_m(c, line.runs, name)]
         lines.append(line)
     table = Table(f"table6-sota-{evaluation}", f"Table 6. State of the art, personalized population, {evaluation} "
-                  "evaluation", ("Model",), [Column("Params", "M", highlight=False, decimals=3)] + _metric_columns(),
+                  "evaluation", ("Model",), [Column("Params", "M", highlight=False, decimals=3)]
+                  + _metric_columns(metrics_of("paper")),
                   [])
     extra = (f"{how}; OffsetNet is trained with MSE on position and rotation, its original loss. Params: trainable "
              "parameters of the trained model (n_params), millions.")
-    return _build(ctx, c, table, lines, list(METRICS), evaluation, extra)
+    return _build(ctx, c, table, lines, metrics_of("paper"), evaluation, extra)
 
 
 def _profile_values(ctx: ReportContext, c: Collector, arch: str, runs) -> list[Value]:
@@ -238,19 +247,16 @@ def ablation(ctx: ReportContext, evaluation: str) -> Table:
         lines.append(line)
     columns = [Column("Params", "M", highlight=False, decimals=3),
                Column("Latency", "ms/pair", highlight=False, decimals=2),
-               Column("GMAC/pair", highlight=False, decimals=3)] + _metric_columns(("pos_l2", "ce"))
+               Column("GMAC/pair", highlight=False, decimals=3)] + _metric_columns(metrics_of("ablation"))
     table = Table(f"table7-ablation-{evaluation}", f"Ablation: cost and accuracy per architecture, personalized "
                   f"population, {evaluation} evaluation", ("Network",), columns, [])
-    extra = (f"Every architecture trained with {LOSSES[ABLATION_LOSS]}; only the error columns are judged. "
+    extra = (f"Every architecture trained with {losses()[ABLATION_LOSS]}; only the error columns are judged. "
              + _profile_caption(ctx))
     unmeasured = [col.heading for col in columns[1:3]] if ctx.profiler is None else []
-    return _build(ctx, c, table, lines, ["pos_l2", "ce"], evaluation, extra, unmeasured)
+    return _build(ctx, c, table, lines, metrics_of("ablation"), evaluation, extra, unmeasured)
 
 
-TRACKING_METRICS = {"ctf": ("CTF vox", "%"), "ctf_mm": ("CTF mm", "%"), "ate": ("ATE", "vox"),
-                    "ate_mm": ("ATE", "mm"), "rpe_trans": ("RPE trans.", "vox"), "rpe_rot": ("RPE rot.", "°"),
-                    "drift": ("Drift", "% path")}
-MM_FIRST = ("ctf_mm", "ctf", "ate_mm", "ate", "rpe_trans", "rpe_rot", "drift")  # the literature's units lead
+# The literature's definitions of the tracking table's metrics (registry.py names, labels and units them).
 TRACKING_UNITS = ("CTF: share of frames 1..N-1 (the first pose is given) whose position error is below the position "
                   "threshold and whose rotation error (geodesic angle) is below the angle threshold, %, higher is "
                   "better; CTF mm (the literature's threshold, in mm from the dataset's voxel spacing) is the primary "
@@ -284,21 +290,32 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
     """The literature's camera-tracking metrics (the paper's Table 1 and the visual-odometry benchmarks)."""
     del evaluation  # whole-trajectory metrics: one table
     c = Collector(ctx, "tracking", "personalized")
-    lines = [c.line(name, LOSSES[loss], arch, loss)
-             for arch, name in arch_names().items() for loss in LOSSES if c.has(arch, loss)]
+    labels = losses()
+    lines = [c.line(name, labels[loss], arch, loss)
+             for arch, name in arch_names().items() for loss in labels if c.has(arch, loss)]
     every = [r for line in lines for r in line.runs]
     order = tracking_order(every)
     table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
-                  ("Network", "Loss"), [Column(*TRACKING_METRICS[m]) for m in order], [])
-    return _build(ctx, c, table, lines, order, "trajectory", _thresholds_text(c, every),
-                  units=TRACKING_UNITS, higher=sorted(odometry.HIGHER_IS_BETTER))
+                  ("Network", "Loss"), _metric_columns(order), [])
+    return _build(ctx, c, table, lines, order, "trajectory", _thresholds_text(c, every), units=TRACKING_UNITS)
 
 
 def tracking_order(runs: Sequence[RunRecord]) -> list[str]:
     """The tracking columns: mm first where the runs know the voxel spacing (a finite ``traj.ctf_mm.mean``),
     voxels first where none does (e.g. imported poses without spacing)."""
     known = any(math.isfinite(r.metrics.get("traj.ctf_mm.mean", math.nan)) for r in runs)
-    return list(MM_FIRST) if known or not runs else list(odometry.METRICS)
+    order = metrics_of("tracking")
+    return mm_first(order) if known or not runs else order
+
+
+def mm_first(names: Sequence[str]) -> list[str]:
+    """Each metric's mm twin (``<name>_mm``, registry.MetricSpec) just before it: the literature's units lead."""
+    out: list[str] = []
+    for m in names:
+        if m.endswith("_mm") and m[:-3] in names:
+            continue  # placed with its twin
+        out += [f"{m}_mm", m] if f"{m}_mm" in names else [m]
+    return out
 
 
 ONCE = {"tracking"}  # tables built once, not per evaluation

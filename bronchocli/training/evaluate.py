@@ -6,14 +6,14 @@ state through the whole video, as a tracker would. Predicted relative poses are
 chained from the true first pose with the geometry core (sum in the ``world``
 pose frame, composition in ``camera``).
 
-Metric names are stable (MLflow keys and report columns):
-``pair.<m>.{mean,std}`` over all pairs of all test trajectories,
-``acc.<m>.{mean,std}`` over trajectories (endpoint after chaining the whole
-trajectory), with ``<m>`` in pos_l2, pos_l2_mm, rot_l2, de, ce, geodesic, and
-the camera-tracking metrics of the literature (odometry.py: CTF, ATE, RPE over
-a frame gap, drift; thresholds from the config's ``eval:`` section)
-``traj.<t>.{mean,std}`` over trajectories, ``<t>`` in ctf, ctf_mm, ate,
-ate_mm, rpe_trans, rpe_rot, drift.
+Metric names are stable (MLflow keys and report columns), one per metric
+registered in registry.py: ``pair.<m>.{mean,std}`` over all pairs of all test
+trajectories, ``acc.<m>.{mean,std}`` over trajectories (endpoint after
+chaining the whole trajectory) for each per-pose metric (pos_l2, pos_l2_mm,
+rot_l2, de, ce, geodesic), and ``traj.<t>.{mean,std}`` over trajectories for
+each per-trajectory one, the camera-tracking metrics of the literature
+(odometry.py: ctf, ctf_mm, ate, ate_mm, rpe_trans, rpe_rot, drift; thresholds
+from the config's ``eval:`` section).
 
 Two image-blind references are scored on the same trajectories with the same
 metrics, under the prefixes ``zero_motion.`` (every relative pose is zero) and
@@ -32,13 +32,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import geometry, metrics, odometry
+from .. import geometry, metrics, odometry, registry
 from ..data.batches import FrameSource, relative_labels
 from ..data.reader import Trajectory
 
 POSE_COLS = ("x", "y", "z", "rx", "ry", "rz")
 REFERENCES = ("zero_motion", "train_mean")
-TRAJECTORY_METRICS = ("pos_l2", "pos_l2_mm", "rot_l2", "de", "ce", "geodesic")
 
 
 @dataclass(frozen=True)
@@ -125,7 +124,7 @@ def score(preds: list[TrajectoryPrediction], thresholds: odometry.Thresholds = o
     out |= _stats("acc", metrics.pair_metrics(ends_pred, ends_gt, np.stack([p.spacing_mm for p in preds]),
                                               rotations=True))
     per_traj = [odometry_metrics(p, thresholds) for p in preds]
-    traj = {k: np.array([m[k] for m in per_traj]) for k in odometry.METRICS}
+    traj = {k: np.array([m[k] for m in per_traj]) for k in registry.metric_names(per="trajectory")}
     out |= _stats("traj", {k: metrics.Stat.of(v[np.isfinite(v)]) for k, v in traj.items()})
     out["test.n_pairs"] = float(len(gt))
     out["test.n_trajectories"] = float(len(preds))
@@ -180,7 +179,7 @@ def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, li
             q = ps[i]
             pair = metrics.per_pose_errors(q.pred_rel, q.gt_rel, p.spacing_mm, rotations=q.frame == "camera")
             acc = metrics.per_pose_errors(q.pred_abs[-1:], q.gt_abs[-1:], p.spacing_mm, rotations=True)
-            for m in TRAJECTORY_METRICS:
+            for m in pair:  # every per-pose metric (registry.py; the mm ones: the spacing is known here)
                 row[f"{name}.pair.{m}"] = float(np.mean(pair[m]))
                 row[f"{name}.acc.{m}"] = float(acc[m][0])
             for m, v in odometry_metrics(q, thresholds).items():

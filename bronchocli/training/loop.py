@@ -47,7 +47,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from .. import metrics
+from .. import metrics, registry
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
@@ -58,7 +58,6 @@ from .network import PoseRegressor
 
 log = logging.getLogger(__name__)
 
-VAL_METRICS = ("pos_l2", "rot_l2", "de", "ce")
 CUDA_CHECK_EVERY = 25  # optimiser steps between non-finite checks on CUDA (each check is a host sync)
 # 16-mixed loss scaling. Unscaled fp16 gradients of these networks at initialisation reach ~1.5e4 (conv3d,
 # lstm: measured on the CPU), so PyTorch's default first scale of 2^16 overflows and halves for ~16 steps
@@ -343,7 +342,9 @@ class Trainer:
         samples = samples or self.val_set
         self.net.eval()
         per = max(1, self.s.eval_batch // samples.n_pairs)
-        sums = torch.zeros(2 + len(VAL_METRICS), dtype=torch.float64, device=self.device)
+        every = metrics.metric_functions()
+        fns = {name: every[name] for name in registry.metric_names(validation=True)}  # val.<m> (registry.py)
+        sums = torch.zeros(2 + len(fns), dtype=torch.float64, device=self.device)
         n = 0
         mean = torch.from_numpy(self.train_set.labels.reshape(-1, 6).mean(0)).to(self.device)  # the reference
         for k in range(0, len(samples), per):
@@ -354,14 +355,15 @@ class Trainer:
             out = out.float()
             loss = self.net.loss(out, labels, self.s.rot_loss, self.s.rot_weight)
             pairs = labels.shape[0] * labels.shape[1]
-            vals = [loss] + [metrics.METRICS[m](out, labels).mean() for m in VAL_METRICS]
-            vals.append(metrics.METRICS["pos_l2"](mean.expand_as(labels), labels).mean())
+            vals = [loss] + [fn(out, labels).mean() for fn in fns.values()]
+            vals.append(metrics.pos_l2(mean.expand_as(labels), labels).mean())
             sums += torch.stack([v.double() for v in vals]) * pairs
             n += pairs
         means = (sums / max(n, 1)).tolist()  # the one host sync of a validation
         # val.ratio.pos_l2: position error ÷ the training-mean predictor's on the same pairs (the headline, on val)
-        return {"val_loss": means[0], **{f"val.{m}": v for m, v in zip(VAL_METRICS, means[1:])},
-                "val.ratio.pos_l2": means[1] / means[-1] if means[-1] > 0 else float("nan")}
+        val = dict(zip(fns, means[1:-1]))
+        return {"val_loss": means[0], **{f"val.{m}": v for m, v in val.items()},
+                "val.ratio.pos_l2": val["pos_l2"] / means[-1] if means[-1] > 0 else float("nan")}
 
     def _validation(self) -> bool:
         """Validate, keep the best weights, checkpoint; True when early stopping says stop."""

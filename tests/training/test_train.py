@@ -13,17 +13,16 @@ import torch
 from run_metrics import EXPECTED
 from scipy.spatial.transform import Rotation
 
-from bronchocli.cells import ROT_LOSSES
 from bronchocli.config import load_config
 from bronchocli.inference.loading import resolve
-from bronchocli.registry import arch_names
+from bronchocli.registry import arch_names, rot_loss_names
 from bronchocli.runs.client import client_for
 from bronchocli.training.network import load_exported
 from bronchocli.training.run import run_cell
 
 # Every architecture once and every loss at least once in CI; the full grid is `slow`.
 QUICK = [("baseline", "mse"), ("lstm", "de"), ("convlstm", "ce"), ("conv3d", "mse"), ("offsetnet", "de")]
-FULL = [(a, lo) for a in arch_names() for lo in ROT_LOSSES if (a, lo) not in QUICK]
+FULL = [(a, lo) for a in arch_names() for lo in rot_loss_names() if (a, lo) not in QUICK]
 
 
 def artifacts(client, run_id: str, path: str = "") -> set[str]:
