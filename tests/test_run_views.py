@@ -92,6 +92,25 @@ def test_headline_view_sorts_by_the_headline_and_shows_it_as_columns():
     assert "tags.run_kind != 'sweep'" in view["searchFilter"]  # parents (nothing trained) are not in the table
 
 
+def test_headline_view_columns_are_comparable_across_rows_and_grouped_by_architecture():
+    """No loss column (CE, DE and MSE losses have different scales and rank runs unlike the headline); rows
+    grouped by architecture with the mean over each group's runs (MLflow's Group by)."""
+    view = headline_view()
+    assert not any("loss" in c for c in view["selectedColumns"]), view["selectedColumns"]
+    assert all(m.startswith(("ratio.", "skill.")) for m in VIEW_METRICS)
+    assert view["groupBy"] == {"aggregateFunction": "average",
+                               "groupByKeys": [{"mode": "param", "groupByData": "arch"}]}
+
+
+def test_the_sweep_parent_has_no_csv_import_params_unless_the_dataset_is_one():
+    from bronchocli.runs.views import parent_params
+
+    plain = parent_params(Config(name="t"))
+    assert "dataset.root" in plain and not any(k.startswith("dataset.csv.") for k in plain)
+    csv = parent_params(Config(name="t").with_values({"dataset.format": "csv"}))
+    assert any(k.startswith("dataset.csv.") for k in csv)
+
+
 def test_run_names_put_the_telling_coordinates_first():
     cfg = Config(name="t")
     assert run_name(cfg.cell(arch="convlstm", rot_loss="ce", population="personalized")) == \

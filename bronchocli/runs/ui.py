@@ -3,9 +3,14 @@
 It listens on 127.0.0.1 unless asked with ``--expose`` (``check_host``): MLflow's UI has no authentication.
 
 MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
-experiment's runs table in the model-training view (``runs_table_url``),
-and experiments are created tagged ``mlflow.experimentKind=custom_model_development``
-so the UI's own navigation lands there too. The link names the saved view
+experiment's runs table in the model-training view (``runs_table_url``).
+Experiments are created tagged ``mlflow.experimentKind=custom_model_development``,
+but MLflow 3.17's UI does not read that tag for its landing: the mode comes from
+the URL's ``workflowType`` or the browser's own ``localStorage``
+(``mlflow.workflowType_v1``, default GenAI; the sidebar's GenAI / Model training
+switch sets it), so from a fresh browser profile the UI's own navigation still
+lands on the GenAI overview until the switch is set once (issue 36.5, open).
+The link names the saved view
 ``views.headline_view`` (stored as an experiment tag here, before the server
 starts): the trained runs sorted by the headline, best first, with the headline
 figures as columns. The server is sized for the machine:

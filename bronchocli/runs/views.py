@@ -58,9 +58,11 @@ HEADLINE_METRICS = ("pos_l2", "rot_l2")
 README_RATIO = "ratio.train_mean.pair.pos_l2"  # pair position error / the training-mean reference's
 HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # Metric columns of the runs table's view. MLflow shows a group's columns sorted by name (a saved column order
-# is not applied when the table opens), so these are chosen to sort headline first.
-VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l2", "skill.pair.rot_l2",
-                "val_best.loss")
+# is not applied when the table opens), so these are chosen to sort headline first. Every one is comparable across
+# rows (ratios and skills against the image-blind references): no loss, whose scale differs between rotation losses
+# (CE, DE and MSE losses rank runs differently from the headline).
+VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l2", "skill.pair.rot_l2")
+GROUP_BY = "arch"  # the view's rows grouped by this param, each group showing the mean over its runs (seeds)
 VIEW_KEY = "bronchopose-headline"
 SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
 PARENT_KINDS = ("sweep", "study", "selection")  # run_kind tags of runs that did not train
@@ -92,9 +94,15 @@ def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
 
 
 def parent_params(cfg: Config) -> dict[str, str]:
-    """A sweep's settings shared by every cell, for its parent run (what the plan ran: ``sweep/summary.py``)."""
+    """A sweep's settings shared by every cell, for its parent run (what the plan ran: ``sweep/summary.py``). The
+    CSV import's column names (``dataset.csv``) only where the dataset is a CSV import: elsewhere they are settings
+    nothing read."""
     data = cfg.dump()
-    return flatten({k: data[k] for k in PARENT_SECTIONS if k in data})
+    sections = {k: data[k] for k in PARENT_SECTIONS if k in data}
+    dataset = sections.get("dataset")
+    if isinstance(dataset, dict) and dataset.get("format") != "csv":
+        sections["dataset"] = {k: v for k, v in dataset.items() if k != "csv"}
+    return flatten(sections)
 
 
 # -- metrics ------------------------------------------------------------------------------------------
@@ -158,7 +166,8 @@ def _column(kind: str, name: str) -> str:
 
 
 def headline_view() -> dict:
-    """The saved view the link opens: runs that trained, best headline first, headline figures as columns."""
+    """The saved view the link opens: runs that trained, best headline first, headline figures as columns, grouped
+    by architecture (the group's row: the mean over its runs)."""
     metrics = [_column("metrics", m) for m in VIEW_METRICS]
     return {
         "searchFilter": " and ".join(f"tags.run_kind != '{k}'" for k in PARENT_KINDS),
@@ -169,6 +178,10 @@ def headline_view() -> dict:
         "columnOrder": [_column("attributes", "Run Name"), *metrics],
         "columnWidths": {_column("attributes", "Run Name"): 210,  # run names whole
                          **{c: 24 + 7 * len(m) for c, m in zip(metrics, VIEW_METRICS)}},  # headers whole
+        # MLflow's "Group by" (RunsGroupByConfig): one row per architecture with the mean over its runs (seeds,
+        # and the other coordinates the filter keeps); groups open, so every run stays one click from its row
+        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "param", "groupByData": GROUP_BY}]},
+        "useGroupedValuesInCharts": True,
     }
 
 
