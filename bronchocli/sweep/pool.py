@@ -15,11 +15,9 @@ so does the parent.
 
 from __future__ import annotations
 
-import signal
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 
 from rich.console import Console
@@ -57,18 +55,10 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
     launcher = LocalLauncher(cfg, storage_url=store.url, only=only, runner=runner, gpus=gpus,
                              log_dir=cfg.paths.sweep_logs / plan.sweep)
     procs = launcher.processes
-    previous = {s: signal.signal(s, lambda signum, frame: procs.stop()) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with procs.supervised():  # Ctrl-C stops the workers once; a failure here stops them before waiting
         launcher.submit(workers, stage or "")
         plan = _watch(store, plan, procs, cfg, workers, console, on_refresh)
-    except BaseException:  # the parent is failing: stop the workers (they release their cells) before waiting
-        if procs.stops == 0:
-            procs.stop()
-        raise
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-        codes = procs.join()
+    codes = procs.join()
     interrupted = procs.stops > 0 or EXIT_INTERRUPTED in codes
     return PoolResult(_exit_code(plan, cfg.sweep.max_retries, interrupted), plan, time.perf_counter() - t0,
                       interrupted, codes, procs.log_dir)
@@ -102,8 +92,8 @@ def _watch(store: SweepStore, plan: Plan, procs: LocalProcesses, cfg: Config, wo
     if live is not None:
         live.start()
     try:
-        while sentinels := procs.sentinels():
-            wait_any(sentinels, timeout=REFRESH_S)
+        while procs.sentinels():
+            procs.wait(REFRESH_S)
             plan = refresh()
         return refresh()
     finally:

@@ -18,8 +18,9 @@ import logging
 import os
 import socket
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NoReturn
 
 from .. import urls
 from ..cells import Selection
@@ -100,18 +101,39 @@ def prepare_process(gpu: str | None, share: int, log_path: str | None, parent_pi
     _redirect_output(log_path)
 
 
-def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
-    """Run one worker through the stages; its exit code (0 nothing left here, 130 stopped)."""
+def start_worker(job: Any, launcher: type[Launcher], stop_event: Any) -> tuple[WorkerId, StopSignals]:
+    """A worker process's start, a sweep's or a tune's (``job``: a WorkerJob or a TuneJob): ``prepare_process``,
+    its ``WorkerId`` on every log line of its log file, its stop signals (and ``launcher``'s own) installed."""
     prepare_process(job.gpu, job.gpu_share, job.log_path, job.parent_pid, job.cpu_workers)
-    ident = this_worker(job.launcher)
+    ident = this_worker(launcher)
     if job.log_path is not None:
         logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
                             format=f"%(asctime)s {ident} %(levelname)s %(name)s: %(message)s")
+    signals = StopSignals(stop_event, job.parent_pid)
+    signals.install(extra=launcher.worker_signals)
+    return ident, signals
+
+
+def exit_process(main: Callable[[], int]) -> NoReturn:
+    """A spawned worker process's end: run ``main`` and exit with its code; a user error (BronchoError) is logged
+    in one line (passwords redacted) and exits with its code (2)."""
+    code = EXIT_INTERRUPTED
+    try:
+        code = main()
+    except BronchoError as exc:
+        log.error("%s", urls.redact(str(exc)))
+        code = exc.exit_code
+    finally:
+        logging.shutdown()
+    sys.exit(code)
+
+
+def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
+    """Run one worker through the stages; its exit code (0 nothing left here, 130 stopped)."""
+    ident, signals = start_worker(job, job.launcher, stop_event)
     cfg = job.cfg
     if cfg.train.threads is None and (threads := job.launcher.worker_threads()):
         cfg = cfg.with_values({"train.threads": threads})
-    signals = StopSignals(stop_event, job.parent_pid)
-    signals.install(extra=job.launcher.worker_signals)
     log.info("sweep worker %s, %s %s %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, job.launcher.title,
              job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
     code = EXIT_INTERRUPTED
@@ -129,15 +151,7 @@ def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
 
 def local_process(job: WorkerJob, stop_event: Any = None) -> None:
     """A spawned local worker process: ``worker_main``, then exit with its code (a user error: logged, 2)."""
-    code = EXIT_INTERRUPTED
-    try:
-        code = worker_main(job, stop_event)
-    except BronchoError as exc:
-        log.error("%s", urls.redact(str(exc)))
-        code = exc.exit_code
-    finally:
-        logging.shutdown()
-    sys.exit(code)
+    exit_process(lambda: worker_main(job, stop_event))
 
 
 def work_stages(cfg: Config, store: SweepStore, only: Selection, *, signals: StopSignals,

@@ -14,15 +14,10 @@ from __future__ import annotations
 
 import logging
 import os
-import signal
-import socket
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import wait as wait_any
 from typing import Any
 
-from .. import urls
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError
@@ -30,12 +25,11 @@ from ..runs.client import client_for
 from ..runs.contract import RunInterrupted
 from ..runs.parents import set_parent_status, start_parent
 from . import tuning
-from .launchers.local import LocalProcesses
-from .liveness import StopSignals
+from .launchers.local import LocalLauncher, LocalProcesses
 from .record import rebuild_trials
-from .stagework import GPU_ENV, prepare_process
+from .stagework import exit_process, start_worker
 from .summary import log_study
-from .worker import EXIT_INTERRUPTED, WorkerId
+from .worker import EXIT_INTERRUPTED
 
 log = logging.getLogger(__name__)
 
@@ -59,27 +53,19 @@ class TuneJob:
 
 def tune_process(job: TuneJob, stop_event: Any = None) -> None:
     """A tune worker process: trials until the study holds ``trials`` finished ones; exit 0, 130 (stopped) or 2."""
-    prepare_process(job.gpu, job.gpu_share, job.log_path, job.parent_pid, job.cpu_workers)
-    ident = WorkerId(socket.gethostname(), os.getpid(), gpu=os.environ.get(GPU_ENV))
-    logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
-                        format=f"%(asctime)s {ident} %(levelname)s %(name)s: %(message)s")
-    signals = StopSignals(stop_event, job.parent_pid)
-    signals.install()
+    _, signals = start_worker(job, LocalLauncher, stop_event)  # placed, logged and stopped like a sweep's worker
     log.info("tune worker %d of study %s, CUDA_VISIBLE_DEVICES=%s", job.worker, job.study or "(the cell's)",
              os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
-    code = 0
-    try:
-        tuning.tune_worker(job.cfg, job.target, job.trials, study=job.study, timeout=job.timeout, worker=job.worker,
-                           stop=lambda: signals.stop)
-        code = EXIT_INTERRUPTED if signals.requested is not None else 0
-    except (KeyboardInterrupt, RunInterrupted):
-        code = EXIT_INTERRUPTED
-    except BronchoError as exc:
-        log.error("%s", urls.redact(str(exc)))
-        code = exc.exit_code
-    finally:
-        logging.shutdown()
-    sys.exit(code)
+
+    def trials() -> int:
+        try:
+            tuning.tune_worker(job.cfg, job.target, job.trials, study=job.study, timeout=job.timeout,
+                               worker=job.worker, stop=lambda: signals.stop)
+        except (KeyboardInterrupt, RunInterrupted):
+            return EXIT_INTERRUPTED
+        return EXIT_INTERRUPTED if signals.requested is not None else 0
+
+    exit_process(trials)
 
 
 def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None, timeout: float | None = None,
@@ -123,19 +109,11 @@ def run_workers(cfg: Config, target: Cell, trials: int, name: str, *, study: str
     def job(gpu: str | None, share: int, log_path: str) -> TuneJob:
         return TuneJob(cfg, target, trials, study, timeout, next(index), gpu, share, log_path, os.getpid(), workers)
 
-    previous = {s: signal.signal(s, lambda signum, frame: procs.stop()) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with procs.supervised():  # the sweep pool's stop signals and failure handling
         procs.start(workers, tune_process, job)
-        while sentinels := procs.sentinels():
-            wait_any(sentinels)
-    except BaseException:
-        if procs.stops == 0:
-            procs.stop()
-        raise
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
-        codes = procs.join()
+        while procs.sentinels():
+            procs.wait()
+    codes = procs.join()
     if procs.stops or EXIT_INTERRUPTED in codes:
         raise RunInterrupted(f"tune interrupted: the trials in progress were stopped (logs in {procs.log_dir}); "
                              "run the same command to continue")

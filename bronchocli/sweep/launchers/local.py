@@ -20,7 +20,9 @@ import multiprocessing as mp
 import os
 import signal
 import socket
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 from typing import Any
 
@@ -74,9 +76,32 @@ class LocalProcesses:
                     pass
 
     def join(self) -> list[int | None]:
+        """Wait for every worker (again: at once); their exit codes."""
         for p, _, _ in self.procs:
             p.join()
         return [p.exitcode for p, _, _ in self.procs]
+
+    def wait(self, timeout: float | None = None) -> None:
+        """Until some worker exits (or ``timeout`` seconds pass)."""
+        if sentinels := self.sentinels():
+            wait_any(sentinels, timeout=timeout)
+
+    @contextmanager
+    def supervised(self) -> Iterator[None]:
+        """Start and watch the workers inside: this process's Ctrl-C and SIGTERM stop them (``stop``: once, then
+        SIGINT); when this process fails, it stops them before waiting. On the way out the handlers are restored
+        and every worker is waited for (``join`` then gives their exit codes)."""
+        previous = {s: signal.signal(s, lambda signum, frame: self.stop()) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        except BaseException:  # the parent is failing: stop the workers (they release their work) before waiting
+            if self.stops == 0:
+                self.stop()
+            raise
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+            self.join()
 
 
 class LocalLauncher(Launcher):
