@@ -24,6 +24,9 @@ def config(
     """
     cfg = load(config, profile, set_)
     check_paths(cfg, storage=True, logs=True)  # what `sweep` checks: roots inside each other, unwritable paths
+    from ..sweep.launchers import launcher_class  # lazy: keeps `bronchopose --help` fast
+
+    launcher_class(cfg.sweep.launcher, "sweep.launcher")  # a registered one (the config package cannot see them)
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return

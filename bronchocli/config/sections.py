@@ -296,7 +296,15 @@ class SweepCfg(Section):
     stale_after_s: float = Field(60.0, gt=0, le=DAY_S)  # a claim without heartbeat this long is reclaimed
     poll_s: float = Field(2.0, gt=0, le=3600)  # an idle worker looks again this often (cells held elsewhere)
     logs: str = "runs/sweep-logs"  # one log file per worker process
-    launcher: spelled(Literal["local", "slurm"]) = "local"  # slurm: submit array tasks as workers (slurm section)
+    # Where the workers run: a launcher registered in sweep/launchers (local, slurm: array tasks, slurm section) or
+    # module:Class. A plain name here: config sits below the sweep package, so the names are checked where the
+    # registry is (sweep.entry.launcher_kind, and `bronchopose config`), one line naming the registered ones.
+    launcher: str = "local"
+
+    @field_validator("launcher")
+    @classmethod
+    def _launcher(cls, v: str) -> str:
+        return v if ":" in v else v.strip().lower()  # any case, like the enum-like settings; module:Class as written
 
     @field_validator("stale_after_s")
     @classmethod

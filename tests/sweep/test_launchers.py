@@ -133,3 +133,15 @@ def test_a_cancel_is_recorded_so_the_watcher_stops_and_a_later_run_resumes(cli, 
     assert parent.info.status == "FINISHED" and TAG_CANCELLED not in parent.data.tags
     rows = SweepStore(project.paths.storage_url).rows(project.name)
     assert {r.state for r in rows} == {FINISHED} and runs_by_cell(project) == {r.cell_key: 1 for r in rows}
+
+
+def test_the_launcher_names_have_one_owner_the_registry(cli, project):
+    """``sweep.launcher`` is a plain name in the config (the config package cannot see the launchers); `config` and
+    the sweep check it against the registry, so a registered launcher is a valid value with no other change."""
+    import subprocess_launcher  # noqa: F401 - registers "subprocess"
+
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("config", "-c", path, "--set", "sweep.launcher=PBS")
+    assert code == 2 and err.strip() == f"error: sweep.launcher pbs: must be one of {', '.join(names())}", err
+    code, out, err = cli("config", "-c", path, "--set", "sweep.launcher=Subprocess")
+    assert code == 0 and "launcher: subprocess" in out, err
