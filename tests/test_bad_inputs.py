@@ -513,6 +513,13 @@ FAMILIES: dict[str, dict[str, tuple[Callable[[Project], list[str]], str, tuple[s
                                          "low: 1, high: 2}}"], "only run settings can be tuned", ()),
         "empty choices": (lambda p: ["config", *C(p), "--set", "tune.space={train.schedule: {type: categorical, "
                                      "choices: []}}"], "non-empty 'choices'", ()),
+        # issue 37.4: a step has a range too (0, high - low]: 1e30 left one value to search, without a word
+        "step beyond the range (config)": (lambda p: ["config", *C(p), "--set", "tune.space={train.lr: {type: "
+                                                      "float, low: 0.0001, high: 0.001, step: 1e30}}"],
+                                           "tune.space.train.lr: step 1e+30 outside its range (0, high - low] = "
+                                           "(0, 0.0009]", ()),
+        "step 0 (config)": (lambda p: ["config", *C(p), "--set", "tune.space={model.dropout: {type: float, "
+                                       "low: 0, high: 0.5, step: 0}}"], "step 0 outside its range", ()),
     },
     "datasets": {
         "truncated PNG (data preview)": (lambda p: ["data", "preview", str(truncate_frame(p)), "--out",

@@ -147,8 +147,8 @@ def space_problems(cfg: Config) -> list[str]:
         if p.log and p.type != "categorical" and p.low <= 0:
             problems.append(f"{where}: log scale needs low > 0 (got {p.low})")
             continue
-        if p.step is not None and p.step <= 0:
-            problems.append(f"{where}: step must be > 0 (got {p.step})")
+        if p.step is not None and not 0 < p.step <= p.high - p.low:  # a bigger step leaves one value to search
+            problems.append(f"{where}: step {p.step:g} outside its range (0, high - low] = (0, {p.high - p.low:g}]")
             continue
         probes = p.choices if p.type == "categorical" else [p.low, p.high]
         for value in probes:  # every choice (and both ends of a range) must be a valid value of the setting

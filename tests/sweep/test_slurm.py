@@ -321,11 +321,12 @@ def services():
         shutil.rmtree(art, ignore_errors=True)
 
 
-def cluster_project(make_config, tmp_path, pg_url, services, name: str, steps: int = 24, **kw):
-    """A one-cell project that really trains (a checkpoint to resume), tracked by the MLflow server."""
+def cluster_project(make_config, tmp_path, pg_url, services, name: str, steps: int = 24, archs=("baseline",), **kw):
+    """A project (one cell unless ``archs`` says more) that really trains (a checkpoint to resume), tracked by the
+    MLflow server."""
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
     sweep = {"heartbeat_s": 0.5, "stale_after_s": 10.0, "poll_s": 0.2, **kw.pop("sweep", {})}
-    return make_config(storage=pg_url, name=name, archs=("baseline",), losses=("mse",), sweep=sweep,
+    return make_config(storage=pg_url, name=name, archs=archs, losses=("mse",), sweep=sweep,
                        runs={"uri": services[1].url, "checkpoints": "runs/checkpoints", **kw.pop("runs", {})},
                        slurm=kw.pop("slurm", {"cpus_per_task": 1, "shared_filesystem": True}),
                        splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
@@ -466,3 +467,130 @@ def test_a_resubmitted_stage_one_holds_stage_two_back(slurm, cli, make_config, t
     assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in done}
     client = client_for(cfg)
     assert client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg))).info.status == "FINISHED"
+
+
+@pytest.mark.slow
+def test_a_cancel_while_a_submitter_watches_stops_it_and_a_later_run_resumes_each_cell_once(
+        slurm, cli, make_config, tmp_path, pg_url, fake_dir, services):
+    """Issue 37.2 on the cluster: `sweep cancel` in one shell while `sweep run --launcher slurm` watches in another.
+    The watcher submits nothing again (it used to re-submit a new array ~17 s after the scancel) and exits 130;
+    the sweep's parent run is KILLED and tagged; the cells are given back; a later explicit run un-cancels and
+    finishes each cell exactly once, resuming the KILLED runs."""
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    cfg = project(make_config, tmp_path, pg_url, name="cancel-watch", archs=("baseline", "lstm"), losses=("mse",),
+                  runs={"uri": services[1].url}, slurm={"tasks": 2})
+    path = str(cfg.paths.base / "experiments.yaml")
+    for arch in ("baseline", "lstm"):
+        (fake_dir / f"block-{arch}").touch()
+    watcher = subprocess.Popen([sys.executable, "-c", MAIN, "sweep", "run", "-c", path, "--launcher", "slurm", *FAKE],
+                               cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                               env={**os.environ, "COLUMNS": "200"})
+    try:
+        wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2 or watcher.poll() is not None,
+                 "both tasks inside their cells", cluster=slurm, cfg=cfg)
+        assert watcher.poll() is None, watcher.communicate()[0]
+        code, out, err = cli("sweep", "cancel", "-c", path, "--launcher", "slurm")
+        assert code == 0 and "cancelled Slurm job(s)" in out, out + err
+        watched, _ = watcher.communicate(timeout=LIMIT)
+    finally:
+        if watcher.poll() is None:
+            watcher.kill()
+    assert watcher.returncode == 130 and "was cancelled" in watched, watched + task_logs(cfg)
+    assert len(re.findall(r"submitted Slurm array job \d+", watched)) == 1, watched  # nothing submitted again
+    slurm.wait_idle_queue(LIMIT)
+    time.sleep(20)  # longer than the ~17 s after which the watcher used to re-submit: still nothing queued
+    assert slurm.jobs() == []
+    assert [r.state for r in rows(cfg)] == [PENDING, PENDING]  # the stopped tasks gave their cells back
+    client = client_for(cfg)
+    parent = client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg)))
+    assert parent.info.status == "KILLED" and TAG_CANCELLED in parent.data.tags
+    assert runs_by_cell(cfg, "KILLED") == {r.cell_key: 1 for r in rows(cfg)}
+
+    (fake_dir / "release").touch()
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", *FAKE)  # un-cancels, watches to the end
+    assert code == 0, out + err + task_logs(cfg)
+    done = rows(cfg)
+    assert {r.state for r in done} == {FINISHED}
+    assert runs_by_cell(cfg, "FINISHED") == {r.cell_key: 1 for r in done} == runs_by_cell(cfg, None)  # resumed
+    parent = client.get_run(parent.info.run_id)
+    assert parent.info.status == "FINISHED" and TAG_CANCELLED not in parent.data.tags
+
+
+@pytest.mark.slow
+def test_stage_one_cancelled_whole_lets_stage_two_start_but_it_takes_no_stage_one_work(
+        slurm, cli, make_config, tmp_path, pg_url, fake_dir, services):
+    """Issue 37.3 as reported: `scancel` of the whole stage-1 array meets stage 2's `afterany` at once, so a stage-2
+    task starts while stage 1 is unfinished (docs/cluster.md: the guarantee is about work, not start times); it
+    exits without claiming any stage-1 cell, and the command run again runs stage 1 before stage 2."""
+    stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
+    cfg = project(make_config, tmp_path, pg_url, name="stages-cut", archs=("baseline", "lstm"), losses=("mse",),
+                  stages=stages, runs={"uri": services[1].url}, slurm={"gpus_per_task": 0})
+    for arch, val in (("baseline", 2.0), ("lstm", 1.0)):
+        (fake_dir / f"val-{arch}-mse").write_text(str(val))
+        (fake_dir / f"block-{arch}").touch()
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    assert code == 0, out + err
+    first = re.search(r"submitted Slurm array job (\d+): 2 task\(s\) for stage first", out)
+    second = re.search(r"submitted Slurm array job (\d+): 1 task\(s\) for stage second", out)
+    assert first and second, out
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both stage-1 tasks in their cells", cluster=slurm,
+             cfg=cfg)
+    slurm.run("scancel", first.group(1))  # the whole stage-1 array: stage 2's afterany is met at once
+    logs = cfg.paths.base / "runs" / "slurm-logs"
+    wait_for(lambda: any(logs.glob(f"{second.group(1)}_*.log")) and not slurm.jobs(),
+             "stage 2's task started and every task gone", cluster=slurm, cfg=cfg)
+    stage_two = "".join(p.read_text() for p in logs.glob(f"{second.group(1)}_*.log"))
+    assert "leaves them to stage first's workers" in stage_two, stage_two  # it started, and exited without work
+    assert {r.state for r in rows(cfg)} == {PENDING} and all(r.coords["seed"] == 0 for r in rows(cfg)), rows(cfg)
+    assert all(calls(r.cell_key) == 1 for r in rows(cfg))  # only stage 1's own tasks ever ran its cells
+
+    (fake_dir / "release").touch()
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", *FAKE)  # watches to the end
+    assert code == 0, out + err + task_logs(cfg)
+    done = rows(cfg)
+    first_done = max(r.finished_at for r in done if r.coords["seed"] == 0)
+    assert [r.coords["seed"] for r in done].count(1) == 1
+    assert all(r.claimed_at >= first_done for r in done if r.coords["seed"] == 1)  # stage 2 only after stage 1
+    assert all(r.state == FINISHED for r in done) and runs_by_cell(cfg, None) == {r.cell_key: 1 for r in done}
+    client = client_for(cfg)
+    assert client.get_run(sweep_parent(client, cfg, experiment_id(client, cfg))).info.status == "FINISHED"
+
+
+@pytest.mark.slow
+def test_two_tasks_starting_together_on_a_new_experiment_lose_no_attempt_to_mlflows_dataset_race(
+        slurm, make_config, tmp_path, pg_url, services):
+    """Issue 37.1 as reported: two Slurm tasks start real training runs at once on a new experiment through the
+    MLflow server on PostgreSQL; both log the same dataset inputs, and the server's read-then-insert lets one of
+    them meet ``UniqueViolation "dataset_pk"`` (a 400). Made certain, as in test_dataset_race.py: the test holds
+    the server's ``datasets`` table (reads go on, inserts wait) until both tasks wait on their insert. The loser's
+    write is retried; both cells finish on their first attempt and no run FAILED."""
+    import psycopg
+
+    pg, _ = services
+    cfg = cluster_project(make_config, tmp_path, pg_url, services, "race", steps=6, archs=("baseline", "lstm"),
+                          runs={"timeout_s": 300, "busy_timeout_s": 300})  # a request may wait on the held table
+    db = {"host": "127.0.0.1", "port": pg.port, "user": "postgres", "dbname": "mlflow"}
+    waiting = ("SELECT count(*) FROM pg_stat_activity WHERE datname = 'mlflow' AND wait_event_type = 'Lock' "
+               "AND query ILIKE '%INSERT INTO datasets%'")
+    submitter = None
+    try:
+        with psycopg.connect(**db) as hold, psycopg.connect(**db, autocommit=True) as watch:
+            hold.execute("LOCK TABLE datasets IN EXCLUSIVE MODE")  # SELECT goes on, INSERT waits
+            submitter = watch_sweep(cfg, tmp_path)
+            try:
+                wait_for(lambda: watch.execute(waiting).fetchone()[0] >= 2 or submitter.poll() is not None,
+                         "both tasks' dataset inserts waiting", limit=300, cfg=cfg)
+                assert submitter.poll() is None, submitter.communicate()[0]
+            finally:
+                hold.rollback()  # the lock goes: one insert wins, the other meets its row
+        finish(submitter, cfg)
+    finally:
+        if submitter is not None and submitter.poll() is None:
+            submitter.kill()
+    log = task_logs(cfg)
+    assert 'MLflow store busy (log_inputs): BAD_REQUEST: (psycopg.errors.UniqueViolation) duplicate key value ' \
+           'violates unique constraint "dataset_pk"; retrying' in log, log  # the race was lost, and retried
+    assert {(r.state, r.attempts) for r in rows(cfg)} == {(FINISHED, 1)}, rows(cfg)
+    assert runs_by_cell(cfg, "FAILED") == {} and runs_by_cell(cfg, None) == {r.cell_key: 1 for r in rows(cfg)}
