@@ -11,8 +11,14 @@ from bronchocli.runs.records import run_name, source_name
 from bronchocli.runs.views import (
     HEADLINE,
     README_RATIO,
+    CURVE_METRICS,
+    CURVES_SECTION,
+    EVAL_PARAMS,
+    HEADLINE_SECTION,
     VIEW_METRICS,
+    config_value,
     describe,
+    eval_params,
     headline,
     headline_view,
     ordered_metrics,
@@ -44,6 +50,21 @@ def test_params_are_the_coordinates_and_the_settings_that_differ():
     assert "train.batch_size" not in params  # at its default: the full value is in config.yaml
     fold = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", train_trajectories=4)
     assert run_params(cfg, fold)["fold"] == "p01" and run_params(cfg, fold)["train_trajectories"] == "4"
+
+
+def test_the_evaluation_constants_are_params_read_back_with_the_old_metrics_as_fallback():
+    assert eval_params(Config(name="t")) == {"eval.ctf_position": "5.0", "eval.ctf_position_mm": "5.0",
+                                             "eval.ctf_angle": "10.0", "eval.rpe_gap": "10"}  # defaults included
+    cfg = Config(name="t").with_values({"eval.ctf_angle": 4.0, "eval.rpe_gap": 3})
+    assert set(eval_params(cfg)) == set(EVAL_PARAMS) and eval_params(cfg)["eval.rpe_gap"] == "3"
+    assert not any(k.startswith("eval.") for k in run_params(cfg, cfg.cell(arch="lstm", rot_loss="ce",
+                                                                            population="personalized")))
+    new, old = {"eval.rpe_gap": "3"}, {"eval.rpe_gap": 10.0, "eval.ctf_angle": 4.0}  # a run since / before
+    assert config_value(new, {}, "eval.rpe_gap") == 3.0
+    assert config_value({}, old, "eval.rpe_gap") == 10.0 and config_value({}, old, "eval.ctf_angle") == 4.0
+    assert config_value(new, old, "eval.rpe_gap") == 3.0  # the param wins
+    assert config_value({}, {}, "eval.rpe_gap") is None
+    assert config_value({"eval.rpe_gap": "x"}, {}, "eval.rpe_gap") is None
 
 
 def test_headline_ratios_and_skills_against_both_references():
@@ -100,6 +121,23 @@ def test_headline_view_columns_are_comparable_across_rows_and_grouped_by_archite
     assert all(m.startswith(("ratio.", "skill.")) for m in VIEW_METRICS)
     assert view["groupBy"] == {"aggregateFunction": "average",
                                "groupByKeys": [{"mode": "param", "groupByData": "arch"}]}
+
+
+def test_headline_view_charts_put_the_training_and_validation_curves_first_without_renaming_a_metric():
+    """The view's Chart sections: the curves, then the headline (MLflow appends any other section after them:
+    isAccordionReordered); the metric names stay what every reader and old store know (no "/" prefix invented
+    for MLflow's grouping)."""
+    view = headline_view()
+    curves, head = view["compareRunSections"]
+    assert (curves["name"], head["name"]) == (CURVES_SECTION, HEADLINE_SECTION) and view["isAccordionReordered"]
+    cards = view["compareRunCharts"]
+    assert [c["metricKey"] for c in cards] == [*CURVE_METRICS, *VIEW_METRICS]
+    assert list(CURVE_METRICS) == ["train_loss", "val_loss", "val.ratio.pos_l2", "val.mode_gap"]
+    lines = [c for c in cards if c["metricSectionId"] == curves["uuid"]]
+    assert [c["metricKey"] for c in lines] == list(CURVE_METRICS)
+    assert all(c["type"] == "LINE" and c["xAxisKey"] == "step" and not c["deleted"] for c in lines)
+    assert all(c["type"] == "BAR" and c["metricSectionId"] == head["uuid"] for c in cards[len(lines):])
+    assert len({c["uuid"] for c in cards}) == len(cards) and not any("/" in m for m in CURVE_METRICS)
 
 
 def test_the_sweep_parent_has_no_csv_import_params_unless_the_dataset_is_one():

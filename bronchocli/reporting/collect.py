@@ -33,6 +33,7 @@ from urllib.request import url2pathname
 from ..cells import FIELDS
 from ..errors import BronchoError
 from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, search_runs
+from ..runs.views import config_value
 from .scope import PlanView, fetch_selections
 
 if TYPE_CHECKING:
@@ -63,6 +64,11 @@ class RunRecord:
 
     def tag(self, name: str) -> str:
         return self.tags.get(name, "") or ""
+
+    def setting(self, name: str) -> float | None:
+        """A numeric config constant the run logged (``eval.ctf_angle``, ...): its param, or its metric on runs
+        logged before it was a param; None when it has neither."""
+        return config_value(self.params, self.metrics, name)
 
     @property
     def artifacts_gone(self) -> Path | None:

@@ -270,10 +270,10 @@ TRACKING_UNITS = ("CTF: share of frames 1..N-1 (the first pose is given) whose p
 
 
 def _thresholds_text(c: Collector, runs) -> str:
-    """The thresholds the runs logged (eval.*); a warning when they differ."""
+    """The thresholds the runs logged (eval.* params; metrics on runs logged before); a warning when they differ."""
     names = {"eval.ctf_position": "{:g} voxels", "eval.ctf_position_mm": "{:g} mm", "eval.ctf_angle": "{:g}°",
              "eval.rpe_gap": "{:g} frames"}
-    seen = {k: sorted({r.metrics[k] for r in runs if k in r.metrics}) for k in names}
+    seen = {k: sorted({v for r in runs if (v := r.setting(k)) is not None}) for k in names}
     if not any(seen.values()):
         return "Thresholds: not logged by these runs."
     for k, values in seen.items():

@@ -13,7 +13,8 @@ lands on the GenAI overview until the switch is set once (issue 36.5, open).
 The link names the saved view
 ``views.headline_view`` (stored as an experiment tag here, before the server
 starts): the trained runs sorted by the headline, best first, with the headline
-figures as columns. The server is sized for the machine:
+figures as columns, grouped by architecture, and a Chart view that opens on the
+training and validation curves (``views.chart_sections``). The server is sized for the machine:
 ``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
 (``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
 judges and trace jobs that a training experiment never uses).

@@ -11,6 +11,11 @@ params, so a run logs as params what tells runs apart, not the whole config:
   run changed (speed settings such as ``train.threads`` included: they
   explain timing differences).
 
+The evaluation's constants (``eval_params``: the CTF thresholds and the RPE gap,
+``EVAL_PARAMS``) are params too, logged with the test metrics they were computed
+with; runs logged before they were params have them as metrics of the same name,
+and ``config_value`` reads either.
+
 The full resolved config stays the ``config.yaml`` artifact; the splits and
 dataset settings (the same on every run of a sweep) go on the sweep's parent
 run, beside what its plan ran (``sweep/summary.py``: stages and cells, not the
@@ -34,8 +39,10 @@ the experiment tag ``mlflow.sharedViewState.<key>`` named by the URL's
 ``columnWidths``, ...; its own "Share" button writes the same). The view shows
 the runs that trained (no sweep/study/selection parents, so nothing is nested
 and collapsed), sorted by the headline, best first, with the headline figures
-as columns. Run names (``records.run_name``) are the cell in a compact form whose
-first words tell cells apart where the table cuts names off.
+as columns, grouped by architecture; its "Chart" view opens with the training
+and validation curves as the first section, the headline figures the second
+(``chart_sections``). Run names (``records.run_name``) are the cell in a
+compact form whose first words tell cells apart where the table cuts names off.
 
 Parent runs are in ``parents.py``.
 """
@@ -50,6 +57,8 @@ from ..config import RUN_SECTIONS, Config
 from .records import flatten
 
 ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
+# Constants of the test evaluation (config eval:), params of every FINISHED run (metrics on runs logged before).
+EVAL_PARAMS = ("eval.ctf_position", "eval.ctf_position_mm", "eval.ctf_angle", "eval.rpe_gap")
 PARENT_SECTIONS = ("name", "splits", "dataset")  # shown as params on a sweep's parent (the plan: sweep/summary.py)
 
 REFERENCES = ("zero_motion", "train_mean")
@@ -62,6 +71,16 @@ HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # rows (ratios and skills against the image-blind references): no loss, whose scale differs between rotation losses
 # (CE, DE and MSE losses rank runs differently from the headline).
 VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l2", "skill.pair.rot_l2")
+# The view's charts (the runs table's "Chart" view). MLflow 3.17 groups a metric's chart by its name's prefix before
+# "/" (ours have none: one "Model metrics" section of every metric, alphabetical, the curves among ~160 single-value
+# bars). A shared view carries its chart sections and cards (compareRunSections/compareRunCharts), so the view opens
+# on two sections of its own without renaming a metric: the training and validation curves, then the headline
+# figures; isAccordionReordered keeps that order when MLflow appends sections of the other metrics (it adds them when
+# its runs data changes, not when a view is applied). A run's own page keeps its charts in the browser's localStorage
+# only (nothing on the server presets them): there the curves stay alphabetical among the metrics.
+CURVE_METRICS = ("train_loss", "val_loss", "val.ratio.pos_l2", "val.mode_gap")
+CURVES_SECTION = "Training and validation curves"
+HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
 GROUP_BY = "arch"  # the view's rows grouped by this param, each group showing the mean over its runs (seeds)
 VIEW_KEY = "bronchopose-headline"
 SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
@@ -91,6 +110,25 @@ def run_params(cfg: Config, cell: Cell) -> dict[str, str]:
     keep = set(cfg.tune.space) | set(ALWAYS)
     out = {k: v for k, v in ours.items() if k in keep or defaults.get(k) != v}
     return {**out, **cell_params(cell)}
+
+
+def eval_params(cfg: Config) -> dict[str, str]:
+    """The evaluation's constants as params (``EVAL_PARAMS``, every one, defaults included): what the tracking
+    table's caption states. Logged with the test metrics (the values they were computed with)."""
+    values = flatten({"eval": cfg.eval.model_dump(mode="json")})
+    return {k: values[k] for k in EVAL_PARAMS}
+
+
+def config_value(params: Mapping[str, str], metrics: Mapping[str, float], key: str) -> float | None:
+    """A numeric constant a run logged as the param ``key``, or, on runs logged before it was a param, as the
+    metric ``key``; None when it has neither (or the param is not a number)."""
+    if key in params:
+        try:
+            return float(params[key])
+        except ValueError:
+            return None
+    value = metrics.get(key)
+    return None if value is None else float(value)
 
 
 def parent_params(cfg: Config) -> dict[str, str]:
@@ -165,6 +203,28 @@ def _column(kind: str, name: str) -> str:
     return f"{kind}.`{name}`"  # MLflow's canonical column/sort key (makeCanonicalSortKey)
 
 
+def _card(kind: str, metric: str, section: str) -> dict:
+    """A chart of one metric as MLflow's RunsCharts{Line,Bar}CardConfig serialises it (LINE: per step)."""
+    card = {"uuid": f"bronchopose-{kind.lower()}-{metric}", "type": kind, "runsCountToCompare": 10,
+            "metricSectionId": section, "deleted": False, "isGenerated": False, "displayName": metric,
+            "metricKey": metric}
+    if kind == "LINE":
+        card |= {"lineSmoothness": 0, "xAxisScaleType": "linear", "scaleType": "linear", "range": {},
+                 "xAxisKey": "step", "selectedXAxisMetricKey": "", "yAxisKey": "metric", "yAxisExpressions": [],
+                 "ignoreOutliers": False, "useGlobalXaxisKey": True, "useGlobalLineSmoothing": True}
+    return card
+
+
+def chart_sections() -> dict:
+    """The view's charts: the training and validation curves (``CURVE_METRICS``) first, then the headline."""
+    sections = {"bronchopose-curves": CURVES_SECTION, "bronchopose-headline": HEADLINE_SECTION}
+    return {"isAccordionReordered": True,  # MLflow keeps these sections' order, adding any other after them
+            "compareRunSections": [{"uuid": uuid, "name": name, "display": True, "isReordered": True,
+                                    "deleted": False, "isGenerated": False} for uuid, name in sections.items()],
+            "compareRunCharts": [*(_card("LINE", m, "bronchopose-curves") for m in CURVE_METRICS),
+                                 *(_card("BAR", m, "bronchopose-headline") for m in VIEW_METRICS)]}
+
+
 def headline_view() -> dict:
     """The saved view the link opens: runs that trained, best headline first, headline figures as columns, grouped
     by architecture (the group's row: the mean over its runs)."""
@@ -182,6 +242,7 @@ def headline_view() -> dict:
         # and the other coordinates the filter keeps); groups open, so every run stays one click from its row
         "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "param", "groupByData": GROUP_BY}]},
         "useGroupedValuesInCharts": True,
+        **chart_sections(),  # the Chart view: the training and validation curves first, then the headline
     }
 
 

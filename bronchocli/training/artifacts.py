@@ -14,7 +14,9 @@
 * per validation: ``val_loss``, ``val.*``, ``train.pairs_seen``,
   ``train.epochs`` and ``train.skipped_steps`` (their last point is the run's
   value: the end of a run is a validation, so they are not logged again);
-* at the end: the headline ratios and skills against both references
+* at the end: the evaluation's constants as params (``eval.ctf_position``,
+  ``eval.ctf_position_mm``, ``eval.ctf_angle``, ``eval.rpe_gap``:
+  ``views.eval_params``), the headline ratios and skills against both references
   (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
   ``pred.std*``) and the budget (``train.steps``, ``train.time_s``,
@@ -40,7 +42,7 @@ from ..config import Config
 from ..io import save_figure
 from ..plots import trajectory_figure
 from ..runs.records import TAG_FINGERPRINT, TAG_NOTE, log_metrics, log_params
-from ..runs.views import describe, ordered_metrics, run_params
+from ..runs.views import describe, eval_params, ordered_metrics, run_params
 from .engine import Outcome
 from .evaluate import predictions_table
 from .model_logging import log_model
@@ -99,7 +101,9 @@ VALIDATION_LOGGED = ("train.pairs_seen", "train.epochs", "train.skipped_steps")
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
-    # The model first, so that the test metrics are logged once, as the run's and as the model's (on the test split).
+    # The evaluation's constants as params, then the model (it gets the run's params), so that the test metrics are
+    # logged once, as the run's and as the model's (on the test split).
+    log_params(client, run_id, eval_params(cfg))
     model_id = log_model(client, run_id, cfg, cell, data, outcome) if cfg.runs.model_artifact != "none" else None
     test = (dataset_name(cfg, "test"), data.fingerprint[:DIGEST_CHARS])
     final = {k: v for k, v in outcome.metrics.items() if k not in VALIDATION_LOGGED}

@@ -195,9 +195,7 @@ def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: s
     out = score(preds, thresholds)
     for name, ref in refs.items():
         out |= {f"{name}.{k}": v for k, v in score(ref, thresholds).items() if not k.startswith("test.")}
-    out |= variability(preds)
-    out |= {"eval.ctf_position": thresholds.position, "eval.ctf_position_mm": thresholds.position_mm,
-            "eval.ctf_angle": thresholds.angle, "eval.rpe_gap": float(thresholds.gap)}  # what the report states
+    out |= variability(preds)  # the thresholds are config constants: params (artifacts.log_outcome), not metrics
     return out, trajectory_table(preds, refs, thresholds)
 
 

@@ -17,7 +17,9 @@ both find it, and ``mlflow.register_model`` can register it):
   chunk length, image normalisation, label standardisation, the training-mean
   relative pose).
 
-The logged model's own fields: the run's params (``runs.views.run_params``) and,
+The logged model is named ``model`` whatever its cell (``runs:/<run_id>/model`` finds it by that name); its tags
+say the cell (``model_tags``: ``cell``, the label, and the run's description as the model's, which its page
+shows). Its other fields: the run's params (``runs.views.run_params`` and the evaluation's constants) and,
 logged by ``artifacts.log_outcome`` with the model's id, the run's test metrics
 linked to the test split's dataset, so its page in the UI shows both.
 
@@ -49,7 +51,8 @@ from .. import __version__
 from ..cells import Cell
 from ..config import Config
 from ..models.portable import SPEC_FILE, WEIGHTS_FILE
-from ..runs.records import redacted
+from ..runs.records import TAG_NOTE, redacted
+from ..runs.views import describe
 from . import bundle, evaluate
 from .engine import EVAL_CHUNK, Outcome
 from .network import export
@@ -133,6 +136,15 @@ def _compact_json(path: Path) -> None:
         path.write_text(json.dumps(json.loads(path.read_text()), separators=(",", ":")))
 
 
+def model_tags(cfg: Config, cell: Cell, outcome: Outcome, precision: str) -> dict[str, str]:
+    """The logged model's tags: which cell it is (``cell``: its label; the description, ``mlflow.note.content``,
+    the run's, which the model's page shows) besides its coordinates. Its name stays ``MODEL_NAME``: MLflow 3
+    resolves ``runs:/<run_id>/<name>`` by the logged model's name, so a model named after its cell would break
+    ``runs:/<run_id>/model``; the Models tab's "Source run" column shows the run's name (the cell, compact)."""
+    return {"cell": cell.label, TAG_NOTE: describe(cell, outcome.metrics, cfg.paths.dataset.name),
+            "arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision}
+
+
 def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> str:
     """Log the run's MLflow Model (see the module doc); returns its logged-model id."""
     precision = cfg.runs.model_artifact
@@ -142,7 +154,7 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
     logged = client.create_logged_model(
         run.info.experiment_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
         params=redacted(run.data.params),
-        tags={"arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision})
+        tags=model_tags(cfg, cell, outcome, precision))
     try:
         client.log_outputs(run_id, [LoggedModelOutput(logged.model_id, step=0)])
         meta = Model(artifact_path=logged.artifact_location, model_uuid=logged.model_id, run_id=run_id,

@@ -85,6 +85,14 @@ def test_the_model_has_a_signature_an_input_example_fp16_weights_and_its_spec(ti
     # The model is an MLflow 3 logged model of the run: registrable from runs:/<id>/model.
     models = client.search_logged_models(experiment_ids=[client.get_run(tiny_run.run_id).info.experiment_id])
     assert [m.source_run_id for m in models if m.name == "model"].count(tiny_run.run_id) == 1
+    # Named "model" (runs:/<id>/model finds it by name), it says its cell in its tags and description (issue 36.5)
+    ours = next(m for m in models if m.source_run_id == tiny_run.run_id)
+    run = client.get_run(tiny_run.run_id)
+    label = spec["cell"]
+    assert ours.tags["cell"] == label and ours.tags["arch"] == "baseline" and ours.tags["cell_key"] == spec["cell_key"]
+    assert ours.tags["mlflow.note.content"] == run.data.tags["mlflow.note.content"] and label in ours.tags[
+        "mlflow.note.content"]
+    assert {"eval.ctf_angle", "eval.rpe_gap"} <= set(ours.params)  # the run's params, the evaluation's constants too
 
 
 def test_frames_of_another_size_are_resized_with_one_warning(tiny_run, pyfunc):

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import pytest
-from report_fakes import MemRuns
+from report_fakes import THRESHOLDS, MemRuns
 
+from bronchocli.reporting.collect import RunRecord
 from bronchocli.reporting.scope import PlanView
-from bronchocli.reporting.tables import NoData, ablation, cross_subject, personalized, sota
+from bronchocli.reporting.tables import NoData, _thresholds_text, ablation, cross_subject, personalized, sota
 
 
 def _ident(arch, loss, pop="personalized", fold="", seed="0"):
@@ -140,3 +141,25 @@ def test_budget_and_stop_reasons_in_every_caption():
     t = personalized(m.context(), "pair")
     assert ("Budget per run: 250–300 optimiser steps, 5,000–6,000 pairs seen (batch × steps), 2.5–3.0 epochs; "
             "stop reasons: budget 2.") in t.caption
+
+
+class _Warnings(list):
+    warn = list.append
+
+
+def test_tracking_thresholds_read_params_and_the_metrics_of_runs_logged_before():
+    params = {"eval.ctf_position": "5.0", "eval.ctf_position_mm": "5.0", "eval.ctf_angle": "10.0", "eval.rpe_gap": "10"}
+    old = RunRecord("old", "FINISHED", 0, {}, dict(THRESHOLDS))  # before issue 36: the constants as metrics
+    new = RunRecord("new", "FINISHED", 0, {}, {}, params=params)  # since: params, no such metrics
+    texts = []
+    for runs in ([old], [new], [old, new]):
+        seen = _Warnings()
+        texts.append(_thresholds_text(seen, runs))
+        assert not seen, seen
+    assert texts[0] == texts[1] == texts[2] and "angle 10°; RPE gap 10 frames" in texts[0]
+    changed = RunRecord("gap3", "FINISHED", 0, {}, {}, params={**params, "eval.rpe_gap": "3"})
+    seen = _Warnings()
+    assert "RPE gap 3 frames/10 frames" in _thresholds_text(seen, [old, changed])
+    assert len(seen) == 1 and "different eval.rpe_gap (3, 10)" in seen[0]
+    none = RunRecord("none", "FINISHED", 0, {}, {})
+    assert _thresholds_text(_Warnings(), [none]).endswith("not logged by these runs.")

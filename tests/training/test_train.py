@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
-from run_metrics import EXPECTED
+from run_metrics import EVAL_PARAMS, EXPECTED
 from scipy.spatial.transform import Rotation
 
 from bronchocli.config import load_config
@@ -55,6 +55,10 @@ def _check_cell(cfg, arch: str, rot_loss: str) -> None:
     params = run.data.params  # what tells runs apart: coordinates and settings off the defaults, not the grid
     assert (params["arch"], params["rot_loss"], params["seed"], params["train.steps"]) == (arch, rot_loss, "0", "4")
     assert "grid.arch" not in params and "fold" not in params
+    # the evaluation's constants: params at their defaults too, not metrics (issue 36)
+    assert {k: params.get(k) for k in EVAL_PARAMS} == {"eval.ctf_position": "5.0", "eval.ctf_position_mm": "5.0",
+                                                        "eval.ctf_angle": "10.0", "eval.rpe_gap": "10"}
+    assert not [k for k in EVAL_PARAMS if k in m]
     history = client.get_metric_history(result.run_id, "val_loss")
     assert sorted(h.step for h in history) == [2, 4]  # step = optimiser step of each validation
     files = artifacts(client, result.run_id)
@@ -141,7 +145,9 @@ def test_camera_tracking_metrics_of_the_zero_motion_reference_match_the_dataset(
                          dtype={"patient": str, "lobe": str, "trajectory": str})
     csvs = pd.concat([pd.read_csv(p, dtype={"patient": str, "lobe": str, "trajectory": str})
                       for p in sorted((tiny_project / "tiny").glob("p*.csv"))])
-    assert result.metrics["eval.rpe_gap"] == 3 and result.metrics["eval.ctf_angle"] == 4.0
+    params = client.get_run(result.run_id).data.params  # the thresholds it used: params (issue 36)
+    assert params["eval.rpe_gap"] == "3" and params["eval.ctf_angle"] == "4.0" and params["eval.ctf_position"] == "1.5"
+    assert "eval.rpe_gap" not in result.metrics
     for _, row in errors.iterrows():
         t = csvs[(csvs.patient == row.patient) & (csvs.lobe == row.lobe) & (csvs.trajectory == row.trajectory)]
         want = _zero_motion_odometry(t.sort_values("frame"), 3, 1.5, 4.0)

@@ -25,7 +25,7 @@ import pytest
 from bronchocli.config import load_config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import TAG_PARENT
-from bronchocli.runs.views import HEADLINE
+from bronchocli.runs.views import CURVE_METRICS, CURVES_SECTION, HEADLINE, HEADLINE_SECTION, VIEW_METRICS
 from bronchocli.sweep import SweepStore, Worker
 from bronchocli.sweep.plan import add_cells
 from bronchocli.training.run import run_cell
@@ -200,6 +200,31 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     assert rows.first.get_attribute("row-id") == "param.arch.baseline"  # the group: param arch = baseline
     assert not page.locator('.ag-header-cell[col-id*="loss"]').count()  # no loss of mixed scale among the columns
     _docs_screenshot(page, "mlflow-runs-table.png")
+
+
+def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
+    """The link's Chart view (issue 36.5): the training and validation curves are the first section, in their
+    order, then the headline figures; no metric renamed for it."""
+    _, link = ui
+    page.goto(link)
+    page.locator("label", has=page.locator('input[name="runs-view-mode"][value="CHART"]')).first.click()
+    curves = page.get_by_text(CURVES_SECTION, exact=True).first
+    curves.wait_for(state="visible")
+    page.wait_for_function("n => document.querySelectorAll('[data-testid=experiment-view-compare-runs-card]')"
+                           ".length >= n", arg=len(CURVE_METRICS))
+    cards = page.get_by_test_id("experiment-view-compare-runs-card").all_inner_texts()
+    shown = [t.strip().splitlines()[0] for t in cards]
+    assert shown[:len(CURVE_METRICS)] == list(CURVE_METRICS), shown  # in their order, before any other chart
+    page.mouse.move(900, 700)  # scroll the charts: MLflow renders a section's cards as they come into view
+    for _ in range(5):
+        page.mouse.wheel(0, 1500)
+        page.wait_for_timeout(200)
+    head = page.get_by_text(HEADLINE_SECTION, exact=True).first
+    head.wait_for(state="attached", timeout=30_000)
+    names = page.evaluate("() => [...document.querySelectorAll('div')].filter(e => e.children.length === 0 && "
+                          "/ metrics$|^Training and validation curves$|^Headline /.test(e.textContent))"
+                          ".map(e => e.textContent)")
+    assert names[:2] == [CURVES_SECTION, HEADLINE_SECTION], names  # the curves first, any other section after
 
 
 def test_a_runs_training_loss_chart_has_a_point_per_logged_step(ui, sweep, page):
