@@ -25,21 +25,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import subprocess
-import sys
 import tempfile
 import textwrap
-import time
 from pathlib import Path
+
+from bench_common import cell_runs, cpu_line, finish, private_env, start
 
 from bronchocli.config import load_config
 from bronchocli.generation import ensure_dataset
-from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.cores import machine_cores
-from bronchocli.runs.records import search_runs
 
-MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 CONFIG = """\
     name: share-{name}
     dataset:
@@ -65,12 +61,6 @@ def project(root: Path, name: str, args: argparse.Namespace, data: Path) -> Path
     return folder
 
 
-def start(folder: Path, env: dict[str, str], *argv: str) -> subprocess.Popen:
-    log = open(folder / "command.log", "w")  # noqa: SIM115 - closed with the process (see finish)
-    return subprocess.Popen([sys.executable, "-c", MAIN, *argv], cwd=folder, env=env, stdout=log,
-                            stderr=subprocess.STDOUT)
-
-
 def train(folder: Path, env: dict[str, str], arch: str, threads: int | None) -> subprocess.Popen:
     extra = ["--set", f"train.threads={threads}"] if threads else []
     return start(folder, env, "train", "--arch", arch, "--rot-loss", "mse", "--population", "personalized",
@@ -82,22 +72,10 @@ def sweep(folder: Path, env: dict[str, str], threads: int | None) -> subprocess.
     return start(folder, env, "sweep", "--workers", "2", *extra)
 
 
-def finish(procs: dict[str, tuple[Path, subprocess.Popen]]) -> float:
-    t0 = time.perf_counter()
-    for label, (folder, proc) in procs.items():
-        if proc.wait() != 0:
-            raise SystemExit(f"{label}: exit {proc.returncode}; see {folder / 'command.log'}")
-    return time.perf_counter() - t0
-
-
 def runs_of(folder: Path) -> list[dict[str, str | float]]:
-    cfg = load_config(folder / "experiments.yaml")
-    client = client_for(cfg)
     out = []
-    for run in search_runs(client, [experiment_id(client, cfg)], statuses=["FINISHED"]):
+    for run in cell_runs(folder):
         p, m = run.data.params, run.data.metrics
-        if "train.pairs_per_s" not in m:  # the sweep's parent run
-            continue
         out.append({"seed": p.get("seed", "?"), "threads": p.get("threads", "?"),
                     "source": p.get("threads.source", "?"), "pairs_per_s": m["train.pairs_per_s"]})
     return out
@@ -139,18 +117,14 @@ def main() -> None:
     unknown = sorted(set(wanted) - set(SCENARIOS))
     if unknown:
         raise SystemExit(f"--only {','.join(unknown)}: unknown (valid: {', '.join(SCENARIOS)})")
-    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
-                if line.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else "?"
-    print(f"# {cpu}, {machine_cores()} cores, load average {os.getloadavg()[0]:.1f} at the start; "
-          f"{args.arch}, {args.steps} steps x 20 pairs, {args.image_size}²", flush=True)
+    print(f"# {cpu_line()} at the start; {args.arch}, {args.steps} steps x 20 pairs, {args.image_size}²",
+          flush=True)
     with tempfile.TemporaryDirectory(prefix="bench-share-") as tmp:
         root = Path(tmp)
         data = root / "data"
         gen = project(root, "generate", args, data)
         ensure_dataset(load_config(gen / "experiments.yaml"), progress=False)
-        (root / "claims").mkdir()
-        env = {**os.environ, "XDG_RUNTIME_DIR": str(root / "claims"), "OMP_NUM_THREADS": str(machine_cores())}
-        env.pop("BRONCHOPOSE_CPU_WORKERS", None)
+        env = private_env(root)
         print("| scenario | process | threads | threads.source | pairs/s | wall s |")
         print("|---|---|---|---|---|---|")
         for name in wanted:

@@ -133,6 +133,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         "train.steps": float(fit.steps), "train.pairs_seen": float(fit.pairs_seen), "train.epochs": fit.epochs,
         "train.validations": float(fit.validations), "train.best_step": float(fit.best_step),
         "train.time_s": fit.train_time_s, "train.val_time_s": fit.val_time_s,
+        "train.checkpoint_time_s": fit.checkpoint_time_s,  # this process's (a resumed run: since the resume)
         "train.pairs_per_s": fit.pairs_seen / max(fit.train_time_s, 1e-9) if fit.steps else 0.0,
         "train.train_pairs": float(len(data.train) * data.train.n_pairs),
         "train.train_trajectories": float(len(data.split.train)),

@@ -124,6 +124,7 @@ class FitResult:
     train_time_s: float
     val_time_s: float
     history: list[dict[str, float]] = field(default_factory=list)
+    checkpoint_time_s: float = 0.0  # writing the checkpoints of the validations (outside train/val time)
 
 
 def lr_factor(step: int, s: Settings) -> float:
@@ -191,7 +192,7 @@ class Trainer:
         self.best_state: dict[str, torch.Tensor] | None = None
         self.bad = 0  # validations without improvement
         self.history: list[dict[str, float]] = []
-        self.train_time = self.val_time = 0.0
+        self.train_time = self.val_time = self.ckpt_time = 0.0
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
         self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
@@ -397,7 +398,9 @@ class Trainer:
         self.val_time += time.perf_counter() - t0
         if self.on_validation is not None:
             self.on_validation(self.step, values)
+        t0 = time.perf_counter()
         self.save_resume()
+        self.ckpt_time += time.perf_counter() - t0
         return self.s.patience is not None and self.bad >= self.s.patience
 
     @property
@@ -443,7 +446,8 @@ class Trainer:
         if self.best_state is not None:
             self.net.load_state_dict(self.best_state)
         return FitResult(self.step, self.step * self.s.pairs_per_step, self.epochs, reason, self.best_step,
-                         self.best_val, len(self.history), self.train_time, self.val_time, list(self.history))
+                         self.best_val, len(self.history), self.train_time, self.val_time, list(self.history),
+                         self.ckpt_time)
 
     # -- checkpoints --------------------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
