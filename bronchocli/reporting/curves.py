@@ -13,6 +13,7 @@ numbers quoted from a curve come from the report, not from a query of the store.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -69,6 +70,7 @@ def write_curve_csv(rows: Sequence[tuple], path: Path) -> Path:
 def training_curves(runs: Sequence[RunRecord], history: History, out: Path, warnings: list[str]) -> list[Path]:
     """Write fig-training-curves (png, pdf and its points as csv; nothing when no run has two validations of
     the curve metrics)."""
+    history = functools.lru_cache(maxsize=None)(history)  # the figure and the CSV read each history once
     data = curves(runs, history)
     if not data:
         return []
