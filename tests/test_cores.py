@@ -90,6 +90,24 @@ def test_claims_in_one_folder_share_and_give_back_their_cores(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_training_process_re_decides_within_seconds_not_at_its_next_validation(tmp_path):
+    """A run started alone takes every core; another command starting takes one of them back within RECHECK_S
+    of training (asked every step through ``fresh``), not only at the next validation (issue 40's defect)."""
+    now = [100.0]
+    with CoreShare(None, folder=tmp_path, cores=2) as first:
+        assert first.fresh(clock=lambda: now[0]) == 2
+        with CoreShare(None, folder=tmp_path, cores=2) as second:
+            assert second.check().threads == 1
+            now[0] += cores.RECHECK_S / 2
+            assert first.fresh(clock=lambda: now[0]) == 2  # the decision is still young: no listing
+            now[0] += cores.RECHECK_S / 2
+            assert first.fresh(clock=lambda: now[0]) == 1  # old enough: decided again, beside the newcomer
+            (entry,) = [c for c in live_claims(tmp_path) if c.token == first.me.token]
+            assert entry.threads == 1  # and the others see it gave the core back
+        now[0] += cores.RECHECK_S
+        assert first.fresh(clock=lambda: now[0]) == 2
+
+
 def test_an_explicit_claim_is_recorded_for_the_others(tmp_path):
     with CoreShare(3, folder=tmp_path, cores=4) as fixed:
         assert fixed.check() == cores.Decision(3, "explicit (train.threads)")

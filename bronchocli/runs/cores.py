@@ -8,7 +8,9 @@ small advisory file per process in the user's runtime folder (``$XDG_RUNTIME_DIR
 An entry whose process is gone (``processes.pid_alive``: the pid and its start tick) is ignored and removed,
 so a killed process never holds cores.
 
-The rule (``decide``), asked at the start of a run and again after every validation:
+The rule (``decide``), asked at the start of a run, after every validation and every ``RECHECK_S`` seconds of
+training (``CoreShare.fresh``: a directory listing, so a run started alone gives back cores within seconds of
+another one starting, not at its next validation):
 
 * an explicit count (``train.threads``, ``--threads``) always wins, and is held against the others;
 * otherwise the cores left by the explicit claims are split evenly between the sharing claims, this one
@@ -41,6 +43,7 @@ if TYPE_CHECKING:  # the annotation only: deciding threads needs no config
 log = logging.getLogger(__name__)
 WORKERS_ENV = "BRONCHOPOSE_CPU_WORKERS"  # set in a sweep's / tune's worker processes: its command's workers here
 SUFFIX = ".json"
+RECHECK_S = 5.0  # how old a decision may be while training (CoreShare.fresh)
 
 
 def machine_cores() -> int:
@@ -160,6 +163,7 @@ class CoreShare:
         self.me = Claim(f"{os.getpid()}-{uuid.uuid4().hex[:8]}", os.getpid(), process_start(), time.time(),
                         explicit, explicit is not None)
         self.decision: Decision | None = None
+        self.decided_at: float | None = None  # time.monotonic() of the last decision
         self._registered = False
 
     @property
@@ -187,6 +191,7 @@ class CoreShare:
     def check(self) -> Decision:
         """Decide from the live claims now; the entry says the new count when it changed."""
         others = live_claims(self.folder, skip=self.me.token)
+        self.decided_at = time.monotonic()
         self.decision = decide(self.cores, self.me, others, explicit=self.explicit,
                                explicit_from=self.explicit_from, workers=self.workers)
         if self.me.threads != self.decision.threads:
@@ -194,6 +199,14 @@ class CoreShare:
             if self._registered:
                 self._write()
         return self.decision
+
+    def fresh(self, max_age_s: float = RECHECK_S, clock=time.monotonic) -> int:
+        """The threads to use now: the last decision while it is younger than ``max_age_s``, else decided again
+        (asked at every training step: a clock read, and a directory listing every few seconds)."""
+        if self.decision is None or self.decided_at is None or clock() - self.decided_at >= max_age_s:
+            self.check()
+            self.decided_at = clock()
+        return self.threads
 
     @property
     def threads(self) -> int:

@@ -82,13 +82,14 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
                      threads: Callable[[], int] | None = None) -> Outcome:
     """Train ``cell`` on ``data`` (or continue ``resume_state``) and evaluate the best weights on the test split;
     ``on_phase`` hears what happens after the last step (the test evaluation), ``on_curves`` the training-curve
-    points of each validation window; ``threads`` says the torch CPU threads to use, asked at the start and
-    after each validation (``runs.cores``: the share of the machine's cores)."""
+    points of each validation window; ``threads`` says the torch CPU threads to use, asked at the start, after each
+    validation and at every step (``runs.cores``: the share of the machine's cores, re-decided every few seconds)."""
     t_start = time.perf_counter()
 
     def share_cores(*_: Any) -> None:
-        if threads is not None and threads() != torch.get_num_threads():
-            torch.set_num_threads(threads())
+        n = threads() if threads is not None else None
+        if n is not None and n != torch.get_num_threads():
+            torch.set_num_threads(n)
 
     share_cores()
     device = device_for(cfg)
@@ -103,6 +104,7 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
             age = process_age_s()
             if age is not None:
                 first_step["process"] = age
+        share_cores()  # another command started: give back cores within seconds, not at the next validation
         if on_step is not None:
             on_step(step, total)
 

@@ -191,7 +191,7 @@ def run_cell(
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc), unless ``owns``
     says another worker took it over. From its start the process holds a claim on its share of the CPU cores
-    (``runs.cores``), decided when training starts and again at each validation."""
+    (``runs.cores``), decided when training starts, at each validation and every few seconds of training."""
     with cores.for_run(cfg) as share:
         return _run_cell(cfg, cell, resume=resume, extra_tags=extra_tags, progress=progress,
                          on_validation=on_validation, run_id_callback=run_id_callback, owns=owns, share=share)
@@ -246,7 +246,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
                                            on_validation=validated, on_step=bar.step,
                                            on_phase=lambda text: bar.phase(cell.label, text),
                                            on_curves=metrics_out.log_points,  # buffered like validations
-                                           threads=lambda: share.threads)
+                                           threads=share.fresh)
                 if not still_ours():  # stalled past the cut-off while evaluating: the outcome is the new owner's
                     raise RunTakenOver(f"run {run_id} was taken over by another sweep worker; its outcome is not "
                                        "logged by this one")
