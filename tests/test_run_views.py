@@ -23,6 +23,7 @@ from bronchocli.runs.views import (
     headline_view,
     ordered_metrics,
     run_params,
+    saved_view,
     runs_table_url,
 )
 
@@ -102,6 +103,18 @@ def test_runs_table_url_opens_the_model_training_view_on_the_headline_view():
     assert runs_table_url("http://127.0.0.1:5000/", "3", view=None) == \
         "http://127.0.0.1:5000/#/experiments/3/runs?workflowType=machine_learning"
     assert runs_table_url("http://127.0.0.1:5000/", "3").endswith("&viewStateShareKey=bronchopose-headline")
+
+
+def test_the_headline_view_is_stored_as_a_saved_view_mlflow_lists_by_name():
+    """Issue 36.5: MLflow 3.17's Views menu lists an experiment tag mlflow.sharedViewState.<key> only in its
+    saved-view envelope (a string name, a number createdAt, the view's JSON as the string state)."""
+    import json
+
+    envelope = json.loads(saved_view(headline_view(), 1_700_000_000_000))
+    assert isinstance(envelope["name"], str) and envelope["name"].startswith("Headline")
+    assert envelope["createdAt"] == envelope["updatedAt"] == 1_700_000_000_000
+    assert json.loads(envelope["state"]) == headline_view()
+    assert len(saved_view(headline_view(), 0)) < 20_000  # MLflow's limit on an experiment tag's value
 
 
 def test_headline_view_sorts_by_the_headline_and_shows_it_as_columns():

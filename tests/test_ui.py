@@ -50,7 +50,15 @@ def test_ui_serves_the_store(tmp_path):
                 "&viewStateShareKey=bronchopose-headline")
         tags = {t["key"]: t["value"] for t in experiment["tags"]}
         assert tags["mlflow.experimentKind"] == "custom_model_development"
-        assert json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])["orderByAsc"] is True  # the view
+        saved = json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])  # MLflow's saved-view envelope
+        assert saved["name"] and isinstance(saved["createdAt"], int)  # listed by name in the Views menu
+        assert json.loads(saved["state"])["orderByAsc"] is True  # the view
+        # the bare root is the front page (issue 36.5): model-training mode, then the runs table on the view
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+            page = response.read().decode()
+        assert "mlflow.workflowType_v1" in page and link.split("/", 3)[3].lstrip("/") in page.replace("\\/", "/")
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/?ui=bronchopose", timeout=10) as response:
+            assert "static-files" in response.read().decode()  # MLflow's own UI behind it
         os.killpg(proc.pid, signal.SIGTERM)
         out = proc.communicate(timeout=30)[0]
         assert f"runs of experiment ui-test: {link}" in out
@@ -74,6 +82,8 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     cfg = Config(name="t").with_values({"runs.uri": f"sqlite:///{tmp_path / 'm.db'}"})
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=3)
     assert argv[argv.index("--workers") + 1] == "3" and argv[1] == "ui"
+    assert argv[argv.index("--app-name") + 1] == "bronchopose" and ui.app_registered()  # the front page's app
+    assert "--app-name" not in ui.ui_command(cfg, "127.0.0.1", 5000, workers=3, app=False)  # an older install
     monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)
     assert ui.server_env()[ui.JOB_EXECUTION_ENV] == "false"  # no GenAI task consumers for a training experiment
     assert ui.server_env({ui.JOB_EXECUTION_ENV: "true"})[ui.JOB_EXECUTION_ENV] == "true"  # the user's choice wins
@@ -88,6 +98,36 @@ def test_the_store_uri_goes_to_the_server_through_its_environment_never_its_argv
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=1)
     assert "hunter2" not in " ".join(argv) and "--backend-store-uri" not in argv  # `ps` shows argv to everyone
     assert ui.server_env({}, store_uri=cfg.paths.mlflow_uri)[ui.STORE_ENV] == uri  # what `mlflow ui` reads
+
+
+def test_the_front_page_sets_the_model_training_mode_once_and_keeps_a_link_into_the_ui():
+    """Issue 36.5: the bare root's page stores MLflow's Model training choice only where the browser has none, and
+    forwards to MLflow's UI at the address's fragment, or at the landing when there is none."""
+    import asyncio
+
+    from bronchocli.runs import uiapp
+
+    page = uiapp.front_page("#/experiments/7/runs?workflowType=machine_learning&viewStateShareKey=k").decode()
+    assert 'getItem(key) === null' in page and '"mlflow.workflowType_v1"' in page and '"machine_learning"' in page
+    assert 'window.location.hash' in page and '"/?ui=bronchopose"' in page and "#/experiments/7/runs?" in page
+    script = uiapp.front_page("</script><b>x").decode().split("<script>", 1)[1].split("</script>", 1)[0]
+    assert "<b>x" in script  # a landing cannot end the script early
+    sent: list[dict] = []
+
+    async def send(message):
+        sent.append(message)
+
+    async def call(path: str, query: bytes) -> None:
+        scope = {"type": "http", "method": "GET", "path": path, "query_string": query}
+        await uiapp.app(scope, None, send)
+
+    os.environ[uiapp.LANDING_ENV] = "#/experiments/7/runs"
+    try:
+        asyncio.run(call("/", b""))
+    finally:
+        del os.environ[uiapp.LANDING_ENV]
+    assert sent[0]["status"] == 200 and b"#/experiments/7/runs" in sent[1]["body"]
+    assert (b"cache-control", b"no-store") in sent[0]["headers"]
 
 
 # -- issue 37.6: loopback unless asked, with a warning naming the risk ---------------------------------------------

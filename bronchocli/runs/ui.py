@@ -8,11 +8,18 @@ Experiments are created tagged ``mlflow.experimentKind=custom_model_development`
 but MLflow 3.17's UI does not read that tag for its landing: the mode comes from
 the URL's ``workflowType`` or the browser's own ``localStorage``
 (``mlflow.workflowType_v1``, default GenAI; the sidebar's GenAI / Model training
-switch sets it), so from a fresh browser profile the UI's own navigation still
-lands on the GenAI overview until the switch is set once (issue 36.5, open).
+switch sets it). So the server is MLflow's app behind a front page at the bare
+root (``uiapp``, loaded as MLflow's ``mlflow.app`` plugin ``bronchopose``: ``mlflow
+ui --app-name bronchopose``, nothing in MLflow patched): a browser that opens
+the UI's address lands on the runs table with the headline view, and is in the
+model-training mode unless its user chose otherwise, so the UI's own navigation
+(Experiments, then the experiment) opens the runs table too (issue 36.5). Where
+the plugin is not registered (bronchocli installed before it existed) the
+server is plain `mlflow ui` and a warning says to reinstall.
 The link names the saved view
 ``views.headline_view`` (stored as an experiment tag here, before the server
-starts): the trained runs sorted by the headline, best first, with the headline
+starts, in MLflow's saved-view envelope, so the runs table's Views menu lists it
+by name): the trained runs sorted by the headline, best first, with the headline
 figures as columns, grouped by architecture, and a Chart view that opens on the
 training and validation curves (``views.chart_sections``). The server is sized for the machine:
 ``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
@@ -22,12 +29,13 @@ judges and trace jobs that a training experiment never uses).
 
 from __future__ import annotations
 
+import importlib.metadata
 import ipaddress
-import json
 import os
 import shutil
 import socket
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,7 +45,8 @@ from .. import urls
 from ..config import Config
 from ..errors import BronchoError
 from ..runs.client import check_reachable, client_for, experiment_id, mark_training_experiment
-from ..runs.views import SHARED_VIEW_TAG, VIEW_KEY, headline_view, runs_table_url
+from ..runs.views import SHARED_VIEW_TAG, VIEW_KEY, headline_view, runs_table_fragment, runs_table_url, saved_view
+from .uiapp import APP_NAME, LANDING_ENV
 
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
 STORE_ENV = "MLFLOW_BACKEND_STORE_URI"  # `mlflow ui --backend-store-uri` read from the environment
@@ -49,8 +58,15 @@ def default_workers(cores: int | None = None) -> int:
     return max(1, min(4, cores // 2))
 
 
-def ui_command(cfg: Config, host: str, port: int, workers: int | None = None) -> list[str]:
-    """The `mlflow ui` argv serving the config's artifact root with ``workers`` processes.
+def app_registered() -> bool:
+    """Whether MLflow finds the front page's app (the ``mlflow.app`` entry point ``bronchopose``, pyproject.toml):
+    an install of bronchocli older than it has none."""
+    return any(ep.name == APP_NAME for ep in importlib.metadata.entry_points(group="mlflow.app"))
+
+
+def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, app: bool = True) -> list[str]:
+    """The `mlflow ui` argv serving the config's artifact root with ``workers`` processes, through the front
+    page's app (``uiapp``) when ``app``.
 
     The store's URI is not on it (a process's argv is public in ``ps``; the URI may hold a password): it goes
     through the environment (``server_env``, ``MLFLOW_BACKEND_STORE_URI``, which `mlflow ui` reads)."""
@@ -59,18 +75,23 @@ def ui_command(cfg: Config, host: str, port: int, workers: int | None = None) ->
         exe = shutil.which("mlflow") or exe
     argv = [exe, "ui", "--host", host, "--port", str(port),
             "--workers", str(workers or default_workers())]
+    if app:
+        argv += ["--app-name", APP_NAME]
     if not urls.is_server(cfg.paths.mlflow_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
 
 
-def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None) -> dict[str, str]:
+def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None, landing: str | None = None
+               ) -> dict[str, str]:
     """The server's environment: the store's URI (``store_uri``: never on the command line), the GenAI job
-    runner off unless the user asked for it."""
+    runner off unless the user asked for it, the front page's landing (``landing``: a UI route, ``uiapp``)."""
     env = dict(os.environ if environ is None else environ)
     env.setdefault(JOB_EXECUTION_ENV, "false")
     if store_uri is not None:
         env[STORE_ENV] = store_uri
+    if landing is not None:
+        env[LANDING_ENV] = landing
     return env
 
 
@@ -125,17 +146,23 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
         raise BronchoError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)} is already a server: open it in a browser")
     check_port(host, port)
     check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
-    argv = ui_command(cfg, host, port, workers)
+    app = app_registered()
+    argv = ui_command(cfg, host, port, workers, app=app)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
     client = client_for(cfg)
     exp_id = experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
     mark_training_experiment(client, exp_id)
-    client.set_experiment_tag(exp_id, SHARED_VIEW_TAG + VIEW_KEY, json.dumps(headline_view()))
+    client.set_experiment_tag(exp_id, SHARED_VIEW_TAG + VIEW_KEY, saved_view(headline_view(), int(time.time() * 1000)))
     base = f"http://{host}:{port}"
+    if not app:
+        (warn or (lambda line: print(line, file=sys.stderr, flush=True)))(
+            f"warning: MLflow does not know the app {APP_NAME!r} (bronchocli installed before it existed): the UI's "
+            "own navigation lands on MLflow's GenAI overview; reinstall bronchocli (pip install -e .) or use the "
+            "link below")
     console.print(f"MLflow UI for {urls.redact(cfg.paths.mlflow_uri)} at {base} (Ctrl-C to stop)\n"
                   f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",
                   highlight=False, soft_wrap=True)
     sys.stdout.flush()
-    os.execve(argv[0], argv, server_env(store_uri=cfg.paths.mlflow_uri))
+    os.execve(argv[0], argv, server_env(store_uri=cfg.paths.mlflow_uri, landing=runs_table_fragment(exp_id)))

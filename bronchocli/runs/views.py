@@ -36,7 +36,8 @@ saved view of the experiment (``headline_view``): MLflow 3 reads a view from
 the experiment tag ``mlflow.sharedViewState.<key>`` named by the URL's
 ``viewStateShareKey`` (JSON of its search facets -- ``searchFilter``,
 ``orderByKey``, ``orderByAsc``, ... -- and table state -- ``selectedColumns``,
-``columnWidths``, ...; its own "Share" button writes the same). The view shows
+``columnWidths``, ...), stored in the saved-view envelope its "Views > Save as
+new view" writes (``saved_view``), so its Views menu lists it by name. The view shows
 the runs that trained (no sweep/study/selection parents, so nothing is nested
 and collapsed), sorted by the headline, best first, with the headline figures
 as columns, grouped by architecture; its "Chart" view opens with the training
@@ -49,6 +50,7 @@ Parent runs are in ``parents.py``.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 
@@ -83,6 +85,7 @@ CURVES_SECTION = "Training and validation curves"
 HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
 GROUP_BY = "arch"  # the view's rows grouped by this param, each group showing the mean over its runs (seeds)
 VIEW_KEY = "bronchopose-headline"
+VIEW_NAME = "Headline: best first, by architecture"  # its name in the runs table's Views menu
 SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
 PARENT_KINDS = ("sweep", "study", "selection")  # run_kind tags of runs that did not train
 
@@ -246,7 +249,20 @@ def headline_view() -> dict:
     }
 
 
+def saved_view(view: dict, created_ms: int, name: str = VIEW_NAME) -> str:
+    """The value of the experiment tag ``SHARED_VIEW_TAG + VIEW_KEY``: MLflow 3.17's saved-view envelope (what its
+    runs table's "Views > Save as new view" writes: ``name``, ``createdAt``/``updatedAt`` in ms and the view's JSON
+    as the string ``state``), so the view is listed by name in the table's Views menu as well as opened by the
+    link's ``viewStateShareKey``."""
+    return json.dumps({"name": name, "createdAt": created_ms, "updatedAt": created_ms, "state": json.dumps(view)})
+
+
+def runs_table_fragment(experiment_id: str, view: str | None = VIEW_KEY) -> str:
+    """The UI route (a URL's fragment) of the experiment's runs table in the model-training view, on ``view``."""
+    route = f"#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+    return route + (f"&viewStateShareKey={view}" if view else "")
+
+
 def runs_table_url(base: str, experiment_id: str, view: str | None = VIEW_KEY) -> str:
     """The experiment's runs table in MLflow 3's model-training view (not the GenAI overview), on ``view``."""
-    url = f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
-    return url + (f"&viewStateShareKey={view}" if view else "")
+    return f"{base.rstrip('/')}/{runs_table_fragment(experiment_id, view)}"

@@ -2,7 +2,9 @@
 Chromium (Debian's `chromium`, installed by .ci/run) through Playwright (the PyPI package; no browser download).
 
 What is asserted is what the page shows or fetches: the printed link lands on the runs table with the headline
-metric as a column, its values visible without a click and sorted best first; a run's training-loss chart has a
+metric as a column, its values visible without a click and sorted best first; so does the UI's bare address in a
+fresh browser profile, and MLflow's own navigation from there (Experiments, then the experiment) opens the runs
+table in the model-training view, its Views menu listing the headline view; a run's training-loss chart has a
 point per logged step. Screenshots of a failing page go to ``$BRONCHOPOSE_TEST_ARTIFACTS`` (default: the test's
 tmp folder, printed); ``BRONCHOPOSE_DOCS_SCREENSHOTS=1`` refreshes the screenshots in docs/img.
 """
@@ -25,7 +27,15 @@ import pytest
 from bronchocli.config import load_config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import TAG_PARENT
-from bronchocli.runs.views import CURVE_METRICS, CURVES_SECTION, HEADLINE, HEADLINE_SECTION, VIEW_METRICS
+from bronchocli.runs.views import (
+    CURVE_METRICS,
+    CURVES_SECTION,
+    HEADLINE,
+    HEADLINE_SECTION,
+    VIEW_KEY,
+    VIEW_METRICS,
+    VIEW_NAME,
+)
 from bronchocli.sweep import SweepStore, Worker
 from bronchocli.sweep.plan import add_cells
 from bronchocli.training.run import run_cell
@@ -200,6 +210,42 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     assert rows.first.get_attribute("row-id") == "param.arch.baseline"  # the group: param arch = baseline
     assert not page.locator('.ag-header-cell[col-id*="loss"]').count()  # no loss of mixed scale among the columns
     _docs_screenshot(page, "mlflow-runs-table.png")
+
+
+def _headline_rows(page, runs) -> list[float]:
+    """The headline column's values as the table shows them, the group's row (the mean, "(average)") left out."""
+    column = f"metrics.`{HEADLINE}`"
+    page.locator(f'.ag-header-cell[col-id="{column}"]').wait_for(state="visible")
+    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n",
+                           arg=len(runs) + 1)
+    rows = page.locator(".ag-center-cols-container .ag-row")
+    cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows.all()}
+    return [float(cells[i]) for i in sorted(cells) if not cells[i].endswith("(average)")]
+
+
+def test_a_fresh_browser_at_the_uis_address_lands_on_the_headline_and_mlflows_navigation_stays_there(
+        ui, sweep, page):
+    """Issue 36.5, no shared link: a fresh browser profile opens the UI's address and lands on the runs table in
+    the model-training view with the headline, best first; MLflow's own navigation (Experiments, then the
+    experiment) opens the experiment's runs table in the model-training view, not the GenAI overview, and its
+    Views menu lists the headline view by name."""
+    base, _ = ui
+    _, _, exp, runs = sweep
+    page.goto(f"{base}/")
+    values = sorted(r.data.metrics[HEADLINE] for r in runs)
+    assert _headline_rows(page, runs) == pytest.approx(values, rel=1e-9)  # the headline, best first
+    assert f"#/experiments/{exp}/runs?" in page.url and "workflowType=machine_learning" in page.url
+    assert page.evaluate("() => localStorage.getItem('mlflow.workflowType_v1')") == '"machine_learning"'
+    assert page.get_by_test_id("saved-views-trigger").inner_text().strip() == VIEW_NAME
+    page.locator('a[href="#/experiments"]').first.click()  # MLflow's own links from here on
+    page.get_by_test_id("experiment-list-item-link").filter(has_text="browse").first.click()
+    page.wait_for_url(re.compile(rf".*#/experiments/{exp}/runs\?.*"))
+    assert "workflowType=machine_learning" in page.url and "/overview" not in page.url
+    page.locator(".ag-center-cols-container .ag-row").first.wait_for(state="visible")  # MLflow's default view:
+    # newest first, the cells nested under their sweep's parent run
+    page.get_by_test_id("saved-views-trigger").click()
+    page.get_by_test_id(f"saved-views-item-{VIEW_KEY}").click()  # the headline view, listed by name
+    assert _headline_rows(page, runs) == pytest.approx(values, rel=1e-9)
 
 
 def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
