@@ -68,7 +68,7 @@ def front_page(landing: str) -> bytes:
 def _mlflow() -> Any:
     global _mlflow_app
     if _mlflow_app is None:
-        from mlflow.server.fastapi_app import app as mlflow_app
+        from mlflow.server.fastapi_app import app as mlflow_app  # lazy: builds MLflow's whole server app
 
         _mlflow_app = mlflow_app
     return _mlflow_app

@@ -46,7 +46,12 @@ def make_config(tmp_path, mlflow_template):
     from bronchocli.config import load_config
 
     def make(storage: str | None = None, name: str = "t", archs=("baseline", "lstm"), losses=("mse",),
-             populations=("personalized",), sweep: dict | None = None, **sections):
+             populations=("personalized",), sweep: dict | None = None, grid_order: bool = False, **sections):
+        """``grid_order``: no measured speed settings, so workers claim the cells in the grid's order (the
+        shipped measurements order them longest first, and a re-measurement may swap two architectures)."""
+        if grid_order:
+            (tmp_path / "no-speed-settings.json").write_text('{"version": 1, "devices": {}}')
+            sections["train"] = {**sections.get("train", {}), "speed_settings": "no-speed-settings.json"}
         db = tmp_path / "mlflow.db"
         if not db.exists():
             shutil.copy(mlflow_template, db)

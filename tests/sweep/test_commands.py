@@ -20,7 +20,7 @@ from bronchocli.sweep import FINISHED, PENDING, SweepStore, Worker, prepare, wor
 def project(make_config, tmp_path):
     """A config with a (tiny, already present) dataset: `sweep` generates nothing."""
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
-    return make_config()
+    return make_config(grid_order=True)  # baseline, then lstm: the Ctrl-C test interrupts the second
 
 
 def cells_of(cfg):

@@ -102,7 +102,7 @@ def test_four_workers_on_postgres_survive_a_sigkilled_worker(make_config, fake_d
 
 
 def test_sigint_releases_the_cell_and_a_rerun_resumes_only_what_is_left(make_config, fake_dir, tmp_path):
-    cfg = make_config(archs=("baseline", "lstm"))
+    cfg = make_config(archs=("baseline", "lstm"), grid_order=True)  # baseline claimed first, lstm interrupted
     (fake_dir / "block-lstm").touch()
     store = SweepStore(cfg.paths.storage_url)
     plan = prepare(cfg, store, dataset=False)
