@@ -71,7 +71,7 @@ def slurm(cluster, monkeypatch, fake_dir):
 def project(make_config, tmp_path, pg_url, *, slurm: dict | None = None, **kw):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     return make_config(storage=pg_url, sweep={"heartbeat_s": 0.5, "stale_after_s": 30.0, "poll_s": 0.2},
-                       slurm={"cpus_per_task": 1, "shared_filesystem": True, **(slurm or {})}, **kw)
+                       slurm={"cpus_per_task": 1, "shared_filesystem": True, **(slurm or {})}, grid_order=True, **kw)
 
 
 def wait_for(predicate, what: str, limit: float = LIMIT, cluster=None, cfg=None):
