@@ -225,6 +225,9 @@ class Train(Section):
     # validations without improvement before stopping; None: never
     patience: int | None = Field(None, ge=1, le=MAX_STEPS)
     min_delta: float = Field(0.0, ge=0, le=1000)
+    # stop once a validation's val.ratio.pos_l2 (position error ÷ the training mean's) is <= this: measures the
+    # cost of learning (training/cost.py) without training the rest of the budget; None: train the whole budget
+    stop_at_ratio: float | None = Field(None, gt=0, le=10)
     standardize_labels: bool = True  # predict (pose - train mean) / train std; undone at prediction
     # training batches that re-estimate BatchNorm statistics per validation
     bn_recalibrate: int = Field(16, ge=0, le=100_000)
@@ -284,6 +287,13 @@ class Tune(Section):
     warmup_validations: int = Field(1, ge=0, le=100_000)  # validations a trial always runs before it may be pruned
     startup_trials: int = Field(2, ge=0, le=100_000)  # trials before TPE models and the median pruner prunes
     applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
+    # what a trial returns (minimised): val_loss = the validation loss of the weights it tested (val_best.loss);
+    # val_ratio = their val.ratio.pos_l2, position error ÷ the training mean's (comparable across rotation losses)
+    objective: spelled(Literal["val_loss", "val_ratio"]) = "val_loss"
+    # every trial trains this many image pairs (train.steps = budget_pairs / pairs per step, validations every
+    # train.val_every x train.batch_size pairs of the base config), so trials that search the batch size compare at
+    # the same data seen; pruning reports at pairs seen. None: every trial trains train.steps steps
+    budget_pairs: int | None = Field(None, ge=1, le=MAX_STEPS * 1000)
     space: dict[str, TuneParam] = {
         "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
         "model.dropout": TuneParam(type="float", low=0.0, high=0.5),

@@ -196,7 +196,7 @@ def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bo
 def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> None:
     """What a reviewer reads on an Optuna study's parent run (``info``: ``tuning.describe_study``).
 
-    Trial counts (metrics ``trials.*``), the best trial (metric ``val_best.loss``, tags ``best_trial``,
+    Trial counts (metrics ``trials.*``), the best trial (its objective's metric, ``val_best.loss`` by default; tags ``best_trial``,
     ``best_run`` and ``best.<path>`` = its value of each searched path), and parameter importances (metrics
     ``importance.<path>``, the figure ``param_importances.png``) only where they mean something: two or more
     searched parameters and complete trials (tag ``importances``: why not, or the caveat of few trials).
@@ -206,7 +206,7 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
     best = info["best"]
     if best is None:
         return
-    log_metrics(client, parent, {"val_best.loss": best["value"]}, step=best["number"])
+    log_metrics(client, parent, {info.get("objective", "val_best.loss"): best["value"]}, step=best["number"])
     tags = {"best_trial": str(best["number"]), "best_run": best["run_id"],
             **{f"best.{k}": str(v) for k, v in best["params"].items()}}
     note = importance_note(info)
@@ -233,7 +233,7 @@ def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mappin
     return "\n\n".join([
         f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
         f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
-        f"Best: trial #{best['number']}, val_best.loss {best['value']:.5g}" + (f", with {values}" if values else "")
+        f"Best: trial #{best['number']}, {info.get('objective', 'val_best.loss')} {best['value']:.5g}" + (f", with {values}" if values else "")
         + " (apply it with `--use-tuned`).",
         *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]
           if ranked else [f"Importances: {note}."] if note else []),

@@ -204,15 +204,44 @@ def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
     return values
 
 
+# What a trial returns, per tune.objective: (the per-validation key reported to the pruner, the run's metric)
+OBJECTIVES = {"val_loss": ("val_loss", "val_best.loss"), "val_ratio": ("val.ratio.pos_l2", "val_best.ratio.pos_l2")}
+ATTR_OBJECTIVE = "objective"  # the study's user attribute: the run metric its trials' values are
+
+
+def objective_metric(cfg: Config) -> str:
+    """The run metric a trial's value is (``val_best.loss`` or ``val_best.ratio.pos_l2``)."""
+    return OBJECTIVES[cfg.tune.objective][1]
+
+
+def _val_every_pairs(cfg: Config) -> int:
+    return cfg.train.val_every * cfg.train.pairs_per_step
+
+
+def budgeted(base: Config, trial_cfg: Config) -> Config:
+    """A trial's config under ``tune.budget_pairs``: as many steps as the budget's pairs at the trial's pairs per
+    step, validations every as many pairs as the study's base config validates at (``train.val_every`` x its pairs
+    per step), so every trial is judged at the same pairs seen; ``trial_cfg`` itself without a budget."""
+    budget = base.tune.budget_pairs
+    if budget is None:
+        return trial_cfg
+    per_step = trial_cfg.train.pairs_per_step
+    steps = max(1, math.ceil(budget / per_step))
+    every = max(1, min(steps, round(_val_every_pairs(base) / per_step)))
+    return trial_cfg.with_values({"train.steps": steps, "train.val_every": every})
+
+
 def make_pruner(cfg: Config):
+    """Trials report at optimiser steps (every train.val_every), or at pairs seen under tune.budget_pairs:
+    the warm-up and the resources are in those units."""
     t = cfg.tune
+    unit = _val_every_pairs(cfg) if t.budget_pairs is not None else cfg.train.val_every
+    end = t.budget_pairs if t.budget_pairs is not None else cfg.train.steps
     if t.pruner == "median":
-        # Trials report at optimiser steps (every train.val_every): warm-up and resources are in steps.
         return optuna.pruners.MedianPruner(n_startup_trials=t.startup_trials,
-                                           n_warmup_steps=t.warmup_validations * cfg.train.val_every)
+                                           n_warmup_steps=t.warmup_validations * unit)
     if t.pruner == "hyperband":
-        return optuna.pruners.HyperbandPruner(min_resource=max(1, t.warmup_validations) * cfg.train.val_every,
-                                              max_resource=cfg.train.steps)
+        return optuna.pruners.HyperbandPruner(min_resource=max(1, t.warmup_validations) * unit, max_resource=end)
     return optuna.pruners.NopPruner()
 
 
@@ -227,7 +256,13 @@ def open_study(cfg: Config, cell: Cell, *, study: str | None = None, worker: int
     name = study or study_name(cfg, cell)
     s = optuna.create_study(study_name=name, storage=storage_for(cfg), direction="minimize",
                             sampler=make_sampler(cfg, worker), pruner=make_pruner(cfg), load_if_exists=True)
+    metric = objective_metric(cfg)
+    before = s.user_attrs.get(ATTR_OBJECTIVE)
+    if before is not None and before != metric:  # trials of one study must minimise one thing
+        raise ConfigError(f"tune.objective {cfg.tune.objective!r}: study {name!r} minimises {before} already; "
+                          "keep its objective or name a new study (--study NAME)")
     s.set_user_attr("target", cell.tags())
+    s.set_user_attr(ATTR_OBJECTIVE, metric)
     return s
 
 
@@ -271,24 +306,28 @@ def study_parent_or_none(cfg: Config, target: Cell, name: str) -> str | None:
 
 
 def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> Callable:
-    """The function Optuna calls per trial: train one configured run, return its best validation loss."""
+    """The function Optuna calls per trial: train one configured run, return ``tune.objective`` of the weights it
+    tested (``objective_metric``); validations report the same quantity to the pruner, at optimiser steps or, under
+    ``tune.budget_pairs``, at pairs seen."""
     from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
     parent = study_parent_or_none(cfg, target, name)
+    reported, metric = OBJECTIVES[cfg.tune.objective]
 
     def run(trial) -> float:
         run.release()  # this trial now counts as RUNNING: another process may decide whether it needs one more
         values = suggest(trial, cfg.tune.space)
-        trial_cfg = cfg.with_values(values)
+        trial_cfg = budgeted(cfg, cfg.with_values(values))
         cell = trial_cfg.cell(**target.coords())
+        per_step = trial_cfg.train.pairs_per_step if cfg.tune.budget_pairs is not None else 1
         trial.set_user_attr(ATTR_CELL, cell.key)
         trial.set_user_attr(ATTR_WORKER, str(WorkerId(socket.gethostname(), os.getpid(), gpu=os.environ.get(GPU_ENV))))
 
         def on_validation(step: int, metrics: dict[str, float]) -> None:
-            trial.report(metrics["val_loss"], step)
+            value = metrics[reported]
+            trial.report(value, step * per_step)
             if trial.should_prune():
-                raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at step {step} "
-                                f"(val_loss {metrics['val_loss']:.4g})")
+                raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at step {step} ({reported} {value:.4g})")
 
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
                 "mlflow.runName": f"trial-{trial.number}·{run_name(cell)}",
@@ -304,9 +343,9 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
         if result.stop_requested:  # Ctrl-C during the trial's last steps (evaluation): the trial counts, none follows
             run.stop_requested = (trial.number, result.stop_requested)
-        value = result.metrics.get("val_best.loss", math.nan)
+        value = result.metrics.get(metric, math.nan)
         if not math.isfinite(value):
-            raise TrialFailed(f"trial {trial.number}: no finite validation loss")
+            raise TrialFailed(f"trial {trial.number}: no finite {metric}")
         return value
 
     run.stop_requested = None  # (trial number, signal) once a stop request arrived while a trial evaluated
@@ -400,7 +439,8 @@ def describe_study(s) -> dict[str, Any]:
     states = optuna.trial.TrialState
     trials = s.get_trials(deepcopy=False)
     counts = {st.name.lower(): sum(t.state == st for t in trials) for st in states}
-    out: dict[str, Any] = {"study": name, "counts": counts, "best": None, "importances": {}}
+    out: dict[str, Any] = {"study": name, "counts": counts, "best": None, "importances": {},
+                           "objective": s.user_attrs.get(ATTR_OBJECTIVE, "val_best.loss")}
     complete = [t for t in trials if t.state == states.COMPLETE]
     if complete:
         b = s.best_trial

@@ -21,6 +21,7 @@ from ..models import build_model
 from ..runs.contract import gpu_share
 from ..runs.processes import process_age_s
 from . import evaluate
+from .cost import cost_of_learning
 from .device import device_for, precision_for, seed_everything, speed_for
 from .loop import FitResult, Settings, Trainer
 from .network import PoseRegressor, round_to_export_
@@ -40,6 +41,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
         checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every, bn_freeze=t.bn_freeze,
+        stop_at_ratio=t.stop_at_ratio,
     )
 
 
@@ -141,6 +143,8 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         "train.train_trajectories": float(len(data.split.train)),
         "train.frames_on_device": float(source.resident),
         "train.skipped_steps": float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
+        "train.core_s": trainer.core_s,  # CPU seconds of the training steps, every thread (a resumed run: all)
+        **cost_of_learning(fit.history),  # cost.pairs_to_0.90 / cost.core_s_to_0.90 when a validation reached it
     }
     if "run" in first_step:
         metrics["train.first_step_s"] = first_step["run"]  # from the engine's start (data already prepared)

@@ -20,8 +20,10 @@ budget of ``train.steps`` steps is the same number of pairs seen whatever the mo
   training mean's) and the mode gap (eval-mode ÷ batch-statistics loss on
   training batches, ``batchnorm.py``) are computed, the best weights so far are
   kept and a resumable checkpoint is written; after ``train.patience``
-  validations without improvement the run stops early. The run ends on the best
-  weights, whatever stopped it;
+  validations without improvement the run stops early, and with
+  ``train.stop_at_ratio`` once ``val.ratio.pos_l2`` reaches that value (the cost
+  of learning, ``cost_of_learning``). The run ends on the best weights, whatever
+  stopped it;
 * ``train.bn_freeze``: the last fraction of the steps trains with BatchNorm in
   eval mode on the statistics re-estimated by a validation held where the
   freeze starts (then no more re-estimation): the evaluated function is the
@@ -45,7 +47,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torch import nn
 
 from .. import metrics, registry
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
@@ -54,6 +55,7 @@ from ..models import detach_state
 from ..runs.contract import RESUME_FILE, RunInterrupted, RunTakenOver
 from . import checkpoint
 from .batchnorm import freeze_bn, mode_gap, recalibrate_bn
+from .compiling import compile_network
 from .network import PoseRegressor
 
 log = logging.getLogger(__name__)
@@ -101,6 +103,7 @@ class Settings:
     log_every: int = 0  # optimiser steps between training-curve points (0: a point at each validation only)
     bn_freeze: float = 0.0  # the last fraction of the steps trains with BatchNorm statistics fixed (batchnorm.py)
     mode_gap_batches: int = 4  # training batches of each validation's mode gap (0: not measured)
+    stop_at_ratio: float | None = None  # stop once val.ratio.pos_l2 <= this (train.stop_at_ratio)
 
     @property
     def pairs_per_step(self) -> int:
@@ -117,7 +120,7 @@ class FitResult:
     steps: int
     pairs_seen: int
     epochs: float  # passes over the training samples
-    stop_reason: str  # budget, early_stop
+    stop_reason: str  # budget, early_stop, target (train.stop_at_ratio reached)
     best_step: int
     best_val_loss: float
     validations: int
@@ -135,27 +138,6 @@ def lr_factor(step: int, s: Settings) -> float:
         return 1.0
     span = max(1, s.steps - s.warmup_steps)
     return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - s.warmup_steps) / span)))
-
-
-COMPILE_MODES = ("default", "reduce-overhead", "max-autotune", "max-autotune-no-cudagraphs")
-
-
-def compile_network(net: nn.Module, mode: bool | str, backend: str | None = None) -> nn.Module:
-    """``net`` compiled by ``torch.compile`` in ``mode`` (True: ``default``; False: ``net`` itself).
-
-    ``reduce-overhead`` replays the compiled forward and backward as CUDA graphs (one launch per graph
-    instead of one per operation: what a launch-bound step needs; shapes are fixed and the step makes no
-    host sync, so capture holds). ``backend`` (tests): a backend that needs no code generation, e.g.
-    ``eager`` or ``aot_eager``, in which case the mode (an inductor option) does not apply.
-    """
-    if mode is False or mode is None:
-        return net
-    mode = "default" if mode is True else mode
-    if mode not in COMPILE_MODES:
-        raise BronchoError(f"train.compile {mode!r}: must be false, true or one of {', '.join(COMPILE_MODES)}")
-    if backend is not None:
-        return torch.compile(net, backend=backend)
-    return torch.compile(net, mode=mode)
 
 
 class Trainer:
@@ -193,6 +175,7 @@ class Trainer:
         self.bad = 0  # validations without improvement
         self.history: list[dict[str, float]] = []
         self.train_time = self.val_time = self.ckpt_time = 0.0
+        self.core_s = 0.0  # CPU seconds (every thread) spent in training steps: the cost of learning (cost.py)
         self._loss_sum = torch.zeros((), device=device)
         self._loss_n = 0
         self._skipped = torch.zeros((), device=device)  # skipped steps since the last validation, on the device
@@ -385,7 +368,8 @@ class Trainer:
         if self.on_curves is not None:
             self.on_curves(curves)
         values |= {"train.skipped_steps": float(self._count_skipped(int(skipped))),
-                   "train.pairs_seen": float(self.step * self.s.pairs_per_step), "train.epochs": self.epochs}
+                   "train.pairs_seen": float(self.step * self.s.pairs_per_step), "train.epochs": self.epochs,
+                   "train.core_s": self.core_s}
         improved = values["val_loss"] < self.best_val - self.s.min_delta
         if improved or self.best_state is None:
             self.best_val = min(self.best_val, values["val_loss"])
@@ -401,6 +385,9 @@ class Trainer:
         t0 = time.perf_counter()
         self.save_resume()
         self.ckpt_time += time.perf_counter() - t0
+        if self.s.stop_at_ratio is not None and values["val.ratio.pos_l2"] <= self.s.stop_at_ratio:
+            self.stop_reason = "target"
+            return True
         return self.s.patience is not None and self.bad >= self.s.patience
 
     @property
@@ -430,18 +417,20 @@ class Trainer:
     # -- the run ----------------------------------------------------------------------------------------
     def fit(self) -> FitResult:
         reason = "budget"
+        self.stop_reason = "early_stop"
         self.check_space()  # a full disk fails the run now, not at its first validation
         while self.step < self.s.steps:
             target = min(self.s.steps, (self.step // self.s.val_every + 1) * self.s.val_every)
             if self.step < self.s.freeze_step:  # a validation (and its re-estimation) where the freeze starts
                 target = min(target, self.s.freeze_step)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             self._train_until(target)
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             self.train_time += time.perf_counter() - t0
+            self.core_s += time.process_time() - c0  # the process's CPU time over every thread, training only
             if self._validation():
-                reason = "early_stop"
+                reason = self.stop_reason
                 break
         if self.best_state is not None:
             self.net.load_state_dict(self.best_state)
@@ -459,6 +448,7 @@ class Trainer:
             "best_val": float(self.best_val), "best_step": int(self.best_step), "best_state": self.best_state,
             "bad": int(self.bad), "history": [dict(h) for h in self.history],
             "times": (float(self.train_time), float(self.val_time)), "rng": checkpoint.rng_state(),
+            "core_s": float(self.core_s),
         }
 
     def load_state(self, state: dict[str, Any]) -> None:
@@ -470,6 +460,7 @@ class Trainer:
         self.best_val, self.best_step, self.bad = float(state["best_val"]), int(state["best_step"]), int(state["bad"])
         self.best_state, self.history = state["best_state"], list(state["history"])
         self.train_time, self.val_time = (float(t) for t in state["times"])
+        self.core_s = float(state.get("core_s", 0.0))  # checkpoints written before issue 45 lack it
         checkpoint.set_rng_state(state["rng"])
 
     def expected_checkpoint_bytes(self) -> int:

@@ -275,3 +275,38 @@ def test_two_tune_workers_on_two_gpus_each_see_their_own_device(project):
     workers = [WorkerId.parse(t.user_attrs[tuning.ATTR_WORKER]) for t in study.get_trials(deepcopy=False)]
     assert all(w is not None and w.gpu in ("3", "5") for w in workers)
     assert len({(w.pid, w.gpu) for w in workers}) == len({w.pid for w in workers})  # a process keeps its GPU
+
+
+def test_a_budgeted_ratio_objective_trains_every_trial_the_same_pairs_and_minimises_the_val_ratio(project):
+    """tune.budget_pairs: trials searching the batch size see the same pairs (steps = budget / pairs per step),
+    validate at the same pairs seen and report there; tune.objective val_ratio returns val_best.ratio.pos_l2."""
+    cfg = load_config(project / "experiments.yaml", overrides=[
+        "tune.space={train.batch_size: {type: categorical, choices: [4, 8]}}",
+        "tune.objective=val_ratio", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4",
+        "train.val_every=4"])  # the base config validates every 4 x 4 = 16 pairs
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    study = tunepool.tune(cfg, target, 2, progress=False,
+                          enqueue=[{"train.batch_size": 4}, {"train.batch_size": 8}])
+    trials = study.get_trials(deepcopy=False)
+    assert [t.state.name for t in trials] == ["COMPLETE", "COMPLETE"]
+    assert study.user_attrs["objective"] == "val_best.ratio.pos_l2"
+    client = client_for(cfg)
+    for t, steps, per_step in zip(trials, (8, 4), (4, 8)):
+        run = client.get_run(t.user_attrs[tuning.ATTR_RUN])
+        assert run.data.metrics["train.steps"] == steps
+        assert run.data.metrics["train.pairs_seen"] == 32  # the budget, whatever the batch
+        assert t.value == pytest.approx(run.data.metrics["val_best.ratio.pos_l2"])
+        # reported to Optuna at pairs seen, every 16 pairs, whatever the batch
+        assert sorted(t.intermediate_values) == [16, 32]
+        ratios = [m.value for m in client.get_metric_history(run.info.run_id, "val.ratio.pos_l2")]
+        assert sorted(t.intermediate_values.values()) == pytest.approx(sorted(ratios))
+        assert [m.step * per_step for m in client.get_metric_history(run.info.run_id, "val.ratio.pos_l2")] == [16, 32]
+
+
+def test_a_study_keeps_its_objective(project):
+    cfg = load_config(project / "experiments.yaml", overrides=["tune.objective=val_ratio"])
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    tuning.open_study(cfg, target)
+    other = load_config(project / "experiments.yaml")
+    with pytest.raises(ConfigError, match="minimises val_best.ratio.pos_l2 already"):
+        tuning.open_study(other, target)

@@ -59,6 +59,30 @@ def test_early_stopping_ends_on_the_best_weights(monkeypatch):
     assert not all(torch.equal(final[k], snapshots[8][k]) for k in final)
 
 
+def test_stop_at_ratio_ends_at_the_first_validation_that_reaches_it_and_the_cost_is_read_there(monkeypatch):
+    from dataclasses import replace
+
+    from bronchocli.training.cost import COST_TARGET, cost_of_learning
+
+    t = trainer(replace(settings(steps=20, val_every=2, micro_pairs=4), stop_at_ratio=0.9))
+    ratios = iter([1.2, 0.95, 0.89, 0.5])
+
+    def validate(samples=None):
+        return {"val_loss": 1.0, "val.ratio.pos_l2": next(ratios),
+                **{f"val.{m}": 0.0 for m in ("pos_l2", "rot_l2", "de", "ce")}}
+
+    monkeypatch.setattr(t, "validate", validate)
+    fit = t.fit()
+    assert fit.stop_reason == "target" and fit.steps == 6  # 0.89 at the third validation
+    core = [h["train.core_s"] for h in fit.history]
+    assert all(c > 0 for c in core) and core == sorted(core)  # CPU seconds of training, growing
+    assert COST_TARGET == 0.90
+    assert cost_of_learning(fit.history) == {"cost.pairs_to_0.90": 6 * 4, "cost.step_to_0.90": 6.0,
+                                             "cost.core_s_to_0.90": core[2]}
+    assert cost_of_learning(fit.history, target=0.5) == {}  # never reached: nothing claimed
+    assert cost_of_learning([{"step": 2.0, "train.pairs_seen": 8.0, "val.ratio.pos_l2": math.nan}]) == {}
+
+
 def test_batchnorm_recalibration_sets_the_plain_average_of_the_batch_statistics():
     bn_net = nn.Sequential(nn.BatchNorm1d(3))
     bn_net[0].running_mean.fill_(100.0)  # stale statistics from "earlier weights"

@@ -1,0 +1,24 @@
+"""The cost of learning (issue 45): pairs seen and core-seconds until a run's validation headline first reaches
+``COST_TARGET``. Defined here once; every run logs it as ``cost.*`` metrics (engine.py), and
+``bronchopose tune``'s budgeted objective and benchmarks/README.md ("Cost of learning") read the same keys."""
+
+from __future__ import annotations
+
+import math
+
+# ``val.ratio.pos_l2`` (validation position error ÷ the training-mean predictor's on the same pairs) to reach
+COST_TARGET = 0.90
+
+
+def cost_of_learning(history: list[dict[str, float]], target: float = COST_TARGET) -> dict[str, float]:
+    """Pairs seen and core-seconds (``train.core_s``: the process's CPU time over every thread in training steps,
+    validations and checkpoints left out) at the first validation whose ``val.ratio.pos_l2`` is <= ``target``;
+    empty when no validation reached it. The validation cadence bounds the resolution: state it with the numbers."""
+    for h in history:
+        ratio = h.get("val.ratio.pos_l2", math.nan)
+        if math.isfinite(ratio) and ratio <= target:
+            out = {f"cost.pairs_to_{target:.2f}": h["train.pairs_seen"], f"cost.step_to_{target:.2f}": h["step"]}
+            if "train.core_s" in h:
+                out[f"cost.core_s_to_{target:.2f}"] = h["train.core_s"]
+            return out
+    return {}
