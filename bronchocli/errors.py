@@ -8,7 +8,7 @@ for a live exception and for the ``failure_reason`` recorded for one
 (``Type: message``, runs.contract.failure_reason), so the run that fails and the
 sweep that reads its reason later ask the same classes. Resumable kinds are
 defined in this module only (tests/test_errors.py), so a process that reads
-reasons (``sweep --gc``, ``status``) knows them all without importing torch.
+reasons (``sweep gc``, ``status``) knows them all without importing torch.
 """
 
 from __future__ import annotations

@@ -116,7 +116,7 @@ def _inside(a: Path, b: Path) -> bool:
 
 def check_roots(cfg: Config) -> None:
     """Each root (``roots``) its own folder: none equal to or inside another. One line naming both settings
-    otherwise, before anything is written or removed (``sweep --gc`` once deleted every folder inside a checkpoints
+    otherwise, before anything is written or removed (``sweep gc`` once deleted every folder inside a checkpoints
     root that held the artifacts). System folders, the file system's root and home are refused for every output
     root when the config is read (``pathcheck.check_writable_root``, through ``Paths.of``)."""
     found = [(name, path, _real(path)) for name, path in roots(cfg)]

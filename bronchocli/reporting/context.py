@@ -93,7 +93,7 @@ class ReportContext:
 
     index: RunIndex
     best: int = 0  # cross-subject: keep the best N combinations (0 = all)
-    profiler: Profiler | None = None  # arch -> profiling.profile_arch's dict; None: no latency/GMAC
+    profiler: Profiler | None = None  # arch -> models.profile.profile_arch's dict; None: no latency/GMAC
     profiler_note: str = ""  # why there is no profiler, for the caption
     errors: Loader | None = None  # run -> trajectory_errors table; None: logged means only
     history: Callable[[str, str], Any] | None = None  # (run id, metric) -> [(step, value)]: fig-training-curves

@@ -1,6 +1,6 @@
 """What on disk is provably this project's own checkpoint, and the one way to delete it.
 
-Every delete of a checkpoint (``sweep --gc``, a finished or pruned run, a sweep worker's takeover or last
+Every delete of a checkpoint (``sweep gc``, a finished or pruned run, a sweep worker's takeover or last
 failure) goes through :func:`remove_checkpoint`, which asks :func:`owned_checkpoint` first. A folder
 ``<runs.checkpoints>/<run_id>/`` is ours when
 

@@ -6,7 +6,7 @@ protocol follows submitit's ``Executor`` (submit jobs, find them again, cancel
 them) with the sweep's claims model in place of job results:
 
 - ``submit(n, stage, after)``: start ``n`` workers that work the stages up to
-  ``stage`` (the worker entry ``task.worker_main``, told the stage in
+  ``stage`` (the worker entry ``stagework.worker_main``, told the stage in
   ``STAGE_ENV``), started only once the submissions ``after`` have ended;
   returns the submission's id;
 - ``active()``: this sweep's workers still queued or running, as ``Workers``

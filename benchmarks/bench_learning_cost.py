@@ -1,0 +1,139 @@
+"""The cost of learning (issue 45), read back from the MLflow runs that measured it.
+
+Every training run logs ``train.core_s`` (CPU seconds of its training steps, every thread) and
+``train.pairs_seen`` at each validation, and ``cost.pairs_to_0.90`` / ``cost.core_s_to_0.90`` once a validation's
+``val.ratio.pos_l2`` reached 0.90 (bronchocli/training/cost.py). This script collects those runs from one or more
+benchmark projects (folders with their own experiments.yaml and MLflow store) — the reference run
+(``train --set train.stop_at_ratio=0.90``), the trials of ``tune --profile learning-cost`` and single lever runs —
+and writes benchmarks/results/learning-cost.json: per run its settings that differ from the reference recipe, its
+validation curve by pairs seen, the cost to 0.90 and the ratio to the reference's cost, with the CPU it ran on.
+
+    python benchmarks/bench_learning_cost.py /work/lc [--reference cost-reference] [--out FILE] [--markdown]
+
+The CPU line is this machine's: run it on the machine that trained the runs (the JSON says which runs' hosts
+were recorded in their tags too). Nothing here trains anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from bench_common import cpu_line
+
+from bronchocli.config import load_config
+from bronchocli.runs.client import client_for
+from bronchocli.training.cost import COST_TARGET
+
+HERE = Path(__file__).resolve().parent
+PAIRS = f"cost.pairs_to_{COST_TARGET:.2f}"
+CORE = f"cost.core_s_to_{COST_TARGET:.2f}"
+# the settings a lever changes (params of a run: only those that differ from the config defaults are logged,
+# so each is read with the reference recipe's value as its default)
+LEVERS = {"train.lr": 1e-3, "train.warmup": 0.05, "train.schedule": "cosine", "train.batch_size": 20,
+          "model.dropout": 0.2, "train.steps": 5000, "image_size": 96, "train.threads": 1}
+
+
+def _value(text: str | None, default: Any) -> Any:
+    if text is None:
+        return default
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def run_row(client, run) -> dict[str, Any]:
+    """One run: its lever settings, validation curve (pairs seen -> val.ratio.pos_l2), cost and status."""
+    p, m, tags = run.data.params, run.data.metrics, run.data.tags
+    rid = run.info.run_id
+    ratio = {int(x.step): x.value for x in client.get_metric_history(rid, "val.ratio.pos_l2")}
+    pairs = {int(x.step): x.value for x in client.get_metric_history(rid, "train.pairs_seen")}
+    core = {int(x.step): x.value for x in client.get_metric_history(rid, "train.core_s")}
+    curve = [{"step": s, "pairs": pairs.get(s), "core_s": core.get(s), "val_ratio": ratio[s]} for s in sorted(ratio)]
+    settings = {k: _value(p.get(k), v) for k, v in LEVERS.items() if k != "image_size"}
+    settings["image_size"] = _value(p.get("data.image_size") or p.get("dataset.image_size"), LEVERS["image_size"])
+    first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
+    return {
+        "run_id": rid, "name": tags.get("mlflow.runName", ""), "status": run.info.status,
+        "kind": tags.get("run_kind", "cell"), "pruned": tags.get("pruned") == "true",
+        "study": tags.get("study"), "trial": _value(tags.get("trial"), None), "settings": settings,
+        "curve": curve, "best_val_ratio": min((c["val_ratio"] for c in curve), default=None),
+        "val_best_ratio": m.get("val_best.ratio.pos_l2"),
+        "pairs_to_target": m.get(PAIRS, first["pairs"] if first else None),
+        "core_s_to_target": m.get(CORE, first["core_s"] if first else None),
+        "pairs_per_core_s": (curve[-1]["pairs"] / curve[-1]["core_s"]) if curve and curve[-1]["core_s"] else None,
+        "host": tags.get("host") or tags.get("mlflow.source.name"),
+    }
+
+
+def collect(projects: list[Path]) -> list[dict[str, Any]]:
+    rows = []
+    for folder in projects:
+        cfg = load_config(folder / "experiments.yaml")
+        client = client_for(cfg)
+        for exp in client.search_experiments():
+            for run in client.search_runs([exp.experiment_id], max_results=5000):
+                if run.data.tags.get("run_kind") in ("sweep", "study"):
+                    continue  # parents hold no training
+                row = run_row(client, run)
+                row["experiment"] = exp.name
+                rows.append(row)
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("projects", nargs="+", type=Path, help="benchmark project folders (experiments.yaml + runs/)")
+    ap.add_argument("--reference", default="cost-reference", help="experiment of the reference run")
+    ap.add_argument("--out", type=Path, default=HERE / "results" / "learning-cost.json")
+    ap.add_argument("--markdown", action="store_true", help="also print the runs as a Markdown table")
+    args = ap.parse_args(argv)
+    rows = collect(args.projects)
+    ref = next((r for r in rows if r["experiment"] == args.reference and r["core_s_to_target"]), None)
+    for r in rows:
+        if ref is not None and r["core_s_to_target"]:
+            r["cheaper_than_reference"] = ref["core_s_to_target"] / r["core_s_to_target"]
+    out = {"what": f"cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
+                   f"{COST_TARGET} (bronchocli/training/cost.py)",
+           "machine": cpu_line(), "date": dt.date.today().isoformat(),
+           "command": "python benchmarks/bench_learning_cost.py " + " ".join(str(p) for p in args.projects),
+           "target": COST_TARGET, "reference": ref["run_id"] if ref else None, "runs": rows}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(out, indent=1) + "\n")
+    tmp.replace(args.out)
+    if args.markdown:
+        print(markdown(out))
+    print(f"wrote {args.out} ({len(rows)} runs)", file=sys.stderr)
+    return 0
+
+
+def _fmt(v: Any, spec: str = ".3g") -> str:
+    return "–" if v is None else format(v, spec) if isinstance(v, float) else str(v)
+
+
+def markdown(out: dict[str, Any]) -> str:
+    lines = ["| run | lr | warm-up | schedule | batch | dropout | budget (pairs) | best val ratio | pairs to 0.90 "
+             "| core-s to 0.90 | × cheaper | status |", "|" + "---|" * 12]
+    for r in sorted(out["runs"], key=lambda r: (r["core_s_to_target"] is None, r["core_s_to_target"] or 0)):
+        s = r["settings"]
+        budget = s["train.steps"] * s["train.batch_size"]
+        status = "pruned" if r["pruned"] else r["status"].lower()
+        lines.append(f"| {r['experiment']} {r['name'][:24]} | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
+                     f"| {s['train.schedule']} | {s['train.batch_size']} | {_fmt(s['model.dropout'])} | {budget:,} "
+                     f"| {_fmt(r['best_val_ratio'])} | {_fmt(r['pairs_to_target'], ',.0f')} "
+                     f"| {_fmt(r['core_s_to_target'], '.0f')} | {_fmt(r.get('cheaper_than_reference'), '.2f')} "
+                     f"| {status} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
