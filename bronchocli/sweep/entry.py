@@ -32,7 +32,7 @@ from ..config import Config, check_paths, check_roots
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
-from ..runs.client import client_for, experiment_id
+from ..runs.client import check_reachable, client_for, experiment_id
 from . import launch as launching
 from . import placement, staged
 from .housekeeping import collect_garbage, foreign, repair_zombies
@@ -202,7 +202,8 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     its workers placed like a sweep's (``--workers``, ``--gpus``, ``--per-gpu``), then show its best trial."""
     from . import tunepool, tuning  # lazy: optuna only when the command runs
 
-    check_paths(cfg, storage=True, logs=True)  # one line before anything is created
+    _local_store(cfg)  # paths, then the storage answers (runs.timeout_s): one line before any dataset is rendered
+    check_reachable(cfg)  # the MLflow server or database too
     n, devices = _workers(workers, gpus, per_gpu)
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run

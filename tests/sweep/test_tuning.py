@@ -310,3 +310,14 @@ def test_a_study_keeps_its_objective(project):
     other = load_config(project / "experiments.yaml")
     with pytest.raises(ConfigError, match="minimises val_best.ratio.pos_l2 already"):
         tuning.open_study(other, target)
+
+
+def test_tune_with_an_unreachable_storage_fails_in_one_line_before_any_dataset_is_rendered(tmp_path, cli):
+    """Cheap checks first (issue 47.6): the storage answers before the dataset (absent here) would be rendered."""
+    write_config(tmp_path)  # dataset.root data/tiny does not exist: tune would render it first
+    code, out, err = cli("tune", "-c", tmp_path / "experiments.yaml", "-a", "baseline", "-l", "mse",
+                         "-P", "personalized", "-n", "1", "-q", "--storage", "postgresql://bob:hunter2@127.0.0.1:1/db")
+    assert code == 2, (out, err)
+    assert "Connection refused" in err and "hunter2" not in err and "Traceback" not in err + out
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "data").exists()  # nothing rendered, nothing created
