@@ -6,7 +6,7 @@ file: ``benchmarks/results/<name>.json`` (``machine``, ``date``, ``command``, ``
 ``bronchopose profile --speed``, read as ``speed_settings``). A document quotes a figure through a generated
 span, so the prose cannot drift from the measurement:
 
-- inline: ``<!-- n: FILE/key/path | FORMAT -->VALUE<!-- /n -->`` — VALUE is the figure at ``key/path`` of
+- inline: ``<!-- n: FILE/key/path as FORMAT -->VALUE<!-- /n -->`` — VALUE is the figure at ``key/path`` of
   FILE's JSON (``figures/...`` for a results file), formatted by FORMAT (optional; see ``fmt``);
 - a block: ``<!-- numbers: NAME -->`` ... ``<!-- /numbers -->`` — the lines ``BLOCKS[NAME]`` renders from the
   results files (the Summary table of benchmarks/README.md; docs/reports.md's calibration tables).
@@ -34,7 +34,8 @@ RESULTS = ROOT / "benchmarks" / "results"
 SPEED_SETTINGS = ROOT / "bronchocli" / "speed_settings.json"
 REQUIRED = ("title", "machine", "date", "command", "figures")
 
-INLINE = re.compile(r"<!-- n: (?P<ref>[^|>]+?)(?:\s*\|\s*(?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
+# "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
+INLINE = re.compile(r"<!-- n: (?P<ref>[^>]+?)(?: as (?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
 BLOCK = re.compile(r"(?P<open><!-- numbers: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(?P<close><!-- /numbers -->)", re.S)
 
 

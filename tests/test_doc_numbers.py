@@ -63,8 +63,8 @@ def _project(tmp_path: Path, doc: str, figures: dict) -> tuple[Path, Path]:
 
 
 def test_check_names_a_changed_inline_figure_and_write_restores_it(docblocks, tmp_path):
-    results_dir, doc = _project(tmp_path, "took <!-- n: job/figures/total_s | dur -->12 min 8 s<!-- /n --> and "
-                                          "<!-- n: job/figures/ratios | range .3f -->0.830–0.845<!-- /n -->.\n",
+    results_dir, doc = _project(tmp_path, "took <!-- n: job/figures/total_s as dur -->12 min 8 s<!-- /n --> and "
+                                          "<!-- n: job/figures/ratios as range .3f -->0.830–0.845<!-- /n -->.\n",
                                 {"total_s": 727.5, "ratios": [0.845, 0.843, 0.830]})
     results = docblocks.load_results(results_dir, tmp_path / "none.json")
     assert docblocks.check([doc], results, tmp_path) == []
@@ -73,7 +73,7 @@ def test_check_names_a_changed_inline_figure_and_write_restores_it(docblocks, tm
     assert len(diffs) == 1 and "job/figures/total_s" in diffs[0] and "'11 min'" in diffs[0] \
         and "'12 min 8 s'" in diffs[0]
     assert docblocks.write([doc], results, tmp_path) == [doc]
-    assert "took <!-- n: job/figures/total_s | dur -->12 min 8 s<!-- /n -->" in doc.read_text()
+    assert "took <!-- n: job/figures/total_s as dur -->12 min 8 s<!-- /n -->" in doc.read_text()
     assert docblocks.check([doc], results, tmp_path) == []
 
 
