@@ -171,3 +171,13 @@ def test_readme_markers_hold_the_commands_ci_reads():
     test = lines[lines.index("<!-- test-command -->") + 2]
     assert "pytest" in test
     assert "bronchopose sweep" in lines[lines.index("<!-- main-command -->") + 2]
+
+
+def test_readme_quotes_no_timing_or_ratio_outside_a_generated_span():
+    """A time, a rate or a three-decimal ratio typed into the README's prose (not a span) has no results file."""
+    text = re.sub(r"<!-- n: .*?<!-- /n -->", "", README.read_text(encoding="utf-8"), flags=re.S)
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    typed = re.compile(r"(?<![\d.])\d+(\.\d+)?\s?(min|s|ms|pairs/s|fps|frames/s)\b|(?<![\d.])0\.\d{3}(?![\d.])")
+    bad = [f"README.md:{i}: {m.group(0)!r} in {line.strip()[:80]!r}" for i, line in enumerate(text.splitlines(), 1)
+           for m in typed.finditer(line)]
+    assert not bad, "quote it through a span of its results file (CONTRIBUTING.md):\n" + "\n".join(bad)
