@@ -85,6 +85,9 @@ import numpy as np
 from scipy import stats as sps
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import docblocks  # noqa: E402
 
 from bronchocli.reporting.stats import (  # noqa: E402
     ALPHA,
@@ -408,19 +411,39 @@ def summary(results: dict, ties: dict) -> str:
             f"max false-positive rate {max(fpr):.3f}{short}")
 
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "reports.md"
-BEGIN, END = "<!-- bench_calibration: begin -->", "<!-- bench_calibration: end -->"
+RESULT = "calibration"  # benchmarks/results/calibration.json: docs/reports.md's block is rendered from it (docblocks)
+COMMAND = "python benchmarks/bench_calibration.py --record"
 
 
-def check_docs(lines: list[str], path: Path = DOCS) -> list[str]:
-    """The lines where docs/reports.md's calibration block differs from ``lines`` (empty: they agree)."""
-    text = path.read_text(encoding="utf-8")
-    if BEGIN not in text or END not in text:
-        return [f"{path}: no {BEGIN} ... {END} block"]
-    block = text.split(BEGIN, 1)[1].split(END, 1)[0].strip("\n").splitlines()
-    block = [x for x in block if x.strip() not in ("```", "```text")]
-    return [f"docs: {a!r}\nbench: {b!r}" for a, b in zip(block + [""] * len(lines), lines + [""] * len(block))
+def check_docs(lines: list[str], results_dir: Path = docblocks.RESULTS) -> list[str]:
+    """The lines where the recorded calibration tables (results/calibration.json, which docs/reports.md's block
+    shows: docblocks checks that) differ from ``lines`` (empty: they agree)."""
+    path = results_dir / f"{RESULT}.json"
+    try:
+        recorded = docblocks.load_results(results_dir)[RESULT]["figures"]["docs_table"]
+    except KeyError:
+        return [f"{path}: no recorded calibration tables (run {COMMAND})"]
+    return [f"recorded: {a!r}\nbench: {b!r}" for a, b in zip(recorded + [""] * len(lines), lines + [""] * len(recorded))
             if a.strip() != b.strip()]
+
+
+def record_results(results: dict, ties: dict, experiments: int, seconds: float,
+                   results_dir: Path = docblocks.RESULTS) -> Path:
+    """results/calibration.json from a run at the defaults; docs/reports.md's block and the Summary row follow
+    with ``python benchmarks/docblocks.py --write``."""
+    ours = graded(results)
+    fpr = [m["fpr"] for m in ours] + [m["report"] for m in ties.values()]
+    cov, worst = min(m["coverage"] for m in ours), max(fpr)
+    return docblocks.record(
+        RESULT, title="Calibration of the report's 95 % intervals and paired test", command=COMMAND,
+        machine=docblocks.machine() + " (a simulation with fixed seeds: the figures do not depend on the machine)",
+        cpu="any (simulation)", results_dir=results_dir,
+        summary={"figure": "calibration of the report's 95 % intervals and paired test, every regime and estimand "
+                           "the report prints (docs/reports.md)",
+                 "result": f"**min coverage {cov:.3f}, max false-positive rate {worst:.3f}**",
+                 "goal": "coverage ≥ 0.93, FPR ≤ 0.06 " + ("✔" if cov >= 0.93 and worst <= 0.06 else "✘")},
+        figures={"experiments_per_row": experiments, "seconds": round(seconds, 1), "min_coverage": round(cov, 3),
+                 "max_fpr": round(worst, 3), "docs_table": docs_table(results, ties)})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -438,16 +461,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pair-weights", action="store_true",
                     help="weight the trajectories by unequal pair counts (the per-pair tables)")
     ap.add_argument("--check-docs", action="store_true",
-                    help="run with the defaults and exit 1 when docs/reports.md's calibration tables differ")
+                    help="run with the defaults and exit 1 when the recorded tables (results/calibration.json, "
+                         "shown in docs/reports.md) differ")
+    ap.add_argument("--record", action="store_true",
+                    help="run with the defaults and write results/calibration.json (then: docblocks.py --write)")
     args = ap.parse_args(argv)
-    if args.check_docs:
-        args = ap.parse_args([])
-        results, ties = run(args.experiments, args.trajectories, None, 0), run_ties(args.ties, args.trajectories)
+    if args.check_docs or args.record:
+        start = time.perf_counter()
+        defaults = ap.parse_args([])
+        results = run(defaults.experiments, defaults.trajectories, None, 0)
+        ties = run_ties(defaults.ties, defaults.trajectories)
+        if args.record:
+            path = record_results(results, ties, defaults.experiments, time.perf_counter() - start)
+            print(f"wrote {path}; now `python benchmarks/docblocks.py --write` regenerates docs/reports.md's block")
+            return 0
         diff = check_docs(docs_table(results, ties))
         for line in diff:
             print(line)
-        print("docs/reports.md matches the benchmark" if not diff else f"{len(diff)} line(s) of docs/reports.md "
-              "differ from the benchmark: paste the block it prints without --check-docs")
+        print("results/calibration.json matches the benchmark" if not diff else f"{len(diff)} line(s) of "
+              f"results/calibration.json differ from the benchmark: record it again ({COMMAND})")
         return 1 if diff else 0
     start = time.perf_counter()
     results = run(args.experiments, args.trajectories, args.regimes, args.baseline, pair_weights=args.pair_weights)
@@ -465,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         if not shown:
             cells = " | ".join(f"refused ({x})" for x in cells.split(" | "))
         print(f"| {proc} | {seeds} | {name} | {est} | {cells} |")
-    print(f"\nThe block of docs/reports.md ({BEGIN}):\n")
+    print("\nThe block of docs/reports.md (recorded with --record):\n")
     print("\n".join(docs_table(results, ties)))
     print(f"({time.perf_counter() - start:.1f} s)")
     print(summary(results, ties))

@@ -76,22 +76,25 @@ def test_the_old_bootstrap_fails_where_the_issue_says(bench):
     assert results[("old bootstrap", 3, "seed-dominated", "these patients")]["fpr"] > 0.10
 
 
-def test_docs_reports_calibration_block_is_what_the_benchmark_prints(bench):
-    """docs/reports.md's tables between the bench_calibration markers equal the benchmark's output at its defaults
-    (what ``bench_calibration.py --check-docs`` runs: 10,000 experiments per row, 1,000 per tied-group row;
-    ≈ 12 s). Any change to the statistics that moves a printed digit fails here until the block is pasted again."""
+def test_recorded_calibration_is_what_the_benchmark_computes(bench):
+    """benchmarks/results/calibration.json (which docs/reports.md's block shows: tests/test_doc_numbers.py checks
+    that) equals the benchmark's output at its defaults (what ``bench_calibration.py --check-docs`` runs: 10,000
+    experiments per row, 1,000 per tied-group row). Any change to the statistics that moves a printed digit
+    fails here until ``--record`` writes the file again."""
     results, ties = bench.run(10000, 12, None, 0), bench.run_ties(1000, 12)
     diff = bench.check_docs(bench.docs_table(results, ties))
-    assert not diff, "docs/reports.md differs from bench_calibration.py (paste its block):\n" + "\n".join(diff)
+    assert not diff, "results/calibration.json differs from bench_calibration.py (run it with --record):\n" + \
+        "\n".join(diff)
 
 
-def test_check_docs_names_a_changed_line_and_a_missing_block(bench, tmp_path):
-    """The comparison itself: a digit changed in the docs, a row missing, or no markers are all reported."""
+def test_check_docs_names_a_changed_line_and_a_missing_record(bench, tmp_path):
+    """The comparison itself: a digit changed, a row missing, or no results file are all reported; ``--record``'s
+    writer produces a file the comparison accepts."""
     lines = ["| a | 0.950 |", "| b | 0.931 |", "", "min coverage 0.931, max false-positive rate 0.050"]
-    doc = tmp_path / "reports.md"
-    doc.write_text("text\n" + bench.BEGIN + "\n" + "\n".join(lines) + "\n" + bench.END + "\nmore\n")
-    assert bench.check_docs(lines, doc) == []
-    assert bench.check_docs(["| a | 0.950 |", "| b | 0.929 |", *lines[2:]], doc)  # one digit differs
-    assert bench.check_docs(lines + ["| c | 0.940 |"], doc)  # a row the docs lack
-    doc.write_text("no block here\n")
-    assert bench.check_docs(lines, doc) == [f"{doc}: no {bench.BEGIN} ... {bench.END} block"]
+    assert bench.check_docs(lines, tmp_path) == [f"{tmp_path / 'calibration.json'}: no recorded calibration tables "
+                                                 f"(run {bench.COMMAND})"]
+    bench.docblocks.record("calibration", title="t", machine="m", command="c", figures={"docs_table": lines},
+                           results_dir=tmp_path)
+    assert bench.check_docs(lines, tmp_path) == []
+    assert bench.check_docs(["| a | 0.950 |", "| b | 0.929 |", *lines[2:]], tmp_path)  # one digit differs
+    assert bench.check_docs(lines + ["| c | 0.940 |"], tmp_path)  # a row the file lacks

@@ -1,0 +1,293 @@
+"""The documents' measured numbers, from the results files that recorded them (one source).
+
+Every measured figure that README.md, CONTRIBUTING.md, docs/ or benchmarks/README.md quotes lives in a results
+file: ``benchmarks/results/<name>.json`` (``machine``, ``date``, ``command``, ``figures``; optionally
+``summary``, a row of benchmarks/README.md's Summary table) or ``bronchocli/speed_settings.json`` (written by
+``bronchopose profile --speed``, read as ``speed_settings``). A document quotes a figure through a generated
+span, so the prose cannot drift from the measurement:
+
+- inline: ``<!-- n: FILE/key/path as FORMAT -->VALUE<!-- /n -->`` — VALUE is the figure at ``key/path`` of
+  FILE's JSON (``figures/...`` for a results file), formatted by FORMAT (optional; see ``fmt``);
+- a block: ``<!-- numbers: NAME -->`` ... ``<!-- /numbers -->`` — the lines ``BLOCKS[NAME]`` renders from the
+  results files (the Summary table of benchmarks/README.md; docs/reports.md's calibration tables).
+
+``python benchmarks/docblocks.py`` checks every document and exits 1 naming each span that differs from its
+results file; ``--write`` rewrites the spans from the files (atomically). tests/test_doc_numbers.py runs the
+check, so a figure changed in the prose, or a results file re-measured without regenerating the prose, fails.
+A benchmark records a new measurement with ``record(...)`` (bench_calibration.py ``--record`` does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SPEED_SETTINGS = ROOT / "bronchocli" / "speed_settings.json"
+REQUIRED = ("title", "machine", "date", "command", "figures")
+
+# "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
+INLINE = re.compile(r"<!-- n: (?P<ref>[^>]+?)(?: as (?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
+BLOCK = re.compile(r"(?P<open><!-- numbers: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(?P<close><!-- /numbers -->)", re.S)
+
+
+class NumbersError(ValueError):
+    """A results file or a span that cannot be read: one line naming the file, key and value."""
+
+
+def documents(root: Path = ROOT) -> list[Path]:
+    """The files whose spans are checked."""
+    paths = [root / "README.md", root / "CONTRIBUTING.md", root / "benchmarks" / "README.md",
+             root / "experiments.yaml", *sorted((root / "docs").glob("*.md"))]
+    return [p for p in paths if p.exists()]
+
+
+def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTINGS) -> dict[str, dict]:
+    """Every results file by name (its file stem), validated; ``speed_settings`` as it is shipped."""
+    out: dict[str, dict] = {}
+    for path in sorted(results_dir.glob("*.json")):
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise NumbersError(f"{path}: not JSON ({exc})") from None
+        missing = [k for k in REQUIRED if not data.get(k)]
+        if missing:
+            raise NumbersError(f"{path}: missing {', '.join(missing)} (a results file needs {', '.join(REQUIRED)})")
+        try:
+            dt.date.fromisoformat(str(data["date"]))
+        except ValueError:
+            raise NumbersError(f"{path}: date {data['date']!r} is not YYYY-MM-DD") from None
+        out[path.stem] = data
+    if speed_settings.exists():
+        out["speed_settings"] = json.loads(speed_settings.read_text(encoding="utf-8"))
+    return out
+
+
+def lookup(results: dict[str, dict], ref: str):
+    """The value at ``FILE/key/path``."""
+    name, *keys = ref.strip().split("/")
+    if name not in results:
+        raise NumbersError(f"unknown results file {name!r} in {ref!r} (known: {', '.join(sorted(results))})")
+    node = results[name]
+    for i, key in enumerate(keys):
+        if isinstance(node, list) and key.isdigit() and int(key) < len(node):
+            node = node[int(key)]
+        elif isinstance(node, dict) and key in node:
+            node = node[key]
+        else:
+            raise NumbersError(f"{ref!r}: no key {'/'.join(keys[:i + 1])!r} in {name}")
+    return node
+
+
+def duration(seconds: float) -> str:
+    """1939 -> '32 min 19 s'; under a minute: '28.6 s'."""
+    if seconds < 60:
+        return f"{seconds:g} s"
+    m, s = divmod(int(round(seconds)), 60)
+    if m >= 60:
+        h, m = divmod(m, 60)
+        return f"{h} h {m} min"
+    return f"{m} min {s} s"
+
+
+def fmt(value, spec: str | None) -> str:
+    """A figure as the prose shows it. ``spec``: none (the value as recorded), a format spec (``.3f``),
+    ``dur`` (seconds as 'M min S s'), ``range SPEC`` (a list as 'min–max'), ``join SPEC`` (a list as 'a / b')."""
+    spec = (spec or "").strip()
+    one = (lambda v, s: format(v, s) if s else str(v))
+    if spec == "dur":
+        return duration(float(value))
+    if spec.split(" ")[0] in ("range", "join"):
+        word, _, inner = spec.partition(" ")
+        if not isinstance(value, list) or not value:
+            raise NumbersError(f"format {spec!r} needs a list, got {value!r}")
+        if word == "range":
+            lo, hi = min(value), max(value)
+            return one(lo, inner) if lo == hi else f"{one(lo, inner)}–{one(hi, inner)}"
+        return " / ".join(one(v, inner) for v in value)
+    if isinstance(value, (dict, list)):
+        raise NumbersError(f"a {type(value).__name__} needs a format (range, join), got {spec!r}")
+    return one(value, spec)
+
+
+def summary_table(results: dict[str, dict]) -> list[str]:
+    """benchmarks/README.md's Summary: the ``summary`` rows of every results file, and one row per device of the
+    shipped speed settings, by date."""
+    rows = []
+    for name, d in results.items():
+        if name == "speed_settings":
+            rows += speed_rows(d)
+            continue
+        got = d.get("summary")
+        for s in ([got] if isinstance(got, dict) else got or []):
+            rows.append((d["date"], s.get("order", 0), name, d.get("cpu", d["machine"]), s["figure"],
+                         s.get("command", d["command"]), s["result"], s.get("goal", "—"), f"[{name}](results/{name}.json)"))
+    lines = ["| date | machine | figure | command | result | goal / limit | source |",
+             "|---|---|---|---|---|---|---|"]
+    for date, _, _, cpu, figure, command, result, goal, src in sorted(rows, key=lambda r: r[:3]):
+        lines.append(f"| {date} | {cpu} | {figure} | `{command}` | {result} | {goal} | {src} |")
+    return lines
+
+
+def speed_rows(settings: dict) -> list[tuple]:
+    """The per-architecture speed settings of each device in bronchocli/speed_settings.json, as Summary rows."""
+    rows = []
+    for key, entry in settings.get("devices", {}).items():
+        m = entry.get("measured", {})
+        archs = entry.get("archs", {})
+        kept = sorted(a for a, x in archs.items() if x["chosen"] == x["default"])
+        changed = "; ".join(f"{a} **{x['chosen']} {x['ratio']:.2f}×**" for a, x in archs.items()
+                            if x["chosen"] != x["default"])
+        rates = " / ".join(f"{x['pairs_per_s'][x['chosen']]:g}" for x in archs.values())
+        rows.append((m.get("date", "?"), 0, "speed_settings", f"`{key}`: {m.get('device', '?')}",
+                     f"per-architecture speed settings ({', '.join(archs)}), {m.get('image_size')}², "
+                     f"{m.get('pairs_per_step')} pairs/step",
+                     f"bronchopose profile --speed bronchocli/speed_settings.json --device cpu --image-size "
+                     f"{m.get('image_size')} --batch {m.get('pairs_per_step')} --threads {m.get('threads')} -a all",
+                     f"{changed or 'every default kept'}; {', '.join(kept)} keep {archs[kept[0]]['default'] if kept else '—'}"
+                     f" (pairs/s in the chosen setting: {rates})",
+                     f"loss within {m.get('loss_tolerance', 0.05):.0%} of fp32 ✔",
+                     "[speed_settings.json](../bronchocli/speed_settings.json)"))
+    return rows
+
+
+def calibration_block(results: dict[str, dict]) -> list[str]:
+    """docs/reports.md's calibration tables, as bench_calibration.py recorded them."""
+    return list(lookup(results, "calibration/figures/docs_table"))
+
+
+BLOCKS: dict[str, Callable[[dict[str, dict]], list[str]]] = {
+    "summary": summary_table,
+    "calibration": calibration_block,
+}
+
+
+def render(text: str, results: dict[str, dict], where: str = "") -> str:
+    """``text`` with every span regenerated from the results files."""
+    def block(m: re.Match) -> str:
+        name = m["name"]
+        if name not in BLOCKS:
+            raise NumbersError(f"{where}: unknown block {name!r} (known: {', '.join(BLOCKS)})")
+        return m["open"] + "\n".join(BLOCKS[name](results)) + "\n" + m["close"]
+
+    def inline(m: re.Match) -> str:
+        try:
+            value = fmt(lookup(results, m["ref"]), m["fmt"])
+        except NumbersError as exc:
+            raise NumbersError(f"{where}: {exc}") from None
+        return m.group(0)[: m.start("text") - m.start()] + value + "<!-- /n -->"
+
+    return INLINE.sub(inline, BLOCK.sub(block, text))
+
+
+def spans(text: str) -> Iterable[tuple[str, str]]:
+    """(what, text) of every span in order: blocks by name, inline figures by reference."""
+    for m in BLOCK.finditer(text):
+        yield f"block {m['name']}", m["body"]
+    for m in INLINE.finditer(text):
+        yield f"{m['ref'].strip()}", m["text"]
+
+
+def check(paths: Iterable[Path], results: dict[str, dict], root: Path = ROOT) -> list[str]:
+    """One line per span whose text differs from what its results file gives (empty: every document agrees)."""
+    diffs: list[str] = []
+    for path in paths:
+        rel = path.relative_to(root) if path.is_relative_to(root) else path
+        text = path.read_text(encoding="utf-8")
+        try:
+            want = render(text, results, str(rel))
+        except NumbersError as exc:
+            diffs.append(str(exc))
+            continue
+        for (what, got), (_, expected) in zip(spans(text), spans(want)):
+            if got != expected:
+                line = text.count("\n", 0, text.find(got)) + 1 if got else 0
+                diffs.append(f"{rel}:{line}: {what}: the document says {short(got)!r}, "
+                             f"the results file gives {short(expected)!r}")
+    return diffs
+
+
+def short(s: str, n: int = 160) -> str:
+    return s if len(s) <= n else s[:n] + " …"
+
+
+def write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write(paths: Iterable[Path], results: dict[str, dict], root: Path = ROOT) -> list[Path]:
+    """Regenerate every span of ``paths``; the files that changed."""
+    changed = []
+    for path in paths:
+        rel = path.relative_to(root) if path.is_relative_to(root) else path
+        text = path.read_text(encoding="utf-8")
+        new = render(text, results, str(rel))
+        if new != text:
+            write_atomic(path, new)
+            changed.append(path)
+    return changed
+
+
+def machine() -> str:
+    """This machine in a results file's words: CPU model, cores, its vector instructions, torch."""
+    model, flags = "unknown CPU", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and model == "unknown CPU":
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and not flags:
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    vec = next((f for f in ("avx512_bf16", "avx512f", "avx2") if f in flags), "no avx2")
+    return f"{model}, {os.cpu_count()} cores, {vec}, Python {sys.version.split()[0]}"
+
+
+def record(name: str, *, title: str, machine: str, command: str, figures: dict, date: str | None = None,
+           results_dir: Path = RESULTS, **extra) -> Path:
+    """Write ``results/<name>.json`` (atomically): what a benchmark calls after measuring."""
+    data = {"title": title, "machine": machine, "date": date or dt.date.today().isoformat(), "command": command,
+            **extra, "figures": figures}
+    path = results_dir / f"{name}.json"
+    write_atomic(path, json.dumps(data, indent=2, ensure_ascii=False) + "\n")
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--write", action="store_true", help="rewrite every span from the results files")
+    args = ap.parse_args(argv)
+    try:
+        results = load_results(RESULTS, SPEED_SETTINGS)
+        if args.write:
+            for path in write(documents(ROOT), results, ROOT):
+                print(f"rewrote {path.relative_to(ROOT)}")
+            return 0
+        diffs = check(documents(ROOT), results, ROOT)
+    except NumbersError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for line in diffs:
+        print(line)
+    print("every document agrees with its results files" if not diffs else
+          f"{len(diffs)} span(s) differ: re-measure, or run `python benchmarks/docblocks.py --write`")
+    return 1 if diffs else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,183 @@
+"""Numbers with one source (benchmarks/docblocks.py): every generated span of README.md, CONTRIBUTING.md, docs/
+and benchmarks/README.md equals what its results file gives; every results file names its machine, date and
+command; the check catches a changed figure, a changed block line and an unknown reference; ``--write``
+regenerates; no document points outside the repository; the README keeps what a newcomer and CI need."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+
+
+@pytest.fixture(scope="module")
+def docblocks():
+    spec = importlib.util.spec_from_file_location("docblocks", ROOT / "benchmarks" / "docblocks.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["docblocks"] = module
+    spec.loader.exec_module(module)  # type: ignore[union-attr]
+    return module
+
+
+def test_every_generated_span_equals_its_results_file(docblocks):
+    results = docblocks.load_results()
+    diffs = docblocks.check(docblocks.documents(), results)
+    assert not diffs, "re-measure, or run `python benchmarks/docblocks.py --write`:\n" + "\n".join(diffs)
+
+
+def test_the_quoting_documents_hold_generated_spans(docblocks):
+    """The README's figures, the benchmarks' Summary and the calibration block are generated, not typed."""
+    text = {p.relative_to(ROOT).as_posix(): p.read_text(encoding="utf-8") for p in docblocks.documents()}
+    assert "<!-- numbers: summary -->" in text["benchmarks/README.md"]
+    assert "<!-- numbers: calibration -->" in text["docs/reports.md"]
+    assert len(docblocks.INLINE.findall(text["README.md"])) >= 10
+
+
+def test_every_results_file_names_machine_date_and_command(docblocks):
+    files = sorted((ROOT / "benchmarks" / "results").glob("*.json"))
+    assert len(files) >= 10
+    for path in files:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        for key in ("title", "machine", "date", "command", "figures"):
+            assert data.get(key), f"{path.name}: no {key}"
+        assert re.fullmatch(r"\d{4}-\d{2}-\d{2}", data["date"]), path.name
+
+
+def _project(tmp_path: Path, doc: str, figures: dict) -> tuple[Path, Path]:
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "job.json").write_text(json.dumps(
+        {"title": "t", "machine": "2-core test CPU", "date": "2026-01-02", "command": "python bench.py",
+         "summary": {"figure": "the job", "result": "**1.50 s**"}, "figures": figures}))
+    path = tmp_path / "doc.md"
+    path.write_text(doc, encoding="utf-8")
+    return results, path
+
+
+def test_check_names_a_changed_inline_figure_and_write_restores_it(docblocks, tmp_path):
+    results_dir, doc = _project(tmp_path, "took <!-- n: job/figures/total_s as dur -->12 min 8 s<!-- /n --> and "
+                                          "<!-- n: job/figures/ratios as range .3f -->0.830–0.845<!-- /n -->.\n",
+                                {"total_s": 727.5, "ratios": [0.845, 0.843, 0.830]})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    assert docblocks.check([doc], results, tmp_path) == []
+    doc.write_text(doc.read_text().replace("12 min 8 s", "11 min"), encoding="utf-8")
+    diffs = docblocks.check([doc], results, tmp_path)
+    assert len(diffs) == 1 and "job/figures/total_s" in diffs[0] and "'11 min'" in diffs[0] \
+        and "'12 min 8 s'" in diffs[0]
+    assert docblocks.write([doc], results, tmp_path) == [doc]
+    assert "took <!-- n: job/figures/total_s as dur -->12 min 8 s<!-- /n -->" in doc.read_text()
+    assert docblocks.check([doc], results, tmp_path) == []
+
+
+def test_check_names_a_changed_block_line(docblocks, tmp_path):
+    results_dir, doc = _project(tmp_path, "x\n<!-- numbers: summary -->\n<!-- /numbers -->\ny\n", {"total_s": 1.5})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    assert docblocks.check([doc], results, tmp_path)  # an empty block is not the table
+    docblocks.write([doc], results, tmp_path)
+    assert "| 2026-01-02 | 2-core test CPU | the job | `python bench.py` | **1.50 s** |" in doc.read_text()
+    assert docblocks.check([doc], results, tmp_path) == []
+    doc.write_text(doc.read_text().replace("**1.50 s**", "**1.40 s**"), encoding="utf-8")
+    assert [d for d in docblocks.check([doc], results, tmp_path) if "block summary" in d]
+
+
+def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tmp_path):
+    results_dir, doc = _project(tmp_path, "<!-- n: job/figures/missing -->1<!-- /n -->\n", {"total_s": 1.5})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    assert "no key 'figures/missing' in job" in docblocks.check([doc], results, tmp_path)[0]
+    doc.write_text("<!-- n: nofile/x -->1<!-- /n -->\n<!-- numbers: nosuch -->\n<!-- /numbers -->\n")
+    assert "unknown block 'nosuch'" in docblocks.check([doc], results, tmp_path)[0]
+    (results_dir / "bad.json").write_text(json.dumps({"title": "t", "date": "2026-01-02", "figures": {"a": 1}}))
+    with pytest.raises(docblocks.NumbersError, match=r"bad.json: missing machine, command"):
+        docblocks.load_results(results_dir, tmp_path / "none.json")
+
+
+def test_formats(docblocks):
+    assert docblocks.fmt(1939, "dur") == "32 min 19 s"
+    assert docblocks.fmt(28.6, "dur") == "28.6 s"
+    assert docblocks.fmt([0.98, 0.965, 0.974], "range .3f") == "0.965–0.980"
+    assert docblocks.fmt([0.98, 0.965], "join .3f") == "0.980 / 0.965"
+    assert docblocks.fmt(1.753983547542414, ".2f") == "1.75"
+    with pytest.raises(docblocks.NumbersError):
+        docblocks.fmt({"a": 1}, "")
+
+
+def test_the_command_line_checks_the_repository_and_fails_on_a_drifted_copy(docblocks, tmp_path, monkeypatch,
+                                                                            capsys):
+    assert docblocks.main([]) == 0
+    copy = tmp_path / "repo"
+    for part in ("README.md", "docs", "benchmarks", "bronchocli/speed_settings.json"):
+        src, dst = ROOT / part, copy / part
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copytree(src, dst) if src.is_dir() else shutil.copy(src, dst)
+    text = (copy / "README.md").read_text(encoding="utf-8")
+    m = docblocks.INLINE.search(text)
+    (copy / "README.md").write_text(text[:m.start("text")] + "9" + m["text"] + text[m.end("text"):], encoding="utf-8")
+    monkeypatch.setattr(docblocks, "ROOT", copy)
+    monkeypatch.setattr(docblocks, "RESULTS", copy / "benchmarks" / "results")
+    monkeypatch.setattr(docblocks, "SPEED_SETTINGS", copy / "bronchocli" / "speed_settings.json")
+    capsys.readouterr()
+    assert docblocks.main([]) == 1
+    assert "README.md:" in capsys.readouterr().out
+
+
+OUTSIDE = re.compile(r"\.\./shared|/work/|DEVELOPERS|developers' guide|DESIGN\.md|DESIGN §")
+
+
+def test_no_document_points_outside_the_repository(docblocks):
+    bad = [f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}" for p in docblocks.documents()
+           for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if OUTSIDE.search(line)]
+    assert not bad, "\n".join(bad)
+
+
+def test_relative_links_of_the_documents_resolve(docblocks):
+    bad = []
+    for p in docblocks.documents():
+        if p.suffix != ".md":
+            continue
+        for target in re.findall(r"\]\(([^)\s]+)\)", p.read_text(encoding="utf-8")):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue
+            if not (p.parent / target.split("#")[0]).exists():
+                bad.append(f"{p.relative_to(ROOT)}: {target}")
+    assert not bad, "\n".join(bad)
+
+
+def test_readme_gives_a_newcomer_what_they_need_first():
+    lines = README.read_text(encoding="utf-8").splitlines()
+    marker = lines.index("<!-- main-command -->")
+    assert marker <= 20, f"{marker} lines before the main command (at most 20)"
+    text = "\n".join(lines)
+    for heading in ("Results at a glance", "Glossary", "Profiles"):
+        assert re.search(rf"^#+ {heading}", text, re.M), heading
+    for term in ("training mean", "†", "ratio"):
+        assert f"**{term}**" in text, term
+    assert "(CONTRIBUTING.md)" in text and (ROOT / "CONTRIBUTING.md").exists()
+
+
+def test_readme_markers_hold_the_commands_ci_reads():
+    """.ci/run takes the line after the test-command marker and its fence; the fast tier has its own slot."""
+    lines = README.read_text(encoding="utf-8").splitlines()
+    for marker in ("<!-- main-command -->", "<!-- test-command -->", "<!-- fast-test-command -->"):
+        i = lines.index(marker)
+        assert lines[i + 1].startswith("```") and lines[i + 3] == "```", marker
+    test = lines[lines.index("<!-- test-command -->") + 2]
+    assert "pytest" in test
+    assert "bronchopose sweep" in lines[lines.index("<!-- main-command -->") + 2]
+
+
+def test_readme_quotes_no_timing_or_ratio_outside_a_generated_span():
+    """A time, a rate or a three-decimal ratio typed into the README's prose (not a span) has no results file."""
+    text = re.sub(r"<!-- n: .*?<!-- /n -->", "", README.read_text(encoding="utf-8"), flags=re.S)
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    typed = re.compile(r"(?<![\d.])\d+(\.\d+)?\s?(min|s|ms|pairs/s|fps|frames/s)\b|(?<![\d.])0\.\d{3}(?![\d.])")
+    bad = [f"README.md:{i}: {m.group(0)!r} in {line.strip()[:80]!r}" for i, line in enumerate(text.splitlines(), 1)
+           for m in typed.finditer(line)]
+    assert not bad, "quote it through a span of its results file (CONTRIBUTING.md):\n" + "\n".join(bad)
