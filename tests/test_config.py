@@ -484,3 +484,20 @@ def test_the_ranges_admit_every_shipped_config_and_the_paper_scale(repo):
     assert cfg.train.pairs_per_step == 4608 and cfg.data.image_size in (None, 256)
     C.load_config(repo / "experiments.yaml", overrides=["train.steps=10000000", "train.batch_size=65536",
                                                         "train.effective_batch=1048576", "train.lr=10"])
+
+
+def test_the_learning_cost_profile_searches_the_cost_of_bronchotrack_from_todays_recipe(repo):
+    """Issue 45: the tuner searches the cost of learning (pairs to val ratio 0.90) of BronchoTrack at 96², every
+    trial within the same budget of pairs, starting from today's hyperparameters; a key enqueued outside the
+    space is refused."""
+    cfg = C.load_config(repo / "experiments.yaml", "learning-cost")
+    assert cfg.tune.objective == "cost" and cfg.tune.budget_pairs == cfg.train.steps * cfg.train.batch_size
+    assert (cfg.grid.arch, cfg.grid.rot_loss, cfg.dataset.generate.image_size) == (["convlstm"], ["ce"], 96)
+    assert cfg.train.threads == 1 and cfg.train.val_every * cfg.train.batch_size == 1000
+    (first,) = cfg.tune.enqueue
+    default = C.load_config(repo / "experiments.yaml", "bronchotrack-cpu")  # the measured reference recipe
+    assert first == {"train.lr": default.train.lr, "train.warmup": default.train.warmup,
+                     "train.batch_size": default.train.batch_size, "model.dropout": default.model.dropout}
+    assert set(first) <= set(cfg.tune.space)
+    with pytest.raises(ConfigError, match=r"enqueue\[0\]: train.bogus not in tune.space"):
+        C.load_config(repo / "experiments.yaml", "learning-cost", overrides=["tune.enqueue=[{train.bogus: 1}]"])

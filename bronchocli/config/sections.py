@@ -288,8 +288,10 @@ class Tune(Section):
     startup_trials: int = Field(2, ge=0, le=100_000)  # trials before TPE models and the median pruner prunes
     applied: str | None = None  # set by --use-tuned: "optuna:<study>#<trial>" whose best values this config holds
     # what a trial returns (minimised): val_loss = the validation loss of the weights it tested (val_best.loss);
-    # val_ratio = their val.ratio.pos_l2, position error ÷ the training mean's (comparable across rotation losses)
-    objective: spelled(Literal["val_loss", "val_ratio"]) = "val_loss"
+    # val_ratio = their val.ratio.pos_l2, position error ÷ the training mean's (comparable across rotation losses);
+    # cost = the pairs seen until val.ratio.pos_l2 <= 0.90 (training/cost.py; the trial stops there; one that
+    # never gets there: its pairs x (1 + its best ratio - 0.90))
+    objective: spelled(Literal["val_loss", "val_ratio", "cost"]) = "val_loss"
     # every trial trains this many image pairs (train.steps = budget_pairs / pairs per step, validations every
     # train.val_every x train.batch_size pairs of the base config), so trials that search the batch size compare at
     # the same data seen; pruning reports at pairs seen. None: every trial trains train.steps steps
@@ -298,6 +300,18 @@ class Tune(Section):
         "train.lr": TuneParam(type="float", low=1e-5, high=1e-3, log=True),
         "model.dropout": TuneParam(type="float", low=0.0, high=0.5),
     }
+    # trials to run first, before the sampler proposes any (e.g. a known recipe as the study's yardstick): each a
+    # mapping of tune.space keys to values; a study enqueues each once (skipped when a trial already has them)
+    enqueue: list[dict[str, Any]] = []
+
+    @model_validator(mode="after")
+    def _enqueue_in_space(self) -> "Tune":
+        for i, params in enumerate(self.enqueue):
+            unknown = sorted(set(params) - set(self.space))
+            if unknown:
+                raise ValueError(f"enqueue[{i}]: {', '.join(unknown)} not in tune.space (searched: "
+                                 f"{', '.join(self.space) or 'nothing'})")
+        return self
 
 
 class SweepCfg(Section):

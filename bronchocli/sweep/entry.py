@@ -216,6 +216,6 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
                   + (f" on GPUs {','.join(devices)}" if devices else "")
                   + f", storage {urls.redact(cfg.paths.storage_url)}")
     s = tunepool.tune(cfg, target, trials, study=study, timeout=timeout or cfg.tune.timeout, workers=n,
-                      gpus=devices if n > 1 or gpus != "auto" else (), progress=progress)
+                      gpus=devices if n > 1 or gpus != "auto" else (), progress=progress, enqueue=cfg.tune.enqueue)
     console.print(f"{tuning.finished(s)} finished trials in study {name}")
     show_study(cfg, name, None, "table", console)

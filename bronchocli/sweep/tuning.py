@@ -40,6 +40,7 @@ from ..runs.client import MIGRATION_LOCK_KEY, client_for, connect_timeout, datab
 from ..runs.contract import RunInterrupted, RunPruned
 from ..runs.parents import study_parent
 from ..runs.records import TAG_PARENT, run_name
+from ..training.cost import COST_TARGET, cost_value
 from .storage import StorageError
 from .stagework import GPU_ENV
 from .worker import WorkerId
@@ -205,7 +206,10 @@ def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
 
 
 # What a trial returns, per tune.objective: (the per-validation key reported to the pruner, the run's metric)
-OBJECTIVES = {"val_loss": ("val_loss", "val_best.loss"), "val_ratio": ("val.ratio.pos_l2", "val_best.ratio.pos_l2")}
+OBJECTIVES = {"val_loss": ("val_loss", "val_best.loss"), "val_ratio": ("val.ratio.pos_l2", "val_best.ratio.pos_l2"),
+              # the cost of learning (training/cost.py): pairs seen until val.ratio.pos_l2 <= COST_TARGET; each
+              # trial stops there (train.stop_at_ratio), its validations report the ratio to the pruner
+              "cost": ("val.ratio.pos_l2", f"cost.pairs_to_{COST_TARGET:.2f}")}
 ATTR_OBJECTIVE = "objective"  # the study's user attribute: the run metric its trials' values are
 
 
@@ -318,6 +322,8 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
         run.release()  # this trial now counts as RUNNING: another process may decide whether it needs one more
         values = suggest(trial, cfg.tune.space)
         trial_cfg = budgeted(cfg, cfg.with_values(values))
+        if cfg.tune.objective == "cost":  # a trial ends once it learned: the pairs it took are its value
+            trial_cfg = trial_cfg.with_values({"train.stop_at_ratio": COST_TARGET})
         cell = trial_cfg.cell(**target.coords())
         per_step = trial_cfg.train.pairs_per_step if cfg.tune.budget_pairs is not None else 1
         trial.set_user_attr(ATTR_CELL, cell.key)
@@ -343,7 +349,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
         if result.stop_requested:  # Ctrl-C during the trial's last steps (evaluation): the trial counts, none follows
             run.stop_requested = (trial.number, result.stop_requested)
-        value = result.metrics.get(metric, math.nan)
+        value = cost_value(result.metrics) if cfg.tune.objective == "cost" else result.metrics.get(metric, math.nan)
         if not math.isfinite(value):
             raise TrialFailed(f"trial {trial.number}: no finite {metric}")
         return value

@@ -22,3 +22,17 @@ def cost_of_learning(history: list[dict[str, float]], target: float = COST_TARGE
                 out[f"cost.core_s_to_{target:.2f}"] = h["train.core_s"]
             return out
     return {}
+
+
+def cost_value(metrics: dict[str, float], target: float = COST_TARGET) -> float:
+    """A run's cost of learning as one number to minimise (``tune.objective: cost``): the pairs seen until a
+    validation reached ``target``; a run that never did, its pairs seen x (1 + its kept weights'
+    ``val_best.ratio.pos_l2`` - ``target``), so it ranks behind every run that reached the target within as many
+    pairs, and the closer it came the better. NaN when the run has no validation ratio."""
+    reached = metrics.get(f"cost.pairs_to_{target:.2f}")
+    if reached is not None:
+        return float(reached)
+    ratio, seen = metrics.get("val_best.ratio.pos_l2", math.nan), metrics.get("train.pairs_seen", math.nan)
+    if not (math.isfinite(ratio) and math.isfinite(seen)):
+        return math.nan
+    return seen * (1.0 + max(0.0, ratio - target))

@@ -303,6 +303,24 @@ def test_a_budgeted_ratio_objective_trains_every_trial_the_same_pairs_and_minimi
         assert [m.step * per_step for m in client.get_metric_history(run.info.run_id, "val.ratio.pos_l2")] == [16, 32]
 
 
+def test_the_cost_objective_stops_each_trial_at_the_target_and_returns_the_pairs_it_took(project):
+    cfg = load_config(project / "experiments.yaml", overrides=[
+        "tune.space={train.lr: {type: float, low: 1.0e-4, high: 1.0e-3, log: true}}",
+        "tune.objective=cost", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4", "train.val_every=2"])
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    study = tunepool.tune(cfg, target, 1, progress=False)
+    (t,) = study.get_trials(deepcopy=False)
+    run = client_for(cfg).get_run(t.user_attrs[tuning.ATTR_RUN])
+    m, p = run.data.metrics, run.data.params
+    assert study.user_attrs["objective"] == "cost.pairs_to_0.90"
+    assert p["train.stop_at_ratio"] == "0.9"  # the trial ends at the target
+    if "cost.pairs_to_0.90" in m:  # learned: the pairs it took, and it stopped there
+        assert t.value == m["cost.pairs_to_0.90"] == m["train.pairs_seen"] and run.data.tags["stop_reason"] == "target"
+    else:  # did not: its whole budget, scaled up by how far it stayed from the target
+        assert m["train.pairs_seen"] == 32 and m["val_best.ratio.pos_l2"] > 0.9
+        assert t.value == pytest.approx(32 * (1 + m["val_best.ratio.pos_l2"] - 0.9))
+
+
 def test_a_study_keeps_its_objective(project):
     cfg = load_config(project / "experiments.yaml", overrides=["tune.objective=val_ratio"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")

@@ -83,6 +83,18 @@ def test_stop_at_ratio_ends_at_the_first_validation_that_reaches_it_and_the_cost
     assert cost_of_learning([{"step": 2.0, "train.pairs_seen": 8.0, "val.ratio.pos_l2": math.nan}]) == {}
 
 
+def test_the_cost_as_one_number_ranks_every_run_that_learned_before_every_run_that_did_not():
+    from bronchocli.training.cost import cost_value
+
+    reached = cost_value({"cost.pairs_to_0.90": 8000.0, "train.pairs_seen": 8000.0, "val_best.ratio.pos_l2": 0.89})
+    close = cost_value({"train.pairs_seen": 12000.0, "val_best.ratio.pos_l2": 0.93})
+    far = cost_value({"train.pairs_seen": 12000.0, "val_best.ratio.pos_l2": 1.01})
+    assert reached == 8000.0
+    assert close == pytest.approx(12000 * 1.03) and far == pytest.approx(12000 * 1.11)
+    assert reached < 12000 < close < far  # a run that never reached 0.90 costs more than its budget
+    assert math.isnan(cost_value({"train.pairs_seen": 100.0}))
+
+
 def test_batchnorm_recalibration_sets_the_plain_average_of_the_batch_statistics():
     bn_net = nn.Sequential(nn.BatchNorm1d(3))
     bn_net[0].running_mean.fill_(100.0)  # stale statistics from "earlier weights"
