@@ -501,3 +501,19 @@ def test_the_learning_cost_profile_searches_the_cost_of_bronchotrack_from_todays
     assert set(first) <= set(cfg.tune.space)
     with pytest.raises(ConfigError, match=r"enqueue\[0\]: train.bogus not in tune.space"):
         C.load_config(repo / "experiments.yaml", "learning-cost", overrides=["tune.enqueue=[{train.bogus: 1}]"])
+
+
+def test_the_cpu_study_is_the_papers_personalized_grid_at_the_recipe_the_cost_study_measured(repo):
+    """Issue 45.3: Tables 2-3's grid (4 architectures x 3 rotation losses, personalized, >= 2 seeds), every cell at
+    one budget, with the hyperparameters of the learning-cost study's first trial on a schedule that spans it."""
+    cfg = C.load_config(repo / "experiments.yaml", "cpu-study")
+    cells = C.expand_grid(cfg, patients=["p00", "p01", "p02"])
+    assert {(c.arch, c.rot_loss) for c in cells} == {(a, r) for a in ("baseline", "lstm", "convlstm", "conv3d")
+                                                     for r in ("mse", "de", "ce")}
+    assert {c.population for c in cells} == {"personalized"} and len({c.seed for c in cells}) >= 2
+    assert len(cells) == 12 * len({c.seed for c in cells})
+    (recipe,) = C.load_config(repo / "experiments.yaml", "learning-cost").tune.enqueue
+    assert recipe == {"train.lr": cfg.train.lr, "train.warmup": cfg.train.warmup,
+                      "train.batch_size": cfg.train.batch_size, "model.dropout": cfg.model.dropout}
+    assert cfg.train.schedule == "cosine" and cfg.train.steps * cfg.train.pairs_per_step == 10_000
+    assert cfg.dataset.generate.image_size == 96 and cfg.train.threads == 1
