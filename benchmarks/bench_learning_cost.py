@@ -101,11 +101,22 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         if ref is not None and r["core_s_to_target"]:
             r["cheaper_than_reference"] = ref["core_s_to_target"] / r["core_s_to_target"]
-    out = {"what": f"cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
-                   f"{COST_TARGET} (bronchocli/training/cost.py)",
+    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] != args.reference]
+    best = min(learned, key=lambda r: r["pairs_to_target"], default=None)
+    figures: dict[str, Any] = {"target": COST_TARGET, "runs": rows}
+    if ref is not None:
+        figures["reference"] = {"run": ref["run_id"], "pairs": ref["pairs_to_target"], "core_s": ref["core_s_to_target"]}
+    if best is not None:
+        figures["best"] = {"run": best["run_id"], "name": best["name"], "settings": best["settings"],
+                           "pairs": best["pairs_to_target"], "core_s": best["core_s_to_target"]}
+        if ref is not None:
+            figures["best"]["cheaper_pairs"] = ref["pairs_to_target"] / best["pairs_to_target"]
+            figures["best"]["cheaper_core_s"] = ref["core_s_to_target"] / best["core_s_to_target"]
+    out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
+                    f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
            "command": "python benchmarks/bench_learning_cost.py " + " ".join(str(p) for p in args.projects),
-           "target": COST_TARGET, "reference": ref["run_id"] if ref else None, "runs": rows}
+           "figures": figures}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
@@ -123,7 +134,7 @@ def _fmt(v: Any, spec: str = ".3g") -> str:
 def markdown(out: dict[str, Any]) -> str:
     lines = ["| run | lr | warm-up | schedule | batch | dropout | budget (pairs) | best val ratio | pairs to 0.90 "
              "| core-s to 0.90 | × cheaper | status |", "|" + "---|" * 12]
-    for r in sorted(out["runs"], key=lambda r: (r["core_s_to_target"] is None, r["core_s_to_target"] or 0)):
+    for r in sorted(out["figures"]["runs"], key=lambda r: (r["core_s_to_target"] is None, r["core_s_to_target"] or 0)):
         s = r["settings"]
         budget = s["train.steps"] * s["train.batch_size"]
         status = "pruned" if r["pruned"] else r["status"].lower()
