@@ -117,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
            "command": "python benchmarks/bench_learning_cost.py " + " ".join(str(p) for p in args.projects),
            "figures": figures}
+    figures["docs_table"] = markdown(out).splitlines()  # benchmarks/README.md's block "learning-cost" (docblocks.py)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
@@ -132,13 +133,14 @@ def _fmt(v: Any, spec: str = ".3g") -> str:
 
 
 def markdown(out: dict[str, Any]) -> str:
-    lines = ["| run | lr | warm-up | schedule | batch | dropout | budget (pairs) | best val ratio | pairs to 0.90 "
-             "| core-s to 0.90 | × cheaper | status |", "|" + "---|" * 12]
+    lines = ["| run | arch | image | lr | warm-up | schedule | batch | dropout | budget (pairs) | best val ratio "
+             "| pairs to 0.90 | core-s to 0.90 | × cheaper (core-s) | status |", "|" + "---|" * 14]
     for r in sorted(out["figures"]["runs"], key=lambda r: (r["core_s_to_target"] is None, r["core_s_to_target"] or 0)):
         s = r["settings"]
         budget = s["train.steps"] * s["train.batch_size"]
         status = "pruned" if r["pruned"] else r["status"].lower()
-        lines.append(f"| {r['experiment']} {r['name'][:24]} | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
+        lines.append(f"| {r['experiment']} {r['name'].split('·')[0]} | {r['name'].split('·')[-5] if '·' in r['name'] else ''} "
+                     f"| {s['image_size']}² | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
                      f"| {s['train.schedule']} | {s['train.batch_size']} | {_fmt(s['model.dropout'])} | {budget:,} "
                      f"| {_fmt(r['best_val_ratio'])} | {_fmt(r['pairs_to_target'], ',.0f')} "
                      f"| {_fmt(r['core_s_to_target'], '.0f')} | {_fmt(r.get('cheaper_than_reference'), '.2f')} "

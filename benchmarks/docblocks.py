@@ -164,9 +164,15 @@ def calibration_block(results: dict[str, dict]) -> list[str]:
     return list(lookup(results, "calibration/figures/docs_table"))
 
 
+def learning_cost_block(results: dict[str, dict]) -> list[str]:
+    """benchmarks/README.md's "Cost of learning" table of runs, as bench_learning_cost.py recorded it."""
+    return list(lookup(results, "learning-cost/figures/docs_table"))
+
+
 BLOCKS: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "summary": summary_table,
     "calibration": calibration_block,
+    "learning-cost": learning_cost_block,
 }
 
 
