@@ -220,12 +220,13 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
 
     check_paths(cfg, storage=True, logs=True)  # one line before anything is created
     n, devices = _workers(workers, gpus, per_gpu)
+    trials = trials or cfg.tune.trials
+    n = min(n, trials)  # a worker per trial at most, as a sweep starts a worker per cell at most
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
         initialisation(cfg.paths.pretrained, [target.arch])
-    trials = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
     console.print(f"[bold]tune[/] {name}: {trials} trials, {n} worker(s)"
                   + (f" on GPUs {','.join(devices)}" if devices else "")

@@ -18,6 +18,7 @@ from rich.console import Console
 from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
+from ..generation import check_dataset
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
@@ -62,6 +63,7 @@ def _stage_title(stage: Stage, n_stages: int) -> str:
 
 
 def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, console: Console) -> None:
+    check_dataset(cfg)  # what `train` refuses, the plan refuses too (a dataset not generated yet passes)
     stages = planning.StageWalk(cfg, store, only).plans()
     for sp in stages:
         if sp.cells is None:
