@@ -100,7 +100,11 @@ def missing_runs(cfg: Config, run_ids: Sequence[str]) -> list[str]:
     ``mlflow gc``); a store that cannot be asked has none missing."""
     if not run_ids:
         return []
-    client, _ = _reader(cfg)
+    try:
+        client, _ = _reader(cfg)
+    except Exception as exc:  # noqa: BLE001 - a store that cannot be asked: nothing is said missing
+        log.warning("could not ask MLflow for the claims table's runs: %s", exc)
+        return []
     if client is None:
         return []
     out = []
@@ -110,6 +114,8 @@ def missing_runs(cfg: Config, run_ids: Sequence[str]) -> list[str]:
         except MlflowException as exc:
             if exc.error_code == "RESOURCE_DOES_NOT_EXIST":
                 out.append(run_id)
+        except Exception:  # noqa: BLE001 - busy or away: not known missing
+            continue
     return out
 
 

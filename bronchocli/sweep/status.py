@@ -6,6 +6,7 @@ rows point at); nothing writes.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -22,7 +23,7 @@ from .. import cells
 from ..config import Config
 from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
-from ..runs.client import client_for, redacted_uri, store_missing
+from ..runs.client import ExperimentDeleted, client_for, redacted_uri, store_missing
 from ..runs.records import deleted_runs_line
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
@@ -33,6 +34,8 @@ from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 from .launchers import names as launcher_names
 from .launchers import launcher_class
 from .worker import WorkerId, job_of
+
+log = logging.getLogger(__name__)
 
 HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
@@ -265,7 +268,13 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         if stale > 0:
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
-    deleted = deleted_finished(cfg, plan.sweep, plan.rows)  # runs deleted by hand: their cells are not done
+    try:
+        deleted = deleted_finished(cfg, plan.sweep, plan.rows)  # runs deleted by hand: their cells are not done
+    except ExperimentDeleted:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a view: an MLflow store away shows the claims table alone
+        log.warning("could not read MLflow's deleted runs: %s", exc)
+        deleted = {}
     if deleted:
         console.print(f"[yellow]deleted[/] {deleted_runs_line(len(deleted), plan.sweep, cfg.experiment_name)}: "
                       "shown pending", highlight=False, soft_wrap=True)
