@@ -65,6 +65,11 @@ def _reader(cfg: Config) -> Any:
     return client, find_experiment(client, cfg.experiment_name, redacted_uri(cfg))
 
 
+def check_experiment(cfg: Config) -> None:
+    """``ExperimentDeleted`` (one line) when the config's experiment was deleted by hand; reads only."""
+    _reader(cfg)
+
+
 def deleted_finished(cfg: Config, sweep: str, rows: Mapping[str, CellRow]) -> dict[str, CellRow]:
     """The rows recorded FINISHED whose run was deleted by hand (the MLflow UI), by cell key: MLflow says the cell
     has no run, so it is not done (``forget_deleted``; status shows it so: ``overlay``)."""

@@ -64,6 +64,7 @@ def _stage_title(stage: Stage, n_stages: int) -> str:
 
 def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, console: Console) -> None:
     check_dataset(cfg)  # what `train` refuses, the plan refuses too (a dataset not generated yet passes)
+    record.check_experiment(cfg)  # deleted by hand: the line `sweep run`, `status` and `report` give
     stages = planning.StageWalk(cfg, store, only).plans()
     for sp in stages:
         if sp.cells is None:

@@ -247,8 +247,9 @@ def test_a_deleted_parent_run_is_said_and_replaced(cli, project, fake_dir, caplo
     code, out, err = cli(*REPORT, "-c", path_of(project), "--out", str(project.paths.base / "reports"))
     no_traceback(out, err)
     assert code == 0, out + err
-    line = one_line(err + out, f"the parent run {old} of sweep 't' was deleted (in the MLflow UI)")
-    assert "not logged to MLflow" in line and "restore it there" in line
+    said = " ".join((err + out).split())  # the report's console wraps its lines
+    assert f"not logged to MLflow: the parent run {old} of sweep 't' was deleted (in the MLflow UI): restore it " \
+           "there" in said
     with caplog.at_level(logging.WARNING):
         code, out, err = cli("sweep", "run", "-c", path_of(project), *FAKE)
     no_traceback(out, err)
