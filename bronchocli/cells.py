@@ -155,6 +155,9 @@ def parse_only(specs: Iterable[str] | None) -> Selection:
     """
     out: Selection = {}
     for spec in specs or []:
+        if not spec.strip(" ;"):  # an empty --only would select every cell: never what was meant
+            raise ConfigError(f"--only {spec!r}: empty; expected key=value[,value...] with key one of "
+                              f"{', '.join(FIELDS)} (leave --only out to run every cell)")
         for part in filter(None, (p.strip() for p in spec.split(";"))):
             key, sep, values = part.partition("=")
             key = key.strip().replace("-", "_")

@@ -18,7 +18,8 @@ def status(
                                   help="Every stored cell of the sweep, also those of earlier configs."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Claims database URL, overriding storage.url."),
     repair: bool = typer.Option(False, "--repair", help="First end the runs left RUNNING by a process that died "
-                                "(FAILED) or by a sweep worker that lost its claim (KILLED)."),
+                                "(FAILED) or by a sweep worker that lost its claim (KILLED), and make pending again the "
+                                "claims rows that are damaged or whose run MLflow does not have."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,

@@ -17,6 +17,7 @@ from typer.core import TyperGroup
 
 from ..cells import FIELDS
 from ..config import DEFAULT_CONFIG
+from ..config.sections import MAX_WORKERS
 from ..errors import BronchoError
 from . import status as status_cmd
 from .common import ConfigOpt, ProfileOpt, SetOpt
@@ -63,8 +64,9 @@ def _wide() -> Any:
     return wide(_console)
 
 
-WorkersOpt = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes (torch threads = cores / N). "
-                          "Default: GPUs x --per-gpu on a GPU machine, else 1.")
+WorkersOpt = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS, help="Local worker processes (torch "
+                          "threads = cores / N), one per cell left at most. Default: GPUs x --per-gpu on a GPU "
+                          "machine, else 1.")
 GpusOpt = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (every visible one, "
                        "honouring CUDA_VISIBLE_DEVICES; the default), none, or a list such as 0,1.")
 PerGpuOpt = typer.Option(None, "--per-gpu", min=1, help="Cells run at once on each GPU (default 1; small cells "

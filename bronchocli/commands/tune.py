@@ -9,6 +9,7 @@ import typer
 
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
+from ..config.sections import MAX_WORKERS
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
 
@@ -29,9 +30,10 @@ def tune(
                                             help="Stop starting trials after this many seconds."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL (default: storage.url)."),
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes tuning the "
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS,
+                                          help="Local worker processes tuning the "
                                           "study, placed like a sweep's (torch threads = cores / N). Default: GPUs x "
-                                          "--per-gpu on a GPU machine, else 1 (in this process)."),
+                                          "--per-gpu on a GPU machine, else 1 (in this process); at most one per trial."),
     gpus: str = typer.Option("auto", "--gpus", help="GPUs for the workers, round-robin: auto (every visible one, "
                              "honouring CUDA_VISIBLE_DEVICES), none, or a list such as 0,1."),
     per_gpu: int = typer.Option(1, "--per-gpu", min=1, help="Trials run at once on each GPU."),

@@ -17,6 +17,7 @@ from pathlib import Path
 from .. import extras
 from ..config import Config
 from ..data.naming import DATASET_JSON
+from ..data.source import open_dataset
 
 
 def needs_generation(cfg: Config) -> bool:
@@ -38,7 +39,18 @@ def ensure_dataset(cfg: Config, progress: bool = True, note: Callable[[str], Non
             (note or _stderr)(f"dataset.root {cfg.paths.dataset} does not exist: generating a new dataset there "
                               "from dataset.generate (if you meant an existing dataset, fix dataset.root)")
         generate_dataset(cfg, progress=progress)
+    else:
+        check_dataset(cfg)
     return cfg.paths.dataset
+
+
+def check_dataset(cfg: Config) -> None:
+    """The one dataset check of every command (``train``, ``sweep run``/``plan``, ``tune``, ``data stats``): the
+    configured dataset read as training reads it (``data.open_dataset``: a bad name, pose or file is one line,
+    exit 2) before anything is planned or started. A ``bronchopose`` dataset not generated yet passes: the
+    generator writes a valid one."""
+    if not needs_generation(cfg):
+        open_dataset(cfg)
 
 
 def _stderr(line: str) -> None:

@@ -32,7 +32,8 @@ from urllib.request import url2pathname
 
 from ..cells import FIELDS
 from ..errors import BronchoError
-from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, search_runs
+from ..runs.client import find_experiment
+from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, deleted_cell_runs, deleted_runs_line, search_runs
 from ..runs.views import config_value
 from .scope import PlanView, fetch_selections
 
@@ -288,16 +289,23 @@ def collect_runs(client, experiment_name: str, sweep: str, pose_frame: str | Non
     Without ``plan`` the recorded selections of the sweep (latest per stage, any plan) are read too, so the
     sota table can name the selected model.
     """
-    exp = client.get_experiment_by_name(experiment_name)
+    exp = find_experiment(client, experiment_name)  # deleted by hand: the one line every command gives
     if exp is None:
         raise BronchoError(f"MLflow experiment {experiment_name!r} not found in the MLflow store; "
                            f"run `bronchopose sweep` (or train) first, or pass --config/--set runs.experiment=...")
     records = fetch_runs(client, [exp.experiment_id], sweep)
+    gone = deleted_cell_runs(client, exp.experiment_id, sweep)  # runs deleted by hand: said, not guessed at
+    gone = {k: r for k, r in gone.items() if not any(rec.tag(TAG_CELL_KEY) == k and rec.status == "FINISHED"
+                                                   for rec in records)}
     if not records:
+        if gone:
+            raise BronchoError(deleted_runs_line(len(gone), sweep, experiment_name))
         raise BronchoError(f"no runs of sweep {sweep!r} (tag sweep={sweep}, run_kind=cell) in experiment "
                            f"{experiment_name!r}; pass --sweep NAME (the config's `name` when it ran)")
     index = index_runs(records, sweep, experiment_name, pose_frame, plan=plan,
                        include_other_configs=include_other_configs)
+    if gone:
+        index.notes.append(deleted_runs_line(len(gone), sweep, experiment_name))
     if plan is None and selections:
         index.selections = fetch_selections(client, [exp.experiment_id], sweep, None)
     return index

@@ -22,8 +22,8 @@ from typing import Any, Sequence
 from ..config import Config
 from ..errors import BronchoError, DataError
 from ..io import TEMP_SUFFIX, save_figure, write_json, write_text
-from ..runs.client import client_for, require_store
-from ..runs.parents import KIND_SWEEP, REPORT_FOLDER, find_parent, log_report
+from ..runs.client import client_for, find_experiment, redacted_uri, require_store
+from ..runs.parents import KIND_SWEEP, REPORT_FOLDER, deleted_parent_line, find_parent, log_report
 from ..runs.relocation import writes_here
 from . import dataset_figures as dataset_figs
 from .collect import RunIndex, collect_runs
@@ -58,9 +58,9 @@ def output_suffixes(fmt: str) -> tuple[str, ...]:
 def collect_index(client, cfg: Config, sweep: str | None = None, pose_frame: str | None = None,
                   include_other_configs: bool = False) -> RunIndex:
     """The runs of the config's cells (``sweep`` None) or of the stored sweep ``sweep`` (no config cells)."""
+    exp = find_experiment(client, cfg.experiment_name, redacted_uri(cfg))  # deleted by hand: the line status gives
     if sweep is not None:
         return collect_runs(client, cfg.experiment_name, sweep, pose_frame)
-    exp = client.get_experiment_by_name(cfg.experiment_name)
     plan = config_plan(client, [exp.experiment_id], cfg) if exp is not None else None
     return collect_runs(client, cfg.experiment_name, cfg.name, pose_frame, plan=plan,
                         include_other_configs=include_other_configs)
@@ -245,6 +245,9 @@ def log_to_parent(client, cfg: Config, sweep: str, out: Path, files: Sequence[Pa
     """
     exp = client.get_experiment_by_name(cfg.experiment_name)
     parent = find_parent(client, exp.experiment_id, KIND_SWEEP, sweep) if exp is not None else None
+    if parent is None and exp is not None and (line := deleted_parent_line(client, exp.experiment_id, KIND_SWEEP,
+                                                                           sweep)):
+        return f"not logged to MLflow: {line}"
     if parent is None:
         return f"not logged to MLflow: sweep {sweep!r} has no parent run (its runs were not made by `sweep`)"
     if not writes_here(cfg, client.get_run(parent).info.artifact_uri):

@@ -292,10 +292,31 @@ def database_lock(url: str, timeout_s: float, what: str = "database", key: int =
         engine.dispose()
 
 
-def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) -> str:
-    """Get or create the config's experiment; concurrent creators agree on one id."""
-    name = name or cfg.experiment_name
+class ExperimentDeleted(BronchoError):
+    """The experiment was deleted by hand (the MLflow UI): nothing is written to it, nothing read from it."""
+
+
+def deleted_line(name: str, exp_id: str, where: str) -> str:
+    """The one line every command gives for a deleted experiment: what it is, and the two ways on."""
+    return (f"MLflow experiment {name!r} (id {exp_id}) in {where} was deleted (in the MLflow UI): restore it there "
+            f"(the experiments list, 'deleted'; or `mlflow experiments restore --experiment-id {exp_id}`), or give "
+            f"the config a new `name` (or runs.experiment) to start a new experiment")
+
+
+def find_experiment(client: MlflowClient, name: str, where: str = "the MLflow store") -> Any:
+    """The experiment ``name`` (None: there is none); ``ExperimentDeleted`` when it was deleted by hand (MLflow
+    still finds it by name, refuses to write to it and hides its runs)."""
     exp = client.get_experiment_by_name(name)
+    if exp is not None and getattr(exp, "lifecycle_stage", "active") == "deleted":
+        raise ExperimentDeleted(deleted_line(name, exp.experiment_id, where))
+    return exp
+
+
+def experiment_id(client: MlflowClient, cfg: Config, name: str | None = None) -> str:
+    """Get or create the config's experiment; concurrent creators agree on one id (``ExperimentDeleted``: one that
+    was deleted by hand is neither used nor made again)."""
+    name = name or cfg.experiment_name
+    exp = find_experiment(client, name, redacted_uri(cfg))
     if exp is not None:
         return exp.experiment_id
     location = cfg.paths.artifacts.as_uri() if urls.is_direct_store(cfg.paths.mlflow_uri) else None

@@ -59,6 +59,8 @@ def parent_run(client: MlflowClient, cfg: Config, exp_id: str, kind: str, name: 
         found = search_runs(client, [exp_id], tags, max_results=1)
         if found:
             return found[0].info.run_id
+        if line := deleted_parent_line(client, exp_id, kind, name):
+            log.warning("%s; a new parent run is made now", line)
         run = client.create_run(exp_id, tags=non_empty({
             **tags, "mlflow.runName": f"{kind}-{name}", TAG_NOTE: description,
             **source_tags(cfg), **python_tags(),
@@ -123,6 +125,17 @@ def find_parent(client: MlflowClient, exp_id: str, kind: str, name: str) -> str 
     found = search_runs(client, [exp_id], {TAG_KIND: kind, TAG_SWEEP if kind == KIND_SWEEP else "study": name},
                         max_results=1)
     return found[0].info.run_id if found else None
+
+
+def deleted_parent_line(client: MlflowClient, exp_id: str, kind: str, name: str) -> str | None:
+    """One line when the parent of sweep or study ``name`` was deleted by hand (None: it was not): what to do."""
+    tags = {TAG_KIND: kind, TAG_SWEEP if kind == KIND_SWEEP else "study": name}
+    found = search_runs(client, [exp_id], tags, max_results=1, deleted=True)
+    if not found:
+        return None
+    return (f"the parent run {found[0].info.run_id} of {kind} {name!r} was deleted (in the MLflow UI): restore it "
+            f"there (the runs list, 'deleted') to keep the cells nested under it, or the next `bronchopose "
+            f"{'sweep run' if kind == KIND_SWEEP else 'tune'}` makes a new one")
 
 
 def log_plan_params(client: MlflowClient, run_id: str, params: Mapping[str, str]) -> list[str]:

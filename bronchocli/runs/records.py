@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from mlflow.entities import Metric, Param, Run, RunTag
+from mlflow.entities import Metric, Param, Run, RunTag, ViewType
 from mlflow.tracking import MlflowClient
 
 from .. import __version__, urls
@@ -183,8 +183,10 @@ def search_runs(
     tags: Mapping[str, str] | None = None,
     statuses: Iterable[str] | None = None,
     max_results: int = 50000,
+    deleted: bool = False,
 ) -> list[Run]:
-    """Runs matching every tag (exact) and one of the statuses, newest first, in as few queries as possible."""
+    """Runs matching every tag (exact) and one of the statuses, newest first, in as few queries as possible
+    (``deleted``: only the runs deleted by hand, which MLflow keeps until garbage-collected)."""
     clauses = [f"tags.{k} = {_quote(str(v))}" for k, v in (tags or {}).items()]
     statuses = list(statuses or [])
     if len(statuses) == 1:
@@ -195,6 +197,7 @@ def search_runs(
         page = client.search_runs(
             list(experiment_ids), " and ".join(clauses), max_results=min(max_results, 50000),
             order_by=["attributes.start_time DESC"], page_token=token,
+            **({"run_view_type": ViewType.DELETED_ONLY} if deleted else {}),
         )
         runs.extend(page)
         token = page.token
@@ -219,3 +222,22 @@ def finished_cell_runs(client: MlflowClient, experiment_id: str, sweep: str,
         if key and (want is None or key in want):
             out.setdefault(key, run)
     return out
+
+
+def deleted_cell_runs(client: MlflowClient, experiment_id: str, sweep: str) -> dict[str, Run]:
+    """The newest deleted (by hand, in the MLflow UI) cell run of each cell key of ``sweep`` that has one."""
+    out: dict[str, Run] = {}
+    for run in search_runs(client, [experiment_id], {TAG_SWEEP: sweep, TAG_KIND: "cell"}, deleted=True):
+        if key := run.data.tags.get(TAG_CELL_KEY):
+            out.setdefault(key, run)
+    return out
+
+
+def deleted_runs_line(n: int, sweep: str, experiment: str, now: bool = False) -> str:
+    """The one line for cell runs deleted by hand: ``status``, ``sweep`` and ``report`` all give it (``now``: the
+    sweep that says it trains those cells again)."""
+    head = f"{n} cell run(s) of sweep {sweep!r} in MLflow experiment {experiment!r} were deleted (in the MLflow UI)"
+    if now:
+        return f"{head}: their cells are not done, and this sweep trains them again"
+    return (f"{head}: restore them there (the runs list, 'deleted') to keep them, or `bronchopose sweep run` trains "
+            "those cells again")

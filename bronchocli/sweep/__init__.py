@@ -2,7 +2,8 @@
 
 - ``storage``: the claims table (SQLite on one machine, PostgreSQL for many) and its atomic transitions;
 - ``worker``: the claim -> run -> record loop with its heartbeat and signal handling; ``WorkerId``;
-- ``liveness``: the heartbeat and the stop signals;
+- ``liveness``: the heartbeat and the stop signals; heartbeats from the future judged on the reader's clock;
+- ``damage``: claims rows this code cannot use, set aside with one line each, and ``status --repair`` of them;
 - ``plan``: the stages and their cells, ``StageWalk`` (the one walk through the stages every launcher uses),
   the claims rows and the shared state prepared once before workers start;
 - ``selection``: a selecting stage's ranking by a validation metric, recorded once and logged to MLflow;
@@ -13,8 +14,8 @@
 - ``pool``, ``staged``: ``sweep run`` with the local launcher (stages in order, each with the pool's live view);
 - ``launch``: ``sweep run`` with a launcher whose workers outlive the command (submit what is missing, watch);
 - ``entry``: the sweep's verbs as library calls (run, launch, dry_run, gc, cancel), ``status``, ``tune``;
-- ``record``: MLflow as the record of what finished (claims rows rebuilt from FINISHED runs, the check before
-  training, the read-only view for ``sweep plan`` and ``status``);
+- ``record``: MLflow as the record of what finished (claims rows rebuilt from FINISHED runs, rows whose run was
+  deleted by hand made pending, the check before training, the read-only view for ``sweep plan`` and ``status``);
 - ``placement``, ``housekeeping``: GPUs for local workers; checkpoints on disk (inventory, ``sweep gc``,
   ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
 - ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``

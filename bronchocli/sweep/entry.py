@@ -33,13 +33,15 @@ from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
 from ..runs.client import check_reachable, client_for, experiment_id
+from . import damage
 from . import launch as launching
 from . import placement, staged
 from .housekeeping import collect_garbage, foreign, repair_zombies
 from .launchers import Launcher, launcher_class, reference
 from .plan import StageWalk, open_store
 from .status import show_status
-from .storage import SweepStore
+from .record import missing_runs
+from .storage import FINISHED, SweepStore
 from .summary import record_cancel
 from .task import TaskSpec, command
 from .worker import Runner, default_runner
@@ -141,6 +143,20 @@ def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = Fal
         for run_id, what in done:
             console.print(f"repaired run {run_id}: {what}", highlight=False)
         console.print(f"--repair: {len(done)} run(s) left RUNNING by a dead process were ended")
+        if store.exists():
+            plan = StageWalk(cfg, store).known_cells() if name == cfg.name else []
+            rows = damage.repair(store, name, plan)
+            for row, what in rows:
+                console.print(f"repaired claims row {row.sweep}/{row.cell_key} ({row.label}): {what} (was: "
+                              f"{row.damage})", highlight=False, soft_wrap=True)
+            if rows:
+                console.print(f"--repair: {len(rows)} damaged claims row(s) repaired")
+            finished = [r for r in store.rows(name) if r.state == FINISHED and r.run_id and r.damage is None]
+            gone = set(missing_runs(cfg, [r.run_id for r in finished]))
+            reset = [r for r in finished if r.run_id in gone and store.repair(r)]
+            for r in reset:
+                console.print(f"repaired claims row {r.sweep}/{r.cell_key} ({r.label}): pending again (its run "
+                              f"{r.run_id} does not exist in MLflow)", highlight=False, soft_wrap=True)
     show_status(cfg, store, name, show_all, console)
 
 
@@ -205,12 +221,13 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     _local_store(cfg)  # paths, then the storage answers (runs.timeout_s): one line before any dataset is rendered
     check_reachable(cfg)  # the MLflow server or database too
     n, devices = _workers(workers, gpus, per_gpu)
+    trials = trials or cfg.tune.trials
+    n = min(n, trials)  # a worker per trial at most, as a sweep starts a worker per cell at most
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
         initialisation(cfg.paths.pretrained, [target.arch])
-    trials = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
     console.print(f"[bold]tune[/] {name}: {trials} trials, {n} worker(s)"
                   + (f" on GPUs {','.join(devices)}" if devices else "")

@@ -15,11 +15,11 @@ import os
 import signal
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from ..runs.contract import RunInterrupted
-from .storage import StorageError, SweepStore
+from .storage import RUNNING, CellRow, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
 
@@ -118,3 +118,38 @@ class Heartbeat(threading.Thread):
         self._halt.set()
         if self.is_alive():
             self.join()
+
+
+class FutureHeartbeats:
+    """Claims whose heartbeat lies ahead of the database's clock, judged on this reader's own clock.
+
+    The stale cut-off compares a heartbeat with the database's clock; where that clock is each machine's own
+    (SQLite on shared storage) a worker whose clock runs ahead writes heartbeats from the future, which would
+    never look stale. Such a claim is alive while its heartbeat changes: one seen unchanged (same claim, same
+    value) for ``stale_after_s`` of this process's monotonic clock is overdue, and ``SweepStore.claim`` takes it
+    over like any stale claim (``overdue``)."""
+
+    def __init__(self, stale_after_s: float, clock: Callable[[], float] = time.monotonic):
+        self.stale_after_s, self.clock = stale_after_s, clock
+        self._seen: dict[str, tuple[tuple[str | None, float], float]] = {}  # key -> ((token, heartbeat), first seen)
+
+    def new(self, rows: Iterable[CellRow], now: float) -> list[CellRow]:
+        """Watch ``rows`` (read at database time ``now``); returns the claims from the future first seen now."""
+        fresh, ahead = [], set()
+        for r in rows:
+            if r.damage is None and r.state == RUNNING and r.heartbeat is not None and r.heartbeat > now:
+                ahead.add(r.cell_key)
+                value = (r.token, r.heartbeat)
+                seen = self._seen.get(r.cell_key)
+                if seen is None or seen[0] != value:  # new, or renewed by a live worker: the wait starts again
+                    if seen is None:
+                        fresh.append(r)
+                    self._seen[r.cell_key] = (value, self.clock())
+        for key in set(self._seen) - ahead:
+            del self._seen[key]
+        return fresh
+
+    def overdue(self) -> dict[str, float]:
+        """Cell key -> the heartbeat seen unchanged for ``stale_after_s``: its claim may be taken over."""
+        t = self.clock()
+        return {k: value[1] for k, (value, since) in self._seen.items() if t - since >= self.stale_after_s}

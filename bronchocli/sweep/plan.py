@@ -35,9 +35,12 @@ from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
 from .order import claim_order
-from .record import rebuild
+from .record import forget_deleted, rebuild
 from .selection import settle_selection
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
+
+
+DAMAGED = "damaged"  # the state shown for a claims row this code cannot use (``damage.py``)
 
 
 def stages_of(cfg: Config) -> list[Stage]:
@@ -175,7 +178,8 @@ class StageWalk:
             return Step(stage, self._mine[stage.name])
         source = source_of(self.cfg, stage)
         source_cells = self._all.get(source.name) or []
-        left = cells_left(read_plan(self.store, self.sweep, source_cells), self.cfg.sweep.max_retries)
+        source_plan = read_plan(self.store, self.sweep, source_cells)
+        left = cells_left(source_plan, self.cfg.sweep.max_retries) + len(source_plan.damaged())  # never without one
         if left:
             return Step(stage, [], source=source, waits=left)
         selection = settle_selection(self.cfg, self.store, stage, source, source_cells, self.key, self.sweep)
@@ -239,14 +243,19 @@ class Plan:
     rows: dict[str, CellRow] = field(default_factory=dict)  # by cell key; missing = not stored yet (pending)
 
     def state(self, cell: Cell) -> str:
+        """The cell's state: its row's, ``DAMAGED`` for a row set aside (``damage.py``), pending without a row."""
         row = self.rows.get(cell.key)
-        return row.state if row else PENDING
+        return (DAMAGED if row.damage is not None else row.state) if row else PENDING
 
     def counts(self) -> dict[str, int]:
-        out = {s: 0 for s in (FINISHED, RUNNING, FAILED, PENDING)}
+        out = {s: 0 for s in (FINISHED, RUNNING, FAILED, PENDING, DAMAGED)}
         for c in self.cells:
             out[self.state(c)] += 1
         return out
+
+    def damaged(self) -> list[CellRow]:
+        """The rows of the plan's cells set aside as damaged (``damage.py``), in the plan's order."""
+        return [r for c in self.cells if (r := self.rows.get(c.key)) is not None and r.damage is not None]
 
 
 def read_plan(store: SweepStore, sweep: str, cells: Sequence[Cell]) -> Plan:
@@ -256,10 +265,11 @@ def read_plan(store: SweepStore, sweep: str, cells: Sequence[Cell]) -> Plan:
 
 
 def cells_left(plan: Plan, max_retries: int) -> int:
-    """Cells still to run or to wait for (pending, running anywhere, or failed with a retry left)."""
+    """Cells still to run or to wait for (pending, running anywhere, or failed with a retry left); a damaged row is
+    set aside, not waited for (``damage.py``)."""
     def done(c: Cell) -> bool:
         state = plan.state(c)
-        return state == FINISHED or (state == FAILED and not plan.rows[c.key].retryable(max_retries))
+        return state in (FINISHED, DAMAGED) or (state == FAILED and not plan.rows[c.key].retryable(max_retries))
 
     return sum(1 for c in plan.cells if not done(c))
 
@@ -270,6 +280,8 @@ def claimable_now(plan: Plan, max_retries: int, now: float, stale_after_s: float
     out = set()
     for c in plan.cells:
         row = plan.rows.get(c.key)
+        if row is not None and row.damage is not None:
+            continue
         if (row is None or row.state == PENDING or (row.state == FAILED and row.retryable(max_retries))
                 or (row.state == RUNNING and (row.heartbeat is None or row.heartbeat < now - stale_after_s))):
             out.add(c.key)
@@ -302,6 +314,7 @@ def add_cells(cfg: Config, store: SweepStore, cells: Sequence[Cell], *, sweep: s
     store.add_cells(sweep, claim_order(cfg, cells))
     if retry_failed:
         store.reset_failed(sweep, [c.key for c in cells])
+    forget_deleted(cfg, store, sweep, cells)  # a run deleted by hand in MLflow: its cell is not done (record.py)
     rebuild(cfg, store, sweep, cells)  # cells FINISHED in MLflow are done, whatever the table knew (record.py)
     return read_plan(store, sweep, cells)
 

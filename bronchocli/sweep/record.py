@@ -20,12 +20,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
 
+from mlflow.exceptions import MlflowException
+
 from .. import urls
 from ..cells import Cell
 from ..config import Config, TuneParam
 from ..errors import MlflowBusy
-from ..runs.client import client_for
-from ..runs.records import TAG_KIND, finished_cell_runs, search_runs
+from ..runs.client import ExperimentDeleted, client_for, find_experiment, redacted_uri
+from ..runs.records import TAG_KIND, TAG_SWEEP, deleted_runs_line, finished_cell_runs, search_runs
 from .storage import FAILED, FINISHED, PENDING, CellRow, SweepStore
 
 log = logging.getLogger(__name__)
@@ -48,10 +50,85 @@ def finished_runs(cfg: Config, keys: Sequence[str], sweep: str | None = None, cl
         if db is not None and not db.is_file():
             return {}
         client = client_for(cfg, reading=True)
-    exp = client.get_experiment_by_name(cfg.experiment_name)
+    exp = find_experiment(client, cfg.experiment_name, redacted_uri(cfg))  # deleted by hand: one line, never guessed
     if exp is None:
         return {}
     return finished_cell_runs(client, exp.experiment_id, sweep or cfg.name, keys)
+
+
+def _reader(cfg: Config) -> Any:
+    """A reading client of the config's store and its experiment, or (None, None) when neither exists yet."""
+    db = urls.sqlite_file(cfg.paths.mlflow_uri)
+    if db is not None and not db.is_file():
+        return None, None
+    client = client_for(cfg, reading=True)
+    return client, find_experiment(client, cfg.experiment_name, redacted_uri(cfg))
+
+
+def check_experiment(cfg: Config) -> None:
+    """``ExperimentDeleted`` (one line) when the config's experiment was deleted by hand; reads only."""
+    _reader(cfg)
+
+
+def deleted_finished(cfg: Config, sweep: str, rows: Mapping[str, CellRow]) -> dict[str, CellRow]:
+    """The rows recorded FINISHED whose run was deleted by hand (the MLflow UI), by cell key: MLflow says the cell
+    has no run, so it is not done (``forget_deleted``; status shows it so: ``overlay``)."""
+    finished = {r.run_id: r for r in rows.values() if r.state == FINISHED and r.run_id and r.damage is None}
+    if not finished:
+        return {}
+    client, exp = _reader(cfg)
+    if exp is None:
+        return {}
+    gone = search_runs(client, [exp.experiment_id], {TAG_SWEEP: sweep, TAG_KIND: "cell"}, deleted=True)
+    return {finished[r.info.run_id].cell_key: finished[r.info.run_id] for r in gone if r.info.run_id in finished}
+
+
+def forget_deleted(cfg: Config, store: SweepStore, sweep: str, cells: Sequence[Cell]) -> int:
+    """Make pending again every row recorded FINISHED whose run was deleted by hand (one line says so and what to
+    do); ``rebuild`` then records another FINISHED run of the cell if there is one, else a worker trains it."""
+    rows = {r.cell_key: r for r in store.rows(sweep, [c.key for c in cells])}
+    try:
+        gone = deleted_finished(cfg, sweep, rows)
+    except (MlflowBusy, ExperimentDeleted):
+        raise
+    except Exception as exc:  # noqa: BLE001 - the store unread: the table stays as it is
+        log.warning("could not read MLflow's deleted runs of sweep %s: %s", sweep, exc)
+        return 0
+    n = sum(1 for row in gone.values() if store.repair(row))
+    if n:
+        log.warning("%s", deleted_runs_line(n, sweep, cfg.experiment_name, now=True))
+    return n
+
+
+def missing_runs(cfg: Config, run_ids: Sequence[str]) -> list[str]:
+    """The ``run_ids`` MLflow does not have at all (another store than the sweep ran in, or removed for good by
+    ``mlflow gc``); a store that cannot be asked has none missing."""
+    if not run_ids:
+        return []
+    try:
+        client, _ = _reader(cfg)
+    except Exception as exc:  # noqa: BLE001 - a store that cannot be asked: nothing is said missing
+        log.warning("could not ask MLflow for the claims table's runs: %s", exc)
+        return []
+    if client is None:
+        return []
+    out = []
+    for run_id in run_ids:
+        try:
+            client.get_run(run_id)
+        except MlflowException as exc:
+            if exc.error_code == "RESOURCE_DOES_NOT_EXIST":
+                out.append(run_id)
+        except Exception:  # noqa: BLE001 - busy or away: not known missing
+            continue
+    return out
+
+
+def missing_line(row: CellRow, where: str) -> str:
+    """One line: a claims row whose run MLflow does not have, and what to do."""
+    return (f"claims row {row.sweep}/{row.cell_key} ({row.label}): its run {row.run_id} does not exist in MLflow "
+            f"store {where} (another store than the sweep ran in, or removed for good by `mlflow gc`): check "
+            "runs.uri; `bronchopose status --repair` makes the cell pending again, so the next sweep trains it")
 
 
 def _open_rows(rows: dict[str, CellRow], cells: Sequence[Cell]) -> list[Cell]:
@@ -65,7 +142,7 @@ def rebuild(cfg: Config, store: SweepStore, sweep: str, cells: Sequence[Cell]) -
     todo = [c for c in _open_rows(rows, cells) if c.key in rows]
     try:
         found = finished_runs(cfg, [c.key for c in todo], sweep)
-    except MlflowBusy:
+    except (MlflowBusy, ExperimentDeleted):
         raise
     except Exception as exc:  # noqa: BLE001 - the worker's own check still stops a second training
         log.warning("could not read MLflow's finished runs of sweep %s: %s", sweep, exc)
@@ -79,11 +156,17 @@ def rebuild(cfg: Config, store: SweepStore, sweep: str, cells: Sequence[Cell]) -
     return n
 
 
-def overlay(cfg: Config, sweep: str, cells: Sequence[Cell], rows: dict[str, CellRow]) -> tuple[dict[str, CellRow], int]:
-    """``rows`` with the cells FINISHED in MLflow shown FINISHED (nothing written); returns them and how many."""
+def overlay(cfg: Config, sweep: str, cells: Sequence[Cell], rows: dict[str, CellRow],
+            deleted: Mapping[str, CellRow] | None = None) -> tuple[dict[str, CellRow], int]:
+    """``rows`` with the cells FINISHED in MLflow shown FINISHED (nothing written); returns them and how many.
+    ``deleted`` (``deleted_finished``): rows whose run was deleted by hand, shown pending (as a sweep makes them)."""
+    rows = {**rows, **{k: replace(r, state=PENDING, run_id=None, attempts=0, worker=None, duration_s=None)
+                       for k, r in (deleted or {}).items()}}
     todo = _open_rows(rows, cells)
     try:
         found = finished_runs(cfg, [c.key for c in todo], sweep)
+    except ExperimentDeleted:
+        raise
     except Exception as exc:  # noqa: BLE001 - a view: show the claims table alone
         log.warning("could not read MLflow's finished runs: %s", exc)
         return rows, 0

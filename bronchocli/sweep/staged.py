@@ -18,6 +18,7 @@ from rich.console import Console
 from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
+from ..generation import check_dataset
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from . import plan as planning
@@ -25,7 +26,7 @@ from . import record
 from .plan import cells_left
 from .pool import EXIT_INTERRUPTED, run_pool
 from .selection import describe_selection
-from .status import failures, plan_table, progress, summary_line
+from .status import failures, plan_table, progress, row_lines, summary_line
 from .storage import FINISHED, SweepStore
 from .summary import record_parent, uncancel
 from .worker import Runner, default_runner
@@ -33,11 +34,24 @@ from .worker import Runner, default_runner
 log = logging.getLogger(__name__)
 
 
-def _print_plan(console: Console, plan: planning.Plan, max_retries: int, workers: int, title: str) -> None:
+def workers_for(plan: planning.Plan, max_retries: int, workers: int) -> int:
+    """The local workers a run of ``plan`` starts: a worker per cell left at most (more would only wait)."""
+    return min(workers, cells_left(plan, max_retries))
+
+
+def _print_plan(console: Console, plan: planning.Plan, cfg: Config, workers: int, title: str,
+                store: SweepStore) -> None:
+    """The plan's table, its counts and the workers a run starts here; a line per claims row that is not as this
+    code writes it (damaged, a heartbeat from the future, a foreign worker id: ``status.row_lines``)."""
+    max_retries = cfg.sweep.max_retries
     console.print(plan_table(plan, max_retries, title))
     c = plan.counts()
     console.print(f"{len(plan.cells)} cells: {c['finished']} finished, {c['running']} running, {c['failed']} failed, "
-                  f"{c['pending']} pending; workers here: {workers}")
+                  f"{c['pending']} pending" + (f", {c['damaged']} damaged (set aside)" if c["damaged"] else "")
+                  + f"; workers here: {workers_for(plan, max_retries, workers)}")
+    now = store.db_now() if store.exists() else None
+    for line in row_lines(plan, (), store.redacted, now, cfg.sweep.stale_after_s):
+        console.print(line, highlight=False, soft_wrap=True)
 
 
 def _stage_title(stage: Stage, n_stages: int) -> str:
@@ -49,6 +63,8 @@ def _stage_title(stage: Stage, n_stages: int) -> str:
 
 
 def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, console: Console) -> None:
+    check_dataset(cfg)  # what `train` refuses, the plan refuses too (a dataset not generated yet passes)
+    record.check_experiment(cfg)  # deleted by hand: the line `sweep run`, `status` and `report` give
     stages = planning.StageWalk(cfg, store, only).plans()
     for sp in stages:
         if sp.cells is None:
@@ -59,8 +75,8 @@ def dry_run(cfg: Config, store: SweepStore, only: Selection, workers: int, conso
             console.print(describe_selection(sp.selection), highlight=False)
         plan = planning.read_plan(store, cfg.name, sp.cells)
         rows, known = record.overlay(cfg, plan.sweep, plan.cells, plan.rows)
-        _print_plan(console, planning.Plan(plan.sweep, plan.cells, rows), cfg.sweep.max_retries, workers,
-                    _stage_title(sp.stage, len(stages)))
+        _print_plan(console, planning.Plan(plan.sweep, plan.cells, rows), cfg, workers,
+                    _stage_title(sp.stage, len(stages)), store)
         if known:
             console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished, never "
                           "trained again (a sweep records them there)", highlight=False)
@@ -112,8 +128,8 @@ def _run_stages(walk: planning.StageWalk, *, workers: int, console: Console, gpu
             continue
         plan = planning.ensure_rows(cfg, store, step.cells)  # prepared once; a stage settled now: added here
         left = cells_left(plan, cfg.sweep.max_retries)
-        n_workers = min(workers, max(1, left))  # a worker per cell at most: more would only wait
-        _print_plan(console, plan, cfg.sweep.max_retries, n_workers, _stage_title(step.stage, len(walk.stages)))
+        n_workers = workers_for(plan, cfg.sweep.max_retries, workers)
+        _print_plan(console, plan, cfg, workers, _stage_title(step.stage, len(walk.stages)), store)
         if left:
             ran_any = True
             result = run_pool(cfg, store, plan, workers=n_workers, runner=runner, console=console, gpus=gpus,

@@ -6,9 +6,10 @@ rows point at); nothing writes.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,15 +23,19 @@ from .. import cells
 from ..config import Config
 from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
-from ..runs.client import client_for, store_missing
+from ..runs.client import ExperimentDeleted, client_for, redacted_uri, store_missing
+from ..runs.records import deleted_runs_line
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
-from .record import overlay, rebuilt_count
+from .record import deleted_finished, missing_line, missing_runs, overlay, rebuilt_count
 from .selection import describe_selection
+from .damage import damage_line, future_line, future_s
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 from .launchers import names as launcher_names
 from .launchers import launcher_class
 from .worker import WorkerId, job_of
+
+log = logging.getLogger(__name__)
 
 HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
@@ -64,11 +69,13 @@ class Progress:
     mean_s: float | None  # mean runner time of finished cells
     eta_s: float | None
     stale: int = 0  # running cells whose worker is dead (no heartbeat for sweep.stale_after_s)
+    damaged: int = 0  # rows set aside as damaged (``damage.py``): neither run nor waited for
 
 
 def progress(plan: Plan, max_retries: int, workers: int, now: float | None = None,
              stale_after_s: float | None = None) -> Progress:
-    rows = [plan.rows.get(c.key) for c in plan.cells]
+    every = [plan.rows.get(c.key) for c in plan.cells]
+    rows = [r for r in every if r is None or r.damage is None]
     fin = [r for r in rows if r and r.state == FINISHED]
     stale = sum(1 for r in rows if is_stale(r, now, stale_after_s))
     running = sum(1 for r in rows if r and r.state == RUNNING) - stale
@@ -77,7 +84,7 @@ def progress(plan: Plan, max_retries: int, workers: int, now: float | None = Non
     durations = [r.duration_s for r in fin if r.duration_s is not None]
     mean = sum(durations) / len(durations) if durations else None
     eta = None if mean is None else mean * (pending + running + stale) / max(1, workers)
-    return Progress(len(rows), len(fin), running, failed, pending, mean, eta, stale)
+    return Progress(len(every), len(fin), running, failed, pending, mean, eta, stale, len(every) - len(rows))
 
 
 def summary_line(p: Progress) -> Text:
@@ -88,6 +95,8 @@ def summary_line(p: Progress) -> Text:
         t.append(f"  stale {p.stale}", style="yellow")
     t.append(f"  failed {p.failed}", style="red" if p.failed else "")
     t.append(f"  pending {p.pending}", style="dim")
+    if p.damaged:
+        t.append(f"  damaged {p.damaged}", style="red")
     if p.finished and p.mean_s is not None:
         t.append(f"  ~{fmt_duration(p.mean_s)}/cell")
     if p.eta_s is not None and (p.pending or p.running):
@@ -119,6 +128,8 @@ def _state_label(row: CellRow | None, max_retries: int, now: float | None = None
                  stale_after_s: float | None = None) -> str:
     if row is None:
         return "new"
+    if row.damage is not None:
+        return f"damaged ({str(row.state)[:20]})"
     if is_stale(row, now, stale_after_s):
         return "stale (worker lost, no heartbeat)"
     if row.state == FAILED and row.retryable(max_retries):
@@ -220,13 +231,19 @@ def failures(plan: Plan) -> list[tuple[str, str]]:
             if c.key in plan.rows and plan.rows[c.key].state == FAILED]
 
 
-def _stored_plan(store: SweepStore, name: str) -> Plan:
+def _stored_plan(store: SweepStore, name: str) -> tuple[Plan, list[CellRow]]:
+    """The stored cells of sweep ``name``, and the rows that name no cell (damaged: shown as lines only)."""
     rows = store.rows(name) if store.exists() else []
     if not rows:
         known = ", ".join(store.sweeps()) if store.exists() else ""
         raise BronchoError(f"--sweep {name}: no such sweep in storage {store.redacted} (stored: {known or 'none'})")
-    stored = [cells.make(**r.coords, key=r.cell_key) for r in rows]
-    return Plan(name, stored, {r.cell_key: r for r in rows})
+    stored, unnamed = [], []
+    for r in rows:
+        try:
+            stored.append(cells.make(**r.coords, key=r.cell_key))
+        except (BronchoError, TypeError) as exc:  # coords that name no cell: set aside like any damaged row
+            unnamed.append(replace(r, damage=r.damage or f"coords name no cell ({exc})"))
+    return Plan(name, stored, {r.cell_key: r for r in rows if r not in unnamed}), unnamed
 
 
 def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> None:
@@ -236,8 +253,9 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
                       "shown finished and the next sweep records them there", highlight=False)
         if name != cfg.name:
             return
+    unnamed: list[CellRow] = []
     if show_all or name != cfg.name:
-        plan = _stored_plan(store, name)
+        plan, unnamed = _stored_plan(store, name)
     else:
         walk = StageWalk(cfg, store)
         for sp in walk.plans():
@@ -250,7 +268,17 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         if stale > 0:
             console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
-    rows, known = overlay(cfg, plan.sweep, plan.cells, plan.rows)
+    try:
+        deleted = deleted_finished(cfg, plan.sweep, plan.rows)  # runs deleted by hand: their cells are not done
+    except ExperimentDeleted:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a view: an MLflow store away shows the claims table alone
+        log.warning("could not read MLflow's deleted runs: %s", exc)
+        deleted = {}
+    if deleted:
+        console.print(f"[yellow]deleted[/] {deleted_runs_line(len(deleted), plan.sweep, cfg.experiment_name)}: "
+                      "shown pending", highlight=False, soft_wrap=True)
+    rows, known = overlay(cfg, plan.sweep, plan.cells, plan.rows, deleted)
     if known:
         console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished (never trained "
                       "again; the next sweep records them there)", highlight=False)
@@ -260,6 +288,7 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         console.print(f"{rebuilt} cell(s) recorded from their FINISHED MLflow runs: the claims table was rebuilt from "
                       "MLflow (new, lost, or behind)", highlight=False)
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
+    missing = set(missing_runs(cfg, with_runs))
     held = inventory(cfg, store if store.exists() else None)
     now = store.db_now() if store.exists() else None  # heartbeats are on the database's clock
     console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,
@@ -270,8 +299,34 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
     for label, reason in given_back(plan):
         console.print(f"[yellow]given back[/] {label}: {reason}", highlight=False)
+    for line in row_lines(plan, unnamed, store.redacted, now, cfg.sweep.stale_after_s):
+        console.print(line, highlight=False, soft_wrap=True)
+    for c in plan.cells:
+        if (row := plan.rows.get(c.key)) is not None and row.run_id in missing:
+            console.print(f"[yellow]missing[/] {missing_line(row, redacted_uri(cfg))}", highlight=False,
+                          soft_wrap=True)
     console.print(checkpoint_line(held), highlight=False, soft_wrap=True)
     console.print(disk_line(cfg), highlight=False, soft_wrap=True)
+
+
+def row_lines(plan: Plan, unnamed: Sequence[CellRow], where: str, now: float | None,
+              stale_after_s: float) -> list[str]:
+    """A line per claims row that is not as this code writes it: damaged (set aside), a heartbeat from the
+    future, a worker id of another form (``damage.py``)."""
+    out = [f"[red]damaged[/] {damage_line(r, where)}" for r in [*plan.damaged(), *unnamed]]
+    for c in plan.cells:
+        row = plan.rows.get(c.key)
+        if row is None or row.damage is not None:
+            continue
+        if (ahead := future_s(row, now)) is not None:
+            out.append(f"[yellow]clock[/] {future_line(row, ahead, stale_after_s)}")
+        if row.state == RUNNING and row.worker and WorkerId.parse(row.worker) is None:
+            out.append(f"[yellow]foreign[/] claims row {row.sweep}/{row.cell_key} ({row.label}): worker "
+                       f"{row.worker[:80]!r} is not this project's form (host:pid [launcher job] [gpuN]); the "
+                       f"claim is honoured while its heartbeat is fresh and taken over once it is "
+                       f"sweep.stale_after_s ({stale_after_s:g} s) old; `bronchopose status --repair` does not "
+                       "touch it")
+    return out
 
 
 def given_back(plan: Plan) -> list[tuple[str, str]]:

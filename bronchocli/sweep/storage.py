@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import math
 import uuid
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -53,6 +53,7 @@ from ..retry import disk_full, disk_full_line, retry
 TABLE = "bronchopose_sweep_cells"
 SELECTIONS = "bronchopose_sweep_selections"
 PENDING, RUNNING, FINISHED, FAILED = "pending", "running", "finished", "failed"
+STATES = (PENDING, RUNNING, FINISHED, FAILED)
 TAG_CLAIM = "sweep_claim"  # MLflow tag: the claim token a run was made under (finds orphans of a lost worker)
 SQLITE_BUSY_MS = 60_000
 
@@ -107,12 +108,34 @@ class CellRow:
     run_id: str | None
     failure_reason: str | None
     duration_s: float | None
+    damage: str | None = None  # what makes the row unusable (``row_damage``): such a row is neither claimed nor run
 
     @classmethod
     def from_mapping(cls, m: Any) -> CellRow:
+        """The row as stored; a row this code cannot use (changed by hand or by another tool) is read all the same,
+        with ``damage`` saying what is wrong and safe values in the damaged columns, so it never stops the others."""
         data = dict(m)
-        data["coords"] = json.loads(data["coords"])
-        return cls(**data)
+        problems = []
+        try:
+            coords = json.loads(data["coords"])
+            if not isinstance(coords, dict):
+                raise ValueError("not a JSON object")
+        except (TypeError, ValueError) as exc:
+            problems.append(f"coords {str(data['coords'])[:60]!r} is not a JSON object ({str(exc)[:80]})")
+            coords = {}
+        data["coords"] = coords
+        if data["state"] not in STATES:
+            problems.append(f"state {str(data['state'])[:40]!r} is not one of {', '.join(STATES)}")
+        for col in ("ord", "attempts", "version"):
+            if not isinstance(data[col], int) or isinstance(data[col], bool):
+                problems.append(f"{col} {str(data[col])[:40]!r} is not a whole number")
+                data[col] = 0
+        for col in ("heartbeat", "claimed_at", "finished_at", "created_at", "duration_s"):
+            v = data[col]
+            if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v)):
+                problems.append(f"{col} {str(v)[:40]!r} is not a number of seconds")
+                data[col] = None
+        return cls(**data, damage="; ".join(problems) or None)
 
     def retryable(self, max_retries: int) -> bool:
         return self.state == FAILED and self.attempts <= max_retries
@@ -253,6 +276,36 @@ class SweepStore:
             )
             return res.rowcount
 
+    def repair(self, row: CellRow, label: str | None = None, coords: dict[str, Any] | None = None) -> bool:
+        """``status --repair`` of a damaged row (as read): pending again, its attempts, claim and run forgotten
+        (a FINISHED MLflow run of the cell is recorded again by the next sweep: ``record.rebuild``); ``label`` and
+        ``coords`` (the plan's cell) replace damaged ones. False when the row changed since it was read."""
+        c = cells_table.c
+        values: dict[str, Any] = dict(state=PENDING, attempts=0, version=row.version + 1, token=None, worker=None,
+                                      heartbeat=None, claimed_at=None, finished_at=None, run_id=None,
+                                      failure_reason=None, duration_s=None, ord=row.ord, created_at=row.created_at)
+        if coords is not None:
+            values.update(coords=json.dumps(coords), label=label or row.label)
+        with self._tx(write=True) as conn:
+            current = conn.execute(select(cells_table).where(c.sweep == row.sweep, c.cell_key == row.cell_key)
+                                   ).mappings().first()
+            if current is None or CellRow.from_mapping(current) != row:
+                return False
+            res = conn.execute(update(cells_table).where(c.sweep == row.sweep, c.cell_key == row.cell_key)
+                               .values(**values))
+            return res.rowcount == 1
+
+    def delete(self, row: CellRow) -> bool:
+        """Remove a damaged row no cell of the plan can rebuild (``status --repair``); False when it changed."""
+        c = cells_table.c
+        with self._tx(write=True) as conn:
+            current = conn.execute(select(cells_table).where(c.sweep == row.sweep, c.cell_key == row.cell_key)
+                                   ).mappings().first()
+            if current is None or CellRow.from_mapping(current) != row:
+                return False
+            conn.execute(cells_table.delete().where(c.sweep == row.sweep, c.cell_key == row.cell_key))
+            return True
+
     def record_finished(self, row: CellRow, run_id: str, duration_s: float | None, worker: str) -> bool:
         """Record an unclaimed row (pending or failed, as read) FINISHED by ``run_id``, a FINISHED MLflow run of the
         cell (``record.rebuild``); False when the row changed since it was read (a worker claimed it)."""
@@ -267,23 +320,30 @@ class SweepStore:
             return res.rowcount == 1
 
     # -- claims ------------------------------------------------------------------
-    def _claimable(self, max_retries: int, stale_after_s: float):
+    def _claimable(self, max_retries: int, stale_after_s: float, overdue: Mapping[str, float] | None = None):
+        """The claim rule. ``overdue``: cell key -> a heartbeat from the future (ahead of the database's clock)
+        that the claimer saw unchanged for ``stale_after_s`` of its own clock (``liveness.FutureHeartbeats``):
+        stale too, as long as it still is that value."""
         c = cells_table.c
         return or_(
             c.state == PENDING,
             and_(c.state == FAILED, c.attempts <= max_retries),
             and_(c.state == RUNNING, or_(c.heartbeat.is_(None), c.heartbeat < self._now - float(stale_after_s))),
+            *(and_(c.cell_key == key, c.state == RUNNING, c.heartbeat == hb) for key, hb in (overdue or {}).items()),
         )
 
     def claim(self, sweep: str, keys: Sequence[str], worker: str, *, max_retries: int,
-              stale_after_s: float) -> Claim | None:
-        """Take one claimable cell of ``keys`` (pending first, then retries, then stale claims), or None."""
+              stale_after_s: float, overdue: Mapping[str, float] | None = None) -> Claim | None:
+        """Take one claimable cell of ``keys`` (pending first, then retries, then stale claims), or None.
+        A damaged row (``CellRow.damage``) is never taken: the others are looked at instead."""
         c = cells_table.c
-        claimable = self._claimable(max_retries, stale_after_s)
+        claimable = self._claimable(max_retries, stale_after_s, overdue)
         order = [(c.state == FAILED).asc(), c.ord, c.cell_key]
-        for _ in range(len(keys) + 1):
+        damaged: set[str] = set()
+        for _ in range(2 * len(keys) + 1):
             with self._tx(write=True) as conn:
-                q = select(cells_table).where(c.sweep == sweep, c.cell_key.in_(list(keys)), claimable)
+                q = select(cells_table).where(c.sweep == sweep, c.cell_key.in_([k for k in keys if k not in damaged]),
+                                              claimable)
                 q = q.order_by(*order).limit(1)
                 if self.dialect == "postgresql":
                     q = q.with_for_update(skip_locked=True)
@@ -291,6 +351,9 @@ class SweepStore:
                 if m is None:
                     return None
                 row = CellRow.from_mapping(m)
+                if row.damage is not None:
+                    damaged.add(row.cell_key)
+                    continue
                 previous = row if row.state == RUNNING else None
                 exhausted = previous is not None and row.attempts > max_retries
                 token = uuid.uuid4().hex

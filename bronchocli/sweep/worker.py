@@ -39,7 +39,8 @@ from ..runs.contract import RunTakenOver, checkpoint_dir, failure_reason, resume
 from ..runs.ownership import remove_checkpoint
 from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
-from .liveness import Heartbeat, StopSignals, is_interrupt
+from .damage import damage_line, damaged, future_line
+from .liveness import FutureHeartbeats, Heartbeat, StopSignals, is_interrupt
 from .record import finished_runs
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
@@ -126,6 +127,7 @@ class Worker:
         self._client = None
         self._parent: str | None = None
         self._unmarked: dict[str, tuple[str, str, tuple[str, ...], str | None]] = {}  # run -> how to end it
+        self._damaged: set[str] = set()  # damaged rows said already
 
     @property
     def client(self):
@@ -153,13 +155,15 @@ class Worker:
     # -- the loop ----------------------------------------------------------------
     def run(self) -> int:
         s = self.cfg.sweep
-        keys = list(self.cells)
+        future = FutureHeartbeats(s.stale_after_s)
+        keys = self._usable(list(self.cells), future)
         self.parent_run()  # looked up once, before any claim: never while a claim waits for its heartbeat
         while not self.signals.stop:
             self.retry_unmarked()
             claim = self._db(self.store.claim, self.sweep, keys, self.ident, max_retries=s.max_retries,
-                             stale_after_s=s.stale_after_s)
+                             stale_after_s=s.stale_after_s, overdue=future.overdue())
             if claim is None:
+                keys = self._usable(keys, future)
                 if self._db(self.store.all_done, self.sweep, keys, s.max_retries):
                     return EXIT_OK
                 if self.exit_when_idle:  # no allocation held while other workers finish their cells
@@ -170,6 +174,20 @@ class Worker:
             if self._handle(claim) == "stop":
                 return EXIT_INTERRUPTED
         return EXIT_INTERRUPTED
+
+    def _usable(self, keys: list[str], future: FutureHeartbeats) -> list[str]:
+        """``keys`` without the damaged rows (set aside, each said once: ``damage.py``); watches the claims whose
+        heartbeat lies in the future (taken over once unchanged for stale_after_s of this worker's clock)."""
+        rows = self._db(self.store.rows, self.sweep, keys)
+        bad = {r.cell_key for r in damaged(rows)}
+        for row in damaged(rows):
+            if row.cell_key not in self._damaged:
+                log.warning("%s", damage_line(row, self.store.redacted))
+        self._damaged |= bad
+        now = self._db(self.store.db_now)
+        for row in future.new(rows, now):
+            log.warning("%s", future_line(row, row.heartbeat - now, future.stale_after_s))
+        return [k for k in keys if k not in bad]
 
     def _handle(self, claim: Claim) -> str:
         if claim.previous is not None:

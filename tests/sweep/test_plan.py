@@ -21,7 +21,7 @@ CELLS = expand_grid(CFG, ["p00", "p01", "p02"])  # 5 archs x 3 losses x (persona
 def test_reading_a_plan_creates_nothing(tmp_path):
     store = SweepStore(f"sqlite:///{tmp_path}/sub/sweep.db")
     plan = read_plan(store, "t", CELLS)
-    assert plan.counts() == {"finished": 0, "running": 0, "failed": 0, "pending": 45}
+    assert plan.counts() == {"finished": 0, "running": 0, "failed": 0, "pending": 45, "damaged": 0}
     assert not (tmp_path / "sub").exists()
 
 
