@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import errno
+import signal
 from typing import Optional
 
 import typer
 from rich.text import Text
 
-from . import __version__, extras, pathcheck, urls
+from . import __version__, extras, interrupts, pathcheck, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -115,14 +116,15 @@ PATH_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTD
 def main(argv: list[str] | None = None) -> None:
     """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
-        code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
+        with interrupts.as_keyboard_interrupts():  # SIGTERM and SIGHUP stop a command as Ctrl-C does
+            code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
     except Interrupted as exc:
-        err_console.print(Text.assemble(("interrupted: ", "bold yellow"), urls.redact(str(exc))), highlight=False,
-                          soft_wrap=True)
-        raise SystemExit(exc.exit_code) from None
+        err_console.print(Text.assemble((f"interrupted{_by()}: ", "bold yellow"), urls.redact(str(exc))),
+                          highlight=False, soft_wrap=True)
+        raise SystemExit(interrupts.exit_code(exc.exit_code)) from None
     except BronchoError as exc:
         _error(str(exc))
-        raise SystemExit(exc.exit_code) from None
+        raise SystemExit(interrupts.exit_code(exc.exit_code) if exc.exit_code == 130 else exc.exit_code) from None
     except typer.Abort:  # click's Ctrl-C at a prompt
         code = 130
     except typer.TyperException as exc:
@@ -159,12 +161,18 @@ def main(argv: list[str] | None = None) -> None:
             raise
         _error(damaged)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
-        err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
+    except KeyboardInterrupt:  # a Ctrl-C (SIGTERM, SIGHUP) outside a run's own handling (start-up, between trials)
+        err_console.print(Text.assemble((f"interrupted{_by()}", "bold yellow"), ": nothing was left half-written; "
                                         "run the same command again to continue"), highlight=False)
-        raise SystemExit(130) from None
+        raise SystemExit(interrupts.exit_code()) from None
     if isinstance(code, int) and not isinstance(code, bool) and code:  # typer.Exit(n) of a command
-        raise SystemExit(code)
+        raise SystemExit(interrupts.exit_code(code) if code == 130 else code)
+
+
+def _by() -> str:
+    """`` by SIGTERM``: the stop signal that interrupted the command, when it was not Ctrl-C."""
+    last = interrupts.last()
+    return "" if last is None or last == signal.SIGINT else f" by {interrupts.name(last)}"
 
 
 if __name__ == "__main__":  # `python -m bronchocli.cli ...` runs the command line too (it used to exit 0 silently)
