@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import functools
 import signal
 from typing import Optional
 
@@ -50,9 +51,25 @@ COMMANDS = {
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app, "weights": weights_cmd.app}
 
+def _interruptible(fn):
+    """``fn`` with a KeyboardInterrupt it lets through (Ctrl-C, SIGTERM, SIGHUP: ``interrupts``) raised as
+    ``Interrupted`` (Typer would turn it into a silent exit 130): one line, the signal's exit code."""
+
+    @functools.wraps(fn)
+    def command(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt:
+            raise Interrupted("nothing was left half-written; run the same command again to continue") from None
+
+    return command
+
+
 for _name, _fn in COMMANDS.items():
-    app.command(name=_name)(_fn)
+    app.command(name=_name)(_interruptible(_fn))
 for _name, _group in GROUPS.items():
+    for _info in _group.registered_commands:
+        _info.callback = _interruptible(_info.callback)
     app.add_typer(_group, name=_name)
 
 
@@ -125,8 +142,12 @@ def main(argv: list[str] | None = None) -> None:
     except BronchoError as exc:
         _error(str(exc))
         raise SystemExit(interrupts.exit_code(exc.exit_code) if exc.exit_code == 130 else exc.exit_code) from None
-    except typer.Abort:  # click's Ctrl-C at a prompt
-        code = 130
+    except typer.Abort:  # click turns a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input into this
+        if interrupts.last() is None:  # end of input at a prompt: nothing to say
+            raise SystemExit(130) from None
+        _interrupted()
+    except KeyboardInterrupt:  # a Ctrl-C (SIGTERM, SIGHUP) outside a run's own handling (start-up, between trials)
+        _interrupted()
     except typer.TyperException as exc:
         if not hasattr(exc, "format_message"):
             raise
@@ -161,12 +182,15 @@ def main(argv: list[str] | None = None) -> None:
             raise
         _error(damaged)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:  # a Ctrl-C (SIGTERM, SIGHUP) outside a run's own handling (start-up, between trials)
-        err_console.print(Text.assemble((f"interrupted{_by()}", "bold yellow"), ": nothing was left half-written; "
-                                        "run the same command again to continue"), highlight=False)
-        raise SystemExit(interrupts.exit_code()) from None
     if isinstance(code, int) and not isinstance(code, bool) and code:  # typer.Exit(n) of a command
         raise SystemExit(interrupts.exit_code(code) if code == 130 else code)
+
+
+def _interrupted() -> None:
+    """A command stopped by a signal it does not handle itself: one line, the shell's exit code of the signal."""
+    err_console.print(Text.assemble((f"interrupted{_by()}", "bold yellow"), ": nothing was left half-written; "
+                                    "run the same command again to continue"), highlight=False)
+    raise SystemExit(interrupts.exit_code())
 
 
 def _by() -> str:

@@ -56,6 +56,7 @@ def as_keyboard_interrupts() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _received.clear()  # a command's exit code is that of its own signals (tests run many commands in one process)
     previous = {}
     for s in STOP_SIGNALS:
         if signal.getsignal(s) is signal.SIG_IGN:
