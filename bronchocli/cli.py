@@ -25,6 +25,7 @@ from .commands import ui as ui_cmd
 from .commands import weights as weights_cmd
 from .commands.common import err_console
 from .errors import BronchoError, Interrupted, out_of_memory
+from .runs.contract import RunInterrupted
 
 app = typer.Typer(
     name="bronchopose",
@@ -135,13 +136,14 @@ def main(argv: list[str] | None = None) -> None:
     try:
         with interrupts.as_keyboard_interrupts():  # SIGTERM and SIGHUP stop a command as Ctrl-C does
             code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
-    except Interrupted as exc:
-        err_console.print(Text.assemble((f"interrupted{_by()}: ", "bold yellow"), urls.redact(str(exc))),
+    except (Interrupted, RunInterrupted) as exc:  # Ctrl-C, SIGTERM, SIGHUP; a training run's KILLED line
+        by = "" if interrupts.name() in str(exc) else _by()  # "SIGTERM received at step 5/8" names it already
+        err_console.print(Text.assemble((f"interrupted{by}: ", "bold yellow"), urls.redact(str(exc))),
                           highlight=False, soft_wrap=True)
         raise SystemExit(interrupts.exit_code(exc.exit_code)) from None
     except BronchoError as exc:
         _error(str(exc))
-        raise SystemExit(interrupts.exit_code(exc.exit_code) if exc.exit_code == 130 else exc.exit_code) from None
+        raise SystemExit(exc.exit_code) from None
     except typer.Abort:  # click turns a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input into this
         if interrupts.last() is None:  # end of input at a prompt: nothing to say
             raise SystemExit(130) from None
