@@ -74,7 +74,9 @@ def as_write_failure(exc: BaseException, need: int | None = None, where: Path | 
 
 RESERVE_NAME = ".bronchopose-reserve"
 RESERVE_BYTES = 4 << 20
-RESERVE_ONLY_ABOVE = 256 << 20  # never the reserve that fills a nearly full disk
+# put wherever it takes at most half of what is free: on any disk with room for it, however little (a nearly
+# full disk needs it most: its runs are the ones that meet a full disk), never the reserve that fills a disk
+RESERVE_ROOM = 2 * RESERVE_BYTES
 
 
 def reserve(folders: list[Path]) -> None:
@@ -82,7 +84,7 @@ def reserve(folders: list[Path]) -> None:
     for folder in _one_per_disk(folders):
         path = folder / RESERVE_NAME
         try:
-            if path.is_file() or shutil.disk_usage(folder).free < RESERVE_ONLY_ABOVE:
+            if path.is_file() or shutil.disk_usage(folder).free < RESERVE_ROOM:
                 continue
             with io.atomic_path(path) as tmp:
                 with open(tmp, "wb") as f:
