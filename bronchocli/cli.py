@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     except BronchoError as exc:
         _error(str(exc))
         raise SystemExit(exc.exit_code) from None
-    except typer.Abort:  # click turns a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input into this
+    except typer.Abort:  # click's: a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input
         if interrupts.last() is None:  # end of input at a prompt: nothing to say
             raise SystemExit(130) from None
         _interrupted()

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import hashlib
+import pickle
 
 import pytest
 import torch
@@ -91,13 +92,16 @@ class _Payload:
         return (print, ("code ran",))
 
 
+NOT_TORCH = "not a file torch.save writes: "
 FOREIGN = {  # what a user may bring by mistake -> the clause that says what it is (issue 50)
-    "random bytes": (lambda p: p.write_bytes(bytes(range(7, 256)) * 40), "not a file torch.save writes: neither a zip archive nor a pickle"),
-    "a text file": (lambda p: p.write_text("efficientnet weights, see the wiki\n"), "not a file torch.save writes: a text file"),
-    "an empty file": (lambda p: p.write_bytes(b""), "not a file torch.save writes: an empty file"),
-    "another program's pickle": (lambda p: p.write_bytes(__import__("pickle").dumps({"a": 1}, protocol=4)),
-                                 "not a file torch.save writes: a Python pickle of another program"),
-    "a truncated torch file": (lambda p: p.write_bytes(_saved(p)[:300]), "a damaged PyTorch file: truncated or corrupted"),
+    "random bytes": (lambda p: p.write_bytes(bytes(range(7, 256)) * 40),
+                     NOT_TORCH + "neither a zip archive nor a pickle"),
+    "a text file": (lambda p: p.write_text("efficientnet weights, see the wiki\n"), NOT_TORCH + "a text file"),
+    "an empty file": (lambda p: p.write_bytes(b""), NOT_TORCH + "an empty file"),
+    "another program's pickle": (lambda p: p.write_bytes(pickle.dumps({"a": 1}, protocol=4)),
+                                 NOT_TORCH + "a Python pickle of another program"),
+    "a truncated torch file": (lambda p: p.write_bytes(_saved(p)[:300]),
+                               "a damaged PyTorch file: truncated or corrupted"),
     "a torch file holding objects": (lambda p: torch.save({"w": torch.zeros(1), "x": _Payload()}, p),
                                      "it holds Python objects besides tensors; refused unloaded, never run"),
 }
