@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import errno
+import functools
+import signal
 from typing import Optional
 
 import typer
 from rich.text import Text
 
-from . import __version__, extras, pathcheck, urls
+from . import __version__, extras, interrupts, pathcheck, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
 from .commands import profile as profile_cmd
@@ -23,6 +25,7 @@ from .commands import ui as ui_cmd
 from .commands import weights as weights_cmd
 from .commands.common import err_console
 from .errors import BronchoError, Interrupted, out_of_memory
+from .runs.contract import RunInterrupted
 
 app = typer.Typer(
     name="bronchopose",
@@ -49,9 +52,25 @@ COMMANDS = {
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app, "weights": weights_cmd.app}
 
+def _interruptible(fn):
+    """``fn`` with a KeyboardInterrupt it lets through (Ctrl-C, SIGTERM, SIGHUP: ``interrupts``) raised as
+    ``Interrupted`` (Typer would turn it into a silent exit 130): one line, the signal's exit code."""
+
+    @functools.wraps(fn)
+    def command(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt:
+            raise Interrupted("nothing was left half-written; run the same command again to continue") from None
+
+    return command
+
+
 for _name, _fn in COMMANDS.items():
-    app.command(name=_name)(_fn)
+    app.command(name=_name)(_interruptible(_fn))
 for _name, _group in GROUPS.items():
+    for _info in _group.registered_commands:
+        _info.callback = _interruptible(_info.callback)
     app.add_typer(_group, name=_name)
 
 
@@ -115,16 +134,22 @@ PATH_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTD
 def main(argv: list[str] | None = None) -> None:
     """The console script: run a command; a user error is one line on stderr and its exit code (2, or 130)."""
     try:
-        code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
-    except Interrupted as exc:
-        err_console.print(Text.assemble(("interrupted: ", "bold yellow"), urls.redact(str(exc))), highlight=False,
-                          soft_wrap=True)
-        raise SystemExit(exc.exit_code) from None
+        with interrupts.as_keyboard_interrupts():  # SIGTERM and SIGHUP stop a command as Ctrl-C does
+            code = app(args=argv, prog_name="bronchopose", standalone_mode=False)
+    except (Interrupted, RunInterrupted) as exc:  # Ctrl-C, SIGTERM, SIGHUP; a training run's KILLED line
+        by = "" if interrupts.name() in str(exc) else _by()  # "SIGTERM received at step 5/8" names it already
+        err_console.print(Text.assemble((f"interrupted{by}: ", "bold yellow"), urls.redact(str(exc))),
+                          highlight=False, soft_wrap=True)
+        raise SystemExit(interrupts.exit_code(exc.exit_code)) from None
     except BronchoError as exc:
         _error(str(exc))
         raise SystemExit(exc.exit_code) from None
-    except typer.Abort:  # click's Ctrl-C at a prompt
-        code = 130
+    except typer.Abort:  # click's: a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input
+        if interrupts.last() is None:  # end of input at a prompt: nothing to say
+            raise SystemExit(130) from None
+        _interrupted()
+    except KeyboardInterrupt:  # a Ctrl-C (SIGTERM, SIGHUP) outside a run's own handling (start-up, between trials)
+        _interrupted()
     except typer.TyperException as exc:
         if not hasattr(exc, "format_message"):
             raise
@@ -159,12 +184,21 @@ def main(argv: list[str] | None = None) -> None:
             raise
         _error(damaged)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:  # a Ctrl-C outside a run's own handling (start-up, between trials)
-        err_console.print(Text.assemble(("interrupted", "bold yellow"), ": nothing was left half-written; "
-                                        "run the same command again to continue"), highlight=False)
-        raise SystemExit(130) from None
     if isinstance(code, int) and not isinstance(code, bool) and code:  # typer.Exit(n) of a command
-        raise SystemExit(code)
+        raise SystemExit(interrupts.exit_code(code) if code == 130 else code)
+
+
+def _interrupted() -> None:
+    """A command stopped by a signal it does not handle itself: one line, the shell's exit code of the signal."""
+    err_console.print(Text.assemble((f"interrupted{_by()}", "bold yellow"), ": nothing was left half-written; "
+                                    "run the same command again to continue"), highlight=False)
+    raise SystemExit(interrupts.exit_code())
+
+
+def _by() -> str:
+    """`` by SIGTERM``: the stop signal that interrupted the command, when it was not Ctrl-C."""
+    last = interrupts.last()
+    return "" if last is None or last == signal.SIGINT else f" by {interrupts.name(last)}"
 
 
 if __name__ == "__main__":  # `python -m bronchocli.cli ...` runs the command line too (it used to exit 0 silently)

@@ -159,15 +159,19 @@ def read_polydata(path: str | os.PathLike):
 
 
 def write_polydata(poly, path: str | os.PathLike, what: str = "surface") -> Path:
-    """Write ``poly`` as binary VTK XML (``.vtp``) atomically; DataError on failure."""
+    """Write ``poly`` as binary VTK XML (``.vtp``) atomically; DataError when VTK cannot serialise it.
+
+    VTK builds the file in memory and Python writes it: VTK's own file writer corrupts its heap when the disk
+    fills mid-write (a segfault, or "double free or corruption" later), where Python's write raises an OSError
+    (ENOSPC) that the caller words as one line."""
     from vtkmodules.vtkIOXML import vtkXMLPolyDataWriter  # lazy: VTK is optional outside generation
 
     path = Path(path)
-    with atomic_path(path) as tmp:
-        writer = vtkXMLPolyDataWriter()
-        writer.SetFileName(str(tmp))
-        writer.SetInputData(poly)
-        writer.SetDataModeToBinary()
-        if not writer.Write():
-            raise DataError(f"{path}: could not write the {what}")
-    return path
+    writer = vtkXMLPolyDataWriter()
+    writer.SetInputData(poly)
+    writer.SetDataModeToBinary()  # base64 inline: the output string is ASCII
+    writer.SetWriteToOutputString(1)
+    if not writer.Write():
+        raise DataError(f"{path}: could not write the {what}")
+    text = writer.GetOutputString()
+    return write_bytes(path, text.encode("utf-8") if isinstance(text, str) else bytes(text))

@@ -28,6 +28,9 @@ SYSTEM_FOLDERS = ("/", "/bin", "/boot", "/dev", "/etc", "/home", "/lib", "/lib32
                   "/opt", "/proc", "/root", "/run", "/sbin", "/srv", "/sys", "/tmp", "/usr", "/var", "/var/tmp")
 # ... nor anything inside these (the operating system's own files)
 SYSTEM_TREES = ("/bin", "/boot", "/dev", "/etc", "/lib", "/lib32", "/lib64", "/proc", "/sbin", "/sys", "/usr")
+# ... except these folders inside them, made for users' files (/dev/shm: the shared-memory tmpfs every user may
+# write, a fast place for runs/ or a cache, often reached through a symbolic link)
+USER_TREES = ("/dev/shm",)
 
 
 def expand(text: str, setting: str) -> str:
@@ -64,13 +67,20 @@ def resolve(path: str | os.PathLike, setting: str, base: Path | None = None) -> 
         raise
 
 
-def check_writable_root(path: Path, setting: str) -> None:
-    """An output root must not be a system folder (``/``, ``/etc``, a home, ...) nor inside the OS's own trees."""
+def _within(path: Path, trees: Sequence[str]) -> bool:
+    return any(path == Path(t) or Path(t) in path.parents for t in trees)
+
+
+def check_writable_root(path: Path, setting: str, configured: str | os.PathLike | None = None) -> None:
+    """An output root must not be a system folder (``/``, ``/etc``, a home, ...) nor inside the OS's own trees
+    (``/dev/shm`` and the other ``USER_TREES`` are users' folders). Its symlinks are followed: the place written
+    is judged. ``configured``: the value as the user wrote it (or the default), named in the line."""
     real = resolve(path, setting)
-    inside = next((t for t in SYSTEM_TREES if real == Path(t) or Path(t) in real.parents), None)
-    if str(real) in SYSTEM_FOLDERS or inside is not None or real == Path.home():
-        where = "" if real == path else f" (that is {real})"
-        raise BronchoError(f"{setting} {path}{where}: a system folder; point {setting} at a folder of this "
+    inside = _within(real, SYSTEM_TREES) and not _within(real, USER_TREES)
+    if str(real) in SYSTEM_FOLDERS or inside or real == Path.home():
+        shown = configured if configured is not None else path
+        where = "" if str(real) == str(shown) else f" (that is {real})"
+        raise BronchoError(f"{setting} {shown}{where}: a system folder; point {setting} at a folder of this "
                            "project (e.g. runs/...)")
 
 

@@ -41,7 +41,10 @@ def train(
     predictions, per-trajectory errors, trajectory plot and weights land in MLflow
     (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
     marks the run KILLED; `--resume` continues it. A cell that already has a FINISHED
-    run (in MLflow) is not trained again unless `--again`. Exit code 1 when the run FAILED.
+    run (in MLflow) is not trained again unless `--again`. One `train` of a cell at a time:
+    a second `train` of the same cell waits for the first to end (saying so), then reports
+    its FINISHED run instead of training again (`--again`: trains another run after it).
+    Exit code 1 when the run FAILED.
     """
     from ..training import entry  # lazy: torch loads only when the command runs
 

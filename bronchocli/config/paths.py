@@ -60,7 +60,7 @@ class Paths:
             q = Path(pathcheck.expand(p, key)).expanduser()
             real = pathcheck.resolve(q, key, base)  # a symlink loop is one line here, whatever reads it later
             if output:
-                pathcheck.check_writable_root(real, key)
+                pathcheck.check_writable_root(real, key, configured=p)
             return q if q.is_absolute() else real
 
         def url(u: str, key: str) -> str:

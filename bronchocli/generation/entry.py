@@ -37,7 +37,7 @@ def generate(cfg: Config, out: Path | None = None, *, workers: int | None = None
              console: Console) -> Path:
     """Render the config's dataset into ``out`` (default: ``dataset.root``); returns the folder. A Ctrl-C keeps
     the frames rendered so far: the same call resumes."""
-    from .pipeline import generate_dataset  # lazy: VTK loads only when generating
+    from .pipeline import frames_on_disk, generate_dataset  # lazy: VTK loads only when generating
 
     root = pathcheck.resolve(out, "--out") if out is not None else cfg.paths.dataset
     pathcheck.check_output(root, "--out" if out is not None else "dataset.root")  # never /etc/..., one line
@@ -46,7 +46,12 @@ def generate(cfg: Config, out: Path | None = None, *, workers: int | None = None
     try:
         generate_dataset(cfg, root=root, workers=workers, progress=progress)
     except KeyboardInterrupt:
-        raise Interrupted(f"data generate stopped; the frames rendered so far are kept in {root}: run the same "
-                          "command again to resume") from None
+        kept = frames_on_disk(root)[0] if root.is_dir() else 0
+        if kept:
+            raise Interrupted(f"data generate stopped; the {kept} frames rendered so far are kept in {root}: run "
+                              "the same command again to resume") from None
+        where = f"{root} holds no frame yet" if root.is_dir() else f"nothing was written ({root} was not created)"
+        raise Interrupted(f"data generate stopped before the first frame; {where}: run the same command again to "
+                          "start") from None
     console.print(summary(root, time.perf_counter() - start, already))
     return root

@@ -24,22 +24,18 @@ import hashlib
 import json
 import os
 import shutil
-import signal
-import threading
-from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
+from .. import __version__, interrupts, io
 from ..anatomy import centreline_distance, load_anatomy, lumen_surface, save_centreline
 from ..config import Config, Generate
 from ..data.naming import DATASET_JSON
-from ..errors import DataError
+from ..errors import DataError, WriteFailed
 from ..io import file_lock, remove_stale_temps, write_bytes, write_json, write_polydata
 from ..render.appearance import prepare_surface
 from ..render.camera import intrinsics
@@ -167,21 +163,6 @@ def _write_surface(tree, gen: Generate, source: PatientSource, path: Path) -> No
 # -- execution: in-process or a pool of spawned workers -------------------------------------
 
 
-@contextmanager
-def _children_ignore_sigint() -> Iterator[None]:
-    """Workers spawned in this block ignore SIGINT from their first instruction (an ignored signal stays ignored
-    across exec, and Python then installs no KeyboardInterrupt handler): a terminal's Ctrl-C reaches the whole
-    process group, and only the parent should act on it."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 class _Runner:
     """Runs tasks in this process (workers=1) or in spawned processes, each with its own VTK context."""
 
@@ -196,12 +177,12 @@ class _Runner:
     def map(self, fn, *iterables) -> list:
         if self.pool is None:
             return [fn(*args) for args in zip(*iterables)]
-        with _children_ignore_sigint():
+        with interrupts.ignored_in_children():
             results = self.pool.map(fn, *iterables)  # submits (and spawns workers) now, results come later
         return list(results)
 
     def submit(self, fn, *args):
-        with _children_ignore_sigint():
+        with interrupts.ignored_in_children():
             return self.pool.submit(fn, *args)
 
     def close(self, abort: bool = False) -> None:
@@ -322,15 +303,50 @@ def _generate(root: Path, gen: Generate, sources: list[PatientSource], record: d
     write_json(work / MANIFEST, {"generator_version": GENERATOR_VERSION, "generator": record})
     remove_stale_temps(root)
     runner = _Runner(workers)
-    done = False
+    done, tasks = False, None
     try:
-        plans = runner.map(prepare_patient, sources, [gen] * len(sources), [str(root)] * len(sources))
-        tasks = _tasks(plans, root, gen)
-        digests = _render_all(runner, tasks, work, progress, callback)
-        done = True
-    finally:
-        runner.close(abort=not done)
-    _finish(root, gen, record, plans, tasks, digests)
+        try:
+            plans = runner.map(prepare_patient, sources, [gen] * len(sources), [str(root)] * len(sources))
+            tasks = _tasks(plans, root, gen)
+            digests = _render_all(runner, tasks, work, progress, callback)
+            done = True
+        finally:
+            runner.close(abort=not done)
+        writer.ensure_room(root, sum(len(pp.csv_text) for pp in plans) + writer.FRAME_MARGIN)  # CSVs, dataset.json
+        _finish(root, gen, record, plans, tasks, digests)
+    except (WriteFailed, OSError) as exc:
+        if isinstance(exc, OSError) and exc.errno not in writer.FULL_ERRNOS:
+            raise
+        raise _disk_full(root, gen, tasks) from None
+
+
+def frames_on_disk(root: Path) -> tuple[int, int]:
+    """(frames, their bytes) under ``root``: what an interrupted generation keeps."""
+    n = size = 0
+    for p in Path(root).glob("*/*/*.png"):
+        try:
+            size += p.stat().st_size
+            n += 1
+        except OSError:
+            pass
+    return n, size
+
+
+def _disk_full(root: Path, gen: Generate, tasks: list[RenderTask] | None) -> WriteFailed:
+    """One line for a disk that filled while generating: the folder, the space free and needed, the frames kept."""
+    kept, size = frames_on_disk(root)
+    free = writer.free_bytes(root)
+    total = sum(len(t.filenames) for t in tasks) if tasks is not None else None
+    line = f"data generate: {root}: disk full ({io.fmt_bytes(free) if free is not None else 'unknown'} free"
+    if total is not None:
+        per_frame = size / kept if kept else 3 * gen.image_size ** 2  # none yet: an uncompressed frame's size
+        need = int((total - kept) * per_frame) + writer.FRAME_MARGIN + (total * 200)  # + the CSV rows
+        line += f", about {io.fmt_bytes(need)} more needed for the {total - kept} frames left and the CSVs)"
+    else:
+        line += ", more needed to prepare the anatomy surfaces)"
+    kept_line = f"the {kept} frames rendered so far are kept" if kept else "no frame was rendered yet"
+    return WriteFailed(f"{line}; {kept_line}: free space there (or choose another --out) and run the same "
+                       "command again to resume")
 
 
 def _exclusive(root: Path):

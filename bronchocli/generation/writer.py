@@ -11,8 +11,11 @@ SHA-256 digest of every frame file listed in that CSV, in row order.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import io as _bytes_io
+import os
+import shutil
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +23,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .. import geometry
-from ..io import write_bytes
+from .. import geometry, pathcheck
+from ..errors import WriteFailed
+from ..io import fmt_bytes, write_bytes
 from .trajectories import PlannedTrajectory
 
 PNG_COMPRESSION = 1  # zlib level: the fastest level still shrinks frames ~2x; DESIGN §7
@@ -29,6 +33,9 @@ CSV_COLUMNS: tuple[str, ...] = (
     "patient", "lobe", "trajectory", "frame", "pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz", "filename",
     "base_filename", "arc_mm", "dx", "dy", "dz", "roll", "clearance_mm", "radius_mm", "clamped",
 )
+# free space kept beyond each frame: the digests and the end's CSVs and dataset.json (checked again before them)
+FRAME_MARGIN = 256 << 10
+FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 FORMAT_NAME = "bronchopose-dataset"
 FORMAT_VERSION = 1
 
@@ -43,11 +50,45 @@ def encode_png(frame: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def write_frame(path: Path, frame: np.ndarray) -> bytes:
-    """Write one frame atomically; returns the SHA-256 digest of the file bytes."""
+def write_frame(path: Path, frame: np.ndarray, root: Path | None = None) -> bytes:
+    """Write one frame atomically after checking the free space (``ensure_room``); returns the SHA-256 digest of
+    the file bytes. A full disk is a WriteFailed naming ``root`` (default: the frame's folder); nothing
+    half-written is left."""
     data = encode_png(frame)
-    write_bytes(path, data)
+    where = Path(root) if root is not None else path.parent
+    ensure_room(where, len(data) + FRAME_MARGIN)
+    try:
+        write_bytes(path, data)
+    except OSError as exc:
+        if exc.errno not in FULL_ERRNOS:
+            raise
+        raise disk_full(where, len(data) + FRAME_MARGIN, os_error=exc) from None
     return hashlib.sha256(data).digest()
+
+
+def free_bytes(folder: Path) -> int | None:
+    """Free bytes on the file system of ``folder`` (its nearest existing ancestor); None when it cannot tell."""
+    try:
+        return shutil.disk_usage(pathcheck.nearest_existing(folder)).free
+    except OSError:
+        return None
+
+
+def disk_full(folder: Path, need: int, os_error: OSError | None = None) -> WriteFailed:
+    """The disk of ``folder`` has less than ``need`` bytes free (or refused a write): one line (the generator
+    adds what was kept and what is left)."""
+    free = free_bytes(folder)
+    why = os.strerror(os_error.errno) if os_error is not None and os_error.errno else "not enough free space"
+    return WriteFailed(f"{folder}: disk full ({why}: {fmt_bytes(free) if free is not None else 'unknown'} free, "
+                       f"needs at least {fmt_bytes(need)})")
+
+
+def ensure_room(folder: Path, need: int) -> None:
+    """WriteFailed (one line) unless the disk of ``folder`` has ``need`` bytes free: checked before writing, so the
+    disk never fills under a writer (VTK's, numpy's, Pillow's) that would crash instead of failing cleanly."""
+    free = free_bytes(folder)
+    if free is not None and free < need:
+        raise disk_full(folder, need)
 
 
 def file_digest(path: Path) -> bytes:
@@ -67,7 +108,7 @@ class DatasetFrames:
         return file_digest(Path(self.root) / name)
 
     def write(self, name: str, frame: np.ndarray) -> bytes:
-        return write_frame(Path(self.root) / name, frame)
+        return write_frame(Path(self.root) / name, frame, Path(self.root))
 
 
 def frame_filename(patient: str, lobe: str, trajectory: int, frame: int) -> str:

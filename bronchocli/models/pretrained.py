@@ -61,23 +61,50 @@ IMAGENET_FILES: dict[str, str] = {
 }
 
 
-def read_state_dict(path: str | os.PathLike) -> dict[str, Tensor]:
-    """The tensors of a saved state dict, or a ModelError naming the file."""
+def read_state_dict(path: str | os.PathLike, setting: str = "model.pretrained") -> dict[str, Tensor]:
+    """The tensors of a saved state dict, or a ModelError naming ``setting`` and the file (what is wrong with it in
+    our words: PyTorch's own messages advise ``weights_only=False``, which would run the file's code)."""
     path = Path(path)
     if not path.is_file():
-        raise ModelError(f"model.pretrained: {path}: file not found")
+        raise ModelError(f"{setting}: {path}: file not found")
     try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        lines = str(exc).strip().splitlines()  # torch's refusal of pickled objects is a page of advice: one line
-        reason = f"{type(exc).__name__}: {lines[0] if lines else ''}"
-        raise ModelError(f"model.pretrained: {path}: not a readable torch state dict ({reason})") from None
+        with warnings.catch_warnings():  # torch's notes on a foreign pickle's protocol: the refusal below says it
+            warnings.simplefilter("ignore")
+            obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to read means the same: not a state dict we can use
+        raise ModelError(f"{setting}: {path}: not a readable torch state dict ({_unreadable(path, exc)})") from None
     for wrapper in ("state_dict", "model"):
         if isinstance(obj, Mapping) and isinstance(obj.get(wrapper), Mapping):
             obj = obj[wrapper]
     if not isinstance(obj, Mapping) or not all(isinstance(v, Tensor) for v in obj.values()):
-        raise ModelError(f"model.pretrained: {path}: expected a state dict (parameter name -> tensor)")
+        raise ModelError(f"{setting}: {path}: expected a state dict (parameter name -> tensor)")
     return dict(obj)
+
+
+ZIP_MAGIC, PICKLE_MAGIC = b"PK\x03\x04", b"\x80\x02"  # torch.save's zip archive; its older format (pickle 2)
+
+
+def _unreadable(path: Path, exc: BaseException) -> str:
+    """Why ``torch.load(weights_only=True)`` refused ``path``, in one short clause of our own."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(512)
+    except OSError as err:
+        return err.strerror or "cannot be read"
+    if not head.startswith((ZIP_MAGIC, PICKLE_MAGIC)):
+        if head.startswith(b"\x80"):
+            kind = "a Python pickle of another program"
+        else:
+            try:
+                head.decode("utf-8")
+                kind = "a text file" if head.strip() else "an empty file"
+            except UnicodeDecodeError:
+                kind = "neither a zip archive nor a pickle"
+        return f"not a file torch.save writes: {kind}"
+    text = str(exc)
+    if "Weights only load failed" in text or "Unsupported global" in text:
+        return "it holds Python objects besides tensors; refused unloaded, never run"
+    return "a damaged PyTorch file: truncated or corrupted"
 
 
 def _first(keys: list[str]) -> str:
@@ -225,7 +252,7 @@ def install_weights(path: str | os.PathLike) -> tuple[str, Path]:
     shapes (checked against ``backbone``'s, a PoseNet class of that kind) and torchvision's checksum (the sha256
     must start with the hex digits in torchvision's file name). Returns (kind, where it lies now)."""
     path = Path(path)
-    state = read_state_dict(path)
+    state = read_state_dict(path, "weights install")
     kind = kind_of(state, path)
     name = IMAGENET_FILES[kind]
     want = name.rsplit("-", 1)[-1].split(".")[0]

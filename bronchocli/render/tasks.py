@@ -22,6 +22,7 @@ from typing import Callable, Iterable, Protocol
 import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from .. import interrupts
 from ..config import Realism
 from ..io import read_polydata
 
@@ -84,10 +85,12 @@ def init_worker(threads: int | None, parent_pid: int | None = None) -> None:
     """Process-pool initializer: bound the software rasteriser's threads so workers do not oversubscribe, and
     die with the parent (``parent_pid``: the process that started the pool).
 
-    A terminal's Ctrl-C reaches the whole process group: workers ignore it and
+    A terminal's Ctrl-C (or hang-up) reaches the whole process group: workers ignore it and
     the parent stops them (no traceback from every worker).
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for s in interrupts.STOP_SIGNALS:
+        if s != signal.SIGTERM:  # SIGTERM is how the parent stops them
+            signal.signal(s, signal.SIG_IGN)
     if parent_pid is not None and hasattr(os, "getppid"):
         die_with_parent(parent_pid)
     if threads:

@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+from .. import interrupts
 from ..runs.contract import RunInterrupted
 from .storage import RUNNING, CellRow, StorageError, SweepStore
 
@@ -29,7 +30,7 @@ def is_interrupt(exc: BaseException) -> bool:
 
 
 class StopSignals:
-    """Turns SIGINT/SIGTERM into a stop request; interrupts the runner when one is in progress."""
+    """Turns SIGINT/SIGTERM/SIGHUP into a stop request; interrupts the runner when one is in progress."""
 
     def __init__(self, event: Any = None, parent_pid: int | None = None):
         self.requested: int | None = None
@@ -39,8 +40,9 @@ class StopSignals:
         self.event, self.parent_pid = event, parent_pid
 
     def install(self, extra: Sequence[int] = ()) -> None:
-        """Handle SIGINT, SIGTERM and ``extra`` (under Slurm: SIGUSR1, the time-limit warning) as a stop."""
-        for s in (signal.SIGINT, signal.SIGTERM, *extra):
+        """Handle SIGINT, SIGTERM, SIGHUP (``interrupts.STOP_SIGNALS``) and ``extra`` (under Slurm: SIGUSR1, the
+        time-limit warning) as a stop."""
+        for s in (*interrupts.STOP_SIGNALS, *extra):
             signal.signal(s, self._handle)
         self.installed = True
 

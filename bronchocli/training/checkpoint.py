@@ -52,13 +52,16 @@ def as_write_failure(exc: BaseException, need: int | None = None, where: Path | 
     run needs) for an error of the disk under the run (its own or one it was raised from); None for any other.
     ``where``: the folder to name when the error names no file (SQLite's "database or disk is full")."""
     if isinstance(exc, WriteFailed):
-        if need and "needs about" not in str(exc):
+        if need and "needs about" not in str(exc) and NOT_WRITABLE_MARK not in str(exc):
             return type(exc)(f"{exc}; the run needs about {io.fmt_bytes(need)} free to finish")
         return exc
     full = disk_full(exc)
     if full is None:
         return None
     why, file = full
+    if isinstance(exc, OSError) and exc.errno == errno.EROFS:  # read-only, not full: no space to free
+        return WriteFailed(f"{file or where}: {NOT_WRITABLE_MARK} (read-only file system), not full; make it "
+                           "writable again and run the same command again: it resumes the run from its checkpoint")
     line = disk_full_line(file or where, why, need) if (file or where) else urls.error_line(exc, 200)
     return WriteFailed(f"{line}; free space there and run the same command again: it resumes the run from its "
                        "checkpoint")
@@ -71,7 +74,9 @@ def as_write_failure(exc: BaseException, need: int | None = None, where: Path | 
 
 RESERVE_NAME = ".bronchopose-reserve"
 RESERVE_BYTES = 4 << 20
-RESERVE_ONLY_ABOVE = 256 << 20  # never the reserve that fills a nearly full disk
+# put wherever it takes at most half of what is free: on any disk with room for it, however little (a nearly
+# full disk needs it most: its runs are the ones that meet a full disk), never the reserve that fills a disk
+RESERVE_ROOM = 2 * RESERVE_BYTES
 
 
 def reserve(folders: list[Path]) -> None:
@@ -79,7 +84,7 @@ def reserve(folders: list[Path]) -> None:
     for folder in _one_per_disk(folders):
         path = folder / RESERVE_NAME
         try:
-            if path.is_file() or shutil.disk_usage(folder).free < RESERVE_ONLY_ABOVE:
+            if path.is_file() or shutil.disk_usage(folder).free < RESERVE_ROOM:
                 continue
             with io.atomic_path(path) as tmp:
                 with open(tmp, "wb") as f:
@@ -188,9 +193,13 @@ def nbytes(obj: Any) -> int:
 def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
     """CheckpointWriteError (one line) unless the file system of ``path`` has ``need`` bytes free."""
     try:
-        free = shutil.disk_usage(pathcheck.nearest_existing(path.parent)).free
-    except OSError:  # cannot tell (e.g. a file system without statvfs): let the write itself decide
+        folder = pathcheck.nearest_existing(path.parent)
+        free = shutil.disk_usage(folder).free
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):  # cannot tell (e.g. a file system without statvfs): let the write decide
         return
+    if read_only:  # its free space is beside the point
+        raise CheckpointWriteError(not_writable_line(path, errno.EROFS))
     if free < need:
         raise CheckpointWriteError(
             f"{path}: not enough disk space for the {what}: needs {io.fmt_bytes(need)} free ({SPACE_FACTOR}x its "
@@ -229,11 +238,25 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
         if not _is_write_failure(exc):
             raise
         code = getattr(exc, "errno", None)
+        if code in NOT_WRITABLE:  # a folder made read-only is not a full one: freeing space would not help
+            raise CheckpointWriteError(not_writable_line(path, code)) from None
         why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else urls.error_line(exc, 200)
         raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about "
                                    f"{io.fmt_bytes(need)} free there; free space or point runs.checkpoints "
                                    "elsewhere") from None
     return path
+
+
+NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)  # the folder refuses writes, whatever space it has
+NOT_WRITABLE_MARK = "not writable"  # in the line of a not-writable folder: never read as a want of space
+
+
+def not_writable_line(path: Path, code: int) -> str:
+    """One line for a checkpoint refused by a read-only or forbidden folder (not a full disk)."""
+    why = "read-only file system" if code == errno.EROFS else os.strerror(code).lower()
+    return (f"{path}: could not write the checkpoint: {path.parent} is {NOT_WRITABLE_MARK} ({why}), not full; make "
+            "it writable again (or point runs.checkpoints elsewhere) and run the same command again: it resumes "
+            "the run from its last checkpoint")
 
 
 def read_plain(path: Path, what: str, fix: str) -> Any:

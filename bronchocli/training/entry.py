@@ -11,6 +11,7 @@ from ..config import Config, check_paths
 from ..generation import ensure_dataset
 from ..runs.client import client_for
 from ..runs.records import finished_cell_runs
+from .once import cell_turn
 from .run import run_cell
 
 
@@ -30,18 +31,20 @@ def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool
           console: Console) -> int:
     """Train and evaluate ``cell`` as one MLflow run (``resume``: continue its latest, or this, KILLED/FAILED run
     from its checkpoint); prints the run's headline against both image-blind references. A cell with a FINISHED
-    run is not trained again unless ``again``."""
+    run is not trained again unless ``again``; a ``train`` of the same cell in progress is waited for first
+    (``once.cell_turn``), so two started together train it once."""
     if cfg.tune.applied:
         console.print(f"hyperparameters from {cfg.tune.applied}")
     check_paths(cfg)  # one line before anything is created
-    done = None if again or resume else finished_run(cfg, cell)
-    if done is not None:
-        console.print(f"cell {cell.label} (key {cell.key}) already has a FINISHED run {done} in experiment "
-                      f"{cfg.experiment_name}: not trained again (--again trains another run)", highlight=False)
-        return 0
-    ensure_dataset(cfg)
-    console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
-    result = run_cell(cfg, cell, resume=resume, progress=progress)
+    with cell_turn(cfg, cell, lambda text: console.print(text, highlight=False)):  # one `train` of a cell at a time
+        done = None if again or resume else finished_run(cfg, cell)
+        if done is not None:
+            console.print(f"cell {cell.label} (key {cell.key}) already has a FINISHED run {done} in experiment "
+                          f"{cfg.experiment_name}: not trained again (--again trains another run)", highlight=False)
+            return 0
+        ensure_dataset(cfg)
+        console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
+        result = run_cell(cfg, cell, resume=resume, progress=progress)
     if result.status != "FINISHED":
         console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
         return 1

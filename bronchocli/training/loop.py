@@ -484,5 +484,5 @@ class Trainer:
 
 
 SIGNAL_MEANING = {"SIGUSR1": "Slurm's time-limit warning", "SIGTERM": "scancel, requeue or preemption",
-                  "SIGINT": "Ctrl-C"}  # what sends each stop signal, as a run's KILLED reason says it
+                  "SIGINT": "Ctrl-C", "SIGHUP": "the terminal closed"}  # what sends each stop signal, as a run's KILLED reason says it
 

@@ -7,7 +7,7 @@ run. The dataset must exist: ``bronchopose train``/``sweep``/``tune``
 generate it first, as an explicit step of their start-up.
 
 Faults: SIGINT (Ctrl-C), SIGTERM (scancel, ``scontrol requeue``,
-preemption) or SIGUSR1 (Slurm's time-limit warning) stops training after the
+preemption), SIGHUP (the terminal closed) or SIGUSR1 (Slurm's time-limit warning) stops training after the
 current optimiser step, saves a resumable checkpoint of that step and marks
 the run KILLED with the signal and the checkpoint's path as its reason
 (``RunInterrupted``, carrying the signal, is raised so callers stop too);
@@ -33,6 +33,7 @@ from typing import Any
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from .. import interrupts
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError, MlflowUnreachable, OutOfMemory, out_of_memory, resumable
@@ -63,7 +64,7 @@ log = logging.getLogger(__name__)
 TAG_RESUMED = "resumed_from_step"  # a metric, one value per resume at step = the checkpoint's: the run's history
 
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)  # SIGUSR1: Slurm's time-limit warning
+STOP_SIGNALS = (*interrupts.STOP_SIGNALS, signal.SIGUSR1)  # SIGINT, SIGTERM, SIGHUP; SIGUSR1: Slurm's warning
 
 
 class StopFlag:
@@ -80,6 +81,7 @@ class StopFlag:
     def __call__(self, signum, frame) -> None:
         if self.signal is not None and signum == signal.SIGINT:
             raise KeyboardInterrupt
+        interrupts.note(signum)  # `train`'s exit code names it (143 for SIGTERM)
         self.signal = signum
 
 

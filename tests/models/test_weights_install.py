@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import hashlib
+import pickle
 
 import pytest
 import torch
@@ -84,3 +85,42 @@ def test_imagenet_if_present_without_the_file_starts_random_and_says_so(tmp_path
         assert torch.equal(v, model.state_dict()[k]), k
     with pytest.warns(UserWarning, match="resnet34 starts from random weights"):
         assert initialisation("imagenet-if-present", ["offsetnet"])["offsetnet"] == "random"
+
+
+class _Payload:
+    def __reduce__(self):
+        return (print, ("code ran",))
+
+
+NOT_TORCH = "not a file torch.save writes: "
+FOREIGN = {  # what a user may bring by mistake -> the clause that says what it is (issue 50)
+    "random bytes": (lambda p: p.write_bytes(bytes(range(7, 256)) * 40),
+                     NOT_TORCH + "neither a zip archive nor a pickle"),
+    "a text file": (lambda p: p.write_text("efficientnet weights, see the wiki\n"), NOT_TORCH + "a text file"),
+    "an empty file": (lambda p: p.write_bytes(b""), NOT_TORCH + "an empty file"),
+    "another program's pickle": (lambda p: p.write_bytes(pickle.dumps({"a": 1}, protocol=4)),
+                                 NOT_TORCH + "a Python pickle of another program"),
+    "a truncated torch file": (lambda p: p.write_bytes(_saved(p)[:300]),
+                               "a damaged PyTorch file: truncated or corrupted"),
+    "a torch file holding objects": (lambda p: torch.save({"w": torch.zeros(1), "x": _Payload()}, p),
+                                     "it holds Python objects besides tensors; refused unloaded, never run"),
+}
+
+
+def _saved(path) -> bytes:
+    torch.save({"features.0.weight": torch.zeros(4, 4)}, path)
+    return path.read_bytes()
+
+
+@pytest.mark.parametrize("case", list(FOREIGN))
+def test_anything_but_a_state_dict_is_refused_in_our_words(hub, tmp_path, cli, case, capfd):
+    make, clause = FOREIGN[case]
+    path = tmp_path / "efficientnet_b0_rwightman-7f5810bc.pth"
+    make(path)
+    code, out, err = cli("weights", "install", path)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert lines[0] == f"error: weights install: {path}: not a readable torch state dict ({clause})", lines[0]
+    assert not any(t in out + err for t in ("weights_only", "IndexError", "KeyError", "Traceback", "likely succeed"))
+    assert "code ran" not in capfd.readouterr().out  # the payload never ran
+    assert not (pt.hub_checkpoints() / pt.IMAGENET_FILES["efficientnet_b0"]).exists()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import errno
+import os
+import signal
 
 from bronchocli import io
 from bronchocli.reporting import report
@@ -58,3 +60,28 @@ def test_a_staging_folder_left_by_a_killed_report_is_removed_by_the_next(tmp_pat
     with report.staged_outputs(out) as stage:
         assert stage.is_dir() and stage.name.endswith(f"@{host}.tmp")
     assert sorted(p.name for p in out.iterdir()) == sorted(keep)
+
+
+def test_sigterm_half_way_is_what_ctrl_c_is_one_line_exit_143_nothing_written(cli, golden_store, tmp_path,
+                                                                            monkeypatch):
+    """SIGTERM (a `kill`, a shutdown) reaches `report` as Ctrl-C does: one line naming it, the shell's exit code
+    143, the output folder as it was (issue 49)."""
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    real, written = io.write_bytes, []
+
+    def killed_half_way(path, data):
+        if len(written) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)  # a real signal to this process: its handler runs right here
+        written.append(path)
+        return real(path, data)
+
+    monkeypatch.setattr(report, "write_text", lambda path, text: killed_half_way(path, text.encode()))
+    code, _, err = cli("report", "-c", str(golden_store.config), "--no-latency", "--out", str(out), "-q",
+                       "--table", "personalized")
+    assert code == 143, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("interrupted by SIGTERM: ") and "run the same command" in err, err
+    assert "Traceback" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]  # nothing half-written taken as complete

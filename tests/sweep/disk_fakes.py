@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from bronchocli import urls
 from bronchocli.training import artifacts
 from bronchocli.training.run import run_cell
 
@@ -30,6 +31,19 @@ def fill_then_train(cfg, cell, **kw):
 
         def full_disk_first(client, run_id, cfg_, *args, **kwargs):
             fill(cfg_.paths.checkpoints.parent)
+            return log_outcome(client, run_id, cfg_, *args, **kwargs)
+
+        artifacts.log_outcome = full_disk_first
+    return run_cell(cfg, cell, **kw)
+
+
+def fill_stores_then_train(cfg, cell, **kw):
+    """As ``fill_then_train``, the filler in the folder of the MLflow store (``<runs.uri's folder>/filler``)."""
+    if (Path(os.environ["SWEEP_FAKE_DIR"]) / "fill").exists():
+        log_outcome = artifacts.log_outcome
+
+        def full_disk_first(client, run_id, cfg_, *args, **kwargs):
+            fill(urls.sqlite_file(cfg_.paths.mlflow_uri).parent)
             return log_outcome(client, run_id, cfg_, *args, **kwargs)
 
         artifacts.log_outcome = full_disk_first

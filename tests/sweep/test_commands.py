@@ -69,7 +69,11 @@ def test_only_selects_cells(cli, project):
     assert code == 0 and "1 cells" in out and "lstm/mse" in out and "baseline/mse" not in out
 
 
-def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, project, fake_dir, tmp_path):
+@pytest.mark.parametrize("signum, exit_code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGHUP, 129)])
+def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, project, fake_dir, tmp_path, signum,
+                                                                      exit_code):
+    """Ctrl-C, SIGTERM and SIGHUP (the terminal closed) alike: the cell is given back at once (PENDING, not left
+    RUNNING to go stale), one line, the shell's exit code of the signal (issue 49)."""
     path = str(project.paths.base / "experiments.yaml")
     (fake_dir / "block-lstm").touch()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
@@ -80,10 +84,10 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
     while not any(fake_dir.glob("started-*")):  # wait for the worker to be inside the lstm cell
         assert proc.poll() is None and time.monotonic() < end, proc.stdout.read() if proc.poll() is not None else ""
         time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)  # what Ctrl-C sends to the foreground process
+    proc.send_signal(signum)  # SIGINT: what Ctrl-C sends to the foreground process
     out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == 130, out
-    assert "interrupted" in out
+    assert proc.returncode == exit_code, out
+    assert "interrupted" in out and "Traceback" not in out
     assert cells_of(project)["lstm"].state == PENDING and cells_of(project)["baseline"].state == FINISHED
     assert runs_by_cell(project, "KILLED") == {cells_of(project)["lstm"].cell_key: 1}
     (fake_dir / "block-lstm").unlink()

@@ -121,3 +121,33 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     assert (done.state, done.run_id) == (FINISHED, row.run_id)  # the same run, resumed
     assert len(client.get_metric_history(row.run_id, "resumed_from_step")) == 1  # once
     assert client.get_run(row.run_id).info.status == "FINISHED" and not resume_file(cfg, row.run_id).exists()
+
+
+@pytest.mark.slow  # ~3 min on 2 busy cores: a real training of the tiny baseline
+def test_stores_on_a_small_disk_still_end_the_run_failed_without_spending_an_attempt(cli, make_config, tmp_path,
+                                                                                    fake_dir):
+    """Issue 50: the stores on a disk with far less than 256 MB free (once: no room for the reserve, so a full disk
+    left the cell run, the sweep's parent run and the claims row RUNNING and the re-run waited for the stale cut-off
+    and spent an attempt): the reserve is kept on any disk with room for it, so they all end."""
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+    with tmpfs(tmp_path / "stores", "64m") as stores:
+        cfg = make_config(
+            archs=("baseline",), sweep={"heartbeat_s": 1.0, "stale_after_s": 30.0},
+            runs={"uri": f"sqlite:///{stores}/mlflow.db", "artifacts": f"{stores}/artifacts"},
+            storage=f"sqlite:///{stores}/sweep.db",
+            splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1}, data={"window": 3},
+            train={"batch_size": 3, "steps": 4, "val_every": 2, "bn_recalibrate": 1, "threads": 1})
+        command = ("sweep", "-c", str(cfg.paths.base / "experiments.yaml"), "--runner",
+                   "disk_fakes:fill_stores_then_train")
+        (fake_dir / "fill").touch()
+        code, out, err = cli(*command)
+        assert code == 1, out + err
+        assert "Traceback" not in out + err and "disk full" in out, out + err
+        (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
+        assert (row.state, row.attempts) == (FAILED, 0)  # ended, and the attempt not spent
+        client = client_for(cfg)
+        assert client.get_run(row.run_id).info.status == "FAILED"
+        parents = [r for r in client.search_runs([client.get_run(row.run_id).info.experiment_id])
+                   if r.data.tags.get("run_kind") == "sweep"]
+        assert parents and all(p.info.status != "RUNNING" for p in parents)
+        assert resume_file(cfg, row.run_id).is_file()  # resumable: nothing lost

@@ -26,6 +26,7 @@ from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 from typing import Any
 
+from ... import interrupts
 from ...cells import Selection
 from ...config import Config
 from ..placement import assign, share_counts
@@ -88,10 +89,16 @@ class LocalProcesses:
 
     @contextmanager
     def supervised(self) -> Iterator[None]:
-        """Start and watch the workers inside: this process's Ctrl-C and SIGTERM stop them (``stop``: once, then
-        SIGINT); when this process fails, it stops them before waiting. On the way out the handlers are restored
+        """Start and watch the workers inside: this process's Ctrl-C, SIGTERM and SIGHUP (the terminal closed) stop
+        them at once (``stop``: once, then SIGINT), so they give their cells back instead of leaving them to go
+        stale; when this process fails, it stops them before waiting. On the way out the handlers are restored
         and every worker is waited for (``join`` then gives their exit codes)."""
-        previous = {s: signal.signal(s, lambda signum, frame: self.stop()) for s in (signal.SIGINT, signal.SIGTERM)}
+
+        def on_signal(signum: int, frame: Any) -> None:
+            interrupts.note(signum)  # the command's exit code names it (143 for SIGTERM, 129 for SIGHUP)
+            self.stop()
+
+        previous = {s: signal.signal(s, on_signal) for s in interrupts.STOP_SIGNALS}
         try:
             yield
         except BaseException:  # the parent is failing: stop the workers (they release their work) before waiting
