@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Sequence
 
@@ -69,7 +70,7 @@ def skill_figure(table: Table):
         for i, s in enumerate(d):
             if s is not None and abs(s.lo) <= TOUCHES * (high - low):  # e.g. -0.003: say it, it is not 0
                 touching = True
-                ax.annotate(f"{s.lo:+.3f}", (i, s.lo), xytext=(4, -2), textcoords="offset points", fontsize=6,
+                ax.annotate(f"{s.lo:+.3g}", (i, s.lo), xytext=(4, -2), textcoords="offset points", fontsize=7,
                             color="tab:red" if s.lo <= 0 else "tab:blue", va="top")
     units = {x.unit for r in table.rows if r.kind == "model" for x in r.info.get("samples", ()) if x is not None}
     about = ESTIMAND_NAMES.get(units.pop() if len(units) == 1 else "", "its table's estimand")
@@ -82,7 +83,8 @@ def skill_figure(table: Table):
         refused = {r.name for r in table.rows if r.info.get("refused")}
         why = "means only: too few seeds or patients" if set(without) <= refused else "no per-trajectory errors"
         lines.append(f"no bar for {', '.join(without)} ({why})")
-    fig.suptitle("\n".join(lines), fontsize=8)
+    width = int(fig.get_figwidth() * 15)  # characters of fontsize 8 across the figure
+    fig.suptitle("\n".join(textwrap.fill(line, width) for line in lines), fontsize=8)
     fig.tight_layout()
     return fig
 
