@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 from report_fakes import THRESHOLDS, MemRuns
 
+from bronchocli.config import Config, load_config
 from bronchocli.reporting.collect import RunRecord
-from bronchocli.reporting.scope import PlanView
+from bronchocli.reporting.scope import PlanView, profile_plans
 from bronchocli.reporting.tables import NoData, _thresholds_text, ablation, cross_subject, personalized, sota
 
 
@@ -192,3 +193,13 @@ def test_tracking_thresholds_read_params_and_the_metrics_of_runs_logged_before()
     assert len(seen) == 1 and "different eval.rpe_gap (3, 10)" in seen[0]
     none = RunRecord("none", "FINISHED", 0, {}, {})
     assert "thresholds (not logged by these runs)" in _thresholds_text(_Warnings(), [none])
+
+
+def test_profile_plans_reads_each_profile_of_the_config_file(tmp_path):
+    path = tmp_path / "experiments.yaml"
+    path.write_text("name: t\ngrid: {arch: [convlstm], rot_loss: [ce], population: [personalized]}\n"
+                    "profiles:\n  wide:\n    grid: {arch: [baseline, lstm], rot_loss: [mse, ce]}\n"
+                    "  broken:\n    grid: {arch: [no_such_net]}\n")
+    plans = profile_plans(load_config(path))
+    assert plans == {"wide": {(a, lo, "personalized") for a in ("baseline", "lstm") for lo in ("mse", "ce")}}
+    assert profile_plans(Config(name="memory")) == {}  # no file to read the profiles from
