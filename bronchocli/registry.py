@@ -50,10 +50,11 @@ class ArchSpec:
     name: str  # the cell's ``arch`` (config grid, ``--arch``, ``--only arch=``, MLflow tag)
     builder: str | Callable[..., Any]  # "module:Class" of a models.PoseNet subclass, or the class itself
     label: str  # its row label in the report tables ("+ConvRNN": what the paper adds to the baseline)
-    model_name: str  # its name in prose and in the sota row ("BronchoTrack (ConvLSTM, MSE+CE)")
+    model_name: str  # its name in prose and in every model's display name ("ConvLSTM": display_name)
     paper_params_m: str | None = None  # the paper's parameter count at 256x256, millions, as printed (tested)
     paper_tables: bool = True  # a row group of the personalized / cross-subject tables (OffsetNet: not one)
     paper_row: int | None = None  # its row in the paper's tables; None: after those, in registration order
+    named: tuple[tuple[str, str], ...] = ()  # (rot_loss, name): the paper's name of this model with that loss
 
 
 @dataclass(frozen=True)
@@ -123,6 +124,28 @@ def arch_names() -> tuple[str, ...]:
 def arch(name: str) -> ArchSpec:
     """The spec of architecture ``name``; KeyError when none is registered under it."""
     return _ARCHS[name]
+
+
+def display_name(arch: str, rot_loss: str, role: str = "") -> str:
+    """One model's name wherever it is shown (tables, figure legends, run names and descriptions), from its
+    registry entries: "BronchoTrack (ConvLSTM, MSE+CE)" for a model the paper names, else "LSTM (MSE+CE)".
+    ``role``: the name a table gives a model that has none of its own (Table 6's selected BronchoTrack). An
+    unregistered architecture or loss (an old run's tag) is shown as it is."""
+    model = _ARCHS[arch].model_name if arch in _ARCHS else arch
+    loss = _ROT_LOSSES[rot_loss].label if rot_loss in _ROT_LOSSES else rot_loss
+    name = dict(_ARCHS[arch].named).get(rot_loss, "") if arch in _ARCHS else ""
+    name = name or role
+    return f"{name} ({model}, {loss})" if name else f"{model} ({loss})"
+
+
+def short_name(arch: str, rot_loss: str) -> str:
+    """The display name where space is short (figure legends, run names), from the same entries: the paper's
+    name alone ("BronchoTrack"), else "LSTM MSE+CE"."""
+    name = dict(_ARCHS[arch].named).get(rot_loss, "") if arch in _ARCHS else ""
+    if name:
+        return name
+    model = _ARCHS[arch].model_name if arch in _ARCHS else arch
+    return f"{model} {_ROT_LOSSES[rot_loss].label if rot_loss in _ROT_LOSSES else rot_loss}"
 
 
 def table_order() -> list[ArchSpec]:
@@ -229,7 +252,7 @@ register(ArchSpec("baseline", "bronchocli.models.baseline:BaselineNet", label="B
 register(ArchSpec("lstm", "bronchocli.models.lstm:LSTMNet", label="+LSTM", model_name="LSTM",
                   paper_params_m="14.164", paper_row=2))
 register(ArchSpec("convlstm", "bronchocli.models.convlstm:ConvLSTMNet", label="+ConvRNN", model_name="ConvLSTM",
-                  paper_params_m="14.142", paper_row=4))
+                  paper_params_m="14.142", paper_row=4, named=(("ce", "BronchoTrack"),)))
 register(ArchSpec("conv3d", "bronchocli.models.conv3d:Conv3dNet", label="+3D", model_name="3D conv",
                   paper_params_m="13.983", paper_row=3))
 # Sganga et al. 2019 as the BronchoPose authors ran it: the sota and ablation tables, not Tables 2-5.

@@ -132,7 +132,7 @@ def test_the_metrics_and_the_loss_are_in_the_report_tables(toys):
     assert [r.label for r in t.rows if r.kind == "model"] == ["MSE+CE", "MSE+L1"]
     toy = [r.values[-1] for r in t.rows if r.kind == "model"]
     assert all(v is not None and v.mean > 0 for v in toy)
-    assert "toy X in voxels" in t.caption and "Toy X" not in " ".join(t.warnings)
+    assert t.columns[-1].heading == "Toy X (vox)" and "Toy X" not in " ".join(t.warnings)
     track = tracking(ctx, "pair")
     assert track.columns[-1].heading == "Settled (fr)"
     assert [r.label for r in track.rows if r.kind == "model"] == ["MSE+CE", "MSE+L1"]

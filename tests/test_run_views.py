@@ -86,7 +86,8 @@ def test_headline_ratios_and_skills_against_both_references():
 def test_description_states_the_cell_and_the_result():
     cell = Config(name="t").cell(arch="offsetnet", rot_loss="mse", population="cross-subject", fold="p02", seed=1)
     before = describe(cell, dataset="synthetic-cpu")
-    assert "offsetnet" in before and "test patient p02" in before and "seed 1" in before and "Test:" not in before
+    assert before.startswith("**OffsetNet (MSE+MSE)** (offsetnet/mse/cross-subject/p02/s1/world)")
+    assert "test patient p02" in before and "seed 1" in before and "Test:" not in before
     after = describe(cell, METRICS)
     assert "0.84 × the training-mean reference" in after and "position 0.16" in after
     assert after.startswith(f"**{HEADLINE} = 0.84**")  # the headline first
@@ -162,12 +163,12 @@ def test_the_sweep_parent_has_no_csv_import_params_unless_the_dataset_is_one():
     assert any(k.startswith("dataset.csv.") for k in csv)
 
 
-def test_run_names_put_the_telling_coordinates_first():
+def test_run_names_are_the_model_display_name_then_the_telling_coordinates():
     cfg = Config(name="t")
     assert run_name(cfg.cell(arch="convlstm", rot_loss="ce", population="personalized")) == \
-        "convlstm·ce·pers·s0·world"
+        "BronchoTrack · pers · s0 · world"
     assert run_name(cfg.cell(arch="lstm", rot_loss="mse", population="cross-subject", fold="p01", seed=3,
-                             pose_frame="camera", train_trajectories=5)) == "lstm·mse·xs-p01·s3·camera·t5"
+                             pose_frame="camera", train_trajectories=5)) == "LSTM MSE+MSE · xs-p01 · s3 · camera · t5"
 
 
 def test_parent_run_is_created_once_and_found_again(tmp_path):

@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.parse
 import urllib.request
 
@@ -217,6 +218,58 @@ def test_expose_listens_there_and_warns_naming_the_risk(tmp_path, cli, exec_argv
     (warning,) = [line for line in err.splitlines() if line.strip()]
     assert warning.startswith("warning: --expose: listening on 0.0.0.0") and "no authentication" in warning
     assert "basic-auth" in warning and "reverse proxy" in warning
+    # MLflow answers requests naming this machine (not only loopback), and the link names the machine
+    port = int(argv[argv.index("--port") + 1])
+    allowed = argv[argv.index("--allowed-hosts") + 1].split(",")
+    assert {socket.gethostname(), f"{socket.gethostname()}:{port}", "localhost:*"} <= set(allowed)
+    assert f"http://{socket.gethostname()}:{port}/#/experiments/" in out and "0.0.0.0" not in out
+
+
+def test_with_expose_a_request_naming_this_machine_reads_a_run_through_the_api(tmp_path):
+    """MLflow refuses a Host header it does not know (DNS-rebinding protection: 403 "Invalid Host header"), which
+    every browser on another machine sends; with --expose the server answers the machine's names. Tested on
+    loopback only: the server listens on 127.0.0.1 and the request goes there, naming the machine's hostname."""
+    (tmp_path / "experiments.yaml").write_text("name: expose-test\n")
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port), "--workers", "1", "--expose"],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+
+    def get(path: str, host: str) -> tuple[int, bytes]:
+        request = urllib.request.Request(f"http://127.0.0.1:{port}{path}", headers={"Host": host})
+        try:
+            with urllib.request.urlopen(request, timeout=10) as response:
+                return response.status, response.read()
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.read()
+
+    try:
+        deadline = time.monotonic() + 300  # a guard, not a timing claim: a starved shared CPU takes minutes
+        while True:
+            try:
+                if get("/health", f"127.0.0.1:{port}")[0] == 200:
+                    break
+            except OSError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
+            time.sleep(0.2)
+        query = urllib.parse.urlencode({"experiment_name": "expose-test"})
+        status, body = get(f"/api/2.0/mlflow/experiments/get-by-name?{query}", f"{socket.gethostname()}:{port}")
+        assert status == 200, body[:200]
+        experiment_id = json.loads(body)["experiment"]["experiment_id"]
+        request = urllib.request.Request(f"http://127.0.0.1:{port}/api/2.0/mlflow/runs/create", method="POST",
+                                         data=json.dumps({"experiment_id": experiment_id}).encode(),
+                                         headers={"Host": f"{socket.gethostname()}:{port}",
+                                                  "Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=10) as response:
+            run_id = json.load(response)["run"]["info"]["run_id"]
+        status, body = get(f"/api/2.0/mlflow/runs/get?run_id={run_id}", f"{socket.gethostname()}:{port}")
+        assert status == 200 and json.loads(body)["run"]["info"]["run_id"] == run_id
+        assert get(f"/api/2.0/mlflow/runs/get?run_id={run_id}", f"rebind.invalid:{port}")[0] == 403  # still guarded
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
 
 
 @pytest.mark.parametrize("host, loopback", [("127.0.0.1", True), ("127.0.0.2", True), ("localhost", True),

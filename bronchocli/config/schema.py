@@ -95,6 +95,11 @@ class Config(Section):
         return self._profile
 
     @property
+    def source(self) -> str:
+        """The file the config was read from ("<memory>" for one built in code)."""
+        return self._source
+
+    @property
     def experiment_name(self) -> str:
         return self.runs.experiment or self.name
 

@@ -30,14 +30,13 @@ import torch
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
-from ..training.batchnorm import mode_gap, recalibrate_bn
+from ..training.batchnorm import GAP_AT_MOST, mode_gap, recalibrate_bn
 from ..training.device import device_for, seed_everything
 from ..training.engine import build_network, settings
 from ..training.loop import Trainer
 from ..training.prepare import prepare
 
 OVERFIT_BELOW = 0.3  # eval-mode loss on the memorised samples ÷ the training-mean predictor's
-GAP_AT_MOST = 1.10  # eval-mode ÷ batch-statistics loss on training batches
 PAIRS = 30  # image pairs memorised, one full batch (pairwise: 30 pairs; temporal: 3 windows of 10)
 STEPS = 100
 

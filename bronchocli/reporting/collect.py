@@ -33,7 +33,8 @@ from urllib.request import url2pathname
 from ..cells import FIELDS
 from ..errors import BronchoError
 from ..runs.client import find_experiment
-from ..runs.records import TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, deleted_cell_runs, deleted_runs_line, search_runs
+from ..runs.records import (TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, deleted_cell_runs, deleted_runs_line, run_title,
+                            search_runs)
 from ..runs.views import config_value
 from .scope import PlanView, fetch_selections
 
@@ -94,6 +95,12 @@ class RunRecord:
     @property
     def label(self) -> str:
         return identity_label(self.identity)
+
+    @property
+    def title(self) -> str:
+        """The run's name in figure legends: the UI's run name (records.run_title: the model's display name and
+        the coordinates)."""
+        return run_title(*self.identity)
 
 
 def identity_label(ident: Identity) -> str:

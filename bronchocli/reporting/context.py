@@ -10,28 +10,19 @@ cells the table lacks, for one warning line per table.
 
 from __future__ import annotations
 
-from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from .. import registry
-from ..runs.records import TAG_INIT
 from .aggregate import Frames
-from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key, stop_reasons
+from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key
 from .judge import Line, Settings
-from .table_model import Row, Table, missing_cells
+from .table_model import Table, missing_cells
 
 BRONCHOTRACK = ("convlstm", "ce")  # the paper's BronchoTrack, when no sota stage selected one
 OFFSETNET = ("offsetnet", "mse")  # OffsetNet's own loss (Sganga et al.): MSE on position and rotation
 ABLATION_LOSS = "ce"  # every architecture with BronchoTrack's loss, so the rows differ in architecture only
-EVAL_TEXT = {
-    "accumulated": "Accumulated evaluation: the predicted relative poses of each test trajectory are chained from "
-                   "its true first pose and only the last pose is scored",
-    "pair": "Per-pair evaluation: the error of each predicted relative pose between consecutive frames",
-    "trajectory": "Camera tracking: the predicted relative poses of each test trajectory are chained from its true "
-                  "first pose and every frame is scored (per trajectory, then mean over trajectories)",
-}
 
 
 def losses() -> dict[str, str]:
@@ -52,31 +43,10 @@ def heading(metric: str) -> tuple[str, str]:
     return spec.label, spec.symbol
 
 
-def _prose(label: str) -> str:
-    """A label inside a sentence: "Position L2" -> "position L2"; an acronym ("DE") stays as it is."""
-    return label[0].lower() + label[1:] if label[1:2].islower() else label
-
-
-def units_text(table: str = "paper") -> str:
-    """The caption's units of a table group's metrics: "Units: position L2 in voxels, ..., CE unitless; lower is
-    better." (the direction of each, from registry.py)."""
-    specs = registry.metric_specs(table=table)
-    parts = [f"{_prose(s.label)} {s.unit}" if s.unit == "unitless" else f"{_prose(s.label)} in {s.unit}"
-             for s in specs]
-    higher = [s.label for s in specs if s.higher_is_better]
-    direction = "lower is better" + (f" except {', '.join(higher)} (higher is better)" if higher else "")
-    return f"Units: {', '.join(parts)}; {direction}."
-
-
 def arch_names(paper_tables: bool = False) -> dict[str, str]:
     """Architecture -> its row label, in the tables' row order (registry.py, read at each call: a registered
     architecture has rows too). ``paper_tables``: only the row groups of the personalized/cross-subject tables."""
     return {s.name: s.label for s in registry.table_order() if s.paper_tables or not paper_tables}
-
-
-def model_name(arch: str) -> str:
-    """The architecture's name in prose ("ConvLSTM"); an unregistered one (an old run's tag) as it is."""
-    return registry.arch(arch).model_name if arch in registry.arch_names() else arch
 
 
 Profiler = Callable[[str], Mapping[str, Any]]
@@ -99,7 +69,9 @@ class ReportContext:
     history: Callable[[str, str], Any] | None = None  # (run id, metric) -> [(step, value)]: fig-training-curves
     settings: Settings = field(default_factory=Settings)
     default_train_trajectories: int | None = None  # what train_trajectories "" means (config's splits.train)
+    profile_plans: Callable[[], Mapping[str, set]] | None = None  # profile -> its (arch, loss, population) combos
     _profiles: dict[str, Mapping[str, Any] | None] = field(default_factory=dict)
+    _plans: Mapping[str, set] | None = None
     _frames: dict[str, Any] = field(default_factory=dict)
 
     def profile(self, arch: str) -> Mapping[str, Any] | None:
@@ -108,6 +80,12 @@ class ReportContext:
         if arch not in self._profiles:
             self._profiles[arch] = self.profiler(arch)
         return self._profiles[arch]
+
+    def planned_by(self) -> Mapping[str, set]:
+        """Profile -> the (arch, rot_loss, population) combinations it plans (scope.profile_plans; read once)."""
+        if self._plans is None:
+            self._plans = self.profile_plans() if self.profile_plans is not None else {}
+        return self._plans
 
     def frames(self, runs: Sequence[RunRecord]) -> Frames:
         """Each run's trajectory errors (loaded once per run; several at a time, for remote artifact stores)."""
@@ -121,15 +99,27 @@ class ReportContext:
         return {r.run_id: self._frames[r.run_id] for r in runs}
 
 
+def metric_words(key: str) -> str:
+    """A selection metric's key in words: "val_best.pos_l2" -> "validation position L2"; a key the registry does
+    not know stays as it is."""
+    name = key.split(".", 1)[-1]
+    if name not in registry.metric_names():
+        return key
+    label = registry.metric(name).label
+    label = label[0].lower() + label[1:] if label[1:2].islower() else label
+    return f"validation {label}" if key.startswith("val") else label
+
+
 def bronchotrack(index: RunIndex) -> tuple[str, str, str]:
-    """(arch, rot_loss, how chosen) of BronchoTrack: the sota stage's top-1 selection, else ConvLSTM + MSE+CE."""
+    """(arch, rot_loss, how chosen, in words) of BronchoTrack: the sota stage's top-1 selection ("selected on
+    validation position L2"), else ConvLSTM + MSE+CE, the paper's ("")."""
     sel = index.selections.get("sota")
     if sel and sel.get("selected"):
         first = sel["selected"][0]
         arch, loss = first.get("arch", BRONCHOTRACK[0]), first.get("rot_loss", BRONCHOTRACK[1])
-        by = sel.get("by") or "a validation metric"
-        return arch, loss, f"BronchoTrack is the sota stage's selection (top 1 by {by}, validation)"
-    return (*BRONCHOTRACK, "BronchoTrack is ConvLSTM trained with MSE+CE (the paper's)")
+        by = metric_words(sel["by"]) if sel.get("by") else "a validation metric"
+        return arch, loss, f"selected on {by}"
+    return (*BRONCHOTRACK, "")
 
 
 class Collector:
@@ -162,6 +152,13 @@ class Collector:
         if self.expected is not None:
             return any(i[0] == arch and i[1] == loss for i in self.expected)
         return arch in self.index.archs and loss in self.index.losses
+
+    def ran(self, arch: str, loss: str) -> bool:
+        """Whether (arch, loss) itself is a config cell of the table (config mode) or has a run (sweep mode): no
+        cross product of the architectures and losses seen."""
+        if self.expected is not None:
+            return self.has(arch, loss)
+        return any(i[0] == arch and i[1] == loss and i[2] == self.population for i in self.index.runs)
 
     def wanted(self, arch: str, loss: str) -> list[Identity]:
         if self.expected is not None:
@@ -201,91 +198,24 @@ class Collector:
         return Line(group, label, self.runs(arch, loss), list(extra))
 
 
-def _span(values: Sequence[float], fmt: str = "{:,.0f}") -> str:
-    lo, hi = min(values), max(values)
-    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}–{fmt.format(hi)}"
-
-
-def n_text(rows: Sequence[Row], evaluation: str, folds: Sequence[str] = ()) -> str:
-    """'n per cell = 2 seeds × 12 test trajectories (276 pairs)', ranges when the rows differ."""
-    model = [r for r in rows if r.kind == "model" and r.info.get("replicates")]
-    if not model:
-        return ""
-    reps = [r.info["replicates"] for r in model]
-    trajs = [r.info["trajectories"] for r in model if r.info.get("trajectories")]
-    pairs = [r.info["pairs"] for r in model if r.info.get("pairs")]
-    text = f"n per cell = {_span(reps)} seed{'s' if max(reps) > 1 else ''}"
-    if trajs and evaluation == "trajectory":  # camera tracking: frames, the first pose of each trajectory given
-        text += (f" × {_span(trajs)} test trajectories ({_span(pairs)} frames after each trajectory's given first "
-                 f"pose: what CTF scores; ATE also counts the {_span(trajs)} first frames)")
-    elif trajs:
-        text += f" × {_span(trajs)} test trajectories ({_span(pairs)} pairs)"
-        if folds:
-            text += f" of {len(folds)} held-out patient{'s' if len(folds) > 1 else ''}"
-    elif folds:
-        text += f" ({len(folds)} held-out patients)"
-    del evaluation
-    return text + "."
-
-
-def budget_text(runs: Sequence[RunRecord]) -> str:
-    """Optimiser steps, pairs seen, epochs and stop reasons of the runs behind a table."""
-    if not runs:
-        return ""
-
-    def got(name: str) -> list[float]:
-        return [float(r.metrics[name]) for r in runs if name in r.metrics]
-
-    steps, seen, epochs = got("train.steps"), got("train.pairs_seen"), got("train.epochs")
-    parts = []
-    if steps:
-        parts.append(f"{_span(steps)} optimiser steps")
-    if seen:
-        parts.append(f"{_span(seen)} pairs seen (batch × steps)")
-    if epochs:
-        parts.append(f"{_span(epochs, '{:.1f}')} epochs")
-    reasons = Counter(stop_reasons(runs))
-    stop = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
-    text = "Budget per run: " + (", ".join(parts) if parts else "not logged")
-    return text + f"; stop reasons: {stop}."
-
-
-def init_text(runs: Sequence[RunRecord]) -> str:
-    """How the runs' backbones were initialised (their ``init`` tag): random, ImageNet or a file."""
-    if not runs:
-        return ""
-    seen = Counter(r.tag(TAG_INIT) for r in runs)
-    parts = []
-    for init, n in sorted(seen.items()):
-        if init == "random":
-            what = "random weights (no pretrained backbone)"
-        elif init.startswith("imagenet:"):
-            what = f"ImageNet weights (torchvision {init.split(':', 1)[1]})"
-        elif init.startswith("file:"):
-            what = f"weights from the file {init.split(':', 1)[1]}"
-        else:
-            what = "not recorded (runs made before the init tag: random unless model.pretrained was set)"
-        parts.append(what + (f" ({n} of {len(runs)} runs)" if len(seen) > 1 else ""))
-    return "Backbone initialisation: " + "; ".join(parts) + "."
-
-
-def provenance(ctx: ReportContext, c: Collector) -> str:
+def source_text(ctx: ReportContext, c: Collector) -> str:
+    """Where the table's numbers come from (the source line under the footnotes, not the caption)."""
     idx = ctx.index
     seeds = sorted(c.seeds, key=seed_key)
-    source = (f"the runs of this config's cells (cell_key), {'staged plan' if idx.plan and idx.plan.staged else 'grid'}"
+    source = (f"the runs of this config's cells ({'staged plan' if idx.plan and idx.plan.staged else 'grid'})"
               if idx.plan is not None else "every cell run of the sweep (latest per cell)")
-    size = f", train_trajectories {c.size}" if c.size else ""
+    size = f", {c.size} training trajectories per patient and lobe" if c.size else ""
     return (f"Sweep '{idx.sweep}' (MLflow experiment '{idx.experiment}'): {source}; pose frame '{c.frame}'{size}; "
-            f"seed{'s' if len(seeds) != 1 else ''} {', '.join(seeds) or '-'}. The MLflow run ids are listed with "
-            f"the table.")
+            f"seed{'s' if len(seeds) != 1 else ''} {', '.join(seeds) or '-'}.")
 
 
 PRECISION_NAMES = {"32": "fp32", "bf16-mixed": "bf16 autocast", "16-mixed": "fp16 autocast"}
 
 
-def precision_text(table: Table) -> tuple[str, str]:
-    """The caption's numerics statement and, when the rows trained at different precisions, a one-line warning.
-    From each run's ``speed.precision`` param; ("", "") when no run logged it (runs made before speed settings)."""
+def precision_text(table: Table) -> tuple[str, str, str]:
+    """(source statement, note, warning) on the numerics the rows trained at: one precision -> a source line;
+    rows at different precisions -> a note naming each row's (it is part of any difference between them) and a
+    warning. From each run's precision param; empty when no run logged it (runs made before speed settings)."""
     rows = {}
     for r in table.rows:
         got = sorted({PRECISION_NAMES.get(p, p) for run in r.info.get("runs", ())
@@ -293,29 +223,15 @@ def precision_text(table: Table) -> tuple[str, str]:
         if r.kind == "model" and got:
             rows[r.name] = "/".join(got)
     if not rows:
-        return "", ""
+        return "", "", ""
     kinds = sorted(set(rows.values()))
     if len(kinds) == 1:
-        return f"Numerics: every row trained at {kinds[0]} (speed.precision).", ""
+        return f"Numerics: every row trained at {kinds[0]}.", "", ""
     named = "; ".join(f"{name}: {p}" for name, p in rows.items())
-    return (f"Numerics differ between rows ({named}; speed.precision, the per-architecture speed settings): a "
-            f"difference between these rows includes their numerics."), (
-            f"{table.key}: rows trained at different precisions ({', '.join(kinds)}): the caption names each row's; "
-            f"set train.precision in the config to compare at equal numerics")
-
-
-def references_text() -> str:
-    return ("Zero motion / Training mean: image-blind references (every relative pose zero / the training set's "
-            "mean relative pose), scored on the same test trajectories and averaged over the table's runs; "
-            "reference intervals are over the test units only (trajectories, or patients for a new patient; the "
-            "references do not depend on the seed). † = the row has not beaten an image-blind model: the interval "
-            "of its paired comparison with the better reference on the shared test units (skill = 1 − error / "
-            "reference error; for CTF the difference) does not lie above 0 — the same verdict colours the skill "
-            "figure; per cell, no multiplicity correction.")
-
-
-IGNORES_TEXT = "‡ after a row's loss: its predictions vary less than 5% of the ground truth's (pred.std_ratio.pos " \
-               "< 0.05): it ignores its input."
+    return "", (f"Numerics differ between rows ({named}): a difference between these rows includes their "
+                f"numerics."), (
+            f"{table.key}: rows trained at different precisions ({', '.join(kinds)}): the table's note names each "
+            f"row's; set train.precision in the config to compare at equal numerics")
 
 
 def finish(table: Table, c: Collector, expected_empty: Sequence[str] = ()) -> Table:

@@ -22,6 +22,7 @@ from .context import Profiler
 from .curves import history_loader
 from .figures import errors_loader, mlflow_loader
 from .markdown import to_rich
+from .scope import profile_plans
 
 
 def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffixes: Sequence[str], out: Path, *,
@@ -38,6 +39,7 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
     console.print(rep.summary_index(index))
     ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client), history=history_loader(client),
+                            profile_plans=(lambda: profile_plans(cfg)) if sweep is None else None,
                             default_train_trajectories=None if sweep else cfg.splits.train)
     if profiles is not None:
         ctx.profiler = profiles

@@ -11,7 +11,7 @@
 
 A row whose sample ``stats.refusal`` refuses (2 seeds; fewer than
 ``stats.MIN_PATIENTS`` patients for a new-patient estimand) shows its mean
-only: no interval, no best/tie mark, no † and no skill; the caption says why.
+only: no interval, no best/tie mark, no † and no skill; a note says why (captions.refused_note).
 Each metric's interval keeps the figure inside its bounds (``scale_of``):
 percentages (CTF) on the logit scale, positive errors on the log scale.
 """
@@ -21,7 +21,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from .. import registry
-from .stats import MIN_PATIENTS, MIN_SEEDS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
+from .stats import MIN_PATIENTS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
 from .table_model import Row
 
 ESTIMAND_NAMES = {TRAJECTORY: "these patients", PATIENT: "a new patient"}
@@ -43,43 +43,25 @@ def _samples(rows: Sequence[Row]) -> list[Sample]:
 
 
 def _names(patients: Sequence[str]) -> str:
-    shown = ", ".join(patients[:6]) + (f" and {len(patients) - 6} more" if len(patients) > 6 else "")
+    shown = ", ".join(patients[:4]) + (f" and {len(patients) - 4} more" if len(patients) > 4 else "")
     return f"{len(patients)} patient{'s' if len(patients) != 1 else ''} ({shown})"
 
 
-def estimand_text(unit: str, rows: Sequence[Row]) -> str:
-    """The caption's statement of what every interval and test of the table is about, and on how many patients
-    it rests."""
+def estimand_phrase(unit: str, rows: Sequence[Row]) -> str:
+    """The caption's estimand in words (what every interval and test of the table is about) and how many
+    patients it rests on: "for new seeds and new test trajectories of these 3 patients (p00, p01, p02), not a
+    new patient"."""
     patients = sorted({k[0] for s in _samples(rows) for k in s.keys})
     if not patients:
         return ""
     reps = {r.info.get("replicates") for r in rows if r.kind == "model" and r.info.get("replicates")}
     if reps == {1}:  # one seed everywhere: the estimand is the trained model, said once
-        over = (f"new test trajectories of the {_names(patients)} tested" if unit == TRAJECTORY else
-                f"new patients and their trajectories (it rests on {_names(patients)})")
-        return (f"Estimand: the one trained model of each row (one seed) — every interval and test is about its "
-                f"mean over {over}; seed-to-seed variation is not measured, so it is not a claim about new seeds.")
+        over = (f"new test trajectories of these {_names(patients)}" if unit == TRAJECTORY else
+                f"new patients (resting on {_names(patients)})")
+        return f"about the one trained model of each row (one seed, not new seeds) on {over}"
     if unit == TRAJECTORY:
-        return (f"Estimand: these patients — every interval and test is about the mean over new seeds and new test "
-                f"trajectories of the {_names(patients)} tested (seeds and trajectories are the variance levels); "
-                f"it is not a claim about a new patient.")
-    text = (f"Estimand: a new patient — every interval and test is about the mean over new seeds, new patients and "
-            f"their trajectories; patients are a variance level (seed, patient, trajectory within patient), so "
-            f"it rests on {_names(patients)}")
+        return f"for new seeds and new test trajectories of these {_names(patients)}, not a new patient"
+    text = f"for a new patient (new seeds, patients and trajectories), resting on {_names(patients)}"
     if len(patients) < MIN_PATIENTS:
-        return (text + f": too few to measure how patients differ (a new-patient interval needs >= {MIN_PATIENTS}), "
-                       "so the cells show means only, without interval or marks.")
-    return text + (", and is wide with so few." if len(patients) < 10 else ".")
-
-
-def refused_text(rows: Sequence[Row]) -> str:
-    """Which rows show means only because their replicates are too few (2 seeds), and why."""
-    by_seeds = [r for r in rows if r.kind == "model" and 1 < (r.info.get("replicates") or 0) < MIN_SEEDS]
-    if not by_seeds:
-        return ""
-    models = [r for r in rows if r.kind == "model" and r.runs]
-    which = "every row" if len(by_seeds) == len(models) else ", ".join(r.name for r in by_seeds)
-    n = sorted({r.info["replicates"] for r in by_seeds})
-    return (f"Means only at {'/'.join(map(str, n))} seeds ({which}): no interval, no best or tie mark and no † — "
-            f"with 2 seeds a 95% interval holds the mean 89% of the time and the tests find differences that are "
-            f"not there too often (docs/reports.md); these need >= {MIN_SEEDS} seeds.")
+        return text + ": too few to measure how patients differ, so the cells show means only"
+    return text + (", hence wide" if len(patients) < 10 else "")

@@ -25,7 +25,7 @@ from urllib.request import url2pathname
 import numpy as np
 import pandas as pd
 
-from .. import metrics
+from .. import metrics, registry
 from ..cells import LOBES
 from ..io import save_figure
 from ..plots import error_curve_figure, trajectory_figure
@@ -162,7 +162,8 @@ def make_figures(index: RunIndex, load: Loader, out: Path, n_trajectories: int, 
     cache: dict[str, object] = {}
     load = _cached(load, cache)
     arch, loss, _ = bronchotrack(index)
-    chosen = {"BronchoTrack": _first_run(index, arch, loss), "OffsetNet": _first_run(index, *OFFSETNET)}
+    chosen = {registry.display_name(arch, loss, role="BronchoTrack"): _first_run(index, arch, loss),
+              registry.display_name(*OFFSETNET): _first_run(index, *OFFSETNET)}
     models = {name: df for name, run in chosen.items() if run is not None and (df := load(run)) is not None}
     for name in chosen.keys() - models.keys():
         warnings.append(f"figures: fig5-trajectories has no {name} curve (no FINISHED personalized run with "
@@ -174,11 +175,11 @@ def make_figures(index: RunIndex, load: Loader, out: Path, n_trajectories: int, 
         else:
             warnings.append("figures: fig5-trajectories skipped: the runs share no test trajectory")
     per_arch = {}
-    for arch, name in arch_names().items():
+    for arch in arch_names():
         run = _first_run(index, arch, ABLATION_LOSS)
         df = load(run) if run is not None else None
         if df is not None:
-            per_arch[name] = df
+            per_arch[registry.display_name(arch, ABLATION_LOSS)] = df
     if per_arch:
         for kind, fig in error_figures(per_arch).items():
             written += save_figure(fig, out / f"fig-error-{kind}", FORMATS)

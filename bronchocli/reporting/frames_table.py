@@ -17,20 +17,10 @@ import math
 
 from .. import registry
 from .aggregate import model_sample, replicates
+from .captions import ERRORS, budget_text, caption, init_text, one_seed_note, refused_note, seeds_phrase
 from .collect import FRAME, LOSS, POP
-from .context import (
-    EVAL_TEXT,
-    Collector,
-    NoData,
-    ReportContext,
-    arch_names,
-    budget_text,
-    finish,
-    init_text,
-    losses,
-    metrics_of,
-)
-from .estimand import estimand_text, refused_text, unit_of
+from .context import Collector, NoData, ReportContext, arch_names, finish, losses, metrics_of
+from .estimand import unit_of
 from .judge import judged, metric_rows
 from .stats import Sample, common_keys, derived, holm, skill
 from .table_model import Column, Estimate, Row, Table, Value
@@ -141,21 +131,18 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
                   f"labels, {population} population, {evaluation} evaluation", ("Model",), columns, rows)
     every = [r for f in FRAMES for ln in per_frame[f][0].values() for r in ln.runs]
     built_rows = [r for f in FRAMES for r in per_frame[f][1].rows]
-    table.caption = " ".join(p for p in [
-        f"{EVAL_TEXT[evaluation]}.",
-        estimand_text(unit, built_rows),
-        "Skill = 1 − error / error of the better image-blind reference (zero motion or training mean) of the same "
-        "pose frame, on the same test trajectories: 0 = no better than an image-blind model, 1 = perfect; higher is "
-        "better. Cells: skill [95% interval: delta-method t interval on log(error / reference error), so it stays "
-        "below 1; variance components over the estimand's levels, Satterthwaite df]. p: t test of equal skill in "
-        "the two frames (the test trajectories "
-        "shared by both frames and their references, seeds independent; delta method, two-sided), "
-        f"Holm-corrected over the rows of each metric; significant when < {s.alpha:g}.",
-        refused_text(built_rows).replace("no best or tie mark and no †", "no p"),
-        budget_text(every),
-        init_text(every),
-        f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
-    ])
+    what = ("Skill of each architecture trained with world labels (the paper's Euler differences) vs camera labels "
+            f"(SE(3) in the previous camera's frame), {population} population")
+    cell = (f"skill = 1 − error / error of the better image-blind reference of the same frame, from "
+            f"{ERRORS[evaluation]}, mean over {seeds_phrase(built_rows)}")
+    table.caption = caption(what, built_rows, evaluation, unit, cell=cell,
+                            direction="skill: 0 = no better than an image-blind model, 1 = perfect")
+    table.notes = [n for n in (
+        f"p: test of equal skill in the two frames (same test trajectories, seeds independent), Holm-corrected over "
+        f"the rows of each metric; significant when < {s.alpha:g}.",
+        refused_note(built_rows, "no interval and no p"), one_seed_note(built_rows)) if n]
+    table.source = [p for p in (f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
+                                budget_text(every), init_text(every)) if p]
     merged = collectors["world"]
     merged.lacking += collectors["camera"].lacking
     merged.warnings += [w for w in collectors["camera"].warnings if w not in merged.warnings]

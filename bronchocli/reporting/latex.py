@@ -3,7 +3,10 @@
 The document needs only packages of Debian's texlive-latex-base and
 texlive-latex-recommended (booktabs, xcolor, geometry). The ``table``
 environment between the ``% --- table`` markers can be pasted into a paper that
-loads booktabs. Marks: \\textbf = the column's significant best; \\textbf with
+loads booktabs and threeparttable: the caption heads the table, the footnotes
+of the marks it uses are its ``tablenotes`` (where threeparttable is not
+installed the document defines the two environments itself). The source and
+run ids follow the float, outside the markers. Marks: \\textbf = the column's significant best; \\textbf with
 $\\approx$ = tied for best; $\\dagger$ = does not beat the better image-blind
 reference; $\\ddagger$ after a label = ignores its input. Warnings go into the
 file as comments.
@@ -11,7 +14,7 @@ file as comments.
 
 from __future__ import annotations
 
-from .markdown import label_cells, legend_parts, run_lines
+from .markdown import label_cells, note_lines, run_lines
 from .table_model import MISSING, Table, cell_texts, marks
 
 _SPECIAL = {
@@ -23,7 +26,7 @@ _UNICODE = {
     "σ": r"\ensuremath{\sigma}", "μ": r"\ensuremath{\mu}", "Σ": r"\ensuremath{\Sigma}", "²": r"\ensuremath{^{2}}",
     "×": r"\ensuremath{\times}", "†": r"\ensuremath{^\dagger}", "‡": r"\ensuremath{^\ddagger}",
     "≈": r"\ensuremath{\approx}", "≥": r"\ensuremath{\geq}", "≤": r"\ensuremath{\leq}", "·": r"\ensuremath{\cdot}",
-    "Δ": r"\ensuremath{\Delta}", "’": "'", "‘": "`", "“": "``", "”": "''",
+    "Δ": r"\ensuremath{\Delta}", "α": r"\ensuremath{\alpha}", "’": "'", "‘": "`", "“": "``", "”": "''",
 }
 
 PREAMBLE = r"""\documentclass{article}
@@ -31,6 +34,10 @@ PREAMBLE = r"""\documentclass{article}
 \usepackage[margin=1.5cm]{geometry}
 \usepackage{booktabs}
 \usepackage{xcolor}
+\IfFileExists{threeparttable.sty}{\usepackage{threeparttable}}{%
+  \newenvironment{threeparttable}{\begin{minipage}{\linewidth}\centering}{\end{minipage}}%
+  \newenvironment{tablenotes}[1][]{\par\smallskip\begin{list}{}{\setlength{\leftmargin}{0pt}%
+    \setlength{\itemsep}{0pt}\setlength{\parsep}{0pt}\raggedright}}{\end{list}}}
 \pagestyle{empty}
 \begin{document}
 """
@@ -54,9 +61,9 @@ def _cell(text: str, mark: set[str]) -> str:
     return out
 
 
-def _legend(table: Table) -> str:
-    return "; ".join(escape(p).replace(escape("**bold**"), r"\textbf{bold}")
-                     for p in legend_parts(table, "**bold**")) + "."
+def _notes(table: Table) -> list[str]:
+    bold = escape("**Bold**")
+    return [r"\item[] " + escape(n).replace(bold, r"\textbf{Bold}") for n in note_lines(table)]
 
 
 def _body(table: Table) -> list[str]:
@@ -79,25 +86,36 @@ def _runs(table: Table) -> str:
 
 
 def table_environment(table: Table) -> str:
-    """The ``table`` float alone (booktabs), ready to paste into a paper."""
+    """The ``table`` float alone (booktabs, threeparttable), ready to paste into a paper."""
     spec = "l" * len(table.headers) + "r" * len(table.columns)
     head = [escape(h) for h in table.headers] + [escape(c.heading) for c in table.columns]
     lines = [r"\begin{table}[ht]", r"\centering", r"\small", r"\setlength{\tabcolsep}{4pt}",
-             rf"\caption{{{escape(table.caption)}}}",
+             r"\begin{threeparttable}", rf"\caption{{{escape(table.caption)}}}",
              rf"\label{{tab:{table.key}}}", rf"\begin{{tabular}}{{{spec}}}", r"\toprule",
-             " & ".join(head) + r" \\", r"\midrule", *_body(table), r"\bottomrule", r"\end{tabular}",
-             "", r"\medskip", r"\begin{minipage}{\linewidth}\footnotesize\raggedright", _legend(table)]
+             " & ".join(head) + r" \\", r"\midrule", *_body(table), r"\bottomrule", r"\end{tabular}"]
+    notes = _notes(table)
+    if notes:
+        lines += [r"\begin{tablenotes}[flushleft]", r"\footnotesize", *notes, r"\end{tablenotes}"]
+    lines += [r"\end{threeparttable}", r"\end{table}"]
+    return "\n".join(lines)
+
+
+def _source(table: Table) -> str:
+    """The source and run ids, after the float (not part of what a paper prints)."""
+    parts = [escape("Source: " + " ".join(table.source))] if table.source else []
     runs = _runs(table)
     if runs:
-        lines += [r"\par", runs]
-    lines += [r"\end{minipage}", r"\end{table}"]
-    return "\n".join(lines)
+        parts.append(runs)
+    if not parts:
+        return ""
+    return "\n".join([r"\begin{flushleft}\footnotesize", r"\par ".join(parts), r"\end{flushleft}"]) + "\n"
 
 
 def to_latex(table: Table) -> str:
     """A standalone document holding ``table_environment(table)``; warnings as comments."""
     head = [f"% {escape(table.title)} -- written by `bronchopose report`; compile with pdflatex.",
-            "% Needs booktabs; the table environment between the markers can be pasted into a paper."]
+            "% Needs booktabs and threeparttable; the table environment between the markers can be pasted into a "
+            "paper."]
     head += [f"% warning: {' '.join(w.splitlines())}" for w in table.warnings]
     return "\n".join(head) + "\n" + PREAMBLE + "% --- table begins\n" + table_environment(table) + \
-        "\n% --- table ends\n\\end{document}\n"
+        "\n% --- table ends\n" + _source(table) + "\\end{document}\n"

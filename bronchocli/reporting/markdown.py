@@ -3,8 +3,9 @@
 Marks: **bold** = the column's best, significantly better than every other
 row; **bold**≈ = tied for best (not significantly different from the lowest
 mean); † = does not beat the better image-blind reference; ‡ after a label =
-the model ignores its input. A legend under each table says so, with the
-test and alpha; the terminal rendering uses bold and dim text.
+the model ignores its input. The caption comes before the table, a footnote for
+each mark the table uses after it (captions.py), then its source and run ids;
+the terminal rendering uses bold and dim text.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ from __future__ import annotations
 from rich.table import Table as RichTable
 from rich.text import Text
 
-from .stats import ALPHA
-from .table_model import IGNORES, MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
+from .captions import footnotes
+from .table_model import MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
 
 
 def _md_escape(text: str) -> str:
@@ -33,24 +34,14 @@ def _md_cell(text: str, mark: set[str]) -> str:
     return text
 
 
-def legend_parts(table: Table, bold: str) -> list[str]:
-    """The legend's items with ``bold`` as the example of bold text (format-specific)."""
-    parts = []
-    if table.judged:
-        parts += [f"{bold} = best of its column, significantly better than every other network row (paired t test, "
-                  f"Holm-adjusted p < {ALPHA:g}; the image-blind references are judged by {NOSKILL} alone)",
-                  f"{bold}{TIE} = tied for best: not significantly different from the row with the lowest mean",
-                  f"{NOSKILL} = does not beat the better image-blind reference (the interval of its paired "
-                  f"comparison with that reference on the shared test units does not lie above 0; a row with "
-                  f"logged means only: its interval does not lie below the reference's mean)"]
-        if any("ignores" in r.flags for r in table.rows):
-            parts.append(f"{IGNORES} = ignores its input (prediction std < 5% of the ground truth's)")
-    parts.append(f"{MISSING} = no FINISHED run (see warnings)")
-    return parts
-
-
-def legend(table: Table) -> str:
-    return "Legend: " + "; ".join(legend_parts(table, "**bold**")) + "."
+def note_lines(table: Table, bold: str = "**Bold**") -> list[str]:
+    """The footnotes (captions.footnotes) as lines: "**Bold**: significantly better …", "†: …", or the note alone;
+    ``bold``: the format's bold example."""
+    out = []
+    for mark, text in footnotes(table):
+        label = {"bold": bold, f"bold{TIE}": f"{bold}{TIE}"}.get(mark, mark)
+        out.append(f"{label}: {text}" if label else text)
+    return out
 
 
 def label_cells(table: Table) -> list[list[str]]:
@@ -73,12 +64,16 @@ def run_lines(table: Table) -> list[str]:
 def to_markdown(table: Table) -> str:
     texts, mk = cell_texts(table), marks(table)
     head = list(table.headers) + [c.heading for c in table.columns]
-    lines = [f"### {table.title}", "", "| " + " | ".join(map(_md_escape, head)) + " |",
+    lines = [f"### {table.title}", ""] + ([table.caption, ""] if table.caption else [])
+    lines += ["| " + " | ".join(map(_md_escape, head)) + " |",
              "|" + ":---|" * len(table.headers) + "---:|" * len(table.columns)]
     for labels, row_texts, row_marks in zip(label_cells(table), texts, mk):
         cells = [_md_escape(x) for x in labels] + [_md_cell(t, m) for t, m in zip(row_texts, row_marks)]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", table.caption, "", legend(table)]
+    for note in note_lines(table):
+        lines += ["", note]
+    if table.source:
+        lines += ["", "Source: " + " ".join(table.source)]
     runs = run_lines(table)
     if runs:
         lines += ["", "Runs (MLflow run ids): " + "; ".join(runs) + "."]
@@ -90,7 +85,8 @@ def to_markdown(table: Table) -> str:
 def to_rich(table: Table):
     """A rich Table: bold best, bold + ≈ tied group, dim + † no better than the reference."""
     texts, mk = cell_texts(table), marks(table)
-    out = RichTable(title=table.title, caption=table.caption, caption_justify="left", title_justify="left")
+    text = "\n".join([table.caption] + note_lines(table, "bold"))
+    out = RichTable(title=table.title, caption=text, caption_justify="left", title_justify="left")
     for h in table.headers:
         out.add_column(h)
     for c in table.columns:

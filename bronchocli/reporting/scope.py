@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping
 
 from ..cells import FIELDS, Cell
-from ..config import Config
+from ..config import Config, load_config
+from ..errors import BronchoError
 from ..runs.records import TAG_KIND, TAG_SWEEP, search_runs
 from ..sweep.plan import plan_key, plan_stages
 from ..sweep.selection import TAG_PLAN, TAG_STAGE
@@ -106,6 +108,26 @@ def plan_view(cfg: Config, selections: Mapping[str, dict[str, Any]]) -> PlanView
             ids.append(ident)
         by_stage[sp.stage.name] = ids
     return PlanView(by_stage, keys, staged=bool(cfg.stages), selections=dict(selections))
+
+
+Combo = tuple[str, str, str]  # (arch, rot_loss, population)
+
+
+def profile_plans(cfg: Config) -> dict[str, set[Combo]]:
+    """Profile name -> the (arch, rot_loss, population) combinations its plan holds, for every profile of the
+    config's file (cells of selecting stages are not known before their sweep and are not counted). A profile
+    that does not load or plan here (e.g. its dataset is elsewhere) is left out."""
+    if cfg.source == "<memory>" or not Path(cfg.source).is_file():
+        return {}
+    out: dict[str, set[Combo]] = {}
+    for name in cfg.profiles:
+        try:
+            other = load_config(cfg.source, profile=name)
+            plans = plan_stages(other, None, sweep=other.name)
+        except BronchoError:
+            continue
+        out[name] = {(c.arch, c.rot_loss, c.population) for sp in plans for c in (sp.cells or [])}
+    return out
 
 
 def config_plan(client, experiment_ids: list[str], cfg: Config) -> PlanView:

@@ -2,9 +2,12 @@
 
 * ``fig-skill-<table>``: skill = 1 - error / error of the better image-blind
   reference, one bar per model row with its 95 % interval (t interval
-  on variance components over seeds and test trajectories, delta method), for position and
-  rotation L2 in the table's evaluation. 0 = no better than an image-blind
-  model; below 0 = worse.
+  on variance components over seeds and test trajectories, delta method), one
+  panel per error column of the table (position, rotation L2, DE, CE) in its
+  evaluation. 0 = no better than an image-blind model; below 0 = worse. A
+  lower bound that touches 0 (within 2 % of the panel's range) is written out,
+  so −0.003 does not read as 0 or above it; the title says which rows have no
+  bar only where some have none.
 * ``fig-learning-curve``: when the runs span several ``train_trajectories``
   values, per architecture (x loss) the per-pair position and rotation L2 and
   their skill against the training pairs (``train.train_pairs``), with 95 %
@@ -14,12 +17,14 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Sequence
 
 import matplotlib.pyplot as plt
 import numpy as np
 
+from .. import registry
 from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
@@ -32,15 +37,24 @@ FORMATS = ("png", "pdf")
 CURVE_EVAL = "pair"
 
 
+TOUCHES = 0.02  # a bound within this share of a panel's y range of 0 "touches" 0: its value is written out
+
+
 def skill_figure(table: Table):
-    """Bars of each model row's skill (position, rotation L2) with intervals; None when the table has none."""
+    """Bars of each model row's skill, one panel per error column of the table, with intervals; None when the
+    table has none."""
     names = [r.name for r in table.rows if r.kind == "model" and r.name in table.skill]
     if not names:
         return None
-    metrics = [m for m in metrics_of("skill") if any(m in table.skill[n] for n in names)]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(max(4.0, 0.55 * len(names) + 2.0) * len(metrics), 3.8),
+    metrics = [m for m in registry.metric_names() if any(m in table.skill[n] for n in names)]
+    cols = min(len(metrics), 2)
+    rows = -(-len(metrics) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(4.0, 0.55 * len(names) + 2.0) * cols, 3.6 * rows + 0.4),
                              squeeze=False)
-    for ax, m in zip(axes[0], metrics):
+    for ax in axes.flat[len(metrics):]:
+        ax.set_visible(False)
+    touching = False
+    for ax, m in zip(axes.flat, metrics):
         d = [table.skill[n].get(m) for n in names]
         x = np.arange(len(names))
         val = np.array([np.nan if s is None else s.value for s in d])
@@ -52,10 +66,25 @@ def skill_figure(table: Table):
         ax.set_ylabel(f"skill, {heading(m)[0]}")
         ax.set_title(f"{heading(m)[0]}: 1 − error / better reference", fontsize=9)
         ax.grid(axis="y", alpha=0.3)
+        low, high = ax.get_ylim()
+        for i, s in enumerate(d):
+            if s is not None and abs(s.lo) <= TOUCHES * (high - low):  # e.g. -0.003: say it, it is not 0
+                touching = True
+                ax.annotate(f"{s.lo:+.3g}", (i, s.lo), xytext=(4, -2), textcoords="offset points", fontsize=7,
+                            color="tab:red" if s.lo <= 0 else "tab:blue", va="top")
     units = {x.unit for r in table.rows if r.kind == "model" for x in r.info.get("samples", ()) if x is not None}
     about = ESTIMAND_NAMES.get(units.pop() if len(units) == 1 else "", "its table's estimand")
-    fig.suptitle(f"{table.title}\nbars: skill with 95% interval (estimand: {about}); blue = interval above 0 "
-                 f"(beats the better reference: no † in the table); rows with 2 seeds show no skill", fontsize=8)
+    lines = [table.title, f"bars: skill with 95% interval (estimand: {about}); blue = interval above 0 (beats the "
+                          f"better reference: no † in the table), grey = not"]
+    if touching:
+        lines[-1] += "; a lower bound at 0 is written out (red: ≤ 0)"
+    without = [r.name for r in table.rows if r.kind == "model" and r.runs and r.name not in table.skill]
+    if without:
+        refused = {r.name for r in table.rows if r.info.get("refused")}
+        why = "means only: too few seeds or patients" if set(without) <= refused else "no per-trajectory errors"
+        lines.append(f"no bar for {', '.join(without)} ({why})")
+    width = int(fig.get_figwidth() * 15)  # characters of fontsize 8 across the figure
+    fig.suptitle("\n".join(textwrap.fill(line, width) for line in lines), fontsize=8)
     fig.tight_layout()
     return fig
 

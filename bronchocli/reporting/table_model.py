@@ -76,11 +76,13 @@ class Table:
     headers: tuple[str, ...]  # headings of the label columns: ("Network", "Loss") or ("Model",)
     columns: list[Column]
     rows: list[Row]
-    caption: str = ""
+    caption: str = ""  # at most three sentences: what is compared, the estimand in words, n (captions.py)
+    notes: list[str] = field(default_factory=list)  # notes that apply (means-only rows, definitions), after the marks'
+    source: list[str] = field(default_factory=list)  # where the numbers come from: sweep, seeds, budget, numerics
     warnings: list[str] = field(default_factory=list)
     marks: list[list[set[str]]] | None = None  # rows x columns, from the builder
     skill: dict[str, dict[str, Any]] = field(default_factory=dict)  # row name -> metric -> stats.Derived
-    judged: bool = False  # the statistical legend applies
+    judged: bool = False  # the statistical marks apply
 
     @property
     def grouped(self) -> bool:

@@ -31,33 +31,26 @@ from typing import Callable, Mapping, Sequence
 from .. import registry
 from ..errors import BronchoError
 from .aggregate import EVALS, nonfinite_rows
+from .captions import budget_text, caption, init_text, one_seed_note, refused_note
 from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
-    EVAL_TEXT,
-    IGNORES_TEXT,
     OFFSETNET,
     Collector,
     NoData,
     ReportContext,
     arch_names,
     bronchotrack,
-    budget_text,
     finish,
     heading,
-    init_text,
     losses,
     metrics_of,
-    model_name,
-    n_text,
     precision_text,
-    provenance,
-    references_text,
-    units_text,
+    source_text,
 )
-from .estimand import estimand_text, refused_text, unit_of
+from .estimand import unit_of
 from .frames_table import frames
-from .judge import Line, method_text, metric_rows, one_seed_text, unsettled_text
+from .judge import Line, metric_rows
 from .table_model import Column, Row, Table, Value
 
 NUMBERS = {("personalized", "accumulated"): 2, ("personalized", "pair"): 3,
@@ -71,10 +64,10 @@ def _metric_columns(names: Sequence[str]) -> list[Column]:
 
 
 def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line], metrics: Sequence[str],
-           evaluation: str, extra: str = "", expected_empty: Sequence[str] = (), units: str = "",
+           evaluation: str, what: str, notes: Sequence[str] = (), expected_empty: Sequence[str] = (),
            population: str = "personalized") -> Table:
-    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption and warnings. ``units``: the
-    caption's units (default: the paper tables' metrics, registry.py); each metric's direction is registry.py's.
+    """Fill ``table`` from ``lines``: rows, reference rows, marks, skill, caption (``what`` is compared: its first
+    sentence; captions.py), notes (``notes`` and those that apply), source and warnings.
 
     No line at all (none of the config's cells belongs to this table, e.g. Table 4 of a sweep without
     cross-subject cells): ``NoData``, so the report skips it with one warning instead of printing a table of
@@ -87,21 +80,18 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     unit = unit_of(population)
     higher = [m for m in metrics if registry.metric(m).higher_is_better]
     built = metric_rows(lines, frames, metrics, evaluation, grouped=table.grouped,
-                        settings=ctx.settings, skill_metrics=metrics_of("skill"), higher=higher, unit=unit)
+                        settings=ctx.settings, higher=higher, unit=unit,
+                        skill_metrics=[m for m in metrics if registry.metric(m).per == "pose"])
     table.rows, table.marks, table.skill, table.judged = built.rows, built.marks, built.skill, True
-    parts = [f"{EVAL_TEXT[evaluation]}.", estimand_text(unit, table.rows), method_text(ctx.settings),
-             n_text(table.rows, evaluation, sorted(c.folds)), refused_text(table.rows)]
-    if extra:
-        parts.append(extra)
-    names = {m: heading(m)[0] for m in metrics}
-    parts.append(unsettled_text(built.unsettled, names, table.rows))
-    parts.append(one_seed_text(table.rows))
-    parts.append(references_text())
-    if any("ignores" in r.flags for r in table.rows):
-        parts.append(IGNORES_TEXT)
-    numerics, mixed = precision_text(table)
-    parts += [numerics, budget_text(every), init_text(every), units or units_text(), provenance(ctx, c)]
-    table.caption = " ".join(p for p in parts if p)
+    table.caption = caption(what, table.rows, evaluation, unit, folds=sorted(c.folds),
+                            higher=[heading(m)[0] for m in higher])
+    source, numerics, mixed = precision_text(table)
+    table.notes = [n for n in (refused_note(table.rows), one_seed_note(table.rows), *notes, numerics) if n]
+    if built.fallback:
+        table.notes.append(f"Logged means without interval, not ranked ({', '.join(built.fallback)}): their runs "
+                           f"have no per-trajectory errors; † there means the mean does not lie below the better "
+                           f"reference's.")
+    table.source = [p for p in (source_text(ctx, c), budget_text(every), init_text(every), source) if p]
     finish(table, c, expected_empty)
     if mixed:
         table.warnings.append(mixed)
@@ -116,6 +106,9 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     return table
 
 
+REFERENCES = "two image-blind references"
+
+
 def _why_missing(runs: Sequence[RunRecord], frames: Mapping[str, object]) -> str:
     """The true reason runs lack trajectory_errors.csv: their artifact folder is gone, or they predate it."""
     gone = {r.run_id: r.artifacts_gone for r in runs if frames.get(r.run_id) is None}
@@ -127,10 +120,52 @@ def _why_missing(runs: Sequence[RunRecord], frames: Mapping[str, object]) -> str
 
 
 def _grid_lines(c: Collector) -> list[Line]:
-    """The paper's architecture x loss layout, restricted to the combinations of the table's cells."""
+    """The paper's architecture x loss layout, restricted to the combinations of the table's cells; a planned
+    cell of an architecture outside the paper's groups (OffsetNet in a config without stages) gets its row after
+    them, never left out silently. No paper cell at all: no line (the table does not apply; Table 6 has
+    OffsetNet)."""
+    paper = arch_names(paper_tables=True)
+    if not any(c.has(arch, loss) for arch in paper for loss in losses()):
+        return []
     return [c.line(group, label, arch, loss)
-            for arch, group in arch_names(paper_tables=True).items() for loss, label in losses().items()
-            if c.has(arch, loss)]
+            for arch, group in arch_names().items() for loss, label in losses().items()
+            if (c.has(arch, loss) if arch in paper else c.ran(arch, loss))]
+
+
+def paper_cells() -> list[tuple[str, str]]:
+    """The (arch, rot_loss) cells of the paper's Tables 2/3: its row groups x its rotation losses (registry.py)."""
+    return [(a.name, lo) for a in registry.table_order() if a.paper_tables and a.paper_row is not None
+            for lo in losses()]
+
+
+def unplanned(ctx: ReportContext, c: Collector, population: str) -> tuple[str, str]:
+    """(note, warning) when the config plans only some of the paper's cells of this table: which it lacks and
+    the profiles of the config's file that plan them; ("", "") when it plans them all (or in sweep mode)."""
+    if c.expected is None:
+        return "", ""
+    planned = {(i[0], i[1]) for i in c.expected}
+    paper = paper_cells()
+    missing = [cell for cell in paper if cell not in planned]
+    if not missing:
+        return "", ""
+    groups: dict[str, list[str]] = {}
+    for arch, loss in missing:
+        groups.setdefault(registry.arch(arch).label, []).append(losses()[loss])
+    named = "; ".join(f"{g}: {', '.join(ls)}" for g, ls in groups.items())
+    need = {(a, lo, population) for a, lo in missing}
+    plans = ctx.planned_by()
+    full = [p for p, combos in plans.items() if need <= combos]
+    some = [(p, len(need & combos)) for p, combos in plans.items() if need & combos and p not in full]
+    if full:
+        where = (f"the profile{'s' if len(full) > 1 else ''} {', '.join(full)} plan{'' if len(full) > 1 else 's'} "
+                 f"them (bronchopose report --profile {full[0]})")
+    elif some:
+        where = "partly planned by " + ", ".join(f"the profile {p} ({n})" for p, n in some)
+    else:
+        where = "no profile of this config's file plans them"
+    note = (f"This config plans {len(paper) - len(missing)} of the paper's {len(paper)} {population} network/loss "
+            f"cells; not planned: {named}; {where}.")
+    return note, f"{c.table}: {note}"
 
 
 def personalized(ctx: ReportContext, evaluation: str) -> Table:
@@ -138,7 +173,18 @@ def personalized(ctx: ReportContext, evaluation: str) -> Table:
     n = NUMBERS[("personalized", evaluation)]
     table = Table(f"table{n}-personalized-{evaluation}", f"Table {n}. Personalized population, {evaluation} "
                   "evaluation", ("Network", "Loss"), _metric_columns(metrics_of("paper")), [])
-    return _build(ctx, c, table, _grid_lines(c), metrics_of("paper"), evaluation)
+    lines = _grid_lines(c)
+    what = (f"Networks and rotation losses ({_combinations(lines)}) against {REFERENCES}, trained and "
+            f"tested on the same patients (personalized population)")
+    note, warning = unplanned(ctx, c, "personalized")
+    _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what, [note] if note else [])
+    if warning:
+        table.warnings.append(warning)
+    return table
+
+
+def _combinations(lines: Sequence[Line]) -> str:
+    return f"{len(lines)} combination{'s' if len(lines) != 1 else ''}"
 
 
 def _mean_rank(rows: Sequence[Row], metrics: Sequence[str]) -> list[float]:
@@ -176,13 +222,14 @@ def cross_subject(ctx: ReportContext, evaluation: str) -> Table:
     table = Table(f"table{n}-cross-subject-{evaluation}", f"Table {n}. Cross-subject population, {evaluation} "
                   "evaluation", ("Network", "Loss"), _metric_columns(metrics_of("paper")), [])
     lines = _grid_lines(c)
-    pooled = ("Leave-one-patient-out: a replicate is one seed's runs over every held-out patient (held-out: "
-              f"{', '.join(sorted(c.folds)) or '-'}); its value is the metric over the union of their test "
-              f"{'pairs' if evaluation == 'pair' else 'trajectories'}.")
-    _build(ctx, c, table, lines, metrics_of("paper"), evaluation, pooled, population="cross-subject")
+    what = (f"Networks and rotation losses ({_combinations(lines)}) against {REFERENCES}, "
+            f"leave-one-patient-out: each model is tested on the patient it did not see (cross-subject population)")
+    pooled = (f"A replicate is one seed's models over every held-out patient ({', '.join(sorted(c.folds)) or '-'}), "
+              f"scored on the union of their test {'pairs' if evaluation == 'pair' else 'trajectories'}.")
+    _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what, [pooled], population="cross-subject")
     if ctx.best > 0:
-        note = _keep_best(table, ctx.best, metrics_of("paper"))
-        table.caption = table.caption.replace(pooled, f"{pooled} {note}")
+        table.notes.insert(0, _keep_best(table, ctx.best, metrics_of("paper")))
+        table.caption = caption(what, table.rows, evaluation, unit_of("cross-subject"), folds=sorted(c.folds))
     return table
 
 
@@ -191,7 +238,7 @@ def _params_m(c: Collector, runs, name: str) -> float | None:
         if "n_params" in r.metrics:
             return r.metrics["n_params"] / 1e6
     if runs:
-        c.warn(f"missing: {name}: no run logged n_params")
+        c.warn(f"missing: {name}: no run logged n_params (the Params column)")
     return None
 
 
@@ -199,8 +246,8 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "sota", "personalized")
     arch, loss, how = bronchotrack(ctx.index)
     lines = []
-    for (a, lo), name in (((arch, loss), f"BronchoTrack ({model_name(arch)}, {losses().get(loss, loss)})"),
-                          (OFFSETNET, "OffsetNet (MSE+MSE)")):
+    ours = registry.display_name(arch, loss, role="BronchoTrack")
+    for (a, lo), name in (((arch, loss), ours), (OFFSETNET, registry.display_name(*OFFSETNET))):
         if c.expected is not None and not c.wanted(a, lo):
             c.warn(f"sota: this config has no {a}/{lo} personalized cell, so the {name} row is empty")
         line = c.line("", name, a, lo)
@@ -210,9 +257,10 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
                   "evaluation", ("Model",), [Column("Params", "M", highlight=False, decimals=3)]
                   + _metric_columns(metrics_of("paper")),
                   [])
-    extra = (f"{how}; OffsetNet is trained with MSE on position and rotation, its original loss. Params: trainable "
-             "parameters of the trained model (n_params), millions.")
-    return _build(ctx, c, table, lines, metrics_of("paper"), evaluation, extra)
+    what = (f"{ours}{', ' + how + ',' if how else ''} against OffsetNet with its original MSE loss and {REFERENCES}, "
+            f"personalized population")
+    return _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what,
+                  ["Params: trainable parameters of the trained model, in millions."])
 
 
 def _profile_values(ctx: ReportContext, c: Collector, arch: str, runs) -> list[Value]:
@@ -232,8 +280,7 @@ def _profile_caption(ctx: ReportContext) -> str:
     p = profs[0]
     return (f"Latency: median time of one forward over a window of {p.get('window', '?')} pairs at batch 1 divided "
             f"by its pairs, on {p.get('device', '?')}, {p.get('image_size', '?')}x{p.get('image_size', '?')} input, "
-            f"precision {p.get('precision', '?')}; GMAC: convolution/linear multiply-accumulates per pair "
-            f"(bronchopose profile).")
+            f"precision {p.get('precision', '?')}; GMAC: convolution and linear multiply-accumulates per pair.")
 
 
 def ablation(ctx: ReportContext, evaluation: str) -> Table:
@@ -250,23 +297,11 @@ def ablation(ctx: ReportContext, evaluation: str) -> Table:
                Column("GMAC/pair", highlight=False, decimals=3)] + _metric_columns(metrics_of("ablation"))
     table = Table(f"table7-ablation-{evaluation}", f"Ablation: cost and accuracy per architecture, personalized "
                   f"population, {evaluation} evaluation", ("Network",), columns, [])
-    extra = (f"Every architecture trained with {losses()[ABLATION_LOSS]}; only the error columns are judged. "
-             + _profile_caption(ctx))
+    what = (f"Cost and accuracy of each architecture, every one trained with {losses()[ABLATION_LOSS]} (personalized "
+            f"population), against {REFERENCES}; only the error columns are judged")
     unmeasured = [col.heading for col in columns[1:3]] if ctx.profiler is None else []
-    return _build(ctx, c, table, lines, metrics_of("ablation"), evaluation, extra, unmeasured)
-
-
-# The literature's definitions of the tracking table's metrics (registry.py names, labels and units them).
-TRACKING_UNITS = ("CTF: share of frames 1..N-1 (the first pose is given) whose position error is below the position "
-                  "threshold and whose rotation error (geodesic angle) is below the angle threshold, %, higher is "
-                  "better; CTF mm (the literature's threshold, in mm from the dataset's voxel spacing) is the primary "
-                  "column, CTF vox (the threshold in voxels) the secondary one; its interval is built on the logit "
-                  "scale, so it stays within 0-100%; ATE: RMSE of the "
-                  "position error over every frame, no alignment, voxels and mm; RPE: RMSE over every frame i of "
-                  "the error of the relative motion from frame i to i + gap (translation in voxels, rotation in "
-                  "degrees; TUM definition); Drift: final position error / ground-truth path length, %. Lower is "
-                  "better except CTF: in the CTF columns the best is the highest mean and † means the interval does "
-                  "not lie above the better reference's mean.")
+    return _build(ctx, c, table, lines, metrics_of("ablation"), evaluation, what, [_profile_caption(ctx)],
+                  unmeasured)
 
 
 def _thresholds_text(c: Collector, runs) -> str:
@@ -275,15 +310,19 @@ def _thresholds_text(c: Collector, runs) -> str:
              "eval.rpe_gap": "{:g} frames"}
     seen = {k: sorted({v for r in runs if (v := r.setting(k)) is not None}) for k in names}
     if not any(seen.values()):
-        return "Thresholds: not logged by these runs."
+        return ("CTF: share of the frames after the given first one tracked within the position and angle "
+                "thresholds (not logged by these runs); ATE: RMSE of the position error over every frame; RPE: "
+                "RMSE of the relative-motion error over a frame gap; drift: final position error / path length.")
     for k, values in seen.items():
         if len(values) > 1:
             c.warn(f"tracking: the runs used different {k} ({', '.join(f'{v:g}' for v in values)}); their CTF/RPE "
                    f"are not comparable")
     text = {k: "/".join(fmt.format(v) for v in seen[k]) or "?" for k, fmt in names.items()}
-    return (f"Thresholds (config eval:): position {text['eval.ctf_position_mm']} (CTF mm) / "
-            f"{text['eval.ctf_position']} (CTF vox), angle {text['eval.ctf_angle']}; RPE gap {text['eval.rpe_gap']} "
-            f"(a test trajectory shorter than the gap has no RPE and is left out of those columns).")
+    return (f"CTF: share of the frames after the given first one with position error below "
+            f"{text['eval.ctf_position_mm']} (CTF mm) or {text['eval.ctf_position']} (CTF vox) and rotation error "
+            f"below {text['eval.ctf_angle']}; ATE: RMSE of the position error over every frame, unaligned; RPE: RMSE "
+            f"of the relative-motion error over {text['eval.rpe_gap']} (trajectories shorter than that have none); "
+            f"drift: final position error / ground-truth path length.")
 
 
 def tracking(ctx: ReportContext, evaluation: str) -> Table:
@@ -297,7 +336,8 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
     order = tracking_order(every)
     table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",
                   ("Network", "Loss"), _metric_columns(order), [])
-    return _build(ctx, c, table, lines, order, "trajectory", _thresholds_text(c, every), units=TRACKING_UNITS)
+    what = f"Camera-tracking metrics of each network and loss against {REFERENCES}, personalized population"
+    return _build(ctx, c, table, lines, order, "trajectory", what, [_thresholds_text(c, every)])
 
 
 def tracking_order(runs: Sequence[RunRecord]) -> list[str]:

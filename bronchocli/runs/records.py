@@ -18,7 +18,7 @@ from typing import Any, Iterable, Mapping
 from mlflow.entities import Metric, Param, Run, RunTag, ViewType
 from mlflow.tracking import MlflowClient
 
-from .. import __version__, urls
+from .. import __version__, registry, urls
 from ..cells import FIELDS, Cell
 from ..config import Config
 
@@ -99,14 +99,23 @@ def non_empty(tags: Mapping[str, Any]) -> dict[str, str]:
 POPULATION_SHORT = {"personalized": "pers", "cross-subject": "xs"}
 
 
+def run_title(arch: str, rot_loss: str, population: str, fold: str | None, seed: object, pose_frame: str,
+              train_trajectories: object = None) -> str:
+    """A cell run's name wherever one run is named (the UI's run name, the report's figure legends): the model's
+    short display name (``registry.short_name``), then the coordinates that tell its runs apart:
+    ``BronchoTrack · pers · s0 · world``, ``LSTM MSE+DE · xs-p01 · s3 · camera · t5`` (cross-subject: the test
+    patient; ``t5``: a training-set size)."""
+    parts = [registry.short_name(arch, rot_loss), POPULATION_SHORT.get(population, population)
+             + (f"-{fold}" if fold else ""), f"s{seed}", pose_frame]
+    if train_trajectories not in (None, ""):
+        parts.append(f"t{train_trajectories}")
+    return " · ".join(parts)
+
+
 def run_name(cell: Cell) -> str:
-    """The cell as a run name, most telling coordinates first and short: ``convlstm·ce·pers·s0·world``
-    (cross-subject: ``xs-p01``; ``·t5`` for a training-set size). The full label is in the description."""
-    parts = [cell.arch, cell.rot_loss, POPULATION_SHORT.get(cell.population, cell.population)
-             + (f"-{cell.fold}" if cell.fold else ""), f"s{cell.seed}", cell.pose_frame]
-    if cell.train_trajectories is not None:
-        parts.append(f"t{cell.train_trajectories}")
-    return "·".join(parts)
+    """The cell as a run name (``run_title``); the full coordinates are in the description."""
+    return run_title(cell.arch, cell.rot_loss, cell.population, cell.fold, cell.seed, cell.pose_frame,
+                     cell.train_trajectories)
 
 
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:

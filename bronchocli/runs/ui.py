@@ -64,9 +64,49 @@ def app_registered() -> bool:
     return any(ep.name == APP_NAME for ep in importlib.metadata.entry_points(group="mlflow.app"))
 
 
-def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, app: bool = True) -> list[str]:
+EVERY_INTERFACE = ("0.0.0.0", "::")
+
+
+def _names_of_this_machine(host: str) -> set[str]:
+    """The names and addresses a browser elsewhere reaches this machine by: its hostname and FQDN, ``host`` when
+    it names one interface, and the addresses they resolve to."""
+    names = {socket.gethostname(), socket.getfqdn()}
+    if host not in EVERY_INTERFACE:
+        names.add(host)
+    for name in list(names):
+        try:
+            names |= {info[4][0] for info in socket.getaddrinfo(name, None, type=socket.SOCK_STREAM)}
+        except OSError:
+            continue
+    return {n for n in names if n}
+
+
+def allowed_hosts(host: str, port: int) -> list[str]:
+    """The Host headers the server answers with ``--expose``: MLflow's defaults (loopback, private addresses) and
+    this machine's names and addresses, bare and with the port (an IPv6 address in brackets). Without it MLflow
+    answers a request naming the machine's hostname with 403 "Invalid Host header" (DNS-rebinding protection)."""
+    from mlflow.server.security_utils import get_default_allowed_hosts  # lazy: mlflow.server loads Flask; --expose only
+
+    out = list(get_default_allowed_hosts())
+    for name in sorted(_names_of_this_machine(host)):
+        shown = f"[{name}]" if ":" in name else name
+        out += [shown, f"{shown}:{port}"]
+    return out
+
+
+def link_host(host: str) -> str:
+    """The host of the printed link: the machine's hostname when listening on every interface (0.0.0.0 is no
+    address a browser can open), else ``host`` (an IPv6 literal in brackets)."""
+    if host in EVERY_INTERFACE:
+        return socket.gethostname()
+    return f"[{host}]" if ":" in host else host
+
+
+def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, app: bool = True,
+               expose: bool = False) -> list[str]:
     """The `mlflow ui` argv serving the config's artifact root with ``workers`` processes, through the front
-    page's app (``uiapp``) when ``app``.
+    page's app (``uiapp``) when ``app``; with ``expose``, answering requests that name this machine
+    (``allowed_hosts``).
 
     The store's URI is not on it (a process's argv is public in ``ps``; the URI may hold a password): it goes
     through the environment (``server_env``, ``MLFLOW_BACKEND_STORE_URI``, which `mlflow ui` reads)."""
@@ -77,6 +117,8 @@ def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, ap
             "--workers", str(workers or default_workers())]
     if app:
         argv += ["--app-name", APP_NAME]
+    if expose:
+        argv += ["--allowed-hosts", ",".join(allowed_hosts(host, port))]
     if not urls.is_server(cfg.paths.mlflow_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
@@ -147,7 +189,7 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
     check_port(host, port)
     check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
     app = app_registered()
-    argv = ui_command(cfg, host, port, workers, app=app)
+    argv = ui_command(cfg, host, port, workers, app=app, expose=expose)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)
@@ -155,7 +197,7 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
     exp_id = experiment_id(client, cfg)  # created now if no run exists yet: the link works at once
     mark_training_experiment(client, exp_id)
     client.set_experiment_tag(exp_id, SHARED_VIEW_TAG + VIEW_KEY, saved_view(headline_view(), int(time.time() * 1000)))
-    base = f"http://{host}:{port}"
+    base = f"http://{link_host(host)}:{port}"
     if not app:
         (warn or (lambda line: print(line, file=sys.stderr, flush=True)))(
             f"warning: MLflow does not know the app {APP_NAME!r} (bronchocli installed before it existed): the UI's "

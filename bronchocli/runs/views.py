@@ -54,6 +54,7 @@ import json
 import math
 from collections.abc import Mapping
 
+from .. import registry
 from ..cells import Cell
 from ..config import RUN_SECTIONS, Config
 from .records import flatten
@@ -181,7 +182,7 @@ def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
 def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "") -> str:
     """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result,
     the headline first."""
-    lines = [f"**{cell.label}**: {cell.arch} trained with the {cell.rot_loss} rotation loss, {cell.population}"
+    lines = [f"**{registry.display_name(cell.arch, cell.rot_loss)}** ({cell.label}): {cell.population}"
              + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
              f"{cell.pose_frame}-frame relative poses"
              + (f", {cell.train_trajectories} training trajectories per patient and lobe"

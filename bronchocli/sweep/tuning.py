@@ -336,7 +336,7 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
                 raise RunPruned(f"pruned by the {cfg.tune.pruner} pruner at step {step} ({reported} {value:.4g})")
 
         tags = {"run_kind": "trial", "study": name, "trial": str(trial.number),
-                "mlflow.runName": f"trial-{trial.number}·{run_name(cell)}",
+                "mlflow.runName": f"trial-{trial.number} · {run_name(cell)}",
                 "hparams_source": f"optuna:{name}#{trial.number}"}
         if parent is not None:
             tags[TAG_PARENT] = parent

@@ -23,6 +23,8 @@ from contextlib import contextmanager
 import torch
 from torch import nn
 
+GAP_AT_MOST = 1.10  # the largest mode gap the memorisation self-test accepts (diagnostics/learning.py)
+
 
 def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
     return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]

@@ -25,7 +25,7 @@ def test_frames_table_compares_skill_in_each_frames_own_terms():
     assert p.endswith("(significant)")
     assert convlstm.values[0].mean == pytest.approx(convlstm.values[1].mean, abs=0.03)
     assert not convlstm.values[2].endswith("(significant)")
-    assert "Holm-corrected over the rows" in t.caption and "own" not in t.warnings
+    assert "Holm-corrected over the rows" in t.notes[0] and "own" not in t.warnings
 
 
 def test_frames_table_needs_both_frames_and_is_skipped_with_one_line():
@@ -41,7 +41,7 @@ def test_frames_table_needs_both_frames_and_is_skipped_with_one_line():
 def test_main_tables_use_one_frame_when_runs_span_both():
     ctx = frames_runs().context()
     t = build_tables(ctx, ["personalized"], ["pair"])[0]
-    assert "pose frame 'world'" in t.caption
+    assert "pose frame 'world'" in t.source[0]
     assert any("the main tables use world" in n for n in ctx.index.notes)
     md = to_markdown(t)
     assert md.count("| +LSTM |") == 1
@@ -97,4 +97,4 @@ def test_frames_table_at_two_seeds_shows_skill_means_only():
     t = frames(m.context(), "pair")
     world, camera, p = t.rows[0].values[:3]
     assert isinstance(world, Estimate) and not world.has_interval and not camera.has_interval and p == "—"
-    assert "Means only at 2 seeds (every row): no interval, no p" in t.caption
+    assert any("Means only at 2 seeds (every row): no interval and no p" in n for n in t.notes)

@@ -1,11 +1,11 @@
-"""Every table caption states how the backbones of its runs were initialised (issue 23, item 3)."""
+"""Every table's source line states how the backbones of its runs were initialised (issue 23, item 3)."""
 
 from __future__ import annotations
 
 import pytest
 from report_fakes import MemRuns, frames_runs
 
-from bronchocli.reporting.context import init_text
+from bronchocli.reporting.captions import init_text
 from bronchocli.reporting.tables import TABLES, NoData
 
 IMAGENET = "imagenet:efficientnet_b0_rwightman-7f5810bc.pth"
@@ -25,7 +25,7 @@ def _runs(init: str) -> MemRuns:
 @pytest.mark.parametrize("init, says", [("random", "Backbone initialisation: random weights (no pretrained backbone)."),
                                         (IMAGENET, "Backbone initialisation: ImageNet weights (torchvision "
                                                    "efficientnet_b0_rwightman-7f5810bc.pth).")])
-def test_every_table_caption_states_the_initialisation(name, init, says):
+def test_every_table_source_states_the_initialisation(name, init, says):
     m = frames_runs() if name == "frames" else _runs(init)
     if name == "frames":
         for i, r in enumerate(m.records):
@@ -34,7 +34,7 @@ def test_every_table_caption_states_the_initialisation(name, init, says):
         table = TABLES[name](m.context(), "accumulated")  # tables built once (tracking) ignore it
     except NoData:
         pytest.skip(f"{name}: no data in this fabricated sweep")
-    assert says in table.caption
+    assert says in table.source
 
 
 def test_mixed_and_unrecorded_initialisations_are_counted():

@@ -7,6 +7,7 @@ import pytest
 from report_fakes import REFS, MemRuns
 
 from bronchocli.reporting import judge, stats
+from bronchocli.reporting.captions import footnotes
 from bronchocli.reporting.table_model import Estimate
 from bronchocli.reporting.tables import ablation, cross_subject, personalized, sota
 
@@ -99,7 +100,8 @@ def test_a_row_no_better_than_the_reference_and_one_that_ignores_its_input_are_m
     assert all("noskill" in t.marks[bad][j] for j in METRIC_COLS)
     assert not any("noskill" in t.marks[good][j] for j in METRIC_COLS)
     assert t.rows[bad].flags == {"ignores"} and t.rows[good].flags == set()
-    assert "ignores its input" in t.caption
+    assert ("‡", "the model ignores its input: its predictions vary less than 5% of the ground truth's.") in \
+        footnotes(t)
 
 
 def test_cell_mean_is_the_mean_over_seeds_of_the_logged_run_metric():
@@ -108,7 +110,7 @@ def test_cell_mean_is_the_mean_over_seeds_of_the_logged_run_metric():
     for ev, name in (("pair", "pair.pos_l2.mean"), ("accumulated", "acc.pos_l2.mean")):
         t = personalized(m.context(), ev)
         assert t.rows[0].values[0].mean == pytest.approx(np.mean([r.metrics[name] for r in runs]))
-    assert "n per cell = 3 seeds × 24 test trajectories" in t.caption
+    assert "n = 3 seeds × 24 test trajectories" in t.caption
 
 
 def test_cross_subject_replicate_is_the_union_of_its_folds():
@@ -119,7 +121,7 @@ def test_cross_subject_replicate_is_the_union_of_its_folds():
     w = [r.metrics["test.n_pairs"] for r in runs]
     pooled = sum(wi * r.metrics["pair.pos_l2.mean"] for wi, r in zip(w, runs)) / sum(w)
     assert t.rows[0].values[0].mean == pytest.approx(pooled)
-    assert "of 2 held-out patients" in t.caption and "held-out: p00, p01" in t.caption
+    assert "of 2 held-out patients" in t.caption and any("every held-out patient (p00, p01)" in n for n in t.notes)
 
 
 def test_a_seed_missing_a_fold_is_left_out_and_said_so():
@@ -226,11 +228,29 @@ def test_dagger_and_skill_colour_are_one_paired_verdict_where_the_unpaired_rule_
     assert "noskill" not in t.marks[i][1]
     fig = skill_figure(t)
     names = [r.name for r in t.rows if r.kind == "model" and r.name in t.skill]
-    for ax_blue, metric in zip(_bar_colours(fig), ("pos_l2", "rot_l2")):
+    # every error column of the table has its panel (DE, CE too), and nothing is said about 2 seeds at 3
+    assert [ax.get_ylabel() for ax in fig.axes] == ["skill, Position L2", "skill, Rotation L2", "skill, DE",
+                                                     "skill, CE"]
+    assert "seeds" not in fig._suptitle.get_text() and "no bar" not in fig._suptitle.get_text()
+    for ax_blue, metric in zip(_bar_colours(fig), ("pos_l2", "rot_l2", "de", "ce")):
         for name, blue in zip(names, ax_blue):
             row = next(k for k, r in enumerate(t.rows) if r.name == name)
             column = 1 + ["pos_l2", "rot_l2", "de", "ce"].index(metric)
             assert blue == ("noskill" not in t.marks[row][column]) == judge.beats_reference(t.skill[name][metric])
+
+
+def test_a_lower_bound_that_touches_0_is_written_out():
+    from bronchocli.reporting.skill_figures import skill_figure
+    from bronchocli.reporting.table_model import Column, Row, Table
+
+    rows = [Row("", "A", [1.0], ["r1"]), Row("", "B", [1.0], ["r2"])]
+    t = Table("t", "T", ("Model",), [Column("Position L2")], rows)
+    t.skill = {"A": {"pos_l2": stats.Derived(0.30, -0.003, 0.6, 0.06, 4.0)},
+               "B": {"pos_l2": stats.Derived(0.50, 0.25, 0.75, 0.001, 4.0)}}
+    fig = skill_figure(t)
+    texts = [x.get_text() for x in fig.axes[0].texts]
+    assert texts == ["-0.003"]  # A's bound, not B's (far from 0)
+    assert "a lower bound at 0 is written out" in " ".join(fig._suptitle.get_text().split())
 
 
 def test_a_row_at_the_references_level_is_dagger_and_grey_by_the_same_test():

@@ -79,7 +79,7 @@ eval: {{rpe_gap: 3}}
                   "|  | Training mean |"):
         row = next((line for line in tracking.splitlines() if line.startswith(model)), tracking)
         assert "—" not in row and row.count("[") == 7, row  # CTF, CTF mm, ATE vox/mm, RPE trans/rot, drift
-    assert "RPE gap 3 frames" in tracking and not (out / "table9-tracking-pair.md").exists()
+    assert "relative-motion error over 3 frames" in tracking and not (out / "table9-tracking-pair.md").exists()
 
 
 def check_parent(cfg, written: set[str], stdout: str) -> None:

@@ -44,7 +44,8 @@ def test_marks_render_as_bold_tie_and_dagger():
     assert "| A | r0 | **1.00 [0.90, 1.10]**≈ |" in md
     assert "|  | r1 | **1.01 [0.91, 1.11]**≈ |" in md
     assert "| B | r2 ‡ | 3.00 [2.70, 3.30] † |" in md
-    assert "**bold**≈ = tied for best" in md and "‡ = ignores its input" in md
+    assert "**Bold**≈: tied for best" in md and "‡: the model ignores its input" in md
+    assert "**Bold**: " not in md  # no single best in this table: no footnote for it
     tex = to_latex(t)
     assert r"\textbf{1.00 [0.90, 1.10]}\ensuremath{\approx}" in tex
     assert r"r2 \ensuremath{^\ddagger} & 3.00 [2.70, 3.30]\ensuremath{^\dagger}" in tex

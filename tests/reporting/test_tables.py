@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 from report_fakes import THRESHOLDS, MemRuns
 
+from bronchocli.config import Config, load_config
 from bronchocli.reporting.collect import RunRecord
-from bronchocli.reporting.scope import PlanView
+from bronchocli.reporting.scope import PlanView, profile_plans
 from bronchocli.reporting.tables import NoData, _thresholds_text, ablation, cross_subject, personalized, sota
 
 
@@ -22,6 +23,7 @@ def test_rows_follow_the_paper_order_restricted_to_what_the_sweep_ran():
     t = personalized(m.context(), "accumulated")
     assert [(r.group, r.label) for r in t.rows] == [
         ("+LSTM", "MSE+MSE"), ("+LSTM", "MSE+CE"), ("+ConvRNN", "MSE+MSE"), ("+ConvRNN", "MSE+CE"),
+        ("OffsetNet", "MSE+MSE"),  # a run of it: its row after the paper's groups, only the loss it ran
         ("Image-blind", "Zero motion"), ("Image-blind", "Training mean")]
     lacks = [w for w in t.warnings if "lacks" in w]
     assert len(lacks) == 1 and "lstm/ce/personalized/s0/world (FAILED r002)" in lacks[0]
@@ -30,6 +32,34 @@ def test_rows_follow_the_paper_order_restricted_to_what_the_sweep_ran():
 def _plan(cells_by_stage: dict) -> PlanView:
     keys = {i: f"k{n}" for n, i in enumerate(i for cells in cells_by_stage.values() for i in cells or [])}
     return PlanView(cells_by_stage, keys, staged=True, selections={})
+
+
+def test_a_table_planned_in_part_names_the_paper_cells_it_lacks_and_the_profile_that_plans_them():
+    """The main job's plan (one stage, sota: BronchoTrack and OffsetNet) read as Table 3: both rows shown, and the
+    11 paper cells it does not plan named with the profiles that do."""
+    m = MemRuns()
+    m.add("convlstm", "ce", key="k0")
+    m.add("offsetnet", "mse", key="k1")
+    plan = PlanView({"sota": [_ident("convlstm", "ce"), _ident("offsetnet", "mse")]},
+                    {_ident("convlstm", "ce"): "k0", _ident("offsetnet", "mse"): "k1"}, staged=True)
+    ctx = m.context(plan=plan)
+    paper = {(a, lo, "personalized") for a in ("baseline", "lstm", "conv3d", "convlstm") for lo in ("mse", "de", "ce")}
+    ctx.profile_plans = lambda: {"paper": paper, "bronchotrack-cpu": {("convlstm", "ce", "personalized")},
+                                 "learning-curve": {("baseline", "ce", "personalized"),
+                                                    ("convlstm", "ce", "personalized")}}
+    t = personalized(ctx, "pair")
+    assert [r.name for r in t.rows if r.kind == "model"] == ["+ConvRNN MSE+CE", "OffsetNet MSE+MSE"]
+    note = ("This config plans 1 of the paper's 12 personalized network/loss cells; not planned: Baseline: MSE+MSE, "
+            "MSE+DE, MSE+CE; +LSTM: MSE+MSE, MSE+DE, MSE+CE; +3D: MSE+MSE, MSE+DE, MSE+CE; +ConvRNN: MSE+MSE, "
+            "MSE+DE; the profile paper plans them (bronchopose report --profile paper).")
+    assert note in t.notes and f"personalized: {note}" in t.warnings
+    ctx.profile_plans, ctx._plans = (lambda: {"learning-curve": {("baseline", "ce", "personalized")}}), None
+    t = personalized(ctx, "pair")
+    assert any("partly planned by the profile learning-curve (1)." in n for n in t.notes)
+    full = PlanView({"personalized": sorted((a, lo, "personalized", "", "0", "world", "") for a, lo, _ in paper)},
+                    {}, staged=True)
+    t = personalized(m.context(plan=full), "pair")
+    assert not any("This config plans" in n for n in t.notes)
 
 
 def test_staged_plan_each_table_takes_its_own_stage():
@@ -55,7 +85,7 @@ def test_sota_follows_the_recorded_selection():
     plan.selections = {"sota": {"selected": [{"arch": "lstm", "rot_loss": "de"}], "by": "val_best.ce"}}
     t = sota(m.context(plan=plan), "accumulated")
     assert t.rows[0].label == "BronchoTrack (LSTM, MSE+DE)" and t.rows[0].runs == [chosen.run_id]
-    assert "sota stage's selection (top 1 by val_best.ce" in t.caption
+    assert "BronchoTrack (LSTM, MSE+DE), selected on validation CE, against OffsetNet" in t.caption
 
 
 def test_a_pending_selection_is_said_once():
@@ -90,7 +120,7 @@ def test_cross_subject_best_n_keeps_the_lowest_mean_rank():
     t = cross_subject(m.context(best=2), "accumulated")
     assert [(r.group, r.label) for r in t.rows if r.kind == "model"] == [("+LSTM", "MSE+CE"), ("+3D", "MSE+CE")]
     assert len(t.marks) == len(t.rows)
-    assert "best 2 of 4 complete network/loss combinations" in t.caption
+    assert "best 2 of 4 complete network/loss combinations" in t.notes[0]
 
 
 def test_sota_without_offsetnet_and_without_n_params():
@@ -121,7 +151,7 @@ def test_ablation_takes_cost_from_the_injected_profiler_and_params_from_the_run(
     lstm, conv3d = t.rows[:2]  # paper order: +LSTM before +3D
     assert lstm.values[:3] == [pytest.approx(14.164), 2.5, 0.25]
     assert conv3d.values[0] == pytest.approx(1.0)  # no n_params logged: the profiler's count
-    assert "on cpu (2 threads), 64x64 input" in t.caption
+    assert any("on cpu (2 threads), 64x64 input" in n for n in t.notes)
     assert t.rows[2].values[:3] == ["", "", ""]  # the reference rows have no cost
 
 
@@ -131,16 +161,16 @@ def test_ablation_without_a_profiler_does_not_warn_about_latency():
     t = ablation(m.context(profiler_note="--no-latency"), "pair")
     assert t.rows[0].values[1:3] == [None, None]
     assert not any("Latency" in w for w in t.warnings)
-    assert "Latency and GMAC not measured (--no-latency)" in t.caption
+    assert "Latency and GMAC not measured (--no-latency)." in t.notes
 
 
-def test_budget_and_stop_reasons_in_every_caption():
+def test_budget_and_stop_reasons_in_every_source():
     m = MemRuns()
     m.add("lstm", "ce", seed=0, **{"train.steps": 250.0, "train.pairs_seen": 5000.0, "train.epochs": 2.5})
     m.add("lstm", "ce", seed=1)
     t = personalized(m.context(), "pair")
     assert ("Budget per run: 250–300 optimiser steps, 5,000–6,000 pairs seen (batch × steps), 2.5–3.0 epochs; "
-            "stop reasons: budget 2.") in t.caption
+            "stop reasons: budget 2.") in t.source
 
 
 class _Warnings(list):
@@ -156,10 +186,20 @@ def test_tracking_thresholds_read_params_and_the_metrics_of_runs_logged_before()
         seen = _Warnings()
         texts.append(_thresholds_text(seen, runs))
         assert not seen, seen
-    assert texts[0] == texts[1] == texts[2] and "angle 10°; RPE gap 10 frames" in texts[0]
+    assert texts[0] == texts[1] == texts[2] and "rotation error below 10°" in texts[0] and "over 10 frames" in texts[0]
     changed = RunRecord("gap3", "FINISHED", 0, {}, {}, params={**params, "eval.rpe_gap": "3"})
     seen = _Warnings()
-    assert "RPE gap 3 frames/10 frames" in _thresholds_text(seen, [old, changed])
+    assert "over 3 frames/10 frames" in _thresholds_text(seen, [old, changed])
     assert len(seen) == 1 and "different eval.rpe_gap (3, 10)" in seen[0]
     none = RunRecord("none", "FINISHED", 0, {}, {})
-    assert _thresholds_text(_Warnings(), [none]).endswith("not logged by these runs.")
+    assert "thresholds (not logged by these runs)" in _thresholds_text(_Warnings(), [none])
+
+
+def test_profile_plans_reads_each_profile_of_the_config_file(tmp_path):
+    path = tmp_path / "experiments.yaml"
+    path.write_text("name: t\ngrid: {arch: [convlstm], rot_loss: [ce], population: [personalized]}\n"
+                    "profiles:\n  wide:\n    grid: {arch: [baseline, lstm], rot_loss: [mse, ce]}\n"
+                    "  broken:\n    grid: {arch: [no_such_net]}\n")
+    plans = profile_plans(load_config(path))
+    assert plans == {"wide": {(a, lo, "personalized") for a in ("baseline", "lstm") for lo in ("mse", "ce")}}
+    assert profile_plans(Config(name="memory")) == {}  # no file to read the profiles from

@@ -206,7 +206,7 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     assert shown == pytest.approx(sorted(values), rel=1e-9)  # the cells only: no parent row; best (lowest) first
     best = min(runs, key=lambda r: r.data.metrics[HEADLINE])
     first_name = page.locator('.ag-row[row-index="1"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
-    assert first_name == best.info.run_name and re.fullmatch(r"baseline·mse·pers·s\d·world", first_name)
+    assert first_name == best.info.run_name and re.fullmatch(r"Baseline MSE\+MSE · pers · s\d · world", first_name)
     assert rows.first.get_attribute("row-id") == "param.arch.baseline"  # the group: param arch = baseline
     assert not page.locator('.ag-header-cell[col-id*="loss"]').count()  # no loss of mixed scale among the columns
     _docs_screenshot(page, "mlflow-runs-table.png")

@@ -1,0 +1,190 @@
+"""What a table says in words: a caption a journal would print, footnotes for the marks it uses, its source.
+
+A table carries three texts (``table_model.Table``):
+
+* ``caption`` — at most three sentences (``caption``): what is compared; what a
+  cell is, the estimand in words; n with the unit of the evaluation (pairs,
+  trajectories or frames) and the direction of the columns. The method
+  (interval construction, tests, calibration) is docs/reports.md's "Methods",
+  referenced by one phrase (``METHODS``);
+* footnotes (``footnotes``) — one per mark that appears in the table (bold,
+  bold ≈, †, ‡, —), plus the notes the builder attached because they apply
+  (rows with means only, latency definitions, differing numerics);
+* ``source`` — where the numbers come from (sweep, seeds, budget,
+  initialisation, numerics): printed after the footnotes, outside the table
+  float of the LaTeX file.
+
+Captions and footnotes name no internal key (tags, params, metric keys, file
+paths): ``tests/reporting/test_captions.py`` fails when one does.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Sequence
+
+from ..runs.records import TAG_INIT
+from .collect import RunRecord, stop_reasons
+from .estimand import estimand_phrase
+from .stats import ALPHA, MIN_SEEDS
+from .table_model import IGNORES, MISSING, NOSKILL, TIE, Row, Table, cell_texts, marks
+
+METHODS = "intervals and tests as in Methods"
+WHAT = {
+    "accumulated": "the last-pose error of each test trajectory, its predicted relative poses chained from the true "
+                   "first pose",
+    "pair": "the error of each predicted relative pose between consecutive frames",
+    "trajectory": "each test trajectory's tracking metric, its predicted relative poses chained from the true "
+                  "first pose and every frame scored",
+}
+ERRORS = {"accumulated": "the errors of each test trajectory's last pose after chaining", "pair": "per-pair errors"}
+
+
+def _span(values: Sequence[float], fmt: str = "{:,.0f}") -> str:
+    lo, hi = min(values), max(values)
+    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}–{fmt.format(hi)}"
+
+
+def _model_rows(rows: Sequence[Row]) -> list[Row]:
+    return [r for r in rows if r.kind == "model" and r.info.get("replicates")]
+
+
+def seeds_phrase(rows: Sequence[Row]) -> str:
+    """'3 seeds', '1 seed', '3–5 seeds' over the model rows with runs."""
+    reps = [r.info["replicates"] for r in _model_rows(rows)]
+    return f"{_span(reps)} seed{'s' if max(reps) > 1 else ''}" if reps else "the seeds"
+
+
+def n_text(rows: Sequence[Row], evaluation: str, folds: Sequence[str] = ()) -> str:
+    """'n = 3 seeds × 24 test trajectories (538 pairs)' with the evaluation's unit: pairs per pair, one final pose
+    per trajectory accumulated, frames for tracking; the held-out patients for cross-subject."""
+    model = _model_rows(rows)
+    if not model:
+        return ""
+    trajs = [r.info["trajectories"] for r in model if r.info.get("trajectories")]
+    pairs = [r.info["pairs"] for r in model if r.info.get("pairs")]
+    text = f"n = {seeds_phrase(rows)}"
+    if trajs:
+        text += f" × {_span(trajs)} test trajectories"
+        if folds:
+            text += f" of {len(folds)} held-out patient{'s' if len(folds) > 1 else ''}"
+        if evaluation == "pair" and pairs:
+            text += f" ({_span(pairs)} pairs)"
+        elif evaluation == "trajectory" and pairs:
+            text += f" ({_span(pairs)} scored frames)"
+        elif evaluation == "accumulated":
+            text += " (one final pose each)"
+    elif folds:
+        text += f" ({len(folds)} held-out patients)"
+    return text
+
+
+def direction_text(higher: Sequence[str] = ()) -> str:
+    return "lower is better" + (f" except {', '.join(higher)}" if higher else "")
+
+
+def caption(what: str, rows: Sequence[Row], evaluation: str, unit: str, *, folds: Sequence[str] = (),
+            higher: Sequence[str] = (), cell: str = "", direction: str = "") -> str:
+    """The three sentences: ``what`` is compared; a cell (``cell``: what it holds, default the mean over seeds of
+    the evaluation's error) with its estimand; n, direction (default: lower is better except ``higher``) and the
+    method phrase."""
+    cell = cell or f"mean over {seeds_phrase(rows)} of {WHAT[evaluation]}"
+    estimand = estimand_phrase(unit, rows)
+    second = f"Cells: {cell} [95% interval]" + (f", {estimand}" if estimand else "") + "."
+    third = "; ".join(p for p in (n_text(rows, evaluation, folds), direction or direction_text(higher), METHODS)
+                      if p)
+    third = third if third.startswith("n = ") else third[0].upper() + third[1:]
+    return " ".join([what.rstrip(".") + ".", second, third + "."])
+
+
+def _columns_with(table: Table, mark: str) -> list[str]:
+    mk = marks(table)
+    return [c.title for j, c in enumerate(table.columns) if any(mark in row[j] for row in mk)]
+
+
+def footnotes(table: Table) -> list[tuple[str, str]]:
+    """(mark, text) for every mark that appears in the table, then the builder's notes (``table.notes``)."""
+    mk = marks(table)
+    used = {m for row in mk for cell in row for m in cell}
+    out: list[tuple[str, str]] = []
+    if "best" in used:
+        out.append(("bold", f"significantly better than every other model row of its column (paired tests, "
+                            f"Holm-adjusted, α = {ALPHA:g})."))
+    if "tie" in used:
+        reps = sorted({r.info["replicates"] for r in _model_rows(table.rows) if not r.info.get("refused")})
+        at = f" at {'/'.join(map(str, reps))} seed{'s' if reps != [1] else ''}" if reps else ""
+        out.append((f"bold{TIE}", f"tied for best: not significantly different from the lowest mean; no single "
+                                  f"best{at} in {', '.join(_columns_with(table, 'tie')).rstrip('.')}."))
+    if "noskill" in used:
+        out.append((NOSKILL, "does not beat the better image-blind reference (paired comparison on the same test "
+                             "units)."))
+    if any("ignores" in r.flags for r in table.rows):
+        out.append((IGNORES, "the model ignores its input: its predictions vary less than 5% of the ground "
+                             "truth's."))
+    texts = cell_texts(table)
+    if any(t == MISSING for row, ts in zip(table.rows, texts) if row.kind == "model" for t in ts):
+        out.append((MISSING, "no finished run (see the warnings)."))
+    return out + [("", n) for n in table.notes]
+
+
+def refused_note(rows: Sequence[Row], what: str = "no interval, marks or skill") -> str:
+    """The note for rows that show means only because their seeds are too few (2)."""
+    by_seeds = [r for r in rows if r.kind == "model" and 1 < (r.info.get("replicates") or 0) < MIN_SEEDS]
+    if not by_seeds:
+        return ""
+    models = [r for r in rows if r.kind == "model" and r.runs]
+    which = "every row" if len(by_seeds) == len(models) else ", ".join(r.name for r in by_seeds)
+    n = "/".join(map(str, sorted({r.info["replicates"] for r in by_seeds})))
+    return (f"Means only at {n} seeds ({which}): {what}; with 2 seeds an interval and a test are not reliable, "
+            f"they need ≥ {MIN_SEEDS}.")
+
+
+def one_seed_note(rows: Sequence[Row]) -> str:
+    """Rows with one seed among rows with more: their estimand is that one trained model."""
+    model = _model_rows(rows)
+    single = [r.name for r in model if r.info["replicates"] == 1]
+    if not single or len(single) == len(model):
+        return ""
+    return (f"Rows with one seed ({', '.join(single)}): about that one trained model, the interval covers new test "
+            f"units only, not new seeds.")
+
+
+def budget_text(runs: Sequence[RunRecord]) -> str:
+    """Optimiser steps, pairs seen, epochs and stop reasons of the runs behind a table."""
+    if not runs:
+        return ""
+
+    def got(name: str) -> list[float]:
+        return [float(r.metrics[name]) for r in runs if name in r.metrics]
+
+    steps, seen, epochs = got("train.steps"), got("train.pairs_seen"), got("train.epochs")
+    parts = []
+    if steps:
+        parts.append(f"{_span(steps)} optimiser steps")
+    if seen:
+        parts.append(f"{_span(seen)} pairs seen (batch × steps)")
+    if epochs:
+        parts.append(f"{_span(epochs, '{:.1f}')} epochs")
+    reasons = Counter(stop_reasons(runs))
+    stop = ", ".join(f"{k} {v}" for k, v in sorted(reasons.items()))
+    text = "Budget per run: " + (", ".join(parts) if parts else "not logged")
+    return text + f"; stop reasons: {stop}."
+
+
+def init_text(runs: Sequence[RunRecord]) -> str:
+    """How the runs' backbones were initialised (their init tag): random, ImageNet or a file."""
+    if not runs:
+        return ""
+    seen = Counter(r.tag(TAG_INIT) for r in runs)
+    parts = []
+    for init, n in sorted(seen.items()):
+        if init == "random":
+            what = "random weights (no pretrained backbone)"
+        elif init.startswith("imagenet:"):
+            what = f"ImageNet weights (torchvision {init.split(':', 1)[1]})"
+        elif init.startswith("file:"):
+            what = f"weights from the file {init.split(':', 1)[1]}"
+        else:
+            what = "not recorded (runs made before the init tag: random unless model.pretrained was set)"
+        parts.append(what + (f" ({n} of {len(runs)} runs)" if len(seen) > 1 else ""))
+    return "Backbone initialisation: " + "; ".join(parts) + "."
