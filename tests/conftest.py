@@ -1,10 +1,17 @@
-"""Shared fixtures: the repository root and a CLI runner that checks exit codes."""
+"""Shared fixtures: the repository root and a CLI runner that checks exit codes; each test process's own claims folder.
+
+The suite runs in parallel under pytest-xdist (``-n 2``, ``--dist loadgroup``): every worker is a process of its
+own with its own core-claims folder (``pytest_configure``); tests that share one external resource for the
+session (the real Slurm cluster of tests/sweep/test_slurm.py) carry ``xdist_group`` so one worker runs them all.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import io
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -17,6 +24,86 @@ REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirway
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 os.environ.setdefault("MPLBACKEND", "Agg")
+_RUNTIME: Path | None = None  # this test process's XDG_RUNTIME_DIR (pytest_configure)
+
+
+def pytest_configure(config):
+    """Give this test process (an xdist worker, or the single pytest process) a runtime folder of its own.
+
+    Training processes share the machine's cores through claims in ``$XDG_RUNTIME_DIR/bronchopose/cores``
+    (bronchocli/runs/cores.py). A shared folder would let one worker's training, or the user's own run on the
+    machine, change the threads another test's training decides: each process gets an empty one, and the
+    processes a test starts inherit it. Tests about the sharing itself set their own (test_shared_cores.py)."""
+    global _RUNTIME
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    _RUNTIME = Path(tempfile.mkdtemp(prefix=f"bronchopose-tests-{worker}-"))
+    os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
+
+
+def pytest_unconfigure(config):
+    if _RUNTIME is not None:
+        shutil.rmtree(_RUNTIME, ignore_errors=True)
+
+
+class _StoreTemplate:
+    """An initialised, empty MLflow SQLite store, made at most once per test process (MLflow's migrations take
+    seconds; a copy takes milliseconds) and only when a test first needs one."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self._path: Path | None = None
+
+    def path(self) -> Path:
+        if self._path is None:
+            from mlflow.tracking import MlflowClient
+
+            path = self.folder / "mlflow.db"
+            MlflowClient(tracking_uri=f"sqlite:///{path}").search_experiments()
+            self._path = path
+        return self._path
+
+    def seed(self, db: Path) -> None:
+        """Copy the template to ``db`` (whose folder exists) unless a store is there; atomic (a rename)."""
+        if db.exists() or not db.parent.is_dir():
+            return
+        part = db.with_name(f".{db.name}.template-{os.getpid()}")
+        shutil.copyfile(self.path(), part)
+        os.replace(part, db)
+
+
+@pytest.fixture(scope="session")
+def mlflow_store_template(tmp_path_factory) -> _StoreTemplate:
+    return _StoreTemplate(tmp_path_factory.mktemp("mlflow-template"))
+
+
+@pytest.fixture(scope="session")
+def mlflow_template(mlflow_store_template) -> Path:
+    """The template store's file, for tests that copy it into a project themselves (tests/sweep's configs)."""
+    return mlflow_store_template.path()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _new_sqlite_stores_from_the_template(mlflow_store_template):
+    """Every MLflow SQLite store a test's own process opens for the first time starts as a copy of the template.
+
+    ``bronchocli.runs.client._open`` is where a ``runs.uri`` store is first opened (its tables created, under the
+    store's file lock); an empty store copied there is the file MLflow's migrations would have written, in
+    milliseconds instead of seconds. Processes a test starts (CLI subprocesses, sweep workers) still create
+    their stores themselves, so MLflow's own creation stays under test there."""
+    from bronchocli import urls
+    from bronchocli.runs import client
+
+    original = client._open
+
+    def opened(uri: str):
+        db = urls.sqlite_file(uri)
+        if db is not None:
+            mlflow_store_template.seed(db)
+        return original(uri)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(client, "_open", opened)
+        yield
 
 
 @pytest.fixture
@@ -73,8 +160,40 @@ def small_fs(tmp_path):
         yield mount
 
 
+def _root_id(config) -> str:
+    """The node id of this folder (the base id of this conftest's fixtures)."""
+    return Path(os.path.relpath(Path(__file__).parent, config.rootpath)).as_posix()
+
+
+def _shared_fixture_group(item) -> str | None:
+    """The xdist group of a test that uses a costly fixture built once for several tests: its module for a
+    module- or class-scoped one, the defining folder for a session-scoped one of a sub-folder's conftest.py
+    (the root conftest's session fixtures are cheap: every worker makes its own)."""
+    info = getattr(item, "_fixtureinfo", None)  # pytest's record of the test's fixtures
+    if info is None:
+        return None
+    group = None
+    for defs in info.name2fixturedefs.values():
+        fixture = defs[-1]
+        scope = str(getattr(fixture.scope, "value", fixture.scope))
+        if scope in ("session", "package") and fixture.baseid not in ("", _root_id(item.config)):
+            return fixture.baseid
+        if scope in ("module", "class"):
+            group = item.nodeid.split("::")[0]
+    return group
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker reads the xdist_group marks into the node ids
 def pytest_collection_modifyitems(config, items):
-    """``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
+    """Tests sharing a module- or folder-wide fixture run on one xdist worker (``--dist loadgroup``), so the
+    fixture (a trained run, a finished sweep and its UI server, a browser) is built once, not once per worker.
+
+    ``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            group = _shared_fixture_group(item)
+            if group is not None:
+                item.add_marker(pytest.mark.xdist_group(group))
     # The marker, not ``item.keywords``: keywords hold every parent node's name, so a checkout in a folder
     # named ``gpu`` would skip the whole suite.
     if not any(item.get_closest_marker("gpu") for item in items):
