@@ -172,15 +172,16 @@ def _shared_fixture_group(item) -> str | None:
     info = getattr(item, "_fixtureinfo", None)  # pytest's record of the test's fixtures
     if info is None:
         return None
-    group = None
+    folders, module = [], None
     for defs in info.name2fixturedefs.values():
         fixture = defs[-1]
         scope = str(getattr(fixture.scope, "value", fixture.scope))
         if scope in ("session", "package") and fixture.baseid not in ("", _root_id(item.config)):
-            return fixture.baseid
-        if scope in ("module", "class"):
-            group = item.nodeid.split("::")[0]
-    return group
+            folders.append(fixture.baseid)
+        elif scope != "function":
+            module = item.nodeid.split("::")[0]
+    # the widest place: every test of a folder whose session fixture one of them uses shares one worker
+    return min(folders, key=lambda b: (b.count("/"), b)) if folders else module
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker reads the xdist_group marks into the node ids
