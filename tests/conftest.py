@@ -24,6 +24,11 @@ REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirway
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 os.environ.setdefault("MPLBACKEND", "Agg")
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # pytest-xdist starts its workers with COLUMNS=80; the CLI's consoles (commands/common.py), made at import,
+    # would keep that width and wrap the lines the tests read, whatever width a test's command asks for.
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
 _RUNTIME: Path | None = None  # this test process's XDG_RUNTIME_DIR (pytest_configure)
 
 
