@@ -165,6 +165,10 @@ def small_fs(tmp_path):
         yield mount
 
 
+SERVICES = ("slurm", "postgres", "browser")  # the markers of tests that need a real service
+POSTGRES_FIXTURES = {"pg_url", "fresh_db"}  # tests/sweep/conftest.py: a schema or a database of the local server
+
+
 def _root_id(config) -> str:
     """The node id of this folder (the base id of this conftest's fixtures)."""
     return Path(os.path.relpath(Path(__file__).parent, config.rootpath)).as_posix()
@@ -194,8 +198,15 @@ def pytest_collection_modifyitems(config, items):
     """Tests sharing a module- or folder-wide fixture run on one xdist worker (``--dist loadgroup``), so the
     fixture (a trained run, a finished sweep and its UI server, a browser) is built once, not once per worker.
 
+    A test that needs a service is ``heavy`` (the fast tier, ``-m "not slow and not heavy"``, leaves it out);
+    one that uses the local PostgreSQL through tests/sweep's fixtures is ``postgres``.
+
     ``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
     for item in items:
+        if POSTGRES_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.postgres)
+        if any(item.get_closest_marker(m) for m in SERVICES):
+            item.add_marker(pytest.mark.heavy)
         if item.get_closest_marker("xdist_group") is None:
             group = _shared_fixture_group(item)
             if group is not None:
