@@ -166,6 +166,23 @@ def small_fs(tmp_path):
 
 
 SERVICES = ("slurm", "postgres", "browser")  # the markers of tests that need a real service
+# heavy (left out of the fast tier): the modules whose tests took more than 1.5 s each on average, or one of them
+# more than 20 s, in the measured xdist run (benchmarks/results/test-durations-after.txt: a shared 2-core machine,
+# about ten times its idle times), and tests/training (every module trains or starts a process)
+HEAVY_FOLDERS = ("tests/training/",)
+HEAVY_MODULES = frozenset(f"tests/{m}.py" for m in """
+    anatomy/test_surface data/test_cache data/test_importer_canonical diagnostics/test_selftest
+    generation/test_generate_cli generation/test_pipeline inference/test_api_doc inference/test_mlflow_model
+    inference/test_portable_model inference/test_track models/test_architectures models/test_imagenet_weights
+    models/test_pretrained models/test_profile models/test_weights_install render/test_camera render/test_real_tree
+    render/test_scene render/test_worker_lifetime reporting/test_best reporting/test_calibration
+    reporting/test_config_tie reporting/test_figures reporting/test_frames_and_curves reporting/test_latex
+    reporting/test_report_atomic reporting/test_report_cli reporting/test_report_real reporting/test_training_curves
+    sweep/test_busy sweep/test_commands sweep/test_disk_full sweep/test_dry_runs sweep/test_fresh_postgres
+    sweep/test_housekeeping sweep/test_launchers sweep/test_one_database sweep/test_parent_tags_race
+    sweep/test_placement sweep/test_processes sweep/test_real_sweep sweep/test_record sweep/test_report_running
+    sweep/test_slurm
+""".split())
 POSTGRES_FIXTURES = {"pg_url", "fresh_db"}  # tests/sweep/conftest.py: a schema or a database of the local server
 
 
@@ -205,7 +222,9 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if POSTGRES_FIXTURES & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.postgres)
-        if any(item.get_closest_marker(m) for m in SERVICES):
+        module = item.nodeid.split("::")[0]
+        if (any(item.get_closest_marker(m) for m in SERVICES) or module in HEAVY_MODULES
+                or module.startswith(HEAVY_FOLDERS)):
             item.add_marker(pytest.mark.heavy)
         if item.get_closest_marker("xdist_group") is None:
             group = _shared_fixture_group(item)
