@@ -167,7 +167,7 @@ def small_fs(tmp_path):
 
 SERVICES = ("slurm", "postgres", "browser")  # the markers of tests that need a real service
 # heavy (left out of the fast tier): the modules whose tests took more than 1.5 s each on average, or one of them
-# more than 20 s, in the measured xdist run (benchmarks/results/test-durations-after.txt: a shared 2-core machine,
+# more than 20 s, in the measured xdist runs (benchmarks/results/test-durations-after.txt: a shared 2-core machine,
 # about ten times its idle times), and tests/training (every module trains or starts a process)
 HEAVY_FOLDERS = ("tests/training/",)
 HEAVY_MODULES = frozenset(f"tests/{m}.py" for m in """
@@ -181,8 +181,9 @@ HEAVY_MODULES = frozenset(f"tests/{m}.py" for m in """
     sweep/test_busy sweep/test_commands sweep/test_disk_full sweep/test_dry_runs sweep/test_fresh_postgres
     sweep/test_housekeeping sweep/test_launchers sweep/test_one_database sweep/test_parent_tags_race
     sweep/test_placement sweep/test_processes sweep/test_real_sweep sweep/test_record sweep/test_report_running
-    sweep/test_slurm
-""".split())
+    sweep/test_slurm sweep/test_slurm_faults sweep/test_stages sweep/test_tuning sweep/test_worker test_cli test_extras
+    test_relocation test_run_processes test_ui
+""".split())  # and, in test_bad_inputs.py (fast on average), its few costly tests, marked there
 POSTGRES_FIXTURES = {"pg_url", "fresh_db"}  # tests/sweep/conftest.py: a schema or a database of the local server
 
 
