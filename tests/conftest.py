@@ -1,10 +1,17 @@
-"""Shared fixtures: the repository root and a CLI runner that checks exit codes."""
+"""Shared fixtures: the repository root and a CLI runner that checks exit codes; each test process's own claims folder.
+
+The suite runs in parallel under pytest-xdist (``-n 2``, ``--dist loadgroup``): every worker is a process of its
+own with its own core-claims folder (``pytest_configure``); tests that share one external resource for the
+session (the real Slurm cluster of tests/sweep/test_slurm.py) carry ``xdist_group`` so one worker runs them all.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import io
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -17,6 +24,91 @@ REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirway
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 os.environ.setdefault("MPLBACKEND", "Agg")
+if "PYTEST_XDIST_WORKER" in os.environ:
+    # pytest-xdist starts its workers with COLUMNS=80; the CLI's consoles (commands/common.py), made at import,
+    # would keep that width and wrap the lines the tests read, whatever width a test's command asks for.
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
+_RUNTIME: Path | None = None  # this test process's XDG_RUNTIME_DIR (pytest_configure)
+
+
+def pytest_configure(config):
+    """Give this test process (an xdist worker, or the single pytest process) a runtime folder of its own.
+
+    Training processes share the machine's cores through claims in ``$XDG_RUNTIME_DIR/bronchopose/cores``
+    (bronchocli/runs/cores.py). A shared folder would let one worker's training, or the user's own run on the
+    machine, change the threads another test's training decides: each process gets an empty one, and the
+    processes a test starts inherit it. Tests about the sharing itself set their own (test_shared_cores.py)."""
+    global _RUNTIME
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    _RUNTIME = Path(tempfile.mkdtemp(prefix=f"bronchopose-tests-{worker}-"))
+    os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
+
+
+def pytest_unconfigure(config):
+    if _RUNTIME is not None:
+        shutil.rmtree(_RUNTIME, ignore_errors=True)
+
+
+class _StoreTemplate:
+    """An initialised, empty MLflow SQLite store, made at most once per test process (MLflow's migrations take
+    seconds; a copy takes milliseconds) and only when a test first needs one."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self._path: Path | None = None
+
+    def path(self) -> Path:
+        if self._path is None:
+            from mlflow.tracking import MlflowClient
+
+            path = self.folder / "mlflow.db"
+            MlflowClient(tracking_uri=f"sqlite:///{path}").search_experiments()
+            self._path = path
+        return self._path
+
+    def seed(self, db: Path) -> None:
+        """Copy the template to ``db`` (whose folder exists) unless a store is there; atomic (a rename)."""
+        if db.exists() or not db.parent.is_dir():
+            return
+        part = db.with_name(f".{db.name}.template-{os.getpid()}")
+        shutil.copyfile(self.path(), part)
+        os.replace(part, db)
+
+
+@pytest.fixture(scope="session")
+def mlflow_store_template(tmp_path_factory) -> _StoreTemplate:
+    return _StoreTemplate(tmp_path_factory.mktemp("mlflow-template"))
+
+
+@pytest.fixture(scope="session")
+def mlflow_template(mlflow_store_template) -> Path:
+    """The template store's file, for tests that copy it into a project themselves (tests/sweep's configs)."""
+    return mlflow_store_template.path()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _new_sqlite_stores_from_the_template(mlflow_store_template):
+    """Every MLflow SQLite store a test's own process opens for the first time starts as a copy of the template.
+
+    ``bronchocli.runs.client._open`` is where a ``runs.uri`` store is first opened (its tables created, under the
+    store's file lock); an empty store copied there is the file MLflow's migrations would have written, in
+    milliseconds instead of seconds. Processes a test starts (CLI subprocesses, sweep workers) still create
+    their stores themselves, so MLflow's own creation stays under test there."""
+    from bronchocli import urls
+    from bronchocli.runs import client
+
+    original = client._open
+
+    def opened(uri: str):
+        db = urls.sqlite_file(uri)
+        if db is not None:
+            mlflow_store_template.seed(db)
+        return original(uri)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(client, "_open", opened)
+        yield
 
 
 @pytest.fixture
@@ -73,8 +165,72 @@ def small_fs(tmp_path):
         yield mount
 
 
+SERVICES = ("slurm", "postgres", "browser")  # the markers of tests that need a real service
+# heavy (left out of the fast tier): the modules whose tests took more than 1.5 s each on average, or one of them
+# more than 20 s, in the measured xdist runs (benchmarks/results/test-durations-after.txt: a shared 2-core machine,
+# about ten times its idle times), and tests/training (every module trains or starts a process)
+HEAVY_FOLDERS = ("tests/training/",)
+HEAVY_MODULES = frozenset(f"tests/{m}.py" for m in """
+    anatomy/test_surface data/test_cache data/test_importer_canonical diagnostics/test_selftest
+    generation/test_generate_cli generation/test_pipeline inference/test_api_doc inference/test_mlflow_model
+    inference/test_portable_model inference/test_track models/test_architectures models/test_imagenet_weights
+    models/test_pretrained models/test_profile models/test_weights_install render/test_camera render/test_real_tree
+    render/test_scene render/test_worker_lifetime reporting/test_best reporting/test_calibration
+    reporting/test_config_tie reporting/test_figures reporting/test_frames_and_curves reporting/test_latex
+    reporting/test_report_atomic reporting/test_report_cli reporting/test_report_real reporting/test_training_curves
+    sweep/test_busy sweep/test_commands sweep/test_disk_full sweep/test_dry_runs sweep/test_fresh_postgres
+    sweep/test_housekeeping sweep/test_launchers sweep/test_one_database sweep/test_parent_tags_race
+    sweep/test_placement sweep/test_processes sweep/test_real_sweep sweep/test_record sweep/test_report_running
+    sweep/test_slurm sweep/test_slurm_faults sweep/test_stages sweep/test_tuning sweep/test_worker test_cli test_extras
+    test_relocation test_run_processes test_ui
+""".split())  # and, in test_bad_inputs.py (fast on average), its few costly tests, marked there
+POSTGRES_FIXTURES = {"pg_url", "fresh_db"}  # tests/sweep/conftest.py: a schema or a database of the local server
+
+
+def _root_id(config) -> str:
+    """The node id of this folder (the base id of this conftest's fixtures)."""
+    return Path(os.path.relpath(Path(__file__).parent, config.rootpath)).as_posix()
+
+
+def _shared_fixture_group(item) -> str | None:
+    """The xdist group of a test that uses a costly fixture built once for several tests: its module for a
+    module- or class-scoped one, the defining folder for a session-scoped one of a sub-folder's conftest.py
+    (the root conftest's session fixtures are cheap: every worker makes its own)."""
+    info = getattr(item, "_fixtureinfo", None)  # pytest's record of the test's fixtures
+    if info is None:
+        return None
+    folders, module = [], None
+    for defs in info.name2fixturedefs.values():
+        fixture = defs[-1]
+        scope = str(getattr(fixture.scope, "value", fixture.scope))
+        if scope in ("session", "package") and fixture.baseid not in ("", _root_id(item.config)):
+            folders.append(fixture.baseid)
+        elif scope != "function":
+            module = item.nodeid.split("::")[0]
+    # the widest place: every test of a folder whose session fixture one of them uses shares one worker
+    return min(folders, key=lambda b: (b.count("/"), b)) if folders else module
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker reads the xdist_group marks into the node ids
 def pytest_collection_modifyitems(config, items):
-    """``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
+    """Tests sharing a module- or folder-wide fixture run on one xdist worker (``--dist loadgroup``), so the
+    fixture (a trained run, a finished sweep and its UI server, a browser) is built once, not once per worker.
+
+    A test that needs a service is ``heavy`` (the fast tier, ``-m "not slow and not heavy"``, leaves it out);
+    one that uses the local PostgreSQL through tests/sweep's fixtures is ``postgres``.
+
+    ``gpu`` tests run where CUDA exists and are skipped with the reason elsewhere."""
+    for item in items:
+        if POSTGRES_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.postgres)
+        module = item.nodeid.split("::")[0]
+        if (any(item.get_closest_marker(m) for m in SERVICES) or module in HEAVY_MODULES
+                or module.startswith(HEAVY_FOLDERS)):
+            item.add_marker(pytest.mark.heavy)
+        if item.get_closest_marker("xdist_group") is None:
+            group = _shared_fixture_group(item)
+            if group is not None:
+                item.add_marker(pytest.mark.xdist_group(group))
     # The marker, not ``item.keywords``: keywords hold every parent node's name, so a checkout in a folder
     # named ``gpu`` would skip the whole suite.
     if not any(item.get_closest_marker("gpu") for item in items):

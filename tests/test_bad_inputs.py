@@ -228,6 +228,7 @@ def test_bad_input_is_one_line_naming_the_culprit(cli, project, case):
     assert not created, f"left behind: {sorted(created)}"
 
 
+@pytest.mark.heavy  # a CLI process rendering a dataset
 def test_sigint_during_data_generate_exits_130_with_how_to_resume(tmp_path):
     """Ctrl-C in a terminal reaches the whole process group (the renderers too): one line, exit 130, resumable."""
     out = tmp_path / "gen"
@@ -829,6 +830,7 @@ def _runs(p: Project) -> list:
     "allocate 4000000000 bytes. Error code 12 (Cannot allocate memory)"),
     ImportError("/venv/lib/python3.11/site-packages/torch/lib/libtorch_cpu.so: failed to map segment from shared "
                 "object")], ids=["MemoryError", "torch allocator", "library loaded under ulimit -v"])
+@pytest.mark.heavy  # a real run
 def test_out_of_memory_in_a_run_is_one_line_and_the_run_failed_with_it(cli, project, monkeypatch, failure):
     def allocate(*args, **kwargs):
         raise failure
@@ -907,6 +909,7 @@ SECRETS = {"userinfo": "Pl4nt-userinfo-32", "query": "Pl4nt-query-32", "env": "P
            "pgpass": "Pl4nt-pgpass-32"}
 
 
+@pytest.mark.postgres  # _planted_storage: a schema of the local server
 def test_a_planted_password_in_every_form_reaches_no_output_log_or_mlflow_record(cli, project, monkeypatch,
                                                                                    request):
     """issue 32.4: userinfo, ?password=, PGPASSWORD and .pgpass passwords are in the config of a real tiny

@@ -44,13 +44,14 @@ def test_version():
         ("name: t\ngrid: [\n", "YAML syntax error"),
     ],
 )
-def test_malformed_config_exits_2_with_one_clear_message(tmp_path, text, expected):
+def test_malformed_config_exits_2_with_one_clear_message(cli, tmp_path, text, expected):
+    """In-process (the console script's own error path, ``cli``): the process itself is under test above."""
     path = tmp_path / "bad.yaml"
     path.write_text(text)
-    result = run_console_script("config", "--config", str(path))
-    assert result.returncode == 2
-    assert "Traceback" not in result.stderr
-    assert result.stderr.startswith("error: ") and expected in result.stderr
+    code, _, err = cli("config", "--config", str(path))
+    assert code == 2
+    assert "Traceback" not in err
+    assert err.startswith("error: ") and expected in err
 
 
 def test_config_command_prints_resolved_yaml_and_grid(cli, repo):

@@ -24,7 +24,8 @@ def data_cli():
     from bronchocli.commands.data import app
 
     def run(*args: str) -> tuple[int, str]:
-        result = CliRunner().invoke(app, list(args))
+        # wide, as the other CLI tests: an 80-column console wraps the summary table's long temp paths
+        result = CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
         if isinstance(result.exception, BronchoError):
             return 2, str(result.exception)
         if result.exception is not None and not isinstance(result.exception, SystemExit):

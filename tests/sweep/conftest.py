@@ -1,4 +1,5 @@
-"""Fixtures of the sweep tests: configs on temp stores, a template MLflow DB, fake runners, PostgreSQL schemas."""
+"""Fixtures of the sweep tests: configs on temp stores (MLflow's copied from tests/conftest.py's template), fake
+runners, PostgreSQL schemas."""
 
 from __future__ import annotations
 
@@ -15,17 +16,6 @@ PG_BASE = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 if str(HERE) not in sys.path:  # spawned workers inherit sys.path: they can import sweep_fakes
     sys.path.insert(0, str(HERE))
-
-
-@pytest.fixture(scope="session")
-def mlflow_template(tmp_path_factory) -> Path:
-    """An initialised MLflow SQLite store, made once: MLflow's first migration takes seconds."""
-
-    path = tmp_path_factory.mktemp("mlflow-template") / "mlflow.db"
-    from mlflow.tracking import MlflowClient
-
-    MlflowClient(tracking_uri=f"sqlite:///{path}").search_experiments()
-    return path
 
 
 @pytest.fixture

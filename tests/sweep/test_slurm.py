@@ -41,7 +41,8 @@ from bronchocli.sweep.plan import plan_key
 from bronchocli.sweep.storage import selections_table
 from bronchocli.training import checkpoint
 
-pytestmark = [pytest.mark.slurm, pytest.mark.postgres]
+# One cluster for the session: under pytest-xdist (--dist loadgroup) one worker runs every test of this file.
+pytestmark = [pytest.mark.slurm, pytest.mark.postgres, pytest.mark.xdist_group("slurm")]
 REPO = HERE.parents[1]
 LIMIT = 120.0  # bound on every wait: a hang fails the test instead of stalling CI
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"

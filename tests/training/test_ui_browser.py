@@ -47,7 +47,8 @@ STEPS = 30  # with runs.log_every 1: a training-loss point per step
 DOCS_IMG = Path(__file__).resolve().parents[2] / "docs" / "img"
 
 playwright = pytest.importorskip("playwright.sync_api", reason="the browser test needs `pip install playwright`")
-pytestmark = pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed (.ci/run does)")
+pytestmark = [pytest.mark.browser,
+              pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian's chromium is not installed (.ci/run does)")]
 
 CONFIG = f"""\
 name: browse
