@@ -50,6 +50,20 @@ def _value(text: str | None, default: Any) -> Any:
     return text
 
 
+def image_size(client, run, default: int) -> int:
+    """The frame size of the run's dataset: its MLflow dataset input names the folder (``dataset.json``)."""
+    for inp in client.get_run(run.info.run_id).inputs.dataset_inputs:
+        try:
+            uri = json.loads(inp.dataset.source)["uri"]
+        except (ValueError, KeyError, TypeError):
+            continue
+        meta = Path(uri.removeprefix("file://")) / "dataset.json"
+        if meta.is_file():
+            size = json.loads(meta.read_text()).get("image_size")
+            return int(size[0] if isinstance(size, list) else size)
+    return default
+
+
 def run_row(client, run) -> dict[str, Any]:
     """One run: its lever settings, validation curve (pairs seen -> val.ratio.pos_l2), cost and status."""
     p, m, tags = run.data.params, run.data.metrics, run.data.tags
@@ -59,7 +73,7 @@ def run_row(client, run) -> dict[str, Any]:
     core = {int(x.step): x.value for x in client.get_metric_history(rid, "train.core_s")}
     curve = [{"step": s, "pairs": pairs.get(s), "core_s": core.get(s), "val_ratio": ratio[s]} for s in sorted(ratio)]
     settings = {k: _value(p.get(k), v) for k, v in LEVERS.items() if k != "image_size"}
-    settings["image_size"] = _value(p.get("data.image_size") or p.get("dataset.image_size"), LEVERS["image_size"])
+    settings["image_size"] = _value(p.get("data.image_size"), image_size(client, run, LEVERS["image_size"]))
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
     return {
         "run_id": rid, "name": tags.get("mlflow.runName", ""), "status": run.info.status,
