@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
-           "command": "python benchmarks/bench_learning_cost.py " + " ".join(str(p) for p in args.projects),
+           "command": "python benchmarks/bench_learning_cost.py " + " ".join(p.name for p in args.projects),
            "figures": figures}
     figures["docs_table"] = markdown(out).splitlines()  # benchmarks/README.md's block "learning-cost" (docblocks.py)
     args.out.parent.mkdir(parents=True, exist_ok=True)

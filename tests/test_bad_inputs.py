@@ -190,7 +190,7 @@ CATALOGUE: dict[str, tuple[Callable[[Project], list[str]], int, str]] = {
     "hung tune storage": (lambda p: ["tune", *C(p), "--show", "--study", "s", "--storage", hung(p, "postgresql")],
                           2, "storage.url postgresql+psycopg://bob:***@127.0.0.1"),
     "refused tune storage": (lambda p: ["tune", *C(p), "-a", "lstm", "-l", "mse", "-P", "personalized", "-n", "1",
-                                        "--storage", "postgresql://bob:hunter2@127.0.0.1:1/db"], 2, "cannot connect"),
+                                        "--storage", "postgresql://bob:hunter2@127.0.0.1:1/db"], 2, "Connection refused"),
     "missing tune database": (lambda p: ["tune", *C(p), "--show", "--study", "s", "--storage",
                                          "postgresql://postgres:hunter2@127.0.0.1:5432/no_such_db_here"], 2,
                               "storage.url postgresql+psycopg://postgres:***@127.0.0.1:5432/no_such_db_here"),

@@ -9,7 +9,7 @@ from .. import urls
 from ..cells import Cell
 from ..config import Config, check_paths
 from ..generation import ensure_dataset
-from ..runs.client import client_for
+from ..runs.client import check_reachable, client_for
 from ..runs.records import finished_cell_runs
 from .once import cell_turn
 from .run import run_cell
@@ -36,6 +36,7 @@ def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool
     if cfg.tune.applied:
         console.print(f"hyperparameters from {cfg.tune.applied}")
     check_paths(cfg)  # one line before anything is created
+    check_reachable(cfg)  # a dead MLflow server or database: one line within runs.timeout_s, nothing created
     with cell_turn(cfg, cell, lambda text: console.print(text, highlight=False)):  # one `train` of a cell at a time
         done = None if again or resume else finished_run(cfg, cell)
         if done is not None:
