@@ -76,7 +76,7 @@ def run_row(client, run) -> dict[str, Any]:
     settings["image_size"] = _value(p.get("data.image_size"), image_size(client, run, LEVERS["image_size"]))
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
     return {
-        "run_id": rid, "name": tags.get("mlflow.runName", ""), "status": run.info.status,
+        "run_id": rid, "name": tags.get("mlflow.runName", ""), "arch": p.get("arch"), "status": run.info.status,
         "kind": tags.get("run_kind", "cell"), "pruned": tags.get("pruned") == "true",
         "study": tags.get("study"), "trial": _value(tags.get("trial"), None), "settings": settings,
         "curve": curve, "best_val_ratio": min((c["val_ratio"] for c in curve), default=None),
@@ -113,9 +113,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = collect(args.projects)
     ref = next((r for r in rows if r["experiment"] == args.reference and r["core_s_to_target"]), None)
     for r in rows:
-        if ref is not None and r["core_s_to_target"]:
+        if ref is not None and r["core_s_to_target"] and r["arch"] == ref["arch"]:  # the same model's cost only
             r["cheaper_than_reference"] = ref["core_s_to_target"] / r["core_s_to_target"]
-    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] != args.reference]
+    # the cheapest BronchoTrack recipe (the cost is BronchoTrack's; other architectures are listed for comparison)
+    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] != args.reference
+               and r["arch"] == "convlstm"]
     best = min(learned, key=lambda r: r["pairs_to_target"], default=None)
     figures: dict[str, Any] = {"target": COST_TARGET, "runs": rows}
     if ref is not None:
@@ -153,7 +155,7 @@ def markdown(out: dict[str, Any]) -> str:
         s = r["settings"]
         budget = s["train.steps"] * s["train.batch_size"]
         status = "pruned" if r["pruned"] else r["status"].lower()
-        lines.append(f"| {r['experiment']} {r['name'].split('·')[0]} | {r['name'].split('·')[-5] if '·' in r['name'] else ''} "
+        lines.append(f"| {r['experiment']} {r['name'].split('·')[0]} | {r['arch']} "
                      f"| {s['image_size']}² | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
                      f"| {s['train.schedule']} | {s['train.batch_size']} | {_fmt(s['model.dropout'])} | {budget:,} "
                      f"| {_fmt(r['best_val_ratio'])} | {_fmt(r['pairs_to_target'], ',.0f')} "
