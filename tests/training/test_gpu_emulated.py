@@ -121,7 +121,9 @@ def test_the_loop_trains_checkpoints_and_resumes_bitwise_in_every_precision(arch
     a, b = straight.net.state_dict(), resumed.net.state_dict()
     differ = [k for k in a if not torch.equal(a[k], b[k])]  # bitwise (a NaN anywhere fails)
     assert differ == []
-    assert resumed.history[-1] == straight.history[-1] or precision != "32"
+    # train.core_s: CPU seconds the steps took (the cost of learning), a measurement, not training state
+    measured = lambda h: {k: v for k, v in h.items() if k != "train.core_s"}  # noqa: E731
+    assert measured(resumed.history[-1]) == measured(straight.history[-1]) or precision != "32"
     assert resumed.history[-1]["train_loss"] == straight.history[-1]["train_loss"] or outcome != "trained"
     assert resumed.micro == straight.micro and resumed.skipped_steps == straight.skipped_steps
 
