@@ -8,7 +8,7 @@ benchmark projects (folders with their own experiments.yaml and MLflow store) â€
 and writes benchmarks/results/learning-cost.json: per run its settings that differ from the reference recipe, its
 validation curve by pairs seen, the cost to 0.90 and the ratio to the reference's cost, with the CPU it ran on.
 
-    python benchmarks/bench_learning_cost.py /work/lc [--reference cost-reference] [--out FILE] [--markdown]
+    python benchmarks/bench_learning_cost.py PROJECT [PROJECT ...] [--reference cost-reference] [--out FILE] [--markdown]
 
 The CPU line is this machine's: run it on the machine that trained the runs (the JSON says which runs' hosts
 were recorded in their tags too). Nothing here trains anything.
