@@ -64,9 +64,6 @@ def run_pool(cfg: Config, store: SweepStore, plan: Plan, *, workers: int, runner
                       interrupted, codes, procs.log_dir)
 
 
-FINAL_READS = 5  # the last read after every worker exited: retried on a busy database, never an old view
-
-
 def _watch(store: SweepStore, plan: Plan, procs: LocalProcesses, cfg: Config, workers: int,
            console: Console, on_refresh: Callable[[Plan], None] | None) -> Plan:
     """Poll the table until every local worker has exited: a live view on a terminal, a line per change otherwise."""
@@ -76,19 +73,13 @@ def _watch(store: SweepStore, plan: Plan, procs: LocalProcesses, cfg: Config, wo
         live = Live(live_view(plan, retries, workers), console=console, refresh_per_second=4)
     last = ""
 
-    def refresh(final: bool = False) -> Plan:
+    def refresh() -> Plan:
         nonlocal last
-        for attempt in range(FINAL_READS if final else 1):
-            try:
-                fresh = read_plan(store, plan.sweep, plan.cells)
-                now = store.db_now()
-                break
-            except BronchoError:  # a storage hiccup must not kill the watcher; workers retry on their own
-                if not final:
-                    return plan
-                if attempt == FINAL_READS - 1:  # the exit code must come from the table, not an old view
-                    raise
-                time.sleep(REFRESH_S)
+        try:
+            fresh = read_plan(store, plan.sweep, plan.cells)
+            now = store.db_now()
+        except BronchoError:  # a storage hiccup must not kill the watcher; workers retry on their own
+            return plan
         if live is not None:
             live.update(live_view(fresh, retries, workers, now))
         elif (line := summary_line(progress(fresh, retries, workers)).plain) != last:
@@ -104,7 +95,7 @@ def _watch(store: SweepStore, plan: Plan, procs: LocalProcesses, cfg: Config, wo
         while procs.sentinels():
             procs.wait(REFRESH_S)
             plan = refresh()
-        return refresh(final=True)
+        return refresh()
     finally:
         if live is not None:
             live.stop()
