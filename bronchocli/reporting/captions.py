@@ -127,26 +127,17 @@ def footnotes(table: Table) -> list[tuple[str, str]]:
     return out + [("", n) for n in table.notes]
 
 
-def refused_note(rows: Sequence[Row], what: str = "no interval, marks or skill") -> str:
-    """The note for rows that show means only because their seeds are too few (2)."""
-    by_seeds = [r for r in rows if r.kind == "model" and 1 < (r.info.get("replicates") or 0) < MIN_SEEDS]
-    if not by_seeds:
-        return ""
-    models = [r for r in rows if r.kind == "model" and r.runs]
-    which = "every row" if len(by_seeds) == len(models) else ", ".join(r.name for r in by_seeds)
-    n = "/".join(map(str, sorted({r.info["replicates"] for r in by_seeds})))
-    return (f"Means only at {n} seeds ({which}): {what}; with 2 seeds an interval and a test are not reliable, "
-            f"they need ≥ {MIN_SEEDS}.")
-
-
-def one_seed_note(rows: Sequence[Row]) -> str:
-    """Rows with one seed among rows with more: their estimand is that one trained model."""
+def fixed_seeds_note(rows: Sequence[Row]) -> str:
+    """Rows with fewer than MIN_SEEDS seeds among rows with more: their estimand is their trained models."""
     model = _model_rows(rows)
-    single = [r.name for r in model if r.info["replicates"] == 1]
-    if not single or len(single) == len(model):
+    few = [r for r in model if r.info["replicates"] < MIN_SEEDS]
+    if not few or len(few) == len(model):
         return ""
-    return (f"Rows with one seed ({', '.join(single)}): about that one trained model, the interval covers new test "
-            f"units only, not new seeds.")
+    if all(r.info["replicates"] == 1 for r in few):
+        return (f"Rows with one seed ({', '.join(r.name for r in few)}): about that one trained model, the interval "
+                f"covers new test units only, not new seeds.")
+    return (f"Rows with fewer than {MIN_SEEDS} seeds ({', '.join(r.name for r in few)}): about those trained "
+            f"models (seeds fixed), the interval covers new test units only, not new seeds.")
 
 
 def budget_text(runs: Sequence[RunRecord]) -> str:

@@ -9,9 +9,13 @@
   trajectory within patient; ``stats.Sample.unit``), so the caption says how
   many patients it rests on.
 
-A row whose sample ``stats.refusal`` refuses (2 seeds; fewer than
-``stats.MIN_PATIENTS`` patients for a new-patient estimand) shows its mean
-only: no interval, no best/tie mark, no † and no skill; a note says why (captions.refused_note).
+A row with fewer than ``stats.MIN_SEEDS`` seeds (1 or 2) cannot measure how
+seeds differ: its estimand is its trained models (``Sample.seeds_fixed``: the
+seeds' errors averaged per trajectory, the interval over new test units only),
+said in the caption when every row is so, else in a note (captions.fixed_seeds_note).
+A row whose sample ``stats.refusal`` refuses (fewer than ``stats.MIN_PATIENTS``
+patients for a new-patient estimand) shows its mean only: no interval, no
+best/tie mark, no † and no skill.
 Each metric's interval keeps the figure inside its bounds (``scale_of``):
 percentages (CTF) on the logit scale, positive errors on the log scale.
 """
@@ -21,7 +25,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from .. import registry
-from .stats import MIN_PATIENTS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
+from .stats import MIN_PATIENTS, MIN_SEEDS, PATIENT, PERCENT, POSITIVE, TRAJECTORY, Sample
 from .table_model import Row
 
 ESTIMAND_NAMES = {TRAJECTORY: "these patients", PATIENT: "a new patient"}
@@ -55,10 +59,14 @@ def estimand_phrase(unit: str, rows: Sequence[Row]) -> str:
     if not patients:
         return ""
     reps = {r.info.get("replicates") for r in rows if r.kind == "model" and r.info.get("replicates")}
-    if reps == {1}:  # one seed everywhere: the estimand is the trained model, said once
+    if reps and max(reps) < MIN_SEEDS:  # too few seeds everywhere: the estimand is the trained models, said once
         over = (f"new test trajectories of these {_names(patients)}" if unit == TRAJECTORY else
                 f"new patients (resting on {_names(patients)})")
-        return f"about the one trained model of each row (one seed, not new seeds) on {over}"
+        if reps == {1}:
+            return f"about the one trained model of each row (one seed, not new seeds) on {over}"
+        n = "/".join(map(str, sorted(reps)))
+        return (f"about the trained models of each row ({n} seeds, fixed: not new seeds; too few to measure how "
+                f"seeds differ) on {over}")
     if unit == TRAJECTORY:
         return f"for new seeds and new test trajectories of these {_names(patients)}, not a new patient"
     text = f"for a new patient (new seeds, patients and trajectories), resting on {_names(patients)}"

@@ -17,7 +17,7 @@ import math
 
 from .. import registry
 from .aggregate import model_sample, replicates
-from .captions import ERRORS, budget_text, caption, init_text, one_seed_note, refused_note, seeds_phrase
+from .captions import ERRORS, budget_text, caption, fixed_seeds_note, init_text, seeds_phrase
 from .collect import FRAME, LOSS, POP
 from .context import Collector, NoData, ReportContext, arch_names, finish, losses, metrics_of
 from .estimand import unit_of
@@ -140,7 +140,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
     table.notes = [n for n in (
         f"p: test of equal skill in the two frames (same test trajectories, seeds independent), Holm-corrected over "
         f"the rows of each metric; significant when < {s.alpha:g}.",
-        refused_note(built_rows, "no interval and no p"), one_seed_note(built_rows)) if n]
+        fixed_seeds_note(built_rows)) if n]
     table.source = [p for p in (f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
                                 budget_text(every), init_text(every)) if p]
     merged = collectors["world"]

@@ -3,7 +3,10 @@
 ``Sample.unit`` states the estimand (stats.py): ``trajectory`` (these
 patients: seeds and trajectories vary) or ``patient`` (a new patient: the
 trajectories are averaged into their patients first, so patients are a level).
-``refusal`` says when a sample supports no interval and no test.
+``refusal`` says when a sample supports no interval and no test. With fewer than
+``MIN_SEEDS`` replicates how seeds differ cannot be measured: the estimand is then
+the trained models themselves (``seeds_fixed``: each trajectory's error averaged
+over the replicates, the interval covering new test units only, not new seeds).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import numpy as np
 Key = tuple[str, str, str]  # (patient, lobe, trajectory)
 TRAJECTORY, PATIENT = "trajectory", "patient"  # the sampling unit: "these patients" / "a new patient"
 SAMPLING_UNITS = (TRAJECTORY, PATIENT)  # what an interval generalises over (not units of measure)
-MIN_SEEDS = 3  # 2 seeds: no interval, no test (1 seed: the units only, said so)
+MIN_SEEDS = 3  # fewer seeds (1 or 2): the estimand is the trained models, seeds fixed (the units only, said so)
 MIN_PATIENTS = 3  # a new-patient interval needs 3 patients (2 df)
 
 
@@ -41,6 +44,12 @@ class Sample:
         return int(self.errors.shape[0])
 
     @property
+    def seeds_fixed(self) -> bool:
+        """Too few replicates to measure how seeds differ (< MIN_SEEDS): the sample is read for its trained
+        models, not for new seeds."""
+        return self.replicates < MIN_SEEDS
+
+    @property
     def trajectories(self) -> int:
         return len(self.keys)
 
@@ -63,12 +72,14 @@ class Sample:
 
     def units(self) -> tuple[np.ndarray, np.ndarray]:
         """``(errors (R, U), weights (U,))`` over the sampling units: the trajectories, or the patients (each
-        the weighted mean of its trajectories, its weight their summed weight)."""
+        the weighted mean of its trajectories, its weight their summed weight). With its seeds fixed
+        (``seeds_fixed``) the replicates are averaged first: one row, the trained models' mean error per unit."""
+        errors = self.errors.mean(0, keepdims=True) if self.seeds_fixed else self.errors
         if self.unit == TRAJECTORY:
-            return self.errors, self.weights
+            return errors, self.weights
         names = sorted({k[0] for k in self.keys})
         groups = np.array([names.index(k[0]) for k in self.keys])
-        return collapse(self.errors, self.weights, groups, len(names))
+        return collapse(errors, self.weights, groups, len(names))
 
 
 def collapse(errors: np.ndarray, weights: np.ndarray, groups: np.ndarray, n_groups: int
@@ -83,9 +94,8 @@ def collapse(errors: np.ndarray, weights: np.ndarray, groups: np.ndarray, n_grou
 
 
 def refusal(sample: Sample) -> str:
-    """Why the sample gets no interval and no test ("" when it does): 2 seeds, or too few patients."""
-    if 1 < sample.replicates < MIN_SEEDS:
-        return f"{sample.replicates} seeds"
+    """Why the sample gets no interval and no test ("" when it does): too few patients for a new-patient
+    estimand. (Too few seeds is not a refusal: the estimand becomes the trained models, ``seeds_fixed``.)"""
     if sample.unit == PATIENT and sample.patients < MIN_PATIENTS:
         return f"{sample.patients} patient{'s' if sample.patients != 1 else ''}"
     return ""

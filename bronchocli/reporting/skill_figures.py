@@ -81,7 +81,7 @@ def skill_figure(table: Table):
     without = [r.name for r in table.rows if r.kind == "model" and r.runs and r.name not in table.skill]
     if without:
         refused = {r.name for r in table.rows if r.info.get("refused")}
-        why = "means only: too few seeds or patients" if set(without) <= refused else "no per-trajectory errors"
+        why = "means only: too few patients" if set(without) <= refused else "no per-trajectory errors"
         lines.append(f"no bar for {', '.join(without)} ({why})")
     width = int(fig.get_figwidth() * 15)  # characters of fontsize 8 across the figure
     fig.suptitle("\n".join(textwrap.fill(line, width) for line in lines), fontsize=8)

@@ -31,7 +31,7 @@ from typing import Callable, Mapping, Sequence
 from .. import registry
 from ..errors import BronchoError
 from .aggregate import EVALS, nonfinite_rows
-from .captions import budget_text, caption, init_text, one_seed_note, refused_note
+from .captions import budget_text, caption, fixed_seeds_note, init_text
 from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
@@ -86,7 +86,7 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
     table.caption = caption(what, table.rows, evaluation, unit, folds=sorted(c.folds),
                             higher=[heading(m)[0] for m in higher])
     source, numerics, mixed = precision_text(table)
-    table.notes = [n for n in (refused_note(table.rows), one_seed_note(table.rows), *notes, numerics) if n]
+    table.notes = [n for n in (fixed_seeds_note(table.rows), *notes, numerics) if n]
     if built.fallback:
         table.notes.append(f"Logged means without interval, not ranked ({', '.join(built.fallback)}): their runs "
                            f"have no per-trajectory errors; † there means the mean does not lie below the better "

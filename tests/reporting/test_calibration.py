@@ -11,6 +11,7 @@ the acceptance bounds 0.93 / 0.06. docs/reports.md's calibration block is what t
 from __future__ import annotations
 
 import importlib.util
+import math
 import sys
 from pathlib import Path
 
@@ -35,10 +36,12 @@ def test_small_simulation_covers_the_stated_estimand_in_every_regime(bench):
     assert {"these patients", "a new patient"} <= estimands
     # 2 seed counts x (3 base + 2 lognormal + 1 with exact zeros + 6 with patients, lognormal patients included,
     # x 2 estimands); bench.KNOWN_SHORT (rows held to their own floor) is empty
-    assert len(graded) == 36 and not bench.KNOWN_SHORT
+    # + the trained models' interval at 2 seeds (coverage only: its test has no equal-means null)
+    assert len(graded) == 37 and not bench.KNOWN_SHORT
     for m in graded:
         assert m["coverage"] >= 0.90, m
-        assert m["fpr"] <= 0.08, m
+        assert m["fpr"] <= 0.08 or (math.isnan(m["fpr"]) and math.isnan(m["power"])), m
+    assert sum(math.isnan(m["fpr"]) for m in graded) == 1
 
 
 def test_trajectories_as_units_miss_a_new_patient_and_patients_as_units_do_not(bench):
@@ -50,18 +53,21 @@ def test_trajectories_as_units_miss_a_new_patient_and_patients_as_units_do_not(b
     assert old < 0.87 < 0.93 <= new
 
 
-def test_two_seeds_print_no_interval(bench):
-    """At 2 seeds the plain procedure under-covers; the report refuses to print it (stats.refusal)."""
-    results = bench.run(400, 12, ["2 seeds"], seed=5)
-    assert not bench.printed(2, 0, "these patients") and bench.graded(results) == []
+def test_two_seeds_print_the_trained_models_interval_not_a_new_seeds_one(bench):
+    """At 2 seeds the new-seeds interval under-covers, so the report does not print it (stats.MIN_SEEDS); the
+    interval it prints is about the trained models (Sample.seeds_fixed) and covers their mean."""
+    results = bench.run(2000, 12, ["2 seeds"], seed=5)
+    assert not bench.printed(2, 0, "these patients") and bench.printed(2, 0, bench.FIXED)
     assert results[("report", 2, "2 seeds", "these patients")]["coverage"] < 0.92
+    fixed = results[("report", 2, "2 seeds", bench.FIXED)]
+    assert bench.graded(results) == [fixed] and fixed["coverage"] >= 0.93
 
 
 @pytest.mark.parametrize("pair_weights", [False, True], ids=["accumulated", "per-pair"])
 def test_full_simulation_meets_the_acceptance_bounds(bench, pair_weights):
     results = bench.run(10000, 12, pair_weights=pair_weights)
     for m in bench.graded(results):
-        assert m["coverage"] >= 0.93 and m["fpr"] <= 0.06, m
+        assert m["coverage"] >= 0.93 and (m["fpr"] <= 0.06 or math.isnan(m["fpr"])), m
     for key, m in bench.known_short(results).items():  # below the bound, named in the summary line: not worse
         assert m["coverage"] >= bench.KNOWN_SHORT_FLOOR and m["fpr"] <= 0.06, (key, m)
     # power for one seed-SD grows with seeds where seeds dominate

@@ -69,22 +69,45 @@ def test_personalized_caption_states_these_patients():
     assert t.rows[0].info["samples"][0].unit == stats.TRAJECTORY
 
 
-def test_two_seeds_show_the_mean_without_interval_or_marks_and_say_why():
+def test_two_seeds_are_read_for_their_trained_models_not_for_new_seeds():
+    """Two seeds cannot measure how seeds differ: the interval is the one-replicate interval of the seeds'
+    per-trajectory mean errors (the trained models, seeds fixed), not a new-seeds interval."""
+    rng = np.random.default_rng(0)
+    keys = tuple(("p00", "ur", f"t{i}") for i in range(12))
+    w = rng.integers(10, 60, 12).astype(float)
+    errors = rng.lognormal(0.5, 0.3, (2, 12)) + np.array([[0.0], [0.8]])  # two seeds that differ a lot
+    two = stats.Sample(keys, w, errors)
+    averaged = stats.Sample(keys, w, errors.mean(0, keepdims=True))
+    assert two.seeds_fixed and not stats.refusal(two)
+    assert two.mean == pytest.approx(averaged.mean)
+    for scale in (stats.POSITIVE, stats.LINEAR):
+        assert stats.interval(two, scale=scale) == pytest.approx(stats.interval(averaged, scale=scale))
+    three = stats.Sample(keys, w, np.vstack([errors, errors[:1] + 0.4]))  # three seeds: the seed spread counts
+    lo3, hi3 = stats.interval(three, scale=stats.LINEAR)
+    lo1, hi1 = stats.interval(stats.Sample(keys, w, three.errors.mean(0, keepdims=True)), scale=stats.LINEAR)
+    assert not three.seeds_fixed and hi3 - lo3 > hi1 - lo1
+
+
+def test_two_seeds_show_intervals_and_marks_about_their_trained_models():
     m = MemRuns(seed=4)
     for seed in (0, 1):
         m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
-        m.add("convlstm", "ce", (6.0, 30.0, 0.30, 0.030), seed=seed)  # worse than the references: † at 3 seeds
+        m.add("convlstm", "ce", (6.0, 30.0, 0.30, 0.030), seed=seed)  # worse than the references
     t = personalized(m.context(), "accumulated")
     models = [i for i, r in enumerate(t.rows) if r.kind == "model"]
     runs = {r.run_id: r for r in m.records}
     for i in models:
         reps = replicates([runs[x] for x in t.rows[i].runs])
         logged = np.mean([np.mean([r.metrics["acc.pos_l2.mean"] for r in rep]) for rep in reps])
-        assert t.rows[i].values[0] == Estimate(pytest.approx(logged))  # the mean, no interval
-        assert not any(t.marks[i])
-    assert "Means only at 2 seeds (every row): no interval, marks or skill" in t.notes[0]
-    assert not t.skill
-    refs = [r for r in t.rows if r.kind == "reference"]  # the references do not depend on seeds: intervals
+        v = t.rows[i].values[0]
+        assert v.mean == pytest.approx(logged) and v.has_interval and v.lo < v.mean < v.hi
+    worse = next(i for i, r in enumerate(t.rows) if r.group == "+ConvRNN")
+    # the † rule applies to the trained models: worse than the training mean in position and rotation (6.0 vs 5.8,
+    # 30 vs 23), better in DE and CE (0.30 vs 0.34, 0.030 vs 0.072)
+    assert ["noskill" in mk for mk in t.marks[worse]] == [True, True, False, False]
+    assert "about the trained models of each row (2 seeds, fixed: not new seeds" in t.caption
+    assert not any("Means only" in n for n in t.notes)
+    refs = [r for r in t.rows if r.kind == "reference"]
     assert all(v.has_interval for r in refs for v in r.values)
 
 

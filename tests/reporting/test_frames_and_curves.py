@@ -89,12 +89,13 @@ def _close_figures():
     plt.close("all")
 
 
-def test_frames_table_at_two_seeds_shows_skill_means_only():
+def test_frames_table_at_two_seeds_reads_skill_for_the_trained_models():
     m = MemRuns(seed=13)
     for seed in (0, 1):
         m.add("lstm", "ce", (3.48, 13.8, 0.20, 0.04), seed=seed, frame="world")
         m.add("lstm", "ce", (0.58, 2.3, 0.03, 0.007), seed=seed, frame="camera")
     t = frames(m.context(), "pair")
     world, camera, p = t.rows[0].values[:3]
-    assert isinstance(world, Estimate) and not world.has_interval and not camera.has_interval and p == "—"
-    assert any("Means only at 2 seeds (every row): no interval and no p" in n for n in t.notes)
+    assert isinstance(world, Estimate) and world.has_interval and camera.has_interval and p != "—"
+    assert "2 seeds, fixed: not new seeds" in t.caption
+    assert not any("Means only" in n for n in t.notes)
