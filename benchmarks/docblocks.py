@@ -9,7 +9,9 @@ span, so the prose cannot drift from the measurement:
 - inline: ``<!-- n: FILE/key/path as FORMAT -->VALUE<!-- /n -->`` — VALUE is the figure at ``key/path`` of
   FILE's JSON (``figures/...`` for a results file), formatted by FORMAT (optional; see ``fmt``);
 - a block: ``<!-- numbers: NAME -->`` ... ``<!-- /numbers -->`` — the lines ``BLOCKS[NAME]`` renders from the
-  results files (the Summary table of benchmarks/README.md; docs/reports.md's calibration tables).
+  results files (the Summary table of benchmarks/README.md; docs/reports.md's calibration tables);
+  ``<!-- numbers: lines FILE/key/path -->`` renders the list of lines recorded at that key (a report's table,
+  kept verbatim by the benchmark that recorded it, e.g. bench_study.py).
 
 ``python benchmarks/docblocks.py`` checks every document and exits 1 naming each span that differs from its
 results file; ``--write`` rewrites the spans from the files (atomically). tests/test_doc_numbers.py runs the
@@ -36,7 +38,8 @@ REQUIRED = ("title", "machine", "date", "command", "figures")
 
 # "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
 INLINE = re.compile(r"<!-- n: (?P<ref>[^>]+?)(?: as (?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
-BLOCK = re.compile(r"(?P<open><!-- numbers: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(?P<close><!-- /numbers -->)", re.S)
+BLOCK = re.compile(r"(?P<open><!-- numbers: (?P<name>[\w-]+)(?: (?P<ref>[^\s>]+))? -->\n)(?P<body>.*?)"
+                   r"(?P<close><!-- /numbers -->)", re.S)
 
 
 class NumbersError(ValueError):
@@ -180,6 +183,14 @@ def render(text: str, results: dict[str, dict], where: str = "") -> str:
     """``text`` with every span regenerated from the results files."""
     def block(m: re.Match) -> str:
         name = m["name"]
+        if name == "lines" and m["ref"]:
+            try:
+                lines = lookup(results, m["ref"])
+            except NumbersError as exc:
+                raise NumbersError(f"{where}: {exc}") from None
+            if not isinstance(lines, list):
+                raise NumbersError(f"{where}: block lines {m['ref']}: not a list of lines")
+            return m["open"] + "\n".join(map(str, lines)) + "\n" + m["close"]
         if name not in BLOCKS:
             raise NumbersError(f"{where}: unknown block {name!r} (known: {', '.join(BLOCKS)})")
         return m["open"] + "\n".join(BLOCKS[name](results)) + "\n" + m["close"]

@@ -88,6 +88,20 @@ def test_check_names_a_changed_block_line(docblocks, tmp_path):
     assert [d for d in docblocks.check([doc], results, tmp_path) if "block summary" in d]
 
 
+def test_a_lines_block_shows_the_recorded_lines_and_names_a_drifted_one(docblocks, tmp_path):
+    table = ["| Model | Position |", "|---|---|", "| OffsetNet | **1.52 [1.42, 1.63]** |"]
+    results_dir, doc = _project(tmp_path, "x\n<!-- numbers: lines job/figures/table -->\n<!-- /numbers -->\n",
+                                {"table": table, "scalar": 1.5})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    assert docblocks.check([doc], results, tmp_path)  # empty: not the recorded lines
+    docblocks.write([doc], results, tmp_path)
+    assert "\n".join(table) in doc.read_text() and docblocks.check([doc], results, tmp_path) == []
+    doc.write_text(doc.read_text().replace("1.52", "1.50"), encoding="utf-8")
+    assert [d for d in docblocks.check([doc], results, tmp_path) if "block lines" in d]
+    doc.write_text("<!-- numbers: lines job/figures/scalar -->\n<!-- /numbers -->\n", encoding="utf-8")
+    assert "not a list of lines" in docblocks.check([doc], results, tmp_path)[0]
+
+
 def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tmp_path):
     results_dir, doc = _project(tmp_path, "<!-- n: job/figures/missing -->1<!-- /n -->\n", {"total_s": 1.5})
     results = docblocks.load_results(results_dir, tmp_path / "none.json")

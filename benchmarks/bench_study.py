@@ -1,0 +1,122 @@
+"""A finished study read back into a results file: every cell's test ratios, mode gap and cost, and its report.
+
+    python benchmarks/bench_study.py PROJECT [--profile NAME] --out NAME [--reports DIR] [--command TEXT]
+
+PROJECT is the folder the study ran in (its experiments.yaml, MLflow store and claims table; the main job's is
+the clone it ran in). For every finished cell run of the config's experiment (parents and tune trials left
+out) it records the cell's coordinates and what the paper's tables compare, from the run's own metrics: the
+per-pair position and rotation (L2) error ÷ the training-mean reference's on the same test pairs
+(``pair.<m>.mean / train_mean.pair.<m>.mean``), the accumulated (per-trajectory) position ratio, ``eval.mode_gap``,
+the parameter count, and the cost of learning (``cost.pairs_to_0.90``, ``cost.core_s_to_0.90``, ``train.core_s``).
+The report's Markdown tables (``--reports``, default PROJECT/reports) are kept verbatim as ``docs_*`` line lists:
+benchmarks/README.md shows them as generated blocks (``python benchmarks/docblocks.py --write``).
+Writes benchmarks/results/NAME.json atomically, with this machine's CPU line: run it where the study trained.
+Nothing here trains anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+from bench_common import cpu_line
+
+from bronchocli.config import load_config
+from bronchocli.runs.client import client_for
+from bronchocli.training.cost import COST_TARGET
+
+HERE = Path(__file__).resolve().parent
+COORDS = ("arch", "rot_loss", "population", "fold", "seed", "pose_frame")
+
+
+def ratio(m: dict[str, float], metric: str, unit: str = "pair") -> float | None:
+    """The model's error ÷ the training mean's on the same test pairs (unit ``pair``) or trajectories (``acc``)."""
+    own, ref = m.get(f"{unit}.{metric}.mean"), m.get(f"train_mean.{unit}.{metric}.mean")
+    return own / ref if own is not None and ref else None
+
+
+def cell_row(run) -> dict[str, Any]:
+    p, m = run.data.params, run.data.metrics
+    row: dict[str, Any] = {k: p.get(k) for k in COORDS}
+    row.update({
+        "run_id": run.info.run_id, "name": run.data.tags.get("mlflow.runName", ""), "status": run.info.status,
+        "ratio_pos_pair": ratio(m, "pos_l2"), "ratio_rot_pair": ratio(m, "rot_l2"),
+        "ratio_pos_acc": ratio(m, "pos_l2", "acc"),
+        "pos_l2_pair": m.get("pair.pos_l2.mean"), "train_mean_pos_l2_pair": m.get("train_mean.pair.pos_l2.mean"),
+        "mode_gap": m.get("eval.mode_gap"), "val_best_ratio": m.get("val_best.ratio.pos_l2"),
+        "n_params": m.get("n_params"), "pairs_seen": m.get("train.pairs_seen"), "core_s": m.get("train.core_s"),
+        "pairs_to_target": m.get(f"cost.pairs_to_{COST_TARGET:.2f}"),
+        "core_s_to_target": m.get(f"cost.core_s_to_{COST_TARGET:.2f}"),
+    })
+    return row
+
+
+def collect(cfg) -> list[dict[str, Any]]:
+    client = client_for(cfg)
+    exp = client.get_experiment_by_name(cfg.name)
+    if exp is None:
+        sys.exit(f"no MLflow experiment {cfg.name!r} in {cfg.runs.uri}: run the study first")
+    runs = client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=5000)
+    return [cell_row(r) for r in runs if r.data.tags.get("run_kind", "cell") == "cell" and "arch" in r.data.params]
+
+
+def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per (arch, rot_loss): the seeds' ratios (range and mean) and the largest mode gap."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for c in cells:
+        groups.setdefault(f"{c['arch']}/{c['rot_loss']}/{c['population']}", []).append(c)
+    out = {}
+    for key, rows in sorted(groups.items()):
+        entry: dict[str, Any] = {"seeds": sorted(int(r["seed"]) for r in rows)}
+        for k in ("ratio_pos_pair", "ratio_rot_pair", "ratio_pos_acc", "mode_gap", "pairs_to_target",
+                  "core_s_to_target", "core_s", "n_params"):
+            vals = [r[k] for r in rows if r[k] is not None]
+            entry[k] = sorted(round(v, 4) for v in vals)
+            if vals:
+                entry[f"{k}_mean"] = statistics.fmean(vals)
+        out[key] = entry
+    return out
+
+
+def report_tables(folder: Path) -> dict[str, list[str]]:
+    """The report's Markdown tables, verbatim (one list of lines per file)."""
+    return {f"docs_{p.stem.replace('-', '_')}": p.read_text().rstrip("\n").splitlines()
+            for p in sorted(folder.glob("*.md"))} if folder.is_dir() else {}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("project", type=Path, help="the folder the study ran in (experiments.yaml + runs/)")
+    ap.add_argument("--profile", default=None)
+    ap.add_argument("--out", required=True, help="results file name, without .json")
+    ap.add_argument("--reports", type=Path, default=None, help="the report's folder (default PROJECT/reports)")
+    ap.add_argument("--command", default=None, help="the command that ran the study (recorded)")
+    ap.add_argument("--title", default=None)
+    args = ap.parse_args(argv)
+    cfg = load_config(args.project / "experiments.yaml", args.profile)
+    cells = collect(cfg)
+    if not cells:
+        sys.exit(f"no finished cell runs in experiment {cfg.name!r}")
+    figures = {"experiment": cfg.name, "cells": sorted(cells, key=lambda c: tuple(str(c[k]) for k in COORDS)),
+               "by_model": summarise(cells), "n_cells": len(cells),
+               "max_mode_gap": max((c["mode_gap"] for c in cells if c["mode_gap"] is not None), default=None),
+               **report_tables(args.reports or args.project / "reports")}
+    out = {"title": args.title or f"Study {cfg.name}: every finished cell's test ratios, mode gap and cost",
+           "machine": cpu_line(), "date": dt.date.today().isoformat(),
+           "command": args.command or f"bronchopose sweep run{' --profile ' + args.profile if args.profile else ''}",
+           "figures": figures}
+    path = HERE / "results" / f"{args.out}.json"
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(out, indent=1, ensure_ascii=False) + "\n")
+    tmp.replace(path)
+    print(f"wrote {path} ({len(cells)} cells)", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
