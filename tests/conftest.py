@@ -211,6 +211,26 @@ def _shared_fixture_group(item) -> str | None:
     return min(folders, key=lambda b: (b.count("/"), b)) if folders else module
 
 
+def _longest_first(items: list) -> list:
+    """Under pytest-xdist: the tests of no group ordered service tests first, then the other ``heavy`` ones, then
+    the rest (stable: a module's order is kept within each class).
+
+    ``--dist loadgroup`` hands out the groups first (largest first), then the tests of no group one at a time in
+    collection order, to whichever worker runs short. In plain collection order tests/training and the root's
+    process and server tests (20-50 s each on the idle 2-core machine) came last, so one worker could end with
+    a long test while the other had nothing left: the longest-first order ends both on short tests. Grouped
+    tests keep their places (their fixtures are shared in the group's order); every worker collects the same
+    order, as xdist requires."""
+    def weight(item) -> int:
+        if item.get_closest_marker("xdist_group") is not None:
+            return 2
+        if any(item.get_closest_marker(m) for m in SERVICES):
+            return 0
+        return 1 if item.get_closest_marker("heavy") else 2
+
+    return sorted(items, key=weight)
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker reads the xdist_group marks into the node ids
 def pytest_collection_modifyitems(config, items):
     """Tests sharing a module- or folder-wide fixture run on one xdist worker (``--dist loadgroup``), so the
@@ -231,6 +251,8 @@ def pytest_collection_modifyitems(config, items):
             group = _shared_fixture_group(item)
             if group is not None:
                 item.add_marker(pytest.mark.xdist_group(group))
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        items[:] = _longest_first(items)
     # The marker, not ``item.keywords``: keywords hold every parent node's name, so a checkout in a folder
     # named ``gpu`` would skip the whole suite.
     if not any(item.get_closest_marker("gpu") for item in items):
