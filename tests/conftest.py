@@ -45,6 +45,23 @@ def pytest_configure(config):
     os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
 
 
+def pytest_collection_finish(session):
+    """Under pytest-xdist, a worker's torch takes its share of the cores (cores / workers threads), not all of them.
+
+    torch's default is every core, in each worker: two workers on two cores ran four compute threads whose
+    OpenMP teams spin-wait for each other (the oversubscription one_thread avoids for single tests). Training
+    still sets the threads it decides (``runs.cores``, ``train.threads``), and processes a test starts keep
+    torch's own default: only the tests' in-process torch work (models, inference, profiling) changes."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2:
+        return
+    import torch  # collected test modules have mostly imported it already
+
+    from bronchocli.runs.cores import machine_cores
+
+    torch.set_num_threads(max(1, machine_cores() // workers))
+
+
 def pytest_unconfigure(config):
     if _RUNTIME is not None:
         shutil.rmtree(_RUNTIME, ignore_errors=True)
