@@ -220,8 +220,12 @@ def _shared_fixture_group(item) -> str | None:
     for defs in info.name2fixturedefs.values():
         fixture = defs[-1]
         scope = str(getattr(fixture.scope, "value", fixture.scope))
-        if scope in ("session", "package") and fixture.baseid not in ("", _root_id(item.config)):
-            folders.append(fixture.baseid)
+        if scope in ("session", "package"):
+            # not the root conftest's or a plugin's (the template store, tmp_path_factory): every test reaches
+            # those through the autouse store fixture, and they grouped every test with its module (so the
+            # longest modules of one or two tests went last, as xdist hands out groups of fewer tests later)
+            if fixture.baseid not in ("", _root_id(item.config)):
+                folders.append(fixture.baseid)
         elif scope != "function":
             module = item.nodeid.split("::")[0]
     # the widest place: every test of a folder whose session fixture one of them uses shares one worker
