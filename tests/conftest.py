@@ -45,6 +45,23 @@ def pytest_configure(config):
     os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
 
 
+def pytest_collection_finish(session):
+    """Under pytest-xdist, a worker's torch takes its share of the cores (cores / workers threads), not all of them.
+
+    torch's default is every core, in each worker: two workers on two cores ran four compute threads whose
+    OpenMP teams spin-wait for each other (the oversubscription one_thread avoids for single tests). Training
+    still sets the threads it decides (``runs.cores``, ``train.threads``), and processes a test starts keep
+    torch's own default: only the tests' in-process torch work (models, inference, profiling) changes."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0") or 0)
+    if "PYTEST_XDIST_WORKER" not in os.environ or workers < 2:
+        return
+    import torch  # collected test modules have mostly imported it already
+
+    from bronchocli.runs.cores import machine_cores
+
+    torch.set_num_threads(max(1, machine_cores() // workers))
+
+
 def pytest_unconfigure(config):
     if _RUNTIME is not None:
         shutil.rmtree(_RUNTIME, ignore_errors=True)
@@ -203,12 +220,36 @@ def _shared_fixture_group(item) -> str | None:
     for defs in info.name2fixturedefs.values():
         fixture = defs[-1]
         scope = str(getattr(fixture.scope, "value", fixture.scope))
-        if scope in ("session", "package") and fixture.baseid not in ("", _root_id(item.config)):
-            folders.append(fixture.baseid)
+        if scope in ("session", "package"):
+            # not the root conftest's or a plugin's (the template store, tmp_path_factory): every test reaches
+            # those through the autouse store fixture, and they grouped every test with its module (so the
+            # longest modules of one or two tests went last, as xdist hands out groups of fewer tests later)
+            if fixture.baseid not in ("", _root_id(item.config)):
+                folders.append(fixture.baseid)
         elif scope != "function":
             module = item.nodeid.split("::")[0]
     # the widest place: every test of a folder whose session fixture one of them uses shares one worker
     return min(folders, key=lambda b: (b.count("/"), b)) if folders else module
+
+
+def _longest_first(items: list) -> list:
+    """Under pytest-xdist: the tests of no group ordered service tests first, then the other ``heavy`` ones, then
+    the rest (stable: a module's order is kept within each class).
+
+    ``--dist loadgroup`` hands out the groups first (largest first), then the tests of no group one at a time in
+    collection order, to whichever worker runs short. In plain collection order tests/training and the root's
+    process and server tests (20-50 s each on the idle 2-core machine) came last, so one worker could end with
+    a long test while the other had nothing left: the longest-first order ends both on short tests. Grouped
+    tests keep their places (their fixtures are shared in the group's order); every worker collects the same
+    order, as xdist requires."""
+    def weight(item) -> int:
+        if item.get_closest_marker("xdist_group") is not None:
+            return 2
+        if any(item.get_closest_marker(m) for m in SERVICES):
+            return 0
+        return 1 if item.get_closest_marker("heavy") else 2
+
+    return sorted(items, key=weight)
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist's worker reads the xdist_group marks into the node ids
@@ -231,6 +272,8 @@ def pytest_collection_modifyitems(config, items):
             group = _shared_fixture_group(item)
             if group is not None:
                 item.add_marker(pytest.mark.xdist_group(group))
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        items[:] = _longest_first(items)
     # The marker, not ``item.keywords``: keywords hold every parent node's name, so a checkout in a folder
     # named ``gpu`` would skip the whole suite.
     if not any(item.get_closest_marker("gpu") for item in items):

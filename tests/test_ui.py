@@ -12,6 +12,8 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -24,14 +26,26 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_ui_serves_the_store(tmp_path):
-    (tmp_path / "experiments.yaml").write_text("name: ui-test\n")
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port)], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
-                            env={**os.environ, "COLUMNS": "200"})
+@dataclass(frozen=True)
+class Served:
+    folder: Path  # where `bronchopose ui` ran (its experiments.yaml, runs/)
+    port: int
+    log: Path  # the process's stdout and stderr
+
+
+@pytest.fixture(scope="module")
+def default_ui(tmp_path_factory):
+    """One default `bronchopose ui` process (no --workers, no --host) on a config's store, up and answering
+    /health, shared by the tests that read it: booting MLflow's server is most of their time."""
+    folder = tmp_path_factory.mktemp("ui")
+    (folder / "experiments.yaml").write_text("name: ui-test\n")
+    port, log = free_port(), folder / "ui.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port)], cwd=folder, stdout=out,
+                                stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                                env={**os.environ, "COLUMNS": "200"})
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 300  # a guard, not a timing claim: a starved shared CPU takes minutes
         while True:
             try:
                 with urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=2) as response:
@@ -39,34 +53,38 @@ def test_ui_serves_the_store(tmp_path):
                     break
             except OSError:
                 if proc.poll() is not None or time.monotonic() > deadline:
-                    pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
+                    pytest.fail(f"the UI did not come up:\n{log.read_text()}")
                 time.sleep(0.2)
-        assert (tmp_path / "runs" / "mlflow.db").is_file()  # it serves the config's store
-        # the printed link is the experiment's runs table in the model-training view, for the id the server has
-        query = urllib.parse.urlencode({"experiment_name": "ui-test"})
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?{query}",
-                                    timeout=10) as response:
-            experiment = json.load(response)["experiment"]
-        link = (f"http://127.0.0.1:{port}/#/experiments/{experiment['experiment_id']}/runs?workflowType=machine_learning"
-                "&viewStateShareKey=bronchopose-headline")
-        tags = {t["key"]: t["value"] for t in experiment["tags"]}
-        assert tags["mlflow.experimentKind"] == "custom_model_development"
-        saved = json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])  # MLflow's saved-view envelope
-        assert saved["name"] and isinstance(saved["createdAt"], int)  # listed by name in the Views menu
-        assert json.loads(saved["state"])["orderByAsc"] is True  # the view
-        # the bare root is the front page (issue 36.5): model-training mode, then the runs table on the view
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
-            page = response.read().decode()
-        assert "mlflow.workflowType_v1" in page and link.split("/", 3)[3].lstrip("/") in page.replace("\\/", "/")
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/?ui=bronchopose", timeout=10) as response:
-            assert "static-files" in response.read().decode()  # MLflow's own UI behind it
-        os.killpg(proc.pid, signal.SIGTERM)
-        out = proc.communicate(timeout=30)[0]
-        assert f"runs of experiment ui-test: {link}" in out
+        yield Served(folder, port, log)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGTERM)
             proc.wait(timeout=30)
+
+
+def test_ui_serves_the_store(default_ui):
+    port = default_ui.port
+    assert (default_ui.folder / "runs" / "mlflow.db").is_file()  # it serves the config's store
+    # the printed link is the experiment's runs table in the model-training view, for the id the server has
+    query = urllib.parse.urlencode({"experiment_name": "ui-test"})
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?{query}",
+                                timeout=10) as response:
+        experiment = json.load(response)["experiment"]
+    link = (f"http://127.0.0.1:{port}/#/experiments/{experiment['experiment_id']}/runs?workflowType=machine_learning"
+            "&viewStateShareKey=bronchopose-headline")
+    tags = {t["key"]: t["value"] for t in experiment["tags"]}
+    assert tags["mlflow.experimentKind"] == "custom_model_development"
+    saved = json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])  # MLflow's saved-view envelope
+    assert saved["name"] and isinstance(saved["createdAt"], int)  # listed by name in the Views menu
+    assert json.loads(saved["state"])["orderByAsc"] is True  # the view
+    # the bare root is the front page (issue 36.5): model-training mode, then the runs table on the view
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+        page = response.read().decode()
+    assert "mlflow.workflowType_v1" in page and link.split("/", 3)[3].lstrip("/") in page.replace("\\/", "/")
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/?ui=bronchopose", timeout=10) as response:
+        assert "static-files" in response.read().decode()  # MLflow's own UI behind it
+    # printed (and flushed) before the process becomes MLflow's server
+    assert f"runs of experiment ui-test: {link}" in default_ui.log.read_text()
 
 
 def test_ui_refuses_a_remote_tracking_server(tmp_path, cli):
@@ -177,24 +195,11 @@ def test_the_ui_listens_on_loopback_by_default(tmp_path, cli, exec_argv):
     assert argv[argv.index("--host") + 1] == "127.0.0.1"
 
 
-def test_the_real_server_listens_on_loopback_only(tmp_path):
+def test_the_real_server_listens_on_loopback_only(default_ui):
     """The default `bronchopose ui` process: its socket is bound to 127.0.0.1, not to every interface."""
     if not os.path.exists("/proc/net/tcp"):
         pytest.skip("no /proc/net/tcp on this system")
-    (tmp_path / "experiments.yaml").write_text("name: t\n")
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port), "--workers", "1"], cwd=tmp_path,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while not _listening(port):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
-            time.sleep(0.2)
-        assert _listening(port) == {"127.0.0.1"}
-    finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=30)
+    assert _listening(default_ui.port) == {"127.0.0.1"}
 
 
 @pytest.mark.parametrize("host", ["0.0.0.0", "::"])

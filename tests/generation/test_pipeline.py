@@ -138,7 +138,8 @@ def test_bad_anatomy_is_one_clear_error_and_leaves_nothing_that_blocks_a_rerun(t
         generate_dataset(tiny_config(root, **{"dataset.generate.anatomy": str(odd)}), progress=False)
     assert not (root / "dataset.json").exists()
     # Nothing of value was written, so a corrected config takes the folder over.
-    small = {"dataset.generate.lobes": ["br"], "dataset.generate.trajectories": 1, "dataset.generate.max_frames": 2}
+    small = {"dataset.generate.lobes": ["br"], "dataset.generate.trajectories": 1, "dataset.generate.max_frames": 2,
+             "dataset.generate.workers": 1}  # rendered here: test_two_workers_give_the_same_dataset spawns
     assert (ensure_dataset(tiny_config(root, **small)) / "dataset.json").is_file()
 
 

@@ -3,19 +3,19 @@ runners, PostgreSQL schemas."""
 
 from __future__ import annotations
 
-import shutil
 import sys
 import uuid
 from pathlib import Path
 
 import pytest
-import yaml
 
 HERE = Path(__file__).resolve().parent
 PG_BASE = "postgresql+psycopg://postgres@127.0.0.1:5432/test"
 
 if str(HERE) not in sys.path:  # spawned workers inherit sys.path: they can import sweep_fakes
     sys.path.insert(0, str(HERE))
+
+from sweep_config import config_in  # noqa: E402
 
 
 @pytest.fixture
@@ -32,32 +32,11 @@ def fake_dir(tmp_path, monkeypatch) -> Path:
 
 @pytest.fixture
 def make_config(tmp_path, mlflow_template):
-    """Write an experiments.yaml in tmp_path (MLflow store copied from the template) and load it."""
-    from bronchocli.config import load_config
+    """``config_in(tmp_path, ...)``: an experiments.yaml in tmp_path (MLflow store copied from the template),
+    loaded."""
 
-    def make(storage: str | None = None, name: str = "t", archs=("baseline", "lstm"), losses=("mse",),
-             populations=("personalized",), sweep: dict | None = None, grid_order: bool = False, **sections):
-        """``grid_order``: no measured speed settings, so workers claim the cells in the grid's order (the
-        shipped measurements order them longest first, and a re-measurement may swap two architectures)."""
-        if grid_order:
-            (tmp_path / "no-speed-settings.json").write_text('{"version": 1, "devices": {}}')
-            sections["train"] = {**sections.get("train", {}), "speed_settings": "no-speed-settings.json"}
-        db = tmp_path / "mlflow.db"
-        if not db.exists():
-            shutil.copy(mlflow_template, db)
-        data = {
-            "name": name,
-            "runs": {"uri": "sqlite:///mlflow.db", "artifacts": "artifacts"},
-            "storage": {"url": storage or "sqlite:///sweep.db"},
-            "dataset": {"root": "data/tiny"},
-            "grid": {"arch": list(archs), "rot_loss": list(losses), "population": list(populations),
-                     "folds": ["p00"], "seed": [0]},
-            "sweep": {"max_retries": 1, "heartbeat_s": 0.3, "stale_after_s": 2.0, "poll_s": 0.1, **(sweep or {})},
-            **sections,
-        }
-        path = tmp_path / "experiments.yaml"
-        path.write_text(yaml.safe_dump(data))
-        return load_config(path)
+    def make(*args, **kw):
+        return config_in(tmp_path, mlflow_template, *args, **kw)
 
     return make
 

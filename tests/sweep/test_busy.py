@@ -3,20 +3,60 @@ lock, then print one line and exit 2; a lock released within the bound lets them
 
 from __future__ import annotations
 
+import contextlib
+import io
+import shutil
 import sqlite3
 import threading
+from pathlib import Path
 
 import pytest
+from sweep_config import config_in
 from sweep_fakes import FAKE
 from tinydata import write_tiny_dataset
 
-from bronchocli.runs.client import MlflowBusy, _open, retry_busy
+from bronchocli.cli import main
+from bronchocli.config import load_config
+from bronchocli.runs.client import MlflowBusy, _open, client_for, retry_busy
 
 
 @pytest.fixture
 def project(make_config, tmp_path):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     return make_config(archs=("baseline",))
+
+
+@pytest.fixture(scope="module")
+def swept_once(tmp_path_factory, mlflow_template) -> Path:
+    """A ``project`` whose one-cell fake sweep is done (something for `status` and `report` to show), swept once
+    for the module: the tests below lock a copy of it (``swept``)."""
+    root = tmp_path_factory.mktemp("swept") / "project"
+    root.mkdir()
+    write_tiny_dataset(root / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    config_in(root, mlflow_template, archs=("baseline",))
+    out, err = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        (root.parent / "fake").mkdir()
+        mp.setenv("SWEEP_FAKE_DIR", str(root.parent / "fake"))
+        mp.setenv("COLUMNS", "200")
+        try:  # as the `cli` fixture runs a command (a module fixture cannot use it)
+            main(["sweep", "-c", str(root / "experiments.yaml"), *FAKE])
+            code = 0
+        except SystemExit as exc:
+            code = exc.code
+    assert code in (0, None), out.getvalue() + err.getvalue()
+    return root
+
+
+@pytest.fixture
+def swept(swept_once, tmp_path):
+    """A copy of ``swept_once`` (a project copied whole keeps to its own stores: tests/test_relocation.py). The
+    databases with their write-ahead logs; SQLite rebuilds a missing ``-shm`` index from the log."""
+    copy = tmp_path / "swept"
+    shutil.copytree(swept_once, copy, ignore=shutil.ignore_patterns("*-shm"))
+    cfg = load_config(copy / "experiments.yaml")
+    client_for(cfg)  # opened once before any lock: the copy's artifact locations rewritten to its own folder
+    return cfg
 
 
 class Lock:
@@ -59,10 +99,9 @@ def args(command, project) -> list[str]:
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
-def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir, command):
+def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, swept, fake_dir, command):
+    project = project if command == "sweep" else swept  # swept: something to show
     path = str(project.paths.base / "experiments.yaml")
-    if command != "sweep":
-        assert cli("sweep", "-c", path, *FAKE)[0] == 0  # something to show
     lock = Lock(project.paths.base / "mlflow.db")
     try:
         code, out, err = cli(*args(command, project), "-c", path, "--set", "runs.busy_timeout_s=0.5")
@@ -74,10 +113,10 @@ def test_a_locked_store_is_waited_for_then_one_line_and_exit_2(cli, project, fak
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
-def test_a_lock_released_within_the_bound_lets_the_command_succeed(cli, project, fake_dir, monkeypatch, command):
+def test_a_lock_released_within_the_bound_lets_the_command_succeed(cli, project, swept, fake_dir, monkeypatch,
+                                                                   command):
+    project = project if command == "sweep" else swept
     path = str(project.paths.base / "experiments.yaml")
-    if command != "sweep":
-        assert cli("sweep", "-c", path, *FAKE)[0] == 0
     lock = Lock(project.paths.base / "mlflow.db")
     seen = release_when_the_command_reaches_the_store(monkeypatch, lock)
     try:
@@ -104,9 +143,9 @@ def test_transient_errors_are_retried_and_others_are_not():
         retry_busy(lambda: (_ for _ in ()).throw(RuntimeError("database is locked")), "test", 0.01, "db")
 
 
-def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, project, fake_dir):
+def test_a_locked_claims_database_is_waited_for_then_one_line_and_exit_2(cli, swept, fake_dir):
+    project = swept  # swept: the claims table exists (WAL: readers pass, writers wait)
     path = str(project.paths.base / "experiments.yaml")
-    assert cli("sweep", "-c", path, *FAKE)[0] == 0  # the claims table exists (WAL: readers pass, writers wait)
     lock = Lock(project.paths.base / "sweep.db")
     try:
         code, out, err = cli("sweep", "-c", path, "--retry-failed", "--set", "runs.busy_timeout_s=0.5", *FAKE)

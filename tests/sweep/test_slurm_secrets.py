@@ -8,6 +8,7 @@ import shlex
 import stat
 
 import pytest
+from tinydata import write_tiny_dataset
 
 from bronchocli.sweep import task
 from bronchocli.sweep.task import TaskSpec
@@ -56,7 +57,10 @@ def _leaks(text: str) -> list[str]:
 
 @pytest.mark.parametrize("how", ["--set", "--storage"])
 def test_no_password_reaches_the_batch_script_the_sbatch_argv_or_the_task_command_line(
-        cli, make_config, fake_slurm, secrets_env, pg_url, how):
+        cli, make_config, fake_slurm, secrets_env, pg_url, how, tmp_path):
+    # a dataset in place: without one the submission would first render the default dataset (3 patients x 4
+    # lobes x 6 trajectories, most of this test's time), which no assertion here is about
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     cfg = make_config(slurm={"shared_filesystem": True})
     url = _planted_url(pg_url)
     given = ["--set", f"storage.url={url}"] if how == "--set" else ["--storage", url]
