@@ -83,6 +83,20 @@ def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def cells_table(by_model: dict[str, Any]) -> list[str]:
+    """A compact Markdown table of :func:`summarise`: per model and loss, every seed's ratios and cost."""
+    def j(v: list, spec: str) -> str:
+        return " / ".join(format(x, spec) for x in v) if v else "–"
+    lines = ["| model | loss | seeds | position ÷ training mean (pair) | rotation ÷ (pair) | position ÷ (accumulated) "
+             "| mode gap | pairs to 0.90 |", "|---|---|---|---|---|---|---|---|"]
+    for key, e in by_model.items():
+        arch, loss, _ = key.split("/")
+        lines.append(f"| {arch} | {loss} | {j(e['seeds'], 'd')} | {j(e['ratio_pos_pair'], '.3f')} "
+                     f"| {j(e['ratio_rot_pair'], '.3f')} | {j(e['ratio_pos_acc'], '.2f')} | {j(e['mode_gap'], '.3f')} "
+                     f"| {j(e['pairs_to_target'], ',.0f')} |")
+    return lines
+
+
 def report_tables(folder: Path) -> dict[str, list[str]]:
     """The report's Markdown tables, verbatim (one list of lines per file)."""
     return {f"docs_{p.stem.replace('-', '_')}": p.read_text().rstrip("\n").splitlines()
@@ -104,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit(f"no finished cell runs in experiment {cfg.name!r}")
     figures = {"experiment": cfg.name, "cells": sorted(cells, key=lambda c: tuple(str(c[k]) for k in COORDS)),
                "by_model": summarise(cells), "n_cells": len(cells),
+               "docs_cells": cells_table(summarise(cells)),
                "max_mode_gap": max((c["mode_gap"] for c in cells if c["mode_gap"] is not None), default=None),
                **report_tables(args.reports or args.project / "reports")}
     out = {"title": args.title or f"Study {cfg.name}: every finished cell's test ratios, mode gap and cost",
