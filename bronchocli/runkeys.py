@@ -7,7 +7,7 @@ reads them (``runs.views``: the description and the UI's saved view; ``report`` 
 module spells a key itself (``tests/test_runkeys.py`` greps the package for one). The metrics' own names
 (``pos_l2``, ``ctf``, ...) come from ``registry.py``.
 
-The families (docs/training.md, "What a run logs"):
+The families (what each means: docs/training.md, "MLflow"):
 
 ==================  ==============================================  ==========================
 family              keys                                            built by
