@@ -167,7 +167,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
         out[run_id] = {
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
-            "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation of a running run
+            "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation
             **{k: run.data.metrics.get(k) for k in ERRORS},
         }
     return out

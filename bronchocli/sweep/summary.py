@@ -234,7 +234,8 @@ def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mappin
     return "\n\n".join([
         f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
         f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
-        f"Best: trial #{best['number']}, {info.get('objective', DEFAULT_OBJECTIVE)} {best['value']:.5g}" + (f", with {values}" if values else "")
+        f"Best: trial #{best['number']}, {info.get('objective', DEFAULT_OBJECTIVE)} {best['value']:.5g}"
+        + (f", with {values}" if values else "")
         + " (apply it with `--use-tuned`).",
         *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]
           if ranked else [f"Importances: {note}."] if note else []),
