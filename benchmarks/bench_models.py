@@ -2,7 +2,7 @@
 
 Run: ``python benchmarks/bench_models.py [--sizes 64 128 256] [--device cpu|cuda] [--batch 4]
 [--window 10] [--repeats 3] [--precision 32] [--threads N]``. Prints one Markdown table per
-image size (the rows of ``bronchopose profile``; see bronchocli/profiling.py for the method).
+image size (the rows of ``bronchopose profile``; see bronchocli/models/profile.py for the method).
 Results: benchmarks/README.md.
 """
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, Literal, Sequence
 
 from pydantic import Field, field_validator
 
-from .. import registry
+from .. import registry, runkeys
 from ..cells import POPULATIONS, ArchName, Cell, Population, PoseFrame, RotLossName, Seed
 from ..errors import ConfigError
 from .sections import MAX_TRAJECTORIES, Section, _listify
@@ -65,16 +65,16 @@ class Select(Section):
     """Which cells of an earlier stage go on: the ``top`` combinations by a validation metric (never a test one)."""
 
     top: int = Field(3, ge=1, le=1000)
-    by: str = "val_best.pos_l2"  # a validation metric: val_best.loss or val_best.<m>, m registered with validation
+    by: str = runkeys.val_best("pos_l2")  # a validation metric: val_best.loss or val_best.<m>, m validated (registry)
     over: list[spelled(Literal["arch", "rot_loss", "pose_frame", "train_trajectories"])] = ["arch", "rot_loss"]
 
     @field_validator("by")
     @classmethod
     def _validation_only(cls, v: str) -> str:
-        if not v.startswith("val_best."):
-            named = ", ".join(f"val_best.{m}" for m in registry.metric_names(validation=True))
-            raise ValueError(f"must be a validation metric ({named} or val_best.loss): selection never looks at "
-                             "test results")
+        if runkeys.val_best_name(v) is None:
+            named = ", ".join(runkeys.val_best(m) for m in registry.metric_names(validation=True))
+            raise ValueError(f"must be a validation metric ({named} or {runkeys.best_of(runkeys.VAL_LOSS)}): "
+                             "selection never looks at test results")
         return v
 
     @field_validator("over")

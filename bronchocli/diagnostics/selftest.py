@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .. import runkeys
 from ..data.batches import FrameSource, Samples
 from ..data.cache import FrameCache
 from ..errors import BronchoError
@@ -153,8 +154,8 @@ def _timed(name: str, fn: Callable[[], tuple[bool, str]]) -> Check:
 def check_training(arch: str, device: torch.device, precision: str, cache: FrameCache) -> tuple[bool, str]:
     t = trainer(arch, device, precision, cache)
     fit = t.fit()
-    first, last = fit.history[0]["train_loss"], fit.history[-1]["train_loss"]
-    finite = all(math.isfinite(h["train_loss"]) and math.isfinite(h["val_loss"]) for h in fit.history)
+    first, last = fit.history[0][runkeys.TRAIN_LOSS], fit.history[-1][runkeys.TRAIN_LOSS]
+    finite = all(math.isfinite(h[runkeys.TRAIN_LOSS]) and math.isfinite(h[runkeys.VAL_LOSS]) for h in fit.history)
     ok = finite and last < first and t.skipped_steps == 0
     skipped = f", {t.skipped_steps} steps skipped by the loss scaler" if t.skipped_steps else ""
     rate = fit.pairs_seen / max(fit.train_time_s, 1e-9)

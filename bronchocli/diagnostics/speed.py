@@ -33,7 +33,7 @@ from typing import Any
 
 import torch
 
-from .. import speed
+from .. import runkeys, speed
 from ..data.batches import FrameSource
 from ..data.cache import FrameCache
 from ..errors import BronchoError
@@ -147,7 +147,7 @@ def train_trials(arch: str, device: torch.device, settings: Sequence[tuple[str, 
             began[0] = time.perf_counter()
             fit = t.fit()
             rate = pairs / statistics.median(durations[1:] or durations)
-            results[i] = Trial(precision, cl, rate, [h["train_loss"] for h in fit.history])
+            results[i] = Trial(precision, cl, rate, [h[runkeys.TRAIN_LOSS] for h in fit.history])
         except BaseException as exc:  # noqa: BLE001 - re-raised in the calling thread
             results[i] = exc
         finally:

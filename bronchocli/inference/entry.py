@@ -17,13 +17,13 @@ from mlflow.tracking import MlflowClient
 from rich.console import Console
 from rich.table import Table
 
-from .. import registry
+from .. import registry, runkeys
 from ..config import Config
 from ..runs.client import client_for, require_store
 from . import loading, trajectory
 from .reader import FrameInput, GroundTruth
 
-SOURCES = ("model", "zero_motion", "train_mean")
+SOURCES = runkeys.SOURCES
 
 
 def errors_table(errors) -> Table:
@@ -34,10 +34,10 @@ def errors_table(errors) -> Table:
         table.add_column(name.replace("_", " "), justify="left" if name in ("metric", "evaluation") else "right")
     for spec in registry.metric_specs(per="pose"):
         metric, unit = spec.name, spec.symbol
-        if f"model.pair.{metric}" not in row:
+        if runkeys.column(metric) not in row:
             continue
         for ev, text in (("pair", "per pair"), ("acc", "accumulated")):
-            values = [float(row[f"{s}.{ev}.{metric}"]) for s in SOURCES]
+            values = [float(row[runkeys.column(metric, ev, s)]) for s in SOURCES]
             table.add_row(f"{metric} ({unit})" if unit else metric, text,
                           *("nan" if math.isnan(v) else f"{v:.6g}" for v in values))
     return table

@@ -30,14 +30,15 @@ from typing import Mapping, Sequence
 import numpy as np
 import pandas as pd
 
+from .. import runkeys
 from .collect import RunRecord, seed_key
 from .stats import TRAJECTORY, Key, Sample
 
 EVALS = ("accumulated", "pair")  # what --eval chooses; "trajectory" is the tracking table's own scope
 SCOPE = {"accumulated": "acc", "pair": "pair", "trajectory": "traj"}
-COUNT = {"accumulated": "test.n_trajectories", "pair": "test.n_pairs", "trajectory": "test.n_trajectories"}
+COUNT = {evaluation: runkeys.count(scope) for evaluation, scope in SCOPE.items()}  # what a scope's means are over
 KEY = ["patient", "lobe", "trajectory"]
-REFERENCES = {"zero_motion": "Zero motion", "train_mean": "Training mean"}
+REFERENCES = dict(zip(runkeys.REFERENCES, ("Zero motion", "Training mean")))
 ERRORS_CSV = "trajectory_errors.csv"
 
 Frames = Mapping[str, "RunErrors | None"]  # run id -> its trajectory_errors.csv (None: absent)
@@ -94,7 +95,7 @@ def nonfinite_rows(frames: Frames) -> dict[str, int]:
 
 
 def column(source: str, evaluation: str, metric: str) -> str:
-    return f"{source}.{SCOPE[evaluation]}.{metric}"
+    return runkeys.column(metric, SCOPE[evaluation], source)
 
 
 def replicates(runs: Sequence[RunRecord]) -> list[list[RunRecord]]:
@@ -169,8 +170,7 @@ def logged_mean(reps: Sequence[Sequence[RunRecord]], evaluation: str, metric: st
                 source: str = "model") -> float | None:
     """Fallback without errors tables: per replicate the test-count-weighted mean of its runs' logged means
     (the mean over the union of their test pairs/trajectories), averaged over replicates."""
-    prefix = "" if source == "model" else f"{source}."
-    name = f"{prefix}{SCOPE[evaluation]}.{metric}.mean"
+    name = runkeys.metric(metric, SCOPE[evaluation], ref=source)
     values = []
     for rep in reps:
         means = [_run_mean(r, name) for r in rep]

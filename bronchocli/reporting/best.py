@@ -1,9 +1,9 @@
 """The best run of a report table, by the report's headline figure (what ``track --best TABLE`` applies).
 
-The headline figure is the one the README quotes: the per-pair position
-error divided by the training-mean reference's on the same test trajectories
-(``pair.pos_l2.mean / train_mean.pair.pos_l2.mean``; below 1 = better than
-predicting the training set's mean motion for every pair). Among the table's
+The headline figure is the one the README quotes (``runkeys.HEADLINE``): the
+per-pair position error divided by the training-mean reference's on the same
+test trajectories (``runkeys.headline``; below 1 = better than predicting the
+training set's mean motion for every pair). Among the table's
 runs (the config's cells of that table's population, pose frame and training
 size, one FINISHED run per cell, as ``report`` keeps them) the network/loss
 row with the lowest mean ratio over its runs wins, and within it the run with
@@ -15,12 +15,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from .. import runkeys
 from ..config import Config
 from ..errors import BronchoError
 from .collect import ARCH, FRAME, LOSS, POP, SIZE, RunRecord
 from .report import collect_index
 
-HEADLINE = ("pair.pos_l2.mean", "train_mean.pair.pos_l2.mean")
 TABLE_POPULATIONS = {"personalized": "personalized", "cross-subject": "cross-subject"}
 
 
@@ -40,11 +40,6 @@ class BestRun:
                 f"({self.run.label}, {self.ratio:.3f})")
 
 
-def headline_ratio(metrics: dict[str, float]) -> float:
-    model, ref = (metrics.get(k, math.nan) for k in HEADLINE)
-    return model / ref if ref and math.isfinite(ref) and ref > 0 else math.nan
-
-
 def best_run(client, cfg: Config, table: str) -> BestRun:
     """The table's best run (module doc); BronchoError (one line) when the table is unknown or has no run."""
     if table not in TABLE_POPULATIONS:
@@ -56,7 +51,7 @@ def best_run(client, cfg: Config, table: str) -> BestRun:
     for ident, run in index.runs.items():
         if ident[POP] != population or ident[FRAME] != index.pose_frame or ident[SIZE] != index.train_size:
             continue
-        ratio = headline_ratio(dict(run.metrics))
+        ratio = runkeys.headline(run.metrics)
         if math.isfinite(ratio):
             rows.setdefault((ident[ARCH], ident[LOSS]), []).append((ratio, run))
     if not rows:

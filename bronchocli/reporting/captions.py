@@ -23,6 +23,7 @@ from __future__ import annotations
 from collections import Counter
 from typing import Sequence
 
+from .. import runkeys
 from ..runs.records import TAG_INIT
 from .collect import RunRecord, stop_reasons
 from .estimand import estimand_phrase
@@ -148,7 +149,7 @@ def budget_text(runs: Sequence[RunRecord]) -> str:
     def got(name: str) -> list[float]:
         return [float(r.metrics[name]) for r in runs if name in r.metrics]
 
-    steps, seen, epochs = got("train.steps"), got("train.pairs_seen"), got("train.epochs")
+    steps, seen, epochs = (got(runkeys.train(k)) for k in ("steps", "pairs_seen", "epochs"))
     parts = []
     if steps:
         parts.append(f"{_span(steps)} optimiser steps")

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
-from .. import registry
+from .. import registry, runkeys
 from .aggregate import Frames
 from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key
 from .judge import Line, Settings
@@ -102,12 +102,13 @@ class ReportContext:
 def metric_words(key: str) -> str:
     """A selection metric's key in words: "val_best.pos_l2" -> "validation position L2"; a key the registry does
     not know stays as it is."""
-    name = key.split(".", 1)[-1]
+    validated = runkeys.val_best_name(key) or runkeys.val_name(key)
+    name = validated or key.split(".", 1)[-1]
     if name not in registry.metric_names():
         return key
     label = registry.metric(name).label
     label = label[0].lower() + label[1:] if label[1:2].islower() else label
-    return f"validation {label}" if key.startswith("val") else label
+    return f"validation {label}" if validated else label
 
 
 def bronchotrack(index: RunIndex) -> tuple[str, str, str]:

@@ -23,15 +23,16 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
+from .. import runkeys
 from ..io import save_figure, write_text
 from ..training.batchnorm import GAP_AT_MOST
 from .collect import RunRecord
 
-CURVES = ("val.ratio.pos_l2", "val.mode_gap")
-PAIRS = "train.pairs_seen"
-TRAIN_LOSS = "train_loss"
-TEST = "ratio.train_mean.pair.pos_l2"
-BEST_STEP = "train.best_step"  # the step whose weights were tested
+CURVES = (runkeys.VAL_RATIO, runkeys.VAL_MODE_GAP)
+PAIRS = runkeys.train("pairs_seen")
+TRAIN_LOSS = runkeys.TRAIN_LOSS
+TEST = runkeys.HEADLINE
+BEST_STEP = runkeys.train("best_step")  # the step whose weights were tested
 FORMATS = ("png", "pdf")
 History = Callable[[str, str], Sequence[tuple[int, float]]]  # (run id, metric) -> [(step, value)]
 

@@ -37,6 +37,7 @@ from typing import Sequence
 
 import numpy as np
 
+from .. import runkeys
 from . import stats
 from .aggregate import REFERENCES, Frames, logged_mean, model_sample, reference_sample, replicates
 from .collect import RunRecord
@@ -89,7 +90,7 @@ def judged(sample: stats.Sample | None) -> stats.Sample | None:
 
 
 def ignores_input(runs: Sequence[RunRecord]) -> bool:
-    ratios = [r.metrics.get("pred.std_ratio.pos") for r in runs]
+    ratios = [r.metrics.get(runkeys.spread("pos", relative=True)) for r in runs]
     ratios = [v for v in ratios if v is not None and not math.isnan(v)]
     return bool(ratios) and float(np.mean(ratios)) < IGNORES_RATIO
 

@@ -24,7 +24,7 @@ from typing import Sequence
 import matplotlib.pyplot as plt
 import numpy as np
 
-from .. import registry
+from .. import registry, runkeys
 from ..io import save_figure
 from .aggregate import REFERENCES
 from .collect import FRAME, POP, size_key
@@ -35,6 +35,7 @@ from .table_model import Estimate, Table
 
 FORMATS = ("png", "pdf")
 CURVE_EVAL = "pair"
+TRAIN_PAIRS = runkeys.train("train_pairs")  # the x of the learning curve
 
 
 TOUCHES = 0.02  # a bound within this share of a panel's y range of 0 "touches" 0: its value is written out
@@ -131,7 +132,7 @@ def curve_points(ctx: ReportContext) -> dict:
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), metrics_of("skill"), CURVE_EVAL, grouped=False,
                             settings=ctx.settings, skill_metrics=metrics_of("skill"), unit=unit_of(population))
-        pairs = [r.metrics["train.train_pairs"] for r in every if "train.train_pairs" in r.metrics]
+        pairs = [r.metrics[TRAIN_PAIRS] for r in every if TRAIN_PAIRS in r.metrics]
         points[size] = {"x": float(np.mean(pairs)) if pairs else float("nan"), "rows": built.rows,
                         "skill": built.skill, "label": _size_label(size, ctx)}
     return {"population": population, "points": points}

@@ -28,8 +28,9 @@ from __future__ import annotations
 import math
 from typing import Callable, Mapping, Sequence
 
-from .. import registry
+from .. import registry, runkeys
 from ..errors import BronchoError
+from ..runs.views import EVAL_PARAMS
 from .aggregate import EVALS, nonfinite_rows
 from .captions import budget_text, caption, fixed_seeds_note, init_text
 from .collect import RunRecord
@@ -235,8 +236,8 @@ def cross_subject(ctx: ReportContext, evaluation: str) -> Table:
 
 def _params_m(c: Collector, runs, name: str) -> float | None:
     for r in runs or ():
-        if "n_params" in r.metrics:
-            return r.metrics["n_params"] / 1e6
+        if runkeys.N_PARAMS in r.metrics:
+            return r.metrics[runkeys.N_PARAMS] / 1e6
     if runs:
         c.warn(f"missing: {name}: no run logged n_params (the Params column)")
     return None
@@ -306,8 +307,8 @@ def ablation(ctx: ReportContext, evaluation: str) -> Table:
 
 def _thresholds_text(c: Collector, runs) -> str:
     """The thresholds the runs logged (eval.* params; metrics on runs logged before); a warning when they differ."""
-    names = {"eval.ctf_position": "{:g} voxels", "eval.ctf_position_mm": "{:g} mm", "eval.ctf_angle": "{:g}°",
-             "eval.rpe_gap": "{:g} frames"}
+    position, position_mm, angle, gap = EVAL_PARAMS  # params (runs.views)
+    names = {position: "{:g} voxels", position_mm: "{:g} mm", angle: "{:g}°", gap: "{:g} frames"}
     seen = {k: sorted({v for r in runs if (v := r.setting(k)) is not None}) for k in names}
     if not any(seen.values()):
         return ("CTF: share of the frames after the given first one tracked within the position and angle "
@@ -319,9 +320,9 @@ def _thresholds_text(c: Collector, runs) -> str:
                    f"are not comparable")
     text = {k: "/".join(fmt.format(v) for v in seen[k]) or "?" for k, fmt in names.items()}
     return (f"CTF: share of the frames after the given first one with position error below "
-            f"{text['eval.ctf_position_mm']} (CTF mm) or {text['eval.ctf_position']} (CTF vox) and rotation error "
-            f"below {text['eval.ctf_angle']}; ATE: RMSE of the position error over every frame, unaligned; RPE: RMSE "
-            f"of the relative-motion error over {text['eval.rpe_gap']} (trajectories shorter than that have none); "
+            f"{text[position_mm]} (CTF mm) or {text[position]} (CTF vox) and rotation error "
+            f"below {text[angle]}; ATE: RMSE of the position error over every frame, unaligned; RPE: RMSE "
+            f"of the relative-motion error over {text[gap]} (trajectories shorter than that have none); "
             f"drift: final position error / ground-truth path length.")
 
 
@@ -343,7 +344,7 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
 def tracking_order(runs: Sequence[RunRecord]) -> list[str]:
     """The tracking columns: mm first where the runs know the voxel spacing (a finite ``traj.ctf_mm.mean``),
     voxels first where none does (e.g. imported poses without spacing)."""
-    known = any(math.isfinite(r.metrics.get("traj.ctf_mm.mean", math.nan)) for r in runs)
+    known = any(math.isfinite(r.metrics.get(runkeys.metric("ctf_mm", "traj"), math.nan)) for r in runs)
     order = metrics_of("tracking")
     return mm_first(order) if known or not runs else order
 

@@ -54,26 +54,27 @@ import json
 import math
 from collections.abc import Mapping
 
-from .. import registry
+from .. import registry, runkeys
 from ..cells import Cell
 from ..config import RUN_SECTIONS, Config
 from .records import flatten
 
 ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
 # Constants of the test evaluation (config eval:), params of every FINISHED run (metrics on runs logged before).
-EVAL_PARAMS = ("eval.ctf_position", "eval.ctf_position_mm", "eval.ctf_angle", "eval.rpe_gap")
+EVAL_PARAMS = tuple(runkeys.evaluation(k) for k in ("ctf_position", "ctf_position_mm", "ctf_angle", "rpe_gap"))
 PARENT_SECTIONS = ("name", "splits", "dataset")  # shown as params on a sweep's parent (the plan: sweep/summary.py)
 
-REFERENCES = ("zero_motion", "train_mean")
+REFERENCES = runkeys.REFERENCES
 HEADLINE_EVALS = ("pair", "acc")
 HEADLINE_METRICS = ("pos_l2", "rot_l2")
-README_RATIO = "ratio.train_mean.pair.pos_l2"  # pair position error / the training-mean reference's
+README_RATIO = runkeys.HEADLINE  # pair position error / the training-mean reference's (runkeys.py)
 HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # Metric columns of the runs table's view. MLflow shows a group's columns sorted by name (a saved column order
 # is not applied when the table opens), so these are chosen to sort headline first. Every one is comparable across
 # rows (ratios and skills against the image-blind references): no loss, whose scale differs between rotation losses
 # (CE, DE and MSE losses rank runs differently from the headline).
-VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l2", "skill.pair.rot_l2")
+VIEW_METRICS = (README_RATIO, runkeys.ratio("pos_l2", ref="zero_motion"), runkeys.skill("pos_l2"),
+                runkeys.skill("rot_l2"))
 # The view's charts (the runs table's "Chart" view). MLflow 3.17 groups a metric's chart by its name's prefix before
 # "/" (ours have none: one "Model metrics" section of every metric, alphabetical, the curves among ~160 single-value
 # bars). A shared view carries its chart sections and cards (compareRunSections/compareRunCharts), so the view opens
@@ -81,7 +82,7 @@ VIEW_METRICS = (README_RATIO, "ratio.zero_motion.pair.pos_l2", "skill.pair.pos_l
 # figures; isAccordionReordered keeps that order when MLflow appends sections of the other metrics (it adds them when
 # its runs data changes, not when a view is applied). A run's own page keeps its charts in the browser's localStorage
 # only (nothing on the server presets them): there the curves stay alphabetical among the metrics.
-CURVE_METRICS = ("train_loss", "val_loss", "val.ratio.pos_l2", "val.mode_gap")
+CURVE_METRICS = (runkeys.TRAIN_LOSS, runkeys.VAL_LOSS, runkeys.VAL_RATIO, runkeys.VAL_MODE_GAP)
 CURVES_SECTION = "Training and validation curves"
 HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
 GROUP_BY = "arch"  # the view's rows grouped by this param, each group showing the mean over its runs (seeds)
@@ -156,24 +157,21 @@ def headline(metrics: Mapping[str, float]) -> dict[str, float]:
     out: dict[str, float] = {}
     for ev in HEADLINE_EVALS:
         for m in HEADLINE_METRICS:
-            err = metrics.get(f"{ev}.{m}.mean")
-            refs = {r: metrics.get(f"{r}.{ev}.{m}.mean") for r in REFERENCES}
-            if err is None:
+            if runkeys.metric(m, ev) not in metrics:
                 continue
-            for r, ref in refs.items():
-                if ref is not None and ref > 0:
-                    out[f"ratio.{r}.{ev}.{m}"] = err / ref
-            known = [v for v in refs.values() if v is not None and v > 0]
+            ratios = {r: runkeys.ratio_value(metrics, m, ev, r) for r in REFERENCES}
+            out |= {runkeys.ratio(m, ev, r): v for r, v in ratios.items() if v is not None}
+            known = [metrics[runkeys.metric(m, ev, ref=r)] for r, v in ratios.items() if v is not None]
             if known:
-                out[f"skill.{ev}.{m}"] = 1.0 - err / min(known)
-    first = {k: out[k] for k in (README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2") if k in out}
+                out[runkeys.skill(m, ev)] = 1.0 - metrics[runkeys.metric(m, ev)] / min(known)
+    first = {k: out[k] for k in (README_RATIO, runkeys.skill("pos_l2"), runkeys.skill("rot_l2")) if k in out}
     return {**first, **out}
 
 
 def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
     """The test metrics in logging batches: headline ratios/skills and the headline errors, then the rest."""
     head = headline(metrics)
-    errors = [f"{ev}.{m}.mean" for ev in HEADLINE_EVALS for m in HEADLINE_METRICS]
+    errors = [runkeys.metric(m, ev) for ev in HEADLINE_EVALS for m in HEADLINE_METRICS]
     head |= {k: metrics[k] for k in errors if k in metrics}
     rest = {k: v for k, v in metrics.items() if k not in head}
     return [head, rest]
@@ -187,16 +185,17 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
              f"{cell.pose_frame}-frame relative poses"
              + (f", {cell.train_trajectories} training trajectories per patient and lobe"
                 if cell.train_trajectories else "") + (f"; dataset {dataset}" if dataset else "") + "."]
-    if metrics and "pair.pos_l2.mean" in metrics:
+    if metrics and runkeys.HEADLINE_ERROR in metrics:
         h = headline(metrics)
         ratio = h.get(README_RATIO, math.nan)
         lines.insert(0, f"**{HEADLINE} = {ratio:.3g}** (the headline: pair position error ÷ the training-mean "
                         "reference's; < 1 beats it, lower is better)")
-        lines.append(f"Test: pair position error {metrics['pair.pos_l2.mean']:.4g} vox = {ratio:.3g} × the "
-                     f"training-mean reference's (zero motion: {h.get('ratio.zero_motion.pair.pos_l2', math.nan):.3g}"
-                     f" ×); skill vs the better reference: position {h.get('skill.pair.pos_l2', math.nan):.3g}, "
-                     f"rotation {h.get('skill.pair.rot_l2', math.nan):.3g}; accumulated position error "
-                     f"{metrics.get('acc.pos_l2.mean', math.nan):.4g} vox.")
+        lines.append(f"Test: pair position error {metrics[runkeys.HEADLINE_ERROR]:.4g} vox = {ratio:.3g} × the "
+                     f"training-mean reference's (zero motion: "
+                     f"{h.get(runkeys.ratio('pos_l2', ref='zero_motion'), math.nan):.3g} ×); skill vs the better "
+                     f"reference: position {h.get(runkeys.skill('pos_l2'), math.nan):.3g}, rotation "
+                     f"{h.get(runkeys.skill('rot_l2'), math.nan):.3g}; accumulated position error "
+                     f"{metrics.get(runkeys.metric('pos_l2', 'acc'), math.nan):.4g} vox.")
     return "\n\n".join(lines)
 
 

@@ -22,7 +22,7 @@ from typing import Any
 
 from mlflow.exceptions import MlflowException
 
-from .. import urls
+from .. import runkeys, urls
 from ..cells import Cell
 from ..config import Config, TuneParam
 from ..errors import MlflowBusy
@@ -234,7 +234,7 @@ def rebuild_trials(cfg: Config, study: Any, attr_run: str) -> int:
         try:
             params = {k: _param(run.data.params.get(k), dist) for k, dist in dists.items()}
             study.add_trial(create_trial(params=params, distributions=dists, value=run.data.metrics.get(
-                "val_best.loss"), user_attrs={attr_run: run.info.run_id, "rebuilt": "mlflow"}))
+                runkeys.best_of(runkeys.VAL_LOSS)), user_attrs={attr_run: run.info.run_id, "rebuilt": "mlflow"}))
         except (ValueError, StopIteration, TypeError):  # another search space, or no finite loss: not this study's
             continue
         n += 1

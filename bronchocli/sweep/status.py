@@ -19,7 +19,7 @@ from rich.progress_bar import ProgressBar
 from rich.table import Table
 from rich.text import Text
 
-from .. import cells
+from .. import cells, runkeys
 from ..config import Config
 from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
@@ -37,7 +37,8 @@ from .worker import WorkerId, job_of
 
 log = logging.getLogger(__name__)
 
-HEADLINE = ("pair.pos_l2.mean", "acc.pos_l2.mean")  # voxels; what status shows per finished cell
+# What status shows per finished cell: the headline's error and its accumulated twin (voxels; runkeys.py)
+ERRORS = (runkeys.HEADLINE_ERROR, runkeys.metric(runkeys.HEADLINE_METRIC, "acc"))
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
 
 
@@ -166,8 +167,8 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
         out[run_id] = {
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
-            "pairs_seen": run.data.metrics.get("train.pairs_seen"),  # logged at every validation of a running run
-            **{k: run.data.metrics.get(k) for k in HEADLINE},
+            "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation
+            **{k: run.data.metrics.get(k) for k in ERRORS},
         }
     return out
 
@@ -208,7 +209,7 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             (row.worker or "-") if row and row.state == RUNNING else "",
             *(((job_of(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
               if on_slurm else ()),
-            shown, _num(m.get(HEADLINE[0])), _num(m.get(HEADLINE[1])),
+            shown, _num(m.get(ERRORS[0])), _num(m.get(ERRORS[1])),
         ]
         if ckpt_bytes is not None:
             size = ckpt_bytes.get(row.run_id) if row and row.run_id else None

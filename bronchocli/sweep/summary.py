@@ -33,12 +33,12 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .. import runkeys
 from ..cells import FIELDS, Cell
 from ..config import Select, Stage
 from ..io import save_figure
 from ..runs.parents import KIND_SWEEP, find_parent, log_plan_params, set_parent_status
 from ..runs.records import TAG_NOTE, log_metrics, set_tags
-from ..runs.views import README_RATIO
 from . import plan as planning
 from .selection import describe_selection, finished_runs
 from .storage import FAILED, FINISHED
@@ -73,7 +73,8 @@ def uncancel(client, parent: str) -> None:
     """An explicit ``sweep run``: the sweep is no longer cancelled."""
     if TAG_CANCELLED in client.get_run(parent).data.tags:
         client.delete_tag(parent, TAG_CANCELLED)
-HEADLINES = (README_RATIO, "pair.pos_l2.mean")  # the test figures shown next to each stage's best cell
+HEADLINES = (runkeys.HEADLINE, runkeys.HEADLINE_ERROR)  # the test figures shown next to each stage's best cell
+DEFAULT_OBJECTIVE = runkeys.best_of(runkeys.VAL_LOSS)  # a study's objective metric where it names none
 
 
 def _all_cells(walk: planning.StageWalk) -> list[Cell]:
@@ -206,7 +207,7 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
     best = info["best"]
     if best is None:
         return
-    log_metrics(client, parent, {info.get("objective", "val_best.loss"): best["value"]}, step=best["number"])
+    log_metrics(client, parent, {info.get("objective", DEFAULT_OBJECTIVE): best["value"]}, step=best["number"])
     tags = {"best_trial": str(best["number"]), "best_run": best["run_id"],
             **{f"best.{k}": str(v) for k, v in best["params"].items()}}
     note = importance_note(info)
@@ -233,7 +234,8 @@ def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mappin
     return "\n\n".join([
         f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
         f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
-        f"Best: trial #{best['number']}, {info.get('objective', 'val_best.loss')} {best['value']:.5g}" + (f", with {values}" if values else "")
+        f"Best: trial #{best['number']}, {info.get('objective', DEFAULT_OBJECTIVE)} {best['value']:.5g}"
+        + (f", with {values}" if values else "")
         + " (apply it with `--use-tuned`).",
         *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]
           if ranked else [f"Importances: {note}."] if note else []),

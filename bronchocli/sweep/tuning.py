@@ -31,7 +31,7 @@ from sqlalchemy import create_engine, inspect, make_url, text
 from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
-from .. import extras, urls
+from .. import extras, runkeys, urls
 from ..cells import Cell
 from ..config import Config, TuneParam, space_problems
 from ..errors import BronchoError, ConfigError
@@ -206,10 +206,11 @@ def suggest(trial, space: Mapping[str, TuneParam]) -> dict[str, Any]:
 
 
 # What a trial returns, per tune.objective: (the per-validation key reported to the pruner, the run's metric)
-OBJECTIVES = {"val_loss": ("val_loss", "val_best.loss"), "val_ratio": ("val.ratio.pos_l2", "val_best.ratio.pos_l2"),
+OBJECTIVES = {"val_loss": (runkeys.VAL_LOSS, runkeys.best_of(runkeys.VAL_LOSS)),
+              "val_ratio": (runkeys.VAL_RATIO, runkeys.best_of(runkeys.VAL_RATIO)),
               # the cost of learning (training/cost.py): pairs seen until val.ratio.pos_l2 <= COST_TARGET; each
               # trial stops there (train.stop_at_ratio), its validations report the ratio to the pruner
-              "cost": ("val.ratio.pos_l2", f"cost.pairs_to_{COST_TARGET:.2f}")}
+              "cost": (runkeys.VAL_RATIO, runkeys.cost("pairs", COST_TARGET))}
 ATTR_OBJECTIVE = "objective"  # the study's user attribute: the run metric its trials' values are
 
 
@@ -446,7 +447,7 @@ def describe_study(s) -> dict[str, Any]:
     trials = s.get_trials(deepcopy=False)
     counts = {st.name.lower(): sum(t.state == st for t in trials) for st in states}
     out: dict[str, Any] = {"study": name, "counts": counts, "best": None, "importances": {},
-                           "objective": s.user_attrs.get(ATTR_OBJECTIVE, "val_best.loss")}
+                           "objective": s.user_attrs.get(ATTR_OBJECTIVE, OBJECTIVES["val_loss"][1])}
     complete = [t for t in trials if t.state == states.COMPLETE]
     if complete:
         b = s.best_trial

@@ -37,6 +37,7 @@ from pathlib import Path
 import torch
 from mlflow.entities import Dataset, DatasetInput, InputTag, RunTag
 
+from .. import runkeys
 from ..cells import Cell
 from ..config import Config
 from ..io import save_figure
@@ -97,7 +98,7 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
 
 
 # Logged per validation (their last value is the run's value), so not again with the test metrics at the end.
-VALIDATION_LOGGED = ("train.pairs_seen", "train.epochs", "train.skipped_steps")
+VALIDATION_LOGGED = tuple(runkeys.train(k) for k in ("pairs_seen", "epochs", "skipped_steps"))
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:

@@ -14,6 +14,7 @@ from typing import Any, Callable
 import pandas as pd
 import torch
 
+from .. import runkeys
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
@@ -127,27 +128,27 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     metrics, table = evaluate.evaluate(preds, data.label_mean, cell.pose_frame, evaluate.thresholds(cfg.eval))
     best = next((h for h in fit.history if h["step"] == fit.best_step), None)
     if best is not None:  # validation metrics of the weights that were tested: what a staged sweep selects by
-        metrics |= {"val_best.loss": best["val_loss"],
-                    **{f"val_best.{k[4:]}": v for k, v in best.items() if k.startswith("val.")}}
-        if "val.mode_gap" in best:  # eval-mode ÷ batch-statistics loss on training batches, the tested weights
-            metrics["eval.mode_gap"] = best["val.mode_gap"]
+        metrics |= {runkeys.best_of(k): v for k, v in best.items() if k == runkeys.VAL_LOSS or runkeys.val_name(k)}
+        if runkeys.VAL_MODE_GAP in best:  # eval-mode ÷ batch-statistics loss on training batches, the tested weights
+            metrics[runkeys.evaluation("mode_gap")] = best[runkeys.VAL_MODE_GAP]
     n_params = sum(p.numel() for p in net.model.parameters())
+    train = runkeys.train
     metrics |= {
-        "n_params": float(n_params), "eval.time_s": time.perf_counter() - t0,
-        "train.steps": float(fit.steps), "train.pairs_seen": float(fit.pairs_seen), "train.epochs": fit.epochs,
-        "train.validations": float(fit.validations), "train.best_step": float(fit.best_step),
-        "train.time_s": fit.train_time_s, "train.val_time_s": fit.val_time_s,
-        "train.checkpoint_time_s": fit.checkpoint_time_s,  # this process's (a resumed run: since the resume)
-        "train.pairs_per_s": fit.pairs_seen / max(fit.train_time_s, 1e-9) if fit.steps else 0.0,
-        "train.train_pairs": float(len(data.train) * data.train.n_pairs),
-        "train.train_trajectories": float(len(data.split.train)),
-        "train.frames_on_device": float(source.resident),
-        "train.skipped_steps": float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
-        "train.core_s": trainer.core_s,  # CPU seconds of the training steps, every thread (a resumed run: all)
+        runkeys.N_PARAMS: float(n_params), runkeys.evaluation("time_s"): time.perf_counter() - t0,
+        train("steps"): float(fit.steps), train("pairs_seen"): float(fit.pairs_seen), train("epochs"): fit.epochs,
+        train("validations"): float(fit.validations), train("best_step"): float(fit.best_step),
+        train("time_s"): fit.train_time_s, train("val_time_s"): fit.val_time_s,
+        train("checkpoint_time_s"): fit.checkpoint_time_s,  # this process's (a resumed run: since the resume)
+        train("pairs_per_s"): fit.pairs_seen / max(fit.train_time_s, 1e-9) if fit.steps else 0.0,
+        train("train_pairs"): float(len(data.train) * data.train.n_pairs),
+        train("train_trajectories"): float(len(data.split.train)),
+        train("frames_on_device"): float(source.resident),
+        train("skipped_steps"): float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
+        train("core_s"): trainer.core_s,  # CPU seconds of the training steps, every thread (a resumed run: all)
         **cost_of_learning(fit.history),  # cost.pairs_to_0.90 / cost.core_s_to_0.90 when a validation reached it
     }
     if "run" in first_step:
-        metrics["train.first_step_s"] = first_step["run"]  # from the engine's start (data already prepared)
+        metrics[train("first_step_s")] = first_step["run"]  # from the engine's start (data already prepared)
     if "process" in first_step:
-        metrics["train.process_first_step_s"] = first_step["process"]  # from the process's start
+        metrics[train("process_first_step_s")] = first_step["process"]  # from the process's start
     return Outcome(metrics, fit, preds, table, net)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from rich.console import Console
 
-from .. import urls
+from .. import runkeys, urls
 from ..cells import Cell
 from ..config import Config, check_paths
 from ..generation import ensure_dataset
@@ -52,11 +52,12 @@ def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool
     m = result.metrics
     if result.stop_requested:
         console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
-    ratio = m["pair.pos_l2.mean"] / m["train_mean.pair.pos_l2.mean"]
+    error = {ref: m[runkeys.metric("pos_l2", ref=ref)] for ref in runkeys.SOURCES}
+    ratio = error[runkeys.MODEL] / error["train_mean"]  # the headline (runkeys.py)
     console.print(
-        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m['train.steps']:.0f} steps, "
-        f"{m['train.pairs_seen']:.0f} pairs seen) — pair pos L2 {m['pair.pos_l2.mean']:.3f} vox "
-        f"({ratio:.2f} x the training-mean predictor's {m['train_mean.pair.pos_l2.mean']:.3f}, zero motion "
-        f"{m['zero_motion.pair.pos_l2.mean']:.3f}), accumulated pos L2 {m['acc.pos_l2.mean']:.2f} vox"
+        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m[runkeys.train('steps')]:.0f} steps, "
+        f"{m[runkeys.train('pairs_seen')]:.0f} pairs seen) — pair pos L2 {error[runkeys.MODEL]:.3f} vox "
+        f"({ratio:.2f} x the training-mean predictor's {error['train_mean']:.3f}, zero motion "
+        f"{error['zero_motion']:.3f}), accumulated pos L2 {m[runkeys.metric('pos_l2', 'acc')]:.2f} vox"
     )
     return 0

@@ -32,12 +32,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .. import geometry, metrics, odometry, registry
+from .. import geometry, metrics, odometry, registry, runkeys
 from ..data.batches import FrameSource, relative_labels
 from ..data.reader import Trajectory
 
 POSE_COLS = ("x", "y", "z", "rx", "ry", "rz")
-REFERENCES = ("zero_motion", "train_mean")
+REFERENCES = runkeys.REFERENCES  # the image-blind references, in the order their keys are logged
 
 
 @dataclass(frozen=True)
@@ -93,11 +93,11 @@ def predict_trajectories(net, trajectories: Sequence[Trajectory], source: FrameS
     return preds
 
 
-def _stats(prefix: str, stats: dict[str, metrics.Stat]) -> dict[str, float]:
+def _stats(scope: str, stats: dict[str, metrics.Stat], ref: str | None) -> dict[str, float]:
     out = {}
     for name, s in stats.items():
-        out[f"{prefix}.{name}.mean"] = s.mean
-        out[f"{prefix}.{name}.std"] = s.std
+        out[runkeys.metric(name, scope, "mean", ref)] = s.mean
+        out[runkeys.metric(name, scope, "std", ref)] = s.std
     return out
 
 
@@ -110,24 +110,26 @@ def odometry_metrics(p: TrajectoryPrediction, thresholds: odometry.Thresholds) -
     return odometry.trajectory_metrics(p.pred_abs, p.gt_abs, p.spacing_mm, thresholds)
 
 
-def score(preds: list[TrajectoryPrediction], thresholds: odometry.Thresholds = odometry.Thresholds()
-          ) -> dict[str, float]:
-    """Every test metric of a set of predicted trajectories."""
+def score(preds: list[TrajectoryPrediction], thresholds: odometry.Thresholds = odometry.Thresholds(),
+          ref: str | None = None) -> dict[str, float]:
+    """Every test metric of a set of predicted trajectories; ``ref``: a reference's (its keys carry its name, and
+    the test set's size is the model's, not repeated)."""
     if not preds:
         raise ValueError("no test trajectories to score")
     pred = np.concatenate([p.pred_rel for p in preds])
     gt = np.concatenate([p.gt_rel for p in preds])
     spacing = np.concatenate([np.repeat(p.spacing_mm[None], len(p.gt_rel), 0) for p in preds])
-    out = _stats("pair", metrics.pair_metrics(pred, gt, spacing, rotations=_deltas_are_rotations(preds)))
+    out = _stats("pair", metrics.pair_metrics(pred, gt, spacing, rotations=_deltas_are_rotations(preds)), ref)
     ends_pred = np.stack([p.pred_abs[-1] for p in preds])
     ends_gt = np.stack([p.gt_abs[-1] for p in preds])
     out |= _stats("acc", metrics.pair_metrics(ends_pred, ends_gt, np.stack([p.spacing_mm for p in preds]),
-                                              rotations=True))
+                                              rotations=True), ref)
     per_traj = [odometry_metrics(p, thresholds) for p in preds]
     traj = {k: np.array([m[k] for m in per_traj]) for k in registry.metric_names(per="trajectory")}
-    out |= _stats("traj", {k: metrics.Stat.of(v[np.isfinite(v)]) for k, v in traj.items()})
-    out["test.n_pairs"] = float(len(gt))
-    out["test.n_trajectories"] = float(len(preds))
+    out |= _stats("traj", {k: metrics.Stat.of(v[np.isfinite(v)]) for k, v in traj.items()}, ref)
+    if ref is None:
+        out[runkeys.count("pair")] = float(len(gt))
+        out[runkeys.count("traj")] = float(len(preds))
     return out
 
 
@@ -143,8 +145,9 @@ def constant_predictions(preds: list[TrajectoryPrediction], constant: np.ndarray
 
 def reference_predictions(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: str
                           ) -> dict[str, list[TrajectoryPrediction]]:
-    return {"zero_motion": constant_predictions(preds, np.zeros(6), frame),
-            "train_mean": constant_predictions(preds, train_mean, frame)}
+    zero_motion, mean = REFERENCES
+    return {zero_motion: constant_predictions(preds, np.zeros(6), frame),
+            mean: constant_predictions(preds, train_mean, frame)}
 
 
 def variability(preds: list[TrajectoryPrediction]) -> dict[str, float]:
@@ -160,8 +163,8 @@ def variability(preds: list[TrajectoryPrediction]) -> dict[str, float]:
     out = {}
     for name, cols in (("pos", slice(0, 3)), ("rot", slice(3, 6))):
         ps, gs = float(pred[:, cols].std(0).mean()), float(gt[:, cols].std(0).mean())
-        out[f"pred.std.{name}"] = ps
-        out[f"pred.std_ratio.{name}"] = ps / gs if gs > 0 else float("nan")
+        out[runkeys.spread(name)] = ps
+        out[runkeys.spread(name, relative=True)] = ps / gs if gs > 0 else float("nan")
     return out
 
 
@@ -171,7 +174,7 @@ def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, li
     and its camera-tracking metrics, for the model and each reference (columns ``<source>.<pair|acc>.<metric>``
     and ``<source>.traj.<t>``). What ``report`` pairs rows on to compare two models on the same trajectories."""
     rows = []
-    sources = {"model": preds, **references}
+    sources = {runkeys.MODEL: preds, **references}
     for i, p in enumerate(preds):
         row: dict[str, object] = {"patient": p.patient, "lobe": p.lobe, "trajectory": p.traj_id,
                                   "n_pairs": len(p.gt_rel)}
@@ -180,10 +183,10 @@ def trajectory_table(preds: list[TrajectoryPrediction], references: dict[str, li
             pair = metrics.per_pose_errors(q.pred_rel, q.gt_rel, p.spacing_mm, rotations=q.frame == "camera")
             acc = metrics.per_pose_errors(q.pred_abs[-1:], q.gt_abs[-1:], p.spacing_mm, rotations=True)
             for m in pair:  # every per-pose metric (registry.py; the mm ones: the spacing is known here)
-                row[f"{name}.pair.{m}"] = float(np.mean(pair[m]))
-                row[f"{name}.acc.{m}"] = float(acc[m][0])
+                row[runkeys.column(m, "pair", name)] = float(np.mean(pair[m]))
+                row[runkeys.column(m, "acc", name)] = float(acc[m][0])
             for m, v in odometry_metrics(q, thresholds).items():
-                row[f"{name}.traj.{m}"] = v
+                row[runkeys.column(m, "traj", name)] = v
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -194,7 +197,7 @@ def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: s
     refs = reference_predictions(preds, train_mean, frame)
     out = score(preds, thresholds)
     for name, ref in refs.items():
-        out |= {f"{name}.{k}": v for k, v in score(ref, thresholds).items() if not k.startswith("test.")}
+        out |= score(ref, thresholds, ref=name)
     out |= variability(preds)  # the thresholds are config constants: params (artifacts.log_outcome), not metrics
     return out, trajectory_table(preds, refs, thresholds)
 

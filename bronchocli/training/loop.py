@@ -48,7 +48,7 @@ from typing import Any
 
 import torch
 
-from .. import metrics, registry
+from .. import metrics, registry, runkeys
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
@@ -261,7 +261,7 @@ class Trainer:
         for (step, _, n, norm, lr, rate), total, gnorm in zip(self._points, values[0], values[1]):
             row = {"lr": lr, "pairs_per_s": rate}
             if n > prev_n:
-                row["train_loss"] = (total - prev_sum) / (n - prev_n)
+                row[runkeys.TRAIN_LOSS] = (total - prev_sum) / (n - prev_n)
             if norm is not None:
                 row["grad_norm"] = gnorm
             rows.append((step, row))
@@ -346,8 +346,8 @@ class Trainer:
         means = (sums / max(n, 1)).tolist()  # the one host sync of a validation
         # val.ratio.pos_l2: position error ÷ the training-mean predictor's on the same pairs (the headline, on val)
         val = dict(zip(fns, means[1:-1]))
-        return {"val_loss": means[0], **{f"val.{m}": v for m, v in val.items()},
-                "val.ratio.pos_l2": val["pos_l2"] / means[-1] if means[-1] > 0 else float("nan")}
+        return {runkeys.VAL_LOSS: means[0], **{runkeys.val(m): v for m, v in val.items()},
+                runkeys.VAL_RATIO: val[runkeys.HEADLINE_METRIC] / means[-1] if means[-1] > 0 else float("nan")}
 
     def _validation(self) -> bool:
         """Validate, keep the best weights, checkpoint; True when early stopping says stop."""
@@ -358,7 +358,7 @@ class Trainer:
             batches = [self._batch(20_000_000 + k) for k in range(self.s.mode_gap_batches)]
             gap = mode_gap(self.net, batches, lambda out, y: self.net.loss(out, y, self.s.rot_loss, self.s.rot_weight),
                            self.autocast)
-            values |= {f"val.{k}": v for k, v in gap.items()}
+            values |= {runkeys.val(k): v for k, v in gap.items()}
         self._check_finite()
         curves = self._curves()
         train_loss, skipped = torch.stack([self._loss_sum / max(self._loss_n, 1), self._skipped]).tolist()
@@ -367,25 +367,25 @@ class Trainer:
         self._loss_n = 0
         if self.on_curves is not None:
             self.on_curves(curves)
-        values |= {"train.skipped_steps": float(self._count_skipped(int(skipped))),
-                   "train.pairs_seen": float(self.step * self.s.pairs_per_step), "train.epochs": self.epochs,
-                   "train.core_s": self.core_s}
-        improved = values["val_loss"] < self.best_val - self.s.min_delta
+        values |= {runkeys.train("skipped_steps"): float(self._count_skipped(int(skipped))),
+                   runkeys.train("pairs_seen"): float(self.step * self.s.pairs_per_step),
+                   runkeys.train("epochs"): self.epochs, runkeys.train("core_s"): self.core_s}
+        improved = values[runkeys.VAL_LOSS] < self.best_val - self.s.min_delta
         if improved or self.best_state is None:
-            self.best_val = min(self.best_val, values["val_loss"])
+            self.best_val = min(self.best_val, values[runkeys.VAL_LOSS])
             self.best_step = self.step
             self.best_state = {k: v.detach().to("cpu", copy=True) for k, v in self.net.state_dict().items()}
             self.bad = 0
         else:
             self.bad += 1
-        self.history.append({"step": float(self.step), "train_loss": train_loss, **values})
+        self.history.append({"step": float(self.step), runkeys.TRAIN_LOSS: train_loss, **values})
         self.val_time += time.perf_counter() - t0
         if self.on_validation is not None:
             self.on_validation(self.step, values)
         t0 = time.perf_counter()
         self.save_resume()
         self.ckpt_time += time.perf_counter() - t0
-        if self.s.stop_at_ratio is not None and values["val.ratio.pos_l2"] <= self.s.stop_at_ratio:
+        if self.s.stop_at_ratio is not None and values[runkeys.VAL_RATIO] <= self.s.stop_at_ratio:
             self.stop_reason = "target"
             return True
         return self.s.patience is not None and self.bad >= self.s.patience
@@ -394,7 +394,7 @@ class Trainer:
     def skipped_steps(self) -> int:
         """Optimiser steps the loss scaler skipped (inf/NaN gradients) as of the last validation; kept in the
         history, so a resumed run counts the steps skipped before its checkpoint too."""
-        return int(self.history[-1].get("train.skipped_steps", 0)) if self.history else 0
+        return int(self.history[-1].get(runkeys.train("skipped_steps"), 0)) if self.history else 0
 
     def _count_skipped(self, skipped: int) -> int:
         """The run's skipped steps so far. Said, never silent; a run whose every step was skipped trained nothing."""

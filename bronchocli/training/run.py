@@ -33,7 +33,7 @@ from typing import Any
 
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from .. import interrupts
+from .. import interrupts, runkeys
 from ..cells import Cell
 from ..config import Config
 from ..errors import BronchoError, MlflowUnreachable, OutOfMemory, out_of_memory, resumable
@@ -164,9 +164,9 @@ class _StepBar:
         self.bar.update(self.task, completed=step)
 
     def validated(self, step: int, values: dict[str, float]) -> None:
-        self.best = min(self.best, values["val_loss"])
+        self.best = min(self.best, values[runkeys.VAL_LOSS])
         if self.bar is not None and self.task is not None:
-            self.bar.update(self.task, info=f"val_loss {values['val_loss']:.4g} (best {self.best:.4g})")
+            self.bar.update(self.task, info=f"val_loss {values[runkeys.VAL_LOSS]:.4g} (best {self.best:.4g})")
 
     def phase(self, label: str, text: str) -> None:
         """What the run does after its last step (test evaluation, logging): in the bar, else in the log."""
@@ -225,7 +225,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
     bar = _StepBar(progress, cell.label)
     metrics_out = MetricBuffer(client, run_id)  # an MLflow outage during training is waited out, not fatal
     if state is not None:  # validations the checkpoint holds but MLflow lacks (buffered when the store went away)
-        logged = {m.step for m in client.get_metric_history(run_id, "val_loss")}
+        logged = {m.step for m in client.get_metric_history(run_id, runkeys.VAL_LOSS)}
         for h in state["history"]:
             if int(h["step"]) not in logged:
                 metrics_out.log({k: v for k, v in h.items() if k != "step"}, int(h["step"]))
