@@ -175,16 +175,17 @@ def settle_detached(cfg: Config, store: SweepStore) -> str | None:
     try:
         if store_missing(cfg):
             return None
-        client = client_for(cfg)
+        client = client_for(cfg, reading=True)
         exp = client.get_experiment_by_name(cfg.experiment_name)
-        parent = find_parent(client, exp.experiment_id, KIND_SWEEP, cfg.name) if exp is not None else None
+        live = exp is not None and exp.lifecycle_stage == "active"  # a deleted one: the table's line says so
+        parent = find_parent(client, exp.experiment_id, KIND_SWEEP, cfg.name) if live else None
         tags = client.get_run(parent).data.tags if parent is not None else {}
         name = tags.get(summary.TAG_LAUNCHER)
         if name is None or summary.watcher_alive(tags.get(summary.TAG_WATCHER)):
             return None
         kind = launcher_class(name, f"tag {summary.TAG_LAUNCHER} of parent run {parent}")
-    except Exception as exc:  # noqa: BLE001 - a view: an MLflow store away shows the claims table alone
-        log.warning("could not read the sweep's parent run: %s", exc)
+    except Exception as exc:  # noqa: BLE001 - the table's own reading of MLflow says what is wrong, in one line
+        log.debug("could not read the sweep's parent run: %s", exc)
         return None
     return end_abandoned(cfg, store, None, kind) if kind.detachable else None
 
