@@ -170,7 +170,9 @@ def test_stores_on_a_small_disk_still_end_the_run_failed_without_spending_an_att
         code, out, err = cli(*command)
         assert code == 1, out + err
         assert "Traceback" not in out + err and "disk full" in out, out + err
-        assert "crashed" not in out and "running 1" not in out, out  # the true line only; nothing left running
+        assert "crashed" not in out and "worker(s)" not in out, out  # the cell's line only: no crash beside it
+        last = [line for line in out.splitlines() if line.startswith("done ")][-1]
+        assert "running 0" in last, out  # nothing left running at the end
         (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
         assert (row.state, row.attempts) == (FAILED, 0)  # ended, and the attempt not spent
         client = client_for(cfg)
