@@ -21,6 +21,7 @@ A detached worker is not a verb of the command: it starts
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import replace
 
 from rich.console import Console
@@ -32,19 +33,23 @@ from ..config import Config, check_paths, check_roots
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
-from ..runs.client import check_reachable, client_for, experiment_id
+from ..runs.client import check_reachable, client_for, experiment_id, store_missing
+from ..runs.parents import KIND_SWEEP, find_parent
 from . import damage
 from . import launch as launching
-from . import placement, staged
+from . import placement, staged, summary
 from .housekeeping import collect_garbage, foreign, repair_zombies
 from .launchers import Launcher, launcher_class, reference
 from .plan import StageWalk, open_store
+from .stagework import end_abandoned
 from .status import show_status
 from .record import missing_runs
 from .storage import FINISHED, SweepStore
 from .summary import record_cancel
 from .task import TaskSpec, command
 from .worker import Runner, default_runner
+
+log = logging.getLogger(__name__)
 
 
 def launcher_kind(cfg: Config, name: str | None) -> type[Launcher]:
@@ -157,7 +162,32 @@ def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = Fal
             for r in reset:
                 console.print(f"repaired claims row {r.sweep}/{r.cell_key} ({r.label}): pending again (its run "
                               f"{r.run_id} does not exist in MLflow)", highlight=False, soft_wrap=True)
+    if name == cfg.name and store.exists():
+        settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
     show_status(cfg, store, name, show_all, console)
+
+
+def settle_detached(cfg: Config, store: SweepStore) -> str | None:
+    """The sweep's parent run RUNNING though it was submitted with a detachable launcher (``TAG_LAUNCHER``), no
+    watcher of it lives (``TAG_WATCHER``) and none of its workers is queued or running (they were all cancelled
+    before any ran, say): ended as its last worker would have (``stagework.end_abandoned``); the reason, or None.
+    A local sweep's parent is ``status --repair``'s (its process tags)."""
+    try:
+        if store_missing(cfg):
+            return None
+        client = client_for(cfg, reading=True)
+        exp = client.get_experiment_by_name(cfg.experiment_name)
+        live = exp is not None and exp.lifecycle_stage == "active"  # a deleted one: the table's line says so
+        parent = find_parent(client, exp.experiment_id, KIND_SWEEP, cfg.name) if live else None
+        tags = client.get_run(parent).data.tags if parent is not None else {}
+        name = tags.get(summary.TAG_LAUNCHER)
+        if name is None or summary.watcher_alive(tags.get(summary.TAG_WATCHER)):
+            return None
+        kind = launcher_class(name, f"tag {summary.TAG_LAUNCHER} of parent run {parent}")
+    except Exception as exc:  # noqa: BLE001 - the table's own reading of MLflow says what is wrong, in one line
+        log.debug("could not read the sweep's parent run: %s", exc)
+        return None
+    return end_abandoned(cfg, store, None, kind) if kind.detachable else None
 
 
 def grid(cfg: Config, console: Console) -> None:

@@ -22,7 +22,9 @@ from ..config import Config, Stage
 from ..errors import BronchoError
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, sweep_parent
+from ..runs.records import set_tags
 from . import summary
+from .launchers import reference
 from .launchers.base import Launcher, Workers
 from .plan import Plan, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
 from .selection import describe_selection
@@ -104,6 +106,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))  # the cells nest under it
     client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
+    set_tags(client, parent, {summary.TAG_LAUNCHER: reference(type(launcher)),  # `status` can ask its workers
+                              summary.TAG_WATCHER: summary.watcher_tag(detach)})
     summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
     jobs = submit_missing(walk, launcher, console)
     if not jobs:
@@ -114,7 +118,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
     if detach:
         console.print("detached: `bronchopose status` shows progress, `bronchopose sweep cancel` stops the workers")
         return 0
-    code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent))
+    code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent),
+                 lambda: summary.reopen(client, parent))  # a top-up after its last worker had stopped it
     summary.record_parent(client, parent, walk, finished=True)
     if code != EXIT_INTERRUPTED:  # stopped watching only: the workers go on, so does the sweep
         set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED (or FAILED) with it
@@ -143,11 +148,12 @@ def _table_state(plan: Plan, claimable: set[str]) -> tuple:
 
 
 def watch(walk: StageWalk, launcher: Launcher, console: Console,
-          cancelled: Callable[[], bool] = lambda: False) -> int:
+          cancelled: Callable[[], bool] = lambda: False, resubmitted: Callable[[], object] = lambda: None) -> int:
     """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
     requeued tasks without its hold); tops up workers when all ended with cells left but progress was made since
     the last submission (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first
-    (a worker submitted before would find nothing to claim); Ctrl-C stops watching only."""
+    (a worker submitted before would find nothing to claim), then ``resubmitted`` (the parent RUNNING again);
+    Ctrl-C stops watching only."""
     cfg = walk.cfg
     retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
@@ -196,6 +202,10 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console,
                                   "command again")
                     return 1
                 seen_at_submit = now_seen
+                try:
+                    resubmitted()  # the sweep's last worker may have ended its parent run: RUNNING again
+                except Exception as exc:  # noqa: BLE001 - a busy store must not end a watch
+                    log.warning("could not reopen the sweep's parent run: %s", exc)
             time.sleep(REFRESH_S)
     except KeyboardInterrupt:
         console.print(f"stopped watching: the {launcher.title} jobs go on (`bronchopose sweep cancel` stops them)")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from pathlib import Path
 
 from rich.console import Console
 
@@ -29,7 +30,7 @@ from .selection import describe_selection
 from .status import failures, plan_table, progress, row_lines, summary_line
 from .storage import FINISHED, SweepStore
 from .summary import record_parent, uncancel
-from .worker import Runner, default_runner
+from .worker import EXIT_RECORDED, Runner, default_runner
 
 log = logging.getLogger(__name__)
 
@@ -138,14 +139,26 @@ def _run_stages(walk: planning.StageWalk, *, workers: int, console: Console, gpu
                 console.print("[yellow]interrupted:[/] running cells were released; run the same command again "
                               "to resume")
                 return EXIT_INTERRUPTED
-            bad = [c for c in result.worker_codes if c not in (0, EXIT_INTERRUPTED)]
-            if bad:
-                console.print(f"[red]{len(bad)} worker(s) crashed[/] (exit codes {bad}); logs in {result.log_dir}")
+            report_workers(console, result.worker_codes, result.log_dir)
             plan = result.plan
         code = max(code, _final(console, plan, cfg.sweep.max_retries))
     if not ran_any:
         console.print("nothing left to run")
     return code
+
+
+def report_workers(console: Console, codes: Sequence[int | None], log_dir: Path) -> None:
+    """The workers that ended without a cell's row saying why. Not crashes: 0, 130 (stopped) and ``EXIT_RECORDED``
+    (stopped after a full disk failed its cell: that cell's failure line says so); 2 is a user error, its one line
+    in the worker's log; anything else (a traceback, a signal) crashed."""
+    errors = [c for c in codes if c == 2]
+    crashed = [c for c in codes if c not in (0, 2, EXIT_INTERRUPTED, EXIT_RECORDED)]
+    if errors:
+        console.print(f"[red]{len(errors)} worker(s) stopped on an error[/] (exit code 2; the error is the last line of "
+                      f"each one's log in {log_dir})", highlight=False)
+    if crashed:
+        console.print(f"[red]{len(crashed)} worker(s) crashed[/] (exit codes {crashed}); logs in {log_dir}",
+                      highlight=False)
 
 
 def _final(console: Console, plan: planning.Plan, max_retries: int) -> int:

@@ -9,7 +9,8 @@ installed (and the launcher's own, e.g. Slurm's SIGUSR1), its ``WorkerId``
 the stages in order (``work_stages``): claims the first stage's cells; goes on
 to a later stage only once every cell before it is done, settling its selection
 first; stops after the stage it was submitted for. Exit code 0 (nothing left
-here), 130 (stopped), 2 (a user error, logged in one line).
+here), 130 (stopped), 2 (a user error, logged in one line), 3 (stopped after a failure recorded on its cell's
+row: a full disk; the cell's failure says it).
 """
 
 from __future__ import annotations
@@ -25,18 +26,18 @@ from typing import Any, NoReturn
 from .. import urls
 from ..cells import Selection
 from ..config import Config
-from ..errors import BronchoError
+from ..errors import BronchoError, WriteFailed
 from ..runs.client import client_for, experiment_id
 from ..runs import cores
-from ..runs.parents import set_parent_status, sweep_parent
+from ..runs.parents import KIND_SWEEP, find_parent, set_parent_status, sweep_parent
 from . import plan as planning
 from .launchers.base import Launcher
 from .liveness import StopSignals
 from .placement import pin_env
 from .selection import describe_selection
-from .storage import FINISHED, SweepStore
-from .summary import cancelled
-from .worker import EXIT_INTERRUPTED, EXIT_OK, Runner, Worker, WorkerId, default_runner
+from .storage import FINISHED, RUNNING, SweepStore
+from .summary import TAG_CANCELLED, cancelled, record_stop, reopen
+from .worker import EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDED, Runner, Worker, WorkerId, default_runner, job_of
 
 log = logging.getLogger(__name__)
 
@@ -136,16 +137,27 @@ def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
         cfg = cfg.with_values({"train.threads": threads})
     log.info("sweep worker %s, %s %s %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, job.launcher.title,
              job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
-    code = EXIT_INTERRUPTED
+    code, store = EXIT_INTERRUPTED, None
+    detached = job.ends_parent and job.launcher.detachable  # no watcher may be left to keep its parent run true
     try:
         store = planning.open_store(cfg, job.storage_url)
+        if detached:
+            reopen_parent(cfg)
         code = work_stages(cfg, store, job.only, signals=signals, runner=job.runner,
                            exit_when_idle=job.exit_when_idle, last_stage=job.last_stage, ident=str(ident),
                            ends_parent=job.ends_parent)
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
+    except WriteFailed as exc:
+        if getattr(exc, "recorded_on", None) is None:
+            raise
+        log.error("stopped: %s failed on a full disk (recorded on its cell, no attempt spent; every other cell would "
+                  "meet it): %s", exc.recorded_on, urls.redact(str(exc)))
+        code = EXIT_RECORDED
     finally:  # a user error (BronchoError) goes on to the caller: one line where its output is read
         job.launcher.worker_done(cfg, signals)
+        if detached and store is not None:
+            settle_parent(cfg, store, job.only, job.launcher, signals)
     return code
 
 
@@ -212,3 +224,68 @@ def end_parent(cfg: Config, store: SweepStore, only: Selection) -> None:
         set_parent_status(client, parent, code)
     except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
         log.warning("could not end the sweep's parent run: %s", exc)
+
+
+def reopen_parent(cfg: Config) -> None:
+    """A detached worker starting on a sweep whose last worker had stopped it (``settle_parent``): its parent run
+    is RUNNING again (best effort)."""
+    try:
+        client = client_for(cfg)
+        parent = find_parent(client, experiment_id(client, cfg), KIND_SWEEP, cfg.name)
+        if parent is not None and reopen(client, parent):
+            log.info("sweep %s's parent run %s is RUNNING again", cfg.name, parent)
+    except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
+        log.warning("could not read the sweep's parent run: %s", exc)
+
+
+def settle_parent(cfg: Config, store: SweepStore, only: Selection, launcher: type[Launcher], signals: StopSignals,
+                  ) -> None:
+    """A detached worker leaving (``end_abandoned``): left alone when stopped by its launcher's own signal (Slurm's
+    time limit: it is requeued, or its watcher submits another)."""
+    if signals.requested not in launcher.worker_signals:
+        end_abandoned(cfg, store, only, launcher, me={launcher.worker_job(), str(os.getpid())})
+
+
+def end_abandoned(cfg: Config, store: SweepStore, only: Selection | None, launcher: type[Launcher], *,
+                  me: set[str | None] | None = None) -> str | None:
+    """End the sweep's parent run when nothing else would (issue 50: `sweep run --detach`, then `scancel` of stage 1,
+    left it RUNNING until the next run): it is RUNNING, no worker of the sweep is queued or running
+    (``launcher.active``; ``me``: the worker asking, as its launcher lists it), none started by hand holds a live
+    claim, and cells are not done. It ends KILLED (cells left: `sweep run` resumes them) or FAILED (every cell
+    done, some failed for good), the reason as its ``sweep_stopped`` tag, logged; returns that reason (None: left
+    alone, as a parent no longer RUNNING: finished, or ``sweep cancel``). Asked by each detached worker as it
+    leaves, and by ``bronchopose status`` (``entry.settle_detached``)."""
+    try:
+        client = client_for(cfg)
+        parent = find_parent(client, experiment_id(client, cfg), KIND_SWEEP, cfg.name)
+        run = client.get_run(parent) if parent is not None else None
+        if run is None or run.info.status != "RUNNING" or TAG_CANCELLED in run.data.tags:
+            return None
+        me = me or set()
+        others = [t for t in launcher(cfg).active()
+                  if not t.ending and not (t.id in me and t.state == "RUNNING")]  # requeued: comes back, counts
+        if others:
+            return None
+        walk = planning.StageWalk(cfg, store, only)
+        plan, now = walk.rows(), store.db_now()
+        if any(r.state == RUNNING and job_of(r.worker) is None and r.heartbeat is not None
+               and r.heartbeat >= now - cfg.sweep.stale_after_s for r in plan.rows.values()):
+            return None  # a worker started by hand (no job of this launcher) still runs a cell: it ends the sweep
+        left = planning.cells_left(plan, cfg.sweep.max_retries)
+        if not left and walk.complete and all(plan.state(c) == FINISHED for c in plan.cells):
+            set_parent_status(client, parent, 0)
+            return None
+        code = EXIT_INTERRUPTED if left or not walk.complete else 1
+        reason = (f"no {launcher.title} {launcher.task_word} of sweep {cfg.name} is queued or running and "
+                  + (f"{f'{left} cell(s) are' if left else 'a later stage is'} not done (its {launcher.task_word}s "
+                     "were stopped: `scancel`, a node gone); "
+                     "`bronchopose sweep run` resumes it" if code == EXIT_INTERRUPTED else
+                     "every cell is done, some failed for good; `bronchopose sweep run --retry-failed` runs them "
+                     "again"))
+        record_stop(client, parent, reason, code)
+        log.warning("sweep %s's parent run %s ends %s: %s", cfg.name, parent,
+                    "KILLED" if code == EXIT_INTERRUPTED else "FAILED", reason)
+        return reason
+    except Exception as exc:  # noqa: BLE001 - the cells carry the results; logged
+        log.warning("could not settle the sweep's parent run: %s", exc)
+        return None

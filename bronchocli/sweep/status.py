@@ -24,11 +24,13 @@ from ..config import Config
 from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
 from ..runs.client import ExperimentDeleted, client_for, redacted_uri, store_missing
+from ..runs.parents import KIND_SWEEP, find_parent
 from ..runs.records import deleted_runs_line
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
 from .record import deleted_finished, missing_line, missing_runs, overlay, rebuilt_count
 from .selection import describe_selection
+from .summary import TAG_STOPPED
 from .damage import damage_line, future_line, future_s
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 from .launchers import names as launcher_names
@@ -298,6 +300,8 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
     console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1, now, cfg.sweep.stale_after_s)))
     for label, reason in failures(plan):
         console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
+    if (line := stopped_line(cfg, plan.sweep)) is not None:
+        console.print(f"[yellow]stopped[/] {line}", highlight=False, soft_wrap=True)
     for label, reason in given_back(plan):
         console.print(f"[yellow]given back[/] {label}: {reason}", highlight=False)
     for line in row_lines(plan, unnamed, store.redacted, now, cfg.sweep.stale_after_s):
@@ -308,6 +312,24 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
                           soft_wrap=True)
     console.print(checkpoint_line(held), highlight=False, soft_wrap=True)
     console.print(disk_line(cfg), highlight=False, soft_wrap=True)
+
+
+def stopped_line(cfg: Config, sweep: str) -> str | None:
+    """One line when the sweep's parent run was ended by its last worker with cells not done (its workers were
+    stopped outside bronchopose: ``stagework.settle_parent``): which run, how it ended, why, what to do."""
+    try:
+        if store_missing(cfg):
+            return None
+        client = client_for(cfg, reading=True)
+        exp = client.get_experiment_by_name(cfg.experiment_name)
+        parent = find_parent(client, exp.experiment_id, KIND_SWEEP, sweep) if exp is not None else None
+        run = client.get_run(parent) if parent is not None else None
+    except Exception as exc:  # noqa: BLE001 - a view: an MLflow store away shows the claims table alone
+        log.warning("could not read the sweep's parent run: %s", exc)
+        return None
+    if run is None or run.info.status == "RUNNING" or not (reason := run.data.tags.get(TAG_STOPPED)):
+        return None
+    return f"sweep {sweep}: its parent run {parent} ended {run.info.status}: {reason}"
 
 
 def row_lines(plan: Plan, unnamed: Sequence[CellRow], where: str, now: float | None,

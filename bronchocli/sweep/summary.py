@@ -22,11 +22,17 @@ A cancel is recorded there too, in the store every submitter, watcher and worker
 tags the parent ``sweep_cancelled`` (``TAG_CANCELLED``) and ends it KILLED before it stops any worker; a
 watcher that finds the tag stops re-submitting and exits, a worker that finishes the last stage leaves the
 parent KILLED; the next explicit ``sweep run`` removes the tag (``uncancel``).
+
+A detached sweep's workers stopped another way (``scancel`` of a stage's array, a node gone) leave no watcher to
+end the parent: the last worker to leave, seeing no other worker of the sweep queued or running and cells not
+done, ends it KILLED with the reason as tag ``sweep_stopped`` (``TAG_STOPPED``, ``stagework.settle_parent``); a
+worker that starts on it again, or the next ``sweep run`` (``uncancel``), makes it RUNNING again (``reopen``).
 """
 
 from __future__ import annotations
 
 import logging
+import socket
 import tempfile
 import time
 from collections.abc import Mapping
@@ -38,6 +44,7 @@ from ..cells import FIELDS, Cell
 from ..config import Select, Stage
 from ..io import save_figure
 from ..runs.parents import KIND_SWEEP, find_parent, log_plan_params, set_parent_status
+from ..runs.processes import TAG_HOST, TAG_PID, TAG_PSTART, pid_alive, process_tags
 from ..runs.records import TAG_NOTE, log_metrics, set_tags
 from . import plan as planning
 from .selection import describe_selection, finished_runs
@@ -46,6 +53,26 @@ from .storage import FAILED, FINISHED
 log = logging.getLogger(__name__)
 
 TAG_CANCELLED = "sweep_cancelled"  # on the sweep's parent run: when `sweep cancel` ran (UTC); removed by `sweep run`
+TAG_STOPPED = "sweep_stopped"  # on the sweep's parent run: why it ended with cells not done; removed when resumed
+TAG_LAUNCHER = "sweep_launcher"  # on the sweep's parent run: the launcher `sweep run --launcher` submitted it with
+TAG_WATCHER = "sweep_watcher"  # ... and the process watching it ("host pid start"), or "detached"
+
+
+def watcher_tag(detached: bool) -> str:
+    """``TAG_WATCHER``'s value for this process: "detached", or which process watches (host, pid, start tick)."""
+    if detached:
+        return "detached"
+    tags = process_tags()
+    return f"{tags[TAG_HOST]} {tags[TAG_PID]} {tags[TAG_PSTART]}"
+
+
+def watcher_alive(value: str | None) -> bool:
+    """Whether the watcher ``TAG_WATCHER`` names may still be watching: its process lives, or it runs on another host
+    (cannot be told: assumed alive); False for "detached", none, or a process gone here."""
+    parts = (value or "").split()
+    if len(parts) != 3 or not parts[1].isdigit():
+        return False
+    return parts[0] != socket.gethostname() or pid_alive(int(parts[1]), parts[2])
 
 
 def record_cancel(client, exp_id: str, sweep: str) -> str | None:
@@ -70,9 +97,30 @@ def cancelled(client, parent: str | None) -> bool:
 
 
 def uncancel(client, parent: str) -> None:
-    """An explicit ``sweep run``: the sweep is no longer cancelled."""
-    if TAG_CANCELLED in client.get_run(parent).data.tags:
-        client.delete_tag(parent, TAG_CANCELLED)
+    """An explicit ``sweep run``: the sweep is no longer cancelled, nor stopped."""
+    tags = client.get_run(parent).data.tags
+    for tag in (TAG_CANCELLED, TAG_STOPPED):
+        if tag in tags:
+            client.delete_tag(parent, tag)
+
+
+def record_stop(client, parent: str, reason: str, code: int) -> None:
+    """The sweep's last worker left with cells not done (``code`` 130: KILLED) or failed for good (1: FAILED):
+    the parent ends so, ``reason`` as its ``TAG_STOPPED`` tag."""
+    client.set_tag(parent, TAG_STOPPED, reason)
+    set_parent_status(client, parent, code)
+
+
+def reopen(client, parent: str) -> bool:
+    """A worker starts on a sweep its last worker had stopped (``record_stop``): RUNNING again; True when it was."""
+    run = client.get_run(parent)
+    if TAG_STOPPED not in run.data.tags or TAG_CANCELLED in run.data.tags:
+        return False
+    client.update_run(parent, "RUNNING")
+    client.delete_tag(parent, TAG_STOPPED)
+    return True
+
+
 HEADLINES = (runkeys.HEADLINE, runkeys.HEADLINE_ERROR)  # the test figures shown next to each stage's best cell
 DEFAULT_OBJECTIVE = runkeys.best_of(runkeys.VAL_LOSS)  # a study's objective metric where it names none
 

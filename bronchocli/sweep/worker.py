@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
 EXIT_OK, EXIT_INTERRUPTED = 0, 130
+EXIT_RECORDED = 3  # stopped after a failure recorded on its cell's row (a full disk): reported there, not a crash
 
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s
 
@@ -295,6 +296,7 @@ class Worker:
         if isinstance(error, WriteFailed):  # a full disk: FAILED, no attempt used, its checkpoint kept; the worker
             self._terminate(run_id, "FAILED", failure_reason(error), ("RUNNING",))  # stops (every cell meets it)
             self._db(self.store.fail, claim.token, failure_reason(error), run_id, elapsed, spent=False)
+            error.recorded_on = cell.label  # the cell's row says it: the worker's exit is no crash (EXIT_RECORDED)
             raise error
         if error is not None:
             if not isinstance(error, (BronchoError, StorageError)):

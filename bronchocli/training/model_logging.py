@@ -163,7 +163,11 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
             local = save_model_dir(Path(tmp) / MODEL_NAME, spec, weights, input_example(data), meta)
             client.log_model_artifacts(logged.model_id, str(local))
     except BaseException:
-        client.finalize_logged_model(logged.model_id, "FAILED")
+        try:
+            client.finalize_logged_model(logged.model_id, "FAILED")
+        except Exception as exc:  # noqa: BLE001 - a full store: the run's failure path marks it (the original error
+            log.warning("logged model %s not marked FAILED yet (%s)", logged.model_id,  # is the one to report)
+                        str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise
     client.finalize_logged_model(logged.model_id, "READY")
     return logged.model_id

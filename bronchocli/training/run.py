@@ -52,7 +52,7 @@ from ..runs.contract import (
     resume_file,
 )
 from ..runs.ownership import remove_checkpoint
-from ..runs.processes import process_alive, process_tags, repair_zombie
+from ..runs.processes import fail_pending_models, process_alive, process_tags, repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
 from ..runs.system import system_metrics
 from . import artifacts, checkpoint
@@ -284,6 +284,8 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
                         run_id, reason)
             raise RunTakenOver(f"run {run_id} was taken over by another sweep worker ({reason})") from None
         _end_run(getattr(client, "raw", client) if isinstance(exc, OUTAGES) else client, run_id, "FAILED", reason)
+        if not isinstance(exc, OUTAGES):  # a model whose upload failed (a full disk) is not left PENDING on the run
+            _fail_pending_models(client, run_id)
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             remove_checkpoint(ckpt, "run failed, not resumable")
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
@@ -301,6 +303,15 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
 RAISE_AFTER_FAILED = (checkpoint.WriteFailed, checkpoint.BadCheckpoint, MlflowBusy, MlflowUnreachable, OutOfMemory)
 OUTAGES = (MlflowBusy, MlflowUnreachable)  # the store is away: marking the run is tried once, not waited for
 
+
+
+def _fail_pending_models(client, run_id: str) -> None:
+    """Mark FAILED the run's logged models left PENDING by the failure (best effort, like ``_end_run``)."""
+    try:
+        fail_pending_models(client, client.get_run(run_id))
+    except Exception as exc:  # noqa: BLE001 - logged; the caller reports the original failure
+        log.warning("could not mark the logged models of run %s (%s)", run_id,
+                    str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
 
 
 def _end_run(client, run_id: str, status: str, reason: str) -> None:

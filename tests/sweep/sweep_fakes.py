@@ -10,6 +10,8 @@ Behaviour is driven by files in the directory named by ``$SWEEP_FAKE_DIR``:
 - ``fail-<arch>`` containing N: the first N runs of each such cell end FAILED;
 - ``block-<arch>``: the run writes ``started-<cell key>-<pid>`` and waits until
   ``release`` exists (a gate the test controls; interrupting it ends the run KILLED);
+- ``full-<arch>``: the run meets a full disk (FAILED, its checkpoint kept, ``WriteFailed`` raised, as
+  ``run_cell`` does);
 - ``val-<arch>-<rot_loss>`` containing a number: the run's validation metric
   ``val_best.pos_l2``; its test metric ``pair.pos_l2.mean`` is ``10 - val``, so a
   selection that looked at test results would pick the worst (poisoned on purpose);
@@ -24,6 +26,7 @@ import uuid
 from collections import Counter
 from pathlib import Path
 
+from bronchocli.errors import WriteFailed
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunInterrupted, RunResult, resume_file
 from bronchocli.runs.ownership import mark
@@ -68,6 +71,15 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
             (d / f"started-{cell.key}-{os.getpid()}").write_text(run_id)
             while not (d / "release").exists():
                 time.sleep(0.02)
+        if (d / f"full-{cell.arch}").exists():  # like run_cell on a full disk: FAILED, checkpoint kept, raised
+            ckpt = resume_file(cfg, run_id)
+            mark(ckpt.parent, run_id, cell.key)
+            ckpt.write_text("fake checkpoint")
+            error = WriteFailed(f"{ckpt.parent}: disk full (no space left on device; 0 B free); the run needs about "
+                                "1.0 KB free to finish")
+            client.set_tag(run_id, TAG_FAILURE, f"WriteFailed: {error}")
+            client.set_terminated(run_id, "FAILED")
+            raise error
         fail = d / f"fail-{cell.arch}"
         if fail.exists() and n_calls < int(fail.read_text() or 1):
             client.set_tag(run_id, TAG_FAILURE, "fake failure")

@@ -14,7 +14,7 @@ from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunResult, resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import TAG_FAILURE, cell_tags
-from bronchocli.sweep import FAILED, FINISHED, SweepStore, Worker, prepare
+from bronchocli.sweep import FAILED, FINISHED, PENDING, SweepStore, Worker, prepare
 
 
 def test_a_full_disk_fails_the_cell_without_using_an_attempt_and_the_next_sweep_resumes_it(make_config, tmp_path):
@@ -53,6 +53,27 @@ def test_a_full_disk_fails_the_cell_without_using_an_attempt_and_the_next_sweep_
     assert calls == [None, row.run_id]  # resumed, once
     (done,) = store.rows(cfg.name)
     assert (done.state, done.run_id) == (FINISHED, row.run_id)
+
+
+def test_a_sweep_worker_stopped_by_a_full_disk_prints_the_cells_line_only_not_a_crash(cli, make_config, fake_dir,
+                                                                                      tmp_path):
+    """Issue 50: beside the clear disk-full line, the sweep printed "1 worker(s) crashed (exit codes [2])": the worker
+    stopped on purpose after recording the failure on its cell's row; that line is the true one."""
+    from sweep_fakes import FAKE
+
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
+    cfg = make_config(archs=("baseline", "lstm"), sweep={"stale_after_s": 30.0}, grid_order=True)  # baseline first
+    (fake_dir / "full-baseline").touch()
+    code, out, err = cli("sweep", "-c", str(cfg.paths.base / "experiments.yaml"), "--workers", "1", *FAKE)
+    assert code == 1 and err.strip() == "" and "Traceback" not in out, out + err
+    assert "crashed" not in out and "worker(s)" not in out, out
+    line = re.sub(r"\s+", " ", out[out.index("failed "):])
+    assert "failed baseline" in line and "WriteFailed:" in line and "disk full" in line, out
+    rows = {r.coords["arch"]: r for r in SweepStore(cfg.paths.storage_url).rows(cfg.name)}
+    assert (rows["baseline"].state, rows["baseline"].attempts) == (FAILED, 0)  # no attempt spent
+    assert rows["lstm"].state == PENDING  # the worker stopped: every other cell would meet the same disk
+    logs = "".join(p.read_text() for p in cfg.paths.sweep_logs.rglob("*.log"))
+    assert "stopped: baseline" in logs and "failed on a full disk" in logs, logs
 
 
 def test_gc_keeps_a_disk_full_runs_checkpoint_until_its_cell_is_failed_for_good(make_config, tmp_path):
@@ -105,6 +126,7 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     logs = "\n".join(p.read_text() for p in cfg.paths.sweep_logs.rglob("*.log"))
     assert code == 1, out + err + logs
     assert "Traceback" not in out + err and "[SQL:" not in out + err and err.strip() == "", out + err
+    assert "crashed" not in out and "worker(s)" not in out, out  # the worker stopped after the cell's line: no crash
     line = re.sub(r"\s+", "", out[out.index("failed "):])  # the cell's failure (one line, wrapped by the console)
     assert "WriteFailed:" in line and "diskfull(" in line and f"freein{disk})" in line and "needsabout" in line, out
     (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
@@ -112,6 +134,9 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     client = client_for(cfg)
     assert client.get_run(row.run_id).info.status == "FAILED"  # not RUNNING: the reserve gave the room to end it
     assert resume_file(cfg, row.run_id).is_file()
+    exp = client.get_run(row.run_id).info.experiment_id
+    models = client.search_logged_models([exp], filter_string=f"source_run_id = '{row.run_id}'")
+    assert all(str(m.status) == "FAILED" for m in models), models  # a half-logged model: marked, not PENDING
 
     (disk / "filler").unlink()  # space freed
     (fake_dir / "fill").unlink()
@@ -121,6 +146,8 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     assert (done.state, done.run_id) == (FINISHED, row.run_id)  # the same run, resumed
     assert len(client.get_metric_history(row.run_id, "resumed_from_step")) == 1  # once
     assert client.get_run(row.run_id).info.status == "FINISHED" and not resume_file(cfg, row.run_id).exists()
+    models = client.search_logged_models([exp], filter_string=f"source_run_id = '{row.run_id}'")
+    assert sorted(str(m.status) for m in models) == [*["FAILED"] * (len(models) - 1), "READY"], models
 
 
 @pytest.mark.slow  # ~3 min on 2 busy cores: a real training of the tiny baseline
@@ -143,6 +170,9 @@ def test_stores_on_a_small_disk_still_end_the_run_failed_without_spending_an_att
         code, out, err = cli(*command)
         assert code == 1, out + err
         assert "Traceback" not in out + err and "disk full" in out, out + err
+        assert "crashed" not in out and "worker(s)" not in out, out  # the cell's line only: no crash beside it
+        last = [line for line in out.splitlines() if line.startswith("done ")][-1]
+        assert "running 0" in last, out  # nothing left running at the end
         (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
         assert (row.state, row.attempts) == (FAILED, 0)  # ended, and the attempt not spent
         client = client_for(cfg)

@@ -298,6 +298,41 @@ def test_cancel_stops_the_sweeps_jobs_and_gives_the_running_cell_back(slurm, cli
     assert code == 0 and "no Slurm job of sweep t is queued or running" in out
 
 
+def test_scancel_of_a_detached_sweeps_stage_one_ends_its_parent_run_and_status_says_so(slurm, cli, make_config,
+                                                                                      tmp_path, pg_url, fake_dir):
+    """Issue 50: `sweep run --detach`, then `scancel` of stage 1's array: its tasks give their cells back, stage 2's
+    task starts (afterany) and leaves them to stage 1; the sweep's parent run stayed RUNNING until the next run. The
+    last task to leave ends it KILLED, and `status` says why in one line."""
+    from bronchocli.sweep.summary import TAG_STOPPED
+
+    stages = [{"name": "first"}, {"name": "second", "grid": {"seed": [1]}, "select": {"top": 1, "over": ["arch"]}}]
+    cfg = project(make_config, tmp_path, pg_url, name="stopped", archs=("baseline", "lstm"), losses=("mse",),
+                  stages=stages, slurm={"gpus_per_task": 0})
+    for arch in ("baseline", "lstm"):
+        (fake_dir / f"block-{arch}").touch()
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "slurm", "--detach", *FAKE)
+    assert code == 0, out + err
+    first = re.search(r"submitted Slurm array job (\d+): 2 task\(s\) for stage first", out)
+    assert first, out
+    wait_for(lambda: len(list(fake_dir.glob("started-*"))) == 2, "both stage-1 tasks in their cells", cluster=slurm,
+             cfg=cfg)
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+    assert client.get_run(parent).info.status == "RUNNING"
+    slurm.run("scancel", first.group(1))
+    wait_for(lambda: not slurm.jobs() and client.get_run(parent).info.status != "RUNNING",
+             "every task gone and the parent run ended", cluster=slurm, cfg=cfg)
+    run = client.get_run(parent)
+    reason = ("no Slurm task of sweep stopped is queued or running and 2 cell(s) are not done (its tasks were "
+              "stopped: `scancel`, a node gone); `bronchopose sweep run` resumes it")
+    assert run.info.status == "KILLED" and run.data.tags[TAG_STOPPED] == reason, run
+    assert run.data.tags["sweep_launcher"] == "slurm" and run.data.tags["sweep_watcher"] == "detached"
+    assert {r.state for r in rows(cfg)} == {PENDING}
+    code, out, _ = cli("status", "-c", path)
+    assert code == 0 and f"stopped sweep stopped: its parent run {parent} ended KILLED: {reason}" in out, out
+
+
 # -- faults a cluster throws, with the configuration a real cluster uses (issue 30) ------------------------------
 # Claims on PostgreSQL, tracking through a real `mlflow server` backed by a PostgreSQL instance of this module's
 # own (start_postgres: stopping it touches no other database). Real training where a checkpoint matters.

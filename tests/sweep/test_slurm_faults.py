@@ -10,7 +10,7 @@ import pytest
 from rich.console import Console
 from sqlalchemy import update
 
-from bronchocli.sweep import SweepStore, prepare
+from bronchocli.sweep import PENDING, SweepStore, prepare
 from bronchocli.sweep import launch
 from bronchocli.sweep.launchers import Workers
 from bronchocli.sweep.launchers import slurm as launcher
@@ -241,3 +241,105 @@ def test_a_later_stages_task_that_finds_an_earlier_stage_unfinished_takes_none_o
     monkeypatch.setenv(launcher.STAGE_ENV, "first")  # stage 1's own task takes them
     assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
     assert [calls(c.key) for c in first] == [0, 1, 1]
+
+
+def _parent(cfg):
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import sweep_parent
+
+    client = client_for(cfg)
+    parent = sweep_parent(client, cfg, experiment_id(client, cfg))
+    client.update_run(parent, "RUNNING")  # as `sweep run --launcher slurm --detach` leaves it
+    return client, parent
+
+
+def test_the_last_task_to_leave_a_detached_sweep_unfinished_ends_its_parent_killed_and_a_new_task_reopens_it(
+        make_config, fake_dir, monkeypatch):
+    """Issue 50: `sweep run --detach`, then `scancel` of stage 1: stage 2's task starts (afterany), takes none of stage
+    1's cells and leaves; nothing else would end the sweep's parent run, which stayed RUNNING until the next run."""
+    from sweep_fakes import calls, fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.sweep.summary import TAG_STOPPED
+    from bronchocli.sweep.task import run_task as run_one
+
+    cfg = two_stages(make_config)
+    for arch, val in (("baseline", 3.0), ("lstm", 1.0), ("convlstm", 2.0)):
+        (fake_dir / f"val-{arch}-mse").write_text(str(val))
+    walk, store = walk_of(cfg)
+    client, parent = _parent(cfg)
+    slurm = FakeSlurm(monkeypatch, [Task("8_0", "8", "RUNNING", "second", 1)])  # this task, as squeue lists it
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "8")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "0")
+    monkeypatch.setenv(launcher.STAGE_ENV, "second")
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    run = client.get_run(parent)
+    assert run.info.status == "KILLED", run.info
+    assert run.data.tags[TAG_STOPPED] == (
+        "no Slurm task of sweep t is queued or running and 3 cell(s) are not done (its tasks were stopped: `scancel`, "
+        "a node gone); `bronchopose sweep run` resumes it")
+    assert {r.state for r in store.rows(cfg.name)} == {PENDING} and not slurm.submitted
+
+    slurm.active = [Task("9_0", "9", "RUNNING", "first", 1), Task("10_[0]", "10", "PENDING", "second", 1, "Dependency")]
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "9")
+    monkeypatch.setenv(launcher.STAGE_ENV, "first")  # a task started on it again (a requeue, a submission by hand)
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    run = client.get_run(parent)
+    assert run.info.status == "RUNNING" and TAG_STOPPED not in run.data.tags  # stage 2's task is still queued
+    assert [calls(c.key) for c in walk.cells(walk.stages[0])] == [1, 1, 1]
+
+    slurm.active = [Task("10_0", "10", "RUNNING", "second", 1)]
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "10")
+    monkeypatch.setenv(launcher.STAGE_ENV, "second")
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    run = client.get_run(parent)
+    assert run.info.status == "FINISHED" and TAG_STOPPED not in run.data.tags
+
+
+def test_a_task_leaving_while_another_task_of_the_sweep_is_queued_or_a_cell_runs_elsewhere_leaves_the_parent_running(
+        make_config, fake_dir, monkeypatch):
+    from sweep_fakes import fake_runner
+
+    from bronchocli.cells import parse_only
+    from bronchocli.sweep.task import run_task as run_one
+
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    client, parent = _parent(cfg)
+    monkeypatch.setenv(launcher.STAGE_ENV, "second")
+    FakeSlurm(monkeypatch, [Task("7_[0-2]", "7", "PENDING", "first", 3, "Priority")])  # stage 1 still queued
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    assert client.get_run(parent).info.status == "RUNNING"
+    FakeSlurm(monkeypatch, [Task("7_0", "7", "COMPLETING", "first", 1)])  # being cancelled: not a worker any more
+    first = walk.cells(walk.stages[0])
+    claim = store.claim(cfg.name, [first[0].key], "n:1", max_retries=1, stale_after_s=30)  # a worker run by hand
+    assert claim is not None
+    assert run_one(cfg, parse_only([]), fake_runner, "slurm") == 0
+    assert client.get_run(parent).info.status == "RUNNING"  # that worker ends the sweep
+
+
+def test_status_ends_the_parent_of_a_detached_sweep_whose_tasks_all_went_before_any_ran(make_config, monkeypatch):
+    """Every task cancelled while still pending: none ran to end the parent; `status` does, and says so in one line.
+    A sweep whose watcher lives here, or with a task still queued, is left RUNNING."""
+    from bronchocli.sweep.entry import settle_detached
+    from bronchocli.sweep.status import stopped_line
+    from bronchocli.sweep.summary import TAG_LAUNCHER, TAG_WATCHER, reopen, watcher_tag
+
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    client, parent = _parent(cfg)
+    client.set_tag(parent, TAG_LAUNCHER, "slurm")  # as `sweep run --launcher slurm --detach` tags it
+    client.set_tag(parent, TAG_WATCHER, watcher_tag(detached=True))
+    slurm = FakeSlurm(monkeypatch, [Task("7_[0-2]", "7", "PENDING", "first", 3, "Priority")])
+    assert settle_detached(cfg, store) is None and client.get_run(parent).info.status == "RUNNING"
+    assert stopped_line(cfg, cfg.name) is None
+    slurm.active = []  # scancel while they were pending
+    client.set_tag(parent, TAG_WATCHER, watcher_tag(detached=False))  # a watcher in this (live) process
+    assert settle_detached(cfg, store) is None and client.get_run(parent).info.status == "RUNNING"
+    client.set_tag(parent, TAG_WATCHER, watcher_tag(detached=True))
+    reason = settle_detached(cfg, store)
+    assert reason is not None and reason.startswith("no Slurm task of sweep t is queued or running and 3 cell(s)")
+    assert client.get_run(parent).info.status == "KILLED"
+    assert stopped_line(cfg, cfg.name) == f"sweep t: its parent run {parent} ended KILLED: {reason}"
+    assert reopen(client, parent) and client.get_run(parent).info.status == "RUNNING"  # a task starts on it again
+    assert stopped_line(cfg, cfg.name) is None

@@ -258,6 +258,43 @@ def test_a_full_disk_under_the_artifacts_is_one_line_and_the_run_ends_failed(tmp
     assert (cfg.paths.checkpoints / run.info.run_id / "last.pt").is_file()  # kept: `train --resume` continues
 
 
+def test_a_disk_filled_while_the_model_is_uploaded_leaves_no_pending_logged_model_on_the_failed_run(tmp_path, cli,
+                                                                                                    monkeypatch):
+    """Issue 50: the model's files half copied when the disk filled, and the store too full to mark the model FAILED
+    at once (the reserve is released only after): the run ends FAILED in one line, its logged model is FAILED, not
+    left PENDING beside it (a resumed run that later FINISHED carried it)."""
+    import errno
+
+    from mlflow.tracking import MlflowClient
+
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    cfg = load_config(write_config(tmp_path, model_artifact="fp16"))
+    finalize = MlflowClient.finalize_logged_model
+    refused = []
+
+    def half_copied(self, model_id, local_dir):
+        raise OSError(errno.ENOSPC, "No space left on device", str(cfg.paths.artifacts / model_id / "weights.pt"))
+
+    def full_store_once(self, model_id, status):
+        if not refused:  # the first write after the disk filled, before the reserve is released
+            refused.append(model_id)
+            raise OSError(errno.ENOSPC, "database or disk is full")
+        return finalize(self, model_id, status)
+
+    monkeypatch.setattr(MlflowClient, "log_model_artifacts", half_copied)
+    monkeypatch.setattr(MlflowClient, "finalize_logged_model", full_store_once)
+    code, out, err = cli("train", "-c", str(tmp_path / "experiments.yaml"), *TRAIN[1:])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "No space left on device" in err, out + err
+    assert "weights.pt" in err and "Traceback" not in out + err and "database or disk is full" not in err
+    client = client_for(cfg)
+    (run,) = search_runs(client, [experiment_id(client, cfg)])
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"].startswith("WriteFailed:")
+    models = client.search_logged_models([run.info.experiment_id],
+                                         filter_string=f"source_run_id = '{run.info.run_id}'")
+    assert [m.model_id for m in models] == refused  # the one logged model: its first marking was refused
+    assert [str(m.status) for m in models] == ["FAILED"], [m.status for m in models]
+
+
 class StoreLock:
     """An exclusive lock on the MLflow SQLite store, taken from a training callback (another writer, mid-run)."""
 
