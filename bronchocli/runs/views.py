@@ -94,7 +94,7 @@ HEADLINE_SCATTERS = (("skill.pair.pos_l2", "skill.pair.rot_l2"),
                      (README_RATIO, "ratio.zero_motion.pair.pos_l2"))
 HEADLINE_DIGITS = 4  # significant digits of the logged ratios and skills (MLflow shows a metric's value whole)
 VIEW_KEY = "bronchopose-headline"
-VIEW_NAME = "Headline: best first, by architecture"  # its name in the runs table's Views menu
+VIEW_NAME = "Headline: best first"  # its name in the runs table's Views menu
 SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
 PARENT_KINDS = ("sweep", "study", "selection")  # run_kind tags of runs that did not train
 
