@@ -202,11 +202,13 @@ def test_the_page_script_stores_mlflows_settings_only_where_the_browser_has_none
     assert fresh["replaced"] == ["/?ui=b#/experiments/7/runs"]  # no fragment: the landing
     assert fresh["data"]["mlflow.workflowType_v1"] == '"machine_learning"'
     assert fresh["data"]["mlflow.assistant.panelOpen_v1"] == "false"
+    assert fresh["data"]["mlflow.assistant.fab.autoOpenedOnFirstLoad_v1"] == "true"  # MLflow opens it once else
     assert json.loads(fresh["data"][uiapp.experiment_state_key("7")]) == headline_view()
     layout = json.loads(fresh["first"])
     assert [c["metricKey"] for c in layout["compareRunCharts"]] == list(CURVE_METRICS)
     assert fresh["data"][run] == fresh["first"] and fresh["other"] is None  # stored; the system tab untouched
     mine = {"mlflow.workflowType_v1": '"genai"', "mlflow.assistant.panelOpen_v1": "true",
+            "mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "false",
             uiapp.experiment_state_key("7"): "{}", run: '{"mine": 1}'}
     kept = page(mine, "#/experiments")
     assert kept["replaced"] == [] and kept["data"] == mine and kept["first"] == '{"mine": 1}'

@@ -17,7 +17,9 @@ nothing of them from the server:
   there is none, on one chart per metric sorted by name in one "Model metrics"
   section (a metric named ``prefix/name`` gets a section ``prefix``, sorted
   before it): the training curves among ~160 one-value test metrics;
-* its Assistant panel is open when ``mlflow.assistant.panelOpen_v1`` says so.
+* its Assistant panel is open when ``mlflow.assistant.panelOpen_v1`` says so,
+  and MLflow opens it by itself on a local server's first load (then sets
+  ``mlflow.assistant.fab.autoOpenedOnFirstLoad_v1``).
 
 This app is MLflow's (``mlflow.server.fastapi_app:app``, unchanged) with a
 small script of ours put first in the ``<head>`` of the page MLflow serves at
@@ -31,7 +33,7 @@ user made is kept):
 * the headline view (``views.headline_view``) as the saved state of the
   configured experiment's runs table, so Experiments, then the experiment, opens
   on it;
-* the panel closed;
+* the panel closed, and its first-load opening as done;
 * the run page's layout (``views.run_page_layout``: the training and validation
   curves first) as a run's saved chart layout at the moment MLflow's run page
   looks for one and finds none (any run, however the page was reached);
@@ -61,6 +63,9 @@ EXPERIMENT_ENV = "BRONCHOPOSE_UI_EXPERIMENT"  # the experiment whose runs table 
 WORKFLOW_KEY = "mlflow.workflowType_v1"  # MLflow 3.17's localStorage key of the GenAI / Model training switch
 MODEL_TRAINING = "machine_learning"
 ASSISTANT_KEY = "mlflow.assistant.panelOpen_v1"  # MLflow 3.17's Assistant panel, open or closed
+# set once MLflow 3.17 has opened its Assistant panel by itself (on a local server's first load: the panel then
+# takes ~30 % of the width); stored as done, it leaves the panel closed until the user opens it
+ASSISTANT_OPENED_KEY = "mlflow.assistant.fab.autoOpenedOnFirstLoad_v1"
 STORE_PREFIX = "MLflowLocalStorage-1.1-"  # MLflow 3.17's LocalStorageUtils: <prefix><component>-<id>-<item>
 RUN_LAYOUT_KEY = re.compile(r"^MLflowLocalStorage-1\.1-RunPage-[0-9a-zA-Z]+-model-chartUIState$")
 UI_PATH = "/?ui=bronchopose"  # an address of MLflow's page (any query is the same page)
@@ -78,7 +83,8 @@ def page_script(landing: str | None, experiment_id: str | None) -> str:
     """The script put first in MLflow's page: MLflow's settings stored where the browser has none (the mode, the
     experiment's runs table on the headline view, the Assistant closed, a run's charts on its curves), and
     ``landing`` as the fragment of an address that has none."""
-    seeds = {WORKFLOW_KEY: json.dumps(MODEL_TRAINING), ASSISTANT_KEY: json.dumps(False)}
+    seeds = {WORKFLOW_KEY: json.dumps(MODEL_TRAINING), ASSISTANT_KEY: json.dumps(False),
+             ASSISTANT_OPENED_KEY: json.dumps(True)}
     if experiment_id:
         seeds[experiment_state_key(experiment_id)] = json.dumps(headline_view())
     script = (

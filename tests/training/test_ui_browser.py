@@ -277,7 +277,8 @@ def test_an_address_copied_from_the_bar_lands_on_the_runs_table_in_model_trainin
     assert "workflowType=machine_learning" in page.url and "/overview" not in page.url
     assert _headline_rows(page, runs) == sorted(r.data.metrics[HEADLINE] for r in runs)
     assert page.evaluate("() => localStorage.getItem('mlflow.assistant.panelOpen_v1')") == "false"
-    assert not page.locator("[data-assistant-ui]").filter(visible=True).count()
+    assert page.evaluate("() => localStorage.getItem('mlflow.assistant.fab.autoOpenedOnFirstLoad_v1')") == "true"
+    assert not page.get_by_text("MLflow Assistant", exact=True).filter(visible=True).count()  # the panel's title
 
 
 def test_a_runs_page_opens_its_charts_on_the_training_curve_without_scrolling(ui, sweep, page):
@@ -304,7 +305,7 @@ def test_a_runs_page_opens_its_charts_on_the_training_curve_without_scrolling(ui
     _docs_screenshot(page, "mlflow-training-curve.png")
 
 
-def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
+def test_the_views_charts_open_on_the_training_and_validation_curves(ui, sweep, page):
     """The link's Chart view (issues 36.5, 48.5): the training and validation curves are the first section, in
     their order, then the headline figures, a point per run; no metric renamed for it."""
     _, link = ui
@@ -327,6 +328,18 @@ def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
                           "/ metrics$|^Training and validation curves$|^Headline /.test(e.textContent))"
                           ".map(e => e.textContent)")
     assert names[:2] == [CURVES_SECTION, HEADLINE_SECTION], names  # the curves first, any other section after
+    head.scroll_into_view_if_needed()  # the headline figures: a point per run, on axes fitted to the points
+    page.wait_for_function("n => [...document.querySelectorAll('.js-plotly-plot')].filter(p => (p.data || [])"
+                           ".some(t => t.mode === 'markers' && (t.x || []).length === n)).length >= 2",
+                           arg=len(sweep[3]))
+    plots = page.evaluate("() => [...document.querySelectorAll('.js-plotly-plot')].map(p => [(p.data || [])"
+                          ".filter(t => t.mode === 'markers'), p.layout]).filter(([t]) => t.length).map(([t, l]) => "
+                          "[t[0].x, t[0].y, l.xaxis.range, l.yaxis.range])")
+    assert len(plots) == 2, plots
+    for xs, ys, x_range, y_range in plots:  # each axis spans about its points: from 0 only where they straddle it
+        for values, (low, high) in ((xs, x_range), (ys, y_range)):
+            assert low <= min(values) <= max(values) <= high
+            assert not (min(values) > 0 >= low or max(values) < 0 <= high), (values, low, high)
 
 
 def test_a_runs_training_loss_chart_has_a_point_per_logged_step(ui, sweep, page):
