@@ -54,7 +54,7 @@ def test_ui_serves_the_store(tmp_path):
         saved = json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])  # MLflow's saved-view envelope
         assert saved["name"] and isinstance(saved["createdAt"], int)  # listed by name in the Views menu
         assert json.loads(saved["state"])["orderByAsc"] is True  # the view
-        # the bare root is the front page (issue 36.5): model-training mode, then the runs table on the view
+        # MLflow's page with our script (issues 36.5, 48.5): model-training mode, the runs table on the view
         with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
             page = response.read().decode()
         assert "mlflow.workflowType_v1" in page and link.split("/", 3)[3].lstrip("/") in page.replace("\\/", "/")
@@ -83,7 +83,7 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     cfg = Config(name="t").with_values({"runs.uri": f"sqlite:///{tmp_path / 'm.db'}"})
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=3)
     assert argv[argv.index("--workers") + 1] == "3" and argv[1] == "ui"
-    assert argv[argv.index("--app-name") + 1] == "bronchopose" and ui.app_registered()  # the front page's app
+    assert argv[argv.index("--app-name") + 1] == "bronchopose" and ui.app_registered()  # our app
     assert "--app-name" not in ui.ui_command(cfg, "127.0.0.1", 5000, workers=3, app=False)  # an older install
     monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)
     assert ui.server_env()[ui.JOB_EXECUTION_ENV] == "false"  # no GenAI task consumers for a training experiment

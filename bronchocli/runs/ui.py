@@ -63,7 +63,7 @@ def default_workers(cores: int | None = None) -> int:
 
 
 def app_registered() -> bool:
-    """Whether MLflow finds the front page's app (the ``mlflow.app`` entry point ``bronchopose``, pyproject.toml):
+    """Whether MLflow finds our app, ``uiapp`` (the ``mlflow.app`` entry point ``bronchopose``, pyproject.toml):
     an install of bronchocli older than it has none."""
     return any(ep.name == APP_NAME for ep in importlib.metadata.entry_points(group="mlflow.app"))
 

@@ -93,7 +93,8 @@ def page_script(landing: str | None, experiment_id: str | None) -> str:
         f"var runLayout = new RegExp({json.dumps(RUN_LAYOUT_KEY.pattern)});"
         "try {"
         " var store = window.localStorage, getItem = Storage.prototype.getItem;"
-        " Object.keys(seeds).forEach(function (k) { if (getItem.call(store, k) === null) store.setItem(k, seeds[k]); });"
+        " Object.keys(seeds).forEach(function (k) {"
+        "  if (getItem.call(store, k) === null) store.setItem(k, seeds[k]); });"
         # MLflow's run page reads its saved layout once, when the page of a run opens: where it finds none, it
         # finds ours (stored, so it is the run's saved layout from then on, which MLflow and the user update)
         " Storage.prototype.getItem = function (key) {"
