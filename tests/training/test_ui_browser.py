@@ -100,7 +100,7 @@ def ui(sweep):
                 link = line.split(": ", 1)[1].strip()
                 break
         assert link and link.startswith(base), link
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + 900  # a busy 2-core machine starts MLflow's server in minutes
         while True:
             try:
                 with urllib.request.urlopen(f"{base}/health", timeout=2) as response:
