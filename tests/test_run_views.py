@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from bronchocli.config import Config
@@ -22,6 +24,7 @@ from bronchocli.runs.views import (
     headline,
     headline_view,
     ordered_metrics,
+    rounded,
     run_params,
     saved_view,
     runs_table_url,
@@ -127,31 +130,59 @@ def test_headline_view_sorts_by_the_headline_and_shows_it_as_columns():
     assert "tags.run_kind != 'sweep'" in view["searchFilter"]  # parents (nothing trained) are not in the table
 
 
-def test_headline_view_columns_are_comparable_across_rows_and_grouped_by_architecture():
-    """No loss column (CE, DE and MSE losses have different scales and rank runs unlike the headline); rows
-    grouped by architecture with the mean over each group's runs (MLflow's Group by)."""
+def test_headline_view_columns_are_comparable_across_rows_one_row_per_run():
+    """No loss column (CE, DE and MSE losses have different scales and rank runs unlike the headline); one row per
+    run, not grouped (issue 48.5: MLflow shows a group's mean with every digit and charts groups, not runs)."""
     view = headline_view()
     assert not any("loss" in c for c in view["selectedColumns"]), view["selectedColumns"]
     assert all(m.startswith(("ratio.", "skill.")) for m in VIEW_METRICS)
-    assert view["groupBy"] == {"aggregateFunction": "average",
-                               "groupByKeys": [{"mode": "param", "groupByData": "arch"}]}
+    assert view["groupBy"] is None and view["useGroupedValuesInCharts"] is False
+
+
+def test_the_headline_figures_are_logged_to_4_significant_digits_and_the_errors_whole():
+    """Issue 48.5: MLflow's runs table shows a metric as logged (no display precision in 3.17)."""
+    metrics = {"pair.pos_l2.mean": 1.23456789, "train_mean.pair.pos_l2.mean": 1.5, "zero_motion.pair.pos_l2.mean": 7.0,
+               "pair.rot_l2.mean": 0.0123456, "train_mean.pair.rot_l2.mean": 0.03}
+    first, _ = ordered_metrics(metrics)
+    assert first["pair.pos_l2.mean"] == 1.23456789  # the error: every digit
+    assert first[README_RATIO] == 0.823 and first["ratio.zero_motion.pair.pos_l2"] == 0.1764
+    assert first["skill.pair.rot_l2"] == 0.5885  # 1 - 0.0123456 / 0.03 = 0.58848
+    assert all(len(repr(first[k]).lstrip("0.").replace(".", "")) <= 4 for k in first if k.startswith(("ratio.",
+                                                                                                      "skill.")))
+    assert headline(metrics)[README_RATIO] == pytest.approx(1.23456789 / 1.5, rel=1e-12)  # computed whole
+    assert rounded(-0.0012346) == -0.001235 and rounded(12345.6) == 12350.0 and math.isnan(rounded(math.nan))
 
 
 def test_headline_view_charts_put_the_training_and_validation_curves_first_without_renaming_a_metric():
     """The view's Chart sections: the curves, then the headline (MLflow appends any other section after them:
     isAccordionReordered); the metric names stay what every reader and old store know (no "/" prefix invented
-    for MLflow's grouping)."""
+    for MLflow's grouping). The headline figures are scatter plots, a point per run (a bar's axis starts at 0)."""
     view = headline_view()
     curves, head = view["compareRunSections"]
     assert (curves["name"], head["name"]) == (CURVES_SECTION, HEADLINE_SECTION) and view["isAccordionReordered"]
     cards = view["compareRunCharts"]
-    assert [c["metricKey"] for c in cards] == [*CURVE_METRICS, *VIEW_METRICS]
     assert list(CURVE_METRICS) == ["train_loss", "val_loss", "val.ratio.pos_l2", "val.mode_gap"]
     lines = [c for c in cards if c["metricSectionId"] == curves["uuid"]]
-    assert [c["metricKey"] for c in lines] == list(CURVE_METRICS)
+    assert [c["metricKey"] for c in lines] == list(CURVE_METRICS) and cards[:len(lines)] == lines
     assert all(c["type"] == "LINE" and c["xAxisKey"] == "step" and not c["deleted"] for c in lines)
-    assert all(c["type"] == "BAR" and c["metricSectionId"] == head["uuid"] for c in cards[len(lines):])
+    assert [c["scaleType"] for c in lines] == ["log", "log", "linear", "linear"]  # losses of different scales
+    scatters = cards[len(lines):]
+    assert scatters and all(c["type"] == "SCATTER" and c["metricSectionId"] == head["uuid"] for c in scatters)
+    assert {c[a]["key"] for c in scatters for a in ("xaxis", "yaxis")} == set(VIEW_METRICS)  # every column drawn
     assert len({c["uuid"] for c in cards}) == len(cards) and not any("/" in m for m in CURVE_METRICS)
+
+
+def test_a_run_pages_chart_layout_opens_on_the_curves():
+    """Issue 48.5: the layout `bronchopose ui` stores for a run's "Model metrics" (MLflow's chartUIState of its run
+    page): the curves' section only, in order, and MLflow's own defaults for the rest."""
+    from bronchocli.runs.views import run_page_layout
+
+    layout = run_page_layout()
+    (section,) = layout["compareRunSections"]
+    assert section["name"] == CURVES_SECTION and layout["isAccordionReordered"] is True
+    assert [(c["type"], c["metricKey"], c["metricSectionId"]) for c in layout["compareRunCharts"]] == \
+        [("LINE", m, section["uuid"]) for m in CURVE_METRICS]
+    assert layout["globalLineChartConfig"]["xAxisKey"] == "step" and layout["autoRefreshEnabled"] is True
 
 
 def test_the_sweep_parent_has_no_csv_import_params_unless_the_dataset_is_one():

@@ -77,7 +77,7 @@ def test_ui_serves_the_store(default_ui):
     saved = json.loads(tags["mlflow.sharedViewState.bronchopose-headline"])  # MLflow's saved-view envelope
     assert saved["name"] and isinstance(saved["createdAt"], int)  # listed by name in the Views menu
     assert json.loads(saved["state"])["orderByAsc"] is True  # the view
-    # the bare root is the front page (issue 36.5): model-training mode, then the runs table on the view
+    # MLflow's page with our script (issues 36.5, 48.5): model-training mode, the runs table on the view
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
         page = response.read().decode()
     assert "mlflow.workflowType_v1" in page and link.split("/", 3)[3].lstrip("/") in page.replace("\\/", "/")
@@ -101,7 +101,7 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     cfg = Config(name="t").with_values({"runs.uri": f"sqlite:///{tmp_path / 'm.db'}"})
     argv = ui.ui_command(cfg, "127.0.0.1", 5000, workers=3)
     assert argv[argv.index("--workers") + 1] == "3" and argv[1] == "ui"
-    assert argv[argv.index("--app-name") + 1] == "bronchopose" and ui.app_registered()  # the front page's app
+    assert argv[argv.index("--app-name") + 1] == "bronchopose" and ui.app_registered()  # our app
     assert "--app-name" not in ui.ui_command(cfg, "127.0.0.1", 5000, workers=3, app=False)  # an older install
     monkeypatch.delenv(ui.JOB_EXECUTION_ENV, raising=False)
     assert ui.server_env()[ui.JOB_EXECUTION_ENV] == "false"  # no GenAI task consumers for a training experiment
@@ -119,34 +119,117 @@ def test_the_store_uri_goes_to_the_server_through_its_environment_never_its_argv
     assert ui.server_env({}, store_uri=cfg.paths.mlflow_uri)[ui.STORE_ENV] == uri  # what `mlflow ui` reads
 
 
-def test_the_front_page_sets_the_model_training_mode_once_and_keeps_a_link_into_the_ui():
-    """Issue 36.5: the bare root's page stores MLflow's Model training choice only where the browser has none, and
-    forwards to MLflow's UI at the address's fragment, or at the landing when there is none."""
+def test_mlflows_page_gets_our_script_first_whatever_its_query_and_the_rest_is_mlflows():
+    """Issues 36.5, 48.5: every load of MLflow's page (``/``, ``/?ui=bronchopose``, any address copied from the bar)
+    runs our script before MLflow's; it stores MLflow's settings only where the browser has none, and lands an
+    address without a fragment on the runs table. Other requests are MLflow's, untouched."""
     import asyncio
 
     from bronchocli.runs import uiapp
 
-    page = uiapp.front_page("#/experiments/7/runs?workflowType=machine_learning&viewStateShareKey=k").decode()
-    assert 'getItem(key) === null' in page and '"mlflow.workflowType_v1"' in page and '"machine_learning"' in page
-    assert 'window.location.hash' in page and '"/?ui=bronchopose"' in page and "#/experiments/7/runs?" in page
-    script = uiapp.front_page("</script><b>x").decode().split("<script>", 1)[1].split("</script>", 1)[0]
-    assert "<b>x" in script  # a landing cannot end the script early
-    sent: list[dict] = []
+    mlflow_page = b'<!doctype html><html lang="en"><head><meta charset="utf-8"/><script src="main.js"></script></head>'
+    asked: list[dict] = []
 
-    async def send(message):
-        sent.append(message)
+    async def fake_mlflow(scope, receive, send):  # MLflow's app: its page at /, JSON elsewhere
+        asked.append(scope)
+        html = scope["path"] == "/"
+        body = mlflow_page if html else b'{"runs": []}'
+        await send({"type": "http.response.start", "status": 200, "headers": [
+            (b"content-type", b"text/html; charset=utf-8" if html else b"application/json"),
+            (b"content-length", str(len(body)).encode()), (b"etag", b"x")]})
+        await send({"type": "http.response.body", "body": body[:20], "more_body": True})
+        await send({"type": "http.response.body", "body": body[20:]})
 
-    async def call(path: str, query: bytes) -> None:
-        scope = {"type": "http", "method": "GET", "path": path, "query_string": query}
+    async def call(method: str, path: str, query: bytes) -> list[dict]:
+        sent: list[dict] = []
+
+        async def send(message):
+            sent.append(message)
+
+        scope = {"type": "http", "method": method, "path": path, "query_string": query,
+                 "headers": [(b"accept-encoding", b"gzip"), (b"if-none-match", b"x"), (b"host", b"h")]}
         await uiapp.app(scope, None, send)
+        return sent
 
-    os.environ[uiapp.LANDING_ENV] = "#/experiments/7/runs"
+    previous = uiapp._mlflow_app
+    uiapp._mlflow_app = fake_mlflow
+    os.environ[uiapp.LANDING_ENV] = "#/experiments/7/runs?viewStateShareKey=k"
+    os.environ[uiapp.EXPERIMENT_ENV] = "7"
     try:
-        asyncio.run(call("/", b""))
+        for query in (b"", b"ui=bronchopose", b"o=1"):
+            start, *bodies = asyncio.run(call("GET", "/", query))
+            page = b"".join(m.get("body", b"") for m in bodies).decode()
+            assert start["status"] == 200 and dict(start["headers"])[b"content-length"] == str(len(page)).encode()
+            assert (b"cache-control", b"no-store") in start["headers"] and b"etag" not in dict(start["headers"])
+            head = page.split("<head>", 1)[1]
+            assert head.startswith("<script>") and head.index("main.js") > head.index("mlflow.workflowType_v1")
+            assert "#/experiments/7/runs?viewStateShareKey=k" in page and "replaceState" in page
+            assert 'MLflowLocalStorage-1.1-ExperimentPage-[\\"7\\"]-ReactComponentState' in page
+        assert {k for k, _ in asked[0]["headers"]} == {b"host"}  # the page asked for whole and plain
+        start, body = asyncio.run(call("HEAD", "/", b""))
+        assert body["body"] == b"" and int(dict(start["headers"])[b"content-length"]) > len(mlflow_page)
+        start, *bodies = asyncio.run(call("GET", "/ajax-api/2.0/mlflow/runs/search", b""))
+        assert b"".join(m.get("body", b"") for m in bodies) == b'{"runs": []}'  # MLflow's, as it answered
+        assert (b"etag", b"x") in start["headers"]
     finally:
-        del os.environ[uiapp.LANDING_ENV]
-    assert sent[0]["status"] == 200 and b"#/experiments/7/runs" in sent[1]["body"]
-    assert (b"cache-control", b"no-store") in sent[0]["headers"]
+        uiapp._mlflow_app = previous
+        del os.environ[uiapp.LANDING_ENV], os.environ[uiapp.EXPERIMENT_ENV]
+    script = uiapp.page_script("</script><b>x", None)
+    assert script.count("</script>") == 1 and "<b>x" in script  # a landing cannot end the script early
+    assert "ExperimentPage" not in script  # no experiment: no table state stored
+    assert uiapp.with_script(b"<p>no head</p>", script) == b"<p>no head</p>"
+
+
+def test_the_page_script_stores_mlflows_settings_only_where_the_browser_has_none():
+    """The script run in a JavaScript engine when one is installed (node): a fresh browser gets the mode, the
+    experiment's headline view, the Assistant closed and a run's curves first; a browser with its own values keeps
+    them; other keys read as they are."""
+    import shutil
+
+    from bronchocli.runs import uiapp
+    from bronchocli.runs.views import CURVE_METRICS, headline_view
+
+    node = shutil.which("node") or shutil.which("nodejs")
+    if node is None:
+        pytest.skip("no JavaScript engine (node); the browser tests run the script in Chromium")
+    script = uiapp.page_script("#/experiments/7/runs", "7").removeprefix("<script>").removesuffix("</script>")
+    harness = """
+    function Storage() { this.data = {}; }
+    Storage.prototype.getItem = function (k) { return k in this.data ? this.data[k] : null; };
+    Storage.prototype.setItem = function (k, v) { this.data[k] = String(v); };
+    var store = new Storage(), replaced = [];
+    store.data = JSON.parse(process.argv[1]);
+    global.Storage = Storage;
+    global.window = {localStorage: store, location: {hash: process.argv[2], pathname: "/", search: "?ui=b"},
+                     history: {replaceState: function (a, b, url) { replaced.push(url); }}};
+    SCRIPT
+    var run = "MLflowLocalStorage-1.1-RunPage-0123abcd-model-chartUIState";
+    var other = "MLflowLocalStorage-1.1-RunPage-0123abcd-system-chartUIState";
+    console.log(JSON.stringify({first: store.getItem(run), other: store.getItem(other), data: store.data,
+                                replaced: replaced}));
+    """.replace("SCRIPT", script)
+    run = "MLflowLocalStorage-1.1-RunPage-0123abcd-model-chartUIState"
+
+    def page(stored: dict, hash_: str) -> dict:
+        done = subprocess.run([node, "-e", harness, json.dumps(stored), hash_], capture_output=True, text=True,
+                              timeout=60)
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout)
+
+    fresh = page({}, "")
+    assert fresh["replaced"] == ["/?ui=b#/experiments/7/runs"]  # no fragment: the landing
+    assert fresh["data"]["mlflow.workflowType_v1"] == '"machine_learning"'
+    assert fresh["data"]["mlflow.assistant.panelOpen_v1"] == "false"
+    assert fresh["data"]["mlflow.assistant.fab.autoOpenedOnFirstLoad_v1"] == "true"  # MLflow opens it once else
+    assert json.loads(fresh["data"][uiapp.experiment_state_key("7")]) == headline_view()
+    layout = json.loads(fresh["first"])
+    assert [c["metricKey"] for c in layout["compareRunCharts"]] == list(CURVE_METRICS)
+    assert fresh["data"][run] == fresh["first"] and fresh["other"] is None  # stored; the system tab untouched
+    mine = {"mlflow.workflowType_v1": '"genai"', "mlflow.assistant.panelOpen_v1": "true",
+            "mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "false",
+            uiapp.experiment_state_key("7"): "{}", run: '{"mine": 1}'}
+    kept = page(mine, "#/experiments")
+    assert kept["replaced"] == [] and kept["data"] == mine and kept["first"] == '{"mine": 1}'
 
 
 # -- issue 37.6: loopback unless asked, with a warning naming the risk ---------------------------------------------

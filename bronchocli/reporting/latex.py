@@ -1,7 +1,9 @@
 """LaTeX rendering of a ``layout.Table``: a standalone document that compiles with pdflatex.
 
 The document needs only packages of Debian's texlive-latex-base and
-texlive-latex-recommended (booktabs, xcolor, geometry). The ``table``
+texlive-latex-recommended (booktabs, xcolor, geometry), on a landscape A4 page
+(the widest table, Table 9 with its intervals, is ~27 cm: wider than a portrait
+page's text, pdflatex reported it overfull). The ``table``
 environment between the ``% --- table`` markers can be pasted into a paper that
 loads booktabs and threeparttable: the caption heads the table, the footnotes
 of the marks it uses are its ``tablenotes`` (where threeparttable is not
@@ -31,7 +33,7 @@ _UNICODE = {
 
 PREAMBLE = r"""\documentclass{article}
 \usepackage[utf8]{inputenc}
-\usepackage[margin=1.5cm]{geometry}
+\usepackage[a4paper,landscape,margin=1cm]{geometry}
 \usepackage{booktabs}
 \usepackage{xcolor}
 \IfFileExists{threeparttable.sty}{\usepackage{threeparttable}}{%

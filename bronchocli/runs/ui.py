@@ -5,23 +5,27 @@ It listens on 127.0.0.1 unless asked with ``--expose`` (``check_host``): MLflow'
 MLflow 3 opens an experiment on its GenAI overview; the link printed here is the
 experiment's runs table in the model-training view (``runs_table_url``).
 Experiments are created tagged ``mlflow.experimentKind=custom_model_development``,
-but MLflow 3.17's UI does not read that tag for its landing: the mode comes from
-the URL's ``workflowType`` or the browser's own ``localStorage``
-(``mlflow.workflowType_v1``, default GenAI; the sidebar's GenAI / Model training
-switch sets it). So the server is MLflow's app behind a front page at the bare
-root (``uiapp``, loaded as MLflow's ``mlflow.app`` plugin ``bronchopose``: ``mlflow
-ui --app-name bronchopose``, nothing in MLflow patched): a browser that opens
-the UI's address lands on the runs table with the headline view, and is in the
-model-training mode unless its user chose otherwise, so the UI's own navigation
-(Experiments, then the experiment) opens the runs table too (issue 36.5). Where
-the plugin is not registered (bronchocli installed before it existed) the
-server is plain `mlflow ui` and a warning says to reinstall.
+but MLflow 3.17's UI does not read that tag, nor anything else of the server, for
+what it shows first: the mode, an experiment's table state, a run's chart layout
+and its Assistant panel are the browser's ``localStorage``. So the server is
+MLflow's app with a script of ours first in its page (``uiapp``, loaded as
+MLflow's ``mlflow.app`` plugin ``bronchopose``: ``mlflow ui --app-name
+bronchopose``, nothing in MLflow patched) that stores, where the browser has
+none, the model-training mode, the headline view as the experiment's table
+state, the Assistant closed and, for a run's page, its curves first: whatever
+address a fresh browser opens, it and MLflow's own navigation (Experiments, then
+the experiment) land on the headline view, and a run's "Model metrics" open on
+its training and validation curves (issues 36.5, 48.5). The UI's bare address
+lands on the runs table. Where the plugin is not registered (bronchocli
+installed before it existed) the server is plain `mlflow ui` and a warning says
+to reinstall.
 The link names the saved view
 ``views.headline_view`` (stored as an experiment tag here, before the server
 starts, in MLflow's saved-view envelope, so the runs table's Views menu lists it
 by name): the trained runs sorted by the headline, best first, with the headline
-figures as columns, grouped by architecture, and a Chart view that opens on the
-training and validation curves (``views.chart_sections``). The server is sized for the machine:
+figures as columns (4 significant digits), and a Chart view that opens on the
+training and validation curves, then the headline figures a point per run
+(``views.chart_sections``). The server is sized for the machine:
 ``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
 (``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
 judges and trace jobs that a training experiment never uses).
@@ -46,7 +50,7 @@ from ..config import Config
 from ..errors import BronchoError
 from ..runs.client import check_reachable, client_for, experiment_id, mark_training_experiment
 from ..runs.views import SHARED_VIEW_TAG, VIEW_KEY, headline_view, runs_table_fragment, runs_table_url, saved_view
-from .uiapp import APP_NAME, LANDING_ENV
+from .uiapp import APP_NAME, EXPERIMENT_ENV, LANDING_ENV
 
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
 STORE_ENV = "MLFLOW_BACKEND_STORE_URI"  # `mlflow ui --backend-store-uri` read from the environment
@@ -59,7 +63,7 @@ def default_workers(cores: int | None = None) -> int:
 
 
 def app_registered() -> bool:
-    """Whether MLflow finds the front page's app (the ``mlflow.app`` entry point ``bronchopose``, pyproject.toml):
+    """Whether MLflow finds our app, ``uiapp`` (the ``mlflow.app`` entry point ``bronchopose``, pyproject.toml):
     an install of bronchocli older than it has none."""
     return any(ep.name == APP_NAME for ep in importlib.metadata.entry_points(group="mlflow.app"))
 
@@ -124,16 +128,19 @@ def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, ap
     return argv
 
 
-def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None, landing: str | None = None
-               ) -> dict[str, str]:
+def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None, landing: str | None = None,
+               experiment: str | None = None) -> dict[str, str]:
     """The server's environment: the store's URI (``store_uri``: never on the command line), the GenAI job
-    runner off unless the user asked for it, the front page's landing (``landing``: a UI route, ``uiapp``)."""
+    runner off unless the user asked for it, the page's landing (``landing``: a UI route) and the experiment whose
+    table opens on the headline view (``experiment``, ``uiapp``)."""
     env = dict(os.environ if environ is None else environ)
     env.setdefault(JOB_EXECUTION_ENV, "false")
     if store_uri is not None:
         env[STORE_ENV] = store_uri
     if landing is not None:
         env[LANDING_ENV] = landing
+    if experiment is not None:
+        env[EXPERIMENT_ENV] = experiment
     return env
 
 
@@ -207,4 +214,5 @@ def serve(cfg: Config, host: str, port: int, workers: int | None, console: Conso
                   f"runs of experiment {cfg.experiment_name}: {runs_table_url(base, exp_id)}",
                   highlight=False, soft_wrap=True)
     sys.stdout.flush()
-    os.execve(argv[0], argv, server_env(store_uri=cfg.paths.mlflow_uri, landing=runs_table_fragment(exp_id)))
+    os.execve(argv[0], argv, server_env(store_uri=cfg.paths.mlflow_uri, landing=runs_table_fragment(exp_id),
+                                           experiment=exp_id))

@@ -39,10 +39,13 @@ the experiment tag ``mlflow.sharedViewState.<key>`` named by the URL's
 ``columnWidths``, ...), stored in the saved-view envelope its "Views > Save as
 new view" writes (``saved_view``), so its Views menu lists it by name. The view shows
 the runs that trained (no sweep/study/selection parents, so nothing is nested
-and collapsed), sorted by the headline, best first, with the headline figures
-as columns, grouped by architecture; its "Chart" view opens with the training
-and validation curves as the first section, the headline figures the second
-(``chart_sections``). Run names (``records.run_name``) are the cell in a
+and collapsed), one row per run sorted by the headline, best first, with the
+headline figures as columns (logged to 4 significant digits: MLflow shows a
+metric whole); its "Chart" view opens with the training and validation curves
+as the first section, the headline figures a point per run the second
+(``chart_sections``). ``bronchopose ui`` also stores the view as the
+experiment's table state in a browser that has none, and a run page's chart
+layout (``run_page_layout``: ``uiapp``). Run names (``records.run_name``) are the cell in a
 compact form whose first words tell cells apart where the table cuts names off.
 
 Parent runs are in ``parents.py``.
@@ -75,19 +78,24 @@ HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # (CE, DE and MSE losses rank runs differently from the headline).
 VIEW_METRICS = (README_RATIO, runkeys.ratio("pos_l2", ref="zero_motion"), runkeys.skill("pos_l2"),
                 runkeys.skill("rot_l2"))
-# The view's charts (the runs table's "Chart" view). MLflow 3.17 groups a metric's chart by its name's prefix before
-# "/" (ours have none: one "Model metrics" section of every metric, alphabetical, the curves among ~160 single-value
-# bars). A shared view carries its chart sections and cards (compareRunSections/compareRunCharts), so the view opens
-# on two sections of its own without renaming a metric: the training and validation curves, then the headline
-# figures; isAccordionReordered keeps that order when MLflow appends sections of the other metrics (it adds them when
-# its runs data changes, not when a view is applied). A run's own page keeps its charts in the browser's localStorage
-# only (nothing on the server presets them): there the curves stay alphabetical among the metrics.
+# The charts. MLflow 3.17 makes one chart per metric, sorted by name, in one "Model metrics" section (a metric
+# named "prefix/name" gets a section "prefix"; ours have none): the curves among ~160 one-value bars. A chart
+# layout is what MLflow saves of them: the runs table's Chart view keeps it in the view (compareRunSections and
+# compareRunCharts of the experiment's saved state), a run's page in the browser's localStorage only (nothing on
+# the server presets it: `bronchopose ui`'s page stores ``run_page_layout`` where a run has none, ``uiapp``).
+# Each opens on the training and validation curves, then what MLflow appends (isAccordionReordered keeps the
+# order). The losses are drawn on a log axis: runs of different rotation losses (CE, DE, MSE) differ in scale.
 CURVE_METRICS = (runkeys.TRAIN_LOSS, runkeys.VAL_LOSS, runkeys.VAL_RATIO, runkeys.VAL_MODE_GAP)
+LOG_SCALE = (runkeys.TRAIN_LOSS, runkeys.VAL_LOSS)
 CURVES_SECTION = "Training and validation curves"
 HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
-GROUP_BY = "arch"  # the view's rows grouped by this param, each group showing the mean over its runs (seeds)
+# The view's headline charts: scatter plots, a point per run (a bar chart's axis starts at 0 and hides differences
+# of ratios near 1): position against rotation skill, and the position ratio to either reference
+HEADLINE_SCATTERS = ((runkeys.skill("pos_l2"), runkeys.skill("rot_l2")),
+                     (README_RATIO, runkeys.ratio("pos_l2", ref="zero_motion")))
+HEADLINE_DIGITS = 4  # significant digits of the logged ratios and skills (MLflow shows a metric's value whole)
 VIEW_KEY = "bronchopose-headline"
-VIEW_NAME = "Headline: best first, by architecture"  # its name in the runs table's Views menu
+VIEW_NAME = "Headline: best first"  # its name in the runs table's Views menu
 SHARED_VIEW_TAG = "mlflow.sharedViewState."  # MLflow's prefix; the URL's viewStateShareKey names the rest
 PARENT_KINDS = ("sweep", "study", "selection")  # run_kind tags of runs that did not train
 
@@ -168,9 +176,15 @@ def headline(metrics: Mapping[str, float]) -> dict[str, float]:
     return {**first, **out}
 
 
+def rounded(value: float, digits: int = HEADLINE_DIGITS) -> float:
+    """``value`` to ``digits`` significant digits (a float whose shortest form has no more)."""
+    return float(f"{value:.{digits}g}") if math.isfinite(value) else value
+
+
 def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
-    """The test metrics in logging batches: headline ratios/skills and the headline errors, then the rest."""
-    head = headline(metrics)
+    """The test metrics in logging batches: headline ratios/skills (rounded to ``HEADLINE_DIGITS``: the runs table
+    shows them as logged; the errors they come from keep every digit) and the headline errors, then the rest."""
+    head = {k: rounded(v) for k, v in headline(metrics).items()}
     errors = [runkeys.metric(m, ev) for ev in HEADLINE_EVALS for m in HEADLINE_METRICS]
     head |= {k: metrics[k] for k in errors if k in metrics}
     rest = {k: v for k, v in metrics.items() if k not in head}
@@ -206,31 +220,51 @@ def _column(kind: str, name: str) -> str:
     return f"{kind}.`{name}`"  # MLflow's canonical column/sort key (makeCanonicalSortKey)
 
 
-def _card(kind: str, metric: str, section: str) -> dict:
-    """A chart of one metric as MLflow's RunsCharts{Line,Bar}CardConfig serialises it (LINE: per step)."""
-    card = {"uuid": f"bronchopose-{kind.lower()}-{metric}", "type": kind, "runsCountToCompare": 10,
-            "metricSectionId": section, "deleted": False, "isGenerated": False, "displayName": metric,
-            "metricKey": metric}
-    if kind == "LINE":
-        card |= {"lineSmoothness": 0, "xAxisScaleType": "linear", "scaleType": "linear", "range": {},
-                 "xAxisKey": "step", "selectedXAxisMetricKey": "", "yAxisKey": "metric", "yAxisExpressions": [],
-                 "ignoreOutliers": False, "useGlobalXaxisKey": True, "useGlobalLineSmoothing": True}
-    return card
+def _line(metric: str, section: str) -> dict:
+    """A chart of one metric per step, as MLflow's RunsChartsLineCardConfig serialises it."""
+    return {"uuid": f"bronchopose-line-{metric}", "type": "LINE", "runsCountToCompare": 10, "metricSectionId": section,
+            "deleted": False, "isGenerated": False, "displayName": metric, "metricKey": metric, "lineSmoothness": 0,
+            "xAxisScaleType": "linear", "scaleType": "log" if metric in LOG_SCALE else "linear", "range": {},
+            "xAxisKey": "step", "selectedXAxisMetricKey": "", "yAxisKey": "metric", "yAxisExpressions": [],
+            "ignoreOutliers": False, "useGlobalXaxisKey": True, "useGlobalLineSmoothing": True}
+
+
+def _scatter(x: str, y: str, section: str) -> dict:
+    """A point per run, ``x`` against ``y`` (MLflow's RunsChartsScatterCardConfig; axes fit the points)."""
+    return {"uuid": f"bronchopose-scatter-{x}-{y}", "type": "SCATTER", "runsCountToCompare": 100,
+            "metricSectionId": section, "deleted": False, "isGenerated": False,
+            "xaxis": {"key": x, "type": "METRIC"}, "yaxis": {"key": y, "type": "METRIC"}}
+
+
+def _sections(sections: dict[str, str]) -> list[dict]:
+    return [{"uuid": uuid, "name": name, "display": True, "isReordered": True, "deleted": False, "isGenerated": False}
+            for uuid, name in sections.items()]
 
 
 def chart_sections() -> dict:
-    """The view's charts: the training and validation curves (``CURVE_METRICS``) first, then the headline."""
-    sections = {"bronchopose-curves": CURVES_SECTION, "bronchopose-headline": HEADLINE_SECTION}
+    """The view's charts: the training and validation curves (``CURVE_METRICS``) first, then the headline figures
+    (``HEADLINE_SCATTERS``)."""
     return {"isAccordionReordered": True,  # MLflow keeps these sections' order, adding any other after them
-            "compareRunSections": [{"uuid": uuid, "name": name, "display": True, "isReordered": True,
-                                    "deleted": False, "isGenerated": False} for uuid, name in sections.items()],
-            "compareRunCharts": [*(_card("LINE", m, "bronchopose-curves") for m in CURVE_METRICS),
-                                 *(_card("BAR", m, "bronchopose-headline") for m in VIEW_METRICS)]}
+            "compareRunSections": _sections({"bronchopose-curves": CURVES_SECTION,
+                                             "bronchopose-headline": HEADLINE_SECTION}),
+            "compareRunCharts": [*(_line(m, "bronchopose-curves") for m in CURVE_METRICS),
+                                 *(_scatter(x, y, "bronchopose-headline") for x, y in HEADLINE_SCATTERS)]}
+
+
+def run_page_layout() -> dict:
+    """A run page's "Model metrics" charts as MLflow 3.17 saves them for a run (RunPage's chartUIState, MLflow's
+    defaults besides the charts): the training and validation curves first; MLflow adds a chart of every other
+    metric after them (isAccordionReordered), in its own sections."""
+    return {"isAccordionReordered": True, "autoRefreshEnabled": True,
+            "globalLineChartConfig": {"xAxisKey": "step", "lineSmoothness": 0, "selectedXAxisMetricKey": ""},
+            "compareRunSections": _sections({"bronchopose-curves": CURVES_SECTION}),
+            "compareRunCharts": [_line(m, "bronchopose-curves") for m in CURVE_METRICS]}
 
 
 def headline_view() -> dict:
-    """The saved view the link opens: runs that trained, best headline first, headline figures as columns, grouped
-    by architecture (the group's row: the mean over its runs)."""
+    """The saved view the link opens: runs that trained, best headline first, one row per run with the headline
+    figures as columns (rounded: ``HEADLINE_DIGITS``), and the charts of ``chart_sections``. Not grouped: MLflow
+    shows a group's mean with every digit of the sum it computes, and draws groups rather than runs."""
     metrics = [_column("metrics", m) for m in VIEW_METRICS]
     return {
         "searchFilter": " and ".join(f"tags.run_kind != '{k}'" for k in PARENT_KINDS),
@@ -241,10 +275,8 @@ def headline_view() -> dict:
         "columnOrder": [_column("attributes", "Run Name"), *metrics],
         "columnWidths": {_column("attributes", "Run Name"): 210,  # run names whole
                          **{c: 24 + 7 * len(m) for c, m in zip(metrics, VIEW_METRICS)}},  # headers whole
-        # MLflow's "Group by" (RunsGroupByConfig): one row per architecture with the mean over its runs (seeds,
-        # and the other coordinates the filter keeps); groups open, so every run stays one click from its row
-        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "param", "groupByData": GROUP_BY}]},
-        "useGroupedValuesInCharts": True,
+        "groupBy": None,
+        "useGroupedValuesInCharts": False,  # the charts draw runs
         **chart_sections(),  # the Chart view: the training and validation curves first, then the headline
     }
 

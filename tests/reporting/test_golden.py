@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -63,6 +65,25 @@ def test_table_matches_golden_file(built, key, suffix):
         path.write_text(text, encoding="utf-8")
     assert path.is_file(), f"{path} missing: run with BRONCHO_UPDATE_GOLDEN=1 (not in CI) and review it"
     assert text == path.read_text(encoding="utf-8")
+
+
+@pytest.mark.heavy
+@pytest.mark.skipif(shutil.which("pdflatex") is None, reason="no pdflatex (Debian: texlive-latex-base, "
+                    "texlive-latex-recommended)")
+@pytest.mark.parametrize("key", ["table6-sota-pair", "table6-sota-accumulated", "table9-tracking"])
+def test_the_latex_compiles_with_pdflatex_its_notes_in_a_threeparttable_on_the_page(built, key, tmp_path):
+    """Issue 48: the .tex `report` writes is a document pdflatex compiles; its table is a threeparttable (caption,
+    tabular, footnotes of its marks) and fits the page (an overfull box is a table running off it). Table 9 is the
+    widest."""
+    tabs, _, _ = built
+    source = tmp_path / f"{key}.tex"
+    source.write_text(to_latex(tabs[key]), encoding="utf-8")
+    done = subprocess.run(["pdflatex", "-interaction=nonstopmode", "-halt-on-error", source.name], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    log = (tmp_path / f"{key}.log").read_text(encoding="latin-1")
+    assert done.returncode == 0 and (tmp_path / f"{key}.pdf").stat().st_size > 0, log[-3000:]
+    assert "threeparttable.sty" in log and "\\begin{tablenotes}" in source.read_text()
+    assert "Overfull \\hbox" not in log, [line for line in log.splitlines() if "Overfull" in line]
 
 
 def test_every_golden_file_is_checked():

@@ -100,7 +100,7 @@ def ui(sweep):
                 link = line.split(": ", 1)[1].strip()
                 break
         assert link and link.startswith(base), link
-        deadline = time.monotonic() + 300
+        deadline = time.monotonic() + 900  # a busy 2-core machine starts MLflow's server in minutes
         while True:
             try:
                 with urllib.request.urlopen(f"{base}/health", timeout=2) as response:
@@ -185,7 +185,27 @@ def open_parent_run_artifacts(page, base: str, client, experiment: str, run) -> 
 # -- the tests ---------------------------------------------------------------------------------------------------
 
 
+def significant_digits(text: str) -> int:
+    """The significant digits of a number as written ("0.8230" -> 4, "-0.00151" -> 3, "12350" -> 4)."""
+    mantissa = re.split(r"[eE]", text.strip().lstrip("+-"))[0]
+    digits = mantissa.replace(".", "").lstrip("0")
+    return len(digits.rstrip("0") if "." not in mantissa else digits) or 1
+
+
+def _metric_cells(page) -> dict[str, list[str]]:
+    """The headline view's metric columns as the table shows them, row by row (row-index order)."""
+    out: dict[str, list[str]] = {}
+    for metric in VIEW_METRICS:
+        column = f"metrics.`{metric}`"
+        rows = page.locator(".ag-center-cols-container .ag-row").all()
+        cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows}
+        out[metric] = [cells[i].strip() for i in sorted(cells)]
+    return out
+
+
 def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep, page):
+    """One row per run (issue 48.5: not grouped), best first, the headline figures with at most 4 significant
+    digits, as logged."""
     base, link = ui
     _, _, _, runs = sweep
     page.goto(link)
@@ -195,46 +215,43 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     box = header.bounding_box()
     assert box is not None and box["x"] + box["width"] / 2 < page.viewport_size["width"]  # on screen, no scrolling
     assert HEADLINE in header.inner_text()
-    rows = page.locator(".ag-center-cols-container .ag-row")
-    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n", arg=2)
-    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n", arg=3)
-    cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows.all()}
-    # grouped by architecture (issue 36.5): the group's row first, the mean over its runs marked "(average)"
-    group, *members = [cells[i] for i in sorted(cells)]
-    values = [r.data.metrics[HEADLINE] for r in runs]
-    assert group.endswith("(average)") and float(group.split()[0]) == pytest.approx(sum(values) / len(values))
-    shown = [float(v) for v in members]
-    assert shown == pytest.approx(sorted(values), rel=1e-9)  # the cells only: no parent row; best (lowest) first
+    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n",
+                           arg=len(runs))
+    shown = _metric_cells(page)
+    values = sorted(r.data.metrics[HEADLINE] for r in runs)
+    assert [float(v) for v in shown[HEADLINE]] == values  # the cells only: no parent row; best (lowest) first
+    every = [v for column in shown.values() for v in column]
+    assert len(every) == len(VIEW_METRICS) * len(runs) and all(every), shown
+    assert max(significant_digits(v) for v in every) <= 4, shown  # rounded (issue 48.5): MLflow shows them whole
     best = min(runs, key=lambda r: r.data.metrics[HEADLINE])
-    first_name = page.locator('.ag-row[row-index="1"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
+    first_name = page.locator('.ag-row[row-index="0"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
     assert first_name == best.info.run_name and re.fullmatch(r"Baseline MSE\+MSE · pers · s\d · world", first_name)
-    assert rows.first.get_attribute("row-id") == "param.arch.baseline"  # the group: param arch = baseline
     assert not page.locator('.ag-header-cell[col-id*="loss"]').count()  # no loss of mixed scale among the columns
     _docs_screenshot(page, "mlflow-runs-table.png")
 
 
 def _headline_rows(page, runs) -> list[float]:
-    """The headline column's values as the table shows them, the group's row (the mean, "(average)") left out."""
+    """The headline column's values as the table shows them, row by row."""
     column = f"metrics.`{HEADLINE}`"
     page.locator(f'.ag-header-cell[col-id="{column}"]').wait_for(state="visible")
     page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n",
-                           arg=len(runs) + 1)
+                           arg=len(runs))
     rows = page.locator(".ag-center-cols-container .ag-row")
     cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows.all()}
-    return [float(cells[i]) for i in sorted(cells) if not cells[i].endswith("(average)")]
+    return [float(cells[i]) for i in sorted(cells)]
 
 
 def test_a_fresh_browser_at_the_uis_address_lands_on_the_headline_and_mlflows_navigation_stays_there(
         ui, sweep, page):
-    """Issue 36.5, no shared link: a fresh browser profile opens the UI's address and lands on the runs table in
-    the model-training view with the headline, best first; MLflow's own navigation (Experiments, then the
-    experiment) opens the experiment's runs table in the model-training view, not the GenAI overview, and its
-    Views menu lists the headline view by name."""
+    """Issues 36.5, 48.5, no shared link: a fresh browser profile opens the UI's address and lands on the runs
+    table in the model-training view with the headline, best first; MLflow's own navigation (Experiments, then
+    the experiment) opens the experiment's runs table in the model-training view on the headline view, not the
+    GenAI overview nor MLflow's default table, and its Views menu lists the headline view by name."""
     base, _ = ui
     _, _, exp, runs = sweep
     page.goto(f"{base}/")
     values = sorted(r.data.metrics[HEADLINE] for r in runs)
-    assert _headline_rows(page, runs) == pytest.approx(values, rel=1e-9)  # the headline, best first
+    assert _headline_rows(page, runs) == values  # the headline, best first
     assert f"#/experiments/{exp}/runs?" in page.url and "workflowType=machine_learning" in page.url
     assert page.evaluate("() => localStorage.getItem('mlflow.workflowType_v1')") == '"machine_learning"'
     assert page.get_by_test_id("saved-views-trigger").inner_text().strip() == VIEW_NAME
@@ -242,16 +259,56 @@ def test_a_fresh_browser_at_the_uis_address_lands_on_the_headline_and_mlflows_na
     page.get_by_test_id("experiment-list-item-link").filter(has_text="browse").first.click()
     page.wait_for_url(re.compile(rf".*#/experiments/{exp}/runs\?.*"))
     assert "workflowType=machine_learning" in page.url and "/overview" not in page.url
-    page.locator(".ag-center-cols-container .ag-row").first.wait_for(state="visible")  # MLflow's default view:
-    # newest first, the cells nested under their sweep's parent run
+    assert _headline_rows(page, runs) == values  # the headline view: sorted by the headline, its columns
     page.get_by_test_id("saved-views-trigger").click()
     page.get_by_test_id(f"saved-views-item-{VIEW_KEY}").click()  # the headline view, listed by name
-    assert _headline_rows(page, runs) == pytest.approx(values, rel=1e-9)
+    assert _headline_rows(page, runs) == values
 
 
-def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
-    """The link's Chart view (issue 36.5): the training and validation curves are the first section, in their
-    order, then the headline figures; no metric renamed for it."""
+def test_an_address_copied_from_the_bar_lands_on_the_runs_table_in_model_training_mode(ui, sweep, page):
+    """Issue 48.5: a fresh browser opening ``/?ui=bronchopose#/experiments`` (an address of the UI with a query
+    and a fragment) is in the model-training mode, and the experiment it clicks opens on the headline view; the
+    Assistant panel is closed."""
+    base, _ = ui
+    _, _, exp, runs = sweep
+    page.goto(f"{base}/?ui=bronchopose#/experiments")
+    page.get_by_test_id("experiment-list-item-link").filter(has_text="browse").first.click()
+    page.wait_for_url(re.compile(rf".*#/experiments/{exp}/runs\?.*"))
+    assert "workflowType=machine_learning" in page.url and "/overview" not in page.url
+    assert _headline_rows(page, runs) == sorted(r.data.metrics[HEADLINE] for r in runs)
+    assert page.evaluate("() => localStorage.getItem('mlflow.assistant.panelOpen_v1')") == "false"
+    assert page.evaluate("() => localStorage.getItem('mlflow.assistant.fab.autoOpenedOnFirstLoad_v1')") == "true"
+    button = page.get_by_role("button", name="New run").bounding_box()  # the table's right edge: no panel beside it
+    assert button is not None and button["x"] + button["width"] > 0.9 * page.viewport_size["width"], button
+
+
+def test_a_runs_page_opens_its_charts_on_the_training_curve_without_scrolling(ui, sweep, page):
+    """Issue 48.5: from the runs table, a run, then "Model metrics": the first chart is the training loss, drawn
+    (a point per logged step) inside the window, no scrolling or searching."""
+    base, link = ui
+    _, _, exp, runs = sweep
+    page.goto(link)
+    run = runs[0]
+    page.locator('[col-id="attributes.`Run Name`"] a').filter(has_text=run.info.run_name).first.click()
+    page.wait_for_url(re.compile(rf".*#/experiments/{exp}/runs/{run.info.run_id}.*"))
+    page.get_by_role("tab", name="Model metrics").click()
+    card = page.get_by_test_id("experiment-view-compare-runs-card").first
+    card.wait_for(state="visible")
+    assert card.inner_text().strip().splitlines()[0] == CURVE_METRICS[0]
+    page.wait_for_function("() => [...document.querySelectorAll('.js-plotly-plot')].some(p => p.data && "
+                           "p.data.some(t => (t.x || []).length >= 30))")
+    box = card.bounding_box()
+    assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= page.viewport_size["height"]
+    points = card.evaluate("c => [...c.querySelectorAll('.js-plotly-plot')].flatMap(p => (p.data || [])"
+                           ".map(t => (t.x || []).length))")
+    assert max(points) >= STEPS  # the curve, in the first card
+    assert page.get_by_text(CURVES_SECTION, exact=True).first.is_visible()
+    _docs_screenshot(page, "mlflow-training-curve.png")
+
+
+def test_the_views_charts_open_on_the_training_and_validation_curves(ui, sweep, page):
+    """The link's Chart view (issues 36.5, 48.5): the training and validation curves are the first section, in
+    their order, then the headline figures, a point per run; no metric renamed for it."""
     _, link = ui
     page.goto(link)
     page.locator("label", has=page.locator('input[name="runs-view-mode"][value="CHART"]')).first.click()
@@ -262,16 +319,27 @@ def test_the_views_charts_open_on_the_training_and_validation_curves(ui, page):
     cards = page.get_by_test_id("experiment-view-compare-runs-card").all_inner_texts()
     shown = [t.strip().splitlines()[0] for t in cards]
     assert shown[:len(CURVE_METRICS)] == list(CURVE_METRICS), shown  # in their order, before any other chart
-    page.mouse.move(900, 700)  # scroll the charts: MLflow renders a section's cards as they come into view
-    for _ in range(5):
-        page.mouse.wheel(0, 1500)
-        page.wait_for_timeout(200)
-    head = page.get_by_text(HEADLINE_SECTION, exact=True).first
-    head.wait_for(state="attached", timeout=30_000)
+    head = page.get_by_text(HEADLINE_SECTION, exact=True).first  # (scrolled far below, MLflow drops it)
+    head.wait_for(state="attached")
     names = page.evaluate("() => [...document.querySelectorAll('div')].filter(e => e.children.length === 0 && "
                           "/ metrics$|^Training and validation curves$|^Headline /.test(e.textContent))"
                           ".map(e => e.textContent)")
     assert names[:2] == [CURVES_SECTION, HEADLINE_SECTION], names  # the curves first, any other section after
+    head.scroll_into_view_if_needed()  # the headline figures: a point per run, on axes fitted to the points
+    page.wait_for_function("n => [...document.querySelectorAll('.js-plotly-plot')].filter(p => (p.data || [])"
+                           ".some(t => t.mode === 'markers' && (t.x || []).length === n)).length >= 2",
+                           arg=len(sweep[3]))
+    scatters = ("() => [...document.querySelectorAll('.js-plotly-plot')].map(p => [(p.data || [])"
+                ".filter(t => t.mode === 'markers'), p._fullLayout]).filter(([t]) => t.length).map(([t, l]) => "
+                "[t[0].x, t[0].y, l.xaxis.range, l.yaxis.range])")
+    page.wait_for_function(f"() => ({scatters})().every(([xs, ys, xr, yr]) => Math.min(...xs) >= xr[0] && "
+                           "Math.max(...xs) <= xr[1] && Math.min(...ys) >= yr[0] && Math.max(...ys) <= yr[1])")
+    plots = page.evaluate(scatters)  # laid out: each axis spans its points
+    assert len(plots) == 2, plots
+    for xs, ys, x_range, y_range in plots:  # each axis spans about its points: from 0 only where they straddle it
+        for values, (low, high) in ((xs, x_range), (ys, y_range)):
+            assert low <= min(values) <= max(values) <= high, (values, low, high)
+            assert not (min(values) > 0 >= low or max(values) < 0 <= high), (values, low, high)
 
 
 def test_a_runs_training_loss_chart_has_a_point_per_logged_step(ui, sweep, page):
@@ -286,7 +354,6 @@ def test_a_runs_training_loss_chart_has_a_point_per_logged_step(ui, sweep, page)
     points = page.eval_on_selector_all(".js-plotly-plot", "els => els.flatMap(e => (e.data || []).map(t => "
                                                           "(t.x || []).length))")
     assert max(points) >= 30  # what the chart draws
-    _docs_screenshot(page, "mlflow-training-curve.png")
 
 
 def test_a_runs_artifacts_are_listed_as_the_reviewer_sees_them(ui, sweep, page):
