@@ -97,6 +97,18 @@ def cells_table(by_model: dict[str, Any]) -> list[str]:
     return lines
 
 
+def flat(by_model: dict[str, Any]) -> dict[str, dict[str, list]]:
+    """The per-seed figures keyed ``arch-loss`` (a document's span path cannot hold the ``/`` of by_model's keys)."""
+    out: dict[str, dict[str, list]] = {"ratio_pos": {}, "ratio_rot": {}, "ratio_pos_acc": {}, "mode_gap": {}}
+    for key, e in by_model.items():
+        name = "-".join(key.split("/")[:2])
+        for field, src in (("ratio_pos", "ratio_pos_pair"), ("ratio_rot", "ratio_rot_pair"),
+                           ("ratio_pos_acc", "ratio_pos_acc"), ("mode_gap", "mode_gap")):
+            out[field][name] = e[src]
+    out["mode_gap"]["all"] = sorted(x for e in by_model.values() for x in e["mode_gap"])
+    return out
+
+
 def report_tables(folder: Path) -> dict[str, list[str]]:
     """The report's Markdown tables, verbatim (one list of lines per file)."""
     return {f"docs_{p.stem.replace('-', '_')}": p.read_text().rstrip("\n").splitlines()
@@ -111,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reports", type=Path, default=None, help="the report's folder (default PROJECT/reports)")
     ap.add_argument("--command", default=None, help="the command that ran the study (recorded)")
     ap.add_argument("--title", default=None)
+    ap.add_argument("--wall-s", type=float, default=None, help="the study's measured wall time (recorded)")
     args = ap.parse_args(argv)
     cfg = load_config(args.project / "experiments.yaml", args.profile)
     cells = collect(cfg)
@@ -119,8 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     figures = {"experiment": cfg.name, "cells": sorted(cells, key=lambda c: tuple(str(c[k]) for k in COORDS)),
                "by_model": summarise(cells), "n_cells": len(cells),
                "docs_cells": cells_table(summarise(cells)),
+               **flat(summarise(cells)),
                "max_mode_gap": max((c["mode_gap"] for c in cells if c["mode_gap"] is not None), default=None),
                **report_tables(args.reports or args.project / "reports")}
+    if args.wall_s is not None:
+        figures["wall_s"] = args.wall_s
     out = {"title": args.title or f"Study {cfg.name}: every finished cell's test ratios, mode gap and cost",
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
            "command": args.command or f"bronchopose sweep run{' --profile ' + args.profile if args.profile else ''}",
