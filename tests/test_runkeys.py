@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from test_architecture import _docstrings  # the one definition: docstrings are prose, not keys
+
 from bronchocli import runkeys
 from bronchocli.config import Config
 from bronchocli.runs.records import flatten
@@ -43,16 +45,6 @@ def config_paths() -> set[str]:
     """Every dotted config path (``train.lr``, ``eval.ctf_angle``): a ``train.``/``eval.`` literal that is one is a
     setting, not a metric key."""
     return set(flatten(Config(name="x").model_dump(mode="json")))
-
-
-def _docstrings(tree: ast.AST) -> set[int]:
-    out = set()
-    for node in ast.walk(tree):
-        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
-            first = node.body[0]
-            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant):
-                out.add(id(first.value))
-    return out
 
 
 def _texts(tree: ast.AST) -> list[tuple[int, str]]:
