@@ -439,3 +439,16 @@ def worked_example():
         for seed in (0, 1, 2):
             m.add(arch, loss, acc, seed=seed, ratio=0.01 if arch == "conv3d" else 0.5)
     return personalized(m.context(), "pair")
+
+
+def golden_tables(golden):
+    """Every table of the golden sweep and of the in-memory frames runs, by key, and the golden context (what
+    the golden-file and caption tests read)."""
+    from bronchocli.reporting import report, tables
+    from bronchocli.reporting.figures import errors_loader
+
+    ctx = tables.ReportContext(report.collect_index(golden.client, golden.cfg), profiler=PROFILES.get,
+                               errors=errors_loader(golden.client))
+    out = {t.key: t for t in report.build_tables(ctx, list(tables.TABLES), ["accumulated", "pair"])}
+    out |= {t.key: t for t in report.build_tables(frames_runs().context(), ["frames"], ["accumulated", "pair"])}
+    return out, ctx

@@ -6,11 +6,9 @@ from __future__ import annotations
 import re
 
 import pytest
-from report_fakes import PROFILES, frames_runs
+from report_fakes import golden_tables
 
-from bronchocli.reporting import report, tables
 from bronchocli.reporting.captions import footnotes
-from bronchocli.reporting.figures import errors_loader
 from bronchocli.reporting.latex import to_latex
 from bronchocli.reporting.markdown import to_markdown
 
@@ -39,12 +37,7 @@ def test_the_checker_finds_internal_names(text, found):
 
 @pytest.fixture(scope="module")
 def built(golden_store):
-    g = golden_store
-    ctx = tables.ReportContext(report.collect_index(g.client, g.cfg), profiler=PROFILES.get,
-                               errors=errors_loader(g.client))
-    out = {t.key: t for t in report.build_tables(ctx, list(tables.TABLES), ["accumulated", "pair"])}
-    out |= {t.key: t for t in report.build_tables(frames_runs().context(), ["frames"], ["accumulated", "pair"])}
-    return out
+    return golden_tables(golden_store)[0]
 
 
 def _sentences(caption: str) -> int:

@@ -16,10 +16,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from report_fakes import PROFILES, frames_runs, worked_example
+from report_fakes import frames_runs, golden_tables, worked_example
 
-from bronchocli.reporting import report, tables
-from bronchocli.reporting.figures import errors_loader
 from bronchocli.reporting.latex import to_latex
 from bronchocli.reporting.markdown import to_markdown
 from bronchocli.reporting.table_model import Estimate
@@ -35,12 +33,8 @@ def test_golden_files_are_never_rewritten_in_ci():
 
 @pytest.fixture(scope="module")
 def built(golden_store):
-    g = golden_store
-    ctx = tables.ReportContext(report.collect_index(g.client, g.cfg), profiler=PROFILES.get,
-                               errors=errors_loader(g.client))
-    out = {t.key: t for t in report.build_tables(ctx, list(tables.TABLES), ["accumulated", "pair"])}
-    out |= {t.key: t for t in report.build_tables(frames_runs().context(), ["frames"], ["accumulated", "pair"])}
-    return out, {v: f"<{k}>" for k, v in g.ids.items()}, ctx
+    out, ctx = golden_tables(golden_store)
+    return out, {v: f"<{k}>" for k, v in golden_store.ids.items()}, ctx
 
 
 def normalise(text: str, names: dict[str, str]) -> str:
