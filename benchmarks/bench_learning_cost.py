@@ -10,6 +10,9 @@ validation curve by pairs seen, the cost to 0.90 and the ratio to the reference'
 
     python benchmarks/bench_learning_cost.py PROJECT [PROJECT ...] [--reference cost-reference] [--out FILE] [--markdown]
 
+Runs already in the results file that these projects do not hold (an earlier session's, whose folders are gone)
+are kept, each with the machine and date it was collected on; ``--fresh`` drops them.
+
 The CPU line is this machine's: run it on the machine that trained the runs (the JSON says which runs' hosts
 were recorded in their tags too). Nothing here trains anything.
 """
@@ -36,7 +39,10 @@ CORE = f"cost.core_s_to_{COST_TARGET:.2f}"
 # the settings a lever changes (params of a run: only those that differ from the config defaults are logged,
 # so each is read with the reference recipe's value as its default)
 LEVERS = {"train.lr": 1e-3, "train.warmup": 0.05, "train.schedule": "cosine", "train.batch_size": 20,
-          "model.dropout": 0.2, "train.steps": 5000, "image_size": 96, "train.threads": 1}
+          "model.dropout": 0.2, "train.steps": 5000, "image_size": 96, "train.threads": 1, "data.window": 10,
+          "train.precision": "auto"}
+# levers shown in the table's "other" column when a run changed them
+OTHER = {"data.window": "window", "train.precision": "precision", "train.threads": "threads"}
 
 
 def _value(text: str | None, default: Any) -> Any:
@@ -109,8 +115,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference", default="cost-reference", help="experiment of the reference run")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "learning-cost.json")
     ap.add_argument("--markdown", action="store_true", help="also print the runs as a Markdown table")
+    ap.add_argument("--fresh", action="store_true", help="drop the runs of the results file these projects lack")
     args = ap.parse_args(argv)
+    machine, today = cpu_line(), dt.date.today().isoformat()
     rows = collect(args.projects)
+    for r in rows:
+        r["machine"], r["date"] = machine, today
+    commands = ["python benchmarks/bench_learning_cost.py " + " ".join(p.name for p in args.projects)]
+    if not args.fresh and args.out.is_file():
+        old = json.loads(args.out.read_text())
+        have = {r["run_id"] for r in rows}
+        kept = [dict(r, machine=r.get("machine", old["machine"]), date=r.get("date", old["date"]))
+                for r in old["figures"]["runs"] if r["run_id"] not in have]
+        rows += kept
+        if kept:
+            commands = [c for c in old.get("commands", [old["command"]]) if c not in commands] + commands
     ref = next((r for r in rows if r["experiment"] == args.reference and r["core_s_to_target"]), None)
     for r in rows:
         if ref is not None and r["core_s_to_target"] and r["arch"] == ref["arch"]:  # the same model's cost only
@@ -130,8 +149,7 @@ def main(argv: list[str] | None = None) -> int:
             figures["best"]["cheaper_core_s"] = ref["core_s_to_target"] / best["core_s_to_target"]
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
-           "machine": cpu_line(), "date": dt.date.today().isoformat(),
-           "command": "python benchmarks/bench_learning_cost.py " + " ".join(p.name for p in args.projects),
+           "machine": machine, "date": today, "command": commands[-1], "commands": commands,
            "figures": figures}
     figures["docs_table"] = markdown(out).splitlines()  # benchmarks/README.md's block "learning-cost" (docblocks.py)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -150,7 +168,7 @@ def _fmt(v: Any, spec: str = ".3g") -> str:
 
 def markdown(out: dict[str, Any]) -> str:
     lines = ["| run | arch | image | lr | warm-up | schedule | batch | dropout | budget (pairs) | best val ratio "
-             "| pairs to 0.90 | core-s to 0.90 | × cheaper (core-s) | status |", "|" + "---|" * 14]
+             "| other | pairs to 0.90 | core-s to 0.90 | × cheaper (core-s) | status | date |", "|" + "---|" * 16]
     for r in sorted(out["figures"]["runs"], key=lambda r: (r["core_s_to_target"] is None, r["core_s_to_target"] or 0)):
         s = r["settings"]
         budget = s["train.steps"] * s["train.batch_size"]
@@ -158,10 +176,16 @@ def markdown(out: dict[str, Any]) -> str:
         lines.append(f"| {r['experiment']} {r['name'].split('·')[0]} | {r['arch']} "
                      f"| {s['image_size']}² | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
                      f"| {s['train.schedule']} | {s['train.batch_size']} | {_fmt(s['model.dropout'])} | {budget:,} "
-                     f"| {_fmt(r['best_val_ratio'])} | {_fmt(r['pairs_to_target'], ',.0f')} "
+                     f"| {_fmt(r['best_val_ratio'])} | {_other(s)} | {_fmt(r['pairs_to_target'], ',.0f')} "
                      f"| {_fmt(r['core_s_to_target'], '.0f')} | {_fmt(r.get('cheaper_than_reference'), '.2f')} "
-                     f"| {status} |")
+                     f"| {status} | {r.get('date', out['date'])} |")
     return "\n".join(lines)
+
+
+def _other(settings: dict[str, Any]) -> str:
+    """The levers a run changed beyond the table's own columns (``window 5``, ``precision bf16-mixed``)."""
+    return ", ".join(f"{name} {settings[k]}" for k, name in OTHER.items()
+                     if k in settings and settings[k] != LEVERS[k]) or "–"
 
 
 if __name__ == "__main__":

@@ -31,9 +31,9 @@ LAYERS: list[set[str]] = [
     {"training"},
     {"diagnostics"},  # op counting and `bronchopose selftest`: trains, so above training
     {"inference"},
-    {"api"},
     {"sweep"},
     {"reporting"},
+    {"api"},  # the public API: inference, and the work of train/report/sweep/tune/status as calls
     {"commands"},
     {"cli"},
 ]

@@ -9,8 +9,7 @@ import typer
 
 from ..cells import PoseFrame
 from ..config import DEFAULT_CONFIG
-from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load, output_folder
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console
 
 Evaluation = Literal["accumulated", "pair", "both"]
 
@@ -72,18 +71,10 @@ def report(
     written files are also logged to the sweep's parent MLflow run (artifacts
     report/). See docs/reports.md.
     """
-    from ..reporting import entry  # lazy: keeps `bronchopose --help` fast
-    from ..reporting import report as rep
-    from ..reporting import tables as tbl
+    from .. import api  # lazy: keeps `bronchopose --help` fast
 
-    names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
-    if best < 0 or trajectories < 1:
-        raise BronchoError("--best must be >= 0 and --trajectories >= 1")
-    output_folder(out, "--out")  # before minutes of work, not after
-    given_profiles = rep.profiles_from_json(latency_from) if latency_from is not None else None
-    cfg = load(config, profile, set_)
-    entry.report(cfg, names, evals, suffixes, out, sweep=sweep, pose_frame=pose_frame,
-                 include_other_configs=include_other_configs, best=best,
-                 figures=table == "all" if figures is None else figures, trajectories=trajectories,
-                 profiles=given_profiles, latency=latency, latency_device=latency_device, image_size=image_size,
-                 quiet=quiet, to_parent=to_parent, console=console, err_console=err_console)
+    api.report(config, table=table, evaluation=evaluation, fmt=fmt, out=out, sweep=sweep, pose_frame=pose_frame,
+               include_other_configs=include_other_configs, best=best, figures=figures, trajectories=trajectories,
+               latency=latency, latency_from=latency_from, latency_device=latency_device, image_size=image_size,
+               to_parent=to_parent, profile=profile, overrides=set_ or (), console=console,
+               err_console=err_console, quiet=quiet)

@@ -1,4 +1,4 @@
-"""`bronchopose train`: train and evaluate one grid cell as one MLflow run (``training.entry.train``)."""
+"""`bronchopose train`: train and evaluate one grid cell as one MLflow run (``bronchocli.api.train``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import typer
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def train(
@@ -46,17 +46,13 @@ def train(
     its FINISHED run instead of training again (`--again`: trains another run after it).
     Exit code 1 when the run FAILED.
     """
-    from ..training import entry  # lazy: torch loads only when the command runs
+    from .. import api  # lazy: torch loads only when the command runs
 
-    cfg = load(config, profile, set_)
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
-    cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
-                    pose_frame=pose_frame, train_trajectories=train_trajectories)
-    if use_tuned:
-        from ..sweep.tuning import apply_best  # lazy: optuna only with --use-tuned
-
-        cfg = apply_best(cfg, use_tuned)
-        cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-    raise typer.Exit(entry.train(cfg, cell, resume=run_id or resume, progress=not quiet, again=again,
-                                 console=console))
+    result = api.train(config, arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                       pose_frame=pose_frame, train_trajectories=train_trajectories, profile=profile,
+                       overrides=set_ or (), use_tuned=use_tuned, resume=run_id or resume, again=again,
+                       progress=not quiet, console=console)
+    console.print(result.summary() if result.ok else f"[red]{result.summary()}[/]", highlight=False)
+    raise typer.Exit(0 if result.ok else 1)

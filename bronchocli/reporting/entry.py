@@ -29,11 +29,12 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
            sweep: str | None = None, pose_frame: str | None = None, include_other_configs: bool = False,
            best: int = 0, figures: bool = True, trajectories: int = 4, profiles: Profiler | None = None,
            latency: bool = True, latency_device: str = "cpu", image_size: int | None = None, quiet: bool = False,
-           to_parent: bool = True, console: Console, err_console: Console) -> None:
+           to_parent: bool = True, console: Console, err_console: Console) -> rep.ReportResult:
     """Write the tables ``names`` (and, with ``figures``, the figures) of the config's runs (or of stored sweep
     ``sweep``) to ``out``. The ablation table's latency/GMAC come from ``profiles`` (``--latency-from``), else
     are measured (``latency``) at ``image_size`` on ``latency_device``, else stay empty. With ``to_parent``
-    the written files are also logged to the sweep's parent MLflow run (``report/`` artifacts)."""
+    the written files are also logged to the sweep's parent MLflow run (``report/`` artifacts). Returns what was
+    built and written (tables, files, warnings)."""
     client = rep.open_store(cfg)
     refuse_while_running(cfg, sweep or cfg.name)
     index = rep.collect_index(client, cfg, sweep, pose_frame, include_other_configs)
@@ -75,6 +76,7 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     console.print(f"wrote {len(result.files)} file(s) to {out}/: " + ", ".join(p.name for p in result.files))
     if to_parent and result.files:
         console.print(rep.log_to_parent(client, cfg, index.sweep, out, result.files), highlight=False)
+    return result
 
 
 def refuse_while_running(cfg: Config, sweep: str) -> None:

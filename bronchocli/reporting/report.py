@@ -48,6 +48,14 @@ class ReportResult:
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)  # besides each table's own warnings (figures, ...)
 
+    def table(self, key: str) -> Table:
+        """The table whose file stem is ``key`` (e.g. ``table6-sota-pair``) or whose stem starts with it."""
+        found = [t for t in self.tables if t.key == key] or [t for t in self.tables if t.key.startswith(key)]
+        if len(found) != 1:
+            keys = ", ".join(t.key for t in self.tables) or "none"
+            raise KeyError(f"{key!r}: {'several' if found else 'no'} table(s) match; the tables: {keys}")
+        return found[0]
+
 
 def output_suffixes(fmt: str) -> tuple[str, ...]:
     if fmt not in OUTPUT_FORMATS:

@@ -88,6 +88,30 @@ class Table:
     def grouped(self) -> bool:
         return len(self.headers) == 2
 
+    def frame(self):
+        """The table as a pandas DataFrame: one row per table row (the label columns, then per value column its
+        mean and, where it has one, the interval's ``lo``/``hi``, then ``kind`` and the marks as text: ``best``,
+        ``tie`` or ``noskill`` per column), in the table's order. Numbers unrounded, as the runs gave them."""
+        import pandas as pd  # lazy: only a caller who asks for a DataFrame pays for pandas
+
+        grid = marks(self)
+        records = []
+        for i, row in enumerate(self.rows):
+            rec: dict[str, Any] = {}
+            if self.grouped:
+                rec[self.headers[0]], rec[self.headers[1]] = row.group, row.label
+            else:
+                rec[self.headers[0]] = row.label
+            for j, col in enumerate(self.columns):
+                v = row.values[j]
+                rec[col.heading] = v if isinstance(v, str) else center(v)
+                if isinstance(v, Estimate) and v.has_interval:
+                    rec[f"{col.heading} lo"], rec[f"{col.heading} hi"] = v.lo, v.hi
+                rec[f"{col.heading} marks"] = " ".join(sorted(grid[i][j]))
+            rec["kind"] = row.kind
+            records.append(rec)
+        return pd.DataFrame.from_records(records)
+
     def groups(self) -> list[tuple[str, list[int]]]:
         """Consecutive rows sharing a group, as (group, row indices)."""
         out: list[tuple[str, list[int]]] = []

@@ -1,17 +1,19 @@
-"""``bronchopose train`` as a library call: check the paths, make sure the dataset exists, run one cell, say how
-it went (exit code 0 FINISHED, 1 otherwise)."""
+"""``bronchopose train`` as a library call: check the paths, make sure the dataset exists, run one cell, return
+its run (``outcome.TrainResult``; the command exits 0 when FINISHED, 1 otherwise)."""
 
 from __future__ import annotations
 
 from rich.console import Console
 
-from .. import runkeys, urls
+from .. import urls
 from ..cells import Cell
 from ..config import Config, check_paths
 from ..generation import ensure_dataset
 from ..runs.client import check_reachable, client_for
+from ..runs.contract import RunResult
 from ..runs.records import finished_cell_runs
 from .once import cell_turn
+from .outcome import TrainResult
 from .run import run_cell
 
 
@@ -28,11 +30,12 @@ def finished_run(cfg: Config, cell: Cell) -> str | None:
 
 
 def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool = True, again: bool = False,
-          console: Console) -> int:
+          console: Console) -> TrainResult:
     """Train and evaluate ``cell`` as one MLflow run (``resume``: continue its latest, or this, KILLED/FAILED run
-    from its checkpoint); prints the run's headline against both image-blind references. A cell with a FINISHED
-    run is not trained again unless ``again``; a ``train`` of the same cell in progress is waited for first
-    (``once.cell_turn``), so two started together train it once."""
+    from its checkpoint). A cell with a FINISHED run is not trained again unless ``again`` (the result says
+    ``trained=False`` and carries that run); a ``train`` of the same cell in progress is waited for first
+    (``once.cell_turn``), so two started together train it once. ``console`` gets the progress lines; the
+    result's ``summary()`` is the closing line."""
     if cfg.tune.applied:
         console.print(f"hyperparameters from {cfg.tune.applied}")
     check_paths(cfg)  # one line before anything is created
@@ -40,24 +43,12 @@ def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool
     with cell_turn(cfg, cell, lambda text: console.print(text, highlight=False)):  # one `train` of a cell at a time
         done = None if again or resume else finished_run(cfg, cell)
         if done is not None:
-            console.print(f"cell {cell.label} (key {cell.key}) already has a FINISHED run {done} in experiment "
-                          f"{cfg.experiment_name}: not trained again (--again trains another run)", highlight=False)
-            return 0
+            run = client_for(cfg).get_run(done)
+            return TrainResult(cell, cfg.experiment_name, RunResult(done, run.info.status, dict(run.data.metrics)),
+                               trained=False)
         ensure_dataset(cfg)
         console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
         result = run_cell(cfg, cell, resume=resume, progress=progress)
-    if result.status != "FINISHED":
-        console.print(f"[red]run {result.run_id} {result.status}:[/] {result.failure_reason}")
-        return 1
-    m = result.metrics
     if result.stop_requested:
         console.print("[yellow]interrupt received during evaluation: the run was completed first[/]")
-    error = {ref: m[runkeys.metric("pos_l2", ref=ref)] for ref in runkeys.SOURCES}
-    ratio = error[runkeys.MODEL] / error["train_mean"]  # the headline (runkeys.py)
-    console.print(
-        f"run {result.run_id} FINISHED in {result.duration_s:.1f} s ({m[runkeys.train('steps')]:.0f} steps, "
-        f"{m[runkeys.train('pairs_seen')]:.0f} pairs seen) — pair pos L2 {error[runkeys.MODEL]:.3f} vox "
-        f"({ratio:.2f} x the training-mean predictor's {error['train_mean']:.3f}, zero motion "
-        f"{error['zero_motion']:.3f}), accumulated pos L2 {m[runkeys.metric('pos_l2', 'acc')]:.2f} vox"
-    )
-    return 0
+    return TrainResult(cell, cfg.experiment_name, result)

@@ -1,7 +1,4 @@
-"""bronchocli's public Python API: load a trained run's model, predict relative poses, chain them, score them.
-
-Everything here is stable and documented in docs/api.md (with a runnable
-example that CI executes); the rest of the package is internal.
+"""The inference half of the public API: load a trained run's model, predict relative poses, chain them, score them.
 
 * :func:`load_model` -- a run's MLflow Model by run id, ``models:/<name>/<version>``,
   ``models:/<name>@<alias>``, ``models:/<model_id>``, ``runs:/<id>/model`` or a local folder;
@@ -23,13 +20,11 @@ from pathlib import Path
 import numpy as np
 from mlflow.tracking import MlflowClient
 
-from . import geometry
-from .config import DEFAULT_CONFIG, load_config
-from .inference import loading, reader, trajectory
-from .inference.mlflow_model import PoseModel, check_frames, warn_resize
-from .runs.client import client_for, require_store
-
-__all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score"]
+from .. import geometry
+from ..config import DEFAULT_CONFIG, load_config
+from ..inference import loading, reader, trajectory
+from ..inference.mlflow_model import PoseModel, check_frames, warn_resize
+from ..runs.client import client_for, require_store
 
 
 def load_model(reference: str, *, mlflow_uri: str | None = None,

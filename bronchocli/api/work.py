@@ -1,0 +1,107 @@
+"""The work half of the public API: what ``bronchopose train`` and ``bronchopose report`` do, as calls that
+return typed results instead of exit codes and printed tables.
+
+Each function takes a config as the commands do (a path to an ``experiments.yaml``, a ``profile`` of it and
+``overrides`` in ``--set`` syntax) or an already loaded :class:`~bronchocli.config.Config`, checks what it was
+given before any expensive work (one :class:`~bronchocli.errors.BronchoError` line, as the commands print them),
+and prints progress only to a ``console`` it is given (``None``: silent). The commands are thin layers over these
+functions: flags -> call -> print.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from rich.console import Console
+
+from ..config import DEFAULT_CONFIG, Config, load_config, parse_override
+from ..errors import BronchoError
+from ..pathcheck import check_output
+
+if TYPE_CHECKING:  # the results' modules load their stacks (torch, the reporting stack) only when called
+    from ..reporting.report import ReportResult
+    from ..training.outcome import TrainResult
+
+ConfigLike = str | os.PathLike | Config
+
+
+def config_of(config: ConfigLike = DEFAULT_CONFIG, profile: str | None = None,
+              overrides: Sequence[str] = ()) -> Config:
+    """The config ``config`` names (a file, with ``profile`` and ``--set``-style ``overrides``), or the given one
+    with the overrides applied."""
+    if isinstance(config, Config):
+        if profile is not None:
+            raise BronchoError("profile: only with a config file (a loaded Config already chose its profile)")
+        return config.with_values(dict(parse_override(s) for s in overrides)) if overrides else config
+    return load_config(Path(config), profile, tuple(overrides))
+
+
+def _silent() -> Console:
+    return Console(quiet=True)
+
+
+def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
+          fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
+          train_trajectories: int | None = None, profile: str | None = None, overrides: Sequence[str] = (),
+          use_tuned: str | None = None, resume: bool | str = False, again: bool = False, progress: bool = False,
+          console: Console | None = None) -> TrainResult:
+    """Train and evaluate one cell as one MLflow run, as ``bronchopose train`` does.
+
+    ``resume``: ``True`` continues the cell's latest KILLED/FAILED run from its checkpoint, a run id that run.
+    ``use_tuned``: apply the best trial of this Optuna study first. A cell that already has a FINISHED run is
+    not trained again unless ``again`` (``result.trained`` is then False and ``result.run`` is that run).
+    Returns a :class:`~bronchocli.training.outcome.TrainResult`: ``run_id``, ``ok``, ``metrics``, ``errors()``,
+    ``headline`` (pair position error ÷ the training mean's) and ``summary()``.
+    """
+    from ..training import entry  # lazy: torch loads only when training
+
+    cfg = config_of(config, profile, overrides)
+    cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                    pose_frame=pose_frame, train_trajectories=train_trajectories)
+    if use_tuned:
+        from ..sweep.tuning import apply_best  # lazy: optuna only with use_tuned
+
+        cfg = apply_best(cfg, use_tuned)
+        cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
+    return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
+
+
+def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluation: str = "both",
+           fmt: str = "both", out: str | os.PathLike = "reports", sweep: str | None = None,
+           pose_frame: str | None = None, include_other_configs: bool = False, best: int = 0,
+           figures: bool | None = None, trajectories: int = 4, latency: bool = True,
+           latency_from: str | os.PathLike | None = None, latency_device: str = "cpu",
+           image_size: int | None = None, to_parent: bool = True, profile: str | None = None,
+           overrides: Sequence[str] = (), console: Console | None = None,
+           err_console: Console | None = None, quiet: bool = False) -> ReportResult:
+    """Build the paper's tables (and figures) from the FINISHED runs of the config's cells and write them to
+    ``out``, as ``bronchopose report`` does (docs/reports.md).
+
+    ``table``: ``all`` or one table name (personalized, cross-subject, sota, ablation, frames, tracking);
+    ``evaluation``: ``pair``, ``accumulated`` or ``both``; ``fmt``: ``md``, ``latex`` or ``both``; ``figures``:
+    default only with ``table="all"``. Returns a :class:`~bronchocli.reporting.report.ReportResult`: its
+    ``tables`` (``table(key)`` finds one, ``Table.frame()`` gives it as a pandas DataFrame), the ``files``
+    written and the ``warnings``. With a ``console`` the tables and progress are printed as the command prints
+    them (``quiet``: only the summary lines).
+    """
+    from ..reporting import entry  # lazy: the reporting stack loads only when reporting
+    from ..reporting import report as rep
+    from ..reporting import tables as tbl
+    from ..reporting.report import profiles_from_json
+
+    names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
+    if best < 0 or trajectories < 1:
+        raise BronchoError("--best must be >= 0 and --trajectories >= 1")
+    folder = Path(out).expanduser()
+    check_output(folder, "--out", "folder")  # before minutes of work, not after
+    given_profiles = profiles_from_json(Path(latency_from)) if latency_from is not None else None
+    cfg = config_of(config, profile, overrides)
+    return entry.report(cfg, names, evals, suffixes, folder, sweep=sweep, pose_frame=pose_frame,
+                        include_other_configs=include_other_configs, best=best,
+                        figures=table == "all" if figures is None else figures, trajectories=trajectories,
+                        profiles=given_profiles, latency=latency, latency_device=latency_device,
+                        image_size=image_size, quiet=quiet or console is None, to_parent=to_parent,
+                        console=console or _silent(), err_console=err_console or console or _silent())

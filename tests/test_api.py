@@ -1,0 +1,79 @@
+"""bronchocli.api's work half: train and report as calls with typed results, the same work as the commands."""
+
+from __future__ import annotations
+
+import pytest
+from tinydata import write_tiny_dataset
+from tinyproject import write_config
+
+from bronchocli import api, runkeys
+from bronchocli.config import load_config
+from bronchocli.errors import BronchoError
+from bronchocli.runs.client import client_for
+
+ONE_CELL = ["grid.arch=[baseline]", "grid.rot_loss=[mse]", "grid.population=[personalized]"]
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("api-project")
+    write_tiny_dataset(root / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    return write_config(root)
+
+
+@pytest.fixture(scope="module")
+def trained(project):
+    return api.train(project, arch="baseline", rot_loss="mse", population="personalized", overrides=ONE_CELL)
+
+
+def test_train_returns_the_run_mlflow_recorded(project, trained):
+    assert isinstance(trained, api.TrainResult) and trained.ok and trained.trained
+    run = client_for(load_config(project, overrides=ONE_CELL)).get_run(trained.run_id)
+    assert run.info.status == "FINISHED" and run.data.tags["cell_key"] == trained.cell.key
+    logged = run.data.metrics
+    model, mean = logged[runkeys.metric("pos_l2")], logged[runkeys.metric("pos_l2", ref="train_mean")]
+    assert trained.errors()["model"] == pytest.approx(model)
+    assert trained.headline == pytest.approx(model / mean)
+    assert trained.summary().startswith(f"run {trained.run_id} FINISHED in ")
+
+
+def test_a_second_train_returns_the_finished_run_without_training(project, trained):
+    again = api.train(project, arch="baseline", rot_loss="mse", population="personalized", overrides=ONE_CELL)
+    assert not again.trained and again.ok and again.run_id == trained.run_id
+    assert again.headline == pytest.approx(trained.headline)
+    assert "not trained again" in again.summary()
+
+
+def test_report_returns_its_tables_as_frames_that_match_the_written_markdown(project, trained, tmp_path):
+    out = tmp_path / "reports"
+    result = api.report(project, table="personalized", evaluation="pair", out=out, figures=False, latency=False,
+                        to_parent=False, overrides=ONE_CELL)
+    assert isinstance(result, api.ReportResult)
+    assert sorted(p.name for p in result.files) == sorted(p.name for p in out.iterdir())
+    table = result.table("table3")
+    frame = table.frame()
+    assert list(frame["Loss"]) == [row.label for row in table.rows]
+    baseline = frame[frame["Network"] == "Baseline"].iloc[0]
+    # the Markdown file prints the same mean (at the table's decimals) as the frame holds unrounded
+    markdown = (out / f"{table.key}.md").read_text()
+    line = next(ln for ln in markdown.splitlines() if ln.startswith("| Baseline"))
+    shown = line.split("|")[3].strip().split(" ")[0].strip("*")
+    decimals = len(shown.partition(".")[2])
+    assert abs(float(shown) - baseline["Position L2 (vox)"]) <= 0.5 * 10 ** -decimals
+    assert baseline["Position L2 (vox) lo"] < baseline["Position L2 (vox)"] < baseline["Position L2 (vox) hi"]
+
+
+def test_report_checks_its_arguments_before_reading_any_run(project, tmp_path):
+    with pytest.raises(BronchoError, match="--table 'nope': must be one of all, "):
+        api.report(project, table="nope", out=tmp_path / "r")
+    with pytest.raises(BronchoError, match="--best must be >= 0"):
+        api.report(project, best=-1, out=tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_loaded_config_is_taken_as_is_and_a_profile_beside_it_is_refused(project):
+    cfg = load_config(project)
+    assert api.config_of(cfg) is cfg
+    assert api.config_of(cfg, overrides=["train.steps=7"]).train.steps == 7
+    with pytest.raises(BronchoError, match="profile: only with a config file"):
+        api.config_of(cfg, profile="paper")
