@@ -169,7 +169,8 @@ def gc(
     set_: SetOpt = None,
 ) -> None:
     """Remove the checkpoints no live cell needs on this machine (finished, orphaned, failed for good, refused
-    files) and print what was freed; only what a run provably wrote is ever removed."""
+    files, tune trials no trial will resume) and print what was freed, then what is kept and why; only what a run
+    provably wrote is ever removed."""
     from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
 
     cfg = _spec(config, profile, set_, storage).load()

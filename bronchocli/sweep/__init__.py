@@ -20,7 +20,8 @@
   ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
 - ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``
   and the parent runs;
-- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers through the local pool.
+- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers through the local pool;
+  ``tuneresume``: a stopped trial's checkpoint handed to a trial that resumes it, and what ``sweep gc`` keeps.
 
 See docs/sweep.md for the model and the exactly-once argument.
 """

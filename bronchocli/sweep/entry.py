@@ -7,7 +7,7 @@ The sweep's verbs (the config loaded by ``task.TaskSpec.load``, the same call a 
 - ``launch``: with a launcher whose workers outlive the command (Slurm): submit them, then watch
   (``launch.launch``);
 - ``dry_run`` (``sweep plan``): the plan and each cell's state; nothing is started;
-- ``gc``: remove the checkpoints no live cell needs on this machine (``dry_run``: list them);
+- ``gc``: remove the checkpoints nothing can resume on this machine (``dry_run``: list them), list the kept;
 - ``cancel``: stop the sweep's workers of a launcher (``dry_run``: list them).
 
 Every verb with ``--dry-run`` changes nothing anywhere: no job submitted or cancelled, no file or row written.
@@ -38,7 +38,7 @@ from ..runs.parents import KIND_SWEEP, find_parent
 from . import damage
 from . import launch as launching
 from . import placement, staged, summary
-from .housekeeping import collect_garbage, foreign, repair_zombies
+from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
 from .launchers import Launcher, launcher_class, reference
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
@@ -95,14 +95,20 @@ def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: s
 
 def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
     """Remove the checkpoints no live cell needs on this machine and say what was freed (``dry_run``: what would
-    go; nothing is removed). Only what provably is a run's checkpoint is ever removed (``runs.ownership``)."""
+    go; nothing is removed), then what is kept and why (a cell, `train --resume` or a study may resume it). Only
+    what provably is a run's checkpoint is ever removed (``runs.ownership``)."""
     check_roots(cfg)  # a checkpoints root holding other roots (or a system folder) is refused before anything
     store = open_store(cfg)
-    freed = collect_garbage(cfg, store if store.exists() else None, dry_run=dry_run)
+    held = inventory(cfg, store if store.exists() else None)
+    freed = collect_garbage(cfg, store if store.exists() else None, dry_run=dry_run, held=held)
     verb = "would free" if dry_run else "freed"
     for ck, n in freed:
         what = "rejected/temporary files" if ck.needed else ck.why
-        console.print(f"{verb} {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False)
+        console.print(f"{verb} {fmt_bytes(n)}: {ck.folder} ({what})", highlight=False, soft_wrap=True)
+    for ck in held:
+        if ck.needed:  # what stays, and why (a run that may be resumed: a cell, `train --resume`, a study)
+            console.print(f"kept {fmt_bytes(ck.bytes - ck.waste)}: {ck.folder} ({ck.why})", highlight=False,
+                          soft_wrap=True)
     others = foreign(cfg)
     if others:
         shown = ", ".join(p.name for p in others[:8]) + (", ..." if len(others) > 8 else "")

@@ -8,7 +8,13 @@ something may resume its run:
 * its sweep cell was given back (pending: the next worker resumes it), is
   running under a claim, or failed with a retry left;
 * a run of ``bronchopose train`` (no sweep claim) that ``train --resume`` can
-  continue: KILLED, or FAILED by the machine (disk full, busy database).
+  continue: KILLED, or FAILED by the machine (disk full, busy database);
+* a tune trial's run (KILLED or FAILED) while a trial of its study waits to
+  resume it (``tuneresume.checkpoint_need``): once that trial ran, or the
+  study's parent run FINISHED without it, or no trial was ever handed it
+  (an interruption before this was kept), the checkpoint is reclaimable. A study
+  not in ``storage.url`` (or a storage that cannot be read) keeps it: it may
+  live in another storage (``gc --storage URL``).
 
 Anything else is an orphan: a FINISHED or missing run, a run whose cell moved
 on (taken over, failed for good, finished by another run), a failed run that no
@@ -26,7 +32,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from .. import urls
 from ..config import Config
@@ -34,8 +40,9 @@ from ..errors import BronchoError, MlflowBusy, resumable
 from ..runs.client import client_for
 from ..runs.ownership import owned_checkpoint, removable_bytes, remove_checkpoint
 from ..runs.processes import repair_zombie
-from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, search_runs
-from .storage import FAILED, PENDING, RUNNING, TAG_CLAIM, CellRow, SweepStore
+from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_PARENT, search_runs
+from .storage import FAILED, PENDING, RUNNING, TAG_CLAIM, CellRow, StorageError, SweepStore
+from .tuneresume import checkpoint_need
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +64,9 @@ def _rows_by_run(store: SweepStore | None) -> dict[str, CellRow]:
     return {r.run_id: r for name in store.sweeps() for r in store.rows(name) if r.run_id}
 
 
-def _decide(run: Any, row: CellRow | None, max_retries: int) -> tuple[bool, str]:
+def _decide(run: Any, row: CellRow | None, max_retries: int,
+            trial: Callable[[Any], tuple[bool, str]] | None = None) -> tuple[bool, str]:
+    """Whether a run's checkpoint is needed, and why (``trial``: the decision for a tune trial's run)."""
     if run is None:
         return False, "no such MLflow run"
     status = run.info.status
@@ -65,6 +74,8 @@ def _decide(run: Any, row: CellRow | None, max_retries: int) -> tuple[bool, str]
         return True, "run RUNNING"
     if status == "FINISHED":
         return False, "run FINISHED"
+    if trial is not None and run.data.tags.get(TAG_KIND) == "trial" and run.data.tags.get("study"):
+        return trial(run)
     if row is not None:
         if row.state == PENDING:
             return True, "cell given back: the next worker resumes it"
@@ -99,6 +110,41 @@ def _open_client(cfg: Config) -> Any:
     return None if db is not None and not db.is_file() else client_for(cfg, reading=True)
 
 
+class _Studies:
+    """The studies of ``storage.url`` that trial checkpoints belong to, each read once (Optuna loads only here)."""
+
+    def __init__(self, cfg: Config, client: Any) -> None:
+        self.cfg, self.client, self.trials = cfg, client, {}
+
+    def _trials(self, name: str) -> list[Any] | str:
+        if name not in self.trials:
+            from . import tuning  # lazy: Optuna only where a trial's checkpoint lies, not for every status
+
+            try:
+                self.trials[name] = tuning.load(self.cfg, name).get_trials(deepcopy=False)
+            except StorageError as exc:
+                self.trials[name] = f"its study {name}'s storage could not be read ({exc})"
+            except BronchoError:
+                self.trials[name] = (f"study {name} is not in storage.url {urls.redact(self.cfg.paths.storage_url)} "
+                                     "(it may live in another: `sweep gc --storage URL` decides)")
+        return self.trials[name]
+
+    def __call__(self, run: Any) -> tuple[bool, str]:
+        name = run.data.tags["study"]
+        trials = self._trials(name)
+        if isinstance(trials, str):
+            return True, trials
+        parent = None
+        if run.data.tags.get(TAG_PARENT):
+            try:
+                parent = self.client.get_run(run.data.tags[TAG_PARENT]).info.status
+            except MlflowBusy:
+                raise
+            except Exception:  # noqa: BLE001 - a parent run deleted: the study is not known to be done
+                parent = None
+        return checkpoint_need(trials, run.info.run_id, name, parent)
+
+
 def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list[Checkpoint]:
     """Every checkpoint folder of this machine provably written by a run, its size, and whether a live cell
     needs it (anything else in ``runs.checkpoints`` is not a checkpoint: ``foreign`` lists it)."""
@@ -107,6 +153,7 @@ def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list
         return []
     client = client or _open_client(cfg)
     rows = _rows_by_run(store)
+    studies = _Studies(cfg, client)
     out = []
     for o in owned:
         run = None
@@ -117,19 +164,20 @@ def inventory(cfg: Config, store: SweepStore | None, client: Any = None) -> list
                 raise
             except Exception:  # noqa: BLE001 - MLflow raises its own types for a missing run
                 run = None
-        needed, why = _decide(run, rows.get(o.folder.name), cfg.sweep.max_retries)
+        needed, why = _decide(run, rows.get(o.folder.name), cfg.sweep.max_retries, studies)
         key = run.data.tags.get(TAG_CELL_KEY) if run is not None else None
         out.append(Checkpoint(o.folder.name, o.folder, removable_bytes(o.folder), needed, why, key,
                               removable_bytes(o.folder, only_waste=True) if needed else 0))
     return out
 
 
-def collect_garbage(cfg: Config, store: SweepStore | None, client: Any = None, *,
-                    dry_run: bool = False) -> list[tuple[Checkpoint, int]]:
+def collect_garbage(cfg: Config, store: SweepStore | None, client: Any = None, *, dry_run: bool = False,
+                    held: list[Checkpoint] | None = None) -> list[tuple[Checkpoint, int]]:
     """Remove what no live cell needs (``dry_run``: only say what would go); returns each touched checkpoint and
-    the bytes freed there. Only files a run wrote in its own folder are removed (``runs.ownership``)."""
+    the bytes freed there. Only files a run wrote in its own folder are removed (``runs.ownership``). ``held``:
+    the ``inventory`` already taken."""
     freed = []
-    for ck in inventory(cfg, store, client):
+    for ck in inventory(cfg, store, client) if held is None else held:
         if not ck.needed:
             n = ck.bytes if dry_run else remove_checkpoint(ck.folder, ck.why)
             freed.append((ck, n))

@@ -9,7 +9,9 @@ minimises. Per-epoch validation losses are reported to Optuna, whose pruner
 several processes or machines tune it together and an interrupted study
 resumes where it stopped: ``--trials N`` is the total of finished (complete or
 pruned) trials of the study, not of this process. Trials whose process died
-are failed by Optuna's heartbeat and do not count.
+are failed by Optuna's heartbeat and do not count; a trial stopped by a signal
+hands its checkpoint to a trial of the same parameters that the next ``tune``
+resumes (``tuneresume``).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from ..runs.records import TAG_PARENT, run_name
 from ..training.cost import COST_TARGET, cost_value
 from .storage import StorageError
 from .stagework import GPU_ENV
+from .tuneresume import ATTR_RUN, keep_for_resume, resume_from, worth_resuming
 from .worker import WorkerId
 
 log = logging.getLogger(__name__)
@@ -53,7 +56,6 @@ class TrialFailed(BronchoError):
 
 
 OPTUNA_LOCK_KEY = MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation
-ATTR_RUN = "mlflow_run_id"
 ATTR_CELL = "cell"
 ATTR_WORKER = "worker"  # the process (and GPU) that ran the trial, as a sweep's claims show a worker
 
@@ -341,11 +343,17 @@ def objective(cfg: Config, target: Cell, name: str, progress: bool = False) -> C
                 "hparams_source": f"optuna:{name}#{trial.number}"}
         if parent is not None:
             tags[TAG_PARENT] = parent
+        resume = resume_from(cfg, trial, cell.key, tags)  # a trial enqueued to continue a stopped one's run
         try:
-            result = run_cell(trial_cfg, cell, extra_tags=tags, progress=progress, on_validation=on_validation,
+            result = run_cell(trial_cfg, cell, resume=resume, extra_tags=tags, progress=progress,
+                              on_validation=on_validation,
                               run_id_callback=lambda rid: trial.set_user_attr(ATTR_RUN, rid))
         except RunPruned as exc:
             raise optuna.TrialPruned(str(exc)) from None
+        except BaseException as exc:  # stopped with a checkpoint: a new trial continues it (this one ends FAIL)
+            if worth_resuming(exc):
+                keep_for_resume(cfg, trial, trial.user_attrs.get(ATTR_RUN) or resume, cell.key)
+            raise
         if result.status != "FINISHED":
             raise TrialFailed(f"trial {trial.number} failed: {result.failure_reason}")
         if result.stop_requested:  # Ctrl-C during the trial's last steps (evaluation): the trial counts, none follows
