@@ -29,15 +29,15 @@ from typing import Any
 
 from bench_common import cpu_line
 
-from bronchocli.config import load_config
+from bronchocli.config import Config, load_config
 from bronchocli.runs.client import client_for
 from bronchocli.training.cost import COST_TARGET
 
 HERE = Path(__file__).resolve().parent
 PAIRS = f"cost.pairs_to_{COST_TARGET:.2f}"
 CORE = f"cost.core_s_to_{COST_TARGET:.2f}"
-# the settings a lever changes (params of a run: only those that differ from the config defaults are logged,
-# so each is read with the reference recipe's value as its default)
+# the settings a lever changes, with the reference recipe's values (a run's params hold only those that differ
+# from the config schema's defaults: each is read with that default, ``schema_default``)
 LEVERS = {"train.lr": 1e-3, "train.warmup": 0.05, "train.schedule": "cosine", "train.batch_size": 20,
           "model.dropout": 0.2, "train.steps": 5000, "image_size": 96, "train.threads": 1, "data.window": 10,
           "train.precision": "auto"}
@@ -54,6 +54,13 @@ def _value(text: str | None, default: Any) -> Any:
         except ValueError:
             pass
     return text
+
+
+def schema_default(key: str) -> Any:
+    """A setting's value in the config schema's defaults: a run logs only the params that differ from them."""
+    section, name = key.split(".")
+    value = getattr(getattr(Config(name="defaults"), section), name)
+    return value.value if hasattr(value, "value") else value
 
 
 def image_size(client, run, default: int) -> int:
@@ -78,7 +85,7 @@ def run_row(client, run) -> dict[str, Any]:
     pairs = {int(x.step): x.value for x in client.get_metric_history(rid, "train.pairs_seen")}
     core = {int(x.step): x.value for x in client.get_metric_history(rid, "train.core_s")}
     curve = [{"step": s, "pairs": pairs.get(s), "core_s": core.get(s), "val_ratio": ratio[s]} for s in sorted(ratio)]
-    settings = {k: _value(p.get(k), v) for k, v in LEVERS.items() if k != "image_size"}
+    settings = {k: _value(p.get(k), schema_default(k)) for k in LEVERS if k != "image_size"}
     settings["image_size"] = _value(p.get("data.image_size"), image_size(client, run, LEVERS["image_size"]))
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
     return {
@@ -112,7 +119,8 @@ def collect(projects: list[Path]) -> list[dict[str, Any]]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("projects", nargs="+", type=Path, help="benchmark project folders (experiments.yaml + runs/)")
-    ap.add_argument("--reference", default="cost-reference", help="experiment of the reference run")
+    ap.add_argument("--reference", nargs="+", default=["cost-reference", "cost-reference-today"],
+                    help="experiments of the reference runs (each run is compared with the one of its own date)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "learning-cost.json")
     ap.add_argument("--markdown", action="store_true", help="also print the runs as a Markdown table")
     ap.add_argument("--fresh", action="store_true", help="drop the runs of the results file these projects lack")
@@ -130,23 +138,38 @@ def main(argv: list[str] | None = None) -> int:
         rows += kept
         if kept:
             commands = [c for c in old.get("commands", [old["command"]]) if c not in commands] + commands
-    ref = next((r for r in rows if r["experiment"] == args.reference and r["core_s_to_target"]), None)
+    refs = [r for r in rows if r["experiment"] in args.reference and r["core_s_to_target"]]
+
+    def reference_of(r: dict[str, Any]) -> dict[str, Any] | None:
+        """The reference run measured on the same day (the same machine state) as ``r``, else the first one."""
+        return next((x for x in refs if x.get("date") == r.get("date")), refs[0] if refs else None)
+
     for r in rows:
+        ref = reference_of(r)
         if ref is not None and r["core_s_to_target"] and r["arch"] == ref["arch"]:  # the same model's cost only
             r["cheaper_than_reference"] = ref["core_s_to_target"] / r["core_s_to_target"]
+            r["cheaper_pairs_than_reference"] = ref["pairs_to_target"] / r["pairs_to_target"]
+            r["reference"] = ref["experiment"]
     # the cheapest BronchoTrack recipe (the cost is BronchoTrack's; other architectures are listed for comparison)
-    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] != args.reference
+    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] not in args.reference
                and r["arch"] == "convlstm"]
-    best = min(learned, key=lambda r: r["pairs_to_target"], default=None)
+    best = max(learned, key=lambda r: r.get("cheaper_than_reference") or 0, default=None)
     figures: dict[str, Any] = {"target": COST_TARGET, "runs": rows}
+    ref = refs[0] if refs else None
     if ref is not None:
         figures["reference"] = {"run": ref["run_id"], "pairs": ref["pairs_to_target"], "core_s": ref["core_s_to_target"]}
+    figures["references"] = {r["experiment"]: {"date": r.get("date"), "pairs": r["pairs_to_target"],
+                                               "core_s": r["core_s_to_target"], "pairs_per_core_s": r["pairs_per_core_s"]}
+                             for r in refs}
     if best is not None:
         figures["best"] = {"run": best["run_id"], "name": best["name"], "settings": best["settings"],
-                           "pairs": best["pairs_to_target"], "core_s": best["core_s_to_target"]}
-        if ref is not None:
-            figures["best"]["cheaper_pairs"] = ref["pairs_to_target"] / best["pairs_to_target"]
-            figures["best"]["cheaper_core_s"] = ref["core_s_to_target"] / best["core_s_to_target"]
+                           "pairs": best["pairs_to_target"], "core_s": best["core_s_to_target"],
+                           "cheaper_pairs": best.get("cheaper_pairs_than_reference"),
+                           "cheaper_core_s": best.get("cheaper_than_reference"), "experiment": best["experiment"]}
+    # one entry per single-run experiment (a lever run), for the prose's spans
+    figures["by_experiment"] = {r["experiment"]: {k: r.get(k) for k in (
+        "pairs_to_target", "core_s_to_target", "best_val_ratio", "pairs_per_core_s", "cheaper_than_reference",
+        "cheaper_pairs_than_reference", "date")} for r in rows if r["kind"] == "cell"}
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": machine, "date": today, "command": commands[-1], "commands": commands,

@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# The single lever runs of "Cost of learning" (benchmarks/README.md, issue 45), one at a time, one thread each,
+# in a benchmark project folder (a copy of this repository's experiments.yaml; its data and runs land there):
+#
+#   mkdir -p /tmp/lc && cp experiments.yaml /tmp/lc/ && benchmarks/cost_levers.sh /tmp/lc
+#   python benchmarks/bench_learning_cost.py /tmp/lc      # -> benchmarks/results/learning-cost.json
+#
+# Each lever is its own experiment (cost-NAME), so running this again skips the levers that have a FINISHED run
+# (train's own rule) and resumes a stopped one from its checkpoint. Every run stops at the first validation whose
+# val.ratio.pos_l2 is <= 0.90 and validates every 500 pairs. About 7-10 min per run on one Zen 4 core.
+set -uo pipefail
+project=${1:?usage: benchmarks/cost_levers.sh PROJECT_FOLDER}
+cd "$project"
+export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+common=(--config "$PWD/experiments.yaml" -P personalized --set train.stop_at_ratio=0.90 --set train.val_every=25)
+recipe=(--profile learning-cost --set train.lr=1e-3 --set train.warmup=0.05 --set train.batch_size=20
+        --set model.dropout=0.2 --set train.schedule=cosine)
+run() {
+    local name=$1; shift
+    echo "=== $(date -u +%FT%TZ) $name: $*"
+    bronchopose train "${common[@]}" --set "name=$name" "$@" --resume 2>/dev/null \
+        || bronchopose train "${common[@]}" --set "name=$name" "$@"
+}
+run cost-reference-today --profile bronchotrack-cpu -a convlstm -l ce            # the recipe before issue 45
+run cost-base "${recipe[@]}" -a convlstm -l ce                                    # the chosen recipe (12,000-pair schedule)
+run cost-span8k "${recipe[@]}" -a convlstm -l ce --set train.steps=400            # a schedule spanning 8,000 pairs
+run cost-window5 "${recipe[@]}" -a convlstm -l ce --set data.window=5             # 4 windows of 5 pairs per batch
+run cost-bf16 "${recipe[@]}" -a convlstm -l ce --set train.precision=bf16-mixed   # bf16 autocast
+run cost-80 "${recipe[@]}" -a convlstm -l ce --set dataset.root=data/synthetic-cpu-lc-80 \
+    --set dataset.generate.image_size=80                                          # 80² frames
+run cost-conv3d "${recipe[@]}" -a conv3d -l ce --set train.steps=1000              # the 3-D-conv head, 20,000 pairs
+run cost-conv3d-lr3e-4 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.lr=3e-4
