@@ -77,3 +77,12 @@ def test_a_loaded_config_is_taken_as_is_and_a_profile_beside_it_is_refused(proje
     assert api.config_of(cfg, overrides=["train.steps=7"]).train.steps == 7
     with pytest.raises(BronchoError, match="profile: only with a config file"):
         api.config_of(cfg, profile="paper")
+
+
+def test_status_shows_the_trained_cell_finished_with_its_run_and_headline(project, trained):
+    state = api.status(project, overrides=ONE_CELL)
+    (cell,) = state.cells()
+    assert (cell.key, cell.state, cell.run_id) == (trained.cell.key, "finished", trained.run_id)
+    assert cell.headline == pytest.approx(trained.headline, rel=1e-3)  # logged to 4 significant digits
+    # trained by `train`, not by a sweep: the claims table does not know it, MLflow does (status says so)
+    assert any("FINISHED in MLflow but not in the claims table" in line for line in state.before)

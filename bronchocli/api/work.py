@@ -23,6 +23,7 @@ from ..pathcheck import check_output
 
 if TYPE_CHECKING:  # the results' modules load their stacks (torch, the reporting stack) only when called
     from ..reporting.report import ReportResult
+    from ..sweep.status import SweepState
     from ..training.outcome import TrainResult
 
 ConfigLike = str | os.PathLike | Config
@@ -105,3 +106,21 @@ def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluatio
                         profiles=given_profiles, latency=latency, latency_device=latency_device,
                         image_size=image_size, quiet=quiet or console is None, to_parent=to_parent,
                         console=console or _silent(), err_console=err_console or console or _silent())
+
+
+def status(config: ConfigLike = DEFAULT_CONFIG, *, sweep: str | None = None, show_all: bool = False,
+           repair: bool = False, storage: str | None = None, profile: str | None = None,
+           overrides: Sequence[str] = (), console: Console | None = None) -> SweepState:
+    """The state of a sweep (default: the config's), as ``bronchopose status`` shows it (``repair``: first end the
+    runs a dead process left RUNNING and repair damaged claims rows, as ``status --repair``).
+
+    Returns a :class:`~bronchocli.sweep.status.SweepState`: ``cells()`` gives one ``CellOutcome`` per cell
+    (label, key, state, attempts, run id, failure reason, its run's metrics and ``headline``), ``before`` and
+    ``after`` the lines the command prints around its table.
+    """
+    from ..sweep import entry  # lazy: the sweep stack loads only when asked
+
+    cfg = config_of(config, profile, overrides)
+    if storage:
+        cfg = cfg.with_values({"storage.url": storage})
+    return entry.status(cfg, sweep or cfg.name, show_all=show_all, repair=repair, console=console or _silent())

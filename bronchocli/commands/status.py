@@ -8,7 +8,7 @@ from typing import Optional
 import typer
 
 from ..config import DEFAULT_CONFIG
-from .common import ConfigOpt, ProfileOpt, SetOpt, load
+from .common import ConfigOpt, ProfileOpt, SetOpt
 from .common import console as _console
 
 
@@ -32,10 +32,8 @@ def status(
     resumable state takes on this machine, and how much no live cell needs
     (`bronchopose sweep gc` frees it).
     """
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from .. import api  # lazy: keeps `bronchopose --help` fast
     from ..sweep.status import wide
 
-    cfg = load(config, profile, set_)
-    if storage:
-        cfg = cfg.with_values({"storage.url": storage})
-    entry.status(cfg, sweep or cfg.name, show_all=show_all, repair=repair, console=wide(_console))
+    api.status(config, sweep=sweep, show_all=show_all, repair=repair, storage=storage, profile=profile,
+               overrides=set_ or (), console=wide(_console))

@@ -42,7 +42,7 @@ from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
 from .launchers import Launcher, launcher_class, reference
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
-from .status import show_status
+from .status import SweepState, show_status
 from .record import missing_runs
 from .storage import FINISHED, SweepStore
 from .summary import record_cancel
@@ -146,8 +146,10 @@ def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool
 # -- bronchopose status, config --grid -----------------------------------------------------------------
 
 
-def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False, console: Console) -> None:
-    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells."""
+def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False,
+           console: Console) -> SweepState:
+    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells;
+    returns what it showed (``status.SweepState``: the cells, their runs and metrics)."""
     store = open_store(cfg)
     if repair:
         done = repair_zombies(cfg, store if store.exists() else None)
@@ -170,7 +172,7 @@ def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = Fal
                               f"{r.run_id} does not exist in MLflow)", highlight=False, soft_wrap=True)
     if name == cfg.name and store.exists():
         settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
-    show_status(cfg, store, name, show_all, console)
+    return show_status(cfg, store, name, show_all, console)
 
 
 def settle_detached(cfg: Config, store: SweepStore) -> str | None:

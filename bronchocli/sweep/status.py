@@ -170,7 +170,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
             "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation
-            **{k: run.data.metrics.get(k) for k in ERRORS},
+            **{k: run.data.metrics.get(k) for k in (*ERRORS, runkeys.HEADLINE)},
         }
     return out
 
@@ -249,13 +249,55 @@ def _stored_plan(store: SweepStore, name: str) -> tuple[Plan, list[CellRow]]:
     return Plan(name, stored, {r.cell_key: r for r in rows if r not in unnamed}), unnamed
 
 
-def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> None:
-    """``bronchopose status``: the plan's cells (or every stored cell) with state, run, duration, metrics."""
+@dataclass(frozen=True)
+class CellOutcome:
+    """One cell of a sweep as ``status`` shows it: its claims row (MLflow's view overlaid) and its run's metrics."""
+
+    label: str
+    key: str
+    state: str  # pending, running, finished or failed (the claims row's; no row: pending)
+    attempts: int
+    run_id: str | None
+    failure_reason: str | None
+    metrics: dict[str, Any]  # the run's status, duration_s, pairs_seen and headline errors (fetch_metrics)
+
+    @property
+    def headline(self) -> float | None:
+        """The run's headline (runkeys.HEADLINE: pair position error ÷ the training mean's), where logged."""
+        return self.metrics.get(runkeys.HEADLINE)
+
+
+@dataclass
+class SweepState:
+    """What ``bronchopose status`` knows about a sweep: its plan with the claims rows (MLflow's view overlaid),
+    each run's metrics, the checkpoints held here, and the lines it says before and after the table."""
+
+    cfg: Config
+    plan: Plan
+    metrics: dict[str, dict[str, Any]]
+    held: list[Checkpoint]
+    now: float | None  # the database's clock (heartbeats are on it)
+    before: list[str]  # rich-markup lines printed before the table
+    after: list[str]
+
+    def cells(self) -> list[CellOutcome]:
+        out = []
+        for c in self.plan.cells:
+            row = self.plan.rows.get(c.key)
+            out.append(CellOutcome(c.label, c.key, row.state if row else PENDING, row.attempts if row else 0,
+                                   row.run_id if row else None, row.failure_reason if row else None,
+                                   dict(self.metrics.get(row.run_id, {})) if row and row.run_id else {}))
+        return out
+
+
+def sweep_state(cfg: Config, store: SweepStore, name: str, show_all: bool) -> SweepState:
+    """The state of sweep ``name``: the config's plan (or, with ``show_all`` or another name, every stored cell)."""
+    before: list[str] = []
     if not store.exists():
-        console.print(f"no claims table in storage {store.redacted} (new, or lost): cells FINISHED in MLflow are "
-                      "shown finished and the next sweep records them there", highlight=False)
+        before.append(f"no claims table in storage {store.redacted} (new, or lost): cells FINISHED in MLflow are "
+                      "shown finished and the next sweep records them there")
         if name != cfg.name:
-            return
+            return SweepState(cfg, Plan(name, [], {}), {}, [], None, before, [])
     unnamed: list[CellRow] = []
     if show_all or name != cfg.name:
         plan, unnamed = _stored_plan(store, name)
@@ -263,13 +305,13 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         walk = StageWalk(cfg, store)
         for sp in walk.plans():
             if sp.selection is not None:
-                console.print(describe_selection(sp.selection), highlight=False)
+                before.append(describe_selection(sp.selection))
             elif sp.cells is None:
-                console.print(f"stage {sp.stage.name}: waits for stage {source_of(cfg, sp.stage).name}")
+                before.append(f"stage {sp.stage.name}: waits for stage {source_of(cfg, sp.stage).name}")
         plan = read_plan(store, name, walk.known_cells())
         stale = len(store.rows(name)) - len(plan.rows) if store.exists() else 0
         if stale > 0:
-            console.print(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
+            before.append(f"[dim]{stale} stored cell(s) of sweep {name} belong to another version of the config "
                           f"(--all shows them)[/]")
     try:
         deleted = deleted_finished(cfg, plan.sweep, plan.rows)  # runs deleted by hand: their cells are not done
@@ -279,39 +321,48 @@ def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, conso
         log.warning("could not read MLflow's deleted runs: %s", exc)
         deleted = {}
     if deleted:
-        console.print(f"[yellow]deleted[/] {deleted_runs_line(len(deleted), plan.sweep, cfg.experiment_name)}: "
-                      "shown pending", highlight=False, soft_wrap=True)
+        before.append(f"[yellow]deleted[/] {deleted_runs_line(len(deleted), plan.sweep, cfg.experiment_name)}: "
+                      "shown pending")
     rows, known = overlay(cfg, plan.sweep, plan.cells, plan.rows, deleted)
     if known:
-        console.print(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished (never trained "
-                      "again; the next sweep records them there)", highlight=False)
+        before.append(f"{known} cell(s) FINISHED in MLflow but not in the claims table: shown finished (never "
+                      "trained again; the next sweep records them there)")
     plan = Plan(plan.sweep, plan.cells, rows)
     rebuilt = rebuilt_count(rows) - known
     if rebuilt > 0:
-        console.print(f"{rebuilt} cell(s) recorded from their FINISHED MLflow runs: the claims table was rebuilt from "
-                      "MLflow (new, lost, or behind)", highlight=False)
+        before.append(f"{rebuilt} cell(s) recorded from their FINISHED MLflow runs: the claims table was rebuilt "
+                      "from MLflow (new, lost, or behind)")
     with_runs = [plan.rows[c.key].run_id for c in plan.cells if c.key in plan.rows and plan.rows[c.key].run_id]
     missing = set(missing_runs(cfg, with_runs))
     held = inventory(cfg, store if store.exists() else None)
-    now = store.db_now() if store.exists() else None  # heartbeats are on the database's clock
-    console.print(status_table(plan, fetch_metrics(cfg, with_runs), cfg.sweep.max_retries,
-                               cfg.train.steps * cfg.train.pairs_per_step, now=now,
-                               ckpt_bytes={c.run_id: c.bytes for c in held}, stale_after_s=cfg.sweep.stale_after_s))
-    console.print(summary_line(progress(plan, cfg.sweep.max_retries, 1, now, cfg.sweep.stale_after_s)))
-    for label, reason in failures(plan):
-        console.print(f"[red]failed[/] {label}: {reason}", highlight=False)
+    now = store.db_now() if store.exists() else None
+    after = [summary_line(progress(plan, cfg.sweep.max_retries, 1, now, cfg.sweep.stale_after_s)).markup]
+    after += [f"[red]failed[/] {label}: {reason}" for label, reason in failures(plan)]
     if (line := stopped_line(cfg, plan.sweep)) is not None:
-        console.print(f"[yellow]stopped[/] {line}", highlight=False, soft_wrap=True)
-    for label, reason in given_back(plan):
-        console.print(f"[yellow]given back[/] {label}: {reason}", highlight=False)
-    for line in row_lines(plan, unnamed, store.redacted, now, cfg.sweep.stale_after_s):
+        after.append(f"[yellow]stopped[/] {line}")
+    after += [f"[yellow]given back[/] {label}: {reason}" for label, reason in given_back(plan)]
+    after += list(row_lines(plan, unnamed, store.redacted, now, cfg.sweep.stale_after_s))
+    after += [f"[yellow]missing[/] {missing_line(row, redacted_uri(cfg))}" for c in plan.cells
+              if (row := plan.rows.get(c.key)) is not None and row.run_id in missing]
+    after += [checkpoint_line(held), disk_line(cfg)]
+    return SweepState(cfg, plan, fetch_metrics(cfg, with_runs), held, now, before, after)
+
+
+def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> SweepState:
+    """``bronchopose status``: the plan's cells (or every stored cell) with state, run, duration, metrics; returns
+    what it showed."""
+    state = sweep_state(cfg, store, name, show_all)
+    for line in state.before:
         console.print(line, highlight=False, soft_wrap=True)
-    for c in plan.cells:
-        if (row := plan.rows.get(c.key)) is not None and row.run_id in missing:
-            console.print(f"[yellow]missing[/] {missing_line(row, redacted_uri(cfg))}", highlight=False,
-                          soft_wrap=True)
-    console.print(checkpoint_line(held), highlight=False, soft_wrap=True)
-    console.print(disk_line(cfg), highlight=False, soft_wrap=True)
+    if not store.exists() and name != cfg.name:
+        return state
+    console.print(status_table(state.plan, state.metrics, cfg.sweep.max_retries,
+                               cfg.train.steps * cfg.train.pairs_per_step, now=state.now,
+                               ckpt_bytes={c.run_id: c.bytes for c in state.held},
+                               stale_after_s=cfg.sweep.stale_after_s))
+    for line in state.after:
+        console.print(line, highlight=False, soft_wrap=True)
+    return state
 
 
 def stopped_line(cfg: Config, sweep: str) -> str | None:
