@@ -11,6 +11,7 @@ import contextlib
 import io
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -30,6 +31,34 @@ if "PYTEST_XDIST_WORKER" in os.environ:
     os.environ.pop("COLUMNS", None)
     os.environ.pop("LINES", None)
 _RUNTIME: Path | None = None  # this test process's XDG_RUNTIME_DIR (pytest_configure)
+_PYCACHE: Path | None = None  # a compiled-modules folder made for this session only (no pytest cache folder)
+
+
+def _compile_each_module_once(config) -> None:
+    """Under ``PYTHONDONTWRITEBYTECODE``, let the suite's processes share one folder of compiled modules.
+
+    With the variable set (some machines set it for every shell) no process writes a ``.pyc``, so every Python
+    process the suite starts (xdist workers, CLI subprocesses, sweep and tune workers, Slurm tasks, UI servers)
+    compiles from source all it imports wherever the environment has no ``.pyc`` (an editable checkout; a venv
+    installed without byte compilation, as uv does by default): about 3.5 s more CPU per ``import torch, mlflow``
+    on the 2-core machine (benchmarks/README.md), in hundreds of processes. Here the variable is dropped for this
+    process and every process started after it, and ``PYTHONPYCACHEPREFIX`` sends the ``.pyc`` files to the pytest
+    cache folder (``.pytest_cache/d/pycache``), never beside the sources: each module is compiled once, then read.
+    Only how Python caches compiled code changes; what runs is the same. Without the variable nothing changes."""
+    global _PYCACHE
+    if not (sys.flags.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE")):
+        return
+    if os.environ.get("PYTHONPYCACHEPREFIX"):  # the user's own prefix: keep it
+        folder = Path(os.environ["PYTHONPYCACHEPREFIX"])
+    elif getattr(config, "cache", None) is not None:
+        folder = config.cache.mkdir("pycache")
+    else:  # -p no:cacheprovider
+        folder = _PYCACHE = Path(tempfile.mkdtemp(prefix="bronchopose-tests-pycache-"))
+    folder = folder.resolve()
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = str(folder)
+    sys.dont_write_bytecode = False  # this process: importlib reads both at every import
+    sys.pycache_prefix = str(folder)
 
 
 def pytest_configure(config):
@@ -40,6 +69,7 @@ def pytest_configure(config):
     machine, change the threads another test's training decides: each process gets an empty one, and the
     processes a test starts inherit it. Tests about the sharing itself set their own (test_shared_cores.py)."""
     global _RUNTIME
+    _compile_each_module_once(config)  # before pytest-xdist starts its workers: they inherit the environment
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     _RUNTIME = Path(tempfile.mkdtemp(prefix=f"bronchopose-tests-{worker}-"))
     os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
@@ -63,8 +93,9 @@ def pytest_collection_finish(session):
 
 
 def pytest_unconfigure(config):
-    if _RUNTIME is not None:
-        shutil.rmtree(_RUNTIME, ignore_errors=True)
+    for folder in (_RUNTIME, _PYCACHE):  # a worker's _PYCACHE is None: the folder is the main process's
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 class _StoreTemplate:
