@@ -25,6 +25,14 @@ REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirway
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# torch's OpenMP threads sleep while they wait for work instead of spinning (GNU OpenMP's default spins first):
+# with two xdist workers on two cores, a torch process of two threads (a training that takes its share, a
+# report, the CLI's in-process commands) shares its cores with the other worker, and a thread spinning at a
+# barrier for a descheduled peer burns the other worker's CPU: the 7 round-trip and detach tests of
+# tests/models/test_architectures.py took 107 CPU-s spinning on a shared core, 12.5 sleeping. Set before torch loads
+# (its OpenMP reads it then); the workers and every process a test starts inherit it. Thread counts, what each
+# thread computes and so the numbers are unchanged.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 if "PYTEST_XDIST_WORKER" in os.environ:
     # pytest-xdist starts its workers with COLUMNS=80; the CLI's consoles (commands/common.py), made at import,
     # would keep that width and wrap the lines the tests read, whatever width a test's command asks for.
