@@ -11,6 +11,7 @@ import contextlib
 import io
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -24,12 +25,48 @@ REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirway
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 os.environ.setdefault("MPLBACKEND", "Agg")
+# torch's OpenMP threads sleep while they wait for work instead of spinning (GNU OpenMP's default spins first):
+# with two xdist workers on two cores, a torch process of two threads (a training that takes its share, a
+# report, the CLI's in-process commands) shares its cores with the other worker, and a thread spinning at a
+# barrier for a descheduled peer burns the other worker's CPU: the 7 round-trip and detach tests of
+# tests/models/test_architectures.py took 107 CPU-s spinning on a shared core, 12.5 sleeping. Set before torch loads
+# (its OpenMP reads it then); the workers and every process a test starts inherit it. Thread counts, what each
+# thread computes and so the numbers are unchanged.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 if "PYTEST_XDIST_WORKER" in os.environ:
     # pytest-xdist starts its workers with COLUMNS=80; the CLI's consoles (commands/common.py), made at import,
     # would keep that width and wrap the lines the tests read, whatever width a test's command asks for.
     os.environ.pop("COLUMNS", None)
     os.environ.pop("LINES", None)
 _RUNTIME: Path | None = None  # this test process's XDG_RUNTIME_DIR (pytest_configure)
+_PYCACHE: Path | None = None  # a compiled-modules folder made for this session only (no pytest cache folder)
+
+
+def _compile_each_module_once(config) -> None:
+    """Under ``PYTHONDONTWRITEBYTECODE``, let the suite's processes share one folder of compiled modules.
+
+    With the variable set (some machines set it for every shell) no process writes a ``.pyc``, so every Python
+    process the suite starts (xdist workers, CLI subprocesses, sweep and tune workers, Slurm tasks, UI servers)
+    compiles from source all it imports wherever the environment has no ``.pyc`` (an editable checkout; a venv
+    installed without byte compilation, as uv does by default): about 3.5 s more CPU per ``import torch, mlflow``
+    on the 2-core machine (benchmarks/README.md), in hundreds of processes. Here the variable is dropped for this
+    process and every process started after it, and ``PYTHONPYCACHEPREFIX`` sends the ``.pyc`` files to the pytest
+    cache folder (``.pytest_cache/d/pycache``), never beside the sources: each module is compiled once, then read.
+    Only how Python caches compiled code changes; what runs is the same. Without the variable nothing changes."""
+    global _PYCACHE
+    if not (sys.flags.dont_write_bytecode or os.environ.get("PYTHONDONTWRITEBYTECODE")):
+        return
+    if os.environ.get("PYTHONPYCACHEPREFIX"):  # the user's own prefix: keep it
+        folder = Path(os.environ["PYTHONPYCACHEPREFIX"])
+    elif getattr(config, "cache", None) is not None:
+        folder = config.cache.mkdir("pycache")
+    else:  # -p no:cacheprovider
+        folder = _PYCACHE = Path(tempfile.mkdtemp(prefix="bronchopose-tests-pycache-"))
+    folder = folder.resolve()
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = str(folder)
+    sys.dont_write_bytecode = False  # this process: importlib reads both at every import
+    sys.pycache_prefix = str(folder)
 
 
 def pytest_configure(config):
@@ -40,6 +77,7 @@ def pytest_configure(config):
     machine, change the threads another test's training decides: each process gets an empty one, and the
     processes a test starts inherit it. Tests about the sharing itself set their own (test_shared_cores.py)."""
     global _RUNTIME
+    _compile_each_module_once(config)  # before pytest-xdist starts its workers: they inherit the environment
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     _RUNTIME = Path(tempfile.mkdtemp(prefix=f"bronchopose-tests-{worker}-"))
     os.environ["XDG_RUNTIME_DIR"] = str(_RUNTIME)
@@ -63,8 +101,9 @@ def pytest_collection_finish(session):
 
 
 def pytest_unconfigure(config):
-    if _RUNTIME is not None:
-        shutil.rmtree(_RUNTIME, ignore_errors=True)
+    for folder in (_RUNTIME, _PYCACHE):  # a worker's _PYCACHE is None: the folder is the main process's
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 class _StoreTemplate:

@@ -132,12 +132,12 @@ def test_chunked_processing_equals_whole_sequence(name):
 
 @pytest.mark.parametrize("name", sorted(RECURRENT))
 def test_state_detaches_for_truncated_bptt(name):
-    model = build_model(name, image_size=64).train()
-    _, state = model(frames(2, 2, 64))
+    model = build_model(name, image_size=32).train()  # 32x32: the cheapest input; the graph is the same
+    _, state = model(frames(2, 2, 32))
     assert all(s.requires_grad for s in state)
     detached = detach_state(state)
     assert type(detached) is tuple and not any(s.requires_grad for s in detached)
-    out, _ = model(frames(2, 2, 64, seed=3), detached)
+    out, _ = model(frames(2, 2, 32, seed=3), detached)
     out.sum().backward()  # the second chunk back-propagates without touching the first graph
     assert detach_state(None) is None
 
@@ -145,14 +145,14 @@ def test_state_detaches_for_truncated_bptt(name):
 @pytest.mark.parametrize("name", ARCHS)
 def test_state_dict_round_trip(name, tmp_path):
     torch.manual_seed(0)
-    model = build_model(name, image_size=64, dropout=0.1)
+    model = build_model(name, image_size=32, dropout=0.1)  # 32x32: the cheapest input, every tensor saved
     model.train()
-    model(frames(4, 3, 64, seed=5))  # move BN statistics away from their initial values
+    model(frames(4, 3, 32, seed=5))  # move BN statistics away from their initial values
     model.eval()
     torch.save(model.state_dict(), tmp_path / "m.pt")
     torch.manual_seed(1)
-    fresh = build_model(name, image_size=64, dropout=0.1).eval()
-    x = frames(1, 3, 64, seed=6)
+    fresh = build_model(name, image_size=32, dropout=0.1).eval()
+    x = frames(1, 3, 32, seed=6)
     with torch.no_grad():
         assert not torch.equal(fresh(x)[0], model(x)[0])
         fresh.load_state_dict(torch.load(tmp_path / "m.pt", weights_only=True), strict=True)
