@@ -66,10 +66,12 @@ def collect(cfg) -> list[dict[str, Any]]:
 
 
 def summarise(cells: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per (arch, rot_loss): the seeds' ratios (range and mean) and the largest mode gap."""
+    """Per (arch, rot_loss, population[, held-out patient]): the seeds' ratios (range and mean) and the largest
+    mode gap. Cross-subject cells are grouped per fold (the held-out patient)."""
     groups: dict[str, list[dict[str, Any]]] = {}
     for c in cells:
-        groups.setdefault(f"{c['arch']}/{c['rot_loss']}/{c['population']}", []).append(c)
+        fold = f"/{c['fold']}" if c["population"] == "cross-subject" and c.get("fold") else ""
+        groups.setdefault(f"{c['arch']}/{c['rot_loss']}/{c['population']}{fold}", []).append(c)
     out = {}
     for key, rows in sorted(groups.items()):
         entry: dict[str, Any] = {"seeds": sorted(int(r["seed"]) for r in rows)}
@@ -87,24 +89,31 @@ def cells_table(by_model: dict[str, Any]) -> list[str]:
     """A compact Markdown table of :func:`summarise`: per model and loss, every seed's ratios and cost."""
     def j(v: list, spec: str) -> str:
         return " / ".join(format(x, spec) for x in v) if v else "–"
-    lines = ["| model | loss | seeds | position ÷ training mean (pair) | rotation ÷ (pair) | position ÷ (accumulated) "
-             "| mode gap | pairs to 0.90 |", "|---|---|---|---|---|---|---|---|"]
+    folds = any(len(key.split("/")) > 3 for key in by_model)
+    lines = [f"| model | loss |{' held out |' if folds else ''} seeds | position ÷ training mean (pair) "
+             "| rotation ÷ (pair) | position ÷ (accumulated) | mode gap | pairs to 0.90 |",
+             "|---|---|" + ("---|" if folds else "") + "---|---|---|---|---|---|"]
     for key, e in by_model.items():
-        arch, loss, _ = key.split("/")
-        lines.append(f"| {arch} | {loss} | {j(e['seeds'], 'd')} | {j(e['ratio_pos_pair'], '.3f')} "
+        arch, loss, *rest = key.split("/")
+        held = f" {rest[1]} |" if folds else ""
+        lines.append(f"| {arch} | {loss} |{held} {j(e['seeds'], 'd')} | {j(e['ratio_pos_pair'], '.3f')} "
                      f"| {j(e['ratio_rot_pair'], '.3f')} | {j(e['ratio_pos_acc'], '.2f')} | {j(e['mode_gap'], '.3f')} "
                      f"| {j(e['pairs_to_target'], ',.0f')} |")
     return lines
 
 
 def flat(by_model: dict[str, Any]) -> dict[str, dict[str, list]]:
-    """The per-seed figures keyed ``arch-loss`` (a document's span path cannot hold the ``/`` of by_model's keys)."""
+    """The per-seed figures keyed ``arch-loss`` (a document's span path cannot hold the ``/`` of by_model's keys);
+    cross-subject groups also per fold, ``arch-loss-<held-out patient>``, with ``arch-loss`` pooling the folds."""
     out: dict[str, dict[str, list]] = {"ratio_pos": {}, "ratio_rot": {}, "ratio_pos_acc": {}, "mode_gap": {}}
     for key, e in by_model.items():
-        name = "-".join(key.split("/")[:2])
+        parts = key.split("/")
+        names = ["-".join(parts[:2])] + (["-".join([*parts[:2], parts[3]])] if len(parts) > 3 else [])
         for field, src in (("ratio_pos", "ratio_pos_pair"), ("ratio_rot", "ratio_rot_pair"),
                            ("ratio_pos_acc", "ratio_pos_acc"), ("mode_gap", "mode_gap")):
-            out[field][name] = e[src]
+            for i, name in enumerate(names):
+                pooled = i == 0 and len(parts) > 3  # the folds of one model pooled under arch-loss
+                out[field][name] = sorted([*out[field].get(name, []), *e[src]]) if pooled else e[src]
     out["mode_gap"]["all"] = sorted(x for e in by_model.values() for x in e["mode_gap"])
     return out
 
