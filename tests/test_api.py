@@ -86,3 +86,19 @@ def test_status_shows_the_trained_cell_finished_with_its_run_and_headline(projec
     assert cell.headline == pytest.approx(trained.headline, rel=1e-3)  # logged to 4 significant digits
     # trained by `train`, not by a sweep: the claims table does not know it, MLflow does (status says so)
     assert any("FINISHED in MLflow but not in the claims table" in line for line in state.before)
+
+
+def test_tune_returns_the_study_optuna_stored_and_study_reads_it_back(project):
+    import optuna
+
+    result = api.tune(project, arch="baseline", rot_loss="mse", population="personalized", trials=2,
+                      overrides=ONE_CELL)
+    assert isinstance(result, api.StudyResult)
+    cfg = load_config(project, overrides=ONE_CELL)
+    stored = optuna.load_study(study_name=result.study, storage=cfg.paths.storage_url)
+    complete = [t for t in stored.trials if t.state == optuna.trial.TrialState.COMPLETE]
+    assert result.counts["complete"] == len(complete) and sum(result.counts.values()) == len(stored.trials) >= 2
+    if complete:  # a pruned pair of trials leaves no best: then there is none to compare
+        assert (result.best_number, result.best_value) == (stored.best_trial.number, stored.best_trial.value)
+        assert result.best_params == stored.best_trial.params
+    assert api.study(project, result.study, overrides=ONE_CELL) == result

@@ -9,7 +9,8 @@ Work (``api.work``; the commands are thin layers over these):
 * :func:`train` -- one cell as one MLflow run -> :class:`TrainResult`;
 * :func:`report` -- the paper's tables and figures from the runs -> :class:`ReportResult` (``Table.frame()``:
   a table as a pandas DataFrame);
-* :func:`status` -- a sweep's cells, their runs and metrics -> ``SweepState`` (``cells()``).
+* :func:`status` -- a sweep's cells, their runs and metrics -> ``SweepState`` (``cells()``);
+* :func:`tune` / :func:`study` -- an Optuna study of one cell run, or read -> :class:`StudyResult`.
 
 Inference (``api.inference``):
 
@@ -31,10 +32,11 @@ from typing import TYPE_CHECKING, Any
 
 from ..training.outcome import TrainResult
 from .inference import PoseModel, chain, load_model, predict, read_frames, read_poses, score
-from .work import config_of, report, status, train
+from .results import StudyResult, SweepResult
+from .work import config_of, report, status, study, train, tune
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score",
-           "train", "report", "status", "config_of", "TrainResult", "ReportResult", "Table"]
+           "train", "report", "status", "tune", "study", "config_of", "StudyResult", "SweepResult", "TrainResult", "ReportResult", "Table"]
 
 if TYPE_CHECKING:
     from ..reporting.report import ReportResult

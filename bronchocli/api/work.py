@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 
@@ -25,6 +25,7 @@ if TYPE_CHECKING:  # the results' modules load their stacks (torch, the reportin
     from ..reporting.report import ReportResult
     from ..sweep.status import SweepState
     from ..training.outcome import TrainResult
+    from .results import StudyResult
 
 ConfigLike = str | os.PathLike | Config
 
@@ -124,3 +125,53 @@ def status(config: ConfigLike = DEFAULT_CONFIG, *, sweep: str | None = None, sho
     if storage:
         cfg = cfg.with_values({"storage.url": storage})
     return entry.status(cfg, sweep or cfg.name, show_all=show_all, repair=repair, console=console or _silent())
+
+
+def _target(cfg: Config, arch: str | None, rot_loss: str | None, population: str | None, **coords: Any):
+    if arch is None and rot_loss is None and population is None:
+        return None
+    if arch is None or rot_loss is None or population is None:
+        raise BronchoError("tune needs all of --arch, --rot-loss and --population (or --show --study NAME)")
+    return cfg.cell(arch=arch, rot_loss=rot_loss, population=population, **coords)
+
+
+def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
+         fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
+         train_trajectories: int | None = None, trials: int | None = None, timeout: float | None = None,
+         storage: str | None = None, study: str | None = None, workers: int | None = None, gpus: str = "auto",
+         per_gpu: int = 1, progress: bool = False, profile: str | None = None, overrides: Sequence[str] = (),
+         console: Console | None = None) -> StudyResult:
+    """Tune one cell's hyperparameters over ``tune.space`` with Optuna, as ``bronchopose tune`` does: the study
+    (shared storage, resumable) runs to ``trials`` finished trials (default ``tune.trials``) with ``workers``
+    local processes; returns the study's :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
+    from ..sweep import entry  # lazy: optuna only when tuning
+    from .results import StudyResult
+
+    cfg = config_of(config, profile, overrides)
+    if storage:
+        cfg = cfg.with_values({"storage.url": storage})
+    target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
+                     train_trajectories=train_trajectories)
+    info = entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus,
+                      per_gpu=per_gpu, progress=progress, console=console or _silent())
+    return StudyResult.from_info(info)
+
+
+def study(config: ConfigLike = DEFAULT_CONFIG, name: str | None = None, *, arch: str | None = None,
+          rot_loss: str | None = None, population: str | None = None, fold: str | None = None, seed: int = 0,
+          pose_frame: str | None = None, train_trajectories: int | None = None, storage: str | None = None,
+          fmt: str = "table", profile: str | None = None, overrides: Sequence[str] = (),
+          console: Console | None = None) -> StudyResult:
+    """A stored study's state, as ``bronchopose tune --show`` prints it: ``name``, or the study of the cell
+    (``arch``, ``rot_loss``, ``population``, ...). No training."""
+    from ..sweep import entry  # lazy: optuna only when a study is read
+    from .results import StudyResult
+
+    if fmt not in ("table", "json"):
+        raise BronchoError(f"--format {fmt!r}: must be table or json")
+    cfg = config_of(config, profile, overrides)
+    if storage:
+        cfg = cfg.with_values({"storage.url": storage})
+    target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
+                     train_trajectories=train_trajectories)
+    return StudyResult.from_info(entry.show_study(cfg, name, target, fmt, console or _silent()))

@@ -1,4 +1,4 @@
-"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results (``sweep.entry``)."""
+"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results (``bronchocli.api.tune`` / ``api.study``)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
 from ..config.sections import MAX_WORKERS
 from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console, load
+from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console
 
 
 def tune(
@@ -54,23 +54,15 @@ def tune(
     (`--gpus`, `--per-gpu`), each logging to sweep.logs/<study>. With
     --show, print the best trial and parameter importances (no training).
     """
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from .. import api  # lazy: keeps `bronchopose --help` fast
 
-    cfg = load(config, profile, set_)
-    if storage:
-        cfg = cfg.with_values({"storage.url": storage})
-    if fmt not in ("table", "json"):
-        raise BronchoError(f"--format {fmt!r}: must be table or json")
-    target = None
-    if arch is not None or rot_loss is not None or population is not None:
-        if arch is None or rot_loss is None or population is None:
-            raise BronchoError("tune needs all of --arch, --rot-loss and --population (or --show --study NAME)")
-        target = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
-                          pose_frame=pose_frame, train_trajectories=train_trajectories)
+    cell = dict(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed, pose_frame=pose_frame,
+                train_trajectories=train_trajectories)
+    given = dict(storage=storage, profile=profile, overrides=set_ or (), console=console)
     if show:
-        entry.show_study(cfg, study, target, fmt, console)
-    elif target is None:
+        api.study(config, study, fmt=fmt, **cell, **given)
+    elif arch is None and rot_loss is None and population is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     else:
-        entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus,
-                   per_gpu=per_gpu, progress=not quiet, console=console)
+        api.tune(config, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus, per_gpu=per_gpu,
+                 progress=not quiet, **cell, **given)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import replace
+from typing import Any
 
 from rich.console import Console
 from rich.table import Table
@@ -218,8 +219,9 @@ def grid(cfg: Config, console: Console) -> None:
 # -- bronchopose tune ------------------------------------------------------------------------------------
 
 
-def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> None:
-    """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study)."""
+def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> dict[str, Any]:
+    """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study); returns
+    what it showed (``tuning.describe_study``)."""
     from . import tuning  # lazy: optuna only when a study is read
 
     if study is None and target is None:
@@ -230,13 +232,13 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
     info = tuning.summary(cfg, study)
     if fmt == "json":
         console.print_json(json.dumps(info, default=str))
-        return
+        return info
     counts = ", ".join(f"{v} {k}" for k, v in info["counts"].items() if v)
     console.print(f"[bold]study[/] {study}: {counts or 'no trials'}")
     best = info["best"]
     if best is None:
         console.print("no completed trial yet")
-        return
+        return info
     table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
                   f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
     for name, value in best["params"].items():
@@ -247,13 +249,15 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
     if info.get("importances_note"):
         console.print(f"importances unavailable: {info['importances_note']}")
     console.print(f"apply it: bronchopose sweep run --use-tuned {study}  (or train --use-tuned {study})")
+    return info
 
 
 def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | None = None,
          timeout: float | None = None, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
-         progress: bool = True, console: Console) -> None:
+         progress: bool = True, console: Console) -> dict[str, Any]:
     """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials with
-    its workers placed like a sweep's (``--workers``, ``--gpus``, ``--per-gpu``), then show its best trial."""
+    its workers placed like a sweep's (``--workers``, ``--gpus``, ``--per-gpu``), then show its best trial;
+    returns the study's description (``tuning.describe_study``)."""
     from . import tunepool, tuning  # lazy: optuna only when the command runs
 
     _local_store(cfg)  # paths, then the storage answers (runs.timeout_s): one line before any dataset is rendered
@@ -273,4 +277,4 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     s = tunepool.tune(cfg, target, trials, study=study, timeout=timeout or cfg.tune.timeout, workers=n,
                       gpus=devices if n > 1 or gpus != "auto" else (), progress=progress, enqueue=cfg.tune.enqueue)
     console.print(f"{tuning.finished(s)} finished trials in study {name}")
-    show_study(cfg, name, None, "table", console)
+    return show_study(cfg, name, None, "table", console)
