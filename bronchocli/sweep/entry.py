@@ -39,9 +39,9 @@ from ..runs.parents import KIND_SWEEP, find_parent
 from . import damage
 from . import launch as launching
 from . import placement, planview, summary
-from . import launchers as registry
 from .housekeeping import collect_garbage, foreign, repair_zombies
 from .launchers import Launcher, launcher_class, reference
+from .launchers import names as launcher_names
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
 from .status import show_status
@@ -76,7 +76,7 @@ def launcher_options(kind: type[Launcher], given: dict[str, Any]) -> dict[str, A
     (``{"workers": 2}``); one line naming those it does not take and the launchers that do."""
     given = {flag: value for flag, value in given.items() if value is not None}
     if foreign := [flag for flag in given if flag not in kind.options]:
-        owners = [n for n in registry.names() if set(foreign) & set(registry.launcher_class(n).options)]
+        owners = [n for n in launcher_names() if set(foreign) & set(launcher_class(n).options)]
         raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
                            f"{kind.name} sizes its workers itself (docs/cluster.md)")
     return {flag.lstrip("-").replace("-", "_"): value for flag, value in given.items()}

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 from rich.console import Console
 from rich.live import Live
@@ -66,32 +67,55 @@ def print_stage(walk: StageWalk, stage: Stage, console: Console) -> None:
                    stage_title(stage, len(walk.stages)), walk.store)
 
 
-def submit_missing(walk: StageWalk, launcher: Launcher, console: Console,
-                   submitted_for: list[str] | None = None) -> list[str]:
-    """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered);
-    ``submitted_for`` gets the stage of each.
+@dataclass
+class Submitted:
+    """What this command's submissions found: the stages it submitted workers for, and the stage that waits (cells
+    of its source are not done: excluded by ``--only``, or running elsewhere), if the last walk stopped there."""
 
-    The first stage with cells left wants a worker per cell runnable now (``runnable_now``, at most
-    ``launcher.capacity``); a later stage's submission waits (``after``) for the ones before it, and one queued
-    for a later stage is made to wait for an earlier stage's new submission too (``launcher.follow``); a
-    launcher that cannot make a submission wait (``defers`` False) gets the first stage with cells left only."""
-    # Workers being stopped (scancel: COMPLETING until their processes are gone) claim nothing more: not cover.
-    active = [t for t in launcher.active() if not t.ending]
-    for step in walk.steps():  # a stage whose source is done is settled first
+    stages: list[str] = field(default_factory=list)
+    waiting: Step | None = None
+
+
+def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted) -> list[tuple[Stage, int]]:
+    """Settle (and print) each stage whose source is done; the stages to size submissions for, with their cells
+    left. A launcher that submits one stage at a time (``defers`` False) gets the first stage with cells left and
+    decides a stage only once those before it are done: each selection is read when planned, decided and settled."""
+    retries, first_open = walk.cfg.sweep.max_retries, None
+    record.waiting = None
+    for step in walk.steps():
         if step.settled is not None:
             console.print(describe_selection(step.settled), highlight=False)
             ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [])
             print_stage(walk, step.stage, console)
+        if step.waits:
+            record.waiting = step
+        elif not launcher.defers and step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells), retries):
+            first_open = step.stage
+            break
+    if launcher.defers:
+        return walk.work_left()
+    return [(first_open, 1)] if first_open is not None else []
+
+
+def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None,
+                   ) -> list[str]:
+    """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered);
+    ``record`` gets the stage of each, and the stage that waits.
+
+    The first stage with cells left wants a worker per cell runnable now (``runnable_now``, at most
+    ``launcher.capacity``); a later stage's submission waits (``after``) for the ones before it, and one queued
+    for a later stage is made to wait for an earlier stage's new submission too (``launcher.follow``)."""
+    record = record if record is not None else Submitted()
+    # Workers being stopped (scancel: COMPLETING until their processes are gone) claim nothing more: not cover.
+    active = [t for t in launcher.active() if not t.ending]
     submitted: list[str] = []
     earlier: list[str] = []  # submissions labelled with an earlier stage (queued, running or just submitted)
     first = True
-    for stage, left in walk.work_left():
+    for stage, left in _walk(walk, launcher, console, record):
         mine = [t for t in active if t.stage == stage.name]
         if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=_job_order)):
             launcher.follow(queued, earlier)
         if left:
-            if not first and not launcher.defers:
-                break
             have = sum(t.count for t in mine)
             if first:
                 want = launcher.capacity(runnable_now(walk, stage, active))
@@ -105,8 +129,7 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console,
                               highlight=False)
                 submitted.append(job)
                 earlier.append(job)
-                if submitted_for is not None:
-                    submitted_for.append(stage.name)
+                record.stages.append(stage.name)
             first = False
         earlier += sorted({t.job for t in mine} - set(earlier), key=_job_order)
     return submitted
@@ -141,8 +164,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
         with launcher.supervised():  # the local launcher's Ctrl-C stops its workers; a failure stops them first
             for stage in walk.stages:
                 print_stage(walk, stage, console)
-            ran: list[str] = []
-            if not submit_missing(walk, launcher, console, ran):
+            record = Submitted()
+            if not submit_missing(walk, launcher, console, record):
                 tasks = launcher.active()
                 console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of "
                               "this sweep queued or running" if tasks else "nothing left to run")
@@ -152,7 +175,7 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
                               "workers")
                 return 0
             code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent),
-                         lambda: summary.reopen(client, parent), ran)  # a top-up after its last worker stopped it
+                         lambda: summary.reopen(client, parent), record)  # a top-up after its last worker stopped it
         return code
     finally:
         if not detach and (code is not None or launcher.stopped):
@@ -192,13 +215,14 @@ def _open_stage(walk: StageWalk, plan: Plan, retries: int) -> str | None:
     return None
 
 
-def _waiting(walk: StageWalk) -> Step | None:
-    """The stage that cannot start because cells of its source are not done (and never will be here)."""
-    return next((step for step in walk.steps() if step.waits), None)
+def _rows(walk: StageWalk, launcher: Launcher) -> Plan:
+    """The known cells' rows. A launcher that submits later stages ahead (``defers``) has workers that settle
+    their selections: read on every refresh; otherwise this process settles each stage as it submits it."""
+    return walk.rows() if launcher.defers else read_plan(walk.store, walk.sweep, walk.known_cells())
 
 
 def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Callable[[], bool] = lambda: False,
-          resubmitted: Callable[[], object] = lambda: None, submitted_for: Collection[str] = ()) -> int:
+          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None) -> int:
     """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
     requeued tasks without its hold). When none is left: the next stage's workers once a stage is done; a top-up
     when workers ended with cells left (``launcher.resubmits``) but progress was made since the last submission
@@ -207,16 +231,16 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
     command (``launcher.stopped``) end it with 130; Ctrl-C of a detached launcher's watch stops watching only."""
     cfg = walk.cfg
     retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
-    ran = list(submitted_for)  # the stages submitted by this command
+    record = record if record is not None else Submitted()  # what this command submitted, what waits
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    last_line, plan, asked = "", walk.rows(), time.monotonic()
+    last_line, plan, asked = "", _rows(walk, launcher), time.monotonic()
     seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
     if live is not None:
         live.start()
     try:
         while True:
             try:
-                plan, now = walk.rows(), walk.store.db_now()
+                plan, now = _rows(walk, launcher), walk.store.db_now()
                 tasks = launcher.active()
             except BronchoError as exc:  # a storage or scheduler hiccup must not end the watch
                 log.warning("%s", exc)
@@ -246,11 +270,8 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
                 left = cells_left(plan, retries)
                 if not left and walk.complete:
                     break
-                if not launcher.resubmits and _open_stage(walk, plan, retries) in ran:
+                if not launcher.resubmits and _open_stage(walk, plan, retries) in record.stages:
                     return final(console, plan, retries)  # its workers ended with cells left: a new one would too
-                if not left and (step := _waiting(walk)) is not None:
-                    console.print(waits_line(step), highlight=False)
-                    return final(console, walk.rows(), retries)
                 claimable = claimable_now(plan, retries, now, stale_s)
                 if left and not claimable:  # a dead worker's cell: claimable once its claim is stale, not before
                     launcher.wait(launcher.poll_s)
@@ -259,7 +280,10 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
                 # selected, a dead one's claim went stale): submit again, but only when the table moved since the
                 # last submission (workers that crash at start would otherwise be resubmitted for ever)
                 now_seen = _table_state(plan, claimable)
-                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console, ran):
+                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console, record):
+                    if record.waiting is not None and not left:  # the walk stops at a stage that cannot start
+                        console.print(waits_line(record.waiting), highlight=False)
+                        return final(console, _rows(walk, launcher), retries)
                     console.print(f"[yellow]no {launcher.title} {launcher.task_word} of sweep {cfg.name} is left and "
                                   f"{left} cell(s) are not done[/]; see the logs ({launcher.describe()}) and run the "
                                   "command again")

@@ -8,7 +8,7 @@ from sweep_fakes import fake_runner, runs_by_cell
 
 from bronchocli.errors import BronchoError
 from bronchocli.sweep import SweepStore
-from bronchocli.sweep.launch import submit_missing, watch
+from bronchocli.sweep.launch import Submitted, submit_missing, watch
 from bronchocli.sweep.launchers import LocalLauncher
 from bronchocli.sweep.placement import assign, default_workers, parse_gpus, visible_gpus
 from bronchocli.sweep.plan import prepare_walk
@@ -43,10 +43,10 @@ def test_each_worker_process_sees_only_its_gpu(make_config, tmp_path, fake_dir):
     cfg = make_config(archs=("baseline", "lstm", "convlstm", "conv3d"))
     store = SweepStore(cfg.paths.storage_url)
     walk, plan = prepare_walk(cfg, store, dataset=False)
-    launcher, console, stages = LocalLauncher(cfg, runner=fake_runner, gpus=["3", "5"], workers=2), Console(), []
+    launcher, console, record = LocalLauncher(cfg, runner=fake_runner, gpus=["3", "5"], workers=2), Console(), Submitted()
     with launcher.supervised():  # as `sweep run` drives it
-        submit_missing(walk, launcher, console, stages)
-        exit_code = watch(walk, launcher, console, submitted_for=stages)
+        submit_missing(walk, launcher, console, record)
+        exit_code = watch(walk, launcher, console, record=record)
     assert exit_code == 0
     seen = {c.key: (fake_dir / f"gpu-{c.key}").read_text() for c in plan.cells}
     assert set(seen.values()) <= {"3", "5"} and len(runs_by_cell(cfg)) == 4

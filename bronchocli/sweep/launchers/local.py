@@ -24,8 +24,9 @@ import multiprocessing as mp
 import os
 import signal
 import socket
+import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 from typing import Any
@@ -150,7 +151,8 @@ class LocalLauncher(Launcher):
 
     def describe(self) -> str:
         gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
-        return f"here{gpus} ({self.workers} workers at most), logs {self.processes.log_dir}"
+        n = f"{self.workers} worker" + ("s" if self.workers > 1 else "")
+        return f"here{gpus} (at most {n}), logs {self.processes.log_dir}"
 
     def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
         return f"stage {stage}: {n} local worker process{'es' if n > 1 else ''} started"
@@ -175,11 +177,15 @@ class LocalLauncher(Launcher):
             self.processes.stop()
         return subs
 
-    def supervised(self) -> Any:
+    def supervised(self) -> AbstractContextManager[None]:
         return self.processes.supervised()
 
     def wait(self, timeout: float) -> None:
-        self.processes.wait(timeout)
+        """Until a worker exits or ``timeout`` seconds pass (none running: the seconds)."""
+        if self.processes.sentinels():
+            self.processes.wait(timeout)
+        else:
+            time.sleep(timeout)
 
     def exit_codes(self) -> list[int | None]:
         ended = [p for p, _, _ in self.processes.procs[self._reported:]]
