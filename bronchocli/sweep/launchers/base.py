@@ -25,7 +25,8 @@ changed), ``stopped`` (its workers were told to stop), ``exit_codes`` (how the w
 exited, where it can tell), ``defers`` (a later stage's submission can wait for the earlier ones:
 without it one stage is submitted at a time) and ``resubmits`` (workers that ended with cells left
 are replaced: they were cancelled or timed out; without it they stopped for a reason a new worker
-would meet too). The worker side: ``worker_signals`` (extra stop signals), ``worker_job`` (this
+would meet too), ``runs_command`` (its workers run ``command``), ``poll_s`` (how often the watch asks)
+and ``submitted`` (the line announcing a submission). The worker side: ``worker_signals`` (extra stop signals), ``worker_job`` (this
 worker's id in the launcher, recorded in its ``WorkerId``), ``worker_threads``,
 ``worker_exits_when_idle`` and ``worker_done`` (after the worker loop; Slurm requeues a task warned of
 its time limit).
