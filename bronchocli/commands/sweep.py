@@ -117,23 +117,15 @@ def run(
 
     spec = _spec(config, profile, set_, storage, use_tuned, only, runner)
     cfg = spec.load()  # as every Slurm array task loads it
-    selection, cell_runner = spec.selection(), spec.cell_runner()
+    spec.selection()  # a bad --only or --runner: one line before anything else
+    spec.cell_runner()
     kind = entry.launcher_kind(cfg, launcher)
-    if kind.name != "local":
-        given = [f for f, v in (("--workers", workers), ("--gpus", gpus), ("--per-gpu", per_gpu)) if v is not None]
-        if given:
-            raise BronchoError(f"{', '.join(given)}: options of the local launcher; launcher {kind.name} sizes "
-                               f"its workers itself (docs/cluster.md)")
+    options = entry.launcher_options(kind, {"--workers": workers, "--gpus": gpus, "--per-gpu": per_gpu})
     if detach and not kind.detachable:
         raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
                            "whose workers outlive it (slurm) can detach")
-    console = _wide()
-    if kind.name == "local":
-        code = entry.run(cfg, selection, workers=workers, gpus=gpus or "auto", per_gpu=per_gpu or 1,
-                         retry_failed=retry_failed, runner=cell_runner, console=console)
-    else:
-        code = entry.launch(cfg, spec, kind, detach=detach, retry_failed=retry_failed, console=console)
-    raise typer.Exit(code)
+    raise typer.Exit(entry.run(cfg, spec, kind, options=options, detach=detach, retry_failed=retry_failed,
+                               console=_wide()))
 
 
 @app.command(name="plan")

@@ -11,23 +11,24 @@
   its own module: ``local`` (child processes here), ``slurm`` (job arrays); a registry of their names;
 - ``stagework``: the one worker entry every launcher starts (``worker_main``: one worker through the stages);
 - ``task``: a detached worker's command (``python -m bronchocli.sweep.task <spec>``) and its spec;
-- ``pool``, ``staged``: ``sweep run`` with the local launcher (stages in order, each with the pool's live view);
-- ``launch``: ``sweep run`` with a launcher whose workers outlive the command (submit what is missing, watch);
-- ``entry``: the sweep's verbs as library calls (run, launch, dry_run, gc, cancel), ``status``, ``tune``;
+- ``launch``: ``sweep run`` with any launcher, the one driver (submit what is missing, watch, next stage, top up);
+- ``planview``: the plan as the commands print it (``sweep plan``, and ``sweep run`` before it submits);
+- ``entry``: the sweep's verbs as library calls (run, dry_run, gc, cancel), ``status``, ``tune``;
 - ``record``: MLflow as the record of what finished (claims rows rebuilt from FINISHED runs, rows whose run was
   deleted by hand made pending, the check before training, the read-only view for ``sweep plan`` and ``status``);
 - ``placement``, ``housekeeping``: GPUs for local workers; checkpoints on disk (inventory, ``sweep gc``,
   ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
 - ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``
   and the parent runs;
-- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers through the local pool;
-  ``tuneresume``: a stopped trial's checkpoint handed to a trial that resumes it, and what ``sweep gc`` keeps.
+- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers local processes
+  (``tunepool``, ``launchers.local.LocalProcesses``); ``tuneresume``: a stopped trial's checkpoint handed to a
+  trial that resumes it, and what ``sweep gc`` keeps.
 
 See docs/sweep.md for the model and the exactly-once argument.
 """
 
+from .launchers import Launcher  # before stagework: the local launcher imports it while the registry loads
 from .plan import Plan, plan_cells, prepare, read_plan
-from .pool import PoolResult, run_pool
 from .stagework import WorkerJob, worker_config, worker_main
 from .storage import FAILED, FINISHED, PENDING, RUNNING, TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 from .worker import TAG_ATTEMPT, TAG_WORKER, StopSignals, Worker, WorkerId
@@ -42,8 +43,8 @@ __all__ = [
     "TAG_WORKER",
     "CellRow",
     "Claim",
+    "Launcher",
     "Plan",
-    "PoolResult",
     "StopSignals",
     "StorageError",
     "SweepStore",
@@ -53,7 +54,6 @@ __all__ = [
     "plan_cells",
     "prepare",
     "read_plan",
-    "run_pool",
     "worker_config",
     "worker_main",
 ]

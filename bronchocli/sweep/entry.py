@@ -3,9 +3,9 @@
 
 The sweep's verbs (the config loaded by ``task.TaskSpec.load``, the same call a detached worker makes):
 
-- ``run``: the plan's stages here, with local worker processes (``staged.run_sweep``, the local launcher);
-- ``launch``: with a launcher whose workers outlive the command (Slurm): submit them, then watch
-  (``launch.launch``);
+- ``run``: the plan's stages with a launcher (local worker processes, Slurm job arrays, any registered one):
+  submit the workers, then watch (``launch.launch``, the one driver); ``launcher_options`` refuses the
+  options a launcher does not take;
 - ``dry_run`` (``sweep plan``): the plan and each cell's state; nothing is started;
 - ``gc``: remove the checkpoints nothing can resume on this machine (``dry_run``: list them), list the kept;
 - ``cancel``: stop the sweep's workers of a launcher (``dry_run``: list them).
@@ -38,9 +38,10 @@ from ..runs.client import check_reachable, client_for, experiment_id, store_miss
 from ..runs.parents import KIND_SWEEP, find_parent
 from . import damage
 from . import launch as launching
-from . import placement, staged, summary
+from . import placement, planview, summary
 from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
 from .launchers import Launcher, launcher_class, reference
+from .launchers import names as launcher_names
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
 from .status import SweepState, show_status
@@ -48,7 +49,6 @@ from .record import missing_runs
 from .storage import FINISHED, SweepStore
 from .summary import record_cancel
 from .task import TaskSpec, command
-from .worker import Runner, default_runner
 
 log = logging.getLogger(__name__)
 
@@ -71,18 +71,37 @@ def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[st
     return workers or placement.default_workers(devices, per_gpu), devices
 
 
-def run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
-        retry_failed: bool = False, runner: Runner = default_runner, console: Console) -> int:
-    """Run every cell of the plan not FINISHED with local workers; 0 all FINISHED, 1 some FAILED, 130 stopped."""
-    store = _local_store(cfg)
-    n, devices = _workers(workers, gpus, per_gpu)
+def launcher_options(kind: type[Launcher], given: dict[str, Any]) -> dict[str, Any]:
+    """The options given to ``sweep run`` (``{"--workers": 2}``; None: not given) as ``kind.create`` takes them
+    (``{"workers": 2}``); one line naming those it does not take and the launchers that do."""
+    given = {flag: value for flag, value in given.items() if value is not None}
+    if foreign := [flag for flag in given if flag not in kind.options]:
+        owners = [n for n in launcher_names() if set(foreign) & set(launcher_class(n).options)]
+        raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
+                           f"{kind.name} sizes its workers itself (docs/cluster.md)")
+    return {flag.lstrip("-").replace("-", "_"): value for flag, value in given.items()}
+
+
+def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str, Any] | None = None,
+        detach: bool = False, retry_failed: bool = False, console: Console) -> int:
+    """Run every cell of the plan not FINISHED with launcher ``kind`` (``options``: ``launcher_options``'s): its
+    workers run the cells (a detached launcher's each run ``task.command`` with ``spec``), watched unless
+    ``detach``; re-running submits only what the queued and running workers do not cover. 0 all FINISHED, 1
+    some FAILED, 130 stopped."""
+    check_paths(cfg, storage=True, logs=True)  # before anything is created
+    launcher = kind.create(cfg, only=spec.selection(), runner=spec.cell_runner(), **(options or {}))
+    launcher.check()  # first: a refused submission writes no 0600 secrets file (``command`` seals the spec)
+    if kind.runs_command:
+        launcher.command = command(cfg, replace(spec, launcher=reference(kind)))
+    store = open_store(cfg)
+    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
         from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
 
         initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
                                                                           for st in cfg.stages)] for a in g.arch}))
-    return staged.run_sweep(cfg, store, only=only, workers=n, console=console, retry_failed=retry_failed,
-                            gpus=devices, runner=runner)
+    return launching.launch(cfg, store, spec.selection(), launcher, detach=detach, console=console,
+                            retry_failed=retry_failed)
 
 
 def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
@@ -90,7 +109,7 @@ def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: s
     """Print the plan (per stage: its cells and their state) and the workers a run would start; starts nothing."""
     store = _local_store(cfg)
     n, _ = _workers(workers, gpus, per_gpu)
-    staged.dry_run(cfg, store, only, n, console)
+    planview.dry_run(cfg, store, only, n, console)
     return 0
 
 
@@ -118,18 +137,6 @@ def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
     console.print(f"gc{' --dry-run' if dry_run else ''}: {verb} {fmt_bytes(sum(n for _, n in freed))} in "
                   f"{len(freed)} checkpoint folder(s)" + ("; nothing was removed" if dry_run else ""))
     return 0
-
-
-def launch(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, detach: bool = False, retry_failed: bool = False,
-           console: Console) -> int:
-    """Submit the plan's workers with launcher ``kind`` (each: ``task.command`` with ``spec``) and, unless
-    ``detach``, watch them; re-running submits only what the queued and running workers do not cover."""
-    check_paths(cfg, storage=True, logs=True)
-    launcher = kind(cfg)
-    launcher.check()  # first: a refused submission writes no 0600 secrets file (``command`` seals the spec)
-    launcher.command = command(cfg, replace(spec, launcher=reference(kind)))
-    return launching.launch(cfg, open_store(cfg), spec.selection(), launcher, detach=detach, console=console,
-                            retry_failed=retry_failed)
 
 
 def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool = False) -> int:

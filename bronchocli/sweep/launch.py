@@ -1,10 +1,13 @@
-"""``bronchopose sweep run`` with a launcher whose workers outlive the command (``Launcher.detachable``: Slurm, or
-any registered one): check, prepare the shared state, submit what the launcher's queued and running workers do not
-cover, and (unless ``--detach``) watch the table until they are gone, topping up when workers ended with cells
-left; ``cancel`` stops them. The launcher is the protocol (``launchers.base``); nothing here is Slurm's.
+"""``bronchopose sweep run`` with any launcher: the one driver. Check, prepare the shared state, print the plan,
+submit what the launcher's queued and running workers do not cover, and (unless ``--detach``) watch the table
+until they are gone, moving on to the next stage and topping up when workers ended with cells left; ``cancel``
+stops them. The launcher is the protocol (``launchers.base``); nothing here names one.
 
 A worker works the stages up to the one it was submitted for (``STAGE_ENV``), never a later one, so each
-stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it.
+stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it,
+or, with a launcher that cannot make a submission wait (``defers`` False: the local one), is made once the
+stages before it are done. The watch runs inside ``launcher.supervised()``: the local launcher's Ctrl-C stops
+its workers there (they release their cells; the sweep exits 130), a detached launcher's stops the watch only.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 from rich.console import Console
 from rich.live import Live
@@ -21,20 +25,20 @@ from ..cells import Selection
 from ..config import Config, Stage
 from ..errors import BronchoError
 from ..runs.client import client_for, experiment_id
-from ..runs.parents import set_parent_status, sweep_parent
+from ..runs.parents import set_parent_status, start_parent, sweep_parent
 from ..runs.records import set_tags
 from . import summary
 from .launchers import reference
 from .launchers.base import Launcher, Workers
-from .plan import Plan, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
+from .plan import Plan, Step, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
+from .planview import final, print_plan, report_workers, stage_title, waits_line
 from .selection import describe_selection
 from .status import live_view, progress, summary_line
-from .storage import FINISHED, RUNNING, SweepStore
+from .storage import RUNNING, SweepStore
 from .worker import EXIT_INTERRUPTED, job_of
 
 log = logging.getLogger(__name__)
 
-REFRESH_S = 1.0
 CANCEL_CHECK_S = 10.0  # how often a watch asks whether the sweep was cancelled while its workers run
 
 
@@ -55,22 +59,59 @@ def runnable_now(walk: StageWalk, stage: Stage, active: Sequence[Workers]) -> in
     return len(claimable) + held
 
 
-def submit_missing(walk: StageWalk, launcher: Launcher, console: Console) -> list[str]:
-    """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered).
+def print_stage(walk: StageWalk, stage: Stage, console: Console) -> None:
+    """A stage's cells with their state and counts (``sweep plan``'s table)."""
+    cells = walk.cells(stage)
+    if cells:
+        print_plan(console, read_plan(walk.store, walk.sweep, cells), walk.cfg, None,
+                   stage_title(stage, len(walk.stages)), walk.store)
+
+
+@dataclass
+class Submitted:
+    """What this command's submissions found: the stages it submitted workers for, and the stage that waits (cells
+    of its source are not done: excluded by ``--only``, or running elsewhere), if the last walk stopped there."""
+
+    stages: list[str] = field(default_factory=list)
+    waiting: Step | None = None
+
+
+def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted) -> list[tuple[Stage, int]]:
+    """Settle (and print) each stage whose source is done; the stages to size submissions for, with their cells
+    left. A launcher that submits one stage at a time (``defers`` False) gets the first stage with cells left and
+    decides a stage only once those before it are done: each selection is read when planned, decided and settled."""
+    retries, first_open = walk.cfg.sweep.max_retries, None
+    record.waiting = None
+    for step in walk.steps():
+        if step.settled is not None:
+            console.print(describe_selection(step.settled), highlight=False)
+            ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [])
+            print_stage(walk, step.stage, console)
+        if step.waits:
+            record.waiting = step
+        elif not launcher.defers and step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells), retries):
+            first_open = step.stage
+            break
+    if launcher.defers:
+        return walk.work_left()
+    return [(first_open, 1)] if first_open is not None else []
+
+
+def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None,
+                   ) -> list[str]:
+    """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered);
+    ``record`` gets the stage of each, and the stage that waits.
 
     The first stage with cells left wants a worker per cell runnable now (``runnable_now``, at most
     ``launcher.capacity``); a later stage's submission waits (``after``) for the ones before it, and one queued
     for a later stage is made to wait for an earlier stage's new submission too (``launcher.follow``)."""
+    record = record if record is not None else Submitted()
     # Workers being stopped (scancel: COMPLETING until their processes are gone) claim nothing more: not cover.
     active = [t for t in launcher.active() if not t.ending]
-    for step in walk.steps():  # as the local launcher does: a stage whose source is done is settled first
-        if step.settled is not None:
-            console.print(describe_selection(step.settled), highlight=False)
-            ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [])
     submitted: list[str] = []
     earlier: list[str] = []  # submissions labelled with an earlier stage (queued, running or just submitted)
     first = True
-    for stage, left in walk.work_left():
+    for stage, left in _walk(walk, launcher, console, record):
         mine = [t for t in active if t.stage == stage.name]
         if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=_job_order)):
             launcher.follow(queued, earlier)
@@ -84,11 +125,11 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console) -> lis
                 want = launcher.capacity(left)
             if want > have:
                 job = launcher.submit(want - have, stage.name, () if first else earlier)
+                console.print(launcher.submitted(job, want - have, stage.name, () if first else earlier),
+                              highlight=False)
                 submitted.append(job)
                 earlier.append(job)
-                console.print(f"submitted {launcher.job_word} {job}: {want - have} {launcher.task_word}(s) for stage "
-                              f"{stage.name}" + ("" if first else f", after job(s) {', '.join(earlier[:-1])}"),
-                              highlight=False)
+                record.stages.append(stage.name)
             first = False
         earlier += sorted({t.job for t in mine} - set(earlier), key=_job_order)
     return submitted
@@ -96,34 +137,52 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console) -> lis
 
 def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, *, detach: bool,
            console: Console, retry_failed: bool = False) -> int:
-    """``bronchopose sweep run --launcher NAME``: check, prepare the shared state, submit workers for what is
-    missing, and (unless ``detach``) watch the table until the sweep's workers are gone."""
+    """``bronchopose sweep run``: check, prepare the shared state, print the plan, submit workers for what is
+    missing, and (unless ``detach``) watch the table until the sweep's workers are gone; exit code 0 (every cell
+    FINISHED), 1 (some FAILED, or workers gone with cells left), 130 (stopped).
+
+    The sweep's parent MLflow run (its cells nest under it) is RUNNING while the sweep runs, with the plan and
+    its selections; when the watch ends, the outcome (``summary.record_parent``). Workers that die with this
+    command (not ``detachable``) make it this process's: ``status --repair`` ends it if the command is killed."""
     launcher.check()  # before touching storage: one line, nothing created, nothing submitted
     store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     console.print(f"[bold]sweep[/] {cfg.name} {launcher.describe()}  storage {store.redacted}  MLflow "
-                  f"{urls.redact(cfg.paths.mlflow_uri)}", highlight=False)
+                  f"{urls.redact(cfg.paths.mlflow_uri)}  experiment {cfg.experiment_name}"
+                  + (f"  hyperparameters {cfg.tune.applied}" if cfg.tune.applied else ""), highlight=False)
     walk, _ = prepare_walk(cfg, store, only, retry_failed=retry_failed)
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))  # the cells nest under it
-    client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
+    if launcher.detachable:
+        client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
+    else:
+        start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
     set_tags(client, parent, {summary.TAG_LAUNCHER: reference(type(launcher)),  # `status` can ask its workers
                               summary.TAG_WATCHER: summary.watcher_tag(detach)})
     summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
-    jobs = submit_missing(walk, launcher, console)
-    if not jobs:
-        tasks = launcher.active()
-        console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of this sweep "
-                      "queued or running" if tasks else "nothing left to run")
-    summary.record_parent(client, parent, walk)  # the plan on the sweep's parent run; the outcome once watching ends
-    if detach:
-        console.print("detached: `bronchopose status` shows progress, `bronchopose sweep cancel` stops the workers")
-        return 0
-    code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent),
-                 lambda: summary.reopen(client, parent))  # a top-up after its last worker had stopped it
-    summary.record_parent(client, parent, walk, finished=True)
-    if code != EXIT_INTERRUPTED:  # stopped watching only: the workers go on, so does the sweep
-        set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED (or FAILED) with it
-    return code
+    code: int | None = None
+    try:
+        with launcher.supervised():  # the local launcher's Ctrl-C stops its workers; a failure stops them first
+            for stage in walk.stages:
+                print_stage(walk, stage, console)
+            record = Submitted()
+            if not submit_missing(walk, launcher, console, record):
+                tasks = launcher.active()
+                console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of "
+                              "this sweep queued or running" if tasks else "nothing left to run")
+            summary.record_parent(client, parent, walk)  # the plan on the parent run; the outcome once watched
+            if detach:
+                console.print("detached: `bronchopose status` shows progress, `bronchopose sweep cancel` stops the "
+                              "workers")
+                return 0
+            code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent),
+                         lambda: summary.reopen(client, parent), record)  # a top-up after its last worker stopped it
+        return code
+    finally:
+        if not detach and (code is not None or launcher.stopped):
+            code = 1 if code is None else code  # this command failed: its workers were stopped
+            summary.record_parent(client, parent, walk, finished=True)
+            if code != EXIT_INTERRUPTED or launcher.stopped:  # stopped watching only: the workers go on
+                set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED, FAILED or KILLED
 
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
@@ -147,37 +206,60 @@ def _table_state(plan: Plan, claimable: set[str]) -> tuple:
     return tuple(sorted((k, r.version) for k, r in plan.rows.items())), tuple(sorted(claimable))
 
 
-def watch(walk: StageWalk, launcher: Launcher, console: Console,
-          cancelled: Callable[[], bool] = lambda: False, resubmitted: Callable[[], object] = lambda: None) -> int:
+def _open_stage(walk: StageWalk, plan: Plan, retries: int) -> str | None:
+    """The first stage with cells left (or not known yet), by the rows of ``plan``; None: every stage is done."""
+    for stage in walk.stages:
+        cells = walk.cells(stage)
+        if cells is None or cells_left(Plan(plan.sweep, cells, plan.rows), retries):
+            return stage.name
+    return None
+
+
+def _rows(walk: StageWalk, launcher: Launcher) -> Plan:
+    """The known cells' rows. A launcher that submits later stages ahead (``defers``) has workers that settle
+    their selections: read on every refresh; otherwise this process settles each stage as it submits it."""
+    return walk.rows() if launcher.defers else read_plan(walk.store, walk.sweep, walk.known_cells())
+
+
+def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Callable[[], bool] = lambda: False,
+          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None) -> int:
     """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
-    requeued tasks without its hold); tops up workers when all ended with cells left but progress was made since
-    the last submission (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first
-    (a worker submitted before would find nothing to claim), then ``resubmitted`` (the parent RUNNING again);
-    Ctrl-C stops watching only."""
+    requeued tasks without its hold). When none is left: the next stage's workers once a stage is done; a top-up
+    when workers ended with cells left (``launcher.resubmits``) but progress was made since the last submission
+    (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first (a worker submitted
+    before would find nothing to claim), then ``resubmitted`` (the parent RUNNING again). Workers stopped by this
+    command (``launcher.stopped``) end it with 130; Ctrl-C of a detached launcher's watch stops watching only."""
     cfg = walk.cfg
     retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
+    record = record if record is not None else Submitted()  # what this command submitted, what waits
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    last_line, plan, asked = "", walk.rows(), time.monotonic()
+    last_line, plan, asked = "", _rows(walk, launcher), time.monotonic()
     seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
     if live is not None:
         live.start()
     try:
         while True:
             try:
-                plan, now = walk.rows(), walk.store.db_now()
+                plan, now = _rows(walk, launcher), walk.store.db_now()
                 tasks = launcher.active()
             except BronchoError as exc:  # a storage or scheduler hiccup must not end the watch
                 log.warning("%s", exc)
-                time.sleep(REFRESH_S)
+                launcher.wait(launcher.poll_s)
                 continue
             n = sum(t.count for t in tasks)
             if live is not None:
-                live.update(live_view(plan, retries, max(1, n)))
+                live.update(live_view(plan, retries, max(1, n), now))
             elif (line := summary_line(progress(plan, retries, max(1, n), now, stale_s)).plain
                   + f"  {launcher.task_word}s {n}") != last_line:
                 console.print(line, highlight=False)
                 last_line = line
             launcher.tick(tasks)
+            if not tasks:
+                report_workers(console, launcher.exit_codes(), launcher.logs(cfg))
+                if launcher.stopped:
+                    console.print("[yellow]interrupted:[/] running cells were released; run the same command "
+                                  "again to resume")
+                    return EXIT_INTERRUPTED
             if not tasks or time.monotonic() - asked > CANCEL_CHECK_S:  # never a top-up after a cancel
                 asked = time.monotonic()
                 if cancelled():
@@ -188,15 +270,20 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console,
                 left = cells_left(plan, retries)
                 if not left and walk.complete:
                     break
+                if not launcher.resubmits and _open_stage(walk, plan, retries) in record.stages:
+                    return final(console, plan, retries)  # its workers ended with cells left: a new one would too
                 claimable = claimable_now(plan, retries, now, stale_s)
                 if left and not claimable:  # a dead worker's cell: claimable once its claim is stale, not before
-                    time.sleep(REFRESH_S)
+                    launcher.wait(launcher.poll_s)
                     continue
-                # workers ended with cells left (a cancelled one gave its cell back, a stage was selected, a dead
-                # one's claim went stale): submit again, but only when the table moved since the last submission
-                # (workers that crash at start would otherwise be resubmitted for ever)
+                # workers ended with cells left (a stage done, a cancelled one gave its cell back, a stage was
+                # selected, a dead one's claim went stale): submit again, but only when the table moved since the
+                # last submission (workers that crash at start would otherwise be resubmitted for ever)
                 now_seen = _table_state(plan, claimable)
-                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console):
+                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console, record):
+                    if record.waiting is not None and not left:  # the walk stops at a stage that cannot start
+                        console.print(waits_line(record.waiting), highlight=False)
+                        return final(console, _rows(walk, launcher), retries)
                     console.print(f"[yellow]no {launcher.title} {launcher.task_word} of sweep {cfg.name} is left and "
                                   f"{left} cell(s) are not done[/]; see the logs ({launcher.describe()}) and run the "
                                   "command again")
@@ -206,12 +293,13 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console,
                     resubmitted()  # the sweep's last worker may have ended its parent run: RUNNING again
                 except Exception as exc:  # noqa: BLE001 - a busy store must not end a watch
                     log.warning("could not reopen the sweep's parent run: %s", exc)
-            time.sleep(REFRESH_S)
+            launcher.wait(launcher.poll_s)
     except KeyboardInterrupt:
+        if not launcher.detachable:
+            raise
         console.print(f"stopped watching: the {launcher.title} jobs go on (`bronchopose sweep cancel` stops them)")
         return EXIT_INTERRUPTED
     finally:
         if live is not None:
             live.stop()
-    console.print(summary_line(progress(plan, retries, 1)))
-    return 0 if all(plan.state(c) == FINISHED for c in plan.cells) else 1
+    return final(console, plan, retries)

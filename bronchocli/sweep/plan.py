@@ -8,8 +8,8 @@ with its other grid axes; ``add`` appends fixed combinations. A cell wanted by
 several stages is one cell (one key, one run).
 
 ``StageWalk`` is the one walk through the stages that every launcher uses:
-the local sweep (``staged.run_sweep``), every worker (``stagework.work_stages``)
-and a detached launcher's submission (``launch.submit_missing``).
+the driver's submissions (``launch.submit_missing``, whatever the launcher)
+and every worker (``stagework.work_stages``).
 It plans once (the patient list read once), reads the recorded selections once
 per decision, and holds the selection rule: a selecting stage's cells are
 known once its selection is recorded; it is settled (computed and recorded,

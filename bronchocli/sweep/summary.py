@@ -15,8 +15,8 @@ and a selection override those):
   selects this one by, else ``select.by``'s default) and its headline test figures ``best.<s>.<headline>``
   (``HEADLINES``), with tags ``best.<s>.cell`` (the cell's label) and ``best.<s>.run`` (its run id).
 
-The local sweep records the plan when it starts and everything when it ends (``staged.run_sweep``); the
-Slurm driver when it stops watching. Recording is best effort: the cells' own runs carry the results.
+The driver (``launch.launch``) records the plan when it has submitted and everything when its watch ends
+(not when it detaches). Recording is best effort: the cells' own runs carry the results.
 
 A cancel is recorded there too, in the store every submitter, watcher and worker shares: ``sweep cancel``
 tags the parent ``sweep_cancelled`` (``TAG_CANCELLED``) and ends it KILLED before it stops any worker; a

@@ -109,7 +109,7 @@ def run_workers(cfg: Config, target: Cell, trials: int, name: str, *, study: str
     def job(gpu: str | None, share: int, log_path: str) -> TuneJob:
         return TuneJob(cfg, target, trials, study, timeout, next(index), gpu, share, log_path, os.getpid(), workers)
 
-    with procs.supervised():  # the sweep pool's stop signals and failure handling
+    with procs.supervised():  # the local launcher's stop signals and failure handling
         procs.start(workers, tune_process, job)
         while procs.sentinels():
             procs.wait()

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import pytest
+from rich.console import Console
 from sweep_fakes import fake_runner, runs_by_cell
 
 from bronchocli.errors import BronchoError
-from bronchocli.sweep import SweepStore, prepare
+from bronchocli.sweep import SweepStore
+from bronchocli.sweep.launch import Submitted, submit_missing, watch
+from bronchocli.sweep.launchers import LocalLauncher
 from bronchocli.sweep.placement import assign, default_workers, parse_gpus, visible_gpus
-from bronchocli.sweep.pool import run_pool
+from bronchocli.sweep.plan import prepare_walk
 
 SMI = "\n".join(f"GPU {i}: NVIDIA H100 80GB HBM3 (UUID: GPU-{i:08d})" for i in range(8)) + "\n"
 
@@ -39,9 +42,12 @@ def test_gpu_flags_are_checked_against_the_machine():
 def test_each_worker_process_sees_only_its_gpu(make_config, tmp_path, fake_dir):
     cfg = make_config(archs=("baseline", "lstm", "convlstm", "conv3d"))
     store = SweepStore(cfg.paths.storage_url)
-    plan = prepare(cfg, store, dataset=False)
-    result = run_pool(cfg, store, plan, workers=2, runner=fake_runner, gpus=["3", "5"])
-    assert result.exit_code == 0
+    walk, plan = prepare_walk(cfg, store, dataset=False)
+    launcher, console, record = LocalLauncher(cfg, runner=fake_runner, gpus=["3", "5"], workers=2), Console(), Submitted()
+    with launcher.supervised():  # as `sweep run` drives it
+        submit_missing(walk, launcher, console, record)
+        exit_code = watch(walk, launcher, console, record=record)
+    assert exit_code == 0
     seen = {c.key: (fake_dir / f"gpu-{c.key}").read_text() for c in plan.cells}
     assert set(seen.values()) <= {"3", "5"} and len(runs_by_cell(cfg)) == 4
     workers = {r.worker for r in store.rows(cfg.name)}

@@ -15,25 +15,33 @@ them) with the sweep's claims model in place of job results:
   cells); returns the submissions stopped (``dry_run``: those it would stop);
 - ``describe()``: one line saying where the workers run and where they log.
 
-What a launcher needs beyond that has a default: ``check`` (refuse what would
-make workers fail, before anything is created), ``capacity`` (workers worth
-starting for ``runnable`` cells), ``follow`` (make queued later-stage
-submissions wait for a new earlier one), ``tick`` (called on every refresh of
-the watch). The worker side: ``worker_signals`` (extra stop signals),
-``worker_job`` (this worker's id in the launcher, recorded in its ``WorkerId``),
-``worker_threads``, ``worker_exits_when_idle`` and ``worker_done`` (after the
-worker loop; Slurm requeues a task warned of its time limit).
+What a launcher needs beyond that has a default: ``create`` (built for ``sweep run`` with the options it
+takes, ``options``), ``check`` (refuse what would make workers fail, before anything is created),
+``capacity`` (workers worth starting for ``runnable`` cells), ``follow`` (make queued later-stage
+submissions wait for a new earlier one), ``tick`` (called on every refresh of the watch). The driver
+(``sweep.launch``) asks a few more things and never the launcher's name: ``supervised`` (the block its
+workers live in: the local launcher's Ctrl-C stops them there), ``wait`` (until something may have
+changed), ``stopped`` (its workers were told to stop), ``exit_codes`` (how the workers that ended
+exited, where it can tell), ``defers`` (a later stage's submission can wait for the earlier ones:
+without it one stage is submitted at a time) and ``resubmits`` (workers that ended with cells left
+are replaced: they were cancelled or timed out; without it they stopped for a reason a new worker
+would meet too), ``runs_command`` (its workers run ``command``), ``poll_s`` (how often the watch asks)
+and ``submitted`` (the line announcing a submission). The worker side: ``worker_signals`` (extra stop signals), ``worker_job`` (this
+worker's id in the launcher, recorded in its ``WorkerId``), ``worker_threads``,
+``worker_exits_when_idle`` and ``worker_done`` (after the worker loop; Slurm requeues a task warned of
+its time limit).
 
-``detachable``: the workers outlive the command that submitted them (``sweep run
---detach``, ``sweep cancel``, the generic watch of ``sweep.launch``); the local
-launcher's do not (its workers are the command's own child processes).
+``detachable``: the workers outlive the command that submitted them (``sweep run --detach``, ``sweep
+cancel``); the local launcher's do not (its workers are the command's own child processes).
 """
 
 from __future__ import annotations
 
 import sys
+import time
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -66,6 +74,11 @@ class Launcher(ABC):
     job_word: ClassVar[str] = "job"  # one submission in messages ("Slurm array job")
     task_word: ClassVar[str] = "worker"  # one worker in messages ("task")
     worker_signals: ClassVar[tuple[int, ...]] = ()  # stop signals a worker of this launcher also handles
+    options: ClassVar[tuple[str, ...]] = ()  # the `sweep run` options it takes (``create``), e.g. "--workers"
+    runs_command: ClassVar[bool] = True  # its workers run ``command`` (the local launcher's get their job by spawn)
+    defers: ClassVar[bool] = True  # ``submit(after=...)`` makes a later stage wait; else one stage at a time
+    resubmits: ClassVar[bool] = True  # workers that ended with cells left are replaced (see the module)
+    poll_s: ClassVar[float] = 1.0  # how often the watch asks ``active``
 
     def __init__(self, cfg: Config, command: Sequence[str] = ()):
         """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``)."""
@@ -77,6 +90,12 @@ class Launcher(ABC):
             cls.title = cls.name
         if "name" in cls.__dict__ and "job_word" not in cls.__dict__:
             cls.job_word = f"{cls.title} job"
+
+    @classmethod
+    def create(cls, cfg: Config, *, only: Any = None, runner: Any = None, **options: Any) -> Launcher:
+        """The launcher ``sweep run`` drives: ``only`` and ``runner`` as the command was given them (a launcher
+        whose workers run ``command`` gets them through its spec instead), ``options`` among ``cls.options``."""
+        return cls(cfg)
 
     # -- the submitting side -------------------------------------------------------------------------------
     @abstractmethod
@@ -107,6 +126,29 @@ class Launcher(ABC):
 
     def tick(self, active: Sequence[Workers]) -> None:
         """Called on every refresh of the watch with what ``active`` listed."""
+
+    def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
+        """The line that says a submission was made."""
+        return (f"submitted {self.job_word} {job}: {n} {self.task_word}(s) for stage {stage}"
+                + (f", after job(s) {', '.join(after)}" if after else ""))
+
+    @contextmanager
+    def supervised(self) -> Iterator[None]:
+        """The block the driver submits and watches in (default: nothing to do; Ctrl-C stops the watch only)."""
+        yield
+
+    def wait(self, timeout: float) -> None:
+        """Until something may have changed (default: ``timeout`` seconds)."""
+        time.sleep(timeout)
+
+    @property
+    def stopped(self) -> bool:
+        """This command told its workers to stop (the local launcher's Ctrl-C): the sweep is interrupted."""
+        return False
+
+    def exit_codes(self) -> list[int | None]:
+        """How the workers that ended since the last call exited, where the launcher can tell (default: none)."""
+        return []
 
     @classmethod
     def logs(cls, cfg: Config) -> Path:

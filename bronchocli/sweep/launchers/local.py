@@ -10,8 +10,12 @@ worker one SIGTERM (a second ``stop`` sends SIGINT: abort without waiting for a
 checkpoint). ``LocalProcesses`` is the same placement, logs and stop for any
 worker function (``tune --workers`` runs its trials through it).
 
-Not ``detachable``: the workers are the command's own children, so the command
-walks the stages itself (``staged.run_sweep``: one ``submit`` per stage).
+Not ``detachable``: the workers are the command's own children. The driver
+(``sweep.launch``) drives it as any launcher, inside ``supervised`` (Ctrl-C
+stops the workers), one stage at a time (``defers`` is False: a worker started
+now would not wait for an earlier stage's), never replacing a worker that ended
+with cells left (``resubmits`` is False: it waits for cells held elsewhere, so
+it ended for a reason another would meet too: an error, a full disk).
 """
 
 from __future__ import annotations
@@ -20,8 +24,9 @@ import multiprocessing as mp
 import os
 import signal
 import socket
+import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 from typing import Any
@@ -29,9 +34,9 @@ from typing import Any
 from ... import interrupts
 from ...cells import Selection
 from ...config import Config
-from ..placement import assign, share_counts
+from ..placement import assign, default_workers, parse_gpus, share_counts, visible_gpus
 from ..stagework import WorkerJob, local_process, worker_config
-from ..worker import Runner, default_runner
+from ..worker import EXIT_INTERRUPTED, Runner, default_runner
 from .base import Launcher, Workers
 
 
@@ -112,23 +117,48 @@ class LocalProcesses:
 
 
 class LocalLauncher(Launcher):
-    """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``."""
+    """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``;
+    at most ``workers`` at once, pinned round-robin to ``gpus``."""
 
     name = "local"
     detachable = False
+    options = ("--workers", "--gpus", "--per-gpu")
+    runs_command = False
+    defers = False
+    resubmits = False
+    poll_s = 0.5
 
     def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
                  only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
-                 log_dir: Path | None = None):
+                 workers: int = 1, log_dir: Path | None = None):
         super().__init__(cfg, command)
         self.storage_url = storage_url or cfg.paths.storage_url
-        self.only, self.runner = only, runner
-        self.processes = LocalProcesses(log_dir or cfg.paths.sweep_logs / cfg.name, gpus)
+        self.only, self.runner, self.workers = only, runner, max(1, workers)
+        self.processes = LocalProcesses(log_dir or self.logs(cfg), gpus)
         self.wcfg = worker_config(cfg)
+        self._reported = 0  # workers whose exit codes ``exit_codes`` gave already
+        self._codes: list[int | None] = []
+
+    @classmethod
+    def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
+               workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
+               **options: Any) -> LocalLauncher:
+        """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
+        ``--per-gpu``, else 1)."""
+        devices = parse_gpus(gpus or "auto", visible_gpus())
+        return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
+                   workers=workers or default_workers(devices, per_gpu or 1))
 
     def describe(self) -> str:
         gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
-        return f"here{gpus}, logs {self.processes.log_dir}"
+        n = f"{self.workers} worker" + ("s" if self.workers > 1 else "")
+        return f"here{gpus} (at most {n}), logs {self.processes.log_dir}"
+
+    def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
+        return f"stage {stage}: {n} local worker process{'es' if n > 1 else ''} started"
+
+    def capacity(self, runnable: int) -> int:
+        return max(0, min(runnable, self.workers))
 
     def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
         def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
@@ -146,6 +176,32 @@ class LocalLauncher(Launcher):
         if subs and not dry_run:
             self.processes.stop()
         return subs
+
+    def supervised(self) -> AbstractContextManager[None]:
+        return self.processes.supervised()
+
+    def wait(self, timeout: float) -> None:
+        """Until a worker exits or ``timeout`` seconds pass (none running: the seconds)."""
+        if self.processes.sentinels():
+            self.processes.wait(timeout)
+        else:
+            time.sleep(timeout)
+
+    def exit_codes(self) -> list[int | None]:
+        ended = [p for p, _, _ in self.processes.procs[self._reported:]]
+        if any(p.is_alive() for p in ended):
+            return []
+        for p in ended:
+            p.join()
+        self._reported = len(self.processes.procs)
+        codes = [p.exitcode for p in ended]
+        self._codes += codes
+        return codes
+
+    @property
+    def stopped(self) -> bool:
+        """Ctrl-C (or SIGTERM, SIGHUP) reached this command, or a worker was stopped on its own (exit 130)."""
+        return self.processes.stops > 0 or EXIT_INTERRUPTED in self._codes
 
     @classmethod
     def worker_exits_when_idle(cls, cfg: Config) -> bool:
