@@ -102,3 +102,29 @@ def test_tune_returns_the_study_optuna_stored_and_study_reads_it_back(project):
         assert (result.best_number, result.best_value) == (stored.best_trial.number, stored.best_trial.value)
         assert result.best_params == stored.best_trial.params
     assert api.study(project, result.study, overrides=ONE_CELL) == result
+
+
+def test_the_documented_notebook_session_runs_a_sweep_and_reads_table3_as_a_dataframe(tmp_path, capsys):
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    block = re.search(r"<!-- executed by tests/test_api.py -->\n```python\n(.*?)```", text, re.S)
+    assert block, "docs/api.md: the tested notebook block is missing"
+    write_tiny_dataset(tmp_path / "tiny", patients=2, lobes=("ur", "bl"), trajectories=3, frames=8, image_size=32)
+    config = write_config(tmp_path)
+    grid = "grid: {folds: [p01], seed: [0]}"
+    assert grid in config.read_text()
+    config.write_text(config.read_text().replace(grid, "grid: {folds: [p01], seed: [0, 1], arch: [baseline], "
+                                                      "rot_loss: [mse], population: [personalized]}"))
+    namespace = {"CONFIG": str(config), "OUT": str(tmp_path / "reports")}
+    exec(compile(block.group(1), "docs/api.md", "exec"), namespace)
+    done, table3 = namespace["done"], namespace["table3"]
+    cells = done.state.cells()
+    assert done.exit_code == 0 and [c.state for c in cells] == ["finished", "finished"]
+    runs = client_for(load_config(config)).search_runs(
+        [client_for(load_config(config)).get_experiment_by_name("tiny").experiment_id],
+        "attributes.status = 'FINISHED' and tags.run_kind = 'cell'")
+    assert sorted(c.run_id for c in cells) == sorted(r.info.run_id for r in runs)
+    assert list(table3["Network"])[0] == "Baseline" and "Position L2 (vox) hi" in table3.columns
+    assert "x the training mean" in capsys.readouterr().out

@@ -272,3 +272,11 @@ def test_the_command_line_starts_without_the_heavy_libraries():
             "print(','.join(m for m in ('mlflow', 'torch', 'optuna', 'vtk', 'sqlalchemy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == "", f"imported at start-up: {out}"
+
+
+def test_every_command_module_is_a_thin_layer():
+    """Issue 47: a command parses its flags, calls the library (bronchocli.api or an entry) and prints: its module
+    stays short (at most 80 lines)."""
+    long = {p.name: n for p in sorted((PACKAGE / "commands").glob("*.py"))
+            if (n := len(p.read_text().splitlines())) > 80}
+    assert not long, f"command modules over 80 lines (move the work below the command): {long}"

@@ -7,6 +7,7 @@ the package is internal.
 Work (``api.work``; the commands are thin layers over these):
 
 * :func:`train` -- one cell as one MLflow run -> :class:`TrainResult`;
+* :func:`sweep` -- the config's plan, each cell once, with a launcher -> :class:`SweepResult`;
 * :func:`report` -- the paper's tables and figures from the runs -> :class:`ReportResult` (``Table.frame()``:
   a table as a pandas DataFrame);
 * :func:`status` -- a sweep's cells, their runs and metrics -> ``SweepState`` (``cells()``);
@@ -33,10 +34,10 @@ from typing import TYPE_CHECKING, Any
 from ..training.outcome import TrainResult
 from .inference import PoseModel, chain, load_model, predict, read_frames, read_poses, score
 from .results import StudyResult, SweepResult
-from .work import config_of, report, status, study, train, tune
+from .work import config_of, report, status, study, sweep, train, tune
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score",
-           "train", "report", "status", "tune", "study", "config_of", "StudyResult", "SweepResult", "TrainResult", "ReportResult", "Table"]
+           "train", "sweep", "report", "status", "tune", "study", "config_of", "StudyResult", "SweepResult", "TrainResult", "ReportResult", "Table"]
 
 if TYPE_CHECKING:
     from ..reporting.report import ReportResult

@@ -3,7 +3,9 @@ sweep's outcome. (``TrainResult``, ``ReportResult`` and ``SweepState`` live besi
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -32,14 +34,22 @@ class StudyResult:
                    dict(info.get("importances", {})))
 
 
-@dataclass(frozen=True)
 class SweepResult:
     """What ``bronchopose sweep run`` ended with: its exit code (0 every cell FINISHED, 1 some FAILED, 130
-    interrupted; a detached sweep: 0 once submitted) and the sweep's state after it (``state.cells()``)."""
+    interrupted; a detached sweep: 0 once submitted) and the sweep's state after it (``state.cells()``: read from
+    the claims table and MLflow when first asked)."""
 
-    exit_code: int
-    state: SweepState
+    def __init__(self, exit_code: int, read_state: Callable[[], SweepState]) -> None:
+        self.exit_code = exit_code
+        self._read_state = read_state
 
     @property
     def ok(self) -> bool:
         return self.exit_code == 0
+
+    @cached_property
+    def state(self) -> SweepState:
+        return self._read_state()
+
+    def __repr__(self) -> str:
+        return f"SweepResult(exit_code={self.exit_code})"

@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # the results' modules load their stacks (torch, the reportin
     from ..reporting.report import ReportResult
     from ..sweep.status import SweepState
     from ..training.outcome import TrainResult
-    from .results import StudyResult
+    from .results import StudyResult, SweepResult
 
 ConfigLike = str | os.PathLike | Config
 
@@ -175,3 +175,37 @@ def study(config: ConfigLike = DEFAULT_CONFIG, name: str | None = None, *, arch:
     target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
                      train_trajectories=train_trajectories)
     return StudyResult.from_info(entry.show_study(cfg, name, target, fmt, console or _silent()))
+
+
+def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), workers: int | None = None,
+          gpus: str | None = None, per_gpu: int | None = None, launcher: str | None = None,
+          retry_failed: bool = False, detach: bool = False, storage: str | None = None,
+          use_tuned: str | None = None, runner: str | None = None, profile: str | None = None,
+          overrides: Sequence[str] = (), console: Console | None = None) -> SweepResult:
+    """Run the config's plan, each cell once, as ``bronchopose sweep run`` does: with the local launcher
+    (``workers`` processes here, placed on ``gpus``) or another (``launcher="slurm"``; ``detach``: return once
+    submitted). ``only``: ``--only`` selections (``key=value[,value];...``). The config is a file: the workers
+    load it themselves, as every Slurm array task does.
+
+    Returns a :class:`~bronchocli.api.results.SweepResult`: ``exit_code``/``ok`` and ``state`` (the sweep's
+    ``SweepState`` afterwards, read when first asked).
+    """
+    from ..sweep import entry  # lazy: the sweep stack loads only when sweeping
+    from ..sweep.task import TaskSpec
+    from .results import SweepResult
+
+    if isinstance(config, Config):
+        raise BronchoError("sweep: needs the config file, not a loaded Config (each worker loads the file itself)")
+    spec = TaskSpec(config=str(config), profile=profile, overrides=tuple(overrides), storage=storage,
+                    use_tuned=use_tuned, only=tuple(only), runner=runner)
+    cfg = spec.load()  # as every Slurm array task loads it
+    spec.selection()  # a bad --only or --runner: one line before anything else
+    spec.cell_runner()
+    kind = entry.launcher_kind(cfg, launcher)
+    options = entry.launcher_options(kind, {"--workers": workers, "--gpus": gpus, "--per-gpu": per_gpu})
+    if detach and not kind.detachable:
+        raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
+                           "whose workers outlive it (slurm) can detach")
+    code = entry.run(cfg, spec, kind, options=options, detach=detach, retry_failed=retry_failed,
+                     console=console or _silent())
+    return SweepResult(code, lambda: entry.status(cfg, cfg.name, console=_silent()))
