@@ -105,12 +105,13 @@ def cells_table(by_model: dict[str, Any]) -> list[str]:
 def flat(by_model: dict[str, Any]) -> dict[str, dict[str, list]]:
     """The per-seed figures keyed ``arch-loss`` (a document's span path cannot hold the ``/`` of by_model's keys);
     cross-subject groups also per fold, ``arch-loss-<held-out patient>``, with ``arch-loss`` pooling the folds."""
-    out: dict[str, dict[str, list]] = {"ratio_pos": {}, "ratio_rot": {}, "ratio_pos_acc": {}, "mode_gap": {}}
+    out: dict[str, dict[str, list]] = {"ratio_pos": {}, "ratio_rot": {}, "ratio_pos_acc": {}, "mode_gap": {},
+                                       "core_s": {}}
     for key, e in by_model.items():
         parts = key.split("/")
         names = ["-".join(parts[:2])] + (["-".join([*parts[:2], parts[3]])] if len(parts) > 3 else [])
         for field, src in (("ratio_pos", "ratio_pos_pair"), ("ratio_rot", "ratio_rot_pair"),
-                           ("ratio_pos_acc", "ratio_pos_acc"), ("mode_gap", "mode_gap")):
+                           ("ratio_pos_acc", "ratio_pos_acc"), ("mode_gap", "mode_gap"), ("core_s", "core_s")):
             for i, name in enumerate(names):
                 pooled = i == 0 and len(parts) > 3  # the folds of one model pooled under arch-loss
                 out[field][name] = sorted([*out[field].get(name, []), *e[src]]) if pooled else e[src]
