@@ -155,12 +155,10 @@ def main(argv: list[str] | None = None) -> int:
                and r["arch"] == "convlstm"]
     best = max(learned, key=lambda r: r.get("cheaper_than_reference") or 0, default=None)
     figures: dict[str, Any] = {"target": COST_TARGET, "runs": rows}
-    ref = refs[0] if refs else None
-    if ref is not None:
-        figures["reference"] = {"run": ref["run_id"], "pairs": ref["pairs_to_target"], "core_s": ref["core_s_to_target"]}
-    figures["references"] = {r["experiment"]: {"date": r.get("date"), "pairs": r["pairs_to_target"],
-                                               "core_s": r["core_s_to_target"], "pairs_per_core_s": r["pairs_per_core_s"]}
-                             for r in refs}
+    figures["references"] = {r["experiment"]: {"run": r["run_id"], "date": r.get("date"),
+                                               "pairs": r["pairs_to_target"],
+                                               "core_s": r["core_s_to_target"],
+                                               "pairs_per_core_s": r["pairs_per_core_s"]} for r in refs}
     if best is not None:
         figures["best"] = {"run": best["run_id"], "name": best["name"], "settings": best["settings"],
                            "pairs": best["pairs_to_target"], "core_s": best["core_s_to_target"],

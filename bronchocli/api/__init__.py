@@ -37,7 +37,8 @@ from .results import StudyResult, SweepResult
 from .work import config_of, report, status, study, sweep, train, tune
 
 __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score",
-           "train", "sweep", "report", "status", "tune", "study", "config_of", "StudyResult", "SweepResult", "TrainResult", "ReportResult", "Table"]
+           "train", "sweep", "report", "status", "tune", "study", "config_of",
+           "StudyResult", "SweepResult", "TrainResult", "ReportResult", "Table"]
 
 if TYPE_CHECKING:
     from ..reporting.report import ReportResult

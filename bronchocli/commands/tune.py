@@ -1,4 +1,5 @@
-"""`bronchopose tune`: Optuna hyperparameter search for one cell, or --show a study's results (``bronchocli.api.tune`` / ``api.study``)."""
+"""`bronchopose tune`: Optuna hyperparameter search for one cell (``bronchocli.api.tune``), or --show a study's
+results (``api.study``)."""
 
 from __future__ import annotations
 
