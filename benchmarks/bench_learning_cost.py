@@ -40,9 +40,10 @@ CORE = f"cost.core_s_to_{COST_TARGET:.2f}"
 # from the config schema's defaults: each is read with that default, ``schema_default``)
 LEVERS = {"train.lr": 1e-3, "train.warmup": 0.05, "train.schedule": "cosine", "train.batch_size": 20,
           "model.dropout": 0.2, "train.steps": 5000, "image_size": 96, "train.threads": 1, "data.window": 10,
-          "train.precision": "auto"}
+          "train.precision": "auto", "train.grad_clip": None}
 # levers shown in the table's "other" column when a run changed them
-OTHER = {"data.window": "window", "train.precision": "precision", "train.threads": "threads"}
+OTHER = {"data.window": "window", "train.precision": "precision", "train.threads": "threads",
+         "train.grad_clip": "grad clip"}
 
 
 def _value(text: str | None, default: Any) -> Any:

@@ -2,14 +2,17 @@
 # The single lever runs of "Cost of learning" (benchmarks/README.md, issue 45), one at a time, one thread each,
 # in a benchmark project folder (a copy of this repository's experiments.yaml; its data and runs land there):
 #
-#   mkdir -p /tmp/lc && cp experiments.yaml /tmp/lc/ && benchmarks/cost_levers.sh /tmp/lc
+#   mkdir -p /tmp/lc && cp experiments.yaml /tmp/lc/ && benchmarks/cost_levers.sh /tmp/lc [NAME ...]
 #   python benchmarks/bench_learning_cost.py /tmp/lc      # -> benchmarks/results/learning-cost.json
 #
 # Each lever is its own experiment (cost-NAME), so running this again skips the levers that have a FINISHED run
 # (train's own rule) and resumes a stopped one from its checkpoint. Every run stops at the first validation whose
 # val.ratio.pos_l2 is <= 0.90 and validates every 500 pairs. About 7-10 min per run on one Zen 4 core.
+# NAMEs (e.g. cost-conv3d-clip1): run only those levers.
 set -uo pipefail
-project=${1:?usage: benchmarks/cost_levers.sh PROJECT_FOLDER}
+project=${1:?usage: benchmarks/cost_levers.sh PROJECT_FOLDER [NAME ...]}
+shift
+only=" $* "
 cd "$project"
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
 common=(--config "$PWD/experiments.yaml" -P personalized --set train.stop_at_ratio=0.90 --set train.val_every=25)
@@ -17,6 +20,7 @@ recipe=(--profile learning-cost --set train.lr=1e-3 --set train.warmup=0.05 --se
         --set model.dropout=0.2 --set train.schedule=cosine)
 run() {
     local name=$1; shift
+    [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
     echo "=== $(date -u +%FT%TZ) $name: $*"
     bronchopose train "${common[@]}" --set "name=$name" "$@" --resume 2>/dev/null \
         || bronchopose train "${common[@]}" --set "name=$name" "$@"
@@ -30,3 +34,6 @@ run cost-80 "${recipe[@]}" -a convlstm -l ce --set dataset.root=data/synthetic-c
     --set dataset.generate.image_size=80                                          # 80² frames
 run cost-conv3d "${recipe[@]}" -a conv3d -l ce --set train.steps=1000              # the 3-D-conv head, 20,000 pairs
 run cost-conv3d-lr3e-4 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.lr=3e-4
+# the 3-D-conv head's early instability (2026-11-29 on): a longer warm-up, gradient-norm clipping
+run cost-conv3d-warm20 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.warmup=0.2
+run cost-conv3d-clip1 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.grad_clip=1.0

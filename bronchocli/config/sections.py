@@ -217,6 +217,8 @@ class Train(Section):
     lr: float = Field(1e-3, gt=0, le=10)
     weight_decay: float = Field(0.0, ge=0, le=10)  # > 0: AdamW (decoupled), else Adam
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
+    # clip the gradients' global L2 norm to this before each optimiser step; None: no clipping
+    grad_clip: float | None = Field(None, gt=0, le=1e6)
     schedule: spelled(Literal["cosine", "constant"]) = "cosine"  # after the warm-up
     val_every: int = Field(50, ge=1, le=MAX_STEPS)  # steps between validations (best weights, early stopping, pruning)
     # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard

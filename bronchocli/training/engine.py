@@ -42,7 +42,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
         checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every, bn_freeze=t.bn_freeze,
-        stop_at_ratio=t.stop_at_ratio,
+        stop_at_ratio=t.stop_at_ratio, grad_clip=t.grad_clip,
     )
 
 

@@ -104,6 +104,7 @@ class Settings:
     bn_freeze: float = 0.0  # the last fraction of the steps trains with BatchNorm statistics fixed (batchnorm.py)
     mode_gap_batches: int = 4  # training batches of each validation's mode gap (0: not measured)
     stop_at_ratio: float | None = None  # stop once val.ratio.pos_l2 <= this (train.stop_at_ratio)
+    grad_clip: float | None = None  # clip the gradients' global L2 norm to this (train.grad_clip)
 
     @property
     def pairs_per_step(self) -> int:
@@ -230,6 +231,9 @@ class Trainer:
         point = self.s.log_every > 0 and (self.step + 1) % self.s.log_every == 0
         norm = self._grad_norm() if point else None
         lr = self.opt.param_groups[0]["lr"]  # the rate this step uses (a host float)
+        if self.s.grad_clip is not None:  # on the unscaled gradients (a skipped step's inf/NaN stay so)
+            self.scaler.unscale_(self.opt)
+            torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.s.grad_clip, foreach=True)
         self.scaler.step(self.opt)
         if self.scaler.is_enabled():  # counted on the device: fused Adam takes found_inf without a host sync
             for found in self.scaler._found_inf_per_device(self.opt).values():

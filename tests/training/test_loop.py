@@ -176,3 +176,29 @@ def test_the_loop_learns_what_the_images_show_and_beats_the_training_mean():
     blind = np.abs(train.labels[:, 0, 0] - mean[0]).mean()
     assert err < 0.5 * blind  # far better than the image-blind constant
     assert pred[:, 0, 0].std().item() > 0.5 * train.labels[:, 0, 0].std()  # varies with the input
+
+
+def _first_step_gradients(clip: float | None) -> list[torch.Tensor]:
+    """The gradients the optimiser's first step reads, with ``train.grad_clip`` = ``clip``."""
+    from dataclasses import replace
+
+    t = trainer(replace(settings(steps=1, val_every=1), grad_clip=clip))
+    seen: list[list[torch.Tensor]] = []
+    t.opt.register_step_pre_hook(
+        lambda *_: seen.append([p.grad.detach().clone() for p in t.net.parameters() if p.grad is not None]))
+    t.fit()
+    return seen[0]
+
+
+def test_grad_clip_scales_the_gradient_down_to_the_clip_norm_and_keeps_its_direction():
+    raw = _first_step_gradients(None)
+    norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in raw])).item()
+    assert norm > 1e-3
+    clipped = _first_step_gradients(1e-3)  # the same seed and batch: the same raw gradients
+    assert torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in clipped])).item() \
+        == pytest.approx(1e-3, rel=1e-4)
+    for g, c in zip(raw, clipped):
+        torch.testing.assert_close(c, g * (1e-3 / norm), rtol=1e-4, atol=1e-9)
+    untouched = _first_step_gradients(norm * 10)  # a norm below the clip is left as it is
+    for g, c in zip(raw, untouched):
+        torch.testing.assert_close(c, g)
