@@ -79,13 +79,16 @@ def image_size(client, run, default: int) -> int:
 
 
 def run_row(client, run) -> dict[str, Any]:
-    """One run: its lever settings, validation curve (pairs seen -> val.ratio.pos_l2), cost and status."""
+    """One run: its lever settings, validation curve (pairs seen -> val.ratio.pos_l2 and val.mode_gap), cost and
+    status."""
     p, m, tags = run.data.params, run.data.metrics, run.data.tags
     rid = run.info.run_id
     ratio = {int(x.step): x.value for x in client.get_metric_history(rid, "val.ratio.pos_l2")}
     pairs = {int(x.step): x.value for x in client.get_metric_history(rid, "train.pairs_seen")}
     core = {int(x.step): x.value for x in client.get_metric_history(rid, "train.core_s")}
-    curve = [{"step": s, "pairs": pairs.get(s), "core_s": core.get(s), "val_ratio": ratio[s]} for s in sorted(ratio)]
+    gap = {int(x.step): x.value for x in client.get_metric_history(rid, "val.mode_gap")}  # eval ÷ batch-stat loss
+    curve = [{"step": s, "pairs": pairs.get(s), "core_s": core.get(s), "val_ratio": ratio[s], "mode_gap": gap.get(s)}
+             for s in sorted(ratio)]
     settings = {k: _value(p.get(k), schema_default(k)) for k in LEVERS if k != "image_size"}
     settings["image_size"] = _value(p.get("data.image_size"), image_size(client, run, LEVERS["image_size"]))
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
@@ -117,6 +120,16 @@ def collect(projects: list[Path]) -> list[dict[str, Any]]:
     return rows
 
 
+EARLY_PAIRS = 5000  # the first pairs, where the 3-D-conv head's validation swings
+
+
+def _gaps(r: dict[str, Any]) -> dict[str, Any]:
+    """The run's largest mode gap over its first ``EARLY_PAIRS`` pairs and its last one (None: not logged)."""
+    gaps = [(c["pairs"], c["mode_gap"]) for c in r.get("curve", []) if c.get("mode_gap") is not None and c["pairs"]]
+    early = [g for p, g in gaps if p <= EARLY_PAIRS]
+    return {"mode_gap_max_early": max(early, default=None), "mode_gap_last": gaps[-1][1] if gaps else None}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("projects", nargs="+", type=Path, help="benchmark project folders (experiments.yaml + runs/)")
@@ -142,8 +155,10 @@ def main(argv: list[str] | None = None) -> int:
     refs = [r for r in rows if r["experiment"] in args.reference and r["core_s_to_target"]]
 
     def reference_of(r: dict[str, Any]) -> dict[str, Any] | None:
-        """The reference run measured on the same day (the same machine state) as ``r``, else the first one."""
-        return next((x for x in refs if x.get("date") == r.get("date")), refs[0] if refs else None)
+        """The reference run measured on the same day and machine (the same host state) as ``r``, else the first
+        one (two sessions of one day may run on different hosts)."""
+        same = [x for x in refs if x.get("date") == r.get("date") and x.get("machine") == r.get("machine")]
+        return same[0] if same else (refs[0] if refs else None)
 
     for r in rows:
         ref = reference_of(r)
@@ -168,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     # one entry per single-run experiment (a lever run), for the prose's spans
     figures["by_experiment"] = {r["experiment"]: {k: r.get(k) for k in (
         "pairs_to_target", "core_s_to_target", "best_val_ratio", "pairs_per_core_s", "cheaper_than_reference",
-        "cheaper_pairs_than_reference", "date")} for r in rows if r["kind"] == "cell"}
+        "cheaper_pairs_than_reference", "date")} | _gaps(r) for r in rows if r["kind"] == "cell"}
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": machine, "date": today, "command": commands[-1], "commands": commands,

@@ -37,3 +37,6 @@ run cost-conv3d-lr3e-4 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --s
 # the 3-D-conv head's early instability (2026-11-29 on): a longer warm-up, gradient-norm clipping
 run cost-conv3d-warm20 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.warmup=0.2
 run cost-conv3d-clip1 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set train.grad_clip=1.0
+# the 3-D-conv head's validation swings with its mode gap (eval-mode loss 3-4x the batch-statistics loss in the
+# first thousands of pairs): 4 windows of 5 pairs per batch instead of 2 of 10 give its BatchNorm3d more windows
+run cost-conv3d-window5 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set data.window=5
