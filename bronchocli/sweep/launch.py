@@ -1,7 +1,8 @@
 """``bronchopose sweep run`` with any launcher: the one driver. Check, prepare the shared state, print the plan,
 submit what the launcher's queued and running workers do not cover, and (unless ``--detach``) watch the table
 until they are gone, moving on to the next stage and topping up when workers ended with cells left; ``cancel``
-stops them. The launcher is the protocol (``launchers.base``); nothing here names one.
+stops them. The launcher is the protocol (``launchers.base``); nothing here names one. ``drive`` (submit, then
+watch) is the part that does not know the sweep's parent run: ``tune`` drives a study's trial rows through it.
 
 A worker works the stages up to the one it was submitted for (``STAGE_ENV``), never a later one, so each
 stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it,

@@ -153,7 +153,7 @@ def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
             from .trialwork import work_trials  # lazy: Optuna loads only in a study's workers
 
             code, _ = work_trials(cfg, store, job.study, signals=signals, ident=str(ident),
-                                  exit_when_idle=job.exit_when_idle)
+                                  exit_when_idle=job.exit_when_idle, storage_url=job.storage_url)
         else:
             code = work_stages(cfg, store, job.only, signals=signals, runner=job.runner,
                                exit_when_idle=job.exit_when_idle, last_stage=job.last_stage, ident=str(ident),

@@ -53,14 +53,16 @@ class TrialRunner:
     ``stopped``: the trial number and signal of the last stop (a signal during its training, or one that arrived
     while it evaluated): the tune command's message says which trial it was."""
 
-    def __init__(self, study: str, parent: str | None, progress: bool = False):
-        self.study, self.parent, self.progress = study, parent, progress
+    def __init__(self, study: str, parent: str | None, progress: bool = False, storage_url: str | None = None):
+        """``storage_url``: the real one where the worker's config has it redacted (the config is logged)."""
+        self.study, self.parent, self.progress, self.storage_url = study, parent, progress, storage_url
         self.stopped: tuple[int | None, BaseException | int] | None = None
 
     def __call__(self, cfg: Config, cell: TrialCell, *, extra_tags: dict[str, str], run_id_callback: Any,
                  owns: Any = None, **_: Any) -> TrialResult:
         target = cell.target()
-        s = open_study(cfg, target, study=self.study, worker=cell.trial)  # a sampler seed per slot
+        at = cfg.with_values({"storage.url": self.storage_url}) if self.storage_url else cfg
+        s = open_study(at, target, study=self.study, worker=cell.trial)  # a sampler seed per slot
         fn = objective(cfg, target, self.study, parent=self.parent, worker=extra_tags.get(TAG_WORKER, ""),
                        extra_tags=extra_tags, progress=self.progress, run_id_callback=run_id_callback, owns=owns)
         numbers: list[int] = []
@@ -136,9 +138,10 @@ def stored_rows(store: SweepStore, study: str) -> list[TrialCell]:
 
 def work_trials(cfg: Config, store: SweepStore, task: StudyTask, *, signals: StopSignals | None = None,
                 ident: str | None = None, exit_when_idle: bool = False, progress: bool = False,
-                ) -> tuple[int, TrialWorker | None]:
+                storage_url: str | None = None) -> tuple[int, TrialWorker | None]:
     """One worker through the study's rows until none is left to claim (``exit_when_idle``: none claimable now);
-    its exit code (0, or 130 stopped) and the worker (its runner's ``stopped``, ``timed_out``)."""
+    its exit code (0, or 130 stopped) and the worker (its runner's ``stopped``, ``timed_out``). ``storage_url``: the
+    real one where ``cfg``'s is redacted (a worker's config: it is logged)."""
     if cfg.name != task.config:  # the launcher's config names the study's rows; trials run under the config's name
         cfg = cfg.with_values({"name": task.config})
     rows = stored_rows(store, task.study)
@@ -147,7 +150,8 @@ def work_trials(cfg: Config, store: SweepStore, task: StudyTask, *, signals: Sto
                     study_sweep(task.study))
         return 0, None
     parent = study_parent_or_none(cfg, rows[0].target(), task.study)
-    worker = TrialWorker(cfg, rows, store, TrialRunner(task.study, parent, progress), deadline=task.deadline,
+    runner = TrialRunner(task.study, parent, progress, storage_url if storage_url != cfg.storage.url else None)
+    worker = TrialWorker(cfg, rows, store, runner, deadline=task.deadline,
                          signals=signals, sweep=study_sweep(task.study), ident=ident, exit_when_idle=exit_when_idle)
     code = worker.run()
     return (0 if worker.timed_out else code), worker

@@ -19,7 +19,8 @@ from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import SweepStore, WorkerId, studies, trials, tuning
+from bronchocli.sweep import SweepStore, WorkerId, studies, tuning
+from bronchocli.sweep import trials as trialrows
 from bronchocli.sweep.studyrows import study_sweep
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -50,7 +51,7 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
         "tune.space={train.rot_weight: {type: categorical, choices: [0.0, 1000000.0]}}"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
     # Trial 1's loss is 1e6 x the rotation error, far above trial 0's: the median pruner must prune it.
-    study = trials.tune(cfg, target, 4, progress=False,
+    study = trialrows.tune(cfg, target, 4, progress=False,
                         enqueue=[{"train.rot_weight": 0.0}, {"train.rot_weight": 1000000.0}])
     trials = study.get_trials(deepcopy=False)
     assert studies.finished(study) == 4
@@ -213,7 +214,7 @@ def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_ot
 
     monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
     with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
-        trials.tune(cfg, target, 3, progress=False)
+        trialrows.tune(cfg, target, 3, progress=False)
     assert len(started) == 1 and trial_states(cfg, tuning.study_name(cfg, target)) == ["COMPLETE"]
     client = client_for(cfg)
     (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
@@ -261,12 +262,12 @@ def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project,
         return RunResult(run_id, "FINISHED", {"val_best.loss": loss})
 
     monkeypatch.setattr(training_run, "run_cell", trial_run)
-    first = trials.tune(cfg, target, 2, progress=False)
+    first = trialrows.tune(cfg, target, 2, progress=False)
     best = (first.best_trial.params, first.best_value)
     db = urls.sqlite_file(cfg.paths.storage_url)
     for path in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
         path.unlink(missing_ok=True)
-    again = trials.tune(cfg, target, 2, progress=False)
+    again = trialrows.tune(cfg, target, 2, progress=False)
     assert len(started) == 2 and studies.finished(again) == 2  # no trial ran again
     assert (again.best_trial.params, again.best_value) == best
     assert again.best_trial.user_attrs[tuning.ATTR_RUN] in started
@@ -280,7 +281,7 @@ def test_two_tune_workers_on_two_gpus_each_see_their_own_device(project):
 
     cfg = load_config(project / "experiments.yaml")
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = trials.tune(cfg, target, 2, progress=False,
+    study = trialrows.tune(cfg, target, 2, progress=False,
                         make_launcher=lambda lcfg, task: LocalLauncher(lcfg, gpus=["3", "5"], workers=2, study=task))
     assert studies.finished(study) == 2
     logs = sorted((cfg.paths.sweep_logs / study_sweep(study.study_name)).glob("*.log"))
@@ -337,7 +338,7 @@ def test_a_budgeted_ratio_objective_trains_every_trial_the_same_pairs_and_minimi
         "tune.objective=val_ratio", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4",
         "train.val_every=4"])  # the base config validates every 4 x 4 = 16 pairs
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = trials.tune(cfg, target, 2, progress=False,
+    study = trialrows.tune(cfg, target, 2, progress=False,
                           enqueue=[{"train.batch_size": 4}, {"train.batch_size": 8}])
     trials = study.get_trials(deepcopy=False)
     assert [t.state.name for t in trials] == ["COMPLETE", "COMPLETE"]
@@ -360,7 +361,7 @@ def test_the_cost_objective_stops_each_trial_at_the_target_and_returns_the_pairs
         "tune.space={train.lr: {type: float, low: 1.0e-4, high: 1.0e-3, log: true}}",
         "tune.objective=cost", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4", "train.val_every=2"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = trials.tune(cfg, target, 1, progress=False)
+    study = trialrows.tune(cfg, target, 1, progress=False)
     (t,) = study.get_trials(deepcopy=False)
     run = client_for(cfg).get_run(t.user_attrs[tuning.ATTR_RUN])
     m, p = run.data.metrics, run.data.params
