@@ -19,7 +19,7 @@ from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import SweepStore, WorkerId, studies, tuning
+from bronchocli.sweep import StorageError, SweepStore, WorkerId, studies, tuning
 from bronchocli.sweep import trials as trialrows
 from bronchocli.sweep.studyrows import study_sweep
 
@@ -312,20 +312,33 @@ def test_sweep_cancel_stops_a_study_whose_workers_a_detachable_launcher_started(
                              kind, "--set", "train.steps=100000"], cwd=project, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     store, end = SweepStore(cfg.paths.storage_url), time.monotonic() + 300
-    while not [r for r in (store.rows(study_sweep(name)) if store.exists() else []) if r.state == "running"
-               and r.run_id]:  # an event the test waits for (a trial trains); the limit guards a hang
+
+    def training() -> bool:  # an event the test waits for (a trial trains); the limit guards a hang
+        try:
+            return any(r.state == "running" and r.run_id for r in store.rows(study_sweep(name)))
+        except StorageError:  # the table not created yet, or SQLite busy with the workers' writes
+            return False
+
+    while not training():
         assert tune.poll() is None and time.monotonic() < end, tune.stdout.read()
         time.sleep(0.05)
     code, out, err = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", kind)
     assert code == 0 and "cancelled subprocess job(s)" in out, out + err
     out, _ = tune.communicate(timeout=300)
     assert tune.returncode == 130 and "was cancelled" in out and "Traceback" not in out, out
-    rows = store.rows(study_sweep(name))
-    assert {r.state for r in rows} == {"pending"}  # the stopped worker gave its trial's row back
+    end = time.monotonic() + 300  # the watch ends at the cancel; the stopping workers checkpoint, then give back
+    while {r.state for r in store.rows(study_sweep(name))} != {"pending"}:  # each stopped worker its trial's row
+        assert time.monotonic() < end, store.rows(study_sweep(name))
+        time.sleep(0.05)
     client = client_for(cfg)
     parent = client.get_run(find_parent(client, experiment_id(client, cfg), KIND_STUDY, name))
     assert parent.info.status == "KILLED" and TAG_CANCELLED in parent.data.tags
     assert "FAIL" in trial_states(cfg, name) and "COMPLETE" not in trial_states(cfg, name)
+    from subprocess_launcher import SubprocessLauncher
+
+    while SubprocessLauncher(trialrows.launcher_config(cfg, name)).active():  # the stopped workers exit
+        assert time.monotonic() < end
+        time.sleep(0.05)
     code, out, err = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", kind)
     assert code == 0 and f"no subprocess job of sweep {study_sweep(name)} is queued or running" in out, out + err
 
