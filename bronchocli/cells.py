@@ -101,6 +101,24 @@ class Cell(BaseModel):
         return make(**raw, key=tags.get(key_tag, "") or "")
 
 
+class TrialCell(Cell):
+    """A claims row of a tuning study (``sweep.trials``): trial slot ``trial`` of the study's target cell, whose
+    coordinates it carries. Its key is the slot's (``trial-0007``), its label ``trial 7 · <the cell's label>``."""
+
+    trial: int = Field(ge=0)
+
+    @property
+    def label(self) -> str:
+        return f"trial {self.trial} · {super().label}"
+
+    def coords(self) -> dict[str, Any]:
+        return {**super().coords(), "trial": self.trial}
+
+    def target(self) -> Cell:
+        """The study's target cell (its coordinates, no key)."""
+        return Cell(**super().coords())
+
+
 def choices() -> dict[str, tuple[str, ...]]:
     """The allowed values of each field that has a fixed set (architectures, rotation losses: those registered
     now)."""
@@ -130,8 +148,10 @@ def make(**values: Any) -> Cell:
         values.pop("seed", None)
     if values.get("pose_frame") is None:
         values.pop("pose_frame", None)
+    if "trial" in values:  # a tuning study's trial slot (a claims row of its study)
+        values["trial"] = _int(values["trial"], "trial")
     try:
-        return Cell(**values)
+        return TrialCell(**values) if "trial" in values else Cell(**values)
     except ValidationError as exc:
         raise ConfigError("; ".join(dict.fromkeys(_problem(e) for e in exc.errors()))) from None
 

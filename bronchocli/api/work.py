@@ -64,7 +64,7 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
     cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
                     pose_frame=pose_frame, train_trajectories=train_trajectories)
     if use_tuned:
-        from ..sweep.tuning import apply_best  # lazy: optuna only with use_tuned
+        from ..sweep.studies import apply_best  # lazy: optuna only with use_tuned
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
@@ -138,13 +138,16 @@ def _target(cfg: Config, arch: str | None, rot_loss: str | None, population: str
 def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
          fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
          train_trajectories: int | None = None, trials: int | None = None, timeout: float | None = None,
-         storage: str | None = None, study: str | None = None, workers: int | None = None, gpus: str = "auto",
-         per_gpu: int = 1, progress: bool = False, profile: str | None = None, overrides: Sequence[str] = (),
-         console: Console | None = None) -> StudyResult:
+         storage: str | None = None, study: str | None = None, launcher: str | None = None,
+         workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None, progress: bool = False,
+         profile: str | None = None, overrides: Sequence[str] = (), console: Console | None = None) -> StudyResult:
     """Tune one cell's hyperparameters over ``tune.space`` with Optuna, as ``bronchopose tune`` does: the study
-    (shared storage, resumable) runs to ``trials`` finished trials (default ``tune.trials``) with ``workers``
-    local processes; returns the study's :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
+    (shared storage, resumable) runs to ``trials`` trial rows done (default ``tune.trials``), each row claimed by
+    a worker of ``launcher`` (default local: ``workers`` processes here on ``gpus``, one worker and no GPU in this
+    process; ``"slurm"``: array tasks, which load the config file); returns the study's
+    :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
     from ..sweep import entry  # lazy: optuna only when tuning
+    from ..sweep.task import TaskSpec
     from .results import StudyResult
 
     cfg = config_of(config, profile, overrides)
@@ -152,8 +155,12 @@ def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popul
         cfg = cfg.with_values({"storage.url": storage})
     target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
                      train_trajectories=train_trajectories)
-    info = entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus,
-                      per_gpu=per_gpu, progress=progress, console=console or _silent())
+    kind = entry.launcher_kind(cfg, launcher or entry.TUNE_LAUNCHER)
+    options = entry.launcher_options(kind, {"--workers": workers, "--gpus": gpus, "--per-gpu": per_gpu})
+    spec = None if isinstance(config, Config) else TaskSpec(config=str(config), profile=profile,
+                                                             overrides=tuple(overrides), storage=storage)
+    info = entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, kind=kind, options=options,
+                      spec=spec, progress=progress, console=console or _silent())
     return StudyResult.from_info(info)
 
 

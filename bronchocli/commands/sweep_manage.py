@@ -56,14 +56,17 @@ def cancel(
     launcher: Optional[str] = typer.Option(None, "--launcher", help="The launcher whose workers to stop "
                                            "(default: sweep.launcher)."),
     dry_run: bool = typer.Option(False, "--dry-run", help="List the workers that would be stopped; stop nothing."),
+    study: Optional[str] = typer.Option(None, "--study", help="Stop this tuning study's workers (`tune "
+                                        "--launcher`) instead of the sweep's."),
     storage: Optional[str] = StorageOpt,
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """Stop this sweep's queued and running workers (Slurm: scancel its jobs); running cells are released and
-    resume from their checkpoints when the sweep is run again."""
+    """Stop this sweep's (or --study's) queued and running workers (Slurm: scancel its jobs); running cells and
+    trials are released and resume from their checkpoints when the sweep (or tune) is run again."""
     from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
 
     cfg = task_spec(config, profile, set_, storage).load()
-    raise typer.Exit(entry.cancel(cfg, entry.launcher_kind(cfg, launcher), wide_console(), dry_run=dry_run))
+    raise typer.Exit(entry.cancel(cfg, entry.launcher_kind(cfg, launcher), wide_console(), dry_run=dry_run,
+                                  study=study))

@@ -31,13 +31,14 @@ def tune(
                                             help="Stop starting trials after this many seconds."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL (default: storage.url)."),
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS,
-                                          help="Local worker processes tuning the "
-                                          "study, placed like a sweep's (torch threads = cores / N). Default: GPUs x "
-                                          "--per-gpu on a GPU machine, else 1 (in this process); at most one per trial."),
-    gpus: str = typer.Option("auto", "--gpus", help="GPUs for the workers, round-robin: auto (every visible one, "
-                             "honouring CUDA_VISIBLE_DEVICES), none, or a list such as 0,1."),
-    per_gpu: int = typer.Option(1, "--per-gpu", min=1, help="Trials run at once on each GPU."),
+    launcher: Optional[str] = typer.Option(None, "--launcher", help="Where the trials' workers run: local (the "
+                                           "default) or slurm (array tasks; `sweep cancel --study` stops them)."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS, help="Local worker "
+                                          "processes, placed like a sweep's. Default: GPUs x --per-gpu on a GPU "
+                                          "machine, else 1 (in this process); at most one per trial."),
+    gpus: Optional[str] = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (the "
+                                       "default), none, or a list such as 0,1."),
+    per_gpu: Optional[int] = typer.Option(None, "--per-gpu", min=1, help="Trials run at once on each GPU."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
     fmt: ShowFormat = typer.Option("table", "--format", help="--show output."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
@@ -47,13 +48,10 @@ def tune(
 ) -> None:
     """Tune one cell's hyperparameters over `tune.space` with Optuna (TPE, seeded), minimising validation loss.
 
-    Every trial is an MLflow run (tags run_kind=trial, study, trial); the pruner
-    (`tune.pruner`: median or hyperband) stops poor trials from their validation loss
-    (every train.val_every steps). The study lives in the shared storage, so several processes
-    or machines can tune it together and an interrupted study resumes. `--workers N`
-    runs N worker processes here, placed on the GPUs like a sweep's workers
-    (`--gpus`, `--per-gpu`), each logging to sweep.logs/<study>. With
-    --show, print the best trial and parameter importances (no training).
+    Every trial is an MLflow run (tags run_kind=trial, study, trial) and a row of the claims
+    table (`status --sweep <study>.trials`), claimed by a sweep worker of `--launcher`: local
+    processes (`--workers`, `--gpus`, `--per-gpu`) or Slurm array tasks. The pruner stops poor
+    trials; the study is resumable. With --show, print the best trial and importances.
     """
     from .. import api  # lazy: keeps `bronchopose --help` fast
 
@@ -65,5 +63,5 @@ def tune(
     elif arch is None and rot_loss is None and population is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     else:
-        api.tune(config, trials=trials, study=study, timeout=timeout, workers=workers, gpus=gpus, per_gpu=per_gpu,
-                 progress=not quiet, **cell, **given)
+        api.tune(config, trials=trials, study=study, timeout=timeout, launcher=launcher, workers=workers, gpus=gpus,
+                 per_gpu=per_gpu, progress=not quiet, **cell, **given)

@@ -20,9 +20,10 @@
   ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
 - ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``
   and the parent runs;
-- ``tuning``: Optuna studies on the same storage, one MLflow run per trial, its workers local processes
-  (``tunepool``, ``launchers.local.LocalProcesses``); ``tuneresume``: a stopped trial's checkpoint handed to a
-  trial that resumes it, and what ``sweep gc`` keeps.
+- ``studies``: Optuna studies on the same storage (opening, reading back); ``tuning``: what one trial is (one
+  MLflow run, the objective, the pruner); ``studyrows``, ``trials``, ``trialwork``: a study's trials as rows of
+  the claims table, added by ``tune``, claimed by sweep workers of any launcher through the one driver;
+  ``tuneresume``: a stopped trial's checkpoint handed to a trial that resumes it, and what ``sweep gc`` keeps.
 
 See docs/sweep.md for the model and the exactly-once argument.
 """

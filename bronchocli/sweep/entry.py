@@ -52,6 +52,8 @@ from .task import TaskSpec, command
 
 log = logging.getLogger(__name__)
 
+TUNE_LAUNCHER = "local"  # ``tune --launcher``'s default (a sweep's: ``sweep.launcher``)
+
 
 def launcher_kind(cfg: Config, name: str | None) -> type[Launcher]:
     """The launcher ``--launcher`` names (default: ``sweep.launcher``); one line naming the registered ones."""
@@ -139,12 +141,17 @@ def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
     return 0
 
 
-def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool = False) -> int:
-    """Stop every queued or running worker of the sweep (running ones release their cells); ``dry_run``: list
-    them and stop nothing."""
+def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool = False,
+           study: str | None = None) -> int:
+    """Stop every queued or running worker of the sweep (running ones release their cells), or of the tuning
+    study ``study`` (``trials.cancel_study``); ``dry_run``: list them and stop nothing."""
     if not kind.detachable:
-        raise BronchoError(f"--launcher {kind.name}: its workers are the `sweep run` command's own processes; stop "
-                           "that command (Ctrl-C) instead")
+        raise BronchoError(f"--launcher {kind.name}: its workers are the `{'tune' if study else 'sweep run'}` "
+                           "command's own processes; stop that command (Ctrl-C) instead")
+    if study is not None:
+        from .trials import cancel_study  # lazy: optuna only for a study
+
+        return cancel_study(cfg, study, kind, console, dry_run=dry_run)
     if not dry_run:  # recorded first: a watcher that sees the workers go never submits them again
         client = client_for(cfg)
         record_cancel(client, experiment_id(client, cfg), cfg.name)
@@ -228,15 +235,15 @@ def grid(cfg: Config, console: Console) -> None:
 
 def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> dict[str, Any]:
     """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study); returns
-    what it showed (``tuning.describe_study``)."""
-    from . import tuning  # lazy: optuna only when a study is read
+    what it showed (``studies.describe_study``)."""
+    from . import studies, tuning  # lazy: optuna only when a study is read
 
     if study is None and target is None:
-        names = tuning.list_studies(cfg)
+        names = studies.list_studies(cfg)
         raise BronchoError("--show needs --study NAME (or the cell's --arch/--rot-loss/--population); "
                            f"studies in the storage: {', '.join(names) or 'none'}")
     study = study or tuning.study_name(cfg, target)
-    info = tuning.summary(cfg, study)
+    info = studies.summary(cfg, study)
     if fmt == "json":
         console.print_json(json.dumps(info, default=str))
         return info
@@ -260,28 +267,35 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
 
 
 def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | None = None,
-         timeout: float | None = None, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
-         progress: bool = True, console: Console) -> dict[str, Any]:
-    """``bronchopose tune``: run the cell's study (shared storage, resumable) to ``trials`` finished trials with
-    its workers placed like a sweep's (``--workers``, ``--gpus``, ``--per-gpu``), then show its best trial;
-    returns the study's description (``tuning.describe_study``)."""
-    from . import tunepool, tuning  # lazy: optuna only when the command runs
+         timeout: float | None = None, kind: type[Launcher] | None = None, options: dict[str, Any] | None = None,
+         spec: TaskSpec | None = None, progress: bool = True, console: Console) -> dict[str, Any]:
+    """``bronchopose tune``: the cell's study (shared storage, resumable) to ``trials`` rows done, its trials claimed
+    by workers of launcher ``kind`` (``options``: ``launcher_options``'s; the local one with one worker and no GPU:
+    this process), then show its best trial; returns the study's description (``studies.describe_study``)."""
+    from . import studies, tuning, trials as trialrows  # lazy: optuna only when the command runs
 
+    kind = kind or launcher_class(TUNE_LAUNCHER)
+    options = dict(options or {})
     _local_store(cfg)  # paths, then the storage answers (runs.timeout_s): one line before any dataset is rendered
     check_reachable(cfg)  # the MLflow server or database too
-    n, devices = _workers(workers, gpus, per_gpu)
     trials = trials or cfg.tune.trials
-    n = min(n, trials)  # a worker per trial at most, as a sweep starts a worker per cell at most
+    name = study or tuning.study_name(cfg, target)
+    trialrows.launcher_config(cfg, name)  # a --study that cannot name the rows: one line first
+    here = False
+    if "--workers" in kind.options:  # workers placed here (--workers, --gpus, --per-gpu): one per trial at most
+        n, devices = _workers(options.get("workers"), options.get("gpus") or "auto", options.get("per_gpu") or 1)
+        options["workers"] = min(n, trials)
+        here = not kind.detachable and options["workers"] <= 1 and not devices  # one worker, no GPU: this process
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
         initialisation(cfg.paths.pretrained, [target.arch])
-    name = study or tuning.study_name(cfg, target)
-    console.print(f"[bold]tune[/] {name}: {trials} trials, {n} worker(s)"
-                  + (f" on GPUs {','.join(devices)}" if devices else "")
+    console.print(f"[bold]tune[/] {name}: {trials} trials, "
+                  + ("in this process" if here else f"launcher {kind.name}")
                   + f", storage {urls.redact(cfg.paths.storage_url)}")
-    s = tunepool.tune(cfg, target, trials, study=study, timeout=timeout or cfg.tune.timeout, workers=n,
-                      gpus=devices if n > 1 or gpus != "auto" else (), progress=progress, enqueue=cfg.tune.enqueue)
-    console.print(f"{tuning.finished(s)} finished trials in study {name}")
+    s = trialrows.tune(cfg, target, trials, study=name, timeout=timeout or cfg.tune.timeout, spec=spec,
+                       make_launcher=None if here else lambda lcfg, task: kind.create(lcfg, study=task, **options),
+                       progress=progress, enqueue=cfg.tune.enqueue, console=console)
+    console.print(f"{studies.finished(s)} finished trials in study {name}")
     return show_study(cfg, name, None, "table", console)

@@ -118,10 +118,10 @@ class _Studies:
 
     def _trials(self, name: str) -> list[Any] | str:
         if name not in self.trials:
-            from . import tuning  # lazy: Optuna only where a trial's checkpoint lies, not for every status
+            from . import studies  # lazy: Optuna only where a trial's checkpoint lies, not for every status
 
             try:
-                self.trials[name] = tuning.load(self.cfg, name).get_trials(deepcopy=False)
+                self.trials[name] = studies.load(self.cfg, name).get_trials(deepcopy=False)
             except StorageError as exc:
                 self.trials[name] = f"its study {name}'s storage could not be read ({exc})"
             except BronchoError:

@@ -1,7 +1,8 @@
 """``bronchopose sweep run`` with any launcher: the one driver. Check, prepare the shared state, print the plan,
 submit what the launcher's queued and running workers do not cover, and (unless ``--detach``) watch the table
 until they are gone, moving on to the next stage and topping up when workers ended with cells left; ``cancel``
-stops them. The launcher is the protocol (``launchers.base``); nothing here names one.
+stops them. The launcher is the protocol (``launchers.base``); nothing here names one. ``drive`` (submit, then
+watch) is the part that does not know the sweep's parent run: ``tune`` drives a study's trial rows through it.
 
 A worker works the stages up to the one it was submitted for (``STAGE_ENV``), never a later one, so each
 stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it,
@@ -85,11 +86,12 @@ def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitt
     for step in walk.steps():
         if step.settled is not None:
             console.print(describe_selection(step.settled), highlight=False)
-            ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [])
+            ensure_rows(walk.cfg, walk.store, walk.cells(step.stage, mine=False) or [], sweep=walk.sweep)
             print_stage(walk, step.stage, console)
         if step.waits:
             record.waiting = step
-        elif not launcher.defers and step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells), retries):
+        elif not launcher.defers and step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells,
+                                                                          sweep=walk.sweep), retries):
             first_open = step.stage
             break
     if launcher.defers:
@@ -161,21 +163,9 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
     summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
     code: int | None = None
     try:
-        with launcher.supervised():  # the local launcher's Ctrl-C stops its workers; a failure stops them first
-            for stage in walk.stages:
-                print_stage(walk, stage, console)
-            record = Submitted()
-            if not submit_missing(walk, launcher, console, record):
-                tasks = launcher.active()
-                console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of "
-                              "this sweep queued or running" if tasks else "nothing left to run")
-            summary.record_parent(client, parent, walk)  # the plan on the parent run; the outcome once watched
-            if detach:
-                console.print("detached: `bronchopose status` shows progress, `bronchopose sweep cancel` stops the "
-                              "workers")
-                return 0
-            code = watch(walk, launcher, console, lambda: summary.cancelled(client, parent),
-                         lambda: summary.reopen(client, parent), record)  # a top-up after its last worker stopped it
+        code = drive(walk, launcher, console, detach=detach, cancelled=lambda: summary.cancelled(client, parent),
+                     resubmitted=lambda: summary.reopen(client, parent),  # a top-up after its last worker stopped it
+                     submitted=lambda: summary.record_parent(client, parent, walk))  # the plan on the parent run
         return code
     finally:
         if not detach and (code is not None or launcher.stopped):
@@ -183,6 +173,27 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
             summary.record_parent(client, parent, walk, finished=True)
             if code != EXIT_INTERRUPTED or launcher.stopped:  # stopped watching only: the workers go on
                 set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED, FAILED or KILLED
+
+
+def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool, cancelled: Callable[[], bool],
+          resubmitted: Callable[[], object] = lambda: None, submitted: Callable[[], object] = lambda: None,
+          cancel_hint: str = "`bronchopose sweep cancel`") -> int:
+    """Inside ``launcher.supervised()``: print the stages, submit workers for what is missing (then ``submitted``),
+    and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s exit code). ``walk``: a sweep's
+    ``StageWalk``, or anything walked alike (a study's trial rows: ``trials.StudyWalk``)."""
+    with launcher.supervised():  # the local launcher's Ctrl-C stops its workers; a failure stops them first
+        for stage in walk.stages:
+            print_stage(walk, stage, console)
+        record = Submitted()
+        if not submit_missing(walk, launcher, console, record):
+            tasks = launcher.active()
+            console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of "
+                          "this sweep queued or running" if tasks else "nothing left to run")
+        submitted()
+        if detach:
+            console.print(f"detached: `bronchopose status` shows progress, {cancel_hint} stops the workers")
+            return 0
+        return watch(walk, launcher, console, cancelled, resubmitted, record)
 
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:

@@ -8,7 +8,8 @@ installed (and the launcher's own, e.g. Slurm's SIGUSR1), its ``WorkerId``
 (host, pid, the launcher's job id, GPU) on every claim and log line. It walks
 the stages in order (``work_stages``): claims the first stage's cells; goes on
 to a later stage only once every cell before it is done, settling its selection
-first; stops after the stage it was submitted for. Exit code 0 (nothing left
+first; stops after the stage it was submitted for. A tuning study's worker
+(``WorkerJob.study``) claims the study's trial rows instead (``trialwork``). Exit code 0 (nothing left
 here), 130 (stopped), 2 (a user error, logged in one line), 3 (stopped after a failure recorded on its cell's
 row: a full disk; the cell's failure says it).
 """
@@ -36,6 +37,7 @@ from .liveness import StopSignals
 from .placement import pin_env
 from .selection import describe_selection
 from .storage import FINISHED, RUNNING, SweepStore
+from .studyrows import StudyTask
 from .summary import TAG_CANCELLED, cancelled, record_stop, reopen
 from .worker import EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDED, Runner, Worker, WorkerId, default_runner, job_of
 
@@ -66,6 +68,7 @@ class WorkerJob:
     gpu_share: int = 1  # workers pinned to that GPU (this one included)
     parent_pid: int | None = None  # a local worker: its own process group; it stops when that process is gone
     cpu_workers: int = 1  # workers its command runs on this machine: each takes at most cores / N (runs.cores)
+    study: StudyTask | None = None  # a tuning study's worker: its trial rows instead of the stages (``trialwork``)
 
 
 def this_worker(launcher: type[Launcher]) -> WorkerId:
@@ -102,8 +105,8 @@ def prepare_process(gpu: str | None, share: int, log_path: str | None, parent_pi
     _redirect_output(log_path)
 
 
-def start_worker(job: Any, launcher: type[Launcher], stop_event: Any) -> tuple[WorkerId, StopSignals]:
-    """A worker process's start, a sweep's or a tune's (``job``: a WorkerJob or a TuneJob): ``prepare_process``,
+def start_worker(job: WorkerJob, launcher: type[Launcher], stop_event: Any) -> tuple[WorkerId, StopSignals]:
+    """A worker process's start, a sweep's or a study's: ``prepare_process``,
     its ``WorkerId`` on every log line of its log file, its stop signals (and ``launcher``'s own) installed."""
     prepare_process(job.gpu, job.gpu_share, job.log_path, job.parent_pid, job.cpu_workers)
     ident = this_worker(launcher)
@@ -135,17 +138,26 @@ def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
     cfg = job.cfg
     if cfg.train.threads is None and (threads := job.launcher.worker_threads()):
         cfg = cfg.with_values({"train.threads": threads})
-    log.info("sweep worker %s, %s %s %s, CUDA_VISIBLE_DEVICES=%s", cfg.name, job.launcher.title,
-             job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
+    log.info("%s, %s %s %s, CUDA_VISIBLE_DEVICES=%s",
+             f"tune worker of study {job.study.study}" if job.study else f"sweep worker {cfg.name}",
+             job.launcher.title, job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES",
+                                                                                          "unset"))
     code, store = EXIT_INTERRUPTED, None
-    detached = job.ends_parent and job.launcher.detachable  # no watcher may be left to keep its parent run true
+    # no watcher may be left to keep a detached sweep's parent run true (a study's: its `tune` command ends it)
+    detached = job.ends_parent and job.launcher.detachable and job.study is None
     try:
         store = planning.open_store(cfg, job.storage_url)
         if detached:
             reopen_parent(cfg)
-        code = work_stages(cfg, store, job.only, signals=signals, runner=job.runner,
-                           exit_when_idle=job.exit_when_idle, last_stage=job.last_stage, ident=str(ident),
-                           ends_parent=job.ends_parent)
+        if job.study is not None:
+            from .trialwork import work_trials  # lazy: Optuna loads only in a study's workers
+
+            code, _ = work_trials(cfg, store, job.study, signals=signals, ident=str(ident),
+                                  exit_when_idle=job.exit_when_idle, storage_url=job.storage_url)
+        else:
+            code = work_stages(cfg, store, job.only, signals=signals, runner=job.runner,
+                               exit_when_idle=job.exit_when_idle, last_stage=job.last_stage, ident=str(ident),
+                               ends_parent=job.ends_parent)
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
     except WriteFailed as exc:

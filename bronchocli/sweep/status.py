@@ -33,6 +33,7 @@ from .selection import describe_selection
 from .summary import TAG_STOPPED
 from .damage import damage_line, future_line, future_s
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
+from .studyrows import TRIALS_SUFFIX
 from .launchers import names as launcher_names
 from .launchers import launcher_class
 from .worker import WorkerId, job_of
@@ -41,6 +42,7 @@ log = logging.getLogger(__name__)
 
 # What status shows per finished cell: the headline's error and its accumulated twin (voxels; runkeys.py)
 ERRORS = (runkeys.HEADLINE_ERROR, runkeys.metric(runkeys.HEADLINE_METRIC, "acc"))
+TRIAL_VALUE = runkeys.best_of(runkeys.VAL_LOSS)  # shown for a study's trial rows (``studyrows``)
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
 
 
@@ -170,7 +172,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
             "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation
-            **{k: run.data.metrics.get(k) for k in (*ERRORS, runkeys.HEADLINE)},
+            **{k: run.data.metrics.get(k) for k in (*ERRORS, runkeys.HEADLINE, TRIAL_VALUE)},
         }
     return out
 
@@ -186,9 +188,10 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     launchers = sorted({w.launcher for r in plan.rows.values() if (w := WorkerId.parse(r.worker)) and w.job})
     on_slurm = bool(launchers)  # workers with a job of their launcher (Slurm: the array task)
+    trials = any(isinstance(c, cells.TrialCell) for c in plan.cells)  # a study's rows: each trial's value too
     cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
             *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
-            ("acc pos L2", "right"))
+            ("acc pos L2", "right"), *(((TRIAL_VALUE, "right"),) if trials else ()))
     for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
     if ckpt_bytes is not None:
@@ -211,7 +214,7 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             (row.worker or "-") if row and row.state == RUNNING else "",
             *(((job_of(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
               if on_slurm else ()),
-            shown, _num(m.get(ERRORS[0])), _num(m.get(ERRORS[1])),
+            shown, _num(m.get(ERRORS[0])), _num(m.get(ERRORS[1])), *((_num(m.get(TRIAL_VALUE)),) if trials else ()),
         ]
         if ckpt_bytes is not None:
             size = ckpt_bytes.get(row.run_id) if row and row.run_id else None
@@ -345,7 +348,20 @@ def sweep_state(cfg: Config, store: SweepStore, name: str, show_all: bool) -> Sw
     after += [f"[yellow]missing[/] {missing_line(row, redacted_uri(cfg))}" for c in plan.cells
               if (row := plan.rows.get(c.key)) is not None and row.run_id in missing]
     after += [checkpoint_line(held), disk_line(cfg)]
+    if name == cfg.name and store.exists():
+        after += study_lines(store)
     return SweepState(cfg, plan, fetch_metrics(cfg, with_runs), held, now, before, after)
+
+
+def study_lines(store: SweepStore) -> list[str]:
+    """A line per tuning study whose trial rows the claims table holds (``studyrows``): how to see them."""
+    out = []
+    for sweep in (s for s in store.sweeps() if s.endswith(TRIALS_SUFFIX)):
+        states = [r.state for r in store.rows(sweep)]
+        counts = ", ".join(f"{states.count(st)} {st}" for st in (FINISHED, RUNNING, FAILED, PENDING) if st in states)
+        out.append(f"[dim]study {sweep.removesuffix(TRIALS_SUFFIX)}: {len(states)} trial row(s) ({counts}); "
+                   f"`bronchopose status --sweep {sweep}` lists them[/]")
+    return out
 
 
 def show_status(cfg: Config, store: SweepStore, name: str, show_all: bool, console: Console) -> SweepState:

@@ -80,9 +80,14 @@ def record_cancel(client, exp_id: str, sweep: str) -> str | None:
     a watcher never re-submits what is being cancelled); its id, or None when the sweep has no parent yet."""
     parent = find_parent(client, exp_id, KIND_SWEEP, sweep)
     if parent is not None:
-        client.set_tag(parent, TAG_CANCELLED, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
-        set_parent_status(client, parent, 130)
+        mark_cancelled(client, parent)
     return parent
+
+
+def mark_cancelled(client, parent: str) -> None:
+    """A sweep's or study's parent run tagged cancelled (``TAG_CANCELLED``: its watcher stops) and ended KILLED."""
+    client.set_tag(parent, TAG_CANCELLED, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    set_parent_status(client, parent, 130)
 
 
 def cancelled(client, parent: str | None) -> bool:
@@ -243,7 +248,7 @@ def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bo
 
 
 def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> None:
-    """What a reviewer reads on an Optuna study's parent run (``info``: ``tuning.describe_study``).
+    """What a reviewer reads on an Optuna study's parent run (``info``: ``studies.describe_study``).
 
     Trial counts (metrics ``trials.*``), the best trial (its objective's metric, ``val_best.loss`` by default; tags ``best_trial``,
     ``best_run`` and ``best.<path>`` = its value of each searched path), and parameter importances (metrics

@@ -3,7 +3,8 @@ launcher whose workers outlive the command) runs the one worker entry, ``stagewo
 
 The launcher (``launch.launch``) writes the spec, a small JSON object
 (``TaskSpec``: the config file, profile, ``--set`` overrides, ``--storage``,
-``--use-tuned``, ``--only``, ``--runner`` and the launcher's name), into the
+``--use-tuned``, ``--only``, ``--runner``, the launcher's name, and for a
+tuning study's workers the study: they claim its trial rows), into the
 worker's command (Slurm: the batch script's ``exec`` line). A value that holds a
 password (a ``--set`` override or ``--storage`` URL, in any form ``urls.redact``
 knows) is never written there nor onto the worker's command line (``ps`` shows
@@ -39,6 +40,7 @@ from ..errors import BronchoError
 from ..io import write_text
 from .launchers import STAGE_ENV, launcher_class
 from .stagework import WorkerJob, worker_config, worker_main
+from .studyrows import StudyTask
 from .worker import Runner, default_runner
 
 log = logging.getLogger(__name__)
@@ -77,6 +79,8 @@ class TaskSpec:
     only: tuple[str, ...] = ()  # --only texts
     runner: str | None = None  # --runner module:function; None: training
     launcher: str = "slurm"  # the launcher that started the worker (its worker-side hooks)
+    study: str | None = None  # a tuning study's workers (``bronchopose tune``): its trial rows, not the stages
+    deadline: float | None = None  # ... and when its trials stop starting (epoch seconds, ``tune --timeout``)
     secrets: str | None = None  # a 0600 file holding the real overrides/storage (``seal``); these are redacted
 
     def load(self) -> Config:
@@ -86,7 +90,7 @@ class TaskSpec:
         if spec.storage:
             cfg = cfg.with_values({"storage.url": spec.storage})
         if self.use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
-            from .tuning import apply_best  # lazy: optuna only with --use-tuned
+            from .studies import apply_best  # lazy: optuna only with --use-tuned
 
             cfg = apply_best(cfg, self.use_tuned)
         return cfg
@@ -159,17 +163,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfg = spec.load()
         only, runner = spec.selection(), spec.cell_runner()
         check_paths(cfg, storage=True, logs=True)
-        return run_task(cfg, only, runner, spec.launcher)
+        study = StudyTask(spec.study, cfg.name, spec.deadline) if spec.study else None
+        return run_task(cfg, only, runner, spec.launcher, study)
     except BronchoError as exc:
         sys.stderr.write(f"error: {urls.redact(str(exc))}\n")  # a setting may be a URL with a password
         return exc.exit_code
 
 
-def run_task(cfg: Config, only: Selection, runner: Runner = default_runner, launcher: str = "slurm") -> int:
-    """One detached worker of ``launcher`` through the stages up to ``STAGE_ENV``'s (``stagework.worker_main``)."""
+def run_task(cfg: Config, only: Selection, runner: Runner = default_runner, launcher: str = "slurm",
+             study: StudyTask | None = None) -> int:
+    """One detached worker of ``launcher`` through the stages up to ``STAGE_ENV``'s, or through a study's trial
+    rows (``study``) (``stagework.worker_main``)."""
     kind = launcher_class(launcher, "task spec: launcher")
     job = WorkerJob(worker_config(cfg), cfg.paths.storage_url, only, kind, runner,
-                    last_stage=os.environ.get(STAGE_ENV) or None, exit_when_idle=kind.worker_exits_when_idle(cfg))
+                    last_stage=os.environ.get(STAGE_ENV) or None, exit_when_idle=kind.worker_exits_when_idle(cfg),
+                    study=study)
     return worker_main(job)
 
 

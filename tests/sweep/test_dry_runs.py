@@ -14,7 +14,7 @@ from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import cell_tags
-from bronchocli.sweep import SweepStore, prepare, tuning
+from bronchocli.sweep import SweepStore, prepare, studies
 from bronchocli.sweep.launchers.slurm import job_comment
 
 DRY_RUNS = [  # (the old `sweep --dry-run` with --launcher slurm, --detach, --retry-failed: refused, exit 2)
@@ -59,7 +59,7 @@ def finished_project(make_config, tmp_path, monkeypatch):
         else:
             store.fail(claim.token, "boom", run_id)
     store.close()
-    storage = tuning.storage_for(cfg)
+    storage = studies.storage_for(cfg)
     study = optuna.create_study(study_name="s", storage=storage)  # for --use-tuned
     study.add_trial(optuna.trial.create_trial(params={}, distributions={}, value=1.0))
     storage.engine.dispose()  # the last connection closes: SQLite moves its write-ahead log into the file

@@ -13,7 +13,7 @@ from tinyproject import write_config
 from bronchocli.config import load_config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import tuning
+from bronchocli.sweep import studies, tuning
 
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
 SPACE = """\
@@ -39,8 +39,8 @@ def _tune_twice_in_one_database(cli, project, url: str) -> None:
     cfg = load_config(project / "experiments.yaml", overrides=[s for s in sets if s != "--set"])
     study = optuna.load_study(study_name=tuning.study_name(cfg, cfg.cell(arch="baseline", rot_loss="mse",
                                                                           population="personalized")),
-                              storage=tuning.storage_for(cfg))
-    assert tuning.finished(study) == 2
+                              storage=studies.storage_for(cfg))
+    assert studies.finished(study) == 2
     client = client_for(cfg)  # MLflow still opens its store: its migration bookkeeping is intact
     runs = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "trial"})
     assert len(runs) == 2 and {r.info.status for r in runs} <= {"FINISHED", "KILLED"}  # KILLED: pruned
@@ -53,7 +53,7 @@ def test_tune_with_tracking_and_storage_on_one_sqlite_file(cli, project):
     _tune_twice_in_one_database(cli, project, "sqlite:///runs/one.db")
     names = inspect(create_engine(f"sqlite:///{project / 'runs' / 'one.db'}")).get_table_names()
     assert "experiments" in names and "studies" not in names  # MLflow's file; Optuna's tables beside it
-    assert tuning.optuna_url(load_config(project / "experiments.yaml", overrides=[
+    assert studies.optuna_url(load_config(project / "experiments.yaml", overrides=[
         "runs.uri=sqlite:///runs/one.db", "storage.url=sqlite:///runs/one.db"])).endswith("one.optuna.db")
 
 
@@ -63,11 +63,11 @@ def test_tune_with_tracking_and_storage_on_one_postgresql_database(cli, project,
     try:
         insp = inspect(engine)
         assert "experiments" in insp.get_table_names() and "studies" not in insp.get_table_names()
-        assert "studies" in insp.get_table_names(schema=tuning.OPTUNA_SCHEMA)
+        assert "studies" in insp.get_table_names(schema=studies.OPTUNA_SCHEMA)
     finally:
         engine.dispose()
 
 
 def test_separate_databases_keep_optuna_where_it_was(make_config):
     cfg = make_config()  # tracking sqlite:///mlflow.db, storage sqlite:///sweep.db
-    assert tuning.optuna_url(cfg) == cfg.paths.storage_url
+    assert studies.optuna_url(cfg) == cfg.paths.storage_url

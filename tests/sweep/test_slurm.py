@@ -630,3 +630,68 @@ def test_two_tasks_starting_together_on_a_new_experiment_lose_no_attempt_to_mlfl
            'violates unique constraint "dataset_pk"; retrying' in log, log  # the race was lost, and retried
     assert {(r.state, r.attempts) for r in rows(cfg)} == {(FINISHED, 1)}, rows(cfg)
     assert runs_by_cell(cfg, "FAILED") == {} and runs_by_cell(cfg, None) == {r.cell_key: 1 for r in rows(cfg)}
+
+
+def test_tune_runs_its_trials_as_slurm_array_tasks_and_sweep_cancel_stops_a_running_study(slurm, cli, make_config,
+                                                                                        tmp_path, pg_url):
+    """Issue 47, item 3: `tune --launcher slurm` submits array tasks that claim the study's trial rows (one Optuna
+    trial per row, each row once) and watches them to the end; a study running on Slurm is stopped by `sweep cancel
+    --study`: its tasks are scancelled, the running trial's row is given back, the watching `tune` exits 130."""
+    import optuna
+
+    from bronchocli.runs.parents import KIND_STUDY, find_parent
+    from bronchocli.sweep import studies, tuning
+    from bronchocli.sweep.studyrows import study_sweep
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)
+    cfg = make_config(storage=pg_url, archs=("baseline",), losses=("mse",),
+                      sweep={"heartbeat_s": 0.5, "stale_after_s": 30.0, "poll_s": 0.2},
+                      slurm={"cpus_per_task": 1, "shared_filesystem": True, "tasks": 2},
+                      splits={"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
+                      data={"window": 3, "cache_dir": "cache"},
+                      train={"batch_size": 3, "steps": 6, "val_every": 3, "bn_recalibrate": 1, "threads": 1,
+                             "max_val_pairs": 6},
+                      tune={"startup_trials": 1, "warmup_validations": 0,
+                            "space": {"train.lr": {"type": "float", "low": 1.0e-5, "high": 1.0e-3, "log": True}}})
+    path = str(cfg.paths.base / "experiments.yaml")
+    target = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
+    name = tuning.study_name(cfg, cfg.cell(arch="baseline", rot_loss="mse", population="personalized"))
+    code, out, err = cli("tune", "-c", path, *target, "--trials", "3", "--launcher", "slurm")
+    assert code == 0, out + err + task_logs(cfg)
+    assert re.search(r"submitted Slurm array job \d+: 2 task\(s\) for stage trials", out), out
+    store = SweepStore(cfg.paths.storage_url)
+    trial_rows = store.rows(study_sweep(name))
+    assert [r.state for r in trial_rows] == [FINISHED] * 3
+    assert all(re.fullmatch(r"\S+:\d+ slurm \d+_\d+( gpu[01])?", r.worker) for r in trial_rows), trial_rows
+    study = optuna.load_study(study_name=name, storage=studies.storage_for(cfg))
+    trials = study.get_trials(deepcopy=False)
+    assert len(trials) == 3 and studies.finished(study) == 3  # one trial per row, none twice
+    assert sorted(r.run_id for r in trial_rows) == sorted(t.user_attrs[tuning.ATTR_RUN] for t in trials)
+    client = client_for(cfg)
+    parent = find_parent(client, experiment_id(client, cfg), KIND_STUDY, name)
+    assert client.get_run(parent).info.status == "FINISHED"
+    code, out, _ = cli("status", "-c", path, "--sweep", study_sweep(name))
+    assert code == 0 and "Slurm task" in out and "trial 2 ·" in out and all(r.run_id in out for r in trial_rows), out
+
+    # the same study, one trial more, a long one: cancelled while it trains
+    tuner = subprocess.Popen([sys.executable, "-c", MAIN, "tune", "-c", path, *target, "--trials", "4", "--launcher",
+                              "slurm", "--set", "train.steps=100000"], cwd=tmp_path, stdout=subprocess.PIPE,
+                             stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_for(lambda: any(r.cell_key == "trial-0003" and r.state == "running" and r.run_id
+                             for r in store.rows(study_sweep(name))), "the fourth trial training", cluster=slurm,
+                 cfg=cfg)
+        code, out, err = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", "slurm")
+        assert code == 0 and "cancelled Slurm job(s)" in out, out + err
+        out, _ = tuner.communicate(timeout=LIMIT)
+    finally:
+        if tuner.poll() is None:
+            tuner.kill()
+    assert tuner.returncode == 130 and "was cancelled" in out, out + task_logs(cfg)
+    slurm.wait_idle_queue(LIMIT)
+    assert [r.state for r in store.rows(study_sweep(name))] == [FINISHED] * 3 + [PENDING]  # given back
+    run = client.get_run(parent)
+    assert run.info.status == "KILLED" and TAG_CANCELLED in run.data.tags
+    code, out, _ = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", "slurm")
+    assert code == 0 and f"no Slurm job of sweep {study_sweep(name)} is queued or running" in out

@@ -306,21 +306,24 @@ def test_plan_reports_the_workers_a_run_starts_and_workers_are_bounded(cli, proj
 
 
 def test_tune_starts_a_worker_per_trial_at_most(monkeypatch, project):
-    from bronchocli.sweep import entry, tunepool
+    from bronchocli.sweep import entry, trials
+    from bronchocli.sweep.launchers import LocalLauncher
+    from bronchocli.sweep.studyrows import StudyTask
 
     seen = {}
 
     class Stop(Exception):
         pass
 
-    def fake_tune(cfg, target, trials, **kw):
-        seen["workers"] = kw["workers"]
+    def fake_tune(cfg, target, n, *, make_launcher, **kw):
+        seen["workers"] = make_launcher(cfg, StudyTask("s", cfg.name)).workers
         raise Stop  # before any study is opened or process started
 
-    monkeypatch.setattr(tunepool, "tune", fake_tune)
+    monkeypatch.setattr(trials, "tune", fake_tune)
     target = project.cell(arch="baseline", rot_loss="mse", population="personalized")
     with pytest.raises(Stop):
-        entry.tune(project, target, trials=3, workers=1000, gpus="none", console=Console(quiet=True))
+        entry.tune(project, target, trials=3, kind=LocalLauncher, options={"workers": 1000, "gpus": "none"},
+                   console=Console(quiet=True))
     assert seen["workers"] == 3
 
 

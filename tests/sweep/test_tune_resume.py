@@ -22,7 +22,9 @@ from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunInterrupted, resume_file
 from bronchocli.runs.parents import study_parent
 from bronchocli.runs.records import TAG_PARENT
-from bronchocli.sweep import tunepool, tuning
+from bronchocli.sweep import SweepStore, studies, tuning
+from bronchocli.sweep import trials as trialrows
+from bronchocli.sweep.studyrows import study_sweep
 from bronchocli.sweep.tuneresume import ATTR_RESUME_CELL, ATTR_RESUME_RUN, ATTR_RESUMES
 
 SPACE = {"train.lr": {"type": "float", "low": 1.0e-5, "high": 1.0e-3, "log": True}}
@@ -30,7 +32,7 @@ TARGET = dict(arch="baseline", rot_loss="mse", population="personalized")
 
 
 def study_trials(cfg, name: str) -> list:
-    return optuna.load_study(study_name=name, storage=tuning.storage_for(cfg)).get_trials(deepcopy=False)
+    return optuna.load_study(study_name=name, storage=studies.storage_for(cfg)).get_trials(deepcopy=False)
 
 
 @pytest.mark.heavy  # trains twice
@@ -59,8 +61,10 @@ def test_a_trial_stopped_by_ctrl_c_is_resumed_from_its_checkpoint_by_the_next_tu
 
     monkeypatch.setattr(training_run, "run_cell", first_run_interrupted)
     with pytest.raises(RunInterrupted, match="SIGINT received at step 3/4"):
-        tunepool.tune(cfg, target, 2, progress=False)
+        trialrows.tune(cfg, target, 2, progress=False)
     stopped, waiting = study_trials(cfg, name)
+    rows = SweepStore(cfg.paths.storage_url).rows(study_sweep(name))
+    assert [(r.state, r.attempts) for r in rows] == [("pending", 0), ("pending", 0)]  # its row given back
     assert (stopped.state, waiting.state) == (TrialState.FAIL, TrialState.WAITING)
     run_id = stopped.user_attrs[tuning.ATTR_RUN]
     assert waiting.user_attrs == {ATTR_RESUME_RUN: run_id, ATTR_RESUMES: 0,
@@ -77,13 +81,15 @@ def test_a_trial_stopped_by_ctrl_c_is_resumed_from_its_checkpoint_by_the_next_tu
         f"{name} continues it" in out, out
     assert "gc: freed 0 B in 0 checkpoint folder(s)" in out
 
-    study = tunepool.tune(cfg, target, 2, progress=False)  # the same command again
+    study = trialrows.tune(cfg, target, 2, progress=False)  # the same command again
     trials = study.get_trials(deepcopy=False)
     assert [t.state for t in trials[:2]] == [TrialState.FAIL, TrialState.COMPLETE]
-    assert trials[2].state in (TrialState.COMPLETE, TrialState.PRUNED) and tuning.finished(study) == 2
+    assert trials[2].state in (TrialState.COMPLETE, TrialState.PRUNED) and studies.finished(study) == 2
     assert resumed == [None, run_id, None]  # trial 1 continued the stopped run; trial 2 is a fresh one
     again = trials[1]
     assert again.params == stopped.params and again.user_attrs[tuning.ATTR_RUN] == run_id
+    rows = SweepStore(cfg.paths.storage_url).rows(study_sweep(name))  # one row per trial that counts
+    assert [(r.state, r.run_id) for r in rows] == [("finished", run_id), ("finished", trials[2].user_attrs[tuning.ATTR_RUN])]
     assert sorted(again.intermediate_values) == [2, 4]  # step 2: the stopped trial's report, copied
     assert again.intermediate_values[2] == stopped.intermediate_values[2]
     run = client.get_run(run_id)
@@ -117,7 +123,7 @@ def test_gc_keeps_a_trials_checkpoint_while_its_study_can_resume_it_and_reclaims
                             **{TAG_PARENT: parents.get(study, "0" * 32)})
         if study not in parents:
             return
-        s = optuna.load_study(study_name=study, storage=tuning.storage_for(cfg))
+        s = optuna.load_study(study_name=study, storage=studies.storage_for(cfg))
         s.add_trial(create_trial(state=TrialState.FAIL, params={"train.lr": lr}, distributions=dists,
                                  user_attrs={tuning.ATTR_RUN: runs[key]}))
         attrs = {ATTR_RESUME_RUN: runs[key], ATTR_RESUMES: len(s.trials) - 1, ATTR_RESUME_CELL: cell.key}

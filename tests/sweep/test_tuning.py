@@ -19,7 +19,9 @@ from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import WorkerId, tunepool, tuning
+from bronchocli.sweep import StorageError, SweepStore, WorkerId, studies, tuning
+from bronchocli.sweep import trials as trialrows
+from bronchocli.sweep.studyrows import study_sweep
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
@@ -40,7 +42,7 @@ def project(tmp_path):
 
 
 def trial_states(cfg, name: str) -> list[str]:
-    study = optuna.load_study(study_name=name, storage=tuning.storage_for(cfg))
+    study = optuna.load_study(study_name=name, storage=studies.storage_for(cfg))
     return [t.state.name for t in study.get_trials(deepcopy=False)]
 
 
@@ -49,10 +51,10 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
         "tune.space={train.rot_weight: {type: categorical, choices: [0.0, 1000000.0]}}"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
     # Trial 1's loss is 1e6 x the rotation error, far above trial 0's: the median pruner must prune it.
-    study = tunepool.tune(cfg, target, 4, progress=False,
+    study = trialrows.tune(cfg, target, 4, progress=False,
                         enqueue=[{"train.rot_weight": 0.0}, {"train.rot_weight": 1000000.0}])
     trials = study.get_trials(deepcopy=False)
-    assert tuning.finished(study) == 4
+    assert studies.finished(study) == 4
     assert trials[1].state == optuna.trial.TrialState.PRUNED
     assert study.best_trial.params == {"train.rot_weight": 0.0}
     client = client_for(cfg)
@@ -67,6 +69,15 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert len(parents) == 1 and all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in runs)
     assert parents[0].info.status == "FINISHED" and parents[0].data.tags["best_trial"] == str(study.best_trial.number)
     assert parents[0].data.metrics["val_best.loss"] == pytest.approx(study.best_value)
+    # each trial is one row of the claims table, finished, naming its own run: no trial ran twice
+    rows = SweepStore(cfg.paths.storage_url).rows(study_sweep(study.study_name))
+    assert [r.cell_key for r in rows] == [f"trial-{i:04d}" for i in range(4)] and {r.state for r in rows} == {"finished"}
+    assert sorted(r.run_id for r in rows) == sorted(r.info.run_id for r in runs)
+    code, out, err = cli("status", "-c", str(project / "experiments.yaml"), "--sweep", study_sweep(study.study_name))
+    assert code == 0 and out.count("finished") >= 4 and "trial 1 · baseline/mse/personalized" in out, out + err
+    assert all(r.run_id in out for r in rows)
+    code, out, err = cli("status", "-c", str(project / "experiments.yaml"))  # the config's status names the study
+    assert code == 0 and f"study {study.study_name}: 4 trial row(s) (4 finished)" in out, out + err
 
     code, out, err = cli("train", "-c", str(project / "experiments.yaml"), *TARGET, "--use-tuned", study.study_name)
     assert code == 0, err
@@ -168,7 +179,7 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
     s = _study(n, params)
     parent = study_parent(client, cfg, experiment_id(client, cfg), s.study_name,
                           cells.make(arch="baseline", rot_loss="mse", population="personalized"))
-    log_study(client, parent, tuning.describe_study(s), tuning.finished(s))
+    log_study(client, parent, studies.describe_study(s), studies.finished(s))
     run = client.get_run(parent)
     tags, metrics = run.data.tags, run.data.metrics
     best = s.best_trial
@@ -203,7 +214,7 @@ def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_ot
 
     monkeypatch.setattr(training_run, "run_cell", evaluated_under_sigint)
     with pytest.raises(RunInterrupted, match="trial #0 was evaluated"):
-        tunepool.tune(cfg, target, 3, progress=False)
+        trialrows.tune(cfg, target, 3, progress=False)
     assert len(started) == 1 and trial_states(cfg, tuning.study_name(cfg, target)) == ["COMPLETE"]
     client = client_for(cfg)
     (parent,) = search_runs(client, [experiment_id(client, cfg)], {"run_kind": "study"})
@@ -251,30 +262,85 @@ def test_a_lost_study_storage_is_rebuilt_from_the_trials_mlflow_records(project,
         return RunResult(run_id, "FINISHED", {"val_best.loss": loss})
 
     monkeypatch.setattr(training_run, "run_cell", trial_run)
-    first = tunepool.tune(cfg, target, 2, progress=False)
+    first = trialrows.tune(cfg, target, 2, progress=False)
     best = (first.best_trial.params, first.best_value)
     db = urls.sqlite_file(cfg.paths.storage_url)
     for path in (db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm")):
         path.unlink(missing_ok=True)
-    again = tunepool.tune(cfg, target, 2, progress=False)
-    assert len(started) == 2 and tuning.finished(again) == 2  # no trial ran again
+    again = trialrows.tune(cfg, target, 2, progress=False)
+    assert len(started) == 2 and studies.finished(again) == 2  # no trial ran again
     assert (again.best_trial.params, again.best_value) == best
     assert again.best_trial.user_attrs[tuning.ATTR_RUN] in started
 
 
 def test_two_tune_workers_on_two_gpus_each_see_their_own_device(project):
     """`tune --workers 2` places its workers like a sweep's (issue 38, item 3): on two (faked) GPUs, each worker
-    process sees one device, a different one, logs to its own file, and each trial records the worker that ran it."""
+    process sees one device, a different one, logs to its own file, and each trial records the worker that ran it;
+    the workers are the local launcher's, driven by the sweep's driver over the study's claims rows."""
+    from bronchocli.sweep.launchers import LocalLauncher
+
     cfg = load_config(project / "experiments.yaml")
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = tunepool.tune(cfg, target, 2, workers=2, gpus=["3", "5"], progress=False)
-    assert tuning.finished(study) == 2
-    logs = sorted((cfg.paths.sweep_logs / study.study_name).glob("*.log"))
-    seen = [re.search(r"tune worker \d of study .*, CUDA_VISIBLE_DEVICES=(\S+)", p.read_text()) for p in logs]
+    study = trialrows.tune(cfg, target, 2, progress=False,
+                        make_launcher=lambda lcfg, task: LocalLauncher(lcfg, gpus=["3", "5"], workers=2, study=task))
+    assert studies.finished(study) == 2
+    logs = sorted((cfg.paths.sweep_logs / study_sweep(study.study_name)).glob("*.log"))
+    seen = [re.search(r"tune worker of study .*, CUDA_VISIBLE_DEVICES=(\S+)", p.read_text()) for p in logs]
     assert len(logs) == 2 and sorted(m.group(1) for m in seen if m) == ["3", "5"], [p.read_text() for p in logs]
     workers = [WorkerId.parse(t.user_attrs[tuning.ATTR_WORKER]) for t in study.get_trials(deepcopy=False)]
     assert all(w is not None and w.gpu in ("3", "5") for w in workers)
     assert len({(w.pid, w.gpu) for w in workers}) == len({w.pid for w in workers})  # a process keeps its GPU
+    rows = SweepStore(cfg.paths.storage_url).rows(study_sweep(study.study_name))
+    assert {r.state for r in rows} == {"finished"} and len({r.run_id for r in rows}) == 2
+
+
+def test_sweep_cancel_stops_a_study_whose_workers_a_detachable_launcher_started(project, cli):
+    """`tune --launcher` with a launcher whose workers outlive the command (the test's subprocess launcher, as
+    Slurm's): `sweep cancel --study NAME` finds the study's workers (its launcher is given the config named after
+    the study's rows), stops them (the running trial's row is given back), and the watching `tune` ends 130 with
+    the study's parent run KILLED and cancelled; the next `tune` un-cancels it."""
+    from bronchocli.runs.parents import KIND_STUDY, find_parent
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    kind = "subprocess_launcher:SubprocessLauncher"
+    path = str(project / "experiments.yaml")
+    cfg = load_config(path)
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    name = tuning.study_name(cfg, target)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": os.pathsep.join(sys.path)}
+    tune = subprocess.Popen([sys.executable, "-c", MAIN, "tune", "-c", path, *TARGET, "--trials", "2", "--launcher",
+                             kind, "--set", "train.steps=100000"], cwd=project, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    store, end = SweepStore(cfg.paths.storage_url), time.monotonic() + 300
+
+    def training() -> bool:  # an event the test waits for (a trial trains); the limit guards a hang
+        try:
+            return any(r.state == "running" and r.run_id for r in store.rows(study_sweep(name)))
+        except StorageError:  # the table not created yet, or SQLite busy with the workers' writes
+            return False
+
+    while not training():
+        assert tune.poll() is None and time.monotonic() < end, tune.stdout.read()
+        time.sleep(0.05)
+    code, out, err = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", kind)
+    assert code == 0 and "cancelled subprocess job(s)" in out, out + err
+    out, _ = tune.communicate(timeout=300)
+    assert tune.returncode == 130 and "was cancelled" in out and "Traceback" not in out, out
+    end = time.monotonic() + 300  # the watch ends at the cancel; the stopping workers checkpoint, then give back
+    while {r.state for r in store.rows(study_sweep(name))} != {"pending"}:  # each stopped worker its trial's row
+        assert time.monotonic() < end, store.rows(study_sweep(name))
+        time.sleep(0.05)
+    client = client_for(cfg)
+    parent = client.get_run(find_parent(client, experiment_id(client, cfg), KIND_STUDY, name))
+    assert parent.info.status == "KILLED" and TAG_CANCELLED in parent.data.tags
+    assert "FAIL" in trial_states(cfg, name) and "COMPLETE" not in trial_states(cfg, name)
+    from subprocess_launcher import SubprocessLauncher
+
+    while SubprocessLauncher(trialrows.launcher_config(cfg, name)).active():  # the stopped workers exit
+        assert time.monotonic() < end
+        time.sleep(0.05)
+    code, out, err = cli("sweep", "cancel", "-c", path, "--study", name, "--launcher", kind)
+    assert code == 0 and f"no subprocess job of sweep {study_sweep(name)} is queued or running" in out, out + err
 
 
 def test_a_budgeted_ratio_objective_trains_every_trial_the_same_pairs_and_minimises_the_val_ratio(project):
@@ -285,7 +351,7 @@ def test_a_budgeted_ratio_objective_trains_every_trial_the_same_pairs_and_minimi
         "tune.objective=val_ratio", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4",
         "train.val_every=4"])  # the base config validates every 4 x 4 = 16 pairs
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = tunepool.tune(cfg, target, 2, progress=False,
+    study = trialrows.tune(cfg, target, 2, progress=False,
                           enqueue=[{"train.batch_size": 4}, {"train.batch_size": 8}])
     trials = study.get_trials(deepcopy=False)
     assert [t.state.name for t in trials] == ["COMPLETE", "COMPLETE"]
@@ -308,7 +374,7 @@ def test_the_cost_objective_stops_each_trial_at_the_target_and_returns_the_pairs
         "tune.space={train.lr: {type: float, low: 1.0e-4, high: 1.0e-3, log: true}}",
         "tune.objective=cost", "tune.budget_pairs=32", "tune.pruner=none", "train.batch_size=4", "train.val_every=2"])
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
-    study = tunepool.tune(cfg, target, 1, progress=False)
+    study = trialrows.tune(cfg, target, 1, progress=False)
     (t,) = study.get_trials(deepcopy=False)
     run = client_for(cfg).get_run(t.user_attrs[tuning.ATTR_RUN])
     m, p = run.data.metrics, run.data.params

@@ -7,8 +7,8 @@ and macOS), each running the one worker entry (``stagework.worker_main``) with
 its ``WorkerJob``. They sit in their own process group, so a terminal's Ctrl-C
 reaches the command alone; ``stop`` sets the shared stop event and sends every
 worker one SIGTERM (a second ``stop`` sends SIGINT: abort without waiting for a
-checkpoint). ``LocalProcesses`` is the same placement, logs and stop for any
-worker function (``tune --workers`` runs its trials through it).
+checkpoint). A tuning study's workers are the same processes given a
+``StudyTask`` (``study``): they claim the study's trial rows.
 
 Not ``detachable``: the workers are the command's own children. The driver
 (``sweep.launch``) drives it as any launcher, inside ``supervised`` (Ctrl-C
@@ -36,6 +36,7 @@ from ...cells import Selection
 from ...config import Config
 from ..placement import assign, default_workers, parse_gpus, share_counts, visible_gpus
 from ..stagework import WorkerJob, local_process, worker_config
+from ..studyrows import StudyTask
 from ..worker import EXIT_INTERRUPTED, Runner, default_runner
 from .base import Launcher, Workers
 
@@ -130,8 +131,9 @@ class LocalLauncher(Launcher):
 
     def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
                  only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
-                 workers: int = 1, log_dir: Path | None = None):
+                 workers: int = 1, log_dir: Path | None = None, study: StudyTask | None = None):
         super().__init__(cfg, command)
+        self.study = study  # a tuning study's workers: its trial rows (``sweep.trialwork``)
         self.storage_url = storage_url or cfg.paths.storage_url
         self.only, self.runner, self.workers = only, runner, max(1, workers)
         self.processes = LocalProcesses(log_dir or self.logs(cfg), gpus)
@@ -142,12 +144,12 @@ class LocalLauncher(Launcher):
     @classmethod
     def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
                workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
-               **options: Any) -> LocalLauncher:
+               study: StudyTask | None = None, **options: Any) -> LocalLauncher:
         """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
         ``--per-gpu``, else 1)."""
         devices = parse_gpus(gpus or "auto", visible_gpus())
         return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
-                   workers=workers or default_workers(devices, per_gpu or 1))
+                   workers=workers or default_workers(devices, per_gpu or 1), study=study)
 
     def describe(self) -> str:
         gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
@@ -164,7 +166,7 @@ class LocalLauncher(Launcher):
         def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
             return WorkerJob(self.wcfg, self.storage_url, self.only, LocalLauncher, self.runner, last_stage=stage or None,
                              exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
-                             parent_pid=os.getpid(), cpu_workers=n)
+                             parent_pid=os.getpid(), cpu_workers=n, study=self.study)
 
         return self.processes.start(n, local_process, job, stage)
 

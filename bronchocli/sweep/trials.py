@@ -1,0 +1,209 @@
+"""``bronchopose tune``: a study's trials as rows of the claims table, run by sweep workers through the one driver.
+
+``tune --trials N`` opens the study, adds the rows it lacks (``studyrows``:
+sweep ``<study>.trials``, ``trial-0000`` ... ``trial-<N-1>``; raising N later
+adds rows, lowering it removes none) and records on open rows the finished
+trials no row records yet (a study older than its rows, or rebuilt from MLflow
+after its storage was lost: ``record.rebuild_trials``), so none runs twice.
+Then workers claim the rows, one Optuna trial per row (``trialwork``): in this
+process (one worker, no GPU: the Worker itself, no launcher), or started by a
+launcher and watched by the sweep's driver (``launch.drive``): local worker
+processes placed on the GPUs, Slurm array tasks (``tune --launcher slurm``) or
+any registered launcher. The launcher is given the config named after the
+study's rows, so its jobs are the study's (Slurm: job name
+``bronchopose-<study>.trials``): ``bronchopose sweep cancel --study NAME``
+stops them, ``bronchopose status --sweep <study>.trials`` shows the rows.
+
+The study's parent MLflow run is RUNNING while ``tune`` runs and ends with the
+study's outcome (``summary.log_study``): FINISHED, or KILLED when stopped
+(Ctrl-C, ``sweep cancel``), FAILED on an error. Running ``tune`` again
+continues: rows not finished are claimable again.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import replace
+from typing import Any
+
+from rich.console import Console
+
+from ..cells import Cell, TrialCell
+from ..config import Config, Stage
+from ..errors import BronchoError, ConfigError
+from ..runs.client import client_for, experiment_id
+from ..runs.contract import RunInterrupted
+from ..runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
+from . import launch, studies, summary, tuning
+from .launchers import reference
+from .launchers.base import Launcher
+from .plan import Plan, Step, cells_left, open_store, read_plan
+from .record import rebuild_trials
+from .storage import FAILED, PENDING, SweepStore
+from .studyrows import StudyTask, study_sweep, trial_cell
+from .task import TaskSpec, command
+from .trialwork import work_trials
+from .worker import EXIT_INTERRUPTED
+
+log = logging.getLogger(__name__)
+
+STAGE = Stage(name="trials")  # the one stage of a study's rows, as the driver and status name it
+RECORDED = "recorded from the study"  # the worker column of a row recorded from a finished trial (``add_rows``)
+MakeLauncher = Callable[[Config, StudyTask], Launcher]  # the launcher's config (named after the rows), the task
+
+
+def launcher_config(cfg: Config, study: str) -> Config:
+    """The config a study's launcher gets: named after its rows (``study_sweep``), so the launcher's jobs (their
+    names, logs and comments follow the config's name) are the study's and ``sweep cancel --study`` finds them."""
+    try:
+        return cfg.with_values({"name": study_sweep(study)})
+    except ConfigError:
+        raise ConfigError(f"--study {study!r}: must start with a letter or digit and use only letters, digits, '.', "
+                          "'_', '-' (it names the study's claims rows and jobs)") from None
+
+
+def add_rows(cfg: Config, store: SweepStore, study: Any, target: Cell, trials: int) -> list[TrialCell]:
+    """The study's rows: ``trials`` of them at least (none is removed), finished trials no row records yet
+    recorded on open rows (``record_finished``); returns them all."""
+    sweep = study_sweep(study.study_name)
+    have = len(store.rows(sweep))
+    rows = [trial_cell(target, i) for i in range(max(trials, have))]
+    store.add_cells(sweep, rows)
+    n = record_finished(store, sweep, study)
+    if n:
+        log.warning("study %s: %d finished trial(s) recorded on its claims rows (none runs again)",
+                    study.study_name, n)
+    return rows
+
+
+def record_finished(store: SweepStore, sweep: str, study: Any) -> int:
+    """Record each COMPLETE or PRUNED trial whose MLflow run no row names on an open (pending or failed) row."""
+    stored = store.rows(sweep)
+    named = {r.run_id for r in stored if r.run_id}
+    done = [t.user_attrs[tuning.ATTR_RUN] for t in study.get_trials(deepcopy=False, states=studies.FINISHED_STATES)
+            if t.user_attrs.get(tuning.ATTR_RUN) and t.user_attrs[tuning.ATTR_RUN] not in named]
+    open_rows = [r for r in stored if r.state in (PENDING, FAILED) and r.damage is None]
+    return sum(1 for row, run_id in zip(open_rows, done) if store.record_finished(row, run_id, None, RECORDED))
+
+
+class StudyWalk:
+    """A study's rows walked as the driver walks a sweep's stages (``plan.StageWalk``'s members it uses): one
+    stage, every cell known, nothing to settle."""
+
+    complete = True
+
+    def __init__(self, cfg: Config, store: SweepStore, rows: Sequence[TrialCell]):
+        self.cfg, self.store, self.sweep = cfg, store, cfg.name  # cfg: the launcher's (``launcher_config``)
+        self.stages, self._rows = [STAGE], list(rows)
+
+    def cells(self, stage: Stage, *, mine: bool = True) -> list[TrialCell]:
+        return self._rows
+
+    def known_cells(self) -> list[TrialCell]:
+        return self._rows
+
+    def steps(self) -> Iterator[Step]:
+        yield Step(STAGE, self._rows)
+
+    def rows(self) -> Plan:
+        return read_plan(self.store, self.sweep, self._rows)
+
+    def work_left(self) -> list[tuple[Stage, int]]:
+        return [(STAGE, cells_left(self.rows(), self.cfg.sweep.max_retries))]
+
+
+def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None, timeout: float | None = None,
+         make_launcher: MakeLauncher | None = None, spec: TaskSpec | None = None, progress: bool = True,
+         enqueue: Sequence[Mapping[str, Any]] = (), console: Console | None = None) -> Any:
+    """Run the study of ``target`` to ``trials`` rows done: in this process (``make_launcher`` None) or with the
+    launcher it makes, watched by the sweep's driver (a launcher whose workers run a command needs ``spec``, the
+    config as the workers load it); returns the Optuna study. RunInterrupted when stopped."""
+    console = console or Console(quiet=True)
+    tuning.check_space(cfg)
+    name = study or tuning.study_name(cfg, target)
+    lcfg = launcher_config(cfg, name)  # a bad --study: one line before anything is created
+    s = tuning.open_study(cfg, target, study=name)  # created once, before workers race
+    rebuild_trials(cfg, s, tuning.ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
+    for params in enqueue:
+        s.enqueue_trial(dict(params), skip_if_exists=True)
+    store = open_store(cfg)
+    store.ensure_schema()
+    rows = add_rows(cfg, store, s, target, trials)
+    task = StudyTask(name, cfg.name, None if timeout is None else time.time() + timeout)
+    parent = tuning.study_parent_or_none(cfg, target, name)  # created here once, found by the workers
+    client = client_for(cfg)
+    if parent is not None:
+        start_parent(client, parent)  # RUNNING with this process: `status --repair` ends it if killed
+        summary.uncancel(client, parent)  # an explicit tune: a `sweep cancel --study` before it no longer holds
+    try:
+        if make_launcher is None:
+            code, worker = work_trials(cfg, store, task, progress=progress)
+            if code == EXIT_INTERRUPTED:
+                raise RunInterrupted(_stopped_line(worker.runner.stopped if worker else None))
+        else:
+            code = _launched(cfg, lcfg, store, rows, task, make_launcher(lcfg, task), spec, parent, console)
+    except BaseException as exc:  # an interrupted or failed tune ends its parent run too (KILLED / FAILED)
+        if parent is not None:
+            interrupted = isinstance(exc, (KeyboardInterrupt, RunInterrupted))
+            set_parent_status(client, parent, 130 if interrupted else 1)
+        raise
+    _close_parent(cfg, parent, s)
+    return s
+
+
+def _launched(cfg: Config, lcfg: Config, store: SweepStore, rows: Sequence[TrialCell], task: StudyTask,
+              launcher: Launcher, spec: TaskSpec | None, parent: str | None, console: Console) -> int:
+    """The study's rows run by ``launcher``'s workers, watched by the driver; its exit code (130: RunInterrupted)."""
+    launcher.check()  # before anything is submitted: one line
+    if launcher.runs_command:
+        if spec is None:
+            raise BronchoError(f"tune --launcher {type(launcher).name}: its workers load the config file themselves; "
+                               "give tune the config file (not a loaded Config)")
+        launcher.command = command(lcfg, replace(spec, launcher=reference(type(launcher)), study=task.study,
+                                                 deadline=task.deadline))
+    client = client_for(cfg)
+    console.print(f"[bold]study[/] {task.study}: trial rows {lcfg.name}, workers {launcher.describe()}",
+                  highlight=False)
+    code = launch.drive(StudyWalk(lcfg, store, rows), launcher, console, detach=False,
+                        cancelled=lambda: summary.cancelled(client, parent),
+                        cancel_hint=f"`bronchopose sweep cancel --study {task.study}`")
+    if code == EXIT_INTERRUPTED:
+        raise RunInterrupted(f"tune interrupted: the study's workers were stopped (`sweep cancel`, Ctrl-C); running "
+                             f"trials were given back; run the same command to continue (logs: {launcher.describe()})")
+    return code
+
+
+def _stopped_line(stopped: tuple[int | None, Any] | None) -> str:
+    if stopped is None:
+        return "tune interrupted; run the same command to continue"
+    number, why = stopped
+    if isinstance(why, int):
+        return (f"tune interrupted (signal {why} while trial #{number} was evaluated: that trial was completed "
+                "first, no other was started); run the same command to continue")
+    return f"tune interrupted: trial #{number} stopped ({why}); run the same command to continue"
+
+
+def _close_parent(cfg: Config, parent: str | None, s: Any) -> None:
+    """The study's outcome on its parent run (``summary.log_study``), which ends FINISHED (best effort)."""
+    if parent is None:
+        return
+    client = client_for(cfg)
+    try:
+        summary.log_study(client, parent, studies.describe_study(s), studies.finished(s))
+    except Exception as exc:  # noqa: BLE001 - the trials' runs and the study hold the results either way
+        log.warning("could not record study %s on its parent run %s: %s", s.study_name, parent, exc)
+    set_parent_status(client, parent, 0)
+
+
+def cancel_study(cfg: Config, study: str, kind: type[Launcher], console: Console, *, dry_run: bool = False) -> int:
+    """``sweep cancel --study NAME``: the study's parent run tagged cancelled (its `tune` stops watching and ends
+    KILLED), then every queued or running worker of the study stopped (they give their rows back)."""
+    lcfg = launcher_config(cfg, study)
+    if not dry_run:
+        client = client_for(cfg)
+        parent = find_parent(client, experiment_id(client, cfg), KIND_STUDY, study)
+        if parent is not None:
+            summary.mark_cancelled(client, parent)
+    return launch.cancel(kind(lcfg), console, dry_run=dry_run)
