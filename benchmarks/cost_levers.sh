@@ -40,3 +40,6 @@ run cost-conv3d-clip1 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --se
 # the 3-D-conv head's validation swings with its mode gap (eval-mode loss 3-4x the batch-statistics loss in the
 # first thousands of pairs): 4 windows of 5 pairs per batch instead of 2 of 10 give its BatchNorm3d more windows
 run cost-conv3d-window5 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --set data.window=5
+# the study's budget (10,000 pairs) with BatchNorm statistics fixed for the last half: the function evaluated is
+# the function trained there (train.bn_freeze; docs/training.md, "Evaluation consistent with training")
+run cost-conv3d-freeze50 "${recipe[@]}" -a conv3d -l ce --set train.steps=500 --set train.bn_freeze=0.5
