@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     # one entry per single-run experiment (a lever run), for the prose's spans
     figures["by_experiment"] = {r["experiment"]: {k: r.get(k) for k in (
         "pairs_to_target", "core_s_to_target", "best_val_ratio", "pairs_per_core_s", "cheaper_than_reference",
-        "cheaper_pairs_than_reference", "date")} | _gaps(r) for r in rows if r["kind"] == "cell"}
+        "cheaper_pairs_than_reference", "date", "machine")} | _gaps(r) for r in rows if r["kind"] == "cell"}
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": machine, "date": today, "command": commands[-1], "commands": commands,

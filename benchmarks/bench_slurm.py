@@ -56,8 +56,8 @@ def project(folder: Path, schema: str, cells: int, real: bool) -> Path:
         "splits": {"train": 2, "val": 1, "test": 1, "cross_subject_val": 1},
         "data": {"window": 3, "cache_dir": "cache"},
         "train": {"batch_size": 3, "steps": 4, "val_every": 1, "bn_recalibrate": 1, "threads": 1},
-        "sweep": {"heartbeat_s": 1.0, "stale_after_s": 30.0, "poll_s": 0.2},
-        "slurm": {"cpus_per_task": 1, "shared_filesystem": True, "tasks": 2},
+        "sweep": {"heartbeat_s": 1.0, "stale_after_s": 30.0, "poll_s": 0.2,
+                  "launchers": {"slurm": {"cpus_per_task": 1, "shared_filesystem": True, "tasks": 2}}},
     }
     path = folder / "experiments.yaml"
     path.write_text(yaml.safe_dump(data))

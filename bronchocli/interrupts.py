@@ -8,6 +8,11 @@ so the command exits with the shell's code for it (``exit_code``: 128 + the sign
 143 SIGTERM, 129 SIGHUP) and its one line can name it (``name``). Code that handles the signals itself (a
 training run stops after its step, the sweep's and tune's parent stops its workers) handles ``STOP_SIGNALS``
 and tells ``note`` which one came.
+
+A launcher may warn its workers with a signal of its own before it stops them (Slurm: SIGUSR1 before the time
+limit). A worker declares it for its whole process with ``warned_by`` (the launcher's worker environment says
+which signal and what sends it); a training run then stops on it as on the others (``stop_signals``) and its
+KILLED reason names what sent it (``meaning``). Nothing here knows any launcher.
 """
 
 from __future__ import annotations
@@ -20,6 +25,39 @@ from contextlib import contextmanager
 STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
     s for s in (signal.SIGINT, signal.SIGTERM, getattr(signal, "SIGHUP", None)) if s is not None)
 _received: list[int] = []  # the stop signals this process received, in order
+# what sends each stop signal, as a run's KILLED reason says it
+MEANINGS = {"SIGTERM": "scancel, requeue or preemption", "SIGINT": "Ctrl-C", "SIGHUP": "the terminal closed"}
+_warnings: dict[int, str] = {}  # a launcher's warning signal -> what sends it (``warned_by``)
+
+
+@contextmanager
+def warned_by(signum: int | None, meaning: str) -> Iterator[None]:
+    """Inside: ``signum`` is a stop signal of this process too (``stop_signals``), sent by ``meaning`` (e.g.
+    "Slurm's time-limit warning"); None: nothing changes. Declared by a sweep worker for its launcher."""
+    if signum is None:
+        yield
+        return
+    before = _warnings.get(int(signum))
+    _warnings[int(signum)] = meaning
+    try:
+        yield
+    finally:
+        if before is None:
+            _warnings.pop(int(signum), None)
+        else:
+            _warnings[int(signum)] = before
+
+
+def stop_signals() -> tuple[int, ...]:
+    """``STOP_SIGNALS`` and the warning signal of the launcher this process works for (``warned_by``)."""
+    return (*STOP_SIGNALS, *(s for s in _warnings if s not in STOP_SIGNALS))
+
+
+def meaning(signum: int) -> str | None:
+    """What sends the stop signal ``signum`` ("Ctrl-C", a launcher's "time-limit warning"); None: not known."""
+    if int(signum) in _warnings:
+        return _warnings[int(signum)]
+    return MEANINGS.get(signal.Signals(signum).name)
 
 
 def note(signum: int) -> None:

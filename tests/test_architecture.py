@@ -280,3 +280,62 @@ def test_every_command_module_is_a_thin_layer():
     long = {p.name: n for p in sorted((PACKAGE / "commands").glob("*.py"))
             if (n := len(p.read_text().splitlines())) > 80}
     assert not long, f"command modules over 80 lines (move the work below the command): {long}"
+
+
+# -- issue 47, item 2: launchers own their names, settings and signals ------------------------------------------
+
+LAUNCHERS_PACKAGE = PACKAGE / "sweep" / "launchers"  # the launchers and their registry
+BUILT_IN_LAUNCHERS = {"local", "slurm"}
+
+
+def _launcher_names_compared(tree: ast.AST) -> list[int]:
+    """Lines comparing a value with a built-in launcher's name (``x == "slurm"``, ``name in ("local", ...)``)."""
+    lines = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Compare):
+            continue
+        values = []
+        for side in (node.left, *node.comparators):
+            elts = side.elts if isinstance(side, (ast.Tuple, ast.List, ast.Set)) else [side]
+            values += [e.value for e in elts if isinstance(e, ast.Constant) and isinstance(e.value, str)]
+        if BUILT_IN_LAUNCHERS & set(values):
+            lines.append(node.lineno)
+    return lines
+
+
+def _identifiers(tree: ast.AST) -> list[tuple[int, str]]:
+    """Every name the code uses or defines (variables, attributes, classes, functions, arguments), with its line."""
+    out = []
+    for node in ast.walk(tree):
+        name = (node.id if isinstance(node, ast.Name) else node.attr if isinstance(node, ast.Attribute) else
+                node.name if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) else
+                node.arg if isinstance(node, ast.arg) else None)
+        if name is not None:
+            out.append((node.lineno, name))
+    return out
+
+
+def test_no_launcher_is_named_outside_the_launchers_and_their_registry():
+    """Issue 47: the launchers own their names, settings and signals. Outside ``sweep/launchers/`` no code compares
+    a value with ``"local"``/``"slurm"``; ``config/`` and ``training/`` hold no Slurm type or setting
+    (``SlurmCfg``, ``cfg.slurm``, ``slurm_logs``) and training hard-codes no launcher's signal (SIGUSR1)."""
+    compared, slurm_in_core = [], []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if LAUNCHERS_PACKAGE in path.parents:
+            continue
+        tree = ast.parse(path.read_text())
+        where = str(path.relative_to(PACKAGE.parent))
+        compared += [f"{where}:{n}" for n in _launcher_names_compared(tree)]
+        if path.parent.name in ("config", "training"):
+            slurm_in_core += [f"{where}:{n}: {name}" for n, name in _identifiers(tree)
+                              if "slurm" in name.lower() or name == "SIGUSR1"]
+    assert not compared, f"launcher names compared outside sweep/launchers/ (ask the launcher instead): {compared}"
+    assert not slurm_in_core, f"Slurm names in config/ or training/ (they belong to its launcher): {slurm_in_core}"
+
+
+@pytest.mark.parametrize("code, found", [
+    ("if kind.name == 'local':\n    pass\n", True), ("ok = 'slurm' != launcher\n", True),
+    ("ok = name in ('local', 'slurm')\n", True), ("ok = name == 'other'\n", False),
+])
+def test_the_launcher_name_check_finds_a_comparison(code, found):
+    assert bool(_launcher_names_compared(ast.parse(code))) is found

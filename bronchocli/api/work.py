@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 
+from .. import interrupts
 from ..config import DEFAULT_CONFIG, Config, load_config, parse_override
 from ..errors import BronchoError
 from ..pathcheck import check_output
@@ -56,9 +57,11 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
     ``use_tuned``: apply the best trial of this Optuna study first. A cell that already has a FINISHED run is
     not trained again unless ``again`` (``result.trained`` is then False and ``result.run`` is that run).
     Returns a :class:`~bronchocli.training.outcome.TrainResult`: ``run_id``, ``ok``, ``metrics``, ``errors()``,
-    ``headline`` (pair position error ÷ the training mean's) and ``summary()``.
+    ``headline`` (pair position error ÷ the training mean's) and ``summary()``. Inside a launcher's job (a Slurm
+    batch job) the run also stops, and checkpoints, on that launcher's warning signal (``launchers.detected``).
     """
-    from ..training import entry  # lazy: torch loads only when training
+    from ..sweep.launchers import detected  # lazy: the sweep stack (and torch) load only when training
+    from ..training import entry
 
     cfg = config_of(config, profile, overrides)
     cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
@@ -68,7 +71,9 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-    return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
+    env = detected()
+    with interrupts.warned_by(env.warning_signal if env else None, env.warning_meaning if env else ""):
+        return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
 
 
 def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluation: str = "both",

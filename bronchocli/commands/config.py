@@ -23,10 +23,11 @@ def config(
     no server).
     """
     cfg = load(config, profile, set_)
-    check_paths(cfg, storage=True, logs=True)  # what `sweep` checks: roots inside each other, unwritable paths
-    from ..sweep.launchers import launcher_class  # lazy: keeps `bronchopose --help` fast
+    from ..sweep.launchers import log_roots  # lazy: keeps `bronchopose --help` fast
 
-    launcher_class(cfg.sweep.launcher, "sweep.launcher")  # a registered one (the config package cannot see them)
+    # sweep.launcher a known launcher, each sweep.launchers section valid (the config package cannot see them)
+    roots = log_roots(cfg)
+    check_paths(cfg, storage=True, logs=True, extra=roots)  # what `sweep` checks: roots inside each other, ...
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return

@@ -22,8 +22,8 @@ def run(
                                       help="Reset FAILED cells (and their retry budget) first."),
     use_tuned: Optional[str] = UseTunedOpt,
     launcher: Optional[str] = typer.Option(None, "--launcher", help="Where the workers run: local (processes "
-                                           "here), slurm (Slurm job arrays; slurm section, docs/cluster.md), or "
-                                           "another registered launcher. Default: sweep.launcher."),
+                                           "here), slurm (Slurm job arrays; sweep.launchers.slurm, docs/cluster.md), "
+                                           "or another known launcher. Default: sweep.launcher."),
     detach: bool = typer.Option(False, "--detach", help="A launcher whose workers outlive this command (slurm): "
                                 "return once submitted instead of watching."),
     runner: Optional[str] = typer.Option(None, "--runner", help="Run each cell with this function instead of "

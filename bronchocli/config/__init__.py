@@ -12,7 +12,7 @@ The names below are the package's public surface; import them from ``bronchocli.
 
 from .grid import RUN_SECTIONS, SELECTABLE, Grid, Select, Stage, cell_key, expand_grid, run_signature
 from .loading import DEFAULT_CONFIG, deep_merge, load_config, parse_override
-from .paths import Paths, check_dataset_root, check_output, check_paths, check_roots
+from .paths import Paths, check_dataset_root, check_output, check_paths, check_roots, output_folder
 from .schema import TUNABLE, Config, space_problems
 from .sections import (
                        CsvColumns,
@@ -24,7 +24,7 @@ from .sections import (
                        ModelCfg,
                        Realism,
                        RunsCfg,
-                       SlurmCfg,
+                       Section,
                        Splits,
                        Storage,
                        SweepCfg,
@@ -35,8 +35,8 @@ from .sections import (
 
 __all__ = [
     "DEFAULT_CONFIG", "RUN_SECTIONS", "SELECTABLE", "TUNABLE", "Config", "CsvColumns", "CsvImport", "DataCfg",
-    "DatasetCfg", "EvalCfg", "Generate", "Grid", "ModelCfg", "Paths", "Realism", "RunsCfg", "Select", "SlurmCfg",
+    "DatasetCfg", "EvalCfg", "Generate", "Grid", "ModelCfg", "Paths", "Realism", "RunsCfg", "Section", "Select",
     "Splits", "Stage", "Storage", "SweepCfg", "Train", "Tune", "TuneParam", "cell_key", "check_dataset_root",
-    "check_output", "check_paths", "check_roots", "deep_merge", "expand_grid", "load_config", "parse_override", "run_signature",
-    "space_problems",
+    "check_output", "check_paths", "check_roots", "deep_merge", "expand_grid", "load_config", "output_folder",
+    "parse_override", "run_signature", "space_problems",
 ]

@@ -154,7 +154,7 @@ def override_problem(stages: Sequence[Stage], key: str, text: str) -> tuple[str,
     return (f"--set {text}: applies to stage(s) {rest} only; the others set {parts[1]} themselves ({how})", False)
 
 
-# Sections that change what a run computes; runs, storage, tune, sweep, slurm and
+# Sections that change what a run computes; runs, storage, tune, sweep (its launchers too) and
 # profiles do not, so moving the MLflow store never invalidates finished cells.
 RUN_SECTIONS = ("dataset", "splits", "data", "model", "train")
 

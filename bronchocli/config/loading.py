@@ -25,8 +25,12 @@ from .schema import Config, set_path, validate
 DEFAULT_CONFIG = "experiments.yaml"
 log = logging.getLogger(__name__)
 
-# Renamed top-level sections, old -> new: for one release the old name is read as the new one, with a warning.
-RENAMED = {"tracking": "runs"}  # "tracking" now means camera tracking only; MLflow's runs are "runs"
+# Renamed top-level sections, old -> new key path: for one release the old name is read as the new one, with a
+# warning (and a --set of the old path is moved as well).
+RENAMED = {
+    "tracking": "runs",  # "tracking" now means camera tracking only; MLflow's runs are "runs"
+    "slurm": "sweep.launchers.slurm",  # a launcher's settings are its own section (sweep/launchers/slurm.py)
+}
 _warned: set[str] = set()
 
 
@@ -48,14 +52,22 @@ def _rename_sections(raw: dict[str, Any], lines: dict[tuple, str], source: str) 
             if old not in data:
                 continue
             where = lines.get(prefix + (old,), source)
-            if new in data:
+            *parents, last = new.split(".")
+            node = data
+            for part in parents:
+                if node.get(part) is None:
+                    node[part] = {}
+                node = node[part]
+                if not isinstance(node, dict):
+                    raise ConfigError(f"{where}: '{old}' is now '{new}', but '{part}' is a value, not a section")
+            if last in node:
                 raise ConfigError(f"{where}: both '{old}' and '{new}' are set; '{old}' is the old name of '{new}': "
                                   f"keep only '{new}'")
-            data[new] = data.pop(old)
+            node[last] = data.pop(old)
             _warn_renamed(old, new, where)
-            n = len(prefix)
+            n, moved = len(prefix), tuple(new.split("."))
             for key in [k for k in lines if k[: n + 1] == prefix + (old,)]:
-                lines[prefix + (new,) + key[n + 1:]] = lines.pop(key)
+                lines[prefix + moved + key[n + 1:]] = lines.pop(key)
 
 
 def renamed_key(dotted: str, where: str) -> str:

@@ -80,14 +80,16 @@ def _describe(root: Any, error: dict[str, Any]) -> str:
     return f"{shown}: {msg[0].lower() + msg[1:]}"
 
 
-def format_errors(root: Any, exc: ValidationError, source: str, lines: dict[tuple, str]) -> str:
-    """One message for a failed validation of ``root`` (the Config model): a line per problem, file:line first."""
+def format_errors(root: Any, exc: ValidationError, source: str, lines: dict[tuple, str], prefix: tuple = ()) -> str:
+    """One message for a failed validation of ``root`` (the Config model, or the model of the section at ``prefix``:
+    a launcher's ``sweep.launchers.<name>``): a line per problem, file:line first."""
     problems = []
     for error in exc.errors():
         loc = tuple(p for p in error["loc"] if not (isinstance(p, str) and p.startswith(("literal[", "list["))))
         error = {**error, "loc": loc}
-        path = ".".join(str(p) if isinstance(p, str) else f"[{p}]" for p in loc).replace(".[", "[") or "<top>"
-        where = next((lines[loc[:n]] for n in range(len(loc), -1, -1) if loc[:n] in lines), source)
+        full = prefix + loc
+        path = ".".join(str(p) if isinstance(p, str) else f"[{p}]" for p in full).replace(".[", "[") or "<top>"
+        where = next((lines[full[:n]] for n in range(len(full), -1, -1) if full[:n] in lines), source)
         problems.append(f"{where}: {path}: {_describe(root, error)}")
     unique = list(dict.fromkeys(problems))
     if len(unique) == 1:  # one problem, one line

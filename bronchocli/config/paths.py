@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,7 +34,6 @@ class Paths:
     checkpoints: Path
     artifacts: Path
     sweep_logs: Path
-    slurm_logs: Path
     pretrained: Path | str | None  # "imagenet" stays the literal name (models/pretrained.py)
     anatomy: Path | None  # None: procedural
     centreline: Path | None
@@ -55,13 +55,7 @@ class Paths:
     @classmethod
     def _of(cls, cfg: Config, base: Path) -> "Paths":
         def path(p: str | None, key: str, output: bool = False) -> Path | None:
-            if p is None:
-                return None
-            q = Path(pathcheck.expand(p, key)).expanduser()
-            real = pathcheck.resolve(q, key, base)  # a symlink loop is one line here, whatever reads it later
-            if output:
-                pathcheck.check_writable_root(real, key, configured=p)
-            return q if q.is_absolute() else real
+            return None if p is None else _resolve(p, key, base, output)
 
         def url(u: str, key: str) -> str:
             resolved = urls.resolve(u, base, key)
@@ -76,7 +70,6 @@ class Paths:
             checkpoints=path(cfg.runs.checkpoints, "runs.checkpoints", output=True),
             artifacts=path(cfg.runs.artifacts, "runs.artifacts", output=True),
             sweep_logs=path(cfg.sweep.logs, "sweep.logs", output=True),
-            slurm_logs=path(cfg.slurm.logs, "slurm.logs", output=True),
             pretrained=cfg.model.pretrained if cfg.model.pretrained in ("imagenet", "imagenet-if-present")
             else path(cfg.model.pretrained, "model.pretrained"),  # names of weights, not files (models/pretrained.py)
             anatomy=None if gen.anatomy == "procedural" else path(gen.anatomy, "dataset.generate.anatomy"),
@@ -84,6 +77,26 @@ class Paths:
             speed_settings=path(cfg.train.speed_settings, "train.speed_settings"),
             mlflow_uri=url(cfg.runs.uri, "runs.uri"), storage_url=url(cfg.storage.url, "storage.url"),
         )
+
+
+def _resolve(p: str, key: str, base: Path, output: bool) -> Path:
+    q = Path(pathcheck.expand(p, key)).expanduser()
+    real = pathcheck.resolve(q, key, base)  # a symlink loop is one line here, whatever reads it later
+    if output:
+        pathcheck.check_writable_root(real, key, configured=p)
+    return q if q.is_absolute() else real
+
+
+def output_folder(cfg: Config, value: str, key: str) -> Path:
+    """A folder setting outside the core sections (a launcher's log folder, ``sweep.launchers.<name>.logs``)
+    resolved as ``cfg.paths`` resolves its own: ``${VAR}``, ``~``, relative to the config's folder, never a system
+    folder (ConfigError naming ``key``)."""
+    try:
+        return _resolve(value, key, cfg.paths.base, output=True)
+    except ConfigError:
+        raise
+    except BronchoError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 # -- pre-flight: one line before anything is created -----------------------------------------------------------
@@ -99,11 +112,14 @@ def check_dataset_root(cfg: Config) -> None:
         check_output(root, "dataset.root")
 
 
-def roots(cfg: Config) -> list[tuple[str, Path]]:
-    """The folders the project writes into and cleans up after (setting name, resolved path)."""
+Roots = Sequence[tuple[str, Path]]  # (setting name, resolved folder)
+
+
+def roots(cfg: Config, extra: Roots = ()) -> list[tuple[str, Path]]:
+    """The folders the project writes into and cleans up after (setting name, resolved path); ``extra``: those of
+    the sections it does not know (a launcher's log folder: ``Launcher.roots``)."""
     return [("runs.checkpoints", cfg.paths.checkpoints), ("runs.artifacts", cfg.paths.artifacts),
-            ("data.cache_dir", cfg.paths.cache), ("sweep.logs", cfg.paths.sweep_logs),
-            ("slurm.logs", cfg.paths.slurm_logs)]
+            ("data.cache_dir", cfg.paths.cache), ("sweep.logs", cfg.paths.sweep_logs), *extra]
 
 
 def _real(path: Path) -> Path:
@@ -114,29 +130,30 @@ def _inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
-def check_roots(cfg: Config) -> None:
+def check_roots(cfg: Config, extra: Roots = ()) -> None:
     """Each root (``roots``) its own folder: none equal to or inside another. One line naming both settings
     otherwise, before anything is written or removed (``sweep gc`` once deleted every folder inside a checkpoints
     root that held the artifacts). System folders, the file system's root and home are refused for every output
     root when the config is read (``pathcheck.check_writable_root``, through ``Paths.of``)."""
-    found = [(name, path, _real(path)) for name, path in roots(cfg)]
+    found = [(name, path, _real(path)) for name, path in roots(cfg, extra)]
     for i, (name, path, real) in enumerate(found):
         for other, opath, oreal in found[i + 1:]:
             if _inside(real, oreal) or _inside(oreal, real):
                 outer, inner = ((other, opath), (name, path)) if _inside(real, oreal) else ((name, path), (other, opath))
                 how = "is the same folder as" if real == oreal else "contains"
-                raise BronchoError(f"{outer[0]} {outer[1]}: {how} {inner[0]} {inner[1]}; give runs.checkpoints, "
-                                   "runs.artifacts, data.cache_dir, sweep.logs and slurm.logs each a folder of its "
-                                   "own, none inside another")
+                names = ", ".join(n for n, _ in found[:-1]) + f" and {found[-1][0]}"
+                raise BronchoError(f"{outer[0]} {outer[1]}: {how} {inner[0]} {inner[1]}; give {names} each a folder "
+                                   "of its own, none inside another")
 
 
-def check_paths(cfg: Config, *, storage: bool = False, logs: bool = False) -> None:
+def check_paths(cfg: Config, *, storage: bool = False, logs: bool = False, extra: Roots = ()) -> None:
     """Every folder and database file a training command writes, checked before any is created (one line each).
 
-    ``storage``: also the SQLite file of ``storage.url`` (sweep, tune); ``logs``: the sweep's worker logs.
+    ``storage``: also the SQLite file of ``storage.url`` (sweep, tune); ``logs``: the sweep's worker logs;
+    ``extra``: roots of sections it does not know (a launcher's logs: ``Launcher.roots``).
     The roots are checked first (``check_roots``).
     """
-    check_roots(cfg)
+    check_roots(cfg, extra)
     check_dataset_root(cfg)
     outputs = [(cfg.paths.checkpoints, "runs.checkpoints", "folder"), (cfg.paths.cache, "data.cache_dir", "folder")]
     mlflow_db = urls.sqlite_file(cfg.paths.mlflow_uri)

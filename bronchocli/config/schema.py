@@ -26,7 +26,6 @@ from .sections import (
     ModelCfg,
     RunsCfg,
     Section,
-    SlurmCfg,
     Splits,
     Storage,
     SweepCfg,
@@ -49,11 +48,11 @@ class Config(Section):
     eval: EvalCfg = EvalCfg()
     tune: Tune = Tune()
     sweep: SweepCfg = SweepCfg()
-    slurm: SlurmCfg = SlurmCfg()
     profiles: dict[str, dict[str, Any]] = {}
 
     _paths: Paths | None = PrivateAttr(default=None)
     _source: str = PrivateAttr(default="<memory>")
+    _lines: dict[tuple, str] = PrivateAttr(default_factory=dict)  # key path -> file:line, for later errors
     _profile: str | None = PrivateAttr(default=None)
 
     @field_validator("name")
@@ -123,6 +122,17 @@ class Config(Section):
         """The config as YAML, every URL password shown as ``***``."""
         return urls.redact(yaml.safe_dump(self.dump(), sort_keys=False))
 
+    def launcher_settings(self, name: str, model: type[Section]) -> Section:
+        """``sweep.launchers.<name>`` validated against ``model`` (the launcher's own settings; its defaults when
+        the section is absent): a ConfigError naming ``sweep.launchers.<name>.<key>``, its value and what is
+        allowed, one line per problem."""
+        raw = self.sweep.launchers.get(name) or {}
+        try:
+            return model.model_validate(raw)
+        except ValidationError as exc:
+            raise ConfigError(format_errors(model, exc, self._source, self._lines,
+                                            prefix=("sweep", "launchers", name))) from None
+
     def with_values(self, values: dict[str, Any]) -> "Config":
         """A validated copy with dotted-path values set, e.g. ``{"train.lr": 1e-3}``."""
         raw = self.model_dump(mode="json")
@@ -190,7 +200,7 @@ def validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Pa
         cfg = Config.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(format_errors(Config, exc, source, lines)) from None
-    cfg._source, cfg._profile = source, profile
+    cfg._source, cfg._profile, cfg._lines = source, profile, dict(lines)
     cfg._paths = Paths.of(cfg, base)
     problems = space_problems(cfg) if space else []
     if problems:  # the same check as `tune`, so `config` never calls a space valid that tune refuses

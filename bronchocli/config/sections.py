@@ -1,7 +1,8 @@
 """The sections of experiments.yaml as frozen, strict pydantic models (unknown keys and coercions refused).
 
 One class per section (``runs``, ``storage``, ``dataset``, ``splits``, ``data``, ``model``, ``train``,
-``eval``, ``tune``, ``sweep``, ``slurm``); the grid and stages are in ``grid.py``, the whole config in
+``eval``, ``tune``, ``sweep``; a launcher's own section, ``sweep.launchers.<name>``, is its launcher's model:
+``sweep.launchers``); the grid and stages are in ``grid.py``, the whole config in
 ``schema.py``. Every key is documented in docs/config.md.
 """
 
@@ -322,10 +323,13 @@ class SweepCfg(Section):
     stale_after_s: float = Field(60.0, gt=0, le=DAY_S)  # a claim without heartbeat this long is reclaimed
     poll_s: float = Field(2.0, gt=0, le=3600)  # an idle worker looks again this often (cells held elsewhere)
     logs: str = "runs/sweep-logs"  # one log file per worker process
-    # Where the workers run: a launcher registered in sweep/launchers (local, slurm: array tasks, slurm section) or
-    # module:Class. A plain name here: config sits below the sweep package, so the names are checked where the
-    # registry is (sweep.entry.launcher_kind, and `bronchopose config`), one line naming the registered ones.
+    # Where the workers run: a launcher registered in sweep/launchers (or by a package's `bronchopose.launchers`
+    # entry point) or module:Class. A plain name here: config sits below the sweep package, so the names are checked
+    # where the registry is (sweep.entry.launcher_kind, and `bronchopose config`), one line naming the known ones.
     launcher: str = "local"
+    # each launcher's own settings, by its name (e.g. slurm: {partition: gpu}): a mapping here, validated against
+    # the launcher's own model when the launcher is looked up (``Launcher.settings``; docs/cluster.md)
+    launchers: dict[str, dict[str, Any]] = {}
 
     @field_validator("launcher")
     @classmethod
@@ -338,65 +342,5 @@ class SweepCfg(Section):
         beat = info.data.get("heartbeat_s")
         if beat is not None and v < 2 * beat:
             raise ValueError(f"must be at least twice sweep.heartbeat_s ({beat:g}): a live worker must never look stale")
-        return v
-
-
-# sbatch options the Slurm launcher sets itself: ``slurm.additional`` may not override them (docs/cluster.md)
-SLURM_MANAGED = ("array", "job-name", "comment", "output", "error", "open-mode", "signal", "requeue", "no-requeue",
-                 "gres", "gpus-per-task", "cpus-per-task", "mem", "time", "partition", "account", "qos",
-                 "dependency", "parsable", "wrap", "export", "chdir")
-
-
-class SlurmCfg(Section):
-    """``bronchopose sweep --launcher slurm``: every array task is one sweep worker (docs/cluster.md).
-
-    Names follow Hydra's submitit launcher where one exists (timeout_min, cpus_per_task, mem_gb,
-    array_parallelism, setup, additional, signal_delay_s)."""
-
-    partition: str | None = None
-    account: str | None = None
-    qos: str | None = None
-    timeout_min: int = Field(60, ge=1, le=365 * 24 * 60)  # --time of every array task
-    gpus_per_task: int = Field(1, ge=0, le=64)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
-    cpus_per_task: int = Field(2, ge=1, le=MAX_WORKERS)  # also the worker's torch threads (train.threads unset)
-    mem_gb: float | None = Field(None, gt=0, le=65536)  # --mem per task; None: the cluster's DefMemPerCPU
-    # array tasks (workers) at most per stage; None: one per cell left
-    tasks: int | None = Field(None, ge=1, le=100_000)
-    array_parallelism: int = Field(256, ge=1, le=100_000)  # tasks of one array running at once (--array=0-N%K)
-    signal_delay_s: int = Field(120, ge=1, le=65535)  # SIGUSR1 this long before the time limit: checkpoint, requeue
-    setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
-    additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
-    python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
-    logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
-    shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
-    exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
-    # after the time-limit warning (SIGUSR1) the task checkpoints, gives its cell back, then `scontrol requeue`s
-    # itself (works detached; the watcher starts it after 3 s instead of Slurm's ~2 min hold) or just exits
-    # (the watcher, or running the command again, submits a new task)
-    on_time_limit: spelled(Literal["requeue", "exit"]) = "requeue"
-
-    @field_validator("partition", "account", "qos")
-    @classmethod
-    def _slurm_name(cls, v: str | None) -> str | None:
-        if v is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._,-]*", v):
-            raise ValueError("must be a Slurm name: letters, digits, '.', '_', '-' (',' separates several)")
-        return v
-
-    @field_validator("setup")
-    @classmethod
-    def _setup(cls, v: list[str]) -> list[str]:
-        if any("\n" in line for line in v):
-            raise ValueError("each entry is one shell line (no newline inside); list several lines instead")
-        return v
-
-    @field_validator("additional")
-    @classmethod
-    def _additional(cls, v: dict[str, Any]) -> dict[str, Any]:
-        for key in v:
-            name = key.replace("_", "-")
-            if not re.fullmatch(r"[a-z][a-z0-9-]*", name):
-                raise ValueError(f"{key!r}: must be an sbatch long option name without dashes, e.g. constraint")
-            if name in SLURM_MANAGED:
-                raise ValueError(f"{key!r}: set by the launcher itself (or by its own slurm key); not allowed here")
         return v
 

@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -40,7 +42,7 @@ from . import damage
 from . import launch as launching
 from . import placement, planview, summary
 from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
-from .launchers import Launcher, launcher_class, reference
+from .launchers import Launcher, launcher_class, log_roots, reference
 from .launchers import names as launcher_names
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
@@ -56,12 +58,16 @@ TUNE_LAUNCHER = "local"  # ``tune --launcher``'s default (a sweep's: ``sweep.lau
 
 
 def launcher_kind(cfg: Config, name: str | None) -> type[Launcher]:
-    """The launcher ``--launcher`` names (default: ``sweep.launcher``); one line naming the registered ones."""
-    return launcher_class(name or cfg.sweep.launcher, "--launcher" if name else "sweep.launcher")
+    """The launcher ``--launcher`` names (default: ``sweep.launcher``); one line naming the known ones. Its own
+    settings (``sweep.launchers.<name>``) and every other launcher section are validated here, before anything
+    (``launchers.log_roots``)."""
+    kind = launcher_class(name or cfg.sweep.launcher, "--launcher" if name else "sweep.launcher")
+    log_roots(cfg, kind)
+    return kind
 
 
-def _local_store(cfg: Config) -> SweepStore:
-    check_paths(cfg, storage=True, logs=True)  # before anything is created (a dry run says so too)
+def _local_store(cfg: Config, extra: Sequence[tuple[str, Path]] = ()) -> SweepStore:
+    check_paths(cfg, storage=True, logs=True, extra=extra)  # before anything is created (a dry run says so too)
     store = open_store(cfg)
     store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     return store
@@ -90,7 +96,7 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
     workers run the cells (a detached launcher's each run ``task.command`` with ``spec``), watched unless
     ``detach``; re-running submits only what the queued and running workers do not cover. 0 all FINISHED, 1
     some FAILED, 130 stopped."""
-    check_paths(cfg, storage=True, logs=True)  # before anything is created
+    check_paths(cfg, storage=True, logs=True, extra=log_roots(cfg, kind))  # before anything is created
     launcher = kind.create(cfg, only=spec.selection(), runner=spec.cell_runner(), **(options or {}))
     launcher.check()  # first: a refused submission writes no 0600 secrets file (``command`` seals the spec)
     if kind.runs_command:
@@ -109,7 +115,7 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
 def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
             console: Console) -> int:
     """Print the plan (per stage: its cells and their state) and the workers a run would start; starts nothing."""
-    store = _local_store(cfg)
+    store = _local_store(cfg, log_roots(cfg))
     n, _ = _workers(workers, gpus, per_gpu)
     planview.dry_run(cfg, store, only, n, console)
     return 0
@@ -119,7 +125,7 @@ def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
     """Remove the checkpoints no live cell needs on this machine and say what was freed (``dry_run``: what would
     go; nothing is removed), then what is kept and why (a cell, `train --resume` or a study may resume it). Only
     what provably is a run's checkpoint is ever removed (``runs.ownership``)."""
-    check_roots(cfg)  # a checkpoints root holding other roots (or a system folder) is refused before anything
+    check_roots(cfg, log_roots(cfg))  # a checkpoints root holding other roots (or a system folder): refused first
     store = open_store(cfg)
     held = inventory(cfg, store if store.exists() else None)
     freed = collect_garbage(cfg, store if store.exists() else None, dry_run=dry_run, held=held)

@@ -4,7 +4,7 @@ A local worker process (``launchers.local``) and a detached one (a Slurm array
 task, a test's subprocess worker: ``python -m bronchocli.sweep.task <spec>``)
 both end up here with a ``WorkerJob``: pinned to its GPU (``placement.pin_env``,
 before anything imports torch), its output in its log file, its stop signals
-installed (and the launcher's own, e.g. Slurm's SIGUSR1), its ``WorkerId``
+installed (and its launcher's warning signal, e.g. Slurm's SIGUSR1: ``Launcher.Environment``), its ``WorkerId``
 (host, pid, the launcher's job id, GPU) on every claim and log line. It walks
 the stages in order (``work_stages``): claims the first stage's cells; goes on
 to a later stage only once every cell before it is done, settling its selection
@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
-from .. import urls
+from .. import interrupts, urls
 from ..cells import Selection
 from ..config import Config
 from ..errors import BronchoError, WriteFailed
@@ -32,7 +32,7 @@ from ..runs.client import client_for, experiment_id
 from ..runs import cores
 from ..runs.parents import KIND_SWEEP, find_parent, set_parent_status, sweep_parent
 from . import plan as planning
-from .launchers.base import Launcher
+from .launchers.base import Launcher, WorkerEnvironment
 from .liveness import StopSignals
 from .placement import pin_env
 from .selection import describe_selection
@@ -58,7 +58,7 @@ class WorkerJob:
     cfg: Config  # storage URL redacted: the config is logged to MLflow
     storage_url: str  # the real one
     only: Selection
-    launcher: type[Launcher]  # its worker-side hooks: extra signals, job id, threads, what to do at the end
+    launcher: type[Launcher]  # its worker side (``Launcher.environment``): job id, threads, warning signal, ...
     runner: Runner = default_runner
     last_stage: str | None = None  # stop after this stage (None: every stage)
     exit_when_idle: bool = True  # exit when nothing is claimable now instead of waiting for cells held elsewhere
@@ -71,9 +71,9 @@ class WorkerJob:
     study: StudyTask | None = None  # a tuning study's worker: its trial rows instead of the stages (``trialwork``)
 
 
-def this_worker(launcher: type[Launcher]) -> WorkerId:
+def this_worker(launcher: type[Launcher], env: WorkerEnvironment) -> WorkerId:
     """This process as a claims row and a log line name it."""
-    job = launcher.worker_job()
+    job = env.job_id
     gpu = os.environ.get(GPU_ENV) or (os.environ.get("CUDA_VISIBLE_DEVICES") if job else None)
     return WorkerId(socket.gethostname(), os.getpid(), launcher.name if job else None, job, gpu or None)
 
@@ -105,16 +105,19 @@ def prepare_process(gpu: str | None, share: int, log_path: str | None, parent_pi
     _redirect_output(log_path)
 
 
-def start_worker(job: WorkerJob, launcher: type[Launcher], stop_event: Any) -> tuple[WorkerId, StopSignals]:
-    """A worker process's start, a sweep's or a study's: ``prepare_process``,
-    its ``WorkerId`` on every log line of its log file, its stop signals (and ``launcher``'s own) installed."""
+def start_worker(job: WorkerJob, launcher: type[Launcher], stop_event: Any,
+                 env: WorkerEnvironment | None = None) -> tuple[WorkerId, StopSignals]:
+    """A worker process's start, a sweep's or a study's: ``prepare_process``, its ``WorkerId`` on every log line
+    of its log file, its stop signals (and ``launcher``'s warning signal) installed. ``env``: the launcher's
+    worker environment (default: built from ``job.cfg``)."""
     prepare_process(job.gpu, job.gpu_share, job.log_path, job.parent_pid, job.cpu_workers)
-    ident = this_worker(launcher)
+    env = env or launcher.environment(job.cfg)
+    ident = this_worker(launcher, env)
     if job.log_path is not None:
         logging.basicConfig(level=logging.INFO, stream=sys.stderr, force=True,
                             format=f"%(asctime)s {ident} %(levelname)s %(name)s: %(message)s")
     signals = StopSignals(stop_event, job.parent_pid)
-    signals.install(extra=launcher.worker_signals)
+    signals.install(extra=(env.warning_signal,) if env.warning_signal is not None else ())
     return ident, signals
 
 
@@ -133,10 +136,17 @@ def exit_process(main: Callable[[], int]) -> NoReturn:
 
 
 def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
-    """Run one worker through the stages; its exit code (0 nothing left here, 130 stopped)."""
-    ident, signals = start_worker(job, job.launcher, stop_event)
+    """Run one worker through the stages; its exit code (0 nothing left here, 130 stopped). A training run stops on
+    the launcher's warning signal too, its KILLED reason naming what sent it (``interrupts.warned_by``)."""
+    env = job.launcher.environment(job.cfg)
+    with interrupts.warned_by(env.warning_signal, env.warning_meaning):
+        return _worker_main(job, env, stop_event)
+
+
+def _worker_main(job: WorkerJob, env: WorkerEnvironment, stop_event: Any) -> int:
+    ident, signals = start_worker(job, job.launcher, stop_event, env)
     cfg = job.cfg
-    if cfg.train.threads is None and (threads := job.launcher.worker_threads()):
+    if cfg.train.threads is None and (threads := env.threads):
         cfg = cfg.with_values({"train.threads": threads})
     log.info("%s, %s %s %s, CUDA_VISIBLE_DEVICES=%s",
              f"tune worker of study {job.study.study}" if job.study else f"sweep worker {cfg.name}",
@@ -167,9 +177,9 @@ def worker_main(job: WorkerJob, stop_event: Any = None) -> int:
                   "meet it): %s", exc.recorded_on, urls.redact(str(exc)))
         code = EXIT_RECORDED
     finally:  # a user error (BronchoError) goes on to the caller: one line where its output is read
-        job.launcher.worker_done(cfg, signals)
+        env.done(signals.requested)
         if detached and store is not None:
-            settle_parent(cfg, store, job.only, job.launcher, signals)
+            settle_parent(cfg, store, job.only, job.launcher, env, signals)
     return code
 
 
@@ -250,12 +260,12 @@ def reopen_parent(cfg: Config) -> None:
         log.warning("could not read the sweep's parent run: %s", exc)
 
 
-def settle_parent(cfg: Config, store: SweepStore, only: Selection, launcher: type[Launcher], signals: StopSignals,
-                  ) -> None:
-    """A detached worker leaving (``end_abandoned``): left alone when stopped by its launcher's own signal (Slurm's
-    time limit: it is requeued, or its watcher submits another)."""
-    if signals.requested not in launcher.worker_signals:
-        end_abandoned(cfg, store, only, launcher, me={launcher.worker_job(), str(os.getpid())})
+def settle_parent(cfg: Config, store: SweepStore, only: Selection, launcher: type[Launcher], env: WorkerEnvironment,
+                  signals: StopSignals) -> None:
+    """A detached worker leaving (``end_abandoned``): left alone when stopped by its launcher's warning signal
+    (Slurm's time limit: it is requeued, or its watcher submits another)."""
+    if not env.warned(signals.requested):
+        end_abandoned(cfg, store, only, launcher, me={env.job_id, str(os.getpid())})
 
 
 def end_abandoned(cfg: Config, store: SweepStore, only: Selection | None, launcher: type[Launcher], *,

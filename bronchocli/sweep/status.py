@@ -187,10 +187,10 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     now = now if now is not None else time.time()
     table = Table(title=f"sweep {plan.sweep}", title_justify="left", box=box.SIMPLE_HEAD)
     launchers = sorted({w.launcher for r in plan.rows.values() if (w := WorkerId.parse(r.worker)) and w.job})
-    on_slurm = bool(launchers)  # workers with a job of their launcher (Slurm: the array task)
+    with_jobs = bool(launchers)  # workers with a job of their launcher (a Slurm array task)
     trials = any(isinstance(c, cells.TrialCell) for c in plan.cells)  # a study's rows: each trial's value too
     cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
-            *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if on_slurm else ()), ("duration", "right"), ("pair pos L2", "right"),
+            *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if with_jobs else ()), ("duration", "right"), ("pair pos L2", "right"),
             ("acc pos L2", "right"), *(((TRIAL_VALUE, "right"),) if trials else ()))
     for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
@@ -213,7 +213,7 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
             (row.worker or "-") if row and row.state == RUNNING else "",
             *(((job_of(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
-              if on_slurm else ()),
+              if with_jobs else ()),
             shown, _num(m.get(ERRORS[0])), _num(m.get(ERRORS[1])), *((_num(m.get(TRIAL_VALUE)),) if trials else ()),
         ]
         if ckpt_bytes is not None:

@@ -14,8 +14,8 @@ and names that file. The worker loads the same config the same way
 (``TaskSpec.load``, which the ``sweep`` command itself uses), checks its paths
 and works the stages up to the one it was submitted for (``launchers.STAGE_ENV``,
 set by its launcher); it exits when nothing is left there that it can claim.
-What else its launcher does (Slurm: SIGUSR1 then ``scontrol requeue``) are the
-launcher's worker-side hooks (``launchers.base.Launcher``).
+What else its launcher does (Slurm: SIGUSR1 then ``scontrol requeue``) is the
+launcher's worker side (``Launcher.Environment``).
 
 A user error (bad config, unreachable storage) is one line on stderr (the worker's
 log) and exit code 2, as on the command line.
@@ -38,7 +38,7 @@ from ..cells import Selection, parse_only
 from ..config import Config, check_paths, load_config
 from ..errors import BronchoError
 from ..io import write_text
-from .launchers import STAGE_ENV, launcher_class
+from .launchers import STAGE_ENV, launcher_class, log_roots
 from .stagework import WorkerJob, worker_config, worker_main
 from .studyrows import StudyTask
 from .worker import Runner, default_runner
@@ -78,7 +78,7 @@ class TaskSpec:
     use_tuned: str | None = None
     only: tuple[str, ...] = ()  # --only texts
     runner: str | None = None  # --runner module:function; None: training
-    launcher: str = "slurm"  # the launcher that started the worker (its worker-side hooks)
+    launcher: str | None = None  # the launcher that starts the workers (its worker side); set by ``launch``
     study: str | None = None  # a tuning study's workers (``bronchopose tune``): its trial rows, not the stages
     deadline: float | None = None  # ... and when its trials stop starting (epoch seconds, ``tune --timeout``)
     secrets: str | None = None  # a 0600 file holding the real overrides/storage (``seal``); these are redacted
@@ -144,10 +144,10 @@ class TaskSpec:
 
 
 def command(cfg: Config, spec: TaskSpec, logs: Path | None = None) -> list[str]:
-    """What each detached worker runs: its launcher's Python (``Launcher.python``: Slurm's ``slurm.python``, else
+    """What each detached worker runs: its launcher's Python (``Launcher.python``: Slurm's ``python`` setting, else
     this one) on this module with ``spec``, its secrets sealed into a 0600 file in ``logs`` (default: the
     launcher's log folder), never in a script or the argv."""
-    kind = launcher_class(spec.launcher, "task spec: launcher")
+    kind = launcher_class(_launcher(spec.launcher), "task spec: launcher")
     spec = replace(spec, config=str(Path(spec.config).resolve())).seal(logs or kind.logs(cfg))
     return [kind.python(cfg), "-m", MODULE, spec.to_json()]
 
@@ -162,21 +162,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         spec = TaskSpec.from_json(args[0])
         cfg = spec.load()
         only, runner = spec.selection(), spec.cell_runner()
-        check_paths(cfg, storage=True, logs=True)
+        kind = launcher_class(_launcher(spec.launcher), "task spec: launcher")
+        check_paths(cfg, storage=True, logs=True, extra=log_roots(cfg, kind))
         study = StudyTask(spec.study, cfg.name, spec.deadline) if spec.study else None
-        return run_task(cfg, only, runner, spec.launcher, study)
+        return run_task(cfg, only, runner, _launcher(spec.launcher), study)
     except BronchoError as exc:
         sys.stderr.write(f"error: {urls.redact(str(exc))}\n")  # a setting may be a URL with a password
         return exc.exit_code
 
 
-def run_task(cfg: Config, only: Selection, runner: Runner = default_runner, launcher: str = "slurm",
-             study: StudyTask | None = None) -> int:
+def _launcher(name: str | None) -> str:
+    if not name:
+        raise BronchoError("task spec: no launcher named; submit the sweep again (`bronchopose sweep run --launcher "
+                           "NAME` names it)")
+    return name
+
+
+def run_task(cfg: Config, only: Selection, runner: Runner, launcher: str, study: StudyTask | None = None) -> int:
     """One detached worker of ``launcher`` through the stages up to ``STAGE_ENV``'s, or through a study's trial
     rows (``study``) (``stagework.worker_main``)."""
     kind = launcher_class(launcher, "task spec: launcher")
     job = WorkerJob(worker_config(cfg), cfg.paths.storage_url, only, kind, runner,
-                    last_stage=os.environ.get(STAGE_ENV) or None, exit_when_idle=kind.worker_exits_when_idle(cfg),
+                    last_stage=os.environ.get(STAGE_ENV) or None, exit_when_idle=kind.environment(cfg).exits_when_idle,
                     study=study)
     return worker_main(job)
 

@@ -48,7 +48,7 @@ from typing import Any
 
 import torch
 
-from .. import metrics, registry, runkeys
+from .. import interrupts, metrics, registry, runkeys
 from ..data.batches import BatchOrder, FrameSource, Photometric, Samples
 from ..errors import BronchoError
 from ..models import detach_state
@@ -307,7 +307,7 @@ class Trainer:
         path = self.save_resume()
         where = f"checkpoint of step {self.step} saved to {path}" if path is not None else "no checkpoint folder"
         name = signal.Signals(signum).name
-        why = f" ({SIGNAL_MEANING[name]})" if name in SIGNAL_MEANING else ""
+        why = f" ({meaning})" if (meaning := interrupts.meaning(signum)) else ""
         exc = RunInterrupted(f"{name} received at step {self.step}/{self.s.steps}{why}; {where}")
         exc.signal = signum
         log.warning("%s", exc)
@@ -485,8 +485,3 @@ class Trainer:
         path = checkpoint.save(self.ckpt_dir / RESUME_FILE, self.state())
         self._saved_at = time.monotonic()
         return path
-
-
-SIGNAL_MEANING = {"SIGUSR1": "Slurm's time-limit warning", "SIGTERM": "scancel, requeue or preemption",
-                  "SIGINT": "Ctrl-C", "SIGHUP": "the terminal closed"}  # what sends each stop signal, as a run's KILLED reason says it
-

@@ -7,7 +7,8 @@ run. The dataset must exist: ``bronchopose train``/``sweep``/``tune``
 generate it first, as an explicit step of their start-up.
 
 Faults: SIGINT (Ctrl-C), SIGTERM (scancel, ``scontrol requeue``,
-preemption), SIGHUP (the terminal closed) or SIGUSR1 (Slurm's time-limit warning) stops training after the
+preemption), SIGHUP (the terminal closed) or the warning signal of the launcher whose worker runs it
+(``interrupts.warned_by``: Slurm's SIGUSR1 before its time limit) stops training after the
 current optimiser step, saves a resumable checkpoint of that step and marks
 the run KILLED with the signal and the checkpoint's path as its reason
 (``RunInterrupted``, carrying the signal, is raised so callers stop too);
@@ -64,9 +65,6 @@ log = logging.getLogger(__name__)
 TAG_RESUMED = "resumed_from_step"  # a metric, one value per resume at step = the checkpoint's: the run's history
 
 
-STOP_SIGNALS = (*interrupts.STOP_SIGNALS, signal.SIGUSR1)  # SIGINT, SIGTERM, SIGHUP; SIGUSR1: Slurm's warning
-
-
 class StopFlag:
     """Turns the first stop signal into a request to stop after the current step; a second SIGINT aborts.
 
@@ -88,7 +86,7 @@ class StopFlag:
 @contextmanager
 def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
     try:
-        previous = {s: signal.signal(s, flag) for s in STOP_SIGNALS}
+        previous = {s: signal.signal(s, flag) for s in interrupts.stop_signals()}
     except ValueError:  # not the main thread: leave signals alone
         yield
         return

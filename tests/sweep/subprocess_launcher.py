@@ -1,9 +1,13 @@
 """A third launcher, written against the protocol alone (docs/sweep.md, "Adding a launcher"): ``n`` detached
 worker processes on this machine, each ``python -m bronchocli.sweep.task <spec>`` in its own session.
 
-One file plus one registration (the ``register`` call at the end); nothing in bronchocli names it. Its workers are
-found again through one small JSON record per worker under the sweep's log folder, so a later command (``sweep
-cancel``) sees them too. ``after``: a worker of a later stage waits for the earlier submissions' processes.
+One file; nothing in bronchocli names it. It is found by its registration (the ``register`` call at the end, once
+the module is imported), as ``subprocess_launcher:SubprocessLauncher``, or through an entry point of the group
+``bronchopose.launchers`` (tests/sweep/test_launchers.py installs one). Its own settings are the section
+``sweep.launchers.subprocess`` (``Settings``); its worker side, the job id its workers get in their environment
+(``Environment``). Its workers are found again through one small JSON record per worker under the sweep's log
+folder, so a later command (``sweep cancel``) sees them too. ``after``: a worker of a later stage waits for the
+earlier submissions' processes.
 """
 
 from __future__ import annotations
@@ -16,7 +20,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from bronchocli.sweep.launchers import STAGE_ENV, Launcher, Workers, register
+from pydantic import Field
+
+from bronchocli.config import Section
+from bronchocli.sweep.launchers import STAGE_ENV, Launcher, WorkerEnvironment, Workers, register
 
 JOB_ENV = "SUBPROCESS_LAUNCHER_JOB"  # the worker's job id, as its launcher knows it
 
@@ -29,9 +36,31 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")  # a zombie has exited
 
 
+class SubprocessSettings(Section):
+    """``sweep.launchers.subprocess``."""
+
+    max_workers: int = Field(8, ge=1, le=64)  # workers started for one stage at most
+
+
+class SubprocessEnvironment(WorkerEnvironment):
+    @property
+    def job_id(self) -> str | None:
+        return os.environ.get(JOB_ENV)
+
+    @property
+    def task_index(self) -> int | None:
+        job = os.environ.get(JOB_ENV, "")
+        return int(job.rpartition("_")[2]) if "_" in job else None
+
+
 class SubprocessLauncher(Launcher):
     name = "subprocess"
+    Settings = SubprocessSettings
+    Environment = SubprocessEnvironment
     children: dict[int, subprocess.Popen] = {}  # started by this process: reaped when they exit
+
+    def capacity(self, runnable: int) -> int:
+        return max(0, min(runnable, self.settings(self.cfg).max_workers))
 
     def folder(self) -> Path:
         return self.logs(self.cfg) / "subprocess"
@@ -72,10 +101,6 @@ class SubprocessLauncher(Launcher):
             for w in workers:
                 os.kill(int(w.id), signal.SIGTERM)
         return sorted({w.job for w in workers})
-
-    @classmethod
-    def worker_job(cls) -> str | None:
-        return os.environ.get(JOB_ENV)
 
 
 register(SubprocessLauncher)

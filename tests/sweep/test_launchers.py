@@ -145,3 +145,61 @@ def test_the_launcher_names_have_one_owner_the_registry(cli, project):
     assert code == 2 and err.strip() == f"error: sweep.launcher pbs: must be one of {', '.join(names())}", err
     code, out, err = cli("config", "-c", path, "--set", "sweep.launcher=Subprocess")
     assert code == 0 and "launcher: subprocess" in out, err
+
+
+def _install_entry_point(site):
+    """A distribution in ``site`` (what pip installs: a ``.dist-info`` folder) whose entry point of the group
+    ``bronchopose.launchers`` offers subprocess_launcher's class as the launcher ``subprocess``."""
+    dist = site / "subprocess_launcher_plugin-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: subprocess-launcher-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[bronchopose.launchers]\n"
+                                           "subprocess = subprocess_launcher:SubprocessLauncher\n")
+    return site
+
+
+def test_a_launcher_installed_through_an_entry_point_runs_a_sweep_with_its_own_validated_section(
+        make_config, project, fake_dir, tmp_path):
+    """Issue 47, item 2: a package adds a launcher without touching this repository (an entry point of the group
+    ``bronchopose.launchers``); its settings are its own section, ``sweep.launchers.<name>``, validated by its own
+    model when it is looked up. Run in fresh processes: nothing here imports or registers the launcher."""
+    import os
+    import subprocess
+    import sys
+
+    from sweep_fakes import FAKE
+
+    site = _install_entry_point(tmp_path / "site")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), *sys.path]), "COLUMNS": "200"}
+    probe = ("import sys; from bronchocli.sweep.launchers import launcher_class, names; "
+             "print('subprocess_launcher' in sys.modules, 'subprocess' in names()); "
+             "k = launcher_class('subprocess'); print(k.__module__, k.__name__, k.Settings.__name__)")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "True", "subprocess_launcher", "SubprocessLauncher", "SubprocessSettings"], out
+
+    main = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
+
+    def bronchopose(*args):
+        done = subprocess.run([sys.executable, "-c", main, *args], cwd=tmp_path, env=env, capture_output=True,
+                              text=True, timeout=300)
+        return done.returncode, done.stdout, done.stderr
+
+    cfg = make_config(sweep={"launchers": {"subprocess": {"max_workers": 1}}})
+    path = str(cfg.paths.base / "experiments.yaml")
+    code, out, err = bronchopose("sweep", "run", "-c", path, "--launcher", "subprocess", *FAKE)
+    assert code == 0, out + err
+    assert re.search(r"submitted subprocess job \S+: 1 worker\(s\) for stage grid", out), out  # max_workers: 1
+    rows = SweepStore(cfg.paths.storage_url).rows(cfg.name)
+    assert {r.state for r in rows} == {FINISHED} and [calls(r.cell_key) for r in rows] == [1, 1]
+    workers = {WorkerId.parse(r.worker).job for r in rows}  # one worker, its job id from its environment
+    assert len(workers) == 1 and None not in workers, [r.worker for r in rows]
+
+    code, out, err = bronchopose("config", "-c", path, "--set", "sweep.launchers.subprocesss.max_workers=2")
+    assert code == 2 and "sweep.launchers.subprocesss: no launcher of that name (known: local, slurm, subprocess" \
+        in err, err
+    make_config(sweep={"launchers": {"subprocess": {"max_workers": 0}}})  # the same file, a bad value
+    for args in (["config"], ["sweep", "run", "--launcher", "subprocess", *FAKE]):
+        code, out, err = bronchopose(*args, "-c", path)
+        assert code == 2 and len(err.strip().splitlines()) == 1, (args, out, err)
+        assert ("sweep.launchers.subprocess.max_workers: 0: input should be greater than or equal to 1 (allowed "
+                "range [1, 64])") in err, err

@@ -9,6 +9,7 @@ except where a checkpoint resume needs real training.
 
 from __future__ import annotations
 
+import copy
 import os
 import re
 import shutil
@@ -204,13 +205,16 @@ def test_each_up_front_check_is_one_line_and_exit_2_with_nothing_submitted(slurm
         "file/SQLite MLflow store": ({"slurm": {"shared_filesystem": False}}, "runs.uri"),
         "node-local folder": ({"slurm": {"shared_filesystem": False}, "runs": {"uri": pg_url}},
                               "a node-local folder"),
-        "bad slurm value": ({"slurm": {"timeout_min": 0}}, "slurm.timeout_min"),
-        "sbatch option the launcher sets": ({"slurm": {"additional": {"array": "0-9"}}}, "slurm.additional"),
+        "bad slurm value": ({"slurm": {"timeout_min": 0}}, "sweep.launchers.slurm.timeout_min"),
+        "sbatch option the launcher sets": ({"slurm": {"additional": {"array": "0-9"}}},
+                                            "sweep.launchers.slurm.additional"),
         "partition the cluster lacks": ({"slurm": {"partition": "nosuch"}}, "sbatch failed"),
     }
     for name, (over, expected) in cases.items():
         bad = tmp_path / f"bad-{len(name)}.yaml"
-        merged = {**data, **{k: {**data.get(k, {}), **v} for k, v in over.items()}}
+        merged = copy.deepcopy(data)
+        for key, values in over.items():  # "slurm": the launcher's own section, sweep.launchers.slurm
+            (merged["sweep"]["launchers"]["slurm"] if key == "slurm" else merged.setdefault(key, {})).update(values)
         bad.write_text(yaml.safe_dump(merged))
         code, out, err = cli("sweep", "run", "-c", str(bad), "--launcher", "slurm", "--detach")
         lines = [x for x in (out + err).splitlines() if x.strip()]

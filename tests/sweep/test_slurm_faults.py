@@ -135,11 +135,12 @@ def test_the_workers_interpreter_and_its_venv_must_be_on_a_shared_path(make_conf
     shared = {"storage": "postgresql://u@db.example/sweeps"}
     runs = {"uri": "http://mlflow.example:5000", "artifacts": "/srv/a", "checkpoints": "/srv/ck"}
     venv = Path("/tmp/node-venv")
-    with pytest.raises(Exception, match="slurm.python /tmp/node-venv/bin/python: a node-local folder"):
+    with pytest.raises(Exception, match="sweep.launchers.slurm.python /tmp/node-venv/bin/python: a node-local folder"):
         launcher.check(make_config(**shared, runs=runs, dataset={"root": "/srv/data"},
                                    slurm={"python": str(venv / "bin" / "python"), "logs": "/srv/logs"}))
     monkeypatch.setattr(sys, "executable", "/tmp/x/bin/python")
-    with pytest.raises(Exception, match="the Python running bronchopose .slurm.python. /tmp/x/bin/python"):
+    with pytest.raises(Exception,
+                       match="the Python running bronchopose .sweep.launchers.slurm.python. /tmp/x/bin/python"):
         launcher.check(make_config(**shared, runs=runs, dataset={"root": "/srv/data"}, slurm={"logs": "/srv/logs"}))
 
 

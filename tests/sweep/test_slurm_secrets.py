@@ -90,10 +90,10 @@ def test_no_password_reaches_the_batch_script_the_sbatch_argv_or_the_task_comman
 def test_a_spec_without_secrets_is_left_as_it_is_and_a_missing_secret_file_is_one_line(make_config, tmp_path,
                                                                                         capsys):
     cfg = make_config()
-    plain = TaskSpec(config=str(cfg.paths.base / "experiments.yaml"), overrides=("train.lr=0.005",))
+    plain = TaskSpec(config=str(cfg.paths.base / "experiments.yaml"), overrides=("train.lr=0.005",), launcher="slurm")
     assert TaskSpec.from_json(task.command(cfg, plain)[-1]).secrets is None
     sealed = TaskSpec.from_json(task.command(cfg, TaskSpec(
-        config=plain.config, overrides=("storage.url=postgresql://h/db?password=hunter22",)))[-1])
+        config=plain.config, overrides=("storage.url=postgresql://h/db?password=hunter22",), launcher="slurm"))[-1])
     assert sealed.overrides == ("storage.url=postgresql://h/db?password=***",)
     assert task.command(cfg, plain) == task.command(cfg, plain)  # the same values: the same file, nothing piles up
     __import__("os").unlink(sealed.secrets)

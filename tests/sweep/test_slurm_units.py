@@ -1,4 +1,5 @@
-"""The Slurm launcher's pieces that need no cluster: the slurm section, sbatch options, batch script, idle exit."""
+"""The Slurm launcher's pieces that need no cluster: its own section (sweep.launchers.slurm), sbatch options, batch
+script, idle exit, its worker environment."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from sweep_fakes import fake_runner
 
 from bronchocli.errors import ConfigError
 from bronchocli.sweep import SweepStore, Worker, prepare, task
-from bronchocli.sweep.launchers import STAGE_ENV
+from bronchocli.sweep.launchers import STAGE_ENV, LocalLauncher, SlurmLauncher, detected
 from bronchocli.sweep.launchers import slurm as slurm_launcher
 from bronchocli.sweep.launchers.slurm import _count, batch_script, check, requeue, sbatch_args
 from bronchocli.sweep.task import TaskSpec
@@ -38,7 +39,8 @@ def test_sbatch_options_carry_the_slurm_section(make_config):
 
 def test_the_batch_script_runs_setup_then_execs_one_worker(make_config):
     cfg = make_config(slurm={"setup": ["module load cuda", "source venv/bin/activate"], "python": "/opt/py"})
-    spec = TaskSpec(config="/x/experiments.yaml", only=("arch=lstm;seed=0",), runner="sweep_fakes:fake_runner")
+    spec = TaskSpec(config="/x/experiments.yaml", only=("arch=lstm;seed=0",), runner="sweep_fakes:fake_runner",
+                    launcher="slurm")
     script = batch_script(cfg, task.command(cfg, spec))
     lines = script.splitlines()
     assert lines[0] == "#!/bin/bash" and "module load cuda" in lines and "source venv/bin/activate" in lines
@@ -54,7 +56,7 @@ def test_the_batch_script_runs_setup_then_execs_one_worker(make_config):
 def test_an_array_task_loads_the_config_the_command_loaded_and_refuses_a_bad_spec(make_config, capsys):
     cfg = make_config()
     spec = TaskSpec(config=str(cfg.paths.base / "experiments.yaml"), overrides=("train.lr=0.005",),
-                    storage="sqlite:///other.db", only=("arch=lstm",))
+                    storage="sqlite:///other.db", only=("arch=lstm",), launcher="slurm")
     loaded = TaskSpec.from_json(task.command(cfg, spec)[-1]).load()
     assert loaded.train.lr == 0.005 and loaded.storage.url == "sqlite:///other.db"
     assert TaskSpec.from_json(spec.to_json()).selection() == {"arch": {"lstm"}}
@@ -67,17 +69,72 @@ def test_an_array_task_loads_the_config_the_command_loaded_and_refuses_a_bad_spe
 
 
 @pytest.mark.parametrize("section, message", [
-    ({"timeout_min": 0}, "slurm.timeout_min"),
-    ({"partition": "gpu; rm -rf /"}, "slurm.partition"),
+    ({"timeout_min": 0}, "sweep.launchers.slurm.timeout_min: 0: input should be greater than or equal to 1 (allowed "
+                         "range [1, 525600])"),
+    ({"partition": "gpu; rm -rf /"}, "sweep.launchers.slurm.partition"),
     ({"additional": {"array": "0-3"}}, "set by the launcher"),
     ({"additional": {"--constraint": "x"}}, "long option name"),
     ({"setup": ["a\nb"]}, "one shell line"),
-    ({"gpus": 2}, "unknown key 'gpus'"),
+    ({"gpus": 2}, "sweep.launchers.slurm.gpus: unknown key 'gpus' (allowed: account, additional,"),
+    ({"on_time_limit": "requeu"}, "sweep.launchers.slurm.on_time_limit"),
 ])
-def test_bad_slurm_values_are_refused_at_load(make_config, section, message):
-    with pytest.raises(ConfigError, match="slurm") as info:
-        make_config(slurm=section)
-    assert message in str(info.value) and len(str(info.value).splitlines()) == 1
+def test_bad_slurm_values_are_refused_when_the_launcher_is_looked_up(cli, make_config, section, message):
+    cfg = make_config(slurm=section)  # the core config holds the section as a mapping: the launcher validates it
+    with pytest.raises(ConfigError) as info:
+        SlurmLauncher.settings(cfg)
+    assert message in str(info.value) and len(str(info.value).splitlines()) == 1, str(info.value)
+    assert "experiments.yaml:" in str(info.value)  # file:line of the key, as for the core sections
+    for args in (["config"], ["sweep", "plan"], ["sweep", "cancel", "--launcher", "slurm", "--dry-run"]):
+        code, out, err = cli(*args, "-c", str(cfg.paths.base / "experiments.yaml"))
+        assert code == 2 and message in err and len(err.strip().splitlines()) == 1, (args, out, err)
+
+
+def test_the_old_slurm_section_is_read_for_one_release_with_a_rename_hint(cli, make_config, caplog, monkeypatch):
+    from bronchocli.config import loading
+
+    monkeypatch.setattr(loading, "_warned", set())
+    cfg = make_config(sweep={"launcher": "slurm"})
+    path = cfg.paths.base / "experiments.yaml"
+    line = len(path.read_text().splitlines()) + 1
+    path.write_text(path.read_text() + "slurm:\n  partition: gpu\n  tasks: 3\n")
+    loaded = loading.load_config(path)
+    assert SlurmLauncher.settings(loaded).partition == "gpu" and SlurmLauncher.settings(loaded).tasks == 3
+    hints = [r.getMessage() for r in caplog.records if "is now" in r.getMessage()]
+    assert hints == [f"{path}:{line}: config key 'slurm' is now 'sweep.launchers.slurm' (the old name is read for one "
+                     "more release); rename it"], hints
+    monkeypatch.setattr(loading, "_warned", set())
+    over = loading.load_config(path, overrides=["slurm.partition=debug"])  # an old --set too
+    assert SlurmLauncher.settings(over).partition == "debug"
+    both = path.read_text().replace("sweep:\n", "sweep:\n  launchers: {slurm: {tasks: 1}}\n")
+    path.write_text(both)
+    with pytest.raises(ConfigError, match="both 'slurm' and 'sweep.launchers.slurm' are set"):
+        loading.load_config(path)
+
+
+def test_the_slurm_worker_environment_reads_its_task_and_requeues_only_on_its_warning(make_config, monkeypatch):
+    import signal
+
+    env = SlurmLauncher.environment(make_config(slurm={"on_time_limit": "requeue", "exit_when_idle": False}))
+    for key in ("SLURM_ARRAY_JOB_ID", "SLURM_JOB_ID", "SLURM_ARRAY_TASK_ID", "SLURM_CPUS_PER_TASK"):
+        monkeypatch.delenv(key, raising=False)
+    assert env.job_id is None and env.task_index is None and env.threads is None and not env.exits_when_idle
+    assert detected() is None  # `bronchopose train` outside any launcher's job: no warning signal
+    monkeypatch.setenv("SLURM_ARRAY_JOB_ID", "812")
+    monkeypatch.setenv("SLURM_JOB_ID", "815")
+    monkeypatch.setenv("SLURM_ARRAY_TASK_ID", "3")
+    monkeypatch.setenv("SLURM_CPUS_PER_TASK", "6")
+    assert (env.job_id, env.task_index, env.threads) == ("812_3", 3, 6)
+    assert detected() is SlurmLauncher.Environment  # `bronchopose train` in a Slurm job stops on its warning too
+    assert env.warning_signal == signal.SIGUSR1 and env.warning_meaning == "Slurm's time-limit warning"
+    requeued = []
+    monkeypatch.setattr(slurm_launcher, "requeue", lambda task: requeued.append(task) or True)
+    env.done(signal.SIGTERM)  # scancel: the task is not requeued
+    env.done(None)
+    assert requeued == []
+    env.done(signal.SIGUSR1)
+    assert requeued == ["812_3"]
+    LocalLauncher.environment(make_config()).done(signal.SIGUSR1)  # no warning signal: nothing to do
+    assert LocalLauncher.Environment.warning_signal is None
 
 
 def test_the_checks_refuse_stores_and_folders_compute_nodes_cannot_share(make_config, monkeypatch, tmp_path):

@@ -15,6 +15,7 @@ from tinydata import write_tiny_dataset
 from tinyproject import write_config
 from training.test_checkpoint import plant
 
+from bronchocli import interrupts
 from bronchocli.config import load_config
 from bronchocli.errors import DataError
 from bronchocli.runs import client as client_module
@@ -22,6 +23,7 @@ from bronchocli.runs.client import MlflowBusy, client_for, experiment_id, retry_
 from bronchocli.runs.contract import RunInterrupted
 from bronchocli.runs.processes import TAG_PID
 from bronchocli.runs.records import cell_tags, search_runs
+from bronchocli.sweep.launchers import SlurmLauncher
 from bronchocli.training import checkpoint
 from bronchocli.training.network import PoseRegressor
 from bronchocli.training.run import run_cell
@@ -386,10 +388,14 @@ def test_slurms_time_limit_warning_checkpoints_the_step_it_lands_on_and_the_resu
         if step == 4:
             os.kill(os.getpid(), signal.SIGUSR1)  # --signal=B:USR1@<s>: between the validations of steps 4 and 8
 
+    # the signal is the launcher's, not training's: a Slurm task's worker declares it (``Launcher.Environment``)
+    env = SlurmLauncher.Environment
+    assert signal.SIGUSR1 not in interrupts.stop_signals()
     with pytest.raises(RunInterrupted, match="SIGUSR1 received at step 5/8 .Slurm's time-limit warning.; "
-                                             "checkpoint of step 5 saved to") as info:
+                                             "checkpoint of step 5 saved to") as info, \
+            interrupts.warned_by(env.warning_signal, env.warning_meaning):
         run_cell(cfg, cell, progress=False, on_validation=usr1_after_step_4, extra_tags={"sweep_worker": "first"})
-    assert info.value.signal == signal.SIGUSR1
+    assert info.value.signal == signal.SIGUSR1 and signal.SIGUSR1 not in interrupts.stop_signals()
     client = client_for(cfg)
     (run,) = search_runs(client, [experiment_id(client, cfg)])
     run_id = run.info.run_id

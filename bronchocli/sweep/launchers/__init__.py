@@ -3,20 +3,27 @@
 - ``local``: child processes of the command, pinned to this machine's GPUs (``local.LocalLauncher``);
 - ``slurm``: Slurm job arrays, one worker per array task (``slurm.SlurmLauncher``; docs/cluster.md).
 
-Adding a launcher is one module with a ``Launcher`` subclass and one ``register`` call (below, or in the
-module that defines it); ``bronchopose sweep run --launcher NAME`` and ``sweep.launcher`` then name it.
+Adding a launcher is one module with a ``Launcher`` subclass, found by name in one of three ways: a ``register``
+call (below, or in the module that defines it); an entry point of the group ``bronchopose.launchers`` in any
+installed package (``NAME = "package.module:Class"``: nothing in this repository changes); or ``module:Class``
+itself. ``bronchopose sweep run --launcher NAME`` and ``sweep.launcher`` then name it, and its own settings are
+``sweep.launchers.NAME`` (docs/sweep.md, "Adding a launcher").
 """
 
 from __future__ import annotations
 
 import importlib
+from importlib.metadata import EntryPoint, entry_points
+from pathlib import Path
 
-from ...errors import BronchoError
-from .base import STAGE_ENV, Launcher, Workers
+from ...config import Config
+from ...errors import BronchoError, ConfigError
+from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
 from .local import LocalLauncher
 from .slurm import SlurmLauncher
 
 _LAUNCHERS: dict[str, type[Launcher]] = {}
+GROUP = "bronchopose.launchers"  # the entry-point group of launchers that installed packages provide
 
 
 def register(cls: type[Launcher]) -> type[Launcher]:
@@ -27,22 +34,62 @@ def register(cls: type[Launcher]) -> type[Launcher]:
     return cls
 
 
+def _entry_points() -> dict[str, EntryPoint]:
+    return {ep.name: ep for ep in entry_points(group=GROUP)}
+
+
 def names() -> list[str]:
-    return list(_LAUNCHERS)
+    """The registered launchers, then those installed packages offer (entry points) not loaded yet."""
+    return [*_LAUNCHERS, *(n for n in _entry_points() if n not in _LAUNCHERS)]
 
 
 def launcher_class(name: str, what: str = "--launcher") -> type[Launcher]:
-    """The registered launcher ``name`` (or ``module:Class``, imported and registered: how a detached worker
-    finds a launcher defined outside this package); one line naming the known ones when there is none."""
+    """The launcher ``name``: a registered one, else an installed package's entry point of that name (group
+    ``bronchopose.launchers``), else ``module:Class`` (how a detached worker finds a launcher defined outside this
+    package); loaded ones are registered. One line naming the known ones when there is none."""
     if name in _LAUNCHERS:
         return _LAUNCHERS[name]
+    if (ep := _entry_points().get(name)) is not None:
+        try:
+            cls = ep.load()
+        except (ImportError, AttributeError) as exc:
+            raise BronchoError(f"{what} {name}: entry point {ep.value} cannot be loaded ({exc})") from None
+        if getattr(cls, "name", None) != name:
+            raise BronchoError(f"{what} {name}: entry point {ep.value} is launcher {getattr(cls, 'name', cls)!r}, "
+                               f"not {name!r}; name the entry point as the class names itself")
+        return register(cls)
     module, _, attr = name.partition(":")
     if module and attr:
         try:
             return register(getattr(importlib.import_module(module), attr))
         except (ImportError, AttributeError) as exc:
             raise BronchoError(f"{what} {name}: cannot load it ({exc})") from None
-    raise BronchoError(f"{what} {name}: must be one of {', '.join(_LAUNCHERS)}")
+    raise BronchoError(f"{what} {name}: must be one of {', '.join(names())}")
+
+
+def detected() -> type[WorkerEnvironment] | None:
+    """The worker environment of the registered launcher whose job this process runs in (``detect``), else None."""
+    return next((k.Environment for k in _LAUNCHERS.values() if k.Environment.detect()), None)
+
+
+def log_roots(cfg: Config, kind: type[Launcher] | None = None) -> list[tuple[str, Path]]:
+    """The output roots of the launchers' own settings (``Launcher.roots``) for the checks made before a command
+    writes anything (``config.check_paths(extra=...)``): ``kind``'s (default: ``sweep.launcher``'s) and those of
+    every launcher with a section in ``sweep.launchers``, each section validated (one line naming its key; a
+    section of no known launcher is refused with the known names)."""
+    kinds = {k.name: k for k in [kind or launcher_class(cfg.sweep.launcher, "sweep.launcher")]}
+    for section in cfg.sweep.launchers:
+        if section not in kinds:
+            try:
+                kinds[section] = launcher_class(section, "sweep.launchers:")
+            except BronchoError:
+                raise ConfigError(f"sweep.launchers.{section}: no launcher of that name (known: {', '.join(names())}; "
+                                  "a section is named as its launcher names itself)") from None
+    out = []
+    for k in kinds.values():
+        k.settings(cfg)
+        out += k.roots(cfg)
+    return out
 
 
 def reference(cls: type[Launcher]) -> str:
@@ -53,5 +100,5 @@ def reference(cls: type[Launcher]) -> str:
 register(LocalLauncher)
 register(SlurmLauncher)
 
-__all__ = ["STAGE_ENV", "Launcher", "LocalLauncher", "SlurmLauncher", "Workers", "launcher_class", "names",
-           "reference", "register"]
+__all__ = ["GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "SlurmLauncher", "WorkerEnvironment", "Workers",
+           "detected", "launcher_class", "log_roots", "names", "reference", "register"]

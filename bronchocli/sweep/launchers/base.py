@@ -26,10 +26,16 @@ exited, where it can tell), ``defers`` (a later stage's submission can wait for 
 without it one stage is submitted at a time) and ``resubmits`` (workers that ended with cells left
 are replaced: they were cancelled or timed out; without it they stopped for a reason a new worker
 would meet too), ``runs_command`` (its workers run ``command``), ``poll_s`` (how often the watch asks)
-and ``submitted`` (the line announcing a submission). The worker side: ``worker_signals`` (extra stop signals), ``worker_job`` (this
-worker's id in the launcher, recorded in its ``WorkerId``), ``worker_threads``,
-``worker_exits_when_idle`` and ``worker_done`` (after the worker loop; Slurm requeues a task warned of
-its time limit).
+and ``submitted`` (the line announcing a submission).
+
+What a launcher owns besides: ``Settings``, the model of its own config section ``sweep.launchers.<name>``
+(validated by ``settings(cfg)`` when the launcher is looked up; the core config holds it as a plain mapping),
+``logs`` (its workers' log folder) and ``roots`` (folders of its settings that no other output root may hold),
+and ``Environment``, the worker side (submitit's JobEnvironment): built inside a worker it started
+(``environment(cfg)``), it says the worker's job id and task index, the CPU threads it was given, whether it exits
+when idle, the launcher's *warning signal* (Slurm: SIGUSR1 before the time limit; training stops on it and
+checkpoints, ``interrupts.warned_by``) and what the worker does after its loop (``done``: Slurm ``requeue``s a task
+warned of its time limit).
 
 ``detachable``: the workers outlive the command that submitted them (``sweep run --detach``, ``sweep
 cancel``); the local launcher's do not (its workers are the command's own child processes).
@@ -46,7 +52,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
-from ...config import Config
+from ...config import Config, Section
+from ...errors import ConfigError
 
 STAGE_ENV = "BRONCHOPOSE_SWEEP_STAGE"  # the stage a worker was submitted for: it stops after that stage
 
@@ -64,6 +71,55 @@ class Workers:
     ending: bool = False  # being stopped (Slurm: COMPLETING after scancel): covers no cell
 
 
+class WorkerEnvironment:
+    """The worker side of a launcher: what a worker it started asks about itself (submitit's JobEnvironment). Built
+    in the worker's process from the launcher's validated settings (``Launcher.environment``). The defaults: a
+    worker with no job of its own, no warning signal, nothing to do at the end."""
+
+    warning_signal: ClassVar[int | None] = None  # sent before the launcher stops the worker: it checkpoints and stops
+    warning_meaning: ClassVar[str] = ""  # what sends it, as a stopped run's KILLED reason says it
+
+    def __init__(self, settings: Any = None):
+        self.settings = settings  # the launcher's ``Settings`` (None: it has none)
+
+    @classmethod
+    def detect(cls) -> bool:
+        """This process runs inside a job of this launcher, whoever started it (Slurm: ``SLURM_JOB_ID`` is set):
+        ``bronchopose train`` in a batch job then stops on the launcher's warning signal too."""
+        return False
+
+    @property
+    def job_id(self) -> str | None:
+        """This worker's id in the launcher (Slurm: ``812_3``), recorded in its ``WorkerId``; None: none."""
+        return None
+
+    @property
+    def task_index(self) -> int | None:
+        """This worker's index among its submission's (Slurm: ``SLURM_ARRAY_TASK_ID``); None: not known."""
+        return None
+
+    @property
+    def threads(self) -> int | None:
+        """The CPU threads this worker was given (Slurm: ``SLURM_CPUS_PER_TASK``); None: the config decides."""
+        return None
+
+    @property
+    def exits_when_idle(self) -> bool:
+        """Exit when nothing is claimable now instead of waiting for cells held elsewhere."""
+        return True
+
+    def warned(self, requested: int | None) -> bool:
+        """The stop signal ``requested`` is this launcher's warning (the launcher itself replaces the worker)."""
+        return requested is not None and requested == self.warning_signal
+
+    def requeue(self) -> bool:
+        """Put this worker back in the launcher's queue; whether it was (default: it cannot be)."""
+        return False
+
+    def done(self, requested: int | None) -> None:
+        """After the worker loop; ``requested``: the stop signal it received (None: it ran out of work)."""
+
+
 class Launcher(ABC):
     """One way of starting a sweep's workers. Subclass it in one module, then register it
     (``launchers.register``)."""
@@ -73,7 +129,8 @@ class Launcher(ABC):
     title: ClassVar[str] = ""  # how messages name it ("Slurm"; default: its name)
     job_word: ClassVar[str] = "job"  # one submission in messages ("Slurm array job")
     task_word: ClassVar[str] = "worker"  # one worker in messages ("task")
-    worker_signals: ClassVar[tuple[int, ...]] = ()  # stop signals a worker of this launcher also handles
+    Settings: ClassVar[type[Section] | None] = None  # the model of its section sweep.launchers.<name>; None: none
+    Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
     options: ClassVar[tuple[str, ...]] = ()  # the `sweep run` options it takes (``create``), e.g. "--workers"
     runs_command: ClassVar[bool] = True  # its workers run ``command`` (the local launcher's get their job by spawn)
     defers: ClassVar[bool] = True  # ``submit(after=...)`` makes a later stage wait; else one stage at a time
@@ -151,31 +208,32 @@ class Launcher(ABC):
         return []
 
     @classmethod
+    def settings(cls, cfg: Config) -> Any:
+        """Its section ``sweep.launchers.<name>`` validated against ``Settings`` (its defaults when absent):
+        ConfigError naming ``sweep.launchers.<name>.<key>``, the value and what is allowed. None: no model."""
+        if cls.Settings is None:
+            if cfg.sweep.launchers.get(cls.name):
+                raise ConfigError(f"sweep.launchers.{cls.name}: launcher {cls.name} takes no settings; remove it")
+            return None
+        return cfg.launcher_settings(cls.name, cls.Settings)
+
+    @classmethod
+    def environment(cls, cfg: Config) -> WorkerEnvironment:
+        """The worker side, inside a worker this launcher started (its settings validated)."""
+        return cls.Environment(cls.settings(cfg))
+
+    @classmethod
     def logs(cls, cfg: Config) -> Path:
         """The folder of its workers' logs (and of a sealed spec's 0600 secrets file)."""
         return cfg.paths.sweep_logs / cfg.name
 
     @classmethod
+    def roots(cls, cfg: Config) -> list[tuple[str, Path]]:
+        """Output folders of its own settings (setting name, folder) that must not hold, or sit inside, another
+        output root (``config.check_roots``); default: none (``logs`` is under ``sweep.logs``)."""
+        return []
+
+    @classmethod
     def python(cls, cfg: Config) -> str:
         """The interpreter its workers run (default: the one running this command)."""
         return sys.executable
-
-    # -- the worker side (inside a worker this launcher started) ----------------------------------------------
-    @classmethod
-    def worker_job(cls) -> str | None:
-        """This worker's id in the launcher (Slurm: ``812_3``), recorded in its ``WorkerId``; None: none."""
-        return None
-
-    @classmethod
-    def worker_threads(cls) -> int | None:
-        """The CPU threads this worker was given (Slurm: ``SLURM_CPUS_PER_TASK``); None: the config decides."""
-        return None
-
-    @classmethod
-    def worker_exits_when_idle(cls, cfg: Config) -> bool:
-        """Exit when nothing is claimable now instead of waiting for cells held elsewhere."""
-        return True
-
-    @classmethod
-    def worker_done(cls, cfg: Config, signals: Any) -> None:
-        """After the worker loop (``signals``: the ``StopSignals`` it ran with)."""

@@ -204,7 +204,3 @@ class LocalLauncher(Launcher):
     def stopped(self) -> bool:
         """Ctrl-C (or SIGTERM, SIGHUP) reached this command, or a worker was stopped on its own (exit 130)."""
         return self.processes.stops > 0 or EXIT_INTERRUPTED in self._codes
-
-    @classmethod
-    def worker_exits_when_idle(cls, cfg: Config) -> bool:
-        return False  # a local worker waits for cells held elsewhere: the command's stage ends when they are done

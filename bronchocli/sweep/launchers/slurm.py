@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -38,14 +39,18 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+from pydantic import Field, field_validator
 
 from ... import urls
-from ...config import Config
+from ...config import Config, Section, output_folder
+from ...config.sections import MAX_WORKERS
+from ...config.spellings import spelled
 from ...errors import BronchoError
 from ...io import write_text
 from ...retry import retry
-from .base import STAGE_ENV, Launcher, Workers
+from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +59,8 @@ ACTIVE = ("PENDING", "RUNNING", "CONFIGURING", "COMPLETING", "REQUEUED", "REQUEU
           "SUSPENDED", "STOPPED", "SIGNALING")
 ENDING = ("COMPLETING",)  # listed by squeue but ending (a cancelled task): covers no cell
 RELEASE_AFTER_S = 3.0  # a requeued task is started this long after it entered its BeginTime hold
+KEY = "sweep.launchers.slurm"  # the launcher's own config section
+
 
 class SlurmError(BronchoError):
     """sbatch, squeue or scancel failed, or the config cannot run on Slurm (one line)."""
@@ -73,8 +80,75 @@ def job_comment(cfg: Config, stage: str) -> str:
     return f"bronchopose:{cfg.name}:{storage_id(cfg)}:{stage}"
 
 
+# sbatch options the launcher sets itself: ``additional`` may not override them (docs/cluster.md)
+SLURM_MANAGED = ("array", "job-name", "comment", "output", "error", "open-mode", "signal", "requeue", "no-requeue",
+                 "gres", "gpus-per-task", "cpus-per-task", "mem", "time", "partition", "account", "qos",
+                 "dependency", "parsable", "wrap", "export", "chdir")
+
+
+class SlurmSettings(Section):
+    """``sweep.launchers.slurm``, the launcher's own section: every array task is one sweep worker (docs/cluster.md).
+
+    Names follow Hydra's submitit launcher where one exists (timeout_min, cpus_per_task, mem_gb,
+    array_parallelism, setup, additional, signal_delay_s)."""
+
+    partition: str | None = None
+    account: str | None = None
+    qos: str | None = None
+    timeout_min: int = Field(60, ge=1, le=365 * 24 * 60)  # --time of every array task
+    gpus_per_task: int = Field(1, ge=0, le=64)  # --gres=gpu:N; Slurm sets each task's CUDA_VISIBLE_DEVICES
+    cpus_per_task: int = Field(2, ge=1, le=MAX_WORKERS)  # also the worker's torch threads (train.threads unset)
+    mem_gb: float | None = Field(None, gt=0, le=65536)  # --mem per task; None: the cluster's DefMemPerCPU
+    # array tasks (workers) at most per stage; None: one per cell left
+    tasks: int | None = Field(None, ge=1, le=100_000)
+    array_parallelism: int = Field(256, ge=1, le=100_000)  # tasks of one array running at once (--array=0-N%K)
+    signal_delay_s: int = Field(120, ge=1, le=65535)  # SIGUSR1 this long before the time limit: checkpoint, requeue
+    setup: list[str] = []  # shell lines run before the worker (module load, source venv/bin/activate)
+    additional: dict[str, str | int | bool] = {}  # more sbatch options, e.g. {constraint: a100, exclusive: true}
+    python: str | None = None  # interpreter of the workers; None: the one running bronchopose sweep
+    logs: str = "runs/slurm-logs"  # per-task logs, <logs>/<array job>_<task>.log (appended across requeues)
+    shared_filesystem: bool = False  # opt-in: SQLite/file stores and node-local paths are seen by every node
+    exit_when_idle: bool = True  # a task with nothing it can claim exits instead of holding its GPU
+    # after the time-limit warning (SIGUSR1) the task checkpoints, gives its cell back, then `scontrol requeue`s
+    # itself (works detached; the watcher starts it after 3 s instead of Slurm's ~2 min hold) or just exits
+    # (the watcher, or running the command again, submits a new task)
+    on_time_limit: spelled(Literal["requeue", "exit"]) = "requeue"
+
+    @field_validator("partition", "account", "qos")
+    @classmethod
+    def _slurm_name(cls, v: str | None) -> str | None:
+        if v is not None and not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._,-]*", v):
+            raise ValueError("must be a Slurm name: letters, digits, '.', '_', '-' (',' separates several)")
+        return v
+
+    @field_validator("setup")
+    @classmethod
+    def _setup(cls, v: list[str]) -> list[str]:
+        if any("\n" in line for line in v):
+            raise ValueError("each entry is one shell line (no newline inside); list several lines instead")
+        return v
+
+    @field_validator("additional")
+    @classmethod
+    def _additional(cls, v: dict[str, Any]) -> dict[str, Any]:
+        for key in v:
+            name = key.replace("_", "-")
+            if not re.fullmatch(r"[a-z][a-z0-9-]*", name):
+                raise ValueError(f"{key!r}: must be an sbatch long option name without dashes, e.g. constraint")
+            if name in SLURM_MANAGED:
+                raise ValueError(f"{key!r}: set by the launcher itself (or by its own key in this section); not "
+                                 "allowed here")
+        return v
+
+
+def settings(cfg: Config) -> SlurmSettings:
+    """``sweep.launchers.slurm``, validated (ConfigError naming the key)."""
+    return cfg.launcher_settings("slurm", SlurmSettings)
+
+
 def logs_dir(cfg: Config) -> Path:
-    return cfg.paths.slurm_logs
+    """``sweep.launchers.slurm.logs``, resolved like the core config's folders."""
+    return output_folder(cfg, settings(cfg).logs, f"{KEY}.logs")
 
 
 # -- up-front checks ------------------------------------------------------------------------------------
@@ -93,15 +167,15 @@ def check(cfg: Config) -> None:
     """Everything that would make array tasks fail or disagree, before anything is submitted (one line each)."""
     if shutil.which("sbatch") is None:
         raise SlurmError("--launcher slurm: sbatch not found on PATH; run on a Slurm login node (or install Slurm)")
-    if not cfg.slurm.shared_filesystem:
+    if not settings(cfg).shared_filesystem:
         _check_shared(cfg)
     # the cluster's own verdict on partition, account, qos, GPUs, memory, time: nothing is queued
     args = [a for a in sbatch_args(cfg, "check", 1) if a != "--parsable"]
-    _run([*args, "--test-only", "--wrap", "true"], "slurm: the cluster refuses the slurm section")
+    _run([*args, "--test-only", "--wrap", "true"], f"slurm: the cluster refuses {KEY}")
 
 
 def _check_shared(cfg: Config) -> None:
-    hint = "or set slurm.shared_filesystem: true if every node sees this path (docs/cluster.md)"
+    hint = f"or set {KEY}.shared_filesystem: true if every node sees this path (docs/cluster.md)"
     if _local_store(cfg.paths.storage_url):
         raise SlurmError(f"storage.url {urls.redact(cfg.paths.storage_url)}: a SQLite claims table cannot be shared "
                          f"by compute nodes; use postgresql://user:${{PGPASSWORD}}@host/db, {hint}")
@@ -109,22 +183,23 @@ def _check_shared(cfg: Config) -> None:
         raise SlurmError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)}: a file/SQLite MLflow store cannot be "
                          f"shared by compute nodes; use a PostgreSQL database or an MLflow server, {hint}")
     for key, path in (("dataset.root", cfg.paths.dataset), ("runs.artifacts", cfg.paths.artifacts),
-                      ("runs.checkpoints", cfg.paths.checkpoints), ("slurm.logs", logs_dir(cfg)),
+                      ("runs.checkpoints", cfg.paths.checkpoints), (f"{KEY}.logs", logs_dir(cfg)),
                       *interpreter_paths(cfg)):
         if _node_local(path):
             raise SlurmError(f"{key} {path}: a node-local folder; compute nodes need it on shared storage, {hint}")
 
 
 def interpreter_paths(cfg: Config) -> list[tuple[str, Path]]:
-    """The workers' interpreter (``slurm.python``, else this one) and its virtual environment, as the shared-path
+    """The workers' interpreter (``python``, else this one) and its virtual environment, as the shared-path
     check names them: a node-local venv fails every task at its first import."""
-    python = Path(cfg.slurm.python or sys.executable)
-    key = "slurm.python" if cfg.slurm.python else "the Python running bronchopose (slurm.python)"
+    given = settings(cfg).python
+    python = Path(given or sys.executable)
+    key = f"{KEY}.python" if given else f"the Python running bronchopose ({KEY}.python)"
     out = [(key, python)]
     venv = python.parent.parent
     if (venv / "pyvenv.cfg").is_file():
         out.append((f"{key}'s virtual environment", venv))
-    elif not cfg.slurm.python and sys.prefix != sys.base_prefix:
+    elif not given and sys.prefix != sys.base_prefix:
         out.append((f"{key}'s virtual environment", Path(sys.prefix)))
     return out
 
@@ -176,7 +251,7 @@ def batch_script(cfg: Config, command: Sequence[str], stage: str | None = None) 
     with ``stage``, the tasks work the stages up to that one only (``STAGE_ENV``): a later stage has its own
     array, sized to its cells, which would otherwise start to find its cells taken."""
     lines = ["#!/bin/bash", "# bronchopose sweep run --launcher slurm: one array task = one sweep worker",
-             f"cd {shlex.quote(str(Path.cwd()))}", *cfg.slurm.setup,
+             f"cd {shlex.quote(str(Path.cwd()))}", *settings(cfg).setup,
              *([f"export {STAGE_ENV}={shlex.quote(stage)}"] if stage else []),
              "# exec: the worker is the batch shell, so --signal=B:USR1 and scancel's SIGTERM reach it",
              "exec " + shlex.join(command)]
@@ -184,7 +259,7 @@ def batch_script(cfg: Config, command: Sequence[str], stage: str | None = None) 
 
 
 def sbatch_args(cfg: Config, stage: str, tasks: int, dependency: Sequence[str] = ()) -> list[str]:
-    s = cfg.slurm
+    s = settings(cfg)
     args = ["sbatch", "--parsable", f"--job-name={job_name(cfg.name)}", f"--comment={job_comment(cfg, stage)}",
             f"--array=0-{tasks - 1}%{s.array_parallelism}", f"--output={logs_dir(cfg) / '%A_%a.log'}",
             "--open-mode=append", f"--signal=B:USR1@{s.signal_delay_s}", "--requeue", f"--time={s.timeout_min}",
@@ -264,16 +339,62 @@ def slurm_task() -> str | None:
     return f"{job}_{task}" if task and os.environ.get("SLURM_ARRAY_JOB_ID") else job
 
 
+class SlurmEnvironment(WorkerEnvironment):
+    """Inside an array task: Slurm's job id and task index, ``SLURM_CPUS_PER_TASK``; warned of the time limit with
+    SIGUSR1 (``--signal=B:USR1@<signal_delay_s>``), the task checkpoints, releases its cell and requeues itself
+    (``on_time_limit: requeue``) or just exits."""
+
+    warning_signal = signal.SIGUSR1
+    warning_meaning = "Slurm's time-limit warning"
+
+    @classmethod
+    def detect(cls) -> bool:
+        return bool(os.environ.get("SLURM_JOB_ID"))
+
+    @property
+    def job_id(self) -> str | None:
+        return slurm_task()
+
+    @property
+    def task_index(self) -> int | None:
+        index = os.environ.get("SLURM_ARRAY_TASK_ID", "")
+        return int(index) if index.isdigit() else None
+
+    @property
+    def threads(self) -> int | None:
+        threads = os.environ.get("SLURM_CPUS_PER_TASK", "")
+        return int(threads) if threads.isdigit() else None
+
+    @property
+    def exits_when_idle(self) -> bool:
+        return self.settings.exit_when_idle
+
+    def requeue(self) -> bool:
+        return requeue(task) if (task := self.job_id) else False
+
+    def done(self, requested: int | None) -> None:
+        if not self.warned(requested) or not (task := self.job_id):
+            return
+        if self.settings.on_time_limit == "requeue":
+            log.info("time limit near: requeueing Slurm task %s", task)
+            self.requeue()
+        else:
+            log.info("time limit near: Slurm task %s exits (%s.on_time_limit: exit); a new task takes the cell",
+                     task, KEY)
+
+
 class SlurmLauncher(Launcher):
     """Workers as Slurm array tasks: ``submit`` is one ``sbatch --array``, ``active`` is ``squeue``, ``cancel``
     is ``scancel``; a task warned of its time limit (SIGUSR1) requeues itself."""
 
     name = "slurm"
     title, job_word, task_word = "Slurm", "Slurm array job", "task"
-    worker_signals = (signal.SIGUSR1,)
+    Settings = SlurmSettings
+    Environment = SlurmEnvironment
 
     def __init__(self, cfg: Config, command: Sequence[str] = ()):
         super().__init__(cfg, command)
+        self.s: SlurmSettings = settings(cfg)
         self._held: dict[str, float] = {}
 
     def describe(self) -> str:
@@ -284,8 +405,12 @@ class SlurmLauncher(Launcher):
         return logs_dir(cfg)
 
     @classmethod
+    def roots(cls, cfg: Config) -> list[tuple[str, Path]]:
+        return [(f"{KEY}.logs", logs_dir(cfg))]
+
+    @classmethod
     def python(cls, cfg: Config) -> str:
-        return cfg.slurm.python or sys.executable
+        return settings(cfg).python or sys.executable
 
     def check(self) -> None:
         check(self.cfg)
@@ -303,9 +428,9 @@ class SlurmLauncher(Launcher):
         return jobs
 
     def capacity(self, runnable: int) -> int:
-        """Tasks beyond those that run at once (``slurm.array_parallelism``, ``slurm.tasks``) would only start
-        after the work is done, each costing a scheduling round to find nothing."""
-        s = self.cfg.slurm
+        """Tasks beyond those that run at once (``array_parallelism``, ``tasks``) would only start after the work
+        is done, each costing a scheduling round to find nothing."""
+        s = self.s
         return max(0, min([runnable, s.array_parallelism, *([s.tasks] if s.tasks else [])]))
 
     def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
@@ -318,26 +443,3 @@ class SlurmLauncher(Launcher):
 
     def tick(self, active: Sequence[Workers]) -> None:
         release_held(active, self._held)
-
-    @classmethod
-    def worker_job(cls) -> str | None:
-        return slurm_task()
-
-    @classmethod
-    def worker_threads(cls) -> int | None:
-        threads = os.environ.get("SLURM_CPUS_PER_TASK")
-        return int(threads) if threads and threads.isdigit() else None
-
-    @classmethod
-    def worker_exits_when_idle(cls, cfg: Config) -> bool:
-        return cfg.slurm.exit_when_idle
-
-    @classmethod
-    def worker_done(cls, cfg: Config, signals: Any) -> None:
-        if signals.requested == signal.SIGUSR1 and (task := slurm_task()):
-            if cfg.slurm.on_time_limit == "requeue":
-                log.info("time limit near: requeueing Slurm task %s", task)
-                requeue(task)
-            else:
-                log.info("time limit near: Slurm task %s exits (slurm.on_time_limit: exit); a new task takes the "
-                         "cell", task)
