@@ -43,3 +43,15 @@ run cost-conv3d-window5 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --
 # the study's budget (10,000 pairs) with BatchNorm statistics fixed for the last half: the function evaluated is
 # the function trained there (train.bn_freeze; docs/training.md, "Evaluation consistent with training")
 run cost-conv3d-freeze50 "${recipe[@]}" -a conv3d -l ce --set train.steps=500 --set train.bn_freeze=0.5
+# Diagnostic, not a platform option: the 3-D-conv head with its fusion unpadded (the paper's pads the 1x1 fusion
+# convolution by one pixel, so at 96² 16 of the 5x5 positions its BatchNorms see are constant borders), patched in
+# for this one run, at the study's budget
+pad0() {
+    python -c "import sys; import bronchocli.models.conv3d as m; f = m.fusion
+m.fusion = lambda kernel, act, padding=None: f(kernel, act, padding=0)
+from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()" "$@"
+}
+[[ "$only" == "  " || "$only" == *" cost-conv3d-pad0 "* ]] && {
+    echo "=== $(date -u +%FT%TZ) cost-conv3d-pad0 (fusion padding 0, patched)"
+    pad0 train "${common[@]}" --set name=cost-conv3d-pad0 "${recipe[@]}" -a conv3d -l ce --set train.steps=500
+}
