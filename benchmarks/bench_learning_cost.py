@@ -46,6 +46,10 @@ OTHER = {"data.window": "window", "train.precision": "precision", "train.threads
          "train.grad_clip": "grad clip"}
 
 
+# experiments whose change is no logged setting (a diagnostic patch in cost_levers.sh): the table's "other" column
+PATCHED = {"cost-conv3d-pad0": "fusion unpadded (patched, diagnostic)"}
+
+
 def _value(text: str | None, default: Any) -> Any:
     if text is None:
         return default
@@ -213,16 +217,16 @@ def markdown(out: dict[str, Any]) -> str:
         lines.append(f"| {r['experiment']} {r['name'].split('·')[0]} | {r['arch']} "
                      f"| {s['image_size']}² | {_fmt(s['train.lr'])} | {_fmt(s['train.warmup'])} "
                      f"| {s['train.schedule']} | {s['train.batch_size']} | {_fmt(s['model.dropout'])} | {budget:,} "
-                     f"| {_fmt(r['best_val_ratio'])} | {_other(s)} | {_fmt(r['pairs_to_target'], ',.0f')} "
+                     f"| {_fmt(r['best_val_ratio'])} | {_other(s, r['experiment'])} | {_fmt(r['pairs_to_target'], ',.0f')} "
                      f"| {_fmt(r['core_s_to_target'], '.0f')} | {_fmt(r.get('cheaper_than_reference'), '.2f')} "
                      f"| {status} | {r.get('date', out['date'])} |")
     return "\n".join(lines)
 
 
-def _other(settings: dict[str, Any]) -> str:
+def _other(settings: dict[str, Any], experiment: str = "") -> str:
     """The levers a run changed beyond the table's own columns (``window 5``, ``precision bf16-mixed``)."""
-    return ", ".join(f"{name} {settings[k]}" for k, name in OTHER.items()
-                     if k in settings and settings[k] != LEVERS[k]) or "–"
+    changed = [f"{name} {settings[k]}" for k, name in OTHER.items() if k in settings and settings[k] != LEVERS[k]]
+    return ", ".join(changed + ([PATCHED[experiment]] if experiment in PATCHED else [])) or "–"
 
 
 if __name__ == "__main__":
