@@ -141,7 +141,7 @@ def check_roots(cfg: Config, extra: Roots = ()) -> None:
             if _inside(real, oreal) or _inside(oreal, real):
                 outer, inner = ((other, opath), (name, path)) if _inside(real, oreal) else ((name, path), (other, opath))
                 how = "is the same folder as" if real == oreal else "contains"
-                names = ", ".join(n for n, _ in found[:-1]) + f" and {found[-1][0]}"
+                names = ", ".join(n for n, *_ in found[:-1]) + f" and {found[-1][0]}"
                 raise BronchoError(f"{outer[0]} {outer[1]}: {how} {inner[0]} {inner[1]}; give {names} each a folder "
                                    "of its own, none inside another")
 
