@@ -117,7 +117,6 @@ class TrialWorker(Worker):
     def _handle(self, claim: Any) -> str:
         if self._past_deadline():
             self._db(self.store.release, claim.token)
-            self.timed_out = True
             log.info("the study's deadline passed (tune --timeout): %s given back, no trial started", claim.row.label)
             return "stop"
         return super()._handle(claim)

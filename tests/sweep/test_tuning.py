@@ -405,3 +405,16 @@ def test_tune_with_an_unreachable_storage_fails_in_one_line_before_any_dataset_i
     assert "Connection refused" in err and "hunter2" not in err and "Traceback" not in err + out
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "data").exists()  # nothing rendered, nothing created
+
+
+def test_a_timeout_already_past_starts_no_trial_and_gives_every_row_back(project):
+    """`tune --timeout`: once the deadline passed a worker claims a row only to give it back, no trial starts, and
+    the rows stay claimable for the next `tune` (which runs them)."""
+    cfg = load_config(project / "experiments.yaml", overrides=["name=timeout-study"])
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    study = trialrows.tune(cfg, target, 2, timeout=1e-9, progress=False)
+    assert study.get_trials(deepcopy=False) == []
+    rows = SweepStore(cfg.paths.storage_url).rows(study_sweep(study.study_name))
+    assert [r.state for r in rows] == ["pending", "pending"] and all(r.attempts == 0 for r in rows)
+    again = trialrows.tune(cfg, target, 2, progress=False)
+    assert studies.finished(again) == 2
