@@ -18,12 +18,13 @@ export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow
 common=(--config "$PWD/experiments.yaml" -P personalized --set train.stop_at_ratio=0.90 --set train.val_every=25)
 recipe=(--profile learning-cost --set train.lr=1e-3 --set train.warmup=0.05 --set train.batch_size=20
         --set model.dropout=0.2 --set train.schedule=cosine)
+bronchopose=(bronchopose)  # the command run() trains with
 run() {
     local name=$1; shift
     [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
     echo "=== $(date -u +%FT%TZ) $name: $*"
-    bronchopose train "${common[@]}" --set "name=$name" "$@" --resume 2>/dev/null \
-        || bronchopose train "${common[@]}" --set "name=$name" "$@"
+    "${bronchopose[@]}" train "${common[@]}" --set "name=$name" "$@" --resume 2>/dev/null \
+        || "${bronchopose[@]}" train "${common[@]}" --set "name=$name" "$@"
 }
 run cost-reference-today --profile bronchotrack-cpu -a convlstm -l ce            # the recipe before issue 45
 run cost-base "${recipe[@]}" -a convlstm -l ce                                    # the chosen recipe (12,000-pair schedule)
@@ -51,7 +52,6 @@ pad0() {
 m.fusion = lambda kernel, act, padding=None: f(kernel, act, padding=0)
 from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()" "$@"
 }
-[[ "$only" == "  " || "$only" == *" cost-conv3d-pad0 "* ]] && {
-    echo "=== $(date -u +%FT%TZ) cost-conv3d-pad0 (fusion padding 0, patched)"
-    pad0 train "${common[@]}" --set name=cost-conv3d-pad0 "${recipe[@]}" -a conv3d -l ce --set train.steps=500
-}
+bronchopose=(pad0)
+run cost-conv3d-pad0 "${recipe[@]}" -a conv3d -l ce --set train.steps=500
+bronchopose=(bronchopose)
