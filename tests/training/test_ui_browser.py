@@ -231,14 +231,23 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
 
 
 def _headline_rows(page, runs) -> list[float]:
-    """The headline column's values as the table shows them, row by row."""
+    """The headline column's values as the table shows them, row by row.
+
+    Read in one evaluation in the page, once every row shows its headline cell: the table re-renders when a
+    view is chosen, so rows counted in one call may be gone by the next (a CI run read an empty table that way).
+    """
     column = f"metrics.`{HEADLINE}`"
     page.locator(f'.ag-header-cell[col-id="{column}"]').wait_for(state="visible")
-    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n",
-                           arg=len(runs))
-    rows = page.locator(".ag-center-cols-container .ag-row")
-    cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows.all()}
-    return [float(cells[i]) for i in sorted(cells)]
+    shown = page.wait_for_function(
+        """([column, n]) => {
+            const rows = [...document.querySelectorAll('.ag-center-cols-container .ag-row')];
+            const cells = rows.map(r => [Number(r.getAttribute('row-index')),
+                                         (r.querySelector(`[col-id="${column}"]`) || {}).innerText]);
+            if (cells.length < n || cells.some(([, text]) => !text || !text.trim())) return null;
+            return cells.sort((a, b) => a[0] - b[0]).map(([, text]) => text.trim());
+        }""",
+        arg=[column, len(runs)])
+    return [float(v) for v in shown.json_value()]
 
 
 def test_a_fresh_browser_at_the_uis_address_lands_on_the_headline_and_mlflows_navigation_stays_there(
