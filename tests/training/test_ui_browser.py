@@ -192,15 +192,27 @@ def significant_digits(text: str) -> int:
     return len(digits.rstrip("0") if "." not in mantissa else digits) or 1
 
 
-def _metric_cells(page) -> dict[str, list[str]]:
+def _columns(page, columns: list[str], n: int) -> dict[str, list[str]]:
+    """The table's cells of ``columns`` (col-ids) row by row (row-index order), read in one evaluation in the page
+    once ``n`` rows show every one of them: the table re-renders as the page settles or a view is chosen, so rows
+    counted in one call may be gone by the next (a CI run read an empty table that way)."""
+    shown = page.wait_for_function(
+        """([columns, n]) => {
+            const rows = [...document.querySelectorAll('.ag-center-cols-container .ag-row')]
+                .map(r => [Number(r.getAttribute('row-index')),
+                           columns.map(c => ((r.querySelector(`[col-id="${c}"]`) || {}).innerText || '').trim())]);
+            if (rows.length < n || rows.some(([, cells]) => cells.some(text => !text))) return null;
+            rows.sort((a, b) => a[0] - b[0]);
+            return Object.fromEntries(columns.map((c, j) => [c, rows.map(([, cells]) => cells[j])]));
+        }""",
+        arg=[columns, n])
+    return shown.json_value()
+
+
+def _metric_cells(page, n: int) -> dict[str, list[str]]:
     """The headline view's metric columns as the table shows them, row by row (row-index order)."""
-    out: dict[str, list[str]] = {}
-    for metric in VIEW_METRICS:
-        column = f"metrics.`{metric}`"
-        rows = page.locator(".ag-center-cols-container .ag-row").all()
-        cells = {int(r.get_attribute("row-index")): r.locator(f'[col-id="{column}"]').inner_text() for r in rows}
-        out[metric] = [cells[i].strip() for i in sorted(cells)]
-    return out
+    cells = _columns(page, [f"metrics.`{m}`" for m in VIEW_METRICS], n)
+    return {m: cells[f"metrics.`{m}`"] for m in VIEW_METRICS}
 
 
 def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep, page):
@@ -215,9 +227,7 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     box = header.bounding_box()
     assert box is not None and box["x"] + box["width"] / 2 < page.viewport_size["width"]  # on screen, no scrolling
     assert HEADLINE in header.inner_text()
-    page.wait_for_function("n => document.querySelectorAll('.ag-center-cols-container .ag-row').length >= n",
-                           arg=len(runs))
-    shown = _metric_cells(page)
+    shown = _metric_cells(page, len(runs))
     values = sorted(r.data.metrics[HEADLINE] for r in runs)
     assert [float(v) for v in shown[HEADLINE]] == values  # the cells only: no parent row; best (lowest) first
     every = [v for column in shown.values() for v in column]
@@ -231,23 +241,10 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
 
 
 def _headline_rows(page, runs) -> list[float]:
-    """The headline column's values as the table shows them, row by row.
-
-    Read in one evaluation in the page, once every row shows its headline cell: the table re-renders when a
-    view is chosen, so rows counted in one call may be gone by the next (a CI run read an empty table that way).
-    """
+    """The headline column's values as the table shows them, row by row."""
     column = f"metrics.`{HEADLINE}`"
     page.locator(f'.ag-header-cell[col-id="{column}"]').wait_for(state="visible")
-    shown = page.wait_for_function(
-        """([column, n]) => {
-            const rows = [...document.querySelectorAll('.ag-center-cols-container .ag-row')];
-            const cells = rows.map(r => [Number(r.getAttribute('row-index')),
-                                         (r.querySelector(`[col-id="${column}"]`) || {}).innerText]);
-            if (cells.length < n || cells.some(([, text]) => !text || !text.trim())) return null;
-            return cells.sort((a, b) => a[0] - b[0]).map(([, text]) => text.trim());
-        }""",
-        arg=[column, len(runs)])
-    return [float(v) for v in shown.json_value()]
+    return [float(v) for v in _columns(page, [column], len(runs))[column]]
 
 
 def test_a_fresh_browser_at_the_uis_address_lands_on_the_headline_and_mlflows_navigation_stays_there(
