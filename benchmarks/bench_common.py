@@ -25,7 +25,7 @@ from bronchocli.runs.records import search_runs
 from bronchocli.speed import cpu_info, cpu_key
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
-FLAGS = ("avx512_bf16", "avx512f", "avx2")
+FLAGS = ("amx_bf16", "avx512_bf16", "avx512f", "avx2")
 
 
 def cpu_name() -> str:

@@ -137,8 +137,9 @@ def _gaps(r: dict[str, Any]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("projects", nargs="+", type=Path, help="benchmark project folders (experiments.yaml + runs/)")
-    ap.add_argument("--reference", nargs="+", default=["cost-reference", "cost-reference-today"],
-                    help="experiments of the reference runs (each run is compared with the one of its own date)")
+    ap.add_argument("--reference", nargs="+", default=["cost-reference"],
+                    help="name prefixes of the reference runs' experiments (cost-reference, cost-reference-today, "
+                         "cost-reference-xeon...): each run is compared with the one of its own date and machine")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "learning-cost.json")
     ap.add_argument("--markdown", action="store_true", help="also print the runs as a Markdown table")
     ap.add_argument("--fresh", action="store_true", help="drop the runs of the results file these projects lack")
@@ -156,7 +157,10 @@ def main(argv: list[str] | None = None) -> int:
         rows += kept
         if kept:
             commands = [c for c in old.get("commands", [old["command"]]) if c not in commands] + commands
-    refs = [r for r in rows if r["experiment"] in args.reference and r["core_s_to_target"]]
+    def is_reference(experiment: str) -> bool:
+        return experiment.startswith(tuple(args.reference))
+
+    refs = [r for r in rows if is_reference(r["experiment"]) and r["core_s_to_target"]]
 
     def reference_of(r: dict[str, Any]) -> dict[str, Any] | None:
         """The reference run measured on the same day and machine (the same host state) as ``r``, else the first
@@ -171,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             r["cheaper_pairs_than_reference"] = ref["pairs_to_target"] / r["pairs_to_target"]
             r["reference"] = ref["experiment"]
     # the cheapest BronchoTrack recipe (the cost is BronchoTrack's; other architectures are listed for comparison)
-    learned = [r for r in rows if r["pairs_to_target"] and r["experiment"] not in args.reference
+    learned = [r for r in rows if r["pairs_to_target"] and not is_reference(r["experiment"])
                and r["arch"] == "convlstm"]
     best = max(learned, key=lambda r: r.get("cheaper_than_reference") or 0, default=None)
     figures: dict[str, Any] = {"target": COST_TARGET, "runs": rows}

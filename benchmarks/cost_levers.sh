@@ -8,7 +8,9 @@
 # Each lever is its own experiment (cost-NAME), so running this again skips the levers that have a FINISHED run
 # (train's own rule) and resumes a stopped one from its checkpoint. Every run stops at the first validation whose
 # val.ratio.pos_l2 is <= 0.90 and validates every 500 pairs. About 7-10 min per run on one Zen 4 core.
-# NAMEs (e.g. cost-conv3d-clip1): run only those levers.
+# NAMEs (e.g. cost-conv3d-clip1): run only those levers. COST_SUFFIX (e.g. -xeon) is appended to every
+# experiment's name: a session on another CPU kind keeps its runs (and its own reference) apart from the others'
+# in the results file, which keys the prose's figures by experiment name.
 set -uo pipefail
 project=${1:?usage: benchmarks/cost_levers.sh PROJECT_FOLDER [NAME ...]}
 shift
@@ -23,8 +25,9 @@ run() {
     local name=$1; shift
     [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
     echo "=== $(date -u +%FT%TZ) $name: $*"
-    "${bronchopose[@]}" train "${common[@]}" --set "name=$name" "$@" --resume 2>/dev/null \
-        || "${bronchopose[@]}" train "${common[@]}" --set "name=$name" "$@"
+    local experiment=$name${COST_SUFFIX:-}
+    "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "$@" --resume 2>/dev/null \
+        || "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "$@"
 }
 run cost-reference-today --profile bronchotrack-cpu -a convlstm -l ce            # the recipe before issue 45
 run cost-base "${recipe[@]}" -a convlstm -l ce                                    # the chosen recipe (12,000-pair schedule)
