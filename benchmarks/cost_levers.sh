@@ -47,6 +47,11 @@ run cost-conv3d-window5 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --
 # the study's budget (10,000 pairs) with BatchNorm statistics fixed for the last half: the function evaluated is
 # the function trained there (train.bn_freeze; docs/training.md, "Evaluation consistent with training")
 run cost-conv3d-freeze50 "${recipe[@]}" -a conv3d -l ce --set train.steps=500 --set train.bn_freeze=0.5
+# one cycle (train.schedule=onecycle, its rising phase OneCycleLR's default 30 %): at the recipe's peak rate, and at
+# 3x it (one-cycle's premise: a short high peak that the annealing then settles)
+run cost-onecycle "${recipe[@]}" -a convlstm -l ce --set train.schedule=onecycle --set train.warmup=0.3
+run cost-onecycle-lr3e-3 "${recipe[@]}" -a convlstm -l ce --set train.schedule=onecycle --set train.warmup=0.3 \
+    --set train.lr=3e-3
 # Diagnostic, not a platform option: the 3-D-conv head with its fusion unpadded (the paper's pads the 1x1 fusion
 # convolution by one pixel, so at 96² 16 of the 5x5 positions its BatchNorms see are constant borders), patched in
 # for this one run, at the study's budget

@@ -220,7 +220,8 @@ class Train(Section):
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
     # clip the gradients' global L2 norm to this before each optimiser step; None: no clipping
     grad_clip: float | None = Field(None, gt=0, le=1e6)
-    schedule: spelled(Literal["cosine", "constant"]) = "cosine"  # after the warm-up
+    # after the warm-up: cosine decay to 0 or constant; onecycle: one cycle whose rising phase is the warm-up
+    schedule: spelled(Literal["cosine", "constant", "onecycle"]) = "cosine"
     val_every: int = Field(50, ge=1, le=MAX_STEPS)  # steps between validations (best weights, early stopping, pruning)
     # seconds between checkpoints by time (besides each validation's and the one a stop signal writes): a hard
     # kill (OOM, node lost) loses at most this much training
@@ -249,6 +250,13 @@ class Train(Section):
     # cap on validation pairs (evenly spread, the same every time)
     max_val_pairs: int | None = Field(None, ge=1, le=1_000_000_000)
     threads: int | None = Field(None, ge=1, le=MAX_WORKERS)  # torch CPU threads; None = a fair share of the cores (runs/cores.py)
+
+    @model_validator(mode="after")
+    def _onecycle_rises(self) -> "Train":
+        if self.schedule == "onecycle" and int(round(self.warmup * self.steps)) < 2:
+            raise ValueError(f"schedule onecycle rises over train.warmup of the steps: warmup {self.warmup} x steps "
+                             f"{self.steps} is under 2 steps (e.g. warmup: 0.3, OneCycleLR's default)")
+        return self
 
     @model_validator(mode="after")
     def _accumulation(self) -> "Train":

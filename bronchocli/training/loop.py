@@ -12,7 +12,10 @@ budget of ``train.steps`` steps is the same number of pairs seen whatever the mo
   pairs, processed in K chunks of L whose recurrent state is carried but
   detached; each chunk is back-propagated at once and counts as a micro-batch;
 * the learning rate warms up linearly over ``train.warmup`` of the steps, then
-  follows ``train.schedule`` (cosine decay to zero, or constant);
+  follows ``train.schedule`` (cosine decay to zero, or constant); or ``onecycle``:
+  one cycle (PyTorch's OneCycleLR with its defaults), rising over the warm-up
+  fraction from lr/25 to lr and falling to lr/250,000, Adam's beta1 cycled
+  between 0.95 and 0.85 against it;
 * every ``train.val_every`` steps (and at the end) BatchNorm statistics are
   re-estimated on ``train.bn_recalibrate`` training batches (running averages
   after a few hundred steps describe weights that no longer exist, and
@@ -57,6 +60,7 @@ from . import checkpoint
 from .batchnorm import freeze_bn, mode_gap, recalibrate_bn
 from .compiling import compile_network
 from .network import PoseRegressor
+from .schedule import beta1, lr_factor
 
 log = logging.getLogger(__name__)
 
@@ -131,16 +135,6 @@ class FitResult:
     checkpoint_time_s: float = 0.0  # writing the checkpoints of the validations (outside train/val time)
 
 
-def lr_factor(step: int, s: Settings) -> float:
-    """Multiplier of ``lr`` for optimiser step ``step`` (0-based): linear warm-up, then cosine or constant."""
-    if s.warmup_steps and step < s.warmup_steps:
-        return (step + 1) / s.warmup_steps
-    if s.schedule == "constant":
-        return 1.0
-    span = max(1, s.steps - s.warmup_steps)
-    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, (step - s.warmup_steps) / span)))
-
-
 class Trainer:
     """Fits one :class:`PoseRegressor` on training samples, validating on validation samples."""
 
@@ -164,10 +158,12 @@ class Trainer:
         self.opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
             if s.weight_decay else torch.optim.Adam(net.parameters(), lr=s.lr, fused=fused)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
+        self._beta1 = lambda k: beta1(k, s)  # the schedule's own settings, as the rate's
         self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,
                                            growth_interval=AMP_GROWTH_INTERVAL, enabled=s.precision == "16-mixed")
         self.check_every = CUDA_CHECK_EVERY if device.type == "cuda" else 1  # non-finite checks (host syncs)
         self.step = 0  # optimiser steps taken
+        self._set_beta1()
         self.micro = 0  # training samples batches drawn
         self.backwards = 0  # chunks back-propagated since the last optimiser step
         self.best_val = math.inf
@@ -227,6 +223,13 @@ class Trainer:
             norm = norm / self.scaler._scale.float()  # the scale as a tensor: get_scale() would sync
         return norm.float()
 
+    def _set_beta1(self) -> None:
+        """Adam's beta1 for the next optimiser step where the schedule cycles it (``onecycle``)."""
+        b1 = self._beta1(self.step)
+        if b1 is not None:
+            for group in self.opt.param_groups:
+                group["betas"] = (b1, group["betas"][1])
+
     def _optimiser_step(self) -> None:
         point = self.s.log_every > 0 and (self.step + 1) % self.s.log_every == 0
         norm = self._grad_norm() if point else None
@@ -242,6 +245,7 @@ class Trainer:
         self.opt.zero_grad(set_to_none=True)
         self.sched.step()
         self.step += 1
+        self._set_beta1()
         self.backwards = 0
         if point:
             self._point(norm, lr)
@@ -461,6 +465,7 @@ class Trainer:
         self.sched.load_state_dict(state["scheduler"])
         self.scaler.load_state_dict(state["scaler"])
         self.step, self.micro = int(state["step"]), int(state["micro"])
+        self._set_beta1()
         self.best_val, self.best_step, self.bad = float(state["best_val"]), int(state["best_step"]), int(state["bad"])
         self.best_state, self.history = state["best_state"], list(state["history"])
         self.train_time, self.val_time = (float(t) for t in state["times"])
