@@ -118,6 +118,26 @@ _SQLITE_MAGIC = b"SQLite format 3\x00"
 _checked: dict[str, str] = {}  # setting -> the SQLite file this process last opened for it (damaged_message)
 
 
+# Descriptors of the SQLite files whose header this process has read, by (device, inode), never closed: closing
+# *any* descriptor of a file drops every POSIX lock this process holds on it, SQLite's included
+# (https://sqlite.org/howtocorrupt.html, 2.2). A header read with open()/close() while this process had a connection
+# to the same database (a second store of one sweep, an in-process command) took away the connection's locks;
+# another process then saw the database unused, reset its WAL, and a worker's claim and finish were lost (the
+# flaky "damaged row" tests of tests/sweep/test_store_faults.py; "disk I/O error" on the next open).
+_headers: dict[tuple[int, int], int] = {}
+
+
+def _header(path: Path) -> bytes:
+    """The first 100 bytes of ``path``, read through a descriptor this process keeps open (see ``_headers``)."""
+    st = os.stat(path)
+    fd = _headers.get((st.st_dev, st.st_ino))
+    if fd is None:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        opened = os.fstat(fd)  # the file itself, should the path have been replaced since the stat
+        _headers[(opened.st_dev, opened.st_ino)] = fd
+    return os.pread(fd, 100, 0)
+
+
 def sqlite_damage(path: Path) -> str | None:
     """Why the SQLite file ``path`` cannot be a sound database, read from its 100-byte header (None: it looks
     sound, is empty or does not exist yet): not SQLite at all, or shorter than the pages its header counts (unless
@@ -126,8 +146,7 @@ def sqlite_damage(path: Path) -> str | None:
         size = os.path.getsize(path)
         if size == 0:
             return None  # SQLite treats an empty file as a new database
-        with open(path, "rb") as f:
-            head = f.read(100)
+        head = _header(path)
     except OSError:
         return None  # missing or unreadable: the caller's own checks say so
     if len(head) < 100 or not head.startswith(_SQLITE_MAGIC):

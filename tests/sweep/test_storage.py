@@ -188,3 +188,64 @@ def test_a_database_whose_wal_holds_the_rest_is_not_damaged_but_one_without_it_i
     assert "header counts" in sqlite_damage(lost)
     with pytest.raises(BronchoError, match="damaged SQLite database"):
         SweepStore(f"sqlite:///{lost}")
+
+
+_PROBE = """import sqlite3, sys
+db = sqlite3.connect(sys.argv[1], timeout=0, isolation_level=None)
+try:
+    db.execute("BEGIN IMMEDIATE"); db.execute("ROLLBACK"); print("free")
+except sqlite3.OperationalError as exc:
+    print(exc)
+db.close()
+"""
+
+
+def _other_process(db) -> str:
+    """What another process finds: "free" (it took the write lock), else SQLite's reason; it then closes."""
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-c", _PROBE, str(db)], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+@pytest.mark.parametrize("journal", ["delete", "wal"])
+def test_the_damage_check_leaves_this_processs_sqlite_locks_in_place(tmp_path, journal):
+    """Reading a store's header (``urls.sqlite_damage``, run by every store a process opens) must not take away the
+    locks of this process's own connections to the same file: closing any descriptor of a file drops every POSIX
+    lock the process holds on it (sqlite.org/howtocorrupt.html, 2.2). It once read the file with open()/close():
+    in a rollback-journal database another process then took the write lock in the middle of this process's
+    transaction; in a WAL database another process closing found itself the last connection and deleted the WAL
+    under this process's open one (how a worker's claim and finish were lost in the "damaged row" tests of
+    test_store_faults.py, "disk I/O error" on the next open)."""
+    import sqlite3
+    from pathlib import Path
+
+    from bronchocli.urls import sqlite_damage
+
+    db = tmp_path / "store.db"
+    holder = sqlite3.connect(db, isolation_level=None)
+    holder.execute(f"PRAGMA journal_mode = {journal}")
+    holder.execute("CREATE TABLE t (x)")
+    holder.execute("INSERT INTO t VALUES (1)")
+    try:
+        if journal == "delete":
+            holder.execute("BEGIN EXCLUSIVE")  # this process holds the database's write lock
+            assert _other_process(db) == "database is locked"  # the probe sees it
+            assert sqlite_damage(db) is None and sqlite_damage(db) is None
+            assert _other_process(db) == "database is locked"  # still held
+            holder.execute("ROLLBACK")
+            assert _other_process(db) == "free"  # the probe can tell a free database
+        else:
+            wal = Path(f"{db}-wal")
+            holder.execute("SELECT count(*) FROM t").fetchone()
+            assert wal.exists() and _other_process(db) == "free" and wal.exists()  # not the last connection
+            assert sqlite_damage(db) is None and sqlite_damage(db) is None
+            assert _other_process(db) == "free"
+            assert wal.exists()  # the other process still saw this one's connection: it left the WAL alone
+            holder.execute("INSERT INTO t VALUES (2)")
+            assert holder.execute("SELECT count(*) FROM t").fetchone()[0] == 2
+    finally:
+        holder.close()
+    if journal == "wal":  # the last connection closed: now the other process is the last one and tidies up
+        assert _other_process(db) == "free" and not Path(f"{db}-wal").exists()

@@ -80,12 +80,6 @@ def one_line(text: str, *needles: str) -> str:
 # -- damaged and foreign claims rows ---------------------------------------------------------------------------
 
 
-# Known flaky (seen in about half of the runs on a loaded 2-core machine, 2026-11-28): the in-process `sweep run`
-# sometimes ends on a view of the table from before its worker claimed the repaired cell (the worker's log says it
-# finished; the parent's last summary shows it pending, attempts 0), so it exits 1. Not diagnosed yet: run, not
-# required, until it is (strict=False: a pass is reported as XPASS).
-@pytest.mark.xfail(reason="in-process sweep run's last summary intermittently predates its worker's claim "
-                          "(undiagnosed; see the comment above)", strict=False)
 @pytest.mark.parametrize("column, value, problem", [
     ("state", "bogus", "state 'bogus' is not one of pending, running, finished, failed"),
     ("coords", "{bad", "coords '{bad' is not a JSON object"),
