@@ -49,9 +49,11 @@ run cost-conv3d-window5 "${recipe[@]}" -a conv3d -l ce --set train.steps=1000 --
 run cost-conv3d-freeze50 "${recipe[@]}" -a conv3d -l ce --set train.steps=500 --set train.bn_freeze=0.5
 # one cycle (train.schedule=onecycle, its rising phase OneCycleLR's default 30 %): at the recipe's peak rate, and at
 # 3x it (one-cycle's premise: a short high peak that the annealing then settles)
-run cost-onecycle "${recipe[@]}" -a convlstm -l ce --set train.schedule=onecycle --set train.warmup=0.3
-run cost-onecycle-lr3e-3 "${recipe[@]}" -a convlstm -l ce --set train.schedule=onecycle --set train.warmup=0.3 \
-    --set train.lr=3e-3
+# (the profile's tune space reaches warm-up 0, which a one-cycle refuses: a space of the rate alone for these runs)
+onecycle=(--set train.schedule=onecycle --set train.warmup=0.3 --set 'tune.enqueue=[]'
+          --set 'tune.space={train.lr: {type: float, low: 3.0e-4, high: 3.0e-3, log: true}}')
+run cost-onecycle "${recipe[@]}" -a convlstm -l ce "${onecycle[@]}"
+run cost-onecycle-lr3e-3 "${recipe[@]}" -a convlstm -l ce "${onecycle[@]}" --set train.lr=3e-3
 # Diagnostic, not a platform option: the 3-D-conv head with its fusion unpadded (the paper's pads the 1x1 fusion
 # convolution by one pixel, so at 96² 16 of the 5x5 positions its BatchNorms see are constant borders), patched in
 # for this one run, at the study's budget

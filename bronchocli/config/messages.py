@@ -71,8 +71,10 @@ def _describe(root: Any, error: dict[str, Any]) -> str:
     if error["type"] == "missing":
         return "required key is missing"
     value = error.get("input")
-    shown = json.dumps(value, default=str) if not isinstance(value, dict) else "a mapping"
     msg = error["msg"]
+    if isinstance(value, dict) and error["type"] == "value_error":  # a section's own check: its reason is the line
+        return msg.removeprefix("Value error, ")
+    shown = json.dumps(value, default=str) if not isinstance(value, dict) else "a mapping"
     if error["type"] == "literal_error":
         msg = f"must be one of {error['ctx']['expected']}"
     if error["type"] in BOUND_ERRORS and (allowed := allowed_range(root, loc)) is not None:

@@ -97,6 +97,7 @@ def test_onecycle_without_a_rising_phase_is_refused_naming_the_warmup(tmp_path):
     with pytest.raises(ConfigError) as exc:
         C.load_config(path)
     msg = str(exc.value)
-    assert "schedule onecycle rises over train.warmup" in msg and "warmup 0.0 x steps 100" in msg
+    assert msg == (f"invalid config: {path}:2: train: schedule onecycle rises over train.warmup of the steps: warmup "
+                   "0.0 x steps 100 is under 2 steps (e.g. warmup: 0.3, OneCycleLR's default)")  # the reason alone
     path.write_text("name: t\ntrain: {steps: 100, warmup: 0.3, schedule: onecycle}\n")
     assert C.load_config(path).train.schedule == "onecycle"
