@@ -10,7 +10,8 @@
 # val.ratio.pos_l2 is <= 0.90 and validates every 500 pairs. About 7-10 min per run on one Zen 4 core.
 # NAMEs (e.g. cost-conv3d-clip1): run only those levers. COST_SUFFIX (e.g. -xeon) is appended to every
 # experiment's name: a session on another CPU kind keeps its runs (and its own reference) apart from the others'
-# in the results file, which keys the prose's figures by experiment name.
+# in the results file, which keys the prose's figures by experiment name. COST_SEED=N trains seed N instead of 0 (a
+# replicate: the experiment's name gets -sN).
 set -uo pipefail
 project=${1:?usage: benchmarks/cost_levers.sh PROJECT_FOLDER [NAME ...]}
 shift
@@ -25,9 +26,9 @@ run() {
     local name=$1; shift
     [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
     echo "=== $(date -u +%FT%TZ) $name: $*"
-    local experiment=$name${COST_SUFFIX:-}
-    "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "$@" --resume 2>/dev/null \
-        || "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "$@"
+    local experiment=$name${COST_SEED:+-s$COST_SEED}${COST_SUFFIX:-} seed=(--seed "${COST_SEED:-0}")
+    "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "${seed[@]}" "$@" --resume 2>/dev/null \
+        || "${bronchopose[@]}" train "${common[@]}" --set "name=$experiment" "${seed[@]}" "$@"
 }
 run cost-reference-today --profile bronchotrack-cpu -a convlstm -l ce            # the recipe before issue 45
 run cost-base "${recipe[@]}" -a convlstm -l ce                                    # the chosen recipe (12,000-pair schedule)
