@@ -23,6 +23,7 @@ import argparse
 import datetime as dt
 import json
 import math
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -97,7 +98,8 @@ def run_row(client, run) -> dict[str, Any]:
     settings["image_size"] = _value(p.get("data.image_size"), image_size(client, run, LEVERS["image_size"]))
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
     return {
-        "run_id": rid, "name": tags.get("mlflow.runName", ""), "arch": p.get("arch"), "status": run.info.status,
+        "run_id": rid, "name": tags.get("mlflow.runName", ""), "arch": p.get("arch"), "seed": _value(p.get("seed"), 0),
+        "status": run.info.status,
         "kind": tags.get("run_kind", "cell"), "pruned": tags.get("pruned") == "true",
         "study": tags.get("study"), "trial": _value(tags.get("trial"), None), "settings": settings,
         "curve": curve, "best_val_ratio": min((c["val_ratio"] for c in curve), default=None),
@@ -125,6 +127,27 @@ def collect(projects: list[Path]) -> list[dict[str, Any]]:
 
 
 EARLY_PAIRS = 5000  # the first pairs, where the 3-D-conv head's validation swings
+REPLICATE = re.compile(r"-s(\d+)(?=-|$)")  # cost_levers.sh COST_SEED: cost-onecycle-s1-xeon is seed 1 of cost-onecycle-xeon
+
+
+def replicates(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """The levers run on more than one seed (cost_levers.sh COST_SEED), by the seed-0 experiment's name: per seed
+    (sorted) the pairs and core-seconds to the target (None: not reached) and × cheaper than its seed's reference."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        if r["kind"] == "cell":
+            groups.setdefault(REPLICATE.sub("", r["experiment"]), []).append(r)
+    out = {}
+    for name, runs in sorted(groups.items()):
+        runs = sorted(runs, key=lambda r: r.get("seed", 0))
+        if len({r.get("seed", 0) for r in runs}) < 2:
+            continue
+        out[name] = {"seeds": [r.get("seed", 0) for r in runs], "pairs": [r["pairs_to_target"] for r in runs],
+                     "core_s": [r["core_s_to_target"] for r in runs],
+                     "best_val_ratio": [r["best_val_ratio"] for r in runs],
+                     "cheaper": [r.get("cheaper_than_reference") for r in runs],
+                     "cheaper_pairs": [r.get("cheaper_pairs_than_reference") for r in runs]}
+    return out
 
 
 def _gaps(r: dict[str, Any]) -> dict[str, Any]:
@@ -166,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
         """The reference run measured on the same day and machine (the same host state) as ``r``, else the first
         one (two sessions of one day may run on different hosts)."""
         same = [x for x in refs if x.get("date") == r.get("date") and x.get("machine") == r.get("machine")]
-        return same[0] if same else (refs[0] if refs else None)
+        seed = [x for x in same if x.get("seed", 0) == r.get("seed", 0)]  # a replicate against its own seed's
+        return (seed or same or refs or [None])[0]
 
     for r in rows:
         ref = reference_of(r)
@@ -192,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     figures["by_experiment"] = {r["experiment"]: {k: r.get(k) for k in (
         "pairs_to_target", "core_s_to_target", "best_val_ratio", "pairs_per_core_s", "cheaper_than_reference",
         "cheaper_pairs_than_reference", "date", "machine")} | _gaps(r) for r in rows if r["kind"] == "cell"}
+    figures["replicates"] = replicates(rows)
     out = {"title": f"Cost of learning: pairs seen and core-seconds of training until val.ratio.pos_l2 <= "
                     f"{COST_TARGET} (bronchocli/training/cost.py)",
            "machine": machine, "date": today, "command": commands[-1], "commands": commands,
