@@ -222,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
            "machine": machine, "date": today, "command": commands[-1], "commands": commands,
            "figures": figures}
     figures["docs_table"] = markdown(out).splitlines()  # benchmarks/README.md's block "learning-cost" (docblocks.py)
+    figures["docs_replicates"] = replicates_markdown(figures["replicates"])  # its block of the levers over seeds
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(out, indent=1) + "\n")
@@ -230,6 +231,19 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown(out))
     print(f"wrote {args.out} ({len(rows)} runs)", file=sys.stderr)
     return 0
+
+
+def replicates_markdown(reps: dict[str, dict[str, Any]]) -> list[str]:
+    """The levers run over seeds, a row per seed: pairs and core-seconds to the target, × cheaper than the
+    reference of the same seed, host and day (– where it was not reached)."""
+    lines = ["| experiment (seed 0's) | seed | pairs to 0.90 | core-s to 0.90 | × cheaper (core-s) | × cheaper (pairs) "
+             "| best val ratio |", "|---|---|---|---|---|---|---|"]
+    for name, r in reps.items():
+        for i, seed in enumerate(r["seeds"]):
+            lines.append(f"| {name} | {seed} | {_fmt(r['pairs'][i], ',.0f')} | {_fmt(r['core_s'][i], '.0f')} "
+                         f"| {_fmt(r['cheaper'][i], '.2f')} | {_fmt(r['cheaper_pairs'][i], '.2f')} "
+                         f"| {_fmt(r['best_val_ratio'][i], '.3f')} |")
+    return lines
 
 
 def _fmt(v: Any, spec: str = ".3g") -> str:
