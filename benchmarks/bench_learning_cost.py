@@ -99,8 +99,7 @@ def run_row(client, run) -> dict[str, Any]:
     first = next((c for c in curve if math.isfinite(c["val_ratio"]) and c["val_ratio"] <= COST_TARGET), None)
     return {
         "run_id": rid, "name": tags.get("mlflow.runName", ""), "arch": p.get("arch"), "seed": _value(p.get("seed"), 0),
-        "status": run.info.status,
-        "kind": tags.get("run_kind", "cell"), "pruned": tags.get("pruned") == "true",
+        "status": run.info.status, "kind": tags.get("run_kind", "cell"), "pruned": tags.get("pruned") == "true",
         "study": tags.get("study"), "trial": _value(tags.get("trial"), None), "settings": settings,
         "curve": curve, "best_val_ratio": min((c["val_ratio"] for c in curve), default=None),
         "val_best_ratio": m.get("val_best.ratio.pos_l2"),
@@ -186,8 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     refs = [r for r in rows if is_reference(r["experiment"]) and r["core_s_to_target"]]
 
     def reference_of(r: dict[str, Any]) -> dict[str, Any] | None:
-        """The reference run measured on the same day and machine (the same host state) as ``r``, else the first
-        one (two sessions of one day may run on different hosts)."""
+        """The reference run of ``r``'s seed measured on the same day and machine (the same host state), else any
+        seed's of that day and machine, else the first one (two sessions of one day may run on different hosts)."""
         same = [x for x in refs if x.get("date") == r.get("date") and x.get("machine") == r.get("machine")]
         seed = [x for x in same if x.get("seed", 0) == r.get("seed", 0)]  # a replicate against its own seed's
         return (seed or same or refs or [None])[0]

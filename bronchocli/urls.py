@@ -132,7 +132,7 @@ def _header(path: Path) -> bytes:
     st = os.stat(path)
     fd = _headers.get((st.st_dev, st.st_ino))
     if fd is None:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+        fd = os.open(path, os.O_RDONLY)  # not inherited by child processes (PEP 446)
         opened = os.fstat(fd)  # the file itself, should the path have been replaced since the stat
         _headers[(opened.st_dev, opened.st_ino)] = fd
     return os.pread(fd, 100, 0)

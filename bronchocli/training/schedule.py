@@ -15,9 +15,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-# One-cycle (Smith & Topor 2019; PyTorch's OneCycleLR with its defaults): the rate rises on a half cosine from
-# lr / ONECYCLE_DIV to lr over the warm-up fraction, then falls on a half cosine to lr / (ONECYCLE_DIV *
-# ONECYCLE_FINAL_DIV); Adam's beta1 moves the other way between these two.
+# OneCycleLR's defaults (the module doc)
 ONECYCLE_DIV = 25.0
 ONECYCLE_FINAL_DIV = 1e4
 ONECYCLE_BETA1 = (0.85, 0.95)  # (at the peak rate, at either end)

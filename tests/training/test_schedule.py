@@ -33,7 +33,8 @@ def _torch_onecycle(steps: int, pct_start: float, lr: float) -> list[tuple[float
         g = opt.param_groups[0]
         out.append((g["lr"], g["betas"][0]))
         opt.step()
-        sched.step() if len(out) < steps else None  # OneCycleLR refuses a step past its total
+        if len(out) < steps:  # OneCycleLR refuses a step past its total
+            sched.step()
     return out
 
 
