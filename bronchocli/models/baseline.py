@@ -10,7 +10,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from .backbones import InvertedResidual
-from .base import EfficientPairNet, State, fusion, pool_to
+from .base import PAPER_BACKBONE, EfficientPairNet, State, fusion, pool_to
 
 GRID = (2, 2)  # the map after the two stride-2 blocks at 256x256 input
 
@@ -19,8 +19,8 @@ class BaselineNet(EfficientPairNet):
     recurrent = False
     temporal = False
 
-    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
-        super().__init__(image_size, dropout)
+    def __init__(self, image_size: int = 256, dropout: float = 0.2, backbone: str = PAPER_BACKBONE) -> None:
+        super().__init__(image_size, dropout, backbone)
         self.fusion = fusion(3, nn.ReLU)
         self.ir = nn.Sequential(InvertedResidual(256, 128, 2, dropout), InvertedResidual(128, 64, 2, dropout))
         self.head = nn.Linear(64 * GRID[0] * GRID[1], 6)

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from .backbones import BatchNorm3d
-from .base import EfficientPairNet, State, fusion
+from .base import PAPER_BACKBONE, EfficientPairNet, State, fusion
 
 
 def _block3d(padding: tuple[int, int, int]) -> nn.Sequential:
@@ -27,8 +27,8 @@ class Conv3dNet(EfficientPairNet):
     recurrent = False
     temporal = True
 
-    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
-        super().__init__(image_size, dropout)
+    def __init__(self, image_size: int = 256, dropout: float = 0.2, backbone: str = PAPER_BACKBONE) -> None:
+        super().__init__(image_size, dropout, backbone)
         self.fusion = fusion(1, nn.ReLU, padding=1)
         self.blocks = nn.ModuleList([_block3d((1, 1, 1)) for _ in range(2)])
         self.final = _block3d((1, 0, 0))

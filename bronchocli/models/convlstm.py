@@ -12,7 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from .backbones import InvertedResidual
-from .base import EfficientPairNet, State, fusion, pool_to
+from .base import PAPER_BACKBONE, EfficientPairNet, State, fusion, pool_to
 
 GRID = (4, 4)  # the map after one stride-2 block at 256x256 input
 HIDDEN = 32
@@ -42,8 +42,8 @@ class ConvLSTMNet(EfficientPairNet):
     recurrent = True
     temporal = True
 
-    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
-        super().__init__(image_size, dropout)
+    def __init__(self, image_size: int = 256, dropout: float = 0.2, backbone: str = PAPER_BACKBONE) -> None:
+        super().__init__(image_size, dropout, backbone)
         self.fusion = fusion(3, nn.SiLU)
         self.ir = InvertedResidual(256, 128, 2, dropout)
         self.convlstm = ConvLSTMCell(128, HIDDEN, 3)

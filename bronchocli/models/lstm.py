@@ -11,7 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .backbones import InvertedResidual
-from .base import EfficientPairNet, State, fusion, pool_to
+from .base import PAPER_BACKBONE, EfficientPairNet, State, fusion, pool_to
 
 GRID = (2, 2)
 
@@ -20,8 +20,8 @@ class LSTMNet(EfficientPairNet):
     recurrent = True
     temporal = True
 
-    def __init__(self, image_size: int = 256, dropout: float = 0.2) -> None:
-        super().__init__(image_size, dropout)
+    def __init__(self, image_size: int = 256, dropout: float = 0.2, backbone: str = PAPER_BACKBONE) -> None:
+        super().__init__(image_size, dropout, backbone)
         self.fusion = fusion(3, nn.SiLU)
         self.ir = nn.Sequential(InvertedResidual(256, 128, 2, dropout), InvertedResidual(128, 64, 2, dropout))
         self.lstm = nn.LSTM(64 * GRID[0] * GRID[1], 128, num_layers=1, batch_first=True)

@@ -201,7 +201,9 @@ def load(data_dir: str | Path) -> Predictor:
     data_dir = Path(data_dir)
     spec = json.loads((data_dir / SPEC_FILE).read_text(encoding="utf-8"))
     payload = torch.load(data_dir / WEIGHTS_FILE, map_location="cpu", weights_only=True)
-    model = model_class(spec["model_class"])(image_size=int(spec["image_size"]))
+    backbone = spec.get("backbone")  # absent in specs written before model.backbone, and for OffsetNet's
+    extra = {"backbone": backbone} if backbone not in (None, "efficientnet_b0", "resnet34") else {}
+    model = model_class(spec["model_class"])(image_size=int(spec["image_size"]), **extra)
     net = Regressor(model, (0.0,) * 3, (1.0,) * 3, standardized=bool(spec["standardized"]))
     return Predictor(restore(net, payload["state_dict"]), spec)
 

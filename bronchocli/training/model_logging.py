@@ -79,7 +79,10 @@ def model_spec(cfg: Config, cell: Cell, data: RunData, outcome: Outcome, run_id:
         "pose_frame": cell.pose_frame, "units": {"position": "voxels", "rotation": "degrees (intrinsic XYZ Euler)"},
         "input": INPUT_LAYOUT, "output": OUTPUT_LAYOUT,
         "precision": cfg.runs.model_artifact,
-        "image_mean": list(data.image_mean), "image_std": list(data.image_std),  # [0, 1] units, RGB
+        "backbone": getattr(net.model, "backbone_kind", None),
+        # what the network scales its inputs with ([0, 1] units, RGB): the training frames' or the weights' own
+        "image_mean": [float(v) for v in net.image_mean.flatten().cpu()],
+        "image_std": [float(v) for v in net.image_std.flatten().cpu()],
         "standardized": bool(net.standardized),
         "label_mean": [float(v) for v in net.label_mean.cpu()], "label_std": [float(v) for v in net.label_std.cpu()],
         "train_mean": [float(v) for v in data.label_mean],  # the training-mean reference's relative pose

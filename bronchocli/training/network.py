@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 
 from .. import metrics
-from ..models import build_model
+from ..models import EFFICIENT_BACKBONES, PAPER_BACKBONE, build_model
 from ..models.portable import Regressor, restore
 
 
@@ -28,6 +28,7 @@ def export(net: PoseRegressor, cell, image_size: int, precision: str = "fp32") -
     state = {k: (v.half() if precision == "fp16" and v.is_floating_point() else v).detach().cpu()
              for k, v in net.state_dict().items()}
     return {"format": "bronchopose-model", "version": 1, "arch": cell.arch, "image_size": image_size,
+            "backbone": getattr(net.model, "backbone_kind", PAPER_BACKBONE),
             "pose_frame": cell.pose_frame, "standardized": net.standardized, "state_dict": state}
 
 
@@ -47,6 +48,8 @@ def round_to_export_(net: PoseRegressor, precision: str) -> PoseRegressor:
 
 def load_exported(payload: dict) -> PoseRegressor:
     """The network of :func:`export`'s artifact, in fp32, eval mode, on the CPU."""
-    model = build_model(payload["arch"], image_size=int(payload["image_size"]))
+    backbone = payload.get("backbone", PAPER_BACKBONE)  # OffsetNet's is "resnet34": not a choice, its own
+    model = build_model(payload["arch"], image_size=int(payload["image_size"]),
+                        backbone=backbone if backbone in EFFICIENT_BACKBONES else PAPER_BACKBONE)
     net = PoseRegressor(model, (0.0,) * 3, (1.0,) * 3, standardized=bool(payload["standardized"]))
     return restore(net, payload["state_dict"])

@@ -207,7 +207,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
     check_reachable(cfg)  # a dead server fails within runs.timeout_s, before any work
     tags = dict(extra_tags or {})
     if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
-        tags[TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch])[cell.arch]
+        tags[TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch], cfg.model.backbone)[cell.arch]
     data = prepare(cfg, cell, progress=progress)  # a bad dataset fails here, before any MLflow store or run
     client = client_for(cfg)
     exp_id = experiment_id(client, cfg)

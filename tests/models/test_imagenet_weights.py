@@ -23,7 +23,9 @@ def served(tmp_path, monkeypatch):
 def test_the_published_names_carry_torchvision_hash_prefixes(monkeypatch):
     monkeypatch.delenv(pretrained.WEIGHTS_URL_ENV, raising=False)
     assert pretrained.IMAGENET_FILES == {"efficientnet_b0": "efficientnet_b0_rwightman-7f5810bc.pth",
-                                         "resnet34": "resnet34-b627a593.pth"}
+                                         "resnet34": "resnet34-b627a593.pth",
+                                         # shipped by a PyPI package, never downloaded (tests/models/test_lite0.py)
+                                         "efficientnet_lite0": "efficientnet-lite0-57934424.pth"}
     assert pretrained.imagenet_url("resnet34") == "https://download.pytorch.org/models/resnet34-b627a593.pth"
 
 

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# "What pretraining buys" (benchmarks/README.md; issue 56): BronchoTrack (ConvLSTM + MSE+CE) on the main job's
+# dataset and recipe (96², 500 steps x 20 pairs = 10,000 pairs, lr 1e-3, 5 % warm-up, cosine; validation every
+# 1,000 pairs, the whole budget trained so that the costs to 0.90 and 0.85 and the final test ratios are all
+# read from one run), one thread, one run at a time, in a benchmark project folder:
+#
+#   mkdir -p /tmp/pt && cp experiments.yaml /tmp/pt/ && benchmarks/pretraining.sh /tmp/pt [NAME ...]
+#   python benchmarks/bench_pretraining.py /tmp/pt     # -> benchmarks/results/pretraining.json
+#
+# Each run is its own experiment (pt-NAME-sSEED), so running this again skips what has a FINISHED run (train's own
+# rule) and resumes a stopped one from its checkpoint: a session that ends mid-run loses at most a checkpoint
+# interval. NAMEs: run only those arms/levers (every seed in PT_SEEDS, default "0 1 2").
+set -uo pipefail
+project=${1:?usage: benchmarks/pretraining.sh PROJECT_FOLDER [NAME ...]}
+shift
+only=" $* "
+cd "$project"
+export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+common=(--config "$PWD/experiments.yaml" -P personalized -a convlstm -l ce --set train.val_every=50
+        --set train.threads=1)
+run() {
+    local name=$1; shift
+    [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
+    local seed
+    for seed in ${PT_SEEDS:-0 1 2}; do
+        local experiment=pt-$name-s$seed
+        echo "=== $(date -u +%FT%TZ) $experiment: $*"
+        bronchopose train "${common[@]}" --set "name=$experiment" --seed "$seed" "$@" --resume 2>/dev/null \
+            || bronchopose train "${common[@]}" --set "name=$experiment" --seed "$seed" "$@"
+    done
+}
+lite=(--set model.backbone=efficientnet_lite0)
+imagenet=(--set model.pretrained=imagenet)
+# the three arms: today's backbone from random initialisation, the lighter Lite0 from random and from ImageNet
+run b0-random
+run lite0-random "${lite[@]}"
+run lite0-imagenet "${lite[@]}" "${imagenet[@]}"
