@@ -9,7 +9,8 @@
 #
 # Each run is its own experiment (pt-NAME-sSEED), so running this again skips what has a FINISHED run (train's own
 # rule) and resumes a stopped one from its checkpoint: a session that ends mid-run loses at most a checkpoint
-# interval. NAMEs: run only those arms/levers (every seed in PT_SEEDS, default "0 1 2").
+# interval. NAMEs: run only those arms/levers (the arms: every seed in PT_SEEDS, default "0 1 2"; the levers:
+# LEVER_SEEDS, default "0"). Each lever is compared with the Lite0-ImageNet arm of the same seed.
 set -uo pipefail
 project=${1:?usage: benchmarks/pretraining.sh PROJECT_FOLDER [NAME ...]}
 shift
@@ -18,11 +19,11 @@ cd "$project"
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
 common=(--config "$PWD/experiments.yaml" -P personalized -a convlstm -l ce --set train.val_every=50
         --set train.threads=1)
-run() {
+run() {  # run NAME SETTINGS...: every seed of $seeds (default PT_SEEDS, "0 1 2")
     local name=$1; shift
     [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
     local seed
-    for seed in ${PT_SEEDS:-0 1 2}; do
+    for seed in ${seeds:-${PT_SEEDS:-0 1 2}}; do
         local experiment=pt-$name-s$seed
         echo "=== $(date -u +%FT%TZ) $experiment: $*"
         bronchopose train "${common[@]}" --set "name=$experiment" --seed "$seed" "$@" --resume 2>/dev/null \
@@ -35,3 +36,12 @@ imagenet=(--set model.pretrained=imagenet)
 run b0-random
 run lite0-random "${lite[@]}"
 run lite0-imagenet "${lite[@]}" "${imagenet[@]}"
+# the levers pretrained features open, each against lite0-imagenet of its seed
+levers=${LEVER_SEEDS:-0}
+seeds=$levers run lite0-imagenet-frozen9 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=9   # fixed features
+seeds=$levers run lite0-imagenet-frozen4 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=4   # stem + 3 stages
+seeds=$levers run lite0-imagenet-blr0.1 "${lite[@]}" "${imagenet[@]}" --set train.backbone_lr=0.1   # backbone at lr/10
+seeds=$levers run lite0-imagenet-64 "${lite[@]}" "${imagenet[@]}" --set dataset.root=data/synthetic-cpu-64 \
+    --set dataset.generate.image_size=64                                                               # 64² frames
+seeds=$levers run lite0-imagenet-128 "${lite[@]}" "${imagenet[@]}" --set dataset.root=data/synthetic-cpu-128 \
+    --set dataset.generate.image_size=128                                                              # 128² frames

@@ -208,6 +208,9 @@ class ModelCfg(Section):
     # None: random init; "imagenet": the backbone's ImageNet weights (torchvision's via the hub cache for B0 and
     # ResNet-34, the installed package's for Lite0); "imagenet-if-present"; or a local file
     pretrained: str | None = None
+    # the first N of each backbone's 9 stages (stem, 7 MBConv stages, head) kept as initialised: no gradient,
+    # BatchNorm statistics fixed (9: the whole backbone); BronchoPose architectures only
+    frozen_stages: int = Field(0, ge=0, le=9)
     # channels-last memory format: auto = the measured per-architecture setting for the device (bronchocli/speed.py)
     channels_last: spelled(bool | Literal["auto"]) = "auto"
 
@@ -225,6 +228,8 @@ class Train(Section):
     warmup: float = Field(0.05, ge=0, lt=1)  # fraction of the steps with a linear learning-rate warm-up
     # clip the gradients' global L2 norm to this before each optimiser step; None: no clipping
     grad_clip: float | None = Field(None, gt=0, le=1e6)
+    # the backbones' learning rate as a fraction of train.lr (the head's): < 1 moves pretrained features less
+    backbone_lr: float = Field(1.0, gt=0, le=10)
     # after the warm-up: cosine decay to 0 or constant; onecycle: one cycle whose rising phase is the warm-up
     schedule: spelled(Literal["cosine", "constant", "onecycle"]) = "cosine"
     val_every: int = Field(50, ge=1, le=MAX_STEPS)  # steps between validations (best weights, early stopping, pruning)

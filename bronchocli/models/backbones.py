@@ -168,6 +168,10 @@ class EfficientNetB0Features(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         return self.features(x)
 
+    def stages(self) -> list[list[nn.Module]]:
+        """The nine stages in input order (stem, seven MBConv stages, head): what ``model.frozen_stages`` counts."""
+        return [[m] for m in self.features]
+
 
 def _init_efficientnet(module: nn.Module) -> None:
     for m in module.modules():

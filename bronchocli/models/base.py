@@ -88,6 +88,34 @@ class PoseNet(nn.Module):
     def backbones(self) -> tuple[nn.Module, nn.Module]:
         return self.backbone_cur, self.backbone_prev
 
+    # -- frozen backbone stages (``model.frozen_stages``) -----------------------------
+    frozen: tuple[nn.Module, ...] = ()
+
+    def freeze_stages(self, n: int) -> PoseNet:
+        """Keep the first ``n`` stages of both backbones as initialised (pretrained): no gradient, BatchNorms in
+        eval mode on the statistics they came with, never re-estimated (each such BatchNorm is marked
+        ``frozen``; training/batchnorm.py leaves it alone). ``n`` = all stages: the backbones are fixed
+        functions of the frames. Backbones without ``stages()`` (OffsetNet's ResNet-34s) are not frozen."""
+        modules: list[nn.Module] = []
+        for backbone in self.backbones():
+            stages = backbone.stages() if hasattr(backbone, "stages") else []
+            if n > len(stages) and stages:
+                raise ValueError(f"frozen_stages {n}: the backbone has {len(stages)} stages")
+            modules += [m for stage in stages[:n] for m in stage]
+        for module in modules:
+            module.requires_grad_(False)
+            for m in module.modules():
+                if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                    m.frozen = True
+        self.frozen = tuple(modules)
+        return self.train(self.training)
+
+    def train(self, mode: bool = True) -> PoseNet:
+        super().train(mode)
+        for module in self.frozen:  # frozen stages always compute as evaluated (no stochastic depth, fixed BN)
+            module.eval()
+        return self
+
     def forward(self, frames: Tensor, state: State = None) -> tuple[Tensor, State]:  # pragma: no cover
         raise NotImplementedError
 

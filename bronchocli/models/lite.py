@@ -119,3 +119,12 @@ class EfficientNetLite0Features(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         x = self._blocks(F.relu6(self._bn0(self._conv_stem(x))))
         return F.relu6(self._bn1(self._conv_head(x)))
+
+    def stages(self) -> list[list[nn.Module]]:
+        """The nine stages in input order (stem, seven MBConv stages, head), as B0's: ``model.frozen_stages``."""
+        out: list[list[nn.Module]] = [[self._conv_stem, self._bn0]]
+        first = 0
+        for *_, n in _LITE0_STAGES:
+            out.append(list(self._blocks[first:first + n]))
+            first += n
+        return out + [[self._conv_head, self._bn1]]

@@ -27,7 +27,10 @@ GAP_AT_MOST = 1.10  # the largest mode gap the memorisation self-test accepts (d
 
 
 def batchnorms(net: nn.Module) -> list[nn.modules.batchnorm._BatchNorm]:
-    return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    """The BatchNorms training normalises with batch statistics: every one but those of frozen backbone stages
+    (``model.frozen_stages``: they keep the statistics they were initialised with, in eval mode throughout)."""
+    return [m for m in net.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)
+            and not getattr(m, "frozen", False)]
 
 
 @torch.no_grad()

@@ -42,13 +42,14 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         rot_loss=cell.rot_loss, rot_weight=t.rot_weight, precision=precision_for(cfg, device, cell.arch),
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
         checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every, bn_freeze=t.bn_freeze,
-        stop_at_ratio=t.stop_at_ratio, grad_clip=t.grad_clip,
+        stop_at_ratio=t.stop_at_ratio, grad_clip=t.grad_clip, backbone_lr=t.backbone_lr,
     )
 
 
 def build_network(cfg: Config, cell: Cell, data: RunData, device: torch.device) -> PoseRegressor:
     model = build_model(cell.arch, image_size=data.image_size, dropout=cfg.model.dropout,
                         pretrained=cfg.paths.pretrained, backbone=cfg.model.backbone)
+    model.freeze_stages(cfg.model.frozen_stages)
     if speed_for(cfg, cell.arch, device).channels_last:
         model = model.to(memory_format=torch.channels_last)
     standardize = cfg.train.standardize_labels

@@ -109,6 +109,7 @@ class Settings:
     mode_gap_batches: int = 4  # training batches of each validation's mode gap (0: not measured)
     stop_at_ratio: float | None = None  # stop once val.ratio.pos_l2 <= this (train.stop_at_ratio)
     grad_clip: float | None = None  # clip the gradients' global L2 norm to this (train.grad_clip)
+    backbone_lr: float = 1.0  # the backbones' learning rate as a fraction of the head's (train.backbone_lr)
 
     @property
     def pairs_per_step(self) -> int:
@@ -118,6 +119,23 @@ class Settings:
     def freeze_step(self) -> int:
         """The first step trained with BatchNorm statistics fixed (``steps``: never)."""
         return self.steps - int(round(self.bn_freeze * self.steps))
+
+
+def param_groups(net: torch.nn.Module, lr: float, backbone_lr: float) -> list[dict[str, Any]]:
+    """What the optimiser updates: the head at ``lr`` first (its rate is the one logged), then the backbones at
+    ``lr * backbone_lr`` (``train.backbone_lr``; one group when it is 1). Frozen parameters (``model.frozen_stages``)
+    are left out. The schedule scales every group's rate alike, so the ratio holds at every step."""
+    trainable = [p for p in net.parameters() if p.requires_grad]
+    model = getattr(net, "model", net)
+    backbones = getattr(model, "backbones", lambda: ())()
+    in_backbones = {id(p) for b in backbones for p in b.parameters()}
+    if backbone_lr == 1.0 or not in_backbones:
+        return [{"params": trainable}]
+    head = [p for p in trainable if id(p) not in in_backbones]
+    body = [p for p in trainable if id(p) in in_backbones]
+    if not body:  # the whole backbone frozen
+        return [{"params": head}]
+    return [{"params": head, "lr": lr}, {"params": body, "lr": lr * backbone_lr}]
 
 
 @dataclass
@@ -155,8 +173,9 @@ class Trainer:
         self.order = BatchOrder(len(train), samples_per_micro, s.seed)
         self.photometric = Photometric() if s.augment else None
         fused = device.type in ("cuda", "cpu")
-        self.opt = torch.optim.AdamW(net.parameters(), lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
-            if s.weight_decay else torch.optim.Adam(net.parameters(), lr=s.lr, fused=fused)
+        groups = param_groups(net, s.lr, s.backbone_lr)
+        self.opt = torch.optim.AdamW(groups, lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
+            if s.weight_decay else torch.optim.Adam(groups, lr=s.lr, fused=fused)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
         self._beta1 = lambda k: beta1(k, s)  # the schedule's own settings, as the rate's
         self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,
