@@ -17,6 +17,10 @@ span, so the prose cannot drift from the measurement:
 results file; ``--write`` rewrites the spans from the files (atomically). tests/test_doc_numbers.py runs the
 check, so a figure changed in the prose, or a results file re-measured without regenerating the prose, fails.
 A benchmark records a new measurement with ``record(...)`` (bench_calibration.py ``--record`` does).
+
+What experiments.yaml states (a profile's size, budget, objective, seeds) is quoted the same way from the entry
+``config`` (benchmarks/docconfig.py: ``<!-- n: config/PLAN/KEY -->``, the block ``profiles``), and the check also
+names a number typed beside a profile's name in README.md, CONTRIBUTING.md or docs/ that the config contradicts.
 """
 
 from __future__ import annotations
@@ -31,9 +35,17 @@ import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
+import docconfig  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 SPEED_SETTINGS = ROOT / "bronchocli" / "speed_settings.json"
+CONFIG = ROOT / "experiments.yaml"
+# the log of measurements, each in its dated section: what a plan was then, so its typed numbers are not checked
+# against today's config (its figures are spans like everywhere else)
+LOG = Path("benchmarks") / "README.md"
 REQUIRED = ("title", "machine", "date", "command", "figures")
 
 # "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
@@ -53,10 +65,14 @@ def documents(root: Path = ROOT) -> list[Path]:
     return [p for p in paths if p.exists()]
 
 
-def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTINGS) -> dict[str, dict]:
-    """Every results file by name (its file stem), validated; ``speed_settings`` as it is shipped."""
+def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTINGS,
+                 config: Path | None = None) -> dict[str, dict]:
+    """Every results file by name (its file stem), validated; ``speed_settings`` as it is shipped; ``config``:
+    every plan of experiments.yaml (``CONFIG`` unless given), docconfig.facts."""
     out: dict[str, dict] = {}
     for path in sorted(results_dir.glob("*.json")):
+        if path.stem in ("speed_settings", "config"):
+            raise NumbersError(f"{path}: {path.stem!r} is a reserved name (pick another file name)")
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
@@ -71,6 +87,7 @@ def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTI
         out[path.stem] = data
     if speed_settings.exists():
         out["speed_settings"] = json.loads(speed_settings.read_text(encoding="utf-8"))
+    out["config"] = docconfig.facts(config or CONFIG)
     return out
 
 
@@ -126,6 +143,8 @@ def summary_table(results: dict[str, dict]) -> list[str]:
     shipped speed settings, by date."""
     rows = []
     for name, d in results.items():
+        if name == "config":
+            continue
         if name == "speed_settings":
             rows += speed_rows(d)
             continue
@@ -176,6 +195,7 @@ BLOCKS: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "summary": summary_table,
     "calibration": calibration_block,
     "learning-cost": learning_cost_block,
+    "profiles": lambda results: docconfig.profiles_block(results["config"]),
 }
 
 
@@ -214,8 +234,11 @@ def spans(text: str) -> Iterable[tuple[str, str]]:
 
 
 def check(paths: Iterable[Path], results: dict[str, dict], root: Path = ROOT) -> list[str]:
-    """One line per span whose text differs from what its results file gives (empty: every document agrees)."""
-    diffs: list[str] = []
+    """One line per span whose text differs from what its results file gives, and per number typed beside a
+    profile's name that experiments.yaml contradicts (empty: every document agrees)."""
+    paths = list(paths)
+    described = [p for p in paths if p != root / LOG]
+    diffs: list[str] = docconfig.typed(described, results["config"], root) if "config" in results else []
     for path in paths:
         rel = path.relative_to(root) if path.is_relative_to(root) else path
         text = path.read_text(encoding="utf-8")

@@ -195,3 +195,64 @@ def test_readme_quotes_no_timing_or_ratio_outside_a_generated_span():
     bad = [f"README.md:{i}: {m.group(0)!r} in {line.strip()[:80]!r}" for i, line in enumerate(text.splitlines(), 1)
            for m in typed.finditer(line)]
     assert not bad, "quote it through a span of its results file (CONTRIBUTING.md):\n" + "\n".join(bad)
+
+
+# -- the config's numbers (benchmarks/docconfig.py) ---------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def plans(docblocks):
+    return docblocks.load_results()["config"]
+
+
+def test_every_plan_of_experiments_yaml_has_its_facts_from_the_loader(docblocks, plans):
+    """The facts are the loader's: an independent read of the YAML agrees on what it states directly."""
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "experiments.yaml").read_text(encoding="utf-8"))
+    assert list(plans) == ["default", *raw["profiles"]]
+    for name, f in plans.items():
+        merged = raw if name == "default" else {**raw, **{k: v if not isinstance(v, dict) else {**raw.get(k, {}), **v}
+                                                          for k, v in raw["profiles"][name].items()}}
+        assert f["steps"] == merged["train"]["steps"], name
+        assert f["seeds"] == merged["grid"]["seed"], name
+        assert f["pairs"] == f["steps"] * f["pairs_per_step"] and f["cells"] == sum(f["stage_cells"])
+
+
+def test_a_changed_config_is_a_changed_span_and_write_follows_it(docblocks, tmp_path):
+    text = (ROOT / "experiments.yaml").read_text(encoding="utf-8")
+    config = tmp_path / "experiments.yaml"
+    config.write_text(text.replace("      steps: 5000\n", "      steps: 4000\n", 1), encoding="utf-8")
+    doc = tmp_path / "doc.md"
+    doc.write_text("| `learning-curve` | <!-- n: config/learning-curve/size -->x<!-- /n --> |\n\n"
+                   "<!-- numbers: profiles -->\n<!-- /numbers -->\n", encoding="utf-8")
+    results = docblocks.load_results(ROOT / "benchmarks" / "results", tmp_path / "none.json", config)
+    assert len(docblocks.check([doc], results, tmp_path)) == 2
+    docblocks.write([doc], results, tmp_path)
+    written = doc.read_text(encoding="utf-8")
+    assert "4,000 steps × 20 pairs" in written and "| `learning-curve` | `bronchopose-learning-curve` |" in written
+    assert docblocks.check([doc], results, tmp_path) == []
+    assert docblocks.check([doc], docblocks.load_results(), tmp_path)  # against the real config: 5,000 steps
+
+
+def test_a_number_typed_beside_a_profile_that_the_config_contradicts_is_named(docblocks, plans, tmp_path):
+    lc, default, cost = plans["learning-curve"], plans["default"], plans["learning-cost"]
+    right = (f"`learning-curve` trains {lc['steps']:,} steps × {lc['batch_size']} pairs at {lc['image_size']}², "
+             f"validation every {lc['val_every']} steps.\n\n"
+             f"| plan | our CPU default |\n|---|---|\n| Steps | {default['steps']} steps, {default['n_seeds']} seeds |\n\n"
+             f"`learning-cost` has objective `{cost['objective']}`.\n\n"
+             f"`learning-curve` with `--set train.steps=7` trains 7 steps. Before 2026-11-28 `learning-curve` ran "
+             f"3 steps. The main job (Table 6) at {default['image_size'] + 1}²: no plan named.\n")
+    doc = tmp_path / "doc.md"
+    doc.write_text(right, encoding="utf-8")
+    assert docblocks.check([doc], docblocks.load_results(tmp_path / "none", tmp_path / "none.json"), tmp_path) == []
+    wrong = (right.replace(f"{lc['steps']:,} steps", f"{lc['steps'] + 1000:,} steps")
+             .replace(f"| {default['steps']} steps", f"| {default['steps'] - 1} steps")
+             .replace(f"objective `{cost['objective']}`", "objective `val_best.ratio.pos_l2`")
+             .replace(f"at {lc['image_size']}²", f"at {lc['image_size'] * 2}²"))
+    doc.write_text(wrong, encoding="utf-8")
+    diffs = docblocks.check([doc], docblocks.load_results(tmp_path / "none", tmp_path / "none.json"), tmp_path)
+    assert len(diffs) == 4, diffs
+    assert any("doc.md:1: next to learning-curve: typed steps" in d for d in diffs)
+    assert any("doc.md:5: next to the default plan: typed steps" in d for d in diffs)
+    assert any("objective 'val_best.ratio.pos_l2'" in d and "'cost'" in d for d in diffs)
+    assert any(f"'{lc['image_size'] * 2}²'" in d for d in diffs)
