@@ -92,7 +92,15 @@ def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTI
 
 
 def lookup(results: dict[str, dict], ref: str):
-    """The value at ``FILE/key/path``."""
+    """The value at ``FILE/key/path``; ``A ÷ B``: the value at A divided by the one at B (lists of equal length
+    element by element: a ratio per seed)."""
+    if "÷" in ref:
+        a, b = (lookup(results, part) for part in ref.split("÷", 1))
+        if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            return [x / y for x, y in zip(a, b)]
+        if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+            return a / b
+        raise NumbersError(f"{ref!r}: can divide two numbers or two lists of one length, not {a!r} and {b!r}")
     name, *keys = ref.strip().split("/")
     if name not in results:
         raise NumbersError(f"unknown results file {name!r} in {ref!r} (known: {', '.join(sorted(results))})")
@@ -108,13 +116,14 @@ def lookup(results: dict[str, dict], ref: str):
 
 
 def duration(seconds: float) -> str:
-    """1939 -> '32 min 19 s'; under a minute: '28.6 s'."""
+    """Seconds as the prose shows them, rounded (never floored) to the unit shown: 1939 -> '32 min 19 s';
+    6776.4 -> '1 h 53 min'; under a minute: '28.6 s'."""
     if seconds < 60:
         return f"{seconds:g} s"
-    m, s = divmod(int(round(seconds)), 60)
-    if m >= 60:
-        h, m = divmod(m, 60)
+    if seconds >= 3600 - 30:  # shown in minutes: 3,599 s is '1 h 0 min', not '59 min 59 s' floored to the hour
+        h, m = divmod(int(round(seconds / 60)), 60)
         return f"{h} h {m} min"
+    m, s = divmod(int(round(seconds)), 60)
     return f"{m} min {s} s"
 
 
@@ -129,9 +138,9 @@ def fmt(value, spec: str | None) -> str:
         word, _, inner = spec.partition(" ")
         if not isinstance(value, list) or not value:
             raise NumbersError(f"format {spec!r} needs a list, got {value!r}")
-        if word == "range":
-            lo, hi = min(value), max(value)
-            return one(lo, inner) if lo == hi else f"{one(lo, inner)}–{one(hi, inner)}"
+        if word == "range":  # ends that print alike are printed once ("251", not "251–251")
+            lo, hi = one(min(value), inner), one(max(value), inner)
+            return lo if lo == hi else f"{lo}–{hi}"
         return " / ".join(one(v, inner) for v in value)
     if isinstance(value, (dict, list)):
         raise NumbersError(f"a {type(value).__name__} needs a format (range, join), got {spec!r}")

@@ -102,6 +102,18 @@ def test_a_lines_block_shows_the_recorded_lines_and_names_a_drifted_one(docblock
     assert "not a list of lines" in docblocks.check([doc], results, tmp_path)[0]
 
 
+def test_a_ratio_of_two_figures_is_computed_per_element(docblocks, tmp_path):
+    results_dir, doc = _project(tmp_path, "<!-- n: job/figures/slow ÷ job/figures/fast as range .1f -->x<!-- /n -->× and "
+                                          "<!-- n: job/figures/total_s ÷ job/figures/half as .1f -->x<!-- /n -->×\n",
+                                {"slow": [732.4, 763.4], "fast": [251.1, 251.2], "total_s": 3.0, "half": 1.5})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    docblocks.write([doc], results, tmp_path)
+    assert doc.read_text().startswith("<!-- n: job/figures/slow ÷ job/figures/fast as range .1f -->2.9–3.0<!-- /n -->×")
+    assert "-->2.0<!-- /n -->×" in doc.read_text()
+    doc.write_text("<!-- n: job/figures/slow ÷ job/figures/total_s -->1<!-- /n -->\n")
+    assert "can divide two numbers or two lists" in docblocks.check([doc], results, tmp_path)[0]
+
+
 def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tmp_path):
     results_dir, doc = _project(tmp_path, "<!-- n: job/figures/missing -->1<!-- /n -->\n", {"total_s": 1.5})
     results = docblocks.load_results(results_dir, tmp_path / "none.json")
@@ -116,7 +128,12 @@ def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tm
 def test_formats(docblocks):
     assert docblocks.fmt(1939, "dur") == "32 min 19 s"
     assert docblocks.fmt(28.6, "dur") == "28.6 s"
+    assert docblocks.fmt(6776.4, "dur") == "1 h 53 min"  # 1 h 52 min 56 s rounds up, is not floored
+    assert docblocks.fmt(6739.0, "dur") == "1 h 52 min"
+    assert docblocks.fmt(3599, "dur") == "1 h 0 min" and docblocks.fmt(119.6, "dur") == "2 min 0 s"
     assert docblocks.fmt([0.98, 0.965, 0.974], "range .3f") == "0.965–0.980"
+    assert docblocks.fmt([251.1338, 251.2073], "range .0f") == "251"  # ends that print alike: printed once
+    assert docblocks.fmt([299.7981, 301.3049], "range .0f") == "300–301"
     assert docblocks.fmt([0.98, 0.965], "join .3f") == "0.980 / 0.965"
     assert docblocks.fmt(1.753983547542414, ".2f") == "1.75"
     with pytest.raises(docblocks.NumbersError):
