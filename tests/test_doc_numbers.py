@@ -159,13 +159,71 @@ def test_the_command_line_checks_the_repository_and_fails_on_a_drifted_copy(docb
     assert "README.md:" in capsys.readouterr().out
 
 
-OUTSIDE = re.compile(r"\.\./shared|/work/|DEVELOPERS|developers' guide|DESIGN\.md|DESIGN §")
+OUTSIDE = re.compile(r"\.\./shared|/work/|DEVELOPERS|developers' guide|DESIGN\.md|DESIGN §|"
+                     r"/tmp/[\w.-]+\.(?:sh|py)\b|(?:script|note)s?\b[^.\n]{0,40}\bnot kept\b|set-up notes|setup notes")
 
 
-def test_no_document_points_outside_the_repository(docblocks):
-    bad = [f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}" for p in docblocks.documents()
+# what the repository holds as text: its code, tests, docs, benchmarks, CI and config (raw logs of a run, which
+# record the paths of the machine they ran on, are not pointers)
+TEXT = ("*.py", "*.md", "*.sh", "*.yaml", "*.yml", "*.toml", "run")
+LOGS = ("benchmarks/gpu-*/*", "benchmarks/results/*.txt")
+
+
+def repository_text() -> list[Path]:
+    out = [p for p in ROOT.iterdir() if p.is_file() and any(p.match(g) for g in TEXT)]
+    for top in ("bronchocli", "tests", "benchmarks", "docs", ".ci"):
+        out += [p for p in sorted((ROOT / top).rglob("*")) if p.is_file() and any(p.match(g) for g in TEXT)
+                and "__pycache__" not in p.parts and not any(p.relative_to(ROOT).match(g) for g in LOGS)]
+    return [p for p in out if p != Path(__file__).resolve()]
+
+
+def test_nothing_in_the_repository_points_outside_it():
+    """No document, module, test or script names a file, script or note that is not in the repository."""
+    bad = [f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}" for p in repository_text()
            for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if OUTSIDE.search(line)]
     assert not bad, "\n".join(bad)
+
+
+# a file path in backticks: a token with a slash whose first part is a folder of this repository, or one ending
+# in a file type of it; resolved against the repository, the document's folder, the package and the results
+EXISTING = re.compile(r"`([\w.][\w.-]*(?:/[\w.-]+)+/?)`")
+OURS = ("bronchocli", "tests", "benchmarks", "docs", ".ci")
+SUFFIXES = (".py", ".md", ".sh", ".json", ".toml", ".yaml", ".yml", ".txt")
+# paths in backticks that are not this repository's files, each for its reason
+NOT_OURS = {
+    "experiments/train_all.sh", "BronchoTrack/data/datasets.py", "BronchoTrack/data/dataorg.py",
+    "models/modules.py", "models/bronchonet.py",  # the authors' repository (docs/reproduction.md)
+    "data/bronchopose/spec.json",  # inside a logged MLflow Model (docs/api.md)
+}
+
+
+def backticked_paths(text: str) -> list[tuple[int, str]]:
+    text = re.sub(r"^```.*?^```", lambda m: "\n" * m.group(0).count("\n"), text, flags=re.S | re.M)
+    return [(text.count("\n", 0, m.start()) + 1, m.group(1)) for m in EXISTING.finditer(text)
+            if m.group(1).split("/")[0] in OURS or Path(m.group(1)).suffix in SUFFIXES]
+
+
+def missing_paths(doc: Path, root: Path = ROOT) -> list[str]:
+    out = []
+    for line, path in backticked_paths(doc.read_text(encoding="utf-8")):
+        where = (root / path, doc.parent / path, root / "bronchocli" / path, root / "benchmarks" / path,
+                 root / "benchmarks" / "results" / path)
+        if path not in NOT_OURS and not any(p.exists() for p in where):
+            out.append(f"{doc.relative_to(root) if doc.is_relative_to(root) else doc}:{line}: `{path}`")
+    return out
+
+
+def test_every_file_path_in_backticks_in_the_docs_exists(docblocks):
+    bad = [m for p in docblocks.documents() if p.suffix == ".md" for m in missing_paths(p)]
+    assert not bad, "a path the docs name is not in the repository:\n" + "\n".join(bad)
+
+
+def test_a_backticked_path_that_does_not_exist_is_named(tmp_path):
+    doc = tmp_path / "doc.md"
+    doc.write_text("See `benchmarks/docblocks.py`, `training/loop.py` and `results/render.json`,\n"
+                   "not `tests/data/test_generate.py` nor `benchmarks/nope.sh`; `runs/mlflow.db` is an output.\n"
+                   "```\n`tests/in_a_fence.py`\n```\n", encoding="utf-8")
+    assert missing_paths(doc, ROOT) == [f"{doc}:2: `tests/data/test_generate.py`", f"{doc}:2: `benchmarks/nope.sh`"]
 
 
 def test_relative_links_of_the_documents_resolve(docblocks):
