@@ -47,6 +47,10 @@ CONFIG = ROOT / "experiments.yaml"
 # against today's config (its figures are spans like everywhere else)
 LOG = Path("benchmarks") / "README.md"
 REQUIRED = ("title", "machine", "date", "command", "figures")
+# A figure's name means one thing in every results file: where its parts are recorded beside it, it is their sum
+# (install_s is torch and the project installed, never the clone or the venv; total_s the whole command)
+SUMS = {"install_s": ("torch_s", "project_s"),
+        "total_s": ("clone_venv_s", "torch_s", "project_s", "sweep_s", "report_s")}
 
 # "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
 INLINE = re.compile(r"<!-- n: (?P<ref>[^>]+?)(?: as (?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
@@ -84,10 +88,27 @@ def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTI
             dt.date.fromisoformat(str(data["date"]))
         except ValueError:
             raise NumbersError(f"{path}: date {data['date']!r} is not YYYY-MM-DD") from None
+        for problem in inconsistent(data["figures"]):
+            raise NumbersError(f"{path}: {problem}")
         out[path.stem] = data
     if speed_settings.exists():
         out["speed_settings"] = json.loads(speed_settings.read_text(encoding="utf-8"))
     out["config"] = docconfig.facts(config or CONFIG)
+    return out
+
+
+def inconsistent(node, at: str = "figures") -> list[str]:
+    """Every place in ``node`` where a figure of ``SUMS`` is recorded beside all its parts and is not their sum."""
+    out = []
+    if isinstance(node, dict):
+        for name, parts in SUMS.items():
+            if isinstance(node.get(name), (int, float)) and all(isinstance(node.get(p), (int, float)) for p in parts):
+                total = sum(node[p] for p in parts)
+                if abs(node[name] - total) > 0.15:
+                    out.append(f"{at}/{name} is {node[name]}, not {' + '.join(parts)} = {total:g} "
+                               f"({name} means that sum in every results file)")
+        for key, value in node.items():
+            out += inconsistent(value, f"{at}/{key}")
     return out
 
 
@@ -148,23 +169,32 @@ def fmt(value, spec: str | None) -> str:
 
 
 def summary_table(results: dict[str, dict]) -> list[str]:
-    """benchmarks/README.md's Summary: the ``summary`` rows of every results file, and one row per device of the
-    shipped speed settings, by date."""
+    """benchmarks/README.md's Summary: per figure, the rows of its latest measurement (several machines measured
+    that day: a row each), its goal once; and one row per device of the shipped speed settings. A summary's
+    ``of`` names the figure when results files of several dates measure the same one (their ``figure`` texts may
+    differ); without it the ``figure`` text is the figure. Earlier measurements stay in the sections below."""
     rows = []
     for name, d in results.items():
         if name == "config":
             continue
         if name == "speed_settings":
-            rows += speed_rows(d)
+            rows += [("speed_settings " + r[3], *r) for r in speed_rows(d)]
             continue
         got = d.get("summary")
         for s in ([got] if isinstance(got, dict) else got or []):
-            rows.append((d["date"], s.get("order", 0), name, d.get("cpu", d["machine"]), s["figure"],
-                         s.get("command", d["command"]), s["result"], s.get("goal", "—"), f"[{name}](results/{name}.json)"))
+            rows.append((s.get("of", s["figure"]), d["date"], s.get("order", 0), name, d.get("cpu", d["machine"]),
+                         s["figure"], s.get("command", d["command"]), s["result"], s.get("goal", "—"),
+                         f"[{name}](results/{name}.json)"))
+    latest: dict[str, str] = {}
+    for r in rows:
+        latest[r[0]] = max(latest.get(r[0], r[1]), r[1])
     lines = ["| date | machine | figure | command | result | goal / limit | source |",
              "|---|---|---|---|---|---|---|"]
-    for date, _, _, cpu, figure, command, result, goal, src in sorted(rows, key=lambda r: r[:3]):
-        lines.append(f"| {date} | {cpu} | {figure} | `{command}` | {result} | {goal} | {src} |")
+    shown: set[str] = set()
+    for of, date, _, _, cpu, figure, command, result, goal, src in sorted(
+            (r for r in rows if r[1] == latest[r[0]]), key=lambda r: (r[1], r[2], r[3])):
+        lines.append(f"| {date} | {cpu} | {figure} | `{command}` | {result} | {'″' if of in shown else goal} | {src} |")
+        shown.add(of)
     return lines
 
 

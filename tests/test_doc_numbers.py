@@ -331,3 +331,26 @@ def test_a_number_typed_beside_a_profile_that_the_config_contradicts_is_named(do
     assert any("doc.md:5: next to the default plan: typed steps" in d for d in diffs)
     assert any("objective 'val_best.ratio.pos_l2'" in d and "'cost'" in d for d in diffs)
     assert any(f"'{lc['image_size'] * 2}²'" in d for d in diffs)
+
+
+def test_a_figure_means_one_thing_in_every_results_file(docblocks, tmp_path):
+    """install_s is torch + project wherever its parts are recorded beside it (not the clone or the venv)."""
+    results_dir, _ = _project(tmp_path, "", {"install_s": 22.6, "torch_s": 20.7, "project_s": 1.9,
+                                             "runs": {"C": {"install_s": 28.6, "torch_s": 22.9, "project_s": 5.7}}})
+    assert docblocks.load_results(results_dir, tmp_path / "none.json")["job"]["figures"]["install_s"] == 22.6
+    (results_dir / "job.json").write_text((results_dir / "job.json").read_text().replace("28.6", "32.7"))
+    with pytest.raises(docblocks.NumbersError, match=r"figures/runs/C/install_s is 32.7, not torch_s \+ project_s"):
+        docblocks.load_results(results_dir, tmp_path / "none.json")
+
+
+def test_the_summary_shows_the_latest_rows_of_each_figure_and_its_goal_once(docblocks, tmp_path):
+    results_dir = tmp_path / "results"
+    results_dir.mkdir()
+    for name, date, cpu in (("old", "2026-01-01", "A"), ("new-a", "2026-02-01", "A"), ("new-b", "2026-02-01", "B")):
+        (results_dir / f"{name}.json").write_text(json.dumps(
+            {"title": "t", "machine": cpu, "cpu": cpu, "date": date, "command": "c", "figures": {"x": 1},
+             "summary": {"of": "job", "figure": f"the job ({name})", "result": name, "goal": f"goal {name}"}}))
+    lines = docblocks.summary_table(docblocks.load_results(results_dir, tmp_path / "none.json"))
+    body = [line for line in lines[2:]]
+    assert len(body) == 2 and not any("(old)" in line for line in body)
+    assert sum("goal new-a" in line or "goal new-b" in line for line in body) == 1
