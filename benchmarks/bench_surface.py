@@ -2,7 +2,7 @@
 
     python benchmarks/bench_surface.py [--voxel 0.5] [--seeds 0 1 2] [--repeat 3]
 
-For the real CT-derived tree (tests/fixtures/airways, a copy of ../shared/data/airways) and a few procedural
+For the real CT-derived tree (tests/fixtures/airways: the Chaste project's, BSD-3) and a few procedural
 patients: time to load the anatomy (tree + lobe paths), then each stage of
 ``lumen_surface`` - the round-cone signed distance, Flying Edges, largest piece,
 windowed-sinc smoothing, decimation to the triangle budget, cleaning/normals -

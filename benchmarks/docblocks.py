@@ -17,6 +17,10 @@ span, so the prose cannot drift from the measurement:
 results file; ``--write`` rewrites the spans from the files (atomically). tests/test_doc_numbers.py runs the
 check, so a figure changed in the prose, or a results file re-measured without regenerating the prose, fails.
 A benchmark records a new measurement with ``record(...)`` (bench_calibration.py ``--record`` does).
+
+What experiments.yaml states (a profile's size, budget, objective, seeds) is quoted the same way from the entry
+``config`` (benchmarks/docconfig.py: ``<!-- n: config/PLAN/KEY -->``, the block ``profiles``), and the check also
+names a number typed beside a profile's name in README.md, CONTRIBUTING.md or docs/ that the config contradicts.
 """
 
 from __future__ import annotations
@@ -31,10 +35,22 @@ import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(1, str(Path(__file__).resolve().parents[1]))
+import docconfig  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 SPEED_SETTINGS = ROOT / "bronchocli" / "speed_settings.json"
+CONFIG = ROOT / "experiments.yaml"
+# the log of measurements, each in its dated section: what a plan was then, so its typed numbers are not checked
+# against today's config (its figures are spans like everywhere else)
+LOG = Path("benchmarks") / "README.md"
 REQUIRED = ("title", "machine", "date", "command", "figures")
+# A figure's name means one thing in every results file: where its parts are recorded beside it, it is their sum
+# (install_s is torch and the project installed, never the clone or the venv; total_s the whole command)
+SUMS = {"install_s": ("torch_s", "project_s"),
+        "total_s": ("clone_venv_s", "torch_s", "project_s", "sweep_s", "report_s")}
 
 # "as", not "|", before the format: a pipe would split a Markdown table's cell even inside a comment
 INLINE = re.compile(r"<!-- n: (?P<ref>[^>]+?)(?: as (?P<fmt>[^>]*?))?\s*-->(?P<text>.*?)<!-- /n -->", re.S)
@@ -53,10 +69,14 @@ def documents(root: Path = ROOT) -> list[Path]:
     return [p for p in paths if p.exists()]
 
 
-def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTINGS) -> dict[str, dict]:
-    """Every results file by name (its file stem), validated; ``speed_settings`` as it is shipped."""
+def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTINGS,
+                 config: Path | None = None) -> dict[str, dict]:
+    """Every results file by name (its file stem), validated; ``speed_settings`` as it is shipped; ``config``:
+    every plan of experiments.yaml (``CONFIG`` unless given), docconfig.facts."""
     out: dict[str, dict] = {}
     for path in sorted(results_dir.glob("*.json")):
+        if path.stem in ("speed_settings", "config"):
+            raise NumbersError(f"{path}: {path.stem!r} is a reserved name (pick another file name)")
         try:
             data = json.loads(path.read_text(encoding="utf-8"))
         except json.JSONDecodeError as exc:
@@ -68,14 +88,40 @@ def load_results(results_dir: Path = RESULTS, speed_settings: Path = SPEED_SETTI
             dt.date.fromisoformat(str(data["date"]))
         except ValueError:
             raise NumbersError(f"{path}: date {data['date']!r} is not YYYY-MM-DD") from None
+        for problem in inconsistent(data["figures"]):
+            raise NumbersError(f"{path}: {problem}")
         out[path.stem] = data
     if speed_settings.exists():
         out["speed_settings"] = json.loads(speed_settings.read_text(encoding="utf-8"))
+    out["config"] = docconfig.facts(config or CONFIG)
+    return out
+
+
+def inconsistent(node, at: str = "figures") -> list[str]:
+    """Every place in ``node`` where a figure of ``SUMS`` is recorded beside all its parts and is not their sum."""
+    out = []
+    if isinstance(node, dict):
+        for name, parts in SUMS.items():
+            if isinstance(node.get(name), (int, float)) and all(isinstance(node.get(p), (int, float)) for p in parts):
+                total = sum(node[p] for p in parts)
+                if abs(node[name] - total) > 0.15:
+                    out.append(f"{at}/{name} is {node[name]}, not {' + '.join(parts)} = {total:g} "
+                               f"({name} means that sum in every results file)")
+        for key, value in node.items():
+            out += inconsistent(value, f"{at}/{key}")
     return out
 
 
 def lookup(results: dict[str, dict], ref: str):
-    """The value at ``FILE/key/path``."""
+    """The value at ``FILE/key/path``; ``A ÷ B``: the value at A divided by the one at B (lists of equal length
+    element by element: a ratio per seed)."""
+    if "÷" in ref:
+        a, b = (lookup(results, part) for part in ref.split("÷", 1))
+        if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            return [x / y for x, y in zip(a, b)]
+        if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+            return a / b
+        raise NumbersError(f"{ref!r}: can divide two numbers or two lists of one length, not {a!r} and {b!r}")
     name, *keys = ref.strip().split("/")
     if name not in results:
         raise NumbersError(f"unknown results file {name!r} in {ref!r} (known: {', '.join(sorted(results))})")
@@ -91,13 +137,14 @@ def lookup(results: dict[str, dict], ref: str):
 
 
 def duration(seconds: float) -> str:
-    """1939 -> '32 min 19 s'; under a minute: '28.6 s'."""
+    """Seconds as the prose shows them, rounded (never floored) to the unit shown: 1939 -> '32 min 19 s';
+    6776.4 -> '1 h 53 min'; under a minute: '28.6 s'."""
     if seconds < 60:
         return f"{seconds:g} s"
-    m, s = divmod(int(round(seconds)), 60)
-    if m >= 60:
-        h, m = divmod(m, 60)
+    if seconds >= 3600 - 30:  # shown in minutes: 3,599 s is '1 h 0 min', not '59 min 59 s' floored to the hour
+        h, m = divmod(int(round(seconds / 60)), 60)
         return f"{h} h {m} min"
+    m, s = divmod(int(round(seconds)), 60)
     return f"{m} min {s} s"
 
 
@@ -112,9 +159,9 @@ def fmt(value, spec: str | None) -> str:
         word, _, inner = spec.partition(" ")
         if not isinstance(value, list) or not value:
             raise NumbersError(f"format {spec!r} needs a list, got {value!r}")
-        if word == "range":
-            lo, hi = min(value), max(value)
-            return one(lo, inner) if lo == hi else f"{one(lo, inner)}–{one(hi, inner)}"
+        if word == "range":  # ends that print alike are printed once ("251", not "251–251")
+            lo, hi = one(min(value), inner), one(max(value), inner)
+            return lo if lo == hi else f"{lo}–{hi}"
         return " / ".join(one(v, inner) for v in value)
     if isinstance(value, (dict, list)):
         raise NumbersError(f"a {type(value).__name__} needs a format (range, join), got {spec!r}")
@@ -122,21 +169,32 @@ def fmt(value, spec: str | None) -> str:
 
 
 def summary_table(results: dict[str, dict]) -> list[str]:
-    """benchmarks/README.md's Summary: the ``summary`` rows of every results file, and one row per device of the
-    shipped speed settings, by date."""
+    """benchmarks/README.md's Summary: per figure, the rows of its latest measurement (several machines measured
+    that day: a row each), its goal once; and one row per device of the shipped speed settings. A summary's
+    ``of`` names the figure when results files of several dates measure the same one (their ``figure`` texts may
+    differ); without it the ``figure`` text is the figure. Earlier measurements stay in the sections below."""
     rows = []
     for name, d in results.items():
+        if name == "config":
+            continue
         if name == "speed_settings":
-            rows += speed_rows(d)
+            rows += [("speed_settings " + r[3], *r) for r in speed_rows(d)]
             continue
         got = d.get("summary")
         for s in ([got] if isinstance(got, dict) else got or []):
-            rows.append((d["date"], s.get("order", 0), name, d.get("cpu", d["machine"]), s["figure"],
-                         s.get("command", d["command"]), s["result"], s.get("goal", "—"), f"[{name}](results/{name}.json)"))
+            rows.append((s.get("of", s["figure"]), d["date"], s.get("order", 0), name, d.get("cpu", d["machine"]),
+                         s["figure"], s.get("command", d["command"]), s["result"], s.get("goal", "—"),
+                         f"[{name}](results/{name}.json)"))
+    latest: dict[str, str] = {}
+    for r in rows:
+        latest[r[0]] = max(latest.get(r[0], r[1]), r[1])
     lines = ["| date | machine | figure | command | result | goal / limit | source |",
              "|---|---|---|---|---|---|---|"]
-    for date, _, _, cpu, figure, command, result, goal, src in sorted(rows, key=lambda r: r[:3]):
-        lines.append(f"| {date} | {cpu} | {figure} | `{command}` | {result} | {goal} | {src} |")
+    shown: set[str] = set()
+    for of, date, _, _, cpu, figure, command, result, goal, src in sorted(
+            (r for r in rows if r[1] == latest[r[0]]), key=lambda r: (r[1], r[2], r[3])):
+        lines.append(f"| {date} | {cpu} | {figure} | `{command}` | {result} | {'″' if of in shown else goal} | {src} |")
+        shown.add(of)
     return lines
 
 
@@ -176,6 +234,7 @@ BLOCKS: dict[str, Callable[[dict[str, dict]], list[str]]] = {
     "summary": summary_table,
     "calibration": calibration_block,
     "learning-cost": learning_cost_block,
+    "profiles": lambda results: docconfig.profiles_block(results["config"]),
 }
 
 
@@ -214,8 +273,11 @@ def spans(text: str) -> Iterable[tuple[str, str]]:
 
 
 def check(paths: Iterable[Path], results: dict[str, dict], root: Path = ROOT) -> list[str]:
-    """One line per span whose text differs from what its results file gives (empty: every document agrees)."""
-    diffs: list[str] = []
+    """One line per span whose text differs from what its results file gives, and per number typed beside a
+    profile's name that experiments.yaml contradicts (empty: every document agrees)."""
+    paths = list(paths)
+    described = [p for p in paths if p != root / LOG]
+    diffs: list[str] = docconfig.typed(described, results["config"], root) if "config" in results else []
     for path in paths:
         rel = path.relative_to(root) if path.is_relative_to(root) else path
         text = path.read_text(encoding="utf-8")

@@ -1,6 +1,6 @@
 """Pose conventions: Euler angles, rotation matrices, relative poses, accumulation.
 
-The single source of truth for the conventions of ../shared/DESIGN.md §2:
+The single source of truth for the pose conventions (docs/conventions.md):
 
 * a pose is a 6-vector ``(x, y, z, alpha, beta, gamma)``: position in world
   voxels, orientation as intrinsic X-Y-Z Euler angles in degrees, i.e.

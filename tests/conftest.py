@@ -19,8 +19,7 @@ import pytest
 from mounts import tmpfs
 
 REPO = Path(__file__).resolve().parents[1]
-# A copy of ../shared/data/airways (CT-derived tree of the Chaste project, BSD-3, licence beside it),
-# kept in the repository so a clean checkout anywhere runs the real-anatomy tests.
+# The CT-derived tree of the Chaste project (BSD-3, licence beside it), kept in the repository so a clean checkout anywhere runs the real-anatomy tests.
 REAL_TREE = REPO / "tests" / "fixtures" / "airways" / "TestSubject002MajorAirways.vtu"
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")

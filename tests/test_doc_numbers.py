@@ -102,6 +102,18 @@ def test_a_lines_block_shows_the_recorded_lines_and_names_a_drifted_one(docblock
     assert "not a list of lines" in docblocks.check([doc], results, tmp_path)[0]
 
 
+def test_a_ratio_of_two_figures_is_computed_per_element(docblocks, tmp_path):
+    results_dir, doc = _project(tmp_path, "<!-- n: job/figures/slow ÷ job/figures/fast as range .1f -->x<!-- /n -->× and "
+                                          "<!-- n: job/figures/total_s ÷ job/figures/half as .1f -->x<!-- /n -->×\n",
+                                {"slow": [732.4, 763.4], "fast": [251.1, 251.2], "total_s": 3.0, "half": 1.5})
+    results = docblocks.load_results(results_dir, tmp_path / "none.json")
+    docblocks.write([doc], results, tmp_path)
+    assert doc.read_text().startswith("<!-- n: job/figures/slow ÷ job/figures/fast as range .1f -->2.9–3.0<!-- /n -->×")
+    assert "-->2.0<!-- /n -->×" in doc.read_text()
+    doc.write_text("<!-- n: job/figures/slow ÷ job/figures/total_s -->1<!-- /n -->\n")
+    assert "can divide two numbers or two lists" in docblocks.check([doc], results, tmp_path)[0]
+
+
 def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tmp_path):
     results_dir, doc = _project(tmp_path, "<!-- n: job/figures/missing -->1<!-- /n -->\n", {"total_s": 1.5})
     results = docblocks.load_results(results_dir, tmp_path / "none.json")
@@ -116,7 +128,12 @@ def test_unknown_references_and_incomplete_results_files_are_named(docblocks, tm
 def test_formats(docblocks):
     assert docblocks.fmt(1939, "dur") == "32 min 19 s"
     assert docblocks.fmt(28.6, "dur") == "28.6 s"
+    assert docblocks.fmt(6776.4, "dur") == "1 h 53 min"  # 1 h 52 min 56 s rounds up, is not floored
+    assert docblocks.fmt(6739.0, "dur") == "1 h 52 min"
+    assert docblocks.fmt(3599, "dur") == "1 h 0 min" and docblocks.fmt(119.6, "dur") == "2 min 0 s"
     assert docblocks.fmt([0.98, 0.965, 0.974], "range .3f") == "0.965–0.980"
+    assert docblocks.fmt([251.1338, 251.2073], "range .0f") == "251"  # ends that print alike: printed once
+    assert docblocks.fmt([299.7981, 301.3049], "range .0f") == "300–301"
     assert docblocks.fmt([0.98, 0.965], "join .3f") == "0.980 / 0.965"
     assert docblocks.fmt(1.753983547542414, ".2f") == "1.75"
     with pytest.raises(docblocks.NumbersError):
@@ -142,13 +159,71 @@ def test_the_command_line_checks_the_repository_and_fails_on_a_drifted_copy(docb
     assert "README.md:" in capsys.readouterr().out
 
 
-OUTSIDE = re.compile(r"\.\./shared|/work/|DEVELOPERS|developers' guide|DESIGN\.md|DESIGN §")
+OUTSIDE = re.compile(r"\.\./shared|/work/|DEVELOPERS|developers' guide|DESIGN\.md|DESIGN §|"
+                     r"/tmp/[\w.-]+\.(?:sh|py)\b|(?:script|note)s?\b[^.\n]{0,40}\bnot kept\b|set-up notes|setup notes")
 
 
-def test_no_document_points_outside_the_repository(docblocks):
-    bad = [f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}" for p in docblocks.documents()
+# what the repository holds as text: its code, tests, docs, benchmarks, CI and config (raw logs of a run, which
+# record the paths of the machine they ran on, are not pointers)
+TEXT = ("*.py", "*.md", "*.sh", "*.yaml", "*.yml", "*.toml", "run")
+LOGS = ("benchmarks/gpu-*/*", "benchmarks/results/*.txt")
+
+
+def repository_text() -> list[Path]:
+    out = [p for p in ROOT.iterdir() if p.is_file() and any(p.match(g) for g in TEXT)]
+    for top in ("bronchocli", "tests", "benchmarks", "docs", ".ci"):
+        out += [p for p in sorted((ROOT / top).rglob("*")) if p.is_file() and any(p.match(g) for g in TEXT)
+                and "__pycache__" not in p.parts and not any(p.relative_to(ROOT).match(g) for g in LOGS)]
+    return [p for p in out if p != Path(__file__).resolve()]
+
+
+def test_nothing_in_the_repository_points_outside_it():
+    """No document, module, test or script names a file, script or note that is not in the repository."""
+    bad = [f"{p.relative_to(ROOT)}:{i}: {line.strip()[:100]}" for p in repository_text()
            for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1) if OUTSIDE.search(line)]
     assert not bad, "\n".join(bad)
+
+
+# a file path in backticks: a token with a slash whose first part is a folder of this repository, or one ending
+# in a file type of it; resolved against the repository, the document's folder, the package and the results
+EXISTING = re.compile(r"`([\w.][\w.-]*(?:/[\w.-]+)+/?)`")
+OURS = ("bronchocli", "tests", "benchmarks", "docs", ".ci")
+SUFFIXES = (".py", ".md", ".sh", ".json", ".toml", ".yaml", ".yml", ".txt")
+# paths in backticks that are not this repository's files, each for its reason
+NOT_OURS = {
+    "experiments/train_all.sh", "BronchoTrack/data/datasets.py", "BronchoTrack/data/dataorg.py",
+    "models/modules.py", "models/bronchonet.py",  # the authors' repository (docs/reproduction.md)
+    "data/bronchopose/spec.json",  # inside a logged MLflow Model (docs/api.md)
+}
+
+
+def backticked_paths(text: str) -> list[tuple[int, str]]:
+    text = re.sub(r"^```.*?^```", lambda m: "\n" * m.group(0).count("\n"), text, flags=re.S | re.M)
+    return [(text.count("\n", 0, m.start()) + 1, m.group(1)) for m in EXISTING.finditer(text)
+            if m.group(1).split("/")[0] in OURS or Path(m.group(1)).suffix in SUFFIXES]
+
+
+def missing_paths(doc: Path, root: Path = ROOT) -> list[str]:
+    out = []
+    for line, path in backticked_paths(doc.read_text(encoding="utf-8")):
+        where = (root / path, doc.parent / path, root / "bronchocli" / path, root / "benchmarks" / path,
+                 root / "benchmarks" / "results" / path)
+        if path not in NOT_OURS and not any(p.exists() for p in where):
+            out.append(f"{doc.relative_to(root) if doc.is_relative_to(root) else doc}:{line}: `{path}`")
+    return out
+
+
+def test_every_file_path_in_backticks_in_the_docs_exists(docblocks):
+    bad = [m for p in docblocks.documents() if p.suffix == ".md" for m in missing_paths(p)]
+    assert not bad, "a path the docs name is not in the repository:\n" + "\n".join(bad)
+
+
+def test_a_backticked_path_that_does_not_exist_is_named(tmp_path):
+    doc = tmp_path / "doc.md"
+    doc.write_text("See `benchmarks/docblocks.py`, `training/loop.py` and `results/render.json`,\n"
+                   "not `tests/data/test_generate.py` nor `benchmarks/nope.sh`; `runs/mlflow.db` is an output.\n"
+                   "```\n`tests/in_a_fence.py`\n```\n", encoding="utf-8")
+    assert missing_paths(doc, ROOT) == [f"{doc}:2: `tests/data/test_generate.py`", f"{doc}:2: `benchmarks/nope.sh`"]
 
 
 def test_relative_links_of_the_documents_resolve(docblocks):
@@ -195,3 +270,87 @@ def test_readme_quotes_no_timing_or_ratio_outside_a_generated_span():
     bad = [f"README.md:{i}: {m.group(0)!r} in {line.strip()[:80]!r}" for i, line in enumerate(text.splitlines(), 1)
            for m in typed.finditer(line)]
     assert not bad, "quote it through a span of its results file (CONTRIBUTING.md):\n" + "\n".join(bad)
+
+
+# -- the config's numbers (benchmarks/docconfig.py) ---------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def plans(docblocks):
+    return docblocks.load_results()["config"]
+
+
+def test_every_plan_of_experiments_yaml_has_its_facts_from_the_loader(docblocks, plans):
+    """The facts are the loader's: an independent read of the YAML agrees on what it states directly."""
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "experiments.yaml").read_text(encoding="utf-8"))
+    assert list(plans) == ["default", *raw["profiles"]]
+    for name, f in plans.items():
+        merged = raw if name == "default" else {**raw, **{k: v if not isinstance(v, dict) else {**raw.get(k, {}), **v}
+                                                          for k, v in raw["profiles"][name].items()}}
+        assert f["steps"] == merged["train"]["steps"], name
+        assert f["seeds"] == merged["grid"]["seed"], name
+        assert f["pairs"] == f["steps"] * f["pairs_per_step"] and f["cells"] == sum(f["stage_cells"])
+
+
+def test_a_changed_config_is_a_changed_span_and_write_follows_it(docblocks, tmp_path):
+    text = (ROOT / "experiments.yaml").read_text(encoding="utf-8")
+    config = tmp_path / "experiments.yaml"
+    config.write_text(text.replace("      steps: 5000\n", "      steps: 4000\n", 1), encoding="utf-8")
+    doc = tmp_path / "doc.md"
+    doc.write_text("| `learning-curve` | <!-- n: config/learning-curve/size -->x<!-- /n --> |\n\n"
+                   "<!-- numbers: profiles -->\n<!-- /numbers -->\n", encoding="utf-8")
+    results = docblocks.load_results(ROOT / "benchmarks" / "results", tmp_path / "none.json", config)
+    assert len(docblocks.check([doc], results, tmp_path)) == 2
+    docblocks.write([doc], results, tmp_path)
+    written = doc.read_text(encoding="utf-8")
+    assert "4,000 steps × 20 pairs" in written and "| `learning-curve` | `bronchopose-learning-curve` |" in written
+    assert docblocks.check([doc], results, tmp_path) == []
+    assert docblocks.check([doc], docblocks.load_results(), tmp_path)  # against the real config: 5,000 steps
+
+
+def test_a_number_typed_beside_a_profile_that_the_config_contradicts_is_named(docblocks, plans, tmp_path):
+    lc, default, cost = plans["learning-curve"], plans["default"], plans["learning-cost"]
+    right = (f"`learning-curve` trains {lc['steps']:,} steps × {lc['batch_size']} pairs at {lc['image_size']}², "
+             f"validation every {lc['val_every']} steps.\n\n"
+             f"| plan | our CPU default |\n|---|---|\n| Steps | {default['steps']} steps, {default['n_seeds']} seeds |\n\n"
+             f"`learning-cost` has objective `{cost['objective']}`.\n\n"
+             f"`learning-curve` with `--set train.steps=7` trains 7 steps. Before 2026-11-28 `learning-curve` ran "
+             f"3 steps. The main job (Table 6) at {default['image_size'] + 1}²: no plan named.\n")
+    doc = tmp_path / "doc.md"
+    doc.write_text(right, encoding="utf-8")
+    assert docblocks.check([doc], docblocks.load_results(tmp_path / "none", tmp_path / "none.json"), tmp_path) == []
+    wrong = (right.replace(f"{lc['steps']:,} steps", f"{lc['steps'] + 1000:,} steps")
+             .replace(f"| {default['steps']} steps", f"| {default['steps'] - 1} steps")
+             .replace(f"objective `{cost['objective']}`", "objective `val_best.ratio.pos_l2`")
+             .replace(f"at {lc['image_size']}²", f"at {lc['image_size'] * 2}²"))
+    doc.write_text(wrong, encoding="utf-8")
+    diffs = docblocks.check([doc], docblocks.load_results(tmp_path / "none", tmp_path / "none.json"), tmp_path)
+    assert len(diffs) == 4, diffs
+    assert any("doc.md:1: next to learning-curve: typed steps" in d for d in diffs)
+    assert any("doc.md:5: next to the default plan: typed steps" in d for d in diffs)
+    assert any("objective 'val_best.ratio.pos_l2'" in d and "'cost'" in d for d in diffs)
+    assert any(f"'{lc['image_size'] * 2}²'" in d for d in diffs)
+
+
+def test_a_figure_means_one_thing_in_every_results_file(docblocks, tmp_path):
+    """install_s is torch + project wherever its parts are recorded beside it (not the clone or the venv)."""
+    results_dir, _ = _project(tmp_path, "", {"install_s": 22.6, "torch_s": 20.7, "project_s": 1.9,
+                                             "runs": {"C": {"install_s": 28.6, "torch_s": 22.9, "project_s": 5.7}}})
+    assert docblocks.load_results(results_dir, tmp_path / "none.json")["job"]["figures"]["install_s"] == 22.6
+    (results_dir / "job.json").write_text((results_dir / "job.json").read_text().replace("28.6", "32.7"))
+    with pytest.raises(docblocks.NumbersError, match=r"figures/runs/C/install_s is 32.7, not torch_s \+ project_s"):
+        docblocks.load_results(results_dir, tmp_path / "none.json")
+
+
+def test_the_summary_shows_the_latest_rows_of_each_figure_and_its_goal_once(docblocks, tmp_path):
+    results_dir = tmp_path / "results"
+    results_dir.mkdir()
+    for name, date, cpu in (("old", "2026-01-01", "A"), ("new-a", "2026-02-01", "A"), ("new-b", "2026-02-01", "B")):
+        (results_dir / f"{name}.json").write_text(json.dumps(
+            {"title": "t", "machine": cpu, "cpu": cpu, "date": date, "command": "c", "figures": {"x": 1},
+             "summary": {"of": "job", "figure": f"the job ({name})", "result": name, "goal": f"goal {name}"}}))
+    lines = docblocks.summary_table(docblocks.load_results(results_dir, tmp_path / "none.json"))
+    body = [line for line in lines[2:]]
+    assert len(body) == 2 and not any("(old)" in line for line in body)
+    assert sum("goal new-a" in line or "goal new-b" in line for line in body) == 1

@@ -42,7 +42,7 @@ COARSEST_MM = 1.0  # never contour coarser than this, however wide the airways
 RADIUS_VOXELS = 1.5  # the thinnest airway spans at least this many voxels of radius when possible
 SMOOTH_ITERATIONS = 15
 SMOOTH_PASSBAND = 0.1
-MAX_TRIANGLES = 60_000  # decimation target: DESIGN §7 measured ~54k triangles rendering at 82 fps (128²)
+MAX_TRIANGLES = 60_000  # decimation target (benchmarks/README.md, "Rendering")
 MAX_REDUCTION = 0.9  # never remove more than this fraction of the triangles
 
 

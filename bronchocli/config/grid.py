@@ -203,3 +203,30 @@ def expand_grid(cfg: Config, patients: Sequence[str] | None = None, grid: Grid |
                 out.append(cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
                                     pose_frame=frame, train_trajectories=size))
     return out
+
+
+def stages_of(cfg: Config) -> list[Stage]:
+    """The plan's stages: ``stages``, or one stage, its grid (docs/sweep.md)."""
+    return list(cfg.stages) or [Stage(name="grid")]
+
+
+def source_of(cfg: Config, stage: Stage) -> Stage:
+    """The stage that ``stage`` selects from: its ``source``, else the one before it."""
+    stages = stages_of(cfg)
+    if stage.source is not None:
+        return next(s for s in stages if s.name == stage.source)
+    return stages[[s.name for s in stages].index(stage.name) - 1]
+
+
+def stage_cells(cfg: Config, stage: Stage, patients: Sequence[str] | None,
+                combos: Sequence[dict[str, Any]] = ()) -> list[Cell]:
+    """The cells of ``stage``: its grid, restricted to ``combos`` when it selects, plus its ``add`` entries."""
+    grid = stage.stage_grid(cfg.grid)
+    wanted = list(combos) if stage.select is not None else [{}]
+    wanted += list(stage.add)
+    out: dict[str, Cell] = {}
+    for combo in wanted:
+        g = grid.model_copy(update={k: [v] for k, v in combo.items()})
+        for cell in expand_grid(cfg, patients, g):
+            out.setdefault(cell.key, cell)
+    return list(out.values())

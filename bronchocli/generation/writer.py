@@ -28,7 +28,7 @@ from ..errors import WriteFailed
 from ..io import fmt_bytes, write_bytes
 from .trajectories import PlannedTrajectory
 
-PNG_COMPRESSION = 1  # zlib level: the fastest level still shrinks frames ~2x; DESIGN §7
+PNG_COMPRESSION = 1  # zlib level: the fastest level still shrinks frames ~2x (benchmarks/README.md, "Rendering")
 CSV_COLUMNS: tuple[str, ...] = (
     "patient", "lobe", "trajectory", "frame", "pos_x", "pos_y", "pos_z", "Rx", "Ry", "Rz", "filename",
     "base_filename", "arc_mm", "dx", "dy", "dz", "roll", "clearance_mm", "radius_mm", "clamped",

@@ -26,7 +26,7 @@ from vtkmodules.vtkCommonCore import vtkPoints  # noqa: E402
 from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkPolyData  # noqa: E402
 from vtkmodules.vtkFiltersCore import vtkPolyDataNormals, vtkTriangleFilter  # noqa: E402
 
-AIRWAY_RGB = (0.96, 0.60, 0.48)  # diffuse mucosa colour (DESIGN §7)
+AIRWAY_RGB = (0.96, 0.60, 0.48)  # diffuse mucosa colour
 VESSEL_RGB = (0.62, 0.18, 0.20)  # darker red for the vessel network of the texture
 COLOUR_ARRAY = "mucosa_rgb"
 

@@ -8,7 +8,7 @@ centre of the top-left pixel)::
     fy = (H / 2) / tan(fov / 2),   fx = fy (square pixels),
     cx = (W - 1) / 2,              cy = (H - 1) / 2.
 
-A camera-frame point ``(x, y, z)`` (x forward, y left, z up, DESIGN §2)
+A camera-frame point ``(x, y, z)`` (x forward, y left, z up, docs/conventions.md)
 projects to ``u = cx - fx * y / x``, ``v = cy - fy * z / x``. Pure NumPy: the
 dataset reader and tests use it without VTK.
 """

@@ -5,7 +5,7 @@ it, and a single positional spot light at the camera tip (the bronchoscope's
 light guide). Its distance attenuation ``1 / (c + (q / r^2) d^2)`` is scaled by
 the local airway radius ``r`` at the camera: no fixed attenuation looks right
 from the trachea (r ~ 8 mm) to r ~ 1 mm, and this acts like the automatic gain
-of a real bronchoscope (DESIGN §7). Multisampling is off (it halves the frame
+of a real bronchoscope. Multisampling is off (it halves the frame
 rate of the software renderer); pixels are copied out of VTK's buffer on every
 frame (VTK reuses one buffer).
 """
@@ -57,7 +57,7 @@ class FrameRenderer:
     """Offscreen renderer of one lumen surface: ``render(position_mm, R, radius_mm) -> H x W x 3 uint8``.
 
     ``R``'s columns are the camera's (forward, left, up) in the surface's mm
-    frame (DESIGN §2), so VTK's direction of projection is ``R[:, 0]`` and its
+    frame (docs/conventions.md), so VTK's direction of projection is ``R[:, 0]`` and its
     view-up ``R[:, 2]``. Row 0 of the returned frame is the top of the image.
     """
 

@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..cells import Cell, Selection, select
-from ..config import Config, Stage, expand_grid, run_signature
+from ..config import Config, Stage, run_signature
+from ..config.grid import source_of, stage_cells, stages_of
 from ..generation import ensure_dataset
 from ..generation.sources import planned_patients
 from ..runs.client import client_for, experiment_id
@@ -43,36 +44,11 @@ from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 DAMAGED = "damaged"  # the state shown for a claims row this code cannot use (``damage.py``)
 
 
-def stages_of(cfg: Config) -> list[Stage]:
-    return list(cfg.stages) or [Stage(name="grid")]
-
-
 def plan_key(cfg: Config) -> str:
     """Identifies the plan: the run settings, the grid and the stages (a changed config never reuses a selection)."""
     blob = json.dumps({"run": run_signature(cfg), "grid": cfg.grid.model_dump(mode="json"),
                        "stages": [s.model_dump(mode="json") for s in cfg.stages]}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def source_of(cfg: Config, stage: Stage) -> Stage:
-    stages = stages_of(cfg)
-    if stage.source is not None:
-        return next(s for s in stages if s.name == stage.source)
-    return stages[[s.name for s in stages].index(stage.name) - 1]
-
-
-def stage_cells(cfg: Config, stage: Stage, patients: Sequence[str] | None,
-                combos: Sequence[dict[str, Any]] = ()) -> list[Cell]:
-    """The cells of ``stage``: its grid, restricted to ``combos`` when it selects, plus its ``add`` entries."""
-    grid = stage.stage_grid(cfg.grid)
-    wanted = list(combos) if stage.select is not None else [{}]
-    wanted += list(stage.add)
-    out: dict[str, Cell] = {}
-    for combo in wanted:
-        g = grid.model_copy(update={k: [v] for k, v in combo.items()})
-        for cell in expand_grid(cfg, patients, g):
-            out.setdefault(cell.key, cell)
-    return list(out.values())
 
 
 @dataclass

@@ -20,7 +20,7 @@ def real():
 
 
 def test_real_tree_structure(real):
-    # DESIGN §6: 84 end points (83 leaves + the trachea entrance), 82 bifurcations -> 165 branches
+    # the real tree: 84 end points (83 leaves + the trachea entrance), 82 bifurcations -> 165 branches
     assert len(real.branches) == 165
     assert sum(not b.children for b in real.branches) == 83
     all_pts = np.concatenate([b.points for b in real.branches])
@@ -40,7 +40,7 @@ def test_real_tree_right_main_bronchus(real):
     down = -up_vector(real)
     chord = lambda b: (b.points[-1] - b.points[0]) / np.linalg.norm(b.points[-1] - b.points[0])  # noqa: E731
     assert rb.length < lb.length and chord(rb) @ down > chord(lb) @ down
-    assert rb.length == pytest.approx(22.0, abs=1.0) and lb.length == pytest.approx(57.0, abs=1.5)  # DESIGN §7
+    assert rb.length == pytest.approx(22.0, abs=1.0) and lb.length == pytest.approx(57.0, abs=1.5)
     assert rb.points[-1, 0] < lb.points[-1, 0]  # this file is LPS-like: the patient's right is -x
 
 
@@ -60,7 +60,7 @@ def test_real_tree_lobe_paths(real):
 
 
 def test_real_tree_paths_end_at_the_reference_leaves(real):
-    # leaves of ../shared/reference/real-tree-lobe-paths.png (read off the figure, x and z to ~3 mm)
+    # the lobe paths' leaves as read off a reference figure of this tree (x and z, to ~3 mm)
     reference = {"ur": (-45, -77), "br": (-56, -209), "ul": (50, -92), "bl": (52, -187)}
     for lobe, (x, z) in reference.items():
         end = real.lobe_paths[lobe].points[-1]

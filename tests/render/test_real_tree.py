@@ -1,4 +1,4 @@
-"""The real CT-derived tree of ../shared/data/airways: four lobe paths, and a small dataset that renders right."""
+"""The real CT-derived tree of tests/fixtures/airways: four lobe paths, and a small dataset that renders right."""
 
 from __future__ import annotations
 
