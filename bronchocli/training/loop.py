@@ -60,6 +60,7 @@ from . import checkpoint
 from .batchnorm import freeze_bn, mode_gap, recalibrate_bn
 from .compiling import compile_network
 from .network import PoseRegressor
+from .optimiser import optimiser
 from .schedule import beta1, lr_factor
 
 log = logging.getLogger(__name__)
@@ -121,23 +122,6 @@ class Settings:
         return self.steps - int(round(self.bn_freeze * self.steps))
 
 
-def param_groups(net: torch.nn.Module, lr: float, backbone_lr: float) -> list[dict[str, Any]]:
-    """What the optimiser updates: the head at ``lr`` first (its rate is the one logged), then the backbones at
-    ``lr * backbone_lr`` (``train.backbone_lr``; one group when it is 1). Frozen parameters (``model.frozen_stages``)
-    are left out. The schedule scales every group's rate alike, so the ratio holds at every step."""
-    trainable = [p for p in net.parameters() if p.requires_grad]
-    model = getattr(net, "model", net)
-    backbones = getattr(model, "backbones", lambda: ())()
-    in_backbones = {id(p) for b in backbones for p in b.parameters()}
-    if backbone_lr == 1.0 or not in_backbones:
-        return [{"params": trainable}]
-    head = [p for p in trainable if id(p) not in in_backbones]
-    body = [p for p in trainable if id(p) in in_backbones]
-    if not body:  # the whole backbone frozen
-        return [{"params": head}]
-    return [{"params": head, "lr": lr}, {"params": body, "lr": lr * backbone_lr}]
-
-
 @dataclass
 class FitResult:
     steps: int
@@ -173,9 +157,7 @@ class Trainer:
         self.order = BatchOrder(len(train), samples_per_micro, s.seed)
         self.photometric = Photometric() if s.augment else None
         fused = device.type in ("cuda", "cpu")
-        groups = param_groups(net, s.lr, s.backbone_lr)
-        self.opt = torch.optim.AdamW(groups, lr=s.lr, weight_decay=s.weight_decay, fused=fused) \
-            if s.weight_decay else torch.optim.Adam(groups, lr=s.lr, fused=fused)
+        self.opt = optimiser(net, s.lr, s.weight_decay, s.backbone_lr, fused=fused)
         self.sched = torch.optim.lr_scheduler.LambdaLR(self.opt, lambda k: lr_factor(k, s))
         self._beta1 = lambda k: beta1(k, s)  # the schedule's own settings, as the rate's
         self.scaler = torch.amp.GradScaler(device.type, init_scale=AMP_INIT_SCALE,

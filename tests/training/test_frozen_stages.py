@@ -11,7 +11,7 @@ import torch
 
 from bronchocli.models import build_model
 from bronchocli.training.batchnorm import batchnorms, recalibrate_bn
-from bronchocli.training.loop import param_groups
+from bronchocli.training.optimiser import param_groups
 from bronchocli.training.network import PoseRegressor
 
 
