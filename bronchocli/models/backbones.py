@@ -172,6 +172,10 @@ class EfficientNetB0Features(nn.Module):
         """The nine stages in input order (stem, seven MBConv stages, head): what ``model.frozen_stages`` counts."""
         return [[m] for m in self.features]
 
+    def run_stages(self, x: Tensor, start: int = 0, stop: int = 9) -> Tensor:
+        """Stages ``start`` to ``stop - 1`` only: the input of stage ``start`` -> the output of stage ``stop - 1``."""
+        return self.features[start:stop](x)
+
 
 def _init_efficientnet(module: nn.Module) -> None:
     for m in module.modules():

@@ -120,6 +120,19 @@ class EfficientNetLite0Features(nn.Module):
         x = self._blocks(F.relu6(self._bn0(self._conv_stem(x))))
         return F.relu6(self._bn1(self._conv_head(x)))
 
+    def run_stages(self, x: Tensor, start: int = 0, stop: int = 9) -> Tensor:
+        """Stages ``start`` to ``stop - 1`` only: the input of stage ``start`` -> the output of stage ``stop - 1``."""
+        stages = self.stages()
+        for i in range(start, stop):
+            if i == 0:
+                x = F.relu6(self._bn0(self._conv_stem(x)))
+            elif i == len(stages) - 1:
+                x = F.relu6(self._bn1(self._conv_head(x)))
+            else:
+                for block in stages[i]:
+                    x = block(x)
+        return x
+
     def stages(self) -> list[list[nn.Module]]:
         """The nine stages in input order (stem, seven MBConv stages, head), as B0's: ``model.frozen_stages``."""
         out: list[list[nn.Module]] = [[self._conv_stem, self._bn0]]

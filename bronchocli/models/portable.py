@@ -78,7 +78,10 @@ class Regressor(nn.Module):
         return self.model.temporal
 
     def forward(self, frames: torch.Tensor, state: Any = None) -> tuple[torch.Tensor, Any]:
-        x = (frames.float().div_(255.0) - self.image_mean) / self.image_std
+        if getattr(self.model, "prefix_cached", 0):  # features of the frozen stages, computed from normalised frames
+            x = frames
+        else:
+            x = (frames.float().div_(255.0) - self.image_mean) / self.image_std
         z, state = self.model(x, state)
         return z.float() * self.label_std + self.label_mean, state
 

@@ -21,7 +21,7 @@ from ..data.batches import FrameSource
 from ..models import build_model, input_normalisation
 from ..runs.contract import gpu_share
 from ..runs.processes import process_age_s
-from . import evaluate
+from . import evaluate, frozen_features
 from .cost import cost_of_learning
 from .device import device_for, precision_for, seed_everything, speed_for
 from .loop import FitResult, Settings, Trainer
@@ -103,6 +103,8 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
     seed_everything(cell.seed)
     net = build_network(cfg, cell, data, device)
     source = FrameSource(data.cache, device, cfg.data.frames_on_device, share=gpu_share())
+    # frozen backbone stages shared by every cell: computed once per dataset, then read (frozen_features.py)
+    train_source, frozen_metrics = frozen_features.source_for(cfg, net, data.cache, device, source)
     first_step: dict[str, float] = {}
 
     def stepped(step: int, total: int) -> None:
@@ -115,12 +117,13 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         if on_step is not None:
             on_step(step, total)
 
-    trainer = Trainer(net, data.train, data.val, source, settings(cfg, cell, device), device=device,
+    trainer = Trainer(net, data.train, data.val, train_source, settings(cfg, cell, device), device=device,
                       ckpt_dir=ckpt_dir, stop=stop, on_validation=_both(on_validation, share_cores), on_step=stepped,
                       compile=cfg.train.compile, cell_key=cell.key, on_curves=on_curves)
     if resume_state is not None:
         trainer.load_state(resume_state)
     fit = trainer.fit()
+    frozen_features.release(net)  # the test evaluates the whole network on frames: the function the run ships
     round_to_export_(net, cfg.runs.model_artifact)  # test the weights the run ships (fp16: rounded)
     if on_phase is not None:
         on_phase(f"test evaluation ({len(data.split.test)} trajectories)")
@@ -149,7 +152,8 @@ def fit_and_evaluate(cfg: Config, cell: Cell, data: RunData, *, ckpt_dir: Path |
         train("frames_on_device"): float(source.resident),
         train("skipped_steps"): float(trainer.skipped_steps),  # 16-mixed: steps the loss scaler skipped
         train("core_s"): trainer.core_s,  # CPU seconds of the training steps, every thread (a resumed run: all)
-        **cost_of_learning(fit.history),  # cost.pairs_to_0.90 / cost.core_s_to_0.90 when a validation reached it
+        **cost_of_learning(fit.history),
+        **frozen_metrics,  # cost.pairs_to_0.90 / cost.core_s_to_0.90 when a validation reached it
     }
     if "run" in first_step:
         metrics[train("first_step_s")] = first_step["run"]  # from the engine's start (data already prepared)
