@@ -228,7 +228,8 @@ class _Grower:
             phi = base + k * np.pi / 4
             normal = _unit(rotate(tip.normal, u, phi))
             w = np.cross(normal, u)
-            dirs = (_unit(hf.cos(th_minor) * u + hf.sin(th_minor) * w), _unit(hf.cos(th_major) * u - hf.sin(th_major) * w))
+            dirs = (_unit(hf.cos(th_minor) * u + hf.sin(th_minor) * w),
+                    _unit(hf.cos(th_major) * u - hf.sin(th_major) * w))
             # Planes close to the parent's (phi near 0/180 deg) flatten the tree: penalise them.
             score = self.clearance(start, dirs, lengths, (d_minor, d_major), i, tip.side) - 0.3 * d * abs(hf.cos(phi))
             if best is None or score > best[0]:
