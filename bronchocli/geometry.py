@@ -13,6 +13,8 @@ The single source of truth for the pose conventions (docs/conventions.md):
 
 Every function works on NumPy arrays and on torch tensors alike, batched over
 any leading dimensions; torch is only imported when a tensor is passed in.
+On NumPy arrays the trigonometry and matrix products are :mod:`.hostfree`'s, so
+poses computed here (a dataset's, its labels) are the same bits on every host.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ import math
 from typing import Any, Literal
 
 import numpy as np
+
+from . import hostfree as hf
 
 PoseFrame = Literal["world", "camera"]
 POSE_FRAMES: tuple[str, ...] = ("world", "camera")
@@ -37,6 +41,23 @@ def _xp(x: Any):
 
         return torch
     return np
+
+
+def _cos(x):
+    return hf.cos(x) if _xp(x) is np else x.cos()
+
+
+def _sin(x):
+    return hf.sin(x) if _xp(x) is np else x.sin()
+
+
+def _atan2(y, x):
+    return hf.atan2(y, x) if _xp(y) is np else _xp(y).arctan2(y, x)
+
+
+def _matmul(a, b):
+    """``a @ b``; on NumPy arrays without BLAS (whose kernel, and rounding, depends on the CPU)."""
+    return hf.matmul(a, b) if _xp(a) is np else a @ b
 
 
 def _as_array(x):
@@ -65,8 +86,8 @@ def euler_to_matrix(angles_deg):
     e = _as_array(angles_deg)
     xp = _xp(e)
     rad = e * (math.pi / 180.0)
-    ca, cb, cc = xp.cos(rad[..., 0]), xp.cos(rad[..., 1]), xp.cos(rad[..., 2])
-    sa, sb, sc = xp.sin(rad[..., 0]), xp.sin(rad[..., 1]), xp.sin(rad[..., 2])
+    ca, cb, cc = _cos(rad[..., 0]), _cos(rad[..., 1]), _cos(rad[..., 2])
+    sa, sb, sc = _sin(rad[..., 0]), _sin(rad[..., 1]), _sin(rad[..., 2])
     rows = [
         [cb * cc, -cb * sc, sb],
         [ca * sc + sa * sb * cc, ca * cc - sa * sb * sc, -sa * cb],
@@ -88,15 +109,15 @@ def matrix_to_euler(R):
     xp = _xp(R)
     r12, r22 = R[..., 1, 2], R[..., 2, 2]
     gimbal = xp.sqrt(r12 * r12 + r22 * r22) < _GIMBAL_EPS
-    alpha = xp.where(gimbal, xp.zeros_like(r12), xp.arctan2(-r12, r22))
-    ca, sa = xp.cos(alpha), xp.sin(alpha)
+    alpha = xp.where(gimbal, xp.zeros_like(r12), _atan2(-r12, r22))
+    ca, sa = _cos(alpha), _sin(alpha)
     # Rows of Rx(alpha)^T R that hold beta and gamma (see the docstring).
     n02 = R[..., 0, 2]
     n22 = (-sa * R[..., 1, 2] + ca * R[..., 2, 2]).clip(min=0.0)  # = cos(beta) >= 0; rounding can make it -0.0
     n10 = ca * R[..., 1, 0] + sa * R[..., 2, 0]
     n11 = ca * R[..., 1, 1] + sa * R[..., 2, 1]
-    beta = xp.arctan2(n02, n22)
-    gamma = xp.arctan2(n10, n11)
+    beta = _atan2(n02, n22)
+    gamma = _atan2(n10, n11)
     return _in_ranges(xp.stack([alpha, beta, gamma], -1) * (180.0 / math.pi))
 
 
@@ -153,8 +174,8 @@ def relative_pose(prev, cur, frame: PoseFrame = "world"):
         de = wrap_deg(cur[..., 3:] - prev[..., 3:])
     elif frame == "camera":
         Rp_T = _transpose(euler_to_matrix(prev[..., 3:]))
-        dp = (Rp_T @ dp[..., None])[..., 0]
-        de = matrix_to_euler(Rp_T @ euler_to_matrix(cur[..., 3:]))
+        dp = _matmul(Rp_T, dp[..., None])[..., 0]
+        de = matrix_to_euler(_matmul(Rp_T, euler_to_matrix(cur[..., 3:])))
     else:
         raise ValueError(f"pose frame {frame!r} is not one of {', '.join(POSE_FRAMES)}")
     return xp.concatenate([dp, de], -1)
@@ -175,8 +196,8 @@ def compose(pose, delta, frame: PoseFrame = "world"):
     if frame != "camera":
         raise ValueError(f"pose frame {frame!r} is not one of {', '.join(POSE_FRAMES)}")
     R = euler_to_matrix(pose[..., 3:])
-    p = pose[..., :3] + (R @ delta[..., :3, None])[..., 0]
-    return xp.concatenate([p, matrix_to_euler(R @ euler_to_matrix(delta[..., 3:]))], -1)
+    p = pose[..., :3] + _matmul(R, delta[..., :3, None])[..., 0]
+    return xp.concatenate([p, matrix_to_euler(_matmul(R, euler_to_matrix(delta[..., 3:])))], -1)
 
 
 def accumulate(start, deltas, frame: PoseFrame = "world"):
@@ -199,8 +220,8 @@ def accumulate(start, deltas, frame: PoseFrame = "world"):
     dR = euler_to_matrix(deltas[..., 3:])
     positions, rotations = [p], [R]
     for t in range(deltas.shape[-2]):
-        p = p + (R @ deltas[..., t, :3, None])[..., 0]
-        R = R @ dR[..., t, :, :]
+        p = p + _matmul(R, deltas[..., t, :3, None])[..., 0]
+        R = _matmul(R, dR[..., t, :, :])
         positions.append(p)
         rotations.append(R)
     pos = xp.stack(positions, -2)
@@ -236,4 +257,4 @@ def roll_about_forward(R, roll_deg):
     else:
         roll = xp.as_tensor(roll_deg, dtype=R.dtype, device=R.device)
     zeros = xp.zeros_like(roll)
-    return R @ euler_to_matrix(xp.stack([roll, zeros, zeros], -1))
+    return _matmul(R, euler_to_matrix(xp.stack([roll, zeros, zeros], -1)))

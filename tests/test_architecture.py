@@ -20,7 +20,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "bronchocli"
 # Lowest first. A module may import modules of its own layer or of a lower one, never of a higher one.
 LAYERS: list[set[str]] = [
     {"errors"},
-    {"urls", "pathcheck", "io", "extras", "retry", "registry", "runkeys", "speed", "interrupts"},
+    {"urls", "pathcheck", "io", "extras", "retry", "registry", "runkeys", "speed", "interrupts", "hostfree"},
     {"cells"},
     {"config"},
     {"geometry", "metrics", "odometry", "runs", "plots"},  # runs: MLflow run tracking

@@ -360,6 +360,45 @@ def test_with_expose_a_request_naming_this_machine_reads_a_run_through_the_api(t
         proc.wait(timeout=30)
 
 
+def test_allowed_host_is_answered_and_another_name_is_told_what_to_pass(tmp_path):
+    """Issue 57, item 6: `ui --expose --allowed-host review.example` answers ``Host: review.example`` (a DNS alias,
+    a reverse proxy) with 200, on loopback; a name it was not given gets 403 naming the flag to pass."""
+    (tmp_path / "experiments.yaml").write_text("name: alias-test\n")
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-c", MAIN, "ui", "--port", str(port), "--workers", "1", "--expose",
+                             "--allowed-host", "review.example"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+    def get(path: str, host: str) -> tuple[int, bytes]:
+        request = urllib.request.Request(f"http://127.0.0.1:{port}{path}", headers={"Host": host})
+        try:
+            with urllib.request.urlopen(request, timeout=10) as response:
+                return response.status, response.read()
+        except urllib.error.HTTPError as exc:
+            return exc.code, exc.read()
+
+    try:
+        deadline = time.monotonic() + 300  # a guard, not a timing claim: a starved shared CPU takes minutes
+        while True:
+            try:
+                if get("/health", f"127.0.0.1:{port}")[0] == 200:
+                    break
+            except OSError:
+                pass
+            if proc.poll() is not None or time.monotonic() > deadline:
+                pytest.fail(f"the UI did not come up:\n{proc.stdout.read() if proc.poll() is not None else ''}")
+            time.sleep(0.2)
+        query = urllib.parse.urlencode({"experiment_name": "alias-test"})
+        for host in ("review.example", f"review.example:{port}"):
+            status, body = get(f"/api/2.0/mlflow/experiments/get-by-name?{query}", host)
+            assert status == 200 and json.loads(body)["experiment"]["name"] == "alias-test", body[:200]
+        status, body = get(f"/api/2.0/mlflow/experiments/get-by-name?{query}", f"other.example:{port}")
+        assert status == 403 and "--allowed-host other.example" in body.decode(), body[:300]
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=30)
+
+
 @pytest.mark.parametrize("host, loopback", [("127.0.0.1", True), ("127.0.0.2", True), ("localhost", True),
                                             ("::1", True), ("0.0.0.0", False), ("::", False),
                                             ("no-such-host.invalid", None)])

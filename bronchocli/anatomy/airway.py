@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from .. import hostfree as hf
 from ._vtk import poly_from_state, poly_state
 
 
@@ -26,7 +27,7 @@ class Branch:
 
     @property
     def length(self) -> float:
-        return float(np.linalg.norm(np.diff(self.points, axis=0), axis=1).sum())
+        return float(hf.norm(np.diff(self.points, axis=0)).sum())
 
 
 @dataclass
@@ -41,7 +42,7 @@ class LobePath:
     @property
     def arc_length(self) -> np.ndarray:
         """Cumulative arc length in mm at each point, starting at 0."""
-        return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(self.points, axis=0), axis=1))])
+        return np.concatenate([[0.0], np.cumsum(hf.norm(np.diff(self.points, axis=0)))])
 
     @property
     def generation(self) -> int:

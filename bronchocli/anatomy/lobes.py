@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import hostfree as hf
 from ..errors import ConfigError, DataError
 from .airway import AirwayTree, LobePath
 
@@ -37,8 +38,8 @@ def up_vector(tree: AirwayTree) -> np.ndarray:
     file is in a patient frame, z superior), else the trachea axis from the carina to the entrance."""
     pts = tree.branches[0].points
     v = pts[0] - pts[-1]
-    v = v / (np.linalg.norm(v) or 1.0)
-    return np.array([0.0, 0.0, 1.0]) if v[2] >= np.cos(np.radians(PATIENT_FRAME_DEG)) else v
+    v = v / (hf.norm(v) or 1.0)
+    return np.array([0.0, 0.0, 1.0]) if v[2] >= hf.cos(np.radians(PATIENT_FRAME_DEG)) else v
 
 
 def subtree(tree: AirwayTree, b: int) -> list[int]:
@@ -64,14 +65,14 @@ def main_bronchi(tree: AirwayTree) -> tuple[int, int]:
     votes = 0  # votes for "a is the right main bronchus"
     ba, bb = tree.branches[a], tree.branches[b]
     votes += ba.length < bb.length
-    votes += _chord(ba.points) @ down > _chord(bb.points) @ down
+    votes += hf.dot(_chord(ba.points), down) > hf.dot(_chord(bb.points), down)
     votes += np.median(ba.radii) > np.median(bb.radii)
     return (a, b) if votes >= 2 else (b, a)
 
 
 def _chord(points: np.ndarray) -> np.ndarray:
     v = points[-1] - points[0]
-    return v / (np.linalg.norm(v) or 1.0)
+    return v / (hf.norm(v) or 1.0)
 
 
 def _real_children(tree: AirwayTree, b: int) -> list[int]:
@@ -87,7 +88,7 @@ def _real_children(tree: AirwayTree, b: int) -> list[int]:
 
 
 def _height(tree: AirwayTree, leaf: int, up: np.ndarray) -> float:
-    return float(tree.branches[leaf].points[-1] @ up)
+    return float(hf.dot(tree.branches[leaf].points[-1], up))
 
 
 def _upper_lower(tree: AirwayTree, main: int, up: np.ndarray) -> tuple[int, int]:

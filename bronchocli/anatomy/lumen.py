@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .. import hostfree as hf
 from .airway import AirwayTree, LobePath
 
 STEP_MM = 0.1
@@ -61,10 +62,10 @@ class Lumen:
                 valid = (a != b) & ~self._last[a]
                 a, b = np.where(valid, a, idx), np.where(valid, b, idx)
                 ab = self.points[b] - self.points[a]
-                denom = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
-                t = np.clip(np.einsum("ij,ij->i", q - self.points[a], ab) / denom, 0.0, 1.0)
+                denom = np.maximum(hf.dot(ab, ab), 1e-18)
+                t = np.clip(hf.dot(q - self.points[a], ab) / denom, 0.0, 1.0)
                 closest = self.points[a] + t[:, None] * ab
-                dist = np.linalg.norm(q - closest, axis=1)
+                dist = hf.norm(q - closest)
                 better = dist < best[0]
                 best[0] = np.where(better, dist, best[0])
                 best[1] = np.where(better, (1 - t) * self.radii[a] + t * self.radii[b], best[1])
@@ -99,7 +100,7 @@ def centreline_distance(tree: AirwayTree, points_mm: np.ndarray) -> tuple[np.nda
 def resample(points: np.ndarray, values: np.ndarray, step_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """A polyline and its per-point values at even arc-length steps of at most ``step_mm``, ends kept."""
     points = np.asarray(points, dtype=np.float64)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    s = np.concatenate([[0.0], np.cumsum(hf.norm(np.diff(points, axis=0)))])
     n = max(int(np.ceil(s[-1] / step_mm)), 1)
     t = np.linspace(0.0, s[-1], n + 1)
     pts = np.stack([np.interp(t, s, points[:, i]) for i in range(3)], axis=1)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .. import hostfree as hf
 from .airway import AirwayTree, Branch
 from .graph import grid_around
 
@@ -85,20 +86,21 @@ def procedural_tree(seed: int = 0, voxel_mm: float = 0.5, morph: Morphometry = M
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
+    return hf.unit(v)
 
 
 def rotate(v: np.ndarray, axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """Rodrigues' rotation of ``v`` about the unit ``axis``."""
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return v * c + np.cross(axis, v) * s + axis * (axis @ v) * (1 - c)
+    c, s = hf.cos(angle_rad), hf.sin(angle_rad)
+    return v * c + np.cross(axis, v) * s + axis * hf.dot(axis, v) * (1 - c)
 
 
 def kitaoka_angles(r: float, n: float) -> tuple[float, float]:
     """Branching angles (degrees) of the minor (flow share r) and major child, Kitaoka et al. 1999 eq. 4-5."""
-    a = (1 + r ** (4 / n) - (1 - r) ** (4 / n)) / (2 * r ** (2 / n))
-    b = (1 + (1 - r) ** (4 / n) - r ** (4 / n)) / (2 * (1 - r) ** (2 / n))
-    return float(np.degrees(np.arccos(np.clip(a, -1, 1)))), float(np.degrees(np.arccos(np.clip(b, -1, 1))))
+    pw = lambda base, e: float(hf.power(base, e))  # noqa: E731 - host-independent ** (hostfree)
+    a = (1 + pw(r, 4 / n) - pw(1 - r, 4 / n)) / (2 * pw(r, 2 / n))
+    b = (1 + pw(1 - r, 4 / n) - pw(r, 4 / n)) / (2 * pw(1 - r, 2 / n))
+    return float(np.degrees(hf.acos(np.clip(a, -1, 1)))), float(np.degrees(hf.acos(np.clip(b, -1, 1))))
 
 
 @dataclass
@@ -135,7 +137,7 @@ class _Grower:
         ctrl = 0.5 * (start + end) + side * self.rng.uniform(0, self.m.bend) * length
         n = max(int(np.ceil(length / self.m.step_mm)), 3)
         t = np.linspace(0, 1, n + 1)[:, None]
-        pts = (1 - t) ** 2 * start + 2 * (1 - t) * t * ctrl + t ** 2 * end
+        pts = ((1 - t) * (1 - t)) * start + 2 * (1 - t) * t * ctrl + (t * t) * end
         taper = self.rng.uniform(0.0, 0.06) if taper is None else taper
         radii = 0.5 * diameter * (1 - taper * t[:, 0])
         gen = 0 if parent is None else self.branches[parent].generation + 1
@@ -169,7 +171,7 @@ class _Grower:
     def grow_central(self) -> None:
         m = self.m
         tilt = np.radians(self.u(m.trachea_tilt))
-        down = _unit(np.array([self.rng.normal(0, 0.03), np.sin(tilt), -np.cos(tilt)]))
+        down = _unit(np.array([self.rng.normal(0, 0.03), hf.sin(tilt), -hf.cos(tilt)]))
         lt, dt = self.u(m.trachea_length), self.u(m.trachea_diameter)
         self.add(-lt * down, down, lt, dt, None, taper=self.rng.uniform(0.0, 0.04))
         carina = self.u(m.carina_angle)
@@ -195,7 +197,7 @@ class _Grower:
             i = named[name]
             parent_dir = self.chord(self.branches[i].parent)
             normal = np.cross(parent_dir, self.chord(i))
-            normal = _unit(normal) if np.linalg.norm(normal) > 1e-6 else _unit(np.cross(parent_dir, [1.0, 0, 0]))
+            normal = _unit(normal) if hf.norm(normal) > 1e-6 else _unit(np.cross(parent_dir, [1.0, 0, 0]))
             self.tips.append(_Tip(i, SIDE[name], normal))
 
     # ---- stage 3: Kitaoka bifurcations ---------------------------------------------------
@@ -211,7 +213,8 @@ class _Grower:
         m, i = self.m, tip.index
         d = self.diameter(i)
         r = self.u(m.flow_ratio)
-        d_minor, d_major = d * r ** (1 / m.diameter_exponent), d * (1 - r) ** (1 / m.diameter_exponent)
+        d_minor = d * float(hf.power(r, 1 / m.diameter_exponent))
+        d_major = d * float(hf.power(1 - r, 1 / m.diameter_exponent))
         if d_major < d_min:
             return
         th_minor, th_major = kitaoka_angles(r, m.diameter_exponent)
@@ -225,9 +228,10 @@ class _Grower:
             phi = base + k * np.pi / 4
             normal = _unit(rotate(tip.normal, u, phi))
             w = np.cross(normal, u)
-            dirs = (_unit(np.cos(th_minor) * u + np.sin(th_minor) * w), _unit(np.cos(th_major) * u - np.sin(th_major) * w))
+            dirs = (_unit(hf.cos(th_minor) * u + hf.sin(th_minor) * w),
+                    _unit(hf.cos(th_major) * u - hf.sin(th_major) * w))
             # Planes close to the parent's (phi near 0/180 deg) flatten the tree: penalise them.
-            score = self.clearance(start, dirs, lengths, (d_minor, d_major), i, tip.side) - 0.3 * d * abs(np.cos(phi))
+            score = self.clearance(start, dirs, lengths, (d_minor, d_major), i, tip.side) - 0.3 * d * abs(hf.cos(phi))
             if best is None or score > best[0]:
                 best = (score, normal, dirs)
         score, normal, dirs = best

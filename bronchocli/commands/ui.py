@@ -18,6 +18,8 @@ def ui(
                              "other needs --expose)."),
     expose: bool = typer.Option(False, "--expose", help="Listen on a non-loopback --host although MLflow's UI has "
                                 "no authentication (put it behind some: docs/training.md)."),
+    allowed_host: Optional[list[str]] = typer.Option(None, "--allowed-host", help="Also answer requests naming "
+                                                     "this host (a DNS alias, a reverse proxy's name); repeatable."),
     workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, help="Server worker processes "
                                           "(default: half the cores, 1 to 4)."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
@@ -32,9 +34,11 @@ def ui(
     Filter with e.g. `params.arch = 'convlstm' and params.population = 'personalized'`.
 
     It listens on 127.0.0.1: MLflow's UI has no authentication. Another --host needs --expose
-    (it prints a warning); see docs/training.md for putting it behind authentication.
+    (it prints a warning); see docs/training.md for putting it behind authentication. With --expose it
+    answers requests naming this machine; --allowed-host NAME (repeatable) adds other names it is reached by.
     """
     from ..runs import ui as mlflow_ui  # lazy: mlflow loads only when the UI starts
 
     mlflow_ui.serve(load(config, profile, set_), host, port, workers, console, expose=expose,
+                    allowed=allowed_host or (),
                     warn=lambda line: err_console.print(line, markup=False, highlight=False, soft_wrap=True))

@@ -44,7 +44,9 @@ from . import writer
 from .sources import PatientSource, patient_sources
 from .trajectories import PathSampler, PlannedTrajectory, plan_lobe
 
-GENERATOR_VERSION = 1  # bump when the same config would render different frames
+# bump when the same config would render different frames or poses. 2: host-independent arithmetic (hostfree):
+# version 1's poses depended on the CPU's BLAS/SIMD/libm kernels (docs/reproduction.md, "One seed, one dataset")
+GENERATOR_VERSION = 2
 WORK_DIR = ".work"
 MANIFEST = "manifest.json"
 LOCK = ".generate.lock"  # held while generating: concurrent generators of one root take turns
@@ -122,21 +124,14 @@ def _check_root(root: Path, record: dict) -> str:
 # -- per-patient preparation (runs in workers) --------------------------------------------------
 
 
-def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientPlan:
-    """Load one anatomy, write its centreline graph and render-ready surface, plan its trajectories."""
+def plan_patient(source: PatientSource, gen: Generate):
+    """(airway tree, planned trajectories) of one patient: the poses, from the config alone (no rendering)."""
     tree = load_anatomy(source.anatomy, seed=source.seed, voxel_mm=gen.voxel_mm, centreline=source.centreline,
                         lobe_generation=gen.lobe_generation)
     missing = [lb for lb in gen.lobes if lb not in tree.lobe_paths]
     if missing:
         raise DataError(f"{source.anatomy}: no lobe path for {', '.join(missing)} "
                         f"(found: {', '.join(tree.lobe_paths) or 'none'})")
-    patient_dir = Path(root) / source.patient
-    patient_dir.mkdir(parents=True, exist_ok=True)
-    if not (patient_dir / "airway.vtp").exists():
-        save_centreline(tree, patient_dir / "airway.vtp")
-    surface_path = _surface_path(root, source.patient)
-    if not surface_path.exists():
-        _write_surface(tree, gen, source, surface_path)
     distance = lambda pts: centreline_distance(tree, pts)  # noqa: E731
     plans: list[PlannedTrajectory] = []
     for lobe in gen.lobes:
@@ -144,6 +139,29 @@ def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientP
         path = PathSampler(np.asarray(lp.points, dtype=np.float64), np.asarray(lp.radii, dtype=np.float64))
         plans += plan_lobe(path, gen, tree.spacing_mm, distance, patient=source.patient,
                            patient_index=source.index, lobe=lobe)
+    return tree, plans
+
+
+def planned_pose_fingerprint(cfg: Config) -> str:
+    """The ``pose_fingerprint`` that generating ``cfg``'s dataset records, computed without rendering a frame."""
+    gen = cfg.dataset.generate
+    csvs = []
+    for source in patient_sources(gen, cfg.paths.anatomy, cfg.paths.centreline):
+        tree, plans = plan_patient(source, gen)
+        csvs.append(writer.patient_csv(plans, tree.to_voxels).encode("utf-8"))
+    return writer.pose_fingerprint(csvs)
+
+
+def prepare_patient(source: PatientSource, gen: Generate, root: str) -> PatientPlan:
+    """Load one anatomy, write its centreline graph and render-ready surface, plan its trajectories."""
+    tree, plans = plan_patient(source, gen)
+    patient_dir = Path(root) / source.patient
+    patient_dir.mkdir(parents=True, exist_ok=True)
+    if not (patient_dir / "airway.vtp").exists():
+        save_centreline(tree, patient_dir / "airway.vtp")
+    surface_path = _surface_path(root, source.patient)
+    if not surface_path.exists():
+        _write_surface(tree, gen, source, surface_path)
     info = {lb: {"length_mm": round(float(tree.lobe_paths[lb].arc_length[-1]), 3),
                  "generation": int(tree.lobe_paths[lb].generation)} for lb in gen.lobes}
     return PatientPlan(source, [float(v) for v in tree.origin_mm], [float(v) for v in tree.spacing_mm], plans, info,
@@ -368,6 +386,7 @@ def _finish(root: Path, gen: Generate, record: dict, plans: list[PatientPlan], t
             write_bytes(path, data)
         parts.append((data, by_patient.get(pp.source.patient, [])))
     meta = _metadata(gen, record, plans, writer.fingerprint(parts))
+    meta["pose_fingerprint"] = writer.pose_fingerprint([data for data, _ in parts])  # the host-independent part
     # each CSV's own hash: a reader sees a CSV edited after generation (the fingerprint would no longer cover it)
     meta["csv_sha256"] = {pp.source.patient: hashlib.sha256(data).hexdigest() for pp, (data, _) in zip(plans, parts)}
     write_json(root / DATASET_JSON, meta)

@@ -49,6 +49,7 @@ from typing import Callable
 import numpy as np
 
 from .. import geometry
+from .. import hostfree as hf
 from ..cells import LOBES
 from ..config import Generate
 from ..errors import DataError
@@ -65,23 +66,23 @@ DistanceFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]  # points mm 
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return hf.unit(v)
 
 
 def minimal_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The rotation of smallest angle taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
     v = np.cross(a, b)
-    c = float(np.dot(a, b))
+    c = float(hf.dot(a, b))
     if c < -1.0 + 1e-12:
         raise DataError("lobe path reverses direction (180° turn between two centreline segments)")
     vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+    return np.eye(3) + vx + hf.matmul(vx, vx) / (1.0 + c)
 
 
 def initial_up(tangent: np.ndarray) -> np.ndarray:
     """Up vector of the first path segment: world -y (anterior) projected off the tangent, else +z."""
     hint = np.array([0.0, -1.0, 0.0]) if abs(tangent[1]) < 0.9 else np.array([0.0, 0.0, 1.0])
-    return _unit(hint - np.dot(hint, tangent) * tangent)
+    return _unit(hint - hf.dot(hint, tangent) * tangent)
 
 
 def transported_ups(points: np.ndarray) -> np.ndarray:
@@ -90,8 +91,8 @@ def transported_ups(points: np.ndarray) -> np.ndarray:
     ups = np.empty_like(t)
     ups[0] = initial_up(t[0])
     for i in range(1, len(t)):
-        u = minimal_rotation(t[i - 1], t[i]) @ ups[i - 1]
-        ups[i] = _unit(u - np.dot(u, t[i]) * t[i])  # re-orthogonalise against round-off drift
+        u = hf.matvec(minimal_rotation(t[i - 1], t[i]), ups[i - 1])
+        ups[i] = _unit(u - hf.dot(u, t[i]) * t[i])  # re-orthogonalise against round-off drift
     return ups
 
 
@@ -105,12 +106,12 @@ class PathSampler:
     ups: np.ndarray = field(init=False)  # (K-1, 3) per segment
 
     def __post_init__(self) -> None:
-        seg = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        seg = hf.norm(np.diff(self.points, axis=0))
         keep = np.concatenate([[True], seg > 1e-9])  # drop repeated points
         self.points, self.radii = self.points[keep], self.radii[keep]
         if len(self.points) < 2:
             raise DataError("lobe path has fewer than two distinct points")
-        self.arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(self.points, axis=0), axis=1))])
+        self.arc = np.concatenate([[0.0], np.cumsum(hf.norm(np.diff(self.points, axis=0)))])
         self.ups = transported_ups(self.points)
 
     @property

@@ -6,7 +6,9 @@ half a CSV. The layout and columns are those of docs/dataset-format.md.
 
 Fingerprint (recorded in dataset.json): SHA-256 over, for each patient in
 dataset.json's order, the bytes of ``<patient>.csv`` followed by the 32-byte
-SHA-256 digest of every frame file listed in that CSV, in row order.
+SHA-256 digest of every frame file listed in that CSV, in row order. Pose fingerprint (also recorded):
+SHA-256 over the patients' CSV bytes alone, in the same order: the same on every host (the poses are
+computed with :mod:`bronchocli.hostfree`), while frames also depend on the renderer (docs/reproduction.md).
 """
 
 from __future__ import annotations
@@ -163,6 +165,14 @@ def fingerprint(parts: Iterable[tuple[bytes, Sequence[bytes]]]) -> str:
         h.update(csv_bytes)
         for d in digests:
             h.update(d)
+    return h.hexdigest()
+
+
+def pose_fingerprint(csvs: Iterable[bytes]) -> str:
+    """SHA-256 hex over the patients' CSV bytes (poses and trajectory facts), in order."""
+    h = hashlib.sha256()
+    for data in csvs:
+        h.update(data)
     return h.hexdigest()
 
 

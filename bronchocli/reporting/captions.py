@@ -24,7 +24,7 @@ from collections import Counter
 from typing import Sequence
 
 from .. import runkeys
-from ..runs.records import TAG_INIT
+from ..runs.records import TAG_FINGERPRINT, TAG_INIT
 from .collect import RunRecord, stop_reasons
 from .estimand import estimand_phrase
 from .stats import ALPHA, MIN_SEEDS
@@ -180,3 +180,21 @@ def init_text(runs: Sequence[RunRecord]) -> str:
             what = "not recorded (runs made before the init tag: random unless model.pretrained was set)"
         parts.append(what + (f" ({n} of {len(runs)} runs)" if len(seen) > 1 else ""))
     return "Backbone initialisation: " + "; ".join(parts) + "."
+
+
+FINGERPRINT_CHARS = 12  # of the dataset's SHA-256 fingerprint: enough to tell datasets apart in a source line
+
+
+def dataset_text(runs: Sequence[RunRecord]) -> str:
+    """Which dataset the runs trained and were tested on: its fingerprint (dataset.json's, the runs' tag).
+
+    The same config and seed give the same poses on every host (docs/reproduction.md, "One seed, one
+    dataset"); a reader who regenerates the data compares this with ``bronchopose data stats``'s fingerprint.
+    """
+    if not runs:
+        return ""
+    seen = Counter(r.tag(TAG_FINGERPRINT)[:FINGERPRINT_CHARS] or "not recorded" for r in runs)
+    if len(seen) == 1:
+        return f"Dataset fingerprint {next(iter(seen))}."
+    each = "; ".join(f"{fp} ({n} of {len(runs)} runs)" for fp, n in sorted(seen.items()))
+    return f"Dataset fingerprints differ between runs (not one dataset): {each}."

@@ -17,7 +17,7 @@ import math
 
 from .. import registry
 from .aggregate import model_sample, replicates
-from .captions import ERRORS, budget_text, caption, fixed_seeds_note, init_text, seeds_phrase
+from .captions import ERRORS, budget_text, caption, dataset_text, fixed_seeds_note, init_text, seeds_phrase
 from .collect import FRAME, LOSS, POP
 from .context import Collector, NoData, ReportContext, arch_names, finish, losses, metrics_of
 from .estimand import unit_of
@@ -142,7 +142,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         f"the rows of each metric; significant when < {s.alpha:g}.",
         fixed_seeds_note(built_rows)) if n]
     table.source = [p for p in (f"Sweep '{ctx.index.sweep}' (MLflow experiment '{ctx.index.experiment}').",
-                                budget_text(every), init_text(every)) if p]
+                                budget_text(every), init_text(every), dataset_text(every)) if p]
     merged = collectors["world"]
     merged.lacking += collectors["camera"].lacking
     merged.warnings += [w for w in collectors["camera"].warnings if w not in merged.warnings]

@@ -36,11 +36,12 @@ from __future__ import annotations
 import importlib.metadata
 import ipaddress
 import os
+import re
 import shutil
 import socket
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from rich.console import Console
@@ -69,6 +70,7 @@ def app_registered() -> bool:
 
 
 EVERY_INTERFACE = ("0.0.0.0", "::")
+ALLOWED_NAME = re.compile(r"[A-Za-z0-9_*][A-Za-z0-9_.*-]*|\[[0-9A-Fa-f:.]+\]")  # a --allowed-host value
 
 
 def _names_of_this_machine(host: str) -> set[str]:
@@ -85,14 +87,16 @@ def _names_of_this_machine(host: str) -> set[str]:
     return {n for n in names if n}
 
 
-def allowed_hosts(host: str, port: int) -> list[str]:
-    """The Host headers the server answers with ``--expose``: MLflow's defaults (loopback, private addresses) and
-    this machine's names and addresses, bare and with the port (an IPv6 address in brackets). Without it MLflow
-    answers a request naming the machine's hostname with 403 "Invalid Host header" (DNS-rebinding protection)."""
+def allowed_hosts(host: str, port: int, extra: Sequence[str] = ()) -> list[str]:
+    """The Host headers the server answers with ``--expose``: MLflow's defaults (loopback, private addresses),
+    this machine's names and addresses and the ``extra`` names (``--allowed-host``: a DNS alias, a reverse
+    proxy's name), bare and with the port (an IPv6 address in brackets). Without it MLflow answers a request
+    naming the machine's hostname with 403 "Invalid Host header" (DNS-rebinding protection)."""
     from mlflow.server.security_utils import get_default_allowed_hosts  # lazy: mlflow.server loads Flask; --expose only
 
     out = list(get_default_allowed_hosts())
-    for name in sorted(_names_of_this_machine(host)):
+    names = sorted(_names_of_this_machine(host)) if host else []
+    for name in [*names, *(n for n in dict.fromkeys(extra) if n not in names)]:
         shown = f"[{name}]" if ":" in name else name
         out += [shown, f"{shown}:{port}"]
     return out
@@ -107,10 +111,10 @@ def link_host(host: str) -> str:
 
 
 def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, app: bool = True,
-               expose: bool = False) -> list[str]:
+               expose: bool = False, allowed: Sequence[str] = ()) -> list[str]:
     """The `mlflow ui` argv serving the config's artifact root with ``workers`` processes, through the front
-    page's app (``uiapp``) when ``app``; with ``expose``, answering requests that name this machine
-    (``allowed_hosts``).
+    page's app (``uiapp``) when ``app``; with ``expose``, answering requests that name this machine, and with
+    ``allowed`` (``--allowed-host``) the names given too (``allowed_hosts``).
 
     The store's URI is not on it (a process's argv is public in ``ps``; the URI may hold a password): it goes
     through the environment (``server_env``, ``MLFLOW_BACKEND_STORE_URI``, which `mlflow ui` reads)."""
@@ -121,8 +125,8 @@ def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, ap
             "--workers", str(workers or default_workers())]
     if app:
         argv += ["--app-name", APP_NAME]
-    if expose:
-        argv += ["--allowed-hosts", ",".join(allowed_hosts(host, port))]
+    if expose or allowed:
+        argv += ["--allowed-hosts", ",".join(allowed_hosts(host if expose else "", port, allowed))]
     if not urls.is_server(cfg.paths.mlflow_uri):
         argv += ["--default-artifact-root", cfg.paths.artifacts.as_uri()]
     return argv
@@ -186,17 +190,27 @@ def check_host(host: str, expose: bool, warn: Callable[[str], None]) -> None:
          "or a reverse proxy: docs/training.md, \"Serving the UI to others\")")
 
 
+def check_names(names: Sequence[str]) -> list[str]:
+    """``--allowed-host`` values: host names or addresses, no scheme, path, port or comma (BronchoError naming it)."""
+    for name in names:
+        if not name or not ALLOWED_NAME.fullmatch(name):
+            raise BronchoError(f"--allowed-host {name!r}: not a host name or address (allowed: letters, digits, "
+                               "'.', '-', '_', an IPv6 address in brackets, '*' as a wildcard, e.g. review.example)")
+    return list(names)
+
+
 def serve(cfg: Config, host: str, port: int, workers: int | None, console: Console, *, expose: bool = False,
-          warn: Callable[[str], None] | None = None) -> None:
+          warn: Callable[[str], None] | None = None, allowed: Sequence[str] = ()) -> None:
     """Check the host (``check_host``), the store and the port, print the runs-table link and become `mlflow ui`
     (never returns)."""
+    allowed = check_names(allowed)
     check_host(host, expose, warn or (lambda line: print(line, file=sys.stderr, flush=True)))
     if urls.is_server(cfg.paths.mlflow_uri):
         raise BronchoError(f"runs.uri {urls.redact(cfg.paths.mlflow_uri)} is already a server: open it in a browser")
     check_port(host, port)
     check_reachable(cfg)  # `mlflow ui` itself would retry a dead database for minutes
     app = app_registered()
-    argv = ui_command(cfg, host, port, workers, app=app, expose=expose)
+    argv = ui_command(cfg, host, port, workers, app=app, expose=expose, allowed=allowed)
     if not Path(argv[0]).exists():
         raise BronchoError("the `mlflow` executable was not found next to this Python; reinstall bronchocli")
     cfg.paths.artifacts.mkdir(parents=True, exist_ok=True)

@@ -155,12 +155,50 @@ async def _page(scope: dict, receive: Any, send: Any) -> None:
     await send({"type": "http.response.body", "body": b"" if method == "HEAD" else page})
 
 
+def refused_host_text(host_header: str) -> str:
+    """The body of MLflow's 403 for a Host header it does not answer, saying what to pass (issue 57, item 6)."""
+    name = host_header.rsplit(":", 1)[0] if host_header.count(":") == 1 else host_header
+    name = name or "<name>"
+    return (f"Invalid Host header {host_header!r}: this server does not answer requests naming {name} (MLflow's "
+            f"DNS-rebinding protection). If {name} is this machine's name (a DNS alias, a reverse proxy), start the "
+            f"UI with: bronchopose ui --expose --allowed-host {name} (repeatable; see docs/training.md)\n")
+
+
+async def with_host_hint(inner: Any, scope: dict, receive: Any, send: Any) -> None:
+    """``inner``'s answer, its 403 "Invalid Host header" (MLflow's plain text) replaced by ``refused_host_text``."""
+    from mlflow.server.security_utils import INVALID_HOST_MSG  # lazy: the app is built by then anyway
+
+    held: dict = {}
+
+    async def relay(message: dict) -> None:
+        if message["type"] == "http.response.start" and message.get("status") == 403:
+            held.update(start=message, body=b"")  # hold it to its last chunk: only MLflow's host refusal is rewritten
+            return
+        if message["type"] != "http.response.body" or "start" not in held:
+            await send(message)
+            return
+        held["body"] += message.get("body", b"")
+        if message.get("more_body"):
+            return
+        start, body = held.pop("start"), held.pop("body")
+        if body == INVALID_HOST_MSG.encode():
+            host = dict(scope.get("headers", [])).get(b"host", b"").decode("latin-1")
+            body = refused_host_text(host).encode()
+            start = {**start, "headers": [(b"content-type", b"text/plain; charset=utf-8"),
+                                          (b"content-length", str(len(body)).encode())]}
+        await send(start)
+        await send({"type": "http.response.body", "body": body})
+
+    await inner(scope, receive, relay)
+
+
 async def app(scope: dict, receive: Any, send: Any) -> None:
-    """ASGI: MLflow's page at ``/`` with our script (``_page``); MLflow's app for every other request."""
+    """ASGI: MLflow's page at ``/`` with our script (``_page``); MLflow's app for every other request, its refusal
+    of an unknown Host header naming the flag that allows it (``with_host_hint``)."""
     if scope["type"] == "http" and scope["method"] in ("GET", "HEAD") and scope["path"] == "/":
         await _page(scope, receive, send)
         return
-    await _mlflow()(scope, receive, send)
+    await with_host_hint(_mlflow(), scope, receive, send)
 
 
 def create_app() -> Any:

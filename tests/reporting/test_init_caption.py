@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from report_fakes import MemRuns, frames_runs
 
-from bronchocli.reporting.captions import init_text
+from bronchocli.reporting.captions import dataset_text, init_text
 from bronchocli.reporting.tables import TABLES, NoData
 
 IMAGENET = "imagenet:efficientnet_b0_rwightman-7f5810bc.pth"
@@ -35,6 +35,7 @@ def test_every_table_source_states_the_initialisation(name, init, says):
     except NoData:
         pytest.skip(f"{name}: no data in this fabricated sweep")
     assert says in table.source
+    assert any(p.startswith(("Dataset fingerprint ", "Dataset fingerprints differ")) for p in table.source)
 
 
 def test_mixed_and_unrecorded_initialisations_are_counted():
@@ -45,3 +46,15 @@ def test_mixed_and_unrecorded_initialisations_are_counted():
     assert "random weights (no pretrained backbone) (10 of 12 runs)" in text
     assert "ImageNet weights (torchvision efficientnet_b0_rwightman-7f5810bc.pth) (1 of 12 runs)" in text
     assert "not recorded" in text
+
+
+def test_the_source_line_names_the_dataset_fingerprint_and_says_when_runs_differ():
+    """Issue 57, item 7: a reader who regenerates the dataset can compare its fingerprint with the table's."""
+    m = _runs("random")
+    one = [type(r)(r.run_id, r.status, r.start_time, {**r.tags, "dataset_fingerprint": "29a6a538fb3e70dd1e72"},
+                   r.metrics) for r in m.records]
+    assert dataset_text(one) == "Dataset fingerprint 29a6a538fb3e."
+    mixed = one[:-1] + [type(one[-1])(one[-1].run_id, "FINISHED", 0, {**one[-1].tags, "dataset_fingerprint": ""}, {})]
+    text = dataset_text(mixed)
+    assert text.startswith("Dataset fingerprints differ between runs (not one dataset):")
+    assert f"29a6a538fb3e ({len(one) - 1} of {len(one)} runs)" in text and "not recorded (1 of" in text
