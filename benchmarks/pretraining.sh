@@ -38,7 +38,11 @@ run lite0-random "${lite[@]}"
 run lite0-imagenet "${lite[@]}" "${imagenet[@]}"
 # the levers pretrained features open, each against lite0-imagenet of its seed
 levers=${LEVER_SEEDS:-0}
+# frozen stages are computed once per dataset and read by every run after (training/frozen_features.py): a run's
+# train.core_s is then the trainable part's alone, train.frozen_features_core_s the one-off computation
 seeds=$levers run lite0-imagenet-frozen9 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=9   # fixed features
+seeds=$levers run lite0-imagenet-frozen7 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=7   # all but stage 7 + head
+seeds=$levers run lite0-imagenet-frozen6 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=6   # stem + 5 stages
 seeds=$levers run lite0-imagenet-frozen4 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=4   # stem + 3 stages
 seeds=$levers run lite0-imagenet-blr0.1 "${lite[@]}" "${imagenet[@]}" --set train.backbone_lr=0.1   # backbone at lr/10
 seeds=$levers run lite0-imagenet-64 "${lite[@]}" "${imagenet[@]}" --set dataset.root=data/synthetic-cpu-64 \
