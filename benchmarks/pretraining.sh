@@ -17,8 +17,12 @@ shift
 only=" $* "
 cd "$project"
 export VTK_DEFAULT_OPENGL_WINDOW=${VTK_DEFAULT_OPENGL_WINDOW:-vtkEGLRenderWindow}
+# the recipe, spelled out so that the default plan's own settings (ImageNet Lite0, frozen) do not leak in: the
+# paper's B0 from random initialisation, 500 steps x 20 pairs, lr 1e-3, 5 % warm-up, cosine, dropout 0.2
 common=(--config "$PWD/experiments.yaml" -P personalized -a convlstm -l ce --set train.val_every=50
-        --set train.threads=1)
+        --set train.threads=1 --set model.backbone=efficientnet_b0 --set model.pretrained=null
+        --set model.frozen_stages=0 --set model.dropout=0.2 --set train.steps=500 --set train.batch_size=20
+        --set train.lr=1e-3 --set train.warmup=0.05 --set train.schedule=cosine --set train.precision=auto)
 run() {  # run NAME SETTINGS...: every seed of $seeds (default PT_SEEDS, "0 1 2")
     local name=$1; shift
     [[ "$only" == "  " || "$only" == *" $name "* ]] || return 0
