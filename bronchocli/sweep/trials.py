@@ -119,7 +119,16 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None, ti
          enqueue: Sequence[Mapping[str, Any]] = (), console: Console | None = None) -> Any:
     """Run the study of ``target`` to ``trials`` rows done: in this process (``make_launcher`` None) or with the
     launcher it makes, watched by the sweep's driver (a launcher whose workers run a command needs ``spec``, the
-    config as the workers load it); returns the Optuna study. RunInterrupted when stopped."""
+    config as the workers load it); returns the Optuna study. RunInterrupted when stopped; a failing study
+    storage (read-only, damaged) is one line (``studies.storage_errors``)."""
+    with studies.storage_errors(cfg):
+        return _tune(cfg, target, trials, study=study, timeout=timeout, make_launcher=make_launcher, spec=spec,
+                     progress=progress, enqueue=enqueue, console=console)
+
+
+def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout: float | None,
+          make_launcher: MakeLauncher | None, spec: TaskSpec | None, progress: bool,
+          enqueue: Sequence[Mapping[str, Any]], console: Console | None) -> Any:
     console = console or Console(quiet=True)
     tuning.check_space(cfg)
     name = study or tuning.study_name(cfg, target)
