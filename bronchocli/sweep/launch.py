@@ -197,7 +197,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
 
 def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool, cancelled: Callable[[], bool],
           resubmitted: Callable[[], object] = lambda: None, submitted: Callable[[], object] = lambda: None,
-          cancel_hint: str = "`bronchopose sweep cancel`") -> int:
+          cancel_hint: str = "`bronchopose sweep cancel`", resume_hint: str = "`bronchopose sweep run`",
+          what: str | None = None) -> int:
     """Inside ``launcher.supervised()``: print the stages, submit workers for what is missing (then ``submitted``),
     and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s exit code). ``walk``: a sweep's
     ``StageWalk``, or anything walked alike (a study's trial rows: ``trials.StudyWalk``)."""
@@ -213,7 +214,8 @@ def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool
         if detach:
             console.print(f"detached: `bronchopose status` shows progress, {cancel_hint} stops the workers")
             return 0
-        return watch(walk, launcher, console, cancelled, resubmitted, record)
+        return watch(walk, launcher, console, cancelled, resubmitted, record,
+                     (what or f"sweep {walk.sweep}", cancel_hint, resume_hint))
 
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
@@ -253,7 +255,8 @@ def _rows(walk: StageWalk, launcher: Launcher) -> Plan:
 
 
 def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Callable[[], bool] = lambda: False,
-          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None) -> int:
+          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None,
+          hints: tuple[str, str, str] | None = None) -> int:
     """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
     requeued tasks without its hold). When none is left: the next stage's workers once a stage is done; a top-up
     when workers ended with cells left (``launcher.resubmits``) but progress was made since the last submission
@@ -294,8 +297,10 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
             if not tasks or time.monotonic() - asked > CANCEL_CHECK_S:  # never a top-up after a cancel
                 asked = time.monotonic()
                 if cancelled():
-                    console.print(f"[yellow]sweep {cfg.name} was cancelled[/] (`bronchopose sweep cancel`): nothing "
-                                  "is submitted again; `bronchopose sweep run` resumes it")
+                    what, cancel_hint, resume_hint = hints or (f"sweep {walk.sweep}", "`bronchopose sweep cancel`",
+                                                               "`bronchopose sweep run`")
+                    console.print(f"[yellow]{what} was cancelled[/] ({cancel_hint}): nothing is submitted again; "
+                                  f"{resume_hint} resumes it", highlight=False)
                     return EXIT_INTERRUPTED
             if not tasks:
                 left = cells_left(plan, retries)

@@ -67,6 +67,12 @@ def _reader(cfg: Config) -> Any:
     return client, find_experiment(client, cfg.experiment_name, redacted_uri(cfg))
 
 
+def existing_experiment(cfg: Config) -> tuple[Any, Any]:
+    """A reading client of the config's store and its experiment; (None, None) when neither exists yet (nothing is
+    created to find that out)."""
+    return _reader(cfg)
+
+
 def check_experiment(cfg: Config) -> None:
     """``ExperimentDeleted`` (one line) when the config's experiment was deleted by hand; reads only."""
     _reader(cfg)

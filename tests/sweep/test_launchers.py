@@ -262,3 +262,27 @@ def test_a_launcher_whose_submission_raises_ends_the_sweeps_parent_run_failed_wi
     client = client_for(project)
     parent = client.get_run(find_parent(client, experiment_id(client, project), KIND_SWEEP, project.name))
     assert parent.info.status == "FAILED" and reason in parent.data.tags[TAG_FAILURE]
+
+
+def test_a_cancel_touches_only_what_runs_and_names_a_study_that_is_not_there(cli, project, fake_dir):
+    """Issue 60, item 5: `sweep cancel` of a finished sweep leaves its FINISHED parent run FINISHED (not KILLED,
+    not tagged cancelled); `sweep cancel --study nosuch` fails in one line saying there is no such study."""
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import KIND_SWEEP, find_parent
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    kind = "subprocess_launcher:SubprocessLauncher"  # a launcher whose workers `sweep cancel` stops
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", kind, *FAKE)
+    assert code == 0, out + err
+    client = client_for(project)
+    parent = find_parent(client, experiment_id(client, project), KIND_SWEEP, project.name)
+    assert client.get_run(parent).info.status == "FINISHED"
+    code, out, err = cli("sweep", "cancel", "-c", path, "--launcher", kind)
+    assert code == 0, out + err
+    run = client.get_run(parent)
+    assert run.info.status == "FINISHED" and TAG_CANCELLED not in run.data.tags
+    code, out, err = cli("sweep", "cancel", "-c", path, "--study", "nosuch", "--launcher", kind)
+    assert code == 2 and err.strip().startswith("error: sweep cancel --study nosuch: no such study (no parent run "
+                                                "of it in experiment"), err
+    assert len(err.strip().splitlines()) == 1

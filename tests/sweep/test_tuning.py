@@ -326,6 +326,8 @@ def test_sweep_cancel_stops_a_study_whose_workers_a_detachable_launcher_started(
     assert code == 0 and "cancelled subprocess job(s)" in out, out + err
     out, _ = tune.communicate(timeout=300)
     assert tune.returncode == 130 and "was cancelled" in out and "Traceback" not in out, out
+    assert f"study {name} was cancelled (`bronchopose sweep cancel --study {name}`): nothing is submitted again; " \
+           "the same `bronchopose tune` command resumes it" in " ".join(out.split()), out  # not `sweep run`
     end = time.monotonic() + 300  # the watch ends at the cancel; the stopping workers checkpoint, then give back
     while {r.state for r in store.rows(study_sweep(name))} != {"pending"}:  # each stopped worker its trial's row
         assert time.monotonic() < end, store.rows(study_sweep(name))
