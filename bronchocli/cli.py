@@ -5,6 +5,8 @@ from __future__ import annotations
 import errno
 import functools
 import signal
+import sys
+import traceback
 from typing import Optional
 
 import typer
@@ -80,13 +82,19 @@ def _version(value: bool) -> None:
         raise typer.Exit()
 
 
+_DEBUG: list[bool] = [False]  # --debug: an error's one line is followed by its traceback
+
+
 @app.callback()
 def _root(
     version: Optional[bool] = typer.Option(
         None, "--version", callback=_version, is_eager=True, help="Print the version and exit."
     ),
+    debug: bool = typer.Option(False, "--debug", help="After an error's one line, print its traceback (a plugin's "
+                               "import, a launcher's submission)."),
 ) -> None:
     """Vision-based bronchoscopy pose estimation research platform."""
+    _DEBUG[0] = debug
 
 
 def _error(message: str) -> None:
@@ -143,6 +151,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(interrupts.exit_code(exc.exit_code)) from None
     except BronchoError as exc:
         _error(str(exc))
+        if _DEBUG[0]:
+            traceback.print_exception(exc, file=sys.stderr)
         raise SystemExit(exc.exit_code) from None
     except typer.Abort:  # click's: a KeyboardInterrupt (Ctrl-C, SIGTERM, SIGHUP) or a prompt's end of input
         if interrupts.last() is None:  # end of input at a prompt: nothing to say

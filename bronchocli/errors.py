@@ -14,6 +14,9 @@ reasons (``sweep gc``, ``status``) knows them all without importing torch.
 from __future__ import annotations
 
 
+DEBUG_HINT = "; `bronchopose --debug ...` shows its traceback"  # after a one-line error whose cause is another's code
+
+
 class BronchoError(Exception):
     """A problem with the user's input (file, flag, config value) that they can fix."""
 

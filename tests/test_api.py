@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from tinydata import write_tiny_dataset
 from tinyproject import write_config
 
 from bronchocli import api, runkeys
 from bronchocli.config import load_config
+from bronchocli.config.arguments import ArgumentError
 from bronchocli.errors import BronchoError
 from bronchocli.runs.client import client_for
 
@@ -66,7 +69,7 @@ def test_report_returns_its_tables_as_frames_that_match_the_written_markdown(pro
 def test_report_checks_its_arguments_before_reading_any_run(project, tmp_path):
     with pytest.raises(BronchoError, match="--table 'nope': must be one of all, "):
         api.report(project, table="nope", out=tmp_path / "r")
-    with pytest.raises(BronchoError, match="--best must be >= 0"):
+    with pytest.raises(ArgumentError, match=r"^api.report: best=-1: must be an integer >= 0 \(as --best on the "):
         api.report(project, best=-1, out=tmp_path / "r")
     assert not (tmp_path / "r").exists()
 
@@ -128,3 +131,91 @@ def test_the_documented_notebook_session_runs_a_sweep_and_reads_table3_as_a_data
     assert sorted(c.run_id for c in cells) == sorted(r.info.run_id for r in runs)
     assert list(table3["Network"])[0] == "Baseline" and "Position L2 (vox) hi" in table3.columns
     assert "x the training mean" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("call, kwargs, line", [
+    (api.sweep, {"workers": "2"}, "api.sweep: workers='2': must be an integer from 1 to 1024 (as --workers on the "
+                                  "command line)"),
+    (api.sweep, {"workers": 0}, "api.sweep: workers=0: must be an integer from 1 to 1024 (as --workers"),
+    (api.sweep, {"only": "arch=lstm"}, "api.sweep: only='arch=lstm': must be a list of strings (not one string) "
+                                       "(as --only"),
+    (api.train, {"arch": "baseline", "rot_loss": "mse", "population": "personalized", "seed": 1.5},
+     "api.train: seed=1.5: must be an integer (as --seed on the command line)"),
+    (api.train, {"arch": "baseline", "rot_loss": "mse", "population": "personalized", "seed": True},
+     "api.train: seed=True: must be an integer"),
+    (api.train, {"arch": "baseline", "rot_loss": "mse", "population": "personalized",
+                 "overrides": "train.steps=3"}, "api.train: overrides='train.steps=3': must be a list of strings"),
+    (api.tune, {"arch": "baseline", "rot_loss": "mse", "population": "personalized", "trials": "2"},
+     "api.tune: trials='2': must be an integer >= 1 (as --trials"),
+    (api.tune, {"arch": "baseline", "rot_loss": "mse", "population": "personalized", "timeout": -5},
+     "api.tune: timeout=-5: must be a number >= 0.001 (as --timeout"),
+    (api.tune, {"arch": "baseline", "rot_loss": "mse", "population": "personalized", "timeout": float("nan")},
+     "api.tune: timeout=nan: must be a number >= 0.001"),
+    (api.status, {"sweep": 3}, "api.status: sweep=3: must be a string (as --sweep"),
+    (api.config_of, {"overrides": "a=1"}, "api.config_of: overrides='a=1': must be a list of strings"),
+    (api.train, {"arch": "baseline", "rot_loss": "mse"}, "api.train: missing a required argument: 'population'"),
+])
+def test_the_api_refuses_what_the_command_line_refuses_naming_the_argument_before_any_work(
+        tmp_path, call, kwargs, line):
+    """Issue 60, item 3: the CLI's own rules (config.arguments) at every public call's boundary, one ArgumentError
+    naming the argument; nothing is read or created (the config file does not even exist)."""
+    with pytest.raises(ArgumentError) as err:
+        call(tmp_path / "experiments.yaml", **kwargs)
+    assert str(err.value).startswith(line), str(err.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_command_lines_bounds_are_the_apis():
+    """One definition: the options' Typer bounds are read from the same rules (a change of one changes both)."""
+    import typer.main
+
+    from bronchocli.cli import app
+    from bronchocli.config.arguments import RULES
+
+    group = typer.main.get_group(app)
+    seen = 0
+    for path in (["tune"], ["sweep", "run"], ["train"], ["report"]):
+        command = group
+        for name in path:
+            command = command.commands[name]
+        for param in command.params:
+            flag = max(param.opts, key=len)
+            rule = next((r for r in RULES.values() if r.flag == flag and r.kind in (int, float)), None)
+            if rule is None or rule.low is None:
+                continue
+            assert (param.min, param.max) == (rule.low, rule.high), (path, flag)
+            seen += 1
+    assert seen >= 8
+
+
+@pytest.mark.parametrize("relative, first_pose, line", [
+    ([[0.0] * 5] * 3, None, "relative: shape (3, 5): must be [T, 6]"),
+    ([[0.0] * 6] * 3, [1, 2], "first_pose: shape (2,): must be [6]"),
+    ([[0.0] * 6] * 3, [float("nan")] * 6, "first_pose: not finite"),
+    ("0,0,0", None, "relative: must be an array of numbers"),
+])
+def test_chain_refuses_poses_of_the_wrong_shape_naming_the_argument(relative, first_pose, line):
+    class Model:
+        pose_frame = "world"
+
+    with pytest.raises(ArgumentError, match="^" + re.escape(f"api.chain: {line}")):
+        api.chain(Model(), relative, first_pose)
+
+
+def test_a_sweep_started_again_by_a_worker_importing_an_unguarded_script_says_what_to_add(
+        tmp_path, monkeypatch, capsys):
+    """A spawned worker imports the script that started it as ``__mp_main__``: a top-level ``api.sweep`` there is
+    one line naming the guard to add and the worker exits 2 (no bootstrapping traceback, no second sweep)."""
+    import sys
+    import types
+
+    script = types.ModuleType("__mp_main__")
+    script.__file__ = str(tmp_path / "my_sweep.py")
+    monkeypatch.setitem(sys.modules, "__main__", script)
+    with pytest.raises(SystemExit) as stop:
+        api.sweep(tmp_path / "experiments.yaml", workers=2)
+    assert stop.value.code == 2
+    assert capsys.readouterr().err == (
+        f"error: api.sweep was called while a worker process imported {tmp_path / 'my_sweep.py'}: put the call "
+        'under `if __name__ == "__main__":` (worker processes import the script that started them; docs/api.md)\n')
+    assert list(tmp_path.iterdir()) == []

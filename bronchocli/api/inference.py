@@ -22,6 +22,7 @@ from mlflow.tracking import MlflowClient
 
 from .. import geometry
 from ..config import DEFAULT_CONFIG, load_config
+from ..config.arguments import ArgumentError
 from ..inference import loading, reader, trajectory
 from ..inference.mlflow_model import PoseModel, check_frames, warn_resize
 from ..runs.client import client_for, require_store
@@ -72,8 +73,24 @@ def predict(model: PoseModel, frames: np.ndarray) -> np.ndarray:
 def chain(model: PoseModel, relative: np.ndarray, first_pose: np.ndarray | None = None) -> np.ndarray:
     """Absolute poses ``[T, 6]``: ``relative`` chained from ``first_pose`` (default: all zeros) in the model's
     pose frame (summed in ``world``, composed in ``camera``)."""
-    start = np.zeros(6) if first_pose is None else np.asarray(first_pose, dtype=np.float64)
-    return geometry.accumulate(start, np.asarray(relative, dtype=np.float64), model.pose_frame)
+    start = np.zeros(6) if first_pose is None else _poses("api.chain", "first_pose", first_pose, 1)
+    return geometry.accumulate(start, _poses("api.chain", "relative", relative, 2), model.pose_frame)
+
+
+def _poses(call: str, name: str, value: object, ndim: int) -> np.ndarray:
+    """``value`` as float64 poses (``[6]`` or ``[T, 6]``), else one ArgumentError naming the argument."""
+    want = "[6]" if ndim == 1 else "[T, 6]"
+    if isinstance(value, (str, bytes)):
+        raise ArgumentError(f"{call}: {name}: must be an array of numbers {want}, not a string")
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ArgumentError(f"{call}: {name}: must be an array of numbers {want}") from None
+    if array.ndim != ndim or array.shape[-1] != 6:
+        raise ArgumentError(f"{call}: {name}: shape {tuple(array.shape)}: must be {want}")
+    if not np.isfinite(array).all():
+        raise ArgumentError(f"{call}: {name}: not finite (NaN or infinity)")
+    return array
 
 
 def score(model: PoseModel, relative: np.ndarray, ground_truth: np.ndarray,

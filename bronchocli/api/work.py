@@ -11,6 +11,7 @@ functions: flags -> call -> print.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -19,6 +20,7 @@ from rich.console import Console
 
 from .. import interrupts
 from ..config import DEFAULT_CONFIG, Config, load_config, parse_override
+from ..config.arguments import checked
 from ..errors import BronchoError
 from ..pathcheck import check_output
 
@@ -31,6 +33,7 @@ if TYPE_CHECKING:  # the results' modules load their stacks (torch, the reportin
 ConfigLike = str | os.PathLike | Config
 
 
+@checked
 def config_of(config: ConfigLike = DEFAULT_CONFIG, profile: str | None = None,
               overrides: Sequence[str] = ()) -> Config:
     """The config ``config`` names (a file, with ``profile`` and ``--set``-style ``overrides``), or the given one
@@ -42,10 +45,25 @@ def config_of(config: ConfigLike = DEFAULT_CONFIG, profile: str | None = None,
     return load_config(Path(config), profile, tuple(overrides))
 
 
+def _unguarded(call: str) -> None:
+    """A worker process (``spawn``) re-imports the script that started it; a script that calls ``api.sweep`` or
+    ``api.tune`` at its top level would start a sweep again inside each worker. There: one line saying what to
+    add, and that worker exits 2 (its sweep's other output says the worker stopped on an error)."""
+    main = sys.modules.get("__main__")
+    if getattr(main, "__name__", None) != "__mp_main__":
+        return
+    script = getattr(main, "__file__", None) or "your script"
+    print(f"error: {call} was called while a worker process imported {script}: put the call under "
+          '`if __name__ == "__main__":` (worker processes import the script that started them; docs/api.md)',
+          file=sys.stderr, flush=True)
+    raise SystemExit(2)
+
+
 def _silent() -> Console:
     return Console(quiet=True)
 
 
+@checked
 def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
           fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
           train_trajectories: int | None = None, profile: str | None = None, overrides: Sequence[str] = (),
@@ -76,6 +94,7 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
         return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
 
 
+@checked
 def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluation: str = "both",
            fmt: str = "both", out: str | os.PathLike = "reports", sweep: str | None = None,
            pose_frame: str | None = None, include_other_configs: bool = False, best: int = 0,
@@ -100,8 +119,6 @@ def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluatio
     from ..reporting.report import profiles_from_json
 
     names, evals, suffixes = tbl.table_names(table), tbl.evaluations(evaluation), rep.output_suffixes(fmt)
-    if best < 0 or trajectories < 1:
-        raise BronchoError("--best must be >= 0 and --trajectories >= 1")
     folder = Path(out).expanduser()
     check_output(folder, "--out", "folder")  # before minutes of work, not after
     given_profiles = profiles_from_json(Path(latency_from)) if latency_from is not None else None
@@ -114,6 +131,7 @@ def report(config: ConfigLike = DEFAULT_CONFIG, *, table: str = "all", evaluatio
                         console=console or _silent(), err_console=err_console or console or _silent())
 
 
+@checked
 def status(config: ConfigLike = DEFAULT_CONFIG, *, sweep: str | None = None, show_all: bool = False,
            repair: bool = False, storage: str | None = None, profile: str | None = None,
            overrides: Sequence[str] = (), console: Console | None = None) -> SweepState:
@@ -140,6 +158,7 @@ def _target(cfg: Config, arch: str | None, rot_loss: str | None, population: str
     return cfg.cell(arch=arch, rot_loss=rot_loss, population=population, **coords)
 
 
+@checked
 def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
          fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
          train_trajectories: int | None = None, trials: int | None = None, timeout: float | None = None,
@@ -151,6 +170,7 @@ def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popul
     a worker of ``launcher`` (default local: ``workers`` processes here on ``gpus``, one worker and no GPU in this
     process; ``"slurm"``: array tasks, which load the config file); returns the study's
     :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
+    _unguarded("api.tune")
     from ..sweep import entry  # lazy: optuna only when tuning
     from ..sweep.task import TaskSpec
     from .results import StudyResult
@@ -169,6 +189,7 @@ def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popul
     return StudyResult.from_info(info)
 
 
+@checked
 def study(config: ConfigLike = DEFAULT_CONFIG, name: str | None = None, *, arch: str | None = None,
           rot_loss: str | None = None, population: str | None = None, fold: str | None = None, seed: int = 0,
           pose_frame: str | None = None, train_trajectories: int | None = None, storage: str | None = None,
@@ -189,6 +210,7 @@ def study(config: ConfigLike = DEFAULT_CONFIG, name: str | None = None, *, arch:
     return StudyResult.from_info(entry.show_study(cfg, name, target, fmt, console or _silent()))
 
 
+@checked
 def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), workers: int | None = None,
           gpus: str | None = None, per_gpu: int | None = None, launcher: str | None = None,
           retry_failed: bool = False, detach: bool = False, storage: str | None = None,
@@ -202,6 +224,7 @@ def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (
     Returns a :class:`~bronchocli.api.results.SweepResult`: ``exit_code``/``ok`` and ``state`` (the sweep's
     ``SweepState`` afterwards, read when first asked).
     """
+    _unguarded("api.sweep")
     from ..sweep import entry  # lazy: the sweep stack loads only when sweeping
     from ..sweep.task import TaskSpec
     from .results import SweepResult

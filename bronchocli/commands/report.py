@@ -9,6 +9,7 @@ import typer
 
 from ..cells import PoseFrame
 from ..config import DEFAULT_CONFIG
+from ..config.arguments import RULES
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console
 
 Evaluation = Literal["accumulated", "pair", "both"]
@@ -34,11 +35,11 @@ def report(
     pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="The main tables' pose frame; "
                                                    "default: the runs' only one, else world (the frames table "
                                                    "compares both)."),
-    best: int = typer.Option(0, "--best", help="Cross-subject tables: keep the best N network/loss combinations "
-                             "by mean rank over the metrics (the paper shows 3); 0 = all."),
-    figures: Optional[bool] = typer.Option(None, "--figures/--no-figures", help="Write the figures "
-                                           "(default: only with --table all)."),
-    trajectories: int = typer.Option(4, "--trajectories", help="Test trajectories in the trajectory figure."),
+    best: int = typer.Option(0, "--best", **RULES["best"].bounds(), help="Cross-subject tables: keep the best "
+                             "N network/loss combinations by mean rank over the metrics (the paper shows 3); 0: all."),
+    figures: Optional[bool] = typer.Option(None, "--figures/--no-figures", help="Figures (default: with -t all only)."),
+    trajectories: int = typer.Option(4, "--trajectories", **RULES["trajectories"].bounds(), help="Test "
+                                     "trajectories in the trajectory figure."),
     latency: bool = typer.Option(True, "--latency/--no-latency", help="Ablation: measure latency/GMAC with "
                                  "`bronchopose profile` (without: those columns stay empty)."),
     latency_from: Optional[Path] = typer.Option(None, "--latency-from", help="Ablation: read latency/GMAC from "
@@ -61,10 +62,9 @@ def report(
     world vs camera labels, when the runs have both) and tracking (CTF, ATE,
     RPE, drift per network/loss). Cells are "mean [95% interval]" over seeds
     (t interval on variance components over seeds and test trajectories);
-    bold = significantly best of its column (paired t test, Holm, alpha
-    0.05), bold≈ = tied for best, † = no better than an
-    image-blind reference (the "Zero motion" and "Training mean" rows),
-    ‡ = the model ignores its input. Only runs whose cell_key is a cell of the
+    bold = significantly best of its column (paired t test, Holm, alpha 0.05),
+    bold≈ = tied for best, † = no better than an image-blind reference (the
+    "Zero motion" and "Training mean" rows), ‡ = the model ignores its input. Only runs whose cell_key is a cell of the
     config count (--sweep NAME: a stored sweep without the config). Figures
     (PNG + PDF): trajectories, error vs frame, skill per table, the learning
     curve (several train_trajectories), dataset frames and positions. The

@@ -15,7 +15,7 @@ from typer._click.exceptions import UsageError
 from typer.core import TyperGroup
 
 from ..cells import FIELDS
-from ..config.sections import MAX_WORKERS
+from ..config.arguments import RULES
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
@@ -58,12 +58,12 @@ def wide_console() -> Any:
     return wide(_console)
 
 
-WorkersOpt = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS, help="Local worker processes (torch "
+WorkersOpt = typer.Option(None, "--workers", "-w", **RULES["workers"].bounds(), help="Local worker processes (torch "
                           "threads = cores / N), one per cell left at most. Default: GPUs x --per-gpu on a GPU "
                           "machine, else 1.")
 GpusOpt = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (every visible one, "
                        "honouring CUDA_VISIBLE_DEVICES; the default), none, or a list such as 0,1.")
-PerGpuOpt = typer.Option(None, "--per-gpu", min=1, help="Cells run at once on each GPU (default 1; small cells "
+PerGpuOpt = typer.Option(None, "--per-gpu", **RULES["per_gpu"].bounds(), help="Cells run at once on each GPU (default 1; small cells "
                          "leave a GPU idle, packing several raises throughput).")
 StorageOpt = typer.Option(None, "--storage", help=STORAGE_HELP)
 OnlyOpt = typer.Option(None, "--only", help=ONLY_HELP)

@@ -9,6 +9,7 @@ import typer
 
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
+from ..config.arguments import RULES
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
@@ -21,8 +22,10 @@ def train(
     seed: int = typer.Option(0, "--seed", help="Random seed of the run."),
     pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="Relative-pose frame (default: the "
                                                    "first of the config's grid.pose_frame)."),
-    train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories", help="Training trajectories per "
-                                                     "patient and lobe (default: splits.train)."),
+    train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories",
+                                                     **RULES["train_trajectories"].bounds(),
+                                                     help="Training trajectories per patient and lobe (default: "
+                                                     "splits.train)."),
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),
     run_id: Optional[str] = typer.Option(None, "--run-id", help="With --resume: the MLflow run to continue."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study."),

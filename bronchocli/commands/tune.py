@@ -10,7 +10,7 @@ import typer
 
 from ..cells import Arch, Population, PoseFrame, RotLoss
 from ..config import DEFAULT_CONFIG
-from ..config.sections import MAX_WORKERS
+from ..config.arguments import RULES
 from ..errors import BronchoError
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console
 
@@ -24,21 +24,23 @@ def tune(
     pose_frame: Optional[PoseFrame] = typer.Option(None, "--pose-frame", help="Relative-pose frame (default: the "
                                                    "first of the config's grid.pose_frame)."),
     train_trajectories: Optional[int] = typer.Option(None, "--train-trajectories",
+                                                     **RULES["train_trajectories"].bounds(),
                                                      help="Training trajectories per patient and lobe."),
-    trials: Optional[int] = typer.Option(None, "--trials", "-n", min=1,
+    trials: Optional[int] = typer.Option(None, "--trials", "-n", **RULES["trials"].bounds(),
                                          help="Total finished trials of the study (default: tune.trials)."),
-    timeout: Optional[float] = typer.Option(None, "--timeout", min=0.001,
+    timeout: Optional[float] = typer.Option(None, "--timeout", **RULES["timeout"].bounds(),
                                             help="Stop starting trials after this many seconds."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Study storage URL (default: storage.url)."),
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
     launcher: Optional[str] = typer.Option(None, "--launcher", help="Where the trials' workers run: local (the "
                                            "default) or slurm (array tasks; `sweep cancel --study` stops them)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=1, max=MAX_WORKERS, help="Local worker "
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", **RULES["workers"].bounds(), help="Local worker "
                                           "processes, placed like a sweep's. Default: GPUs x --per-gpu on a GPU "
                                           "machine, else 1 (in this process); at most one per trial."),
     gpus: Optional[str] = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (the "
                                        "default), none, or a list such as 0,1."),
-    per_gpu: Optional[int] = typer.Option(None, "--per-gpu", min=1, help="Trials run at once on each GPU."),
+    per_gpu: Optional[int] = typer.Option(None, "--per-gpu", **RULES["per_gpu"].bounds(),
+                                          help="Trials run at once on each GPU."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
     fmt: ShowFormat = typer.Option("table", "--format", help="--show output."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),

@@ -42,7 +42,7 @@ from . import damage
 from . import launch as launching
 from . import placement, planview, summary
 from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
-from .launchers import Launcher, launcher_class, log_roots, reference
+from .launchers import Launcher, launcher_class, loadable, log_roots, reference
 from .launchers import names as launcher_names
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
@@ -84,7 +84,7 @@ def launcher_options(kind: type[Launcher], given: dict[str, Any]) -> dict[str, A
     (``{"workers": 2}``); one line naming those it does not take and the launchers that do."""
     given = {flag: value for flag, value in given.items() if value is not None}
     if foreign := [flag for flag in given if flag not in kind.options]:
-        owners = [n for n in launcher_names() if set(foreign) & set(launcher_class(n).options)]
+        owners = [k.name for k in loadable(launcher_names()) if set(foreign) & set(k.options)]
         raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
                            f"{kind.name} sizes its workers itself (docs/cluster.md)")
     return {flag.lstrip("-").replace("-", "_"): value for flag, value in given.items()}

@@ -24,10 +24,11 @@ from rich.live import Live
 from .. import urls
 from ..cells import Selection
 from ..config import Config, Stage
-from ..errors import BronchoError
+from ..errors import DEBUG_HINT, BronchoError
 from ..runs.client import client_for, experiment_id
 from ..runs.parents import set_parent_status, start_parent, sweep_parent
-from ..runs.records import set_tags
+from ..runs.contract import failure_reason
+from ..runs.records import TAG_FAILURE, set_tags
 from . import summary
 from .launchers import reference
 from .launchers.base import Launcher, Workers
@@ -99,6 +100,18 @@ def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitt
     return [(first_open, 1)] if first_open is not None else []
 
 
+def _submit(launcher: Launcher, n: int, stage: str, after: Sequence[str]) -> str:
+    """``launcher.submit``; any exception of the launcher's own code is one line naming it (``--debug``: its
+    traceback), which the sweep's parent run ends FAILED with (``launch``)."""
+    try:
+        return launcher.submit(n, stage, after)
+    except BronchoError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a plugin's submission may raise anything: one line naming it
+        raise BronchoError(f"launcher {launcher.name}: submitting {n} worker(s) for stage {stage} failed: "
+                           f"{failure_reason(exc)}{DEBUG_HINT}") from exc
+
+
 def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None,
                    ) -> list[str]:
     """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered);
@@ -126,7 +139,7 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record
             else:
                 want = launcher.capacity(left)
             if want > have:
-                job = launcher.submit(want - have, stage.name, () if first else earlier)
+                job = _submit(launcher, want - have, stage.name, () if first else earlier)
                 console.print(launcher.submitted(job, want - have, stage.name, () if first else earlier),
                               highlight=False)
                 submitted.append(job)
@@ -167,6 +180,13 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
                      resubmitted=lambda: summary.reopen(client, parent),  # a top-up after its last worker stopped it
                      submitted=lambda: summary.record_parent(client, parent, walk))  # the plan on the parent run
         return code
+    except Exception as exc:  # a submission that failed (or the watch): the parent run ends FAILED, saying why
+        try:
+            client.set_tag(parent, TAG_FAILURE, failure_reason(exc))
+        except Exception as tag_exc:  # noqa: BLE001 - the command's own error is what matters
+            log.warning("could not record on the sweep's parent run why it failed: %s", tag_exc)
+        set_parent_status(client, parent, 1)
+        raise
     finally:
         if not detach and (code is not None or launcher.stopped):
             code = 1 if code is None else code  # this command failed: its workers were stopped
@@ -177,7 +197,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
 
 def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool, cancelled: Callable[[], bool],
           resubmitted: Callable[[], object] = lambda: None, submitted: Callable[[], object] = lambda: None,
-          cancel_hint: str = "`bronchopose sweep cancel`") -> int:
+          cancel_hint: str = "`bronchopose sweep cancel`", resume_hint: str = "`bronchopose sweep run`",
+          what: str | None = None) -> int:
     """Inside ``launcher.supervised()``: print the stages, submit workers for what is missing (then ``submitted``),
     and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s exit code). ``walk``: a sweep's
     ``StageWalk``, or anything walked alike (a study's trial rows: ``trials.StudyWalk``)."""
@@ -193,7 +214,8 @@ def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool
         if detach:
             console.print(f"detached: `bronchopose status` shows progress, {cancel_hint} stops the workers")
             return 0
-        return watch(walk, launcher, console, cancelled, resubmitted, record)
+        return watch(walk, launcher, console, cancelled, resubmitted, record,
+                     (what or f"sweep {walk.sweep}", cancel_hint, resume_hint))
 
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
@@ -233,7 +255,8 @@ def _rows(walk: StageWalk, launcher: Launcher) -> Plan:
 
 
 def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Callable[[], bool] = lambda: False,
-          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None) -> int:
+          resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None,
+          hints: tuple[str, str, str] | None = None) -> int:
     """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
     requeued tasks without its hold). When none is left: the next stage's workers once a stage is done; a top-up
     when workers ended with cells left (``launcher.resubmits``) but progress was made since the last submission
@@ -274,8 +297,10 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
             if not tasks or time.monotonic() - asked > CANCEL_CHECK_S:  # never a top-up after a cancel
                 asked = time.monotonic()
                 if cancelled():
-                    console.print(f"[yellow]sweep {cfg.name} was cancelled[/] (`bronchopose sweep cancel`): nothing "
-                                  "is submitted again; `bronchopose sweep run` resumes it")
+                    what, cancel_hint, resume_hint = hints or (f"sweep {walk.sweep}", "`bronchopose sweep cancel`",
+                                                               "`bronchopose sweep run`")
+                    console.print(f"[yellow]{what} was cancelled[/] ({cancel_hint}): nothing is submitted again; "
+                                  f"{resume_hint} resumes it", highlight=False)
                     return EXIT_INTERRUPTED
             if not tasks:
                 left = cells_left(plan, retries)

@@ -6,6 +6,7 @@ cell's row saying why. Nothing here starts or stops anything (the driver is ``la
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -83,9 +84,25 @@ def report_workers(console: Console, codes: Sequence[int | None], log_dir: Path)
     if errors:
         console.print(f"[red]{len(errors)} worker(s) stopped on an error[/] (exit code 2; the error is the last line of "
                       f"each one's log in {log_dir})", highlight=False)
+        for line in error_lines(log_dir):
+            console.print(f"  {line}", highlight=False, markup=False)
     if crashed:
         console.print(f"[red]{len(crashed)} worker(s) crashed[/] (exit codes {crashed}); logs in {log_dir}",
                       highlight=False)
+
+
+def error_lines(log_dir: Path) -> list[str]:
+    """The error each of this process's local workers ended on: the last line of its log (named
+    ``<host>-<this pid>-w<n>.log`` by ``launchers.local``) when it is an ERROR line, without its time and worker."""
+    out = []
+    for path in sorted(log_dir.glob(f"*-{os.getpid()}-w*.log")):
+        try:
+            lines = path.read_text(errors="replace").rstrip().splitlines()
+        except OSError:
+            continue
+        if lines and " ERROR " in lines[-1]:
+            out.append(lines[-1].split(" ERROR ", 1)[1].split(": ", 1)[-1])
+    return out
 
 
 def waits_line(step: planning.Step) -> str:

@@ -7,7 +7,8 @@ again, whatever the claims table says: a lost or new claims database, a table be
 * ``rebuild``: whenever the sweep adds its cells' rows (``plan.add_cells``: every launcher, every array task),
   rows that are pending or failed but FINISHED in MLflow are recorded FINISHED, with that run (worker column
   ``REBUILT``), before any worker can claim them;
-* ``Worker`` checks the cell it just claimed, and records the FINISHED run instead of training;
+* ``Worker`` checks the cell it just claimed (a stale claim it took over too: a worker killed between ending its
+  run and writing the row, or whose row write failed), and records the FINISHED run instead of training;
 * ``overlay``: ``sweep plan`` and ``status`` show the same, without writing anything.
 
 A study that is new in its storage gets the trials MLflow records FINISHED for it (``rebuild_trials``).
@@ -35,7 +36,8 @@ log = logging.getLogger(__name__)
 REBUILT = "rebuilt from MLflow"  # the worker column of a row recorded from a FINISHED MLflow run
 
 
-def _duration(run: Any) -> float | None:
+def duration_of(run: Any) -> float | None:
+    """A finished run's duration in seconds (None when MLflow lacks its start or end)."""
     info = run.info
     return (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None
 
@@ -63,6 +65,12 @@ def _reader(cfg: Config) -> Any:
         return None, None
     client = client_for(cfg, reading=True)
     return client, find_experiment(client, cfg.experiment_name, redacted_uri(cfg))
+
+
+def existing_experiment(cfg: Config) -> tuple[Any, Any]:
+    """A reading client of the config's store and its experiment; (None, None) when neither exists yet (nothing is
+    created to find that out)."""
+    return _reader(cfg)
 
 
 def check_experiment(cfg: Config) -> None:
@@ -150,7 +158,7 @@ def rebuild(cfg: Config, store: SweepStore, sweep: str, cells: Sequence[Cell]) -
     n = 0
     for c in todo:
         run = found.get(c.key)
-        if run is not None and store.record_finished(rows[c.key], run.info.run_id, _duration(run), REBUILT):
+        if run is not None and store.record_finished(rows[c.key], run.info.run_id, duration_of(run), REBUILT):
             log.info("cell %s: FINISHED in MLflow (run %s), recorded in the claims table", c.label, run.info.run_id)
             n += 1
     return n
@@ -178,7 +186,7 @@ def overlay(cfg: Config, sweep: str, cells: Sequence[Cell], rows: dict[str, Cell
         base = out.get(c.key) or CellRow(sweep, c.key, i, c.label, c.coords(), PENDING, 0, 0, None, None, None, None,
                                          None, None, None, None, None)
         out[c.key] = replace(base, state=FINISHED, run_id=run.info.run_id, worker=REBUILT, token=None,
-                             duration_s=_duration(run), failure_reason=None)
+                             duration_s=duration_of(run), failure_reason=None)
     return out, len(found)
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import partial
 from typing import Any
 
@@ -151,6 +153,20 @@ def storage_for(cfg: Config):
         text = str(getattr(exc, "orig", None) or exc).strip().splitlines()
         raise StorageError(f"storage.url {urls.redact(url)}: {urls.redact(text[0] if text else type(exc).__name__)}"
                            ) from None
+
+
+@contextmanager
+def storage_errors(cfg: Config) -> Iterator[None]:
+    """Optuna's failures of the study storage (``StorageInternalError``: a read-only or damaged file, a server
+    gone) as one line naming the storage, as the claims table says them (``SweepStore``), not Optuna's trace."""
+    try:
+        yield
+    except optuna.exceptions.StorageInternalError as exc:
+        cause = exc.__cause__ or exc.__context__ or exc
+        if (damaged := urls.damaged_message(exc)) is not None:
+            raise StorageError(damaged) from exc
+        raise StorageError(f"study storage {urls.redact(optuna_url(cfg, probe=False))}: {urls.error_line(cause)}"
+                           ) from exc
 
 
 def _no_storage(cfg: Config) -> bool:

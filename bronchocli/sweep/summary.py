@@ -85,9 +85,14 @@ def record_cancel(client, exp_id: str, sweep: str) -> str | None:
 
 
 def mark_cancelled(client, parent: str) -> None:
-    """A sweep's or study's parent run tagged cancelled (``TAG_CANCELLED``: its watcher stops) and ended KILLED."""
+    """A sweep's or study's parent run tagged cancelled (``TAG_CANCELLED``: its watcher stops) and, while RUNNING,
+    ended KILLED. A cancel touches only what runs: a FINISHED parent (every cell done) stays as it is, untagged."""
+    status = client.get_run(parent).info.status
+    if status == "FINISHED":
+        return
     client.set_tag(parent, TAG_CANCELLED, time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
-    set_parent_status(client, parent, 130)
+    if status in ("RUNNING", "SCHEDULED"):
+        set_parent_status(client, parent, 130)
 
 
 def cancelled(client, parent: str | None) -> bool:

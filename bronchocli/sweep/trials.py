@@ -30,17 +30,18 @@ from typing import Any
 
 from rich.console import Console
 
+from .. import urls
 from ..cells import Cell, TrialCell
 from ..config import Config, Stage
 from ..errors import BronchoError, ConfigError
-from ..runs.client import client_for, experiment_id
+from ..runs.client import client_for
 from ..runs.contract import RunInterrupted
 from ..runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
 from . import launch, studies, summary, tuning
 from .launchers import reference
 from .launchers.base import Launcher
 from .plan import Plan, Step, cells_left, open_store, read_plan
-from .record import rebuild_trials
+from .record import existing_experiment, rebuild_trials
 from .storage import FAILED, PENDING, SweepStore
 from .studyrows import StudyTask, study_sweep, trial_cell
 from .task import TaskSpec, command
@@ -119,7 +120,16 @@ def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None, ti
          enqueue: Sequence[Mapping[str, Any]] = (), console: Console | None = None) -> Any:
     """Run the study of ``target`` to ``trials`` rows done: in this process (``make_launcher`` None) or with the
     launcher it makes, watched by the sweep's driver (a launcher whose workers run a command needs ``spec``, the
-    config as the workers load it); returns the Optuna study. RunInterrupted when stopped."""
+    config as the workers load it); returns the Optuna study. RunInterrupted when stopped; a failing study
+    storage (read-only, damaged) is one line (``studies.storage_errors``)."""
+    with studies.storage_errors(cfg):
+        return _tune(cfg, target, trials, study=study, timeout=timeout, make_launcher=make_launcher, spec=spec,
+                     progress=progress, enqueue=enqueue, console=console)
+
+
+def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout: float | None,
+          make_launcher: MakeLauncher | None, spec: TaskSpec | None, progress: bool,
+          enqueue: Sequence[Mapping[str, Any]], console: Console | None) -> Any:
     console = console or Console(quiet=True)
     tuning.check_space(cfg)
     name = study or tuning.study_name(cfg, target)
@@ -168,7 +178,8 @@ def _launched(cfg: Config, lcfg: Config, store: SweepStore, rows: Sequence[Trial
                   highlight=False)
     code = launch.drive(StudyWalk(lcfg, store, rows), launcher, console, detach=False,
                         cancelled=lambda: summary.cancelled(client, parent),
-                        cancel_hint=f"`bronchopose sweep cancel --study {task.study}`")
+                        cancel_hint=f"`bronchopose sweep cancel --study {task.study}`",
+                        resume_hint="the same `bronchopose tune` command", what=f"study {task.study}")
     if code == EXIT_INTERRUPTED:
         raise RunInterrupted(f"tune interrupted: the study's workers were stopped (`sweep cancel`, Ctrl-C); running "
                              f"trials were given back; run the same command to continue (logs: {launcher.describe()})")
@@ -201,9 +212,18 @@ def cancel_study(cfg: Config, study: str, kind: type[Launcher], console: Console
     """``sweep cancel --study NAME``: the study's parent run tagged cancelled (its `tune` stops watching and ends
     KILLED), then every queued or running worker of the study stopped (they give their rows back)."""
     lcfg = launcher_config(cfg, study)
-    if not dry_run:
-        client = client_for(cfg)
-        parent = find_parent(client, experiment_id(client, cfg), KIND_STUDY, study)
-        if parent is not None:
-            summary.mark_cancelled(client, parent)
+    client, exp = existing_experiment(cfg)  # reads only: a name that is no study creates nothing
+    parent = find_parent(client, exp.experiment_id, KIND_STUDY, study) if exp is not None else None
+    if parent is None and not _has_rows(cfg, study):
+        raise BronchoError(f"sweep cancel --study {study}: no such study (no parent run of it in experiment "
+                           f"{cfg.experiment_name}, no trial rows in storage {urls.redact(cfg.paths.storage_url)}); "
+                           "check the name")
+    if parent is not None and not dry_run:
+        summary.mark_cancelled(client_for(cfg), parent)
     return launch.cancel(kind(lcfg), console, dry_run=dry_run)
+
+
+def _has_rows(cfg: Config, study: str) -> bool:
+    """Whether the claims storage holds trial rows of ``study`` (reads only; no storage yet: none)."""
+    store = open_store(cfg)
+    return store.exists() and bool(store.rows(study_sweep(study)))

@@ -41,7 +41,7 @@ from ..runs.parents import sweep_parent
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
 from .damage import damage_line, damaged, future_line
 from .liveness import FutureHeartbeats, Heartbeat, StopSignals, is_interrupt
-from .record import finished_runs
+from .record import duration_of, finished_runs
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
@@ -193,6 +193,11 @@ class Worker:
     def _handle(self, claim: Claim) -> str:
         if claim.previous is not None:
             self._settle_orphans(claim.previous, keep=claim.released_run)
+        cell = self.cells[claim.row.cell_key]
+        done = self._finished_elsewhere(claim, cell)  # before anything else: a FINISHED run is never trained again
+        if done is not None:
+            self.stats.outcomes.append((cell.key, done))
+            return done
         if claim.exhausted:
             prev = claim.previous
             reason = (f"worker {prev.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s) on the last "
@@ -204,26 +209,31 @@ class Worker:
 
     def _finished_elsewhere(self, claim: Claim, cell: Cell) -> str | None:
         """A FINISHED MLflow run of the cell (MLflow is the record: the claims table may be new or behind) is
-        recorded on the claim instead of training the cell again (``record.py``)."""
+        recorded on the claim instead of training the cell again (``record.py``): a run finished by hand, or by a
+        worker whose row never said so (killed between ending its run and writing the row, a row write that
+        failed, a heartbeat that went stale or came from the future). The run is made this claim's first, so the
+        worker that lost the claim leaves it FINISHED (``_terminate`` touches only its own claim's runs)."""
         try:
             run = finished_runs(self.cfg, [cell.key], self.sweep, self.client).get(cell.key)
+            if run is not None:
+                run_id = run.info.run_id
+                if run.data.tags.get(TAG_CLAIM) not in (None, claim.token):
+                    self.client.set_tag(run_id, TAG_CLAIM, claim.token)
+                    if self.client.get_run(run_id).info.status != "FINISHED":  # its lost worker ended it meanwhile
+                        return None
         except Exception as exc:  # noqa: BLE001 - cannot tell (a busy store too): the runner meets it and says so
             log.warning("could not look up a FINISHED run of %s in MLflow: %s", cell.label, exc)
             return None
         if run is None:
             return None
-        if not self._db(self.store.finish, claim.token, run.info.run_id, 0.0):
-            return self._lost(cell, None)
+        if not self._db(self.store.finish, claim.token, run_id, duration_of(run) or 0.0):
+            return self._lost(cell, None, claim.token)
         self.stats.finished += 1
-        log.info("%s: already FINISHED in MLflow (run %s); recorded, not trained again", cell.label, run.info.run_id)
+        log.info("%s: already FINISHED in MLflow (run %s); recorded, not trained again", cell.label, run_id)
         return "finished"
 
     def _run_claim(self, claim: Claim) -> str:
         cell = self.cells[claim.row.cell_key]
-        done = self._finished_elsewhere(claim, cell)
-        if done is not None:
-            self.stats.outcomes.append((cell.key, done))
-            return done
         seen: dict[str, str] = {}
 
         def on_run_id(run_id: str) -> None:
@@ -273,9 +283,11 @@ class Worker:
         run_id = getattr(result, "run_id", None) or seen.get("run_id")
         try:
             outcome = self._record(claim, cell, result, error, run_id, elapsed, hb.lost)
-        except StorageError:  # cannot tell whether we still hold the claim: our run must not count
+        except StorageError as exc:  # the row is not written: a FINISHED run stays FINISHED, any other is ended
+            if result is not None and result.status == "FINISHED" and run_id:
+                raise StorageError(unrecorded_line(cell, run_id, exc)) from exc
             self._terminate(run_id, "KILLED", f"sweep worker {self.ident} could not record the outcome "
-                            "(storage unreachable); the cell will be taken over", ("RUNNING", "FINISHED"))
+                            "(storage unreachable); the cell will be taken over", ("RUNNING",))
             raise
         self.stats.outcomes.append((cell.key, outcome))
         return outcome
@@ -403,7 +415,8 @@ class Worker:
             self._terminate(run_id, status, reason, only, token=token, wait=False)
 
     def _settle_orphans(self, previous: CellRow, keep: str | None = None) -> None:
-        """Kill the runs a lost worker left RUNNING (or FINISHED without recording it) for this cell.
+        """Kill the runs a lost worker left RUNNING for this cell (one it FINISHED without recording it on the row
+        is the cell's result: ``_finished_elsewhere`` records it).
 
         The checkpoint of ``keep`` (the cell's run, which this claim resumes) stays: a takeover never deletes a
         resumable checkpoint. Only the checkpoints of other runs of the lost claim (none the cell will resume)
@@ -418,9 +431,15 @@ class Worker:
         reason = (f"sweep worker {previous.worker} lost (no heartbeat for {self.cfg.sweep.stale_after_s:g} s); "
                   f"cell taken over by {self.ident}")
         for run_id in sorted(run_ids):
-            self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED", "FINISHED"))
+            self._terminate(run_id, "KILLED", reason, ("RUNNING", "SCHEDULED"))  # a FINISHED one: recorded (_handle)
             if run_id != keep:
                 _remove_checkpoint(self.cfg, run_id, "orphaned by a lost worker")
+
+
+def unrecorded_line(cell: Cell, run_id: str, exc: BaseException) -> str:
+    """One line: a run FINISHED whose claims row could not be written; it stays FINISHED and is recorded later."""
+    return (f"cell {cell.label}: run {run_id} FINISHED, but its claims row could not be written ({exc}); the run "
+            "stays FINISHED and the next sweep records it for its cell (not trained again)")
 
 
 def _remove_checkpoint(cfg: Config, run_id: str, why: str) -> None:

@@ -203,3 +203,86 @@ def test_a_launcher_installed_through_an_entry_point_runs_a_sweep_with_its_own_v
         assert code == 2 and len(err.strip().splitlines()) == 1, (args, out, err)
         assert ("sweep.launchers.subprocess.max_workers: 0: input should be greater than or equal to 1 (allowed "
                 "range [1, 64])") in err, err
+
+
+def test_a_plugin_whose_import_raises_is_one_line_naming_it_and_debug_shows_the_traceback(project, tmp_path):
+    """Issue 60, item 2: any exception while loading a launcher plugin (here RuntimeError at import) is one line
+    naming the entry point, its module, the exception's type and message, exit 2; ``--debug`` adds the
+    traceback. Another launcher's option error does not trip over the broken one."""
+    import os
+    import subprocess
+    import sys
+
+    site = tmp_path / "site"
+    dist = site / "broken_plugin-0.1.dist-info"
+    dist.mkdir(parents=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[bronchopose.launchers]\nbroken = broken_launcher:BrokenLauncher\n")
+    (site / "broken_launcher.py").write_text("raise RuntimeError('cluster config /etc/pbs.conf missing')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), *sys.path]), "COLUMNS": "300"}
+    main = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
+    path = str(project.paths.base / "experiments.yaml")
+
+    def bronchopose(*args):
+        done = subprocess.run([sys.executable, "-c", main, *args], cwd=tmp_path, env=env, capture_output=True,
+                              text=True, timeout=300)
+        return done.returncode, done.stdout, done.stderr
+
+    line = ("error: sweep.launcher broken: entry point broken = broken_launcher:BrokenLauncher (group "
+            "bronchopose.launchers) cannot be loaded: RuntimeError: cluster config /etc/pbs.conf missing; "
+            "`bronchopose --debug ...` shows its traceback")
+    code, out, err = bronchopose("sweep", "plan", "-c", path, "--set", "sweep.launcher=broken")
+    assert (code, err.strip()) == (2, line), (out, err)
+    code, out, err = bronchopose("--debug", "sweep", "plan", "-c", path, "--set", "sweep.launcher=broken")
+    assert code == 2 and err.startswith(line + "\n") and "Traceback (most recent call last)" in err
+    assert 'broken_launcher.py", line 1' in err, err
+    code, out, err = bronchopose("sweep", "run", "-c", path, "--launcher", "slurm", "--workers", "2")
+    assert code == 2 and "broken" not in err and "--workers: options of the local" in err, err
+
+
+def test_a_launcher_whose_submission_raises_ends_the_sweeps_parent_run_failed_with_the_reason(
+        cli, project, fake_dir, monkeypatch):
+    """Issue 60, item 2: a plugin's ``submit()`` failing is one line naming the launcher and the error, and the
+    sweep's parent run ends FAILED saying why (never left RUNNING)."""
+    import subprocess_launcher
+
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import KIND_SWEEP, find_parent
+    from bronchocli.runs.records import TAG_FAILURE
+
+    def refused(self, n, stage, after=()):
+        raise RuntimeError("qsub: queue gpu does not exist\nmore detail")
+
+    monkeypatch.setattr(subprocess_launcher.SubprocessLauncher, "submit", refused)
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", "subprocess", *FAKE)
+    reason = "RuntimeError: qsub: queue gpu does not exist"
+    assert code == 2 and err.strip() == (f"error: launcher subprocess: submitting 2 worker(s) for stage grid failed: "
+                                         f"{reason}; `bronchopose --debug ...` shows its traceback"), err
+    client = client_for(project)
+    parent = client.get_run(find_parent(client, experiment_id(client, project), KIND_SWEEP, project.name))
+    assert parent.info.status == "FAILED" and reason in parent.data.tags[TAG_FAILURE]
+
+
+def test_a_cancel_touches_only_what_runs_and_names_a_study_that_is_not_there(cli, project, fake_dir):
+    """Issue 60, item 5: `sweep cancel` of a finished sweep leaves its FINISHED parent run FINISHED (not KILLED,
+    not tagged cancelled); `sweep cancel --study nosuch` fails in one line saying there is no such study."""
+    from bronchocli.runs.client import client_for, experiment_id
+    from bronchocli.runs.parents import KIND_SWEEP, find_parent
+    from bronchocli.sweep.summary import TAG_CANCELLED
+
+    kind = "subprocess_launcher:SubprocessLauncher"  # a launcher whose workers `sweep cancel` stops
+    path = str(project.paths.base / "experiments.yaml")
+    code, out, err = cli("sweep", "run", "-c", path, "--launcher", kind, *FAKE)
+    assert code == 0, out + err
+    client = client_for(project)
+    parent = find_parent(client, experiment_id(client, project), KIND_SWEEP, project.name)
+    assert client.get_run(parent).info.status == "FINISHED"
+    code, out, err = cli("sweep", "cancel", "-c", path, "--launcher", kind)
+    assert code == 0, out + err
+    run = client.get_run(parent)
+    assert run.info.status == "FINISHED" and TAG_CANCELLED not in run.data.tags
+    code, out, err = cli("sweep", "cancel", "-c", path, "--study", "nosuch", "--launcher", kind)
+    assert code == 2 and err.strip().startswith("error: sweep cancel --study nosuch: no such study (no parent run "
+                                                "of it in experiment"), err
+    assert len(err.strip().splitlines()) == 1

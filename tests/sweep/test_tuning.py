@@ -326,6 +326,8 @@ def test_sweep_cancel_stops_a_study_whose_workers_a_detachable_launcher_started(
     assert code == 0 and "cancelled subprocess job(s)" in out, out + err
     out, _ = tune.communicate(timeout=300)
     assert tune.returncode == 130 and "was cancelled" in out and "Traceback" not in out, out
+    assert f"study {name} was cancelled (`bronchopose sweep cancel --study {name}`): nothing is submitted again; " \
+           "the same `bronchopose tune` command resumes it" in " ".join(out.split()), out  # not `sweep run`
     end = time.monotonic() + 300  # the watch ends at the cancel; the stopping workers checkpoint, then give back
     while {r.state for r in store.rows(study_sweep(name))} != {"pending"}:  # each stopped worker its trial's row
         assert time.monotonic() < end, store.rows(study_sweep(name))
@@ -418,3 +420,24 @@ def test_a_timeout_already_past_starts_no_trial_and_gives_every_row_back(project
     assert [r.state for r in rows] == ["pending", "pending"] and all(r.attempts == 0 for r in rows)
     again = trialrows.tune(cfg, target, 2, progress=False)
     assert studies.finished(again) == 2
+
+
+def test_a_study_storage_that_refuses_writes_is_one_line_as_the_claims_table_says_it(project, cli, monkeypatch):
+    """Issue 60, item 2: Optuna's StorageInternalError (here a read-only SQLite file, as a user without write
+    permission meets it) is one line naming the storage and the database's reason, exit 2, no traceback."""
+    import sqlite3
+
+    from sqlalchemy.exc import OperationalError
+
+    def readonly(self, *args, **kw):
+        try:
+            raise OperationalError("INSERT INTO studies", {}, sqlite3.OperationalError(
+                "attempt to write a readonly database"))
+        except OperationalError as exc:
+            raise optuna.exceptions.StorageInternalError("An exception is raised during the commit.") from exc
+
+    monkeypatch.setattr(optuna.storages.RDBStorage, "create_new_study", readonly)
+    code, out, err = cli("tune", "-c", project / "experiments.yaml", *TARGET, "-n", "1")
+    db = project / "runs" / "sweep.db"
+    assert code == 2 and err.strip() == f"error: study storage sqlite:///{db}: attempt to write a readonly database", \
+        (out, err)

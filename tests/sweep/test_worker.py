@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 from rich.console import Console
 from sqlalchemy import update
-from sweep_fakes import fake_runner, runs_by_cell
+from sweep_fakes import calls, fake_runner, runs_by_cell
 
 from bronchocli.errors import MlflowUnreachable
 from bronchocli.runs.client import MlflowBusy, client_for, experiment_id
 from bronchocli.runs.contract import RunResult, resume_file
 from bronchocli.runs.ownership import mark
-from bronchocli.runs.records import TAG_FAILURE, cell_tags
+from bronchocli.runs.records import TAG_FAILURE, TAG_KIND, cell_tags, search_runs
 from bronchocli.sweep import FAILED, FINISHED, TAG_CLAIM, StorageError, SweepStore, Worker, prepare
 from bronchocli.sweep.status import show_status
 from bronchocli.sweep.storage import cells_table
@@ -95,7 +97,8 @@ def test_a_worker_that_lost_its_claim_kills_its_run_and_the_cell_is_run_once(mak
     assert row.state == FINISHED and row.run_id != lost_runs[0] and row.attempts == 3
 
 
-def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over(make_config, fake_dir):
+def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over_but_a_finished_one_is_recorded(
+        make_config, fake_dir):
     cfg = make_config(archs=("baseline", "lstm"))
     store, plan = setup(cfg)
     client = client_for(cfg)
@@ -112,25 +115,68 @@ def test_runs_left_by_a_dead_worker_are_killed_when_its_cells_are_taken_over(mak
     with store.engine.begin() as conn:
         conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
     assert Worker(cfg, plan.cells, store, fake_runner).run() == 0
-    for run_id in orphans.values():
-        run = client.get_run(run_id)
-        assert run.info.status == "KILLED" and "dead:1 lost" in run.data.tags[TAG_FAILURE]
+    killed = client.get_run(orphans["baseline"])
+    assert killed.info.status == "KILLED" and "dead:1 lost" in killed.data.tags[TAG_FAILURE]
+    assert client.get_run(orphans["lstm"]).info.status == "FINISHED"  # the result is kept, not trained again
+    r = rows(store, cfg)
+    assert (r["lstm"].state, r["lstm"].run_id) == (FINISHED, orphans["lstm"])
+    assert r["baseline"].state == FINISHED and r["baseline"].run_id != orphans["baseline"]
     assert runs_by_cell(cfg) == {c.key: 1 for c in plan.cells}
-    assert all(r.state == FINISHED and r.run_id not in orphans.values() for r in store.rows(cfg.name))
+    assert calls(r["lstm"].cell_key) == 0 and calls(r["baseline"].cell_key) == 1
 
 
-def test_a_worker_that_cannot_record_its_outcome_does_not_leave_a_finished_run(make_config, fake_dir, monkeypatch):
+@pytest.mark.parametrize("attempts_left", [True, False])
+def test_a_running_row_whose_run_finished_is_recorded_done_even_on_its_last_attempt(make_config, fake_dir,
+                                                                                   attempts_left):
+    """A worker killed between ending its run FINISHED and writing the row: whoever takes the stale claim over
+    records that run for the cell (never KILLED, never trained again), also when no attempt is left."""
+    cfg = make_config(archs=("baseline",), sweep={"max_retries": 1 if attempts_left else 0})
+    store, plan = setup(cfg)
+    cell, client = plan.cells[0], client_for(cfg)
+    claim = store.claim(cfg.name, [cell.key], "dead:1", max_retries=1, stale_after_s=60)
+    run_id = client.create_run(experiment_id(client, cfg), tags=cell_tags(cfg, cell, **{TAG_CLAIM: claim.token})
+                               ).info.run_id
+    store.set_run_id(claim.token, run_id)
+    client.set_terminated(run_id, "FINISHED")
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
+    worker = Worker(cfg, plan.cells, store, fake_runner)
+    assert worker.run() == 0 and worker.stats.finished == 1
+    row = store.rows(cfg.name)[0]
+    assert (row.state, row.run_id) == (FINISHED, run_id) and client.get_run(run_id).info.status == "FINISHED"
+    assert calls(cell.key) == 0 and runs_by_cell(cfg, None) == {cell.key: 1}
+
+
+def test_a_worker_that_cannot_record_a_finished_run_keeps_it_and_the_next_sweep_records_it(
+        make_config, fake_dir, monkeypatch):
     cfg = make_config(archs=("baseline",), sweep={"heartbeat_s": 0.1, "stale_after_s": 0.3})
     store, plan = setup(cfg)
+    cell = plan.cells[0]
 
-    def unreachable(*args, **kw):
-        raise StorageError("sweep storage postgresql+psycopg://u:***@db/x: connection refused")
+    def full(*args, **kw):
+        raise StorageError("sweep storage sqlite:///runs/sweep.db: database or disk is full")
 
-    monkeypatch.setattr(store, "finish", unreachable)
-    with pytest.raises(StorageError):
+    with monkeypatch.context() as m, pytest.raises(StorageError) as err:
+        m.setattr(store, "finish", full)
         Worker(cfg, plan.cells, store, fake_runner).run()
-    assert runs_by_cell(cfg, "FINISHED") == {} and runs_by_cell(cfg, "KILLED") == {plan.cells[0].key: 1}
-    assert store.rows(cfg.name)[0].state == "running"  # goes stale, and another worker takes it over
+    (run_id,) = _cell_runs(cfg)
+    assert str(err.value) == (f"cell {cell.label}: run {run_id} FINISHED, but its claims row could not be written "
+                              "(sweep storage sqlite:///runs/sweep.db: database or disk is full); the run stays "
+                              "FINISHED and the next sweep records it for its cell (not trained again)")
+    assert runs_by_cell(cfg, "FINISHED") == {cell.key: 1} and store.rows(cfg.name)[0].state == "running"
+    # the disk has room again; the dead worker's claim has gone stale
+    with store.engine.begin() as conn:
+        conn.execute(update(cells_table).values(heartbeat=cells_table.c.heartbeat - 1000))
+    again = prepare(cfg, store, dataset=False)
+    assert Worker(cfg, again.cells, store, fake_runner).run() == 0
+    row = store.rows(cfg.name)[0]
+    assert (row.state, row.run_id) == (FINISHED, run_id) and calls(cell.key) == 1  # trained once, recorded
+    assert runs_by_cell(cfg, None) == {cell.key: 1}
+
+
+def _cell_runs(cfg):
+    client = client_for(cfg)
+    return [r.info.run_id for r in search_runs(client, [experiment_id(client, cfg)], {TAG_KIND: "cell"})]
 
 
 def test_a_stop_that_arrived_while_the_run_was_evaluating_is_obeyed_after_recording_it(make_config, fake_dir):
@@ -341,3 +387,21 @@ def test_a_claim_is_held_through_a_database_outage_only_while_nobody_can_have_ta
     assert not hb.holds() and hb.lost  # taken over: for good
     store.answer = True
     assert not hb.holds()
+
+
+def test_a_worker_stopped_on_an_error_has_its_error_on_the_sweeps_console(tmp_path):
+    """The one line a worker's log ends on (``stagework.exit_process``) reaches the console of the command that
+    started it, not only "1 worker(s) stopped on an error"."""
+    from bronchocli.sweep.planview import report_workers
+
+    line = ("cell baseline/mse: run abc FINISHED, but its claims row could not be written (disk full); the run stays "
+            "FINISHED and the next sweep records it for its cell (not trained again)")
+    (tmp_path / f"node-{os.getpid()}-w0.log").write_text(
+        "2024-01-01 10:00:00,000 node:77 INFO bronchocli.sweep.worker: claimed baseline/mse\n"
+        f"2024-01-01 10:00:09,000 node:77 ERROR bronchocli.sweep.stagework: {line}\n")
+    (tmp_path / f"node-{os.getpid()}-w1.log").write_text("2024-01-01 10:00:00,000 node:78 INFO x: done\n")
+    (tmp_path / f"node-{os.getpid() + 1}-w0.log").write_text("2024 node:9 ERROR x: another command's worker\n")
+    console = Console(record=True, width=300)
+    report_workers(console, [2, 0], tmp_path)
+    out = console.export_text()
+    assert "1 worker(s) stopped on an error" in out and f"  {line}\n" in out and "another command" not in out

@@ -17,7 +17,7 @@ from importlib.metadata import EntryPoint, entry_points
 from pathlib import Path
 
 from ...config import Config
-from ...errors import BronchoError, ConfigError
+from ...errors import DEBUG_HINT, BronchoError, ConfigError
 from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
 from .local import LocalLauncher
 from .slurm import SlurmLauncher
@@ -52,8 +52,9 @@ def launcher_class(name: str, what: str = "--launcher") -> type[Launcher]:
     if (ep := _entry_points().get(name)) is not None:
         try:
             cls = ep.load()
-        except (ImportError, AttributeError) as exc:
-            raise BronchoError(f"{what} {name}: entry point {ep.value} cannot be loaded ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - a plugin's import may raise anything: one line naming it
+            raise BronchoError(f"{what} {name}: entry point {ep.name} = {ep.value} (group {GROUP}) cannot be loaded: "
+                               f"{_exception(exc)}{DEBUG_HINT}") from exc
         if getattr(cls, "name", None) != name:
             raise BronchoError(f"{what} {name}: entry point {ep.value} is launcher {getattr(cls, 'name', cls)!r}, "
                                f"not {name!r}; name the entry point as the class names itself")
@@ -62,9 +63,28 @@ def launcher_class(name: str, what: str = "--launcher") -> type[Launcher]:
     if module and attr:
         try:
             return register(getattr(importlib.import_module(module), attr))
-        except (ImportError, AttributeError) as exc:
-            raise BronchoError(f"{what} {name}: cannot load it ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - a plugin's import may raise anything: one line naming it
+            raise BronchoError(f"{what} {name}: module {module} cannot be loaded: {_exception(exc)}{DEBUG_HINT}"
+                               ) from exc
     raise BronchoError(f"{what} {name}: must be one of {', '.join(names())}")
+
+
+def _exception(exc: BaseException) -> str:
+    """``RuntimeError: message`` in one line (a SyntaxError's file and line included)."""
+    where = f" ({exc.filename}, line {exc.lineno})" if isinstance(exc, SyntaxError) and exc.filename else ""
+    text = str(exc.msg if isinstance(exc, SyntaxError) else exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}{where}".rstrip(": ")
+
+
+def loadable(names_: list[str]) -> list[type[Launcher]]:
+    """The launchers of ``names_`` that load (a broken plugin is left out: it is said when it is named)."""
+    out = []
+    for name in names_:
+        try:
+            out.append(launcher_class(name))
+        except BronchoError:
+            continue
+    return out
 
 
 def detected() -> type[WorkerEnvironment] | None:
@@ -81,8 +101,10 @@ def log_roots(cfg: Config, kind: type[Launcher] | None = None) -> list[tuple[str
     for section in cfg.sweep.launchers:
         if section not in kinds:
             try:
-                kinds[section] = launcher_class(section, "sweep.launchers:")
+                kinds[section] = launcher_class(section, f"sweep.launchers.{section}:")
             except BronchoError:
+                if section in names():  # installed, but its code does not load: that error, not "no launcher"
+                    raise
                 raise ConfigError(f"sweep.launchers.{section}: no launcher of that name (known: {', '.join(names())}; "
                                   "a section is named as its launcher names itself)") from None
     out = []
@@ -101,4 +123,4 @@ register(LocalLauncher)
 register(SlurmLauncher)
 
 __all__ = ["GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "SlurmLauncher", "WorkerEnvironment", "Workers",
-           "detected", "launcher_class", "log_roots", "names", "reference", "register"]
+           "detected", "launcher_class", "loadable", "log_roots", "names", "reference", "register"]
