@@ -45,6 +45,7 @@ ARMS = {  # arm or lever -> how the table names it (in the table's order)
     "lite0-random": "EfficientNet-Lite0, random",
     "lite0-imagenet": "EfficientNet-Lite0, ImageNet",
     "lite0-imagenet-frozen9": "Lite0 ImageNet, whole backbone frozen",
+    "lite0-imagenet-frozen9-lr3e-3": "Lite0 ImageNet, whole backbone frozen, lr 3e-3",
     "lite0-imagenet-frozen7": "Lite0 ImageNet, stem + 6 stages frozen",
     "lite0-imagenet-frozen6": "Lite0 ImageNet, stem + 5 stages frozen",
     "lite0-imagenet-frozen4": "Lite0 ImageNet, stem + 3 stages frozen",

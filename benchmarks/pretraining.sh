@@ -45,6 +45,8 @@ levers=${LEVER_SEEDS:-0}
 # frozen stages are computed once per dataset and read by every run after (training/frozen_features.py): a run's
 # train.core_s is then the trainable part's alone, train.frozen_features_core_s the one-off computation
 seeds=$levers run lite0-imagenet-frozen9 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=9   # fixed features
+seeds=$levers run lite0-imagenet-frozen9-lr3e-3 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=9 \
+    --set train.lr=3e-3                                                                                # the head alone: a higher rate
 seeds=$levers run lite0-imagenet-frozen7 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=7   # all but stage 7 + head
 seeds=$levers run lite0-imagenet-frozen6 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=6   # stem + 5 stages
 seeds=$levers run lite0-imagenet-frozen4 "${lite[@]}" "${imagenet[@]}" --set model.frozen_stages=4   # stem + 3 stages
