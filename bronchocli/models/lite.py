@@ -93,7 +93,7 @@ class LiteMBConv(nn.Module):
 
 
 class EfficientNetLite0Features(nn.Module):
-    """EfficientNet-Lite0 without its classifier: [B, 3, H, W] -> [B, 1280, H/32, W/32] (3,371,968 parameters).
+    """EfficientNet-Lite0 without its classifier: [B, 3, H, W] -> [B, 1280, H/32, W/32] (3,371,008 parameters).
 
     Stochastic depth rises linearly to 0.2 over the 16 blocks (the builder's drop_connect_rate), as in the B0 port.
     """
