@@ -125,6 +125,22 @@ def report_tables(folder: Path) -> dict[str, list[str]]:
             for p in sorted(folder.glob("*.md"))} if folder.is_dir() else {}
 
 
+PHASES = ("clone_venv_s", "torch_s", "project_s", "install_s", "sweep_s", "report_s", "total_s")
+
+
+def phases(path: Path) -> dict[str, float]:
+    """The ``NAME SECONDS`` lines main_job_phases.sh prints last."""
+    out = {}
+    for line in path.read_text().splitlines():
+        name, _, value = line.partition(" ")
+        if name in PHASES:
+            out[name] = float(value)
+    missing = [p for p in PHASES if p not in out]
+    if missing:
+        sys.exit(f"{path}: no {', '.join(missing)} line (the output of benchmarks/main_job_phases.sh?)")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("project", type=Path, help="the folder the study ran in (experiments.yaml + runs/)")
@@ -134,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--command", default=None, help="the command that ran the study (recorded)")
     ap.add_argument("--title", default=None)
     ap.add_argument("--wall-s", type=float, default=None, help="the study's measured wall time (recorded)")
+    ap.add_argument("--phases", type=Path, default=None,
+                    help="the output of benchmarks/main_job_phases.sh: its phases (clone_venv_s ... total_s) are "
+                         "recorded as figures")
     args = ap.parse_args(argv)
     cfg = load_config(args.project / "experiments.yaml", args.profile)
     cells = collect(cfg)
@@ -147,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
                **report_tables(args.reports or args.project / "reports")}
     if args.wall_s is not None:
         figures["wall_s"] = args.wall_s
+    if args.phases is not None:
+        figures |= phases(args.phases)
     out = {"title": args.title or f"Study {cfg.name}: every finished cell's test ratios, mode gap and cost",
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
            "command": args.command or f"bronchopose sweep run{' --profile ' + args.profile if args.profile else ''}",

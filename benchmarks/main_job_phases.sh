@@ -4,10 +4,10 @@
 #
 #   benchmarks/main_job_phases.sh REPO DIR      # REPO: a path or URL to clone; DIR: a new folder for the clone
 #
-# It clones REPO into DIR, reads the line after `<!-- main-command -->` in DIR/README.md, splits it at its
-# `&&` and runs the parts one after another in one shell (the venv's activation carries over), printing the
-# seconds of each part and a timestamp, then the phases as the results files name them. Nothing is installed
-# outside DIR. Stops at the first part that fails (its exit status).
+# It clones REPO into DIR, reads the code block after `<!-- main-command -->` in DIR/README.md (its steps, one
+# per line or joined by `&&`; comments and its `git clone` line left out), splits it at its `&&` and runs the
+# parts one after another in one shell (the venv's activation carries over), printing the seconds of each part
+# and a timestamp, then the phases as the results files name them. Nothing is installed outside DIR. Stops at the first part that fails (its exit status).
 set -euo pipefail
 if [ $# -ne 2 ]; then
     echo "usage: $0 REPO DIR   (clone REPO into the new folder DIR and time the README's main command there)" >&2
@@ -24,7 +24,10 @@ calc() { awk "BEGIN { printf \"%.3f\", $* }"; }
 t0=$(now)
 git clone -q "$repo" "$dir"
 cd "$dir"
-cmd=$(awk '/<!-- main-command -->/{getline; getline; print; exit}' README.md)
+# the main command's code block: one step per line (or one line of steps joined by &&); comments and the
+# `git clone ... && cd ...` line (done above) dropped, the steps joined by && to be split below
+cmd=$(awk '/<!-- main-command -->/{getline; f=1; next} f && /^```/{exit} f' README.md \
+      | sed -e 's/[[:space:]]*#.*$//' -e '/^[[:space:]]*$/d' -e '/^git clone /d' | awk 'BEGIN{ORS=""} NR>1{print " && "} {print}')
 if [ -z "$cmd" ]; then
     echo "$0: no line after <!-- main-command --> in $dir/README.md" >&2
     exit 2
