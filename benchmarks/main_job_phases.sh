@@ -7,7 +7,8 @@
 # It clones REPO into DIR, reads the code block after `<!-- main-command -->` in DIR/README.md (its steps, one
 # per line or joined by `&&`; comments and its `git clone` line left out), splits it at its `&&` and runs the
 # parts one after another in one shell (the venv's activation carries over), printing the seconds of each part
-# and a timestamp, then the phases as the results files name them. Nothing is installed outside DIR. Stops at the first part that fails (its exit status).
+# and a timestamp, then the phases as the results files name them. Nothing is installed outside DIR. Stops at the
+# first part that fails (its exit status).
 set -euo pipefail
 if [ $# -ne 2 ]; then
     echo "usage: $0 REPO DIR   (clone REPO into the new folder DIR and time the README's main command there)" >&2
