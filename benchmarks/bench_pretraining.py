@@ -11,7 +11,8 @@ This script reads those curves and the runs' test metrics and writes benchmarks/
   rotation);
 * per arm/lever: those over its seeds, and its cost to 0.90 against B0-random's (``speedup``: B0-random's mean
   core-seconds to 0.90 over this arm's; seeds that never reached 0.90 are counted at their whole budget, so a
-  speed-up is a lower bound when one did not);
+  speed-up is a lower bound when a reference seed did not and an upper bound when one of the arm's did not:
+  ``speedup_bound``); frozen stages shared between runs cost once, ``features_core_s``, outside the runs' own;
 * ``table``: the Markdown table benchmarks/README.md shows (a ``numbers: lines`` block).
 
     python benchmarks/bench_pretraining.py PROJECT [--out FILE]
@@ -81,6 +82,8 @@ def read_run(client, run) -> dict[str, Any]:
         hit = _first(curve, target)
         out[f"pairs_to_{target:.2f}"], out[f"core_s_to_{target:.2f}"] = hit if hit else (None, None)
     out["test"] = {k: round(run.data.metrics[m], 4) for k, m in TEST.items() if m in run.data.metrics}
+    # the one-off computation of shared frozen stages (training/frozen_features.py): in the run that computed it
+    out["features_core_s"] = run.data.metrics.get(runkeys.train("frozen_features_core_s"))
     return out
 
 
@@ -107,11 +110,23 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         for k in TEST:
             vals = [r["test"][k] for r in rs if k in r["test"]]
             a[k] = [min(vals), max(vals)] if vals else None
-    base = arms.get("b0-random", {}).get("core_s_to_0.90_mean")
+        once = [r["features_core_s"] for r in rs if r.get("features_core_s")]
+        a["features_core_s"] = round(max(once), 1) if once else None
+    ref = arms.get("b0-random", {})
+    base = ref.get("core_s_to_0.90_mean")
     for a in arms.values():
         own = a.get("core_s_to_0.90_mean")
         a["speedup_0.90"] = round(base / own, 2) if base and own else None
+        # a seed that never reached 0.90 is counted at its whole budget: its arm's cost is then a lower bound, so
+        # the speed-up is a lower bound when the reference has one, an upper bound when the arm has one
+        a["speedup_bound"] = ("≥ " if not _all(ref) and _all(a) else "≤ " if _all(ref) and not _all(a) else
+                              "~ " if not _all(ref) and not _all(a) else "")
     return arms
+
+
+def _all(arm: dict[str, Any]) -> bool:
+    done, total = arm.get("reached_0.90", "0/1").split("/")
+    return done == total
 
 
 def _range(v: list[float] | None, fmt: str = ".3f") -> str:
@@ -127,18 +142,20 @@ def _costs(pairs: list[float | None], core: list[float | None]) -> str:
 
 def table(arms: dict[str, dict[str, Any]]) -> list[str]:
     head = ["| arm (BronchoTrack: ConvLSTM + MSE+CE, 96², 10,000 pairs) | seeds | pairs (core-s) to 0.90, per seed | "
-            "to 0.85, per seed | core-s to 0.90, mean | vs B0 random | test per pair, position | accumulated, "
-            "position | per pair, rotation | accumulated, rotation |", "|" + "---|" * 10]
+            "to 0.85, per seed | core-s to 0.90, mean | vs B0 random | shared features, once (core-s) | test per "
+            "pair, position | accumulated, position | per pair, rotation | accumulated, rotation |",
+            "|" + "---|" * 11]
     rows = []
     for arm, label in ARMS.items():
         if arm not in arms:
             continue
         a = arms[arm]
-        speed = f"{a['speedup_0.90']:.2f}×" if a.get("speedup_0.90") else "—"
-        lower = "≥ " if a["reached_0.90"].split("/")[0] != a["reached_0.90"].split("/")[1] else ""
+        speed = "reference" if arm == "b0-random" else \
+            f"{a['speedup_bound']}{a['speedup_0.90']:.1f}×" if a.get("speedup_0.90") else "—"
+        once = f"{a['features_core_s']:.0f}" if a.get("features_core_s") else "—"
         rows.append(f"| {label} | {', '.join(map(str, a['seeds']))} | {_costs(a['pairs_to_0.90'], a['core_s_to_0.90'])}"
                     f" | {_costs(a['pairs_to_0.85'], a['core_s_to_0.85'])} | {a['core_s_to_0.90_mean']:.0f} | "
-                    f"{lower}{speed} | {_range(a['pair_pos'])} | {_range(a['acc_pos'])} | {_range(a['pair_rot'])} | "
+                    f"{speed} | {once} | {_range(a['pair_pos'])} | {_range(a['acc_pos'])} | {_range(a['pair_rot'])} | "
                     f"{_range(a['acc_rot'])} |")
     return head + rows
 
