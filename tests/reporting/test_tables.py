@@ -107,7 +107,7 @@ def test_a_table_none_of_whose_cells_ran_is_skipped_not_broken():
     for build in (personalized, ablation):
         with pytest.raises(NoData, match="skipped: none of the runs' cells belongs to it"):
             build(ctx, "pair")
-    assert [r.label for r in sota(ctx, "pair").rows if r.kind == "model" and r.runs] == ["OffsetNet (MSE+MSE)"]
+    assert [r.label for r in sota(ctx, "pair").rows if r.kind == "model" and r.runs] == ["OffsetNet"]
 
 
 def test_cross_subject_best_n_keeps_the_lowest_mean_rank():
@@ -127,7 +127,7 @@ def test_sota_without_offsetnet_and_without_n_params():
     m = MemRuns()
     m.add("convlstm", "ce")
     t = sota(m.context(), "accumulated")
-    assert [r.label for r in t.rows if r.kind == "model"] == ["BronchoTrack (ConvLSTM, MSE+CE)", "OffsetNet (MSE+MSE)"]
+    assert [r.label for r in t.rows if r.kind == "model"] == ["BronchoTrack", "OffsetNet"]
     assert t.rows[0].values[0] is None and t.rows[1].values == [None] * 5
     assert any("no run logged n_params" in w for w in t.warnings)
     assert any("offsetnet/mse/personalized/s0/world" in w for w in t.warnings)
