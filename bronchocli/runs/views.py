@@ -79,8 +79,7 @@ HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # The paper's headline is the accumulated position error: its ratio and skill sit beside the per-pair ones (the
 # accumulated ratio sorts first), and the tag ``TAG_VERDICT`` marks with † a figure that does not beat the references.
 ACC_RATIO = runkeys.ratio("pos_l2", "acc")
-VIEW_METRICS = (ACC_RATIO, README_RATIO, runkeys.skill("pos_l2", "acc"), runkeys.skill("pos_l2"),
-                runkeys.skill("rot_l2"))
+VIEW_METRICS = (ACC_RATIO, README_RATIO, runkeys.skill("pos_l2", "acc"), runkeys.skill("pos_l2"))
 TAG_VERDICT = "vs_references"  # "pair ✓ · acc †": per headline scope, whether the run beats the better reference
 DAGGER = "†"  # does not beat the better image-blind reference (skill <= 0), as the report's tables mark it
 BEATS = "✓"
@@ -97,8 +96,7 @@ CURVES_SECTION = "Training and validation curves"
 HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
 # The view's headline charts: scatter plots, a point per run (a bar chart's axis starts at 0 and hides differences
 # of ratios near 1): position against rotation skill, and the position ratio to either reference
-HEADLINE_SCATTERS = ((README_RATIO, ACC_RATIO), (runkeys.skill("pos_l2"), runkeys.skill("pos_l2", "acc")),
-                     (runkeys.skill("pos_l2"), runkeys.skill("rot_l2")))
+HEADLINE_SCATTERS = ((README_RATIO, ACC_RATIO), (runkeys.skill("pos_l2"), runkeys.skill("pos_l2", "acc")))
 RUN_NAME_WIDTH = 290  # px: "+ConvRNN MSE+DE · s0 · pers · world" whole (model, loss and seed at least)
 HEADLINE_DIGITS = 4  # significant digits of the logged ratios and skills (MLflow shows a metric's value whole)
 VIEW_KEY = "bronchopose-headline"
