@@ -41,12 +41,14 @@ new view" writes (``saved_view``), so its Views menu lists it by name. The view 
 the runs that trained (no sweep/study/selection parents, so nothing is nested
 and collapsed), one row per run sorted by the headline, best first, with the
 headline figures as columns (logged to 4 significant digits: MLflow shows a
-metric whole); its "Chart" view opens with the training and validation curves
+metric whole): the accumulated position ratio (the paper's headline scope)
+beside the per-pair one, the skills of both, and the ``vs_references`` tag
+(``verdict``: † where a scope does not beat the better reference); its "Chart" view opens with the training and validation curves
 as the first section, the headline figures a point per run the second
 (``chart_sections``). ``bronchopose ui`` also stores the view as the
 experiment's table state in a browser that has none, and a run page's chart
-layout (``run_page_layout``: ``uiapp``). Run names (``records.run_name``) are the cell in a
-compact form whose first words tell cells apart where the table cuts names off.
+layout (``run_page_layout``: ``uiapp``). Run names (``records.run_name``) are the model's
+one name and the seed first, within the name column's width (``RUN_NAME_WIDTH``).
 
 Parent runs are in ``parents.py``.
 """
