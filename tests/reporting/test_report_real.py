@@ -75,7 +75,8 @@ eval: {{rpe_gap: 3}}
     code, _, stderr = cli("report", "-c", str(cfg), "--table", "tracking", "-q", "--out", str(out))
     assert code == 0, stderr
     tracking = (out / "table9-tracking.md").read_text()
-    for model in ("| +ConvRNN | MSE+CE |", "| OffsetNet | MSE+MSE |", "| Image-blind | Zero motion |",
+    for model in ("| +ConvRNN | MSE+CE (BronchoTrack) |", "| OffsetNet | MSE+MSE (OffsetNet) |",
+                  "| Image-blind | Zero motion |",
                   "|  | Training mean |"):
         row = next((line for line in tracking.splitlines() if line.startswith(model)), tracking)
         assert "—" not in row and row.count("[") == 7, row  # CTF, CTF mm, ATE vox/mm, RPE trans/rot, drift
