@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from typing import Mapping, Sequence
 
 import matplotlib.pyplot as plt
@@ -45,9 +46,11 @@ def trajectory_figure(
     return fig
 
 
-def error_curve_figure(curves: Mapping[str, np.ndarray], ylabel: str, title: str = ""):
-    """Error against frame index along trajectories: ``curves[name]`` is ``(n_traj, N)`` (NaN-padded)."""
-    fig, ax = plt.subplots(figsize=(6, 3.6))
+def error_curve_figure(curves: Mapping[str, np.ndarray], ylabel: str, title: str = "",
+                       references: Mapping[str, np.ndarray] | None = None, caption: str = ""):
+    """Error against frame index along trajectories: ``curves[name]`` is ``(n_traj, N)`` (NaN-padded); each of
+    ``references`` a dashed grey mean line; ``caption`` wrapped under the axes."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.4 if caption else 3.6))
     for name, values in curves.items():
         values = np.atleast_2d(values)
         mean = np.nanmean(values, axis=0)
@@ -55,11 +58,18 @@ def error_curve_figure(curves: Mapping[str, np.ndarray], ylabel: str, title: str
         x = np.arange(len(mean))
         ax.plot(x, mean, label=name)
         ax.fill_between(x, mean - std, mean + std, alpha=0.2)
+    for (name, values), style in zip((references or {}).items(), ("--", ":", "-.")):
+        mean = np.nanmean(np.atleast_2d(values), axis=0)
+        ax.plot(np.arange(len(mean)), mean, style, color="0.35", label=name)
     ax.set_xlabel("frame")
     ax.set_ylabel(ylabel)
     if title:
         ax.set_title(title)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
+    if caption:
+        fig.text(0.01, 0.01, textwrap.fill(caption, 110), fontsize=6.5, va="bottom", ha="left")
+        fig.tight_layout(rect=(0, 0.04 + 0.025 * textwrap.fill(caption, 110).count("\n"), 1, 1))
+        return fig
     fig.tight_layout()
     return fig

@@ -50,7 +50,7 @@ class ArchSpec:
     name: str  # the cell's ``arch`` (config grid, ``--arch``, ``--only arch=``, MLflow tag)
     builder: str | Callable[..., Any]  # "module:Class" of a models.PoseNet subclass, or the class itself
     label: str  # its row label in the report tables ("+ConvRNN": what the paper adds to the baseline)
-    model_name: str  # its name in prose and in every model's display name ("ConvLSTM": display_name)
+    model_name: str  # the architecture in prose ("ConvLSTM"; a model's name is :func:`model_name`'s)
     paper_params_m: str | None = None  # the paper's parameter count at 256x256, millions, as printed (tested)
     paper_tables: bool = True  # a row group of the personalized / cross-subject tables (OffsetNet: not one)
     paper_row: int | None = None  # its row in the paper's tables; None: after those, in registration order
@@ -126,26 +126,49 @@ def arch(name: str) -> ArchSpec:
     return _ARCHS[name]
 
 
-def display_name(arch: str, rot_loss: str, role: str = "") -> str:
-    """One model's name wherever it is shown (tables, figure legends, run names and descriptions), from its
-    registry entries: "BronchoTrack (ConvLSTM, MSE+CE)" for a model the paper names, else "LSTM (MSE+CE)".
-    ``role``: the name a table gives a model that has none of its own (Table 6's selected BronchoTrack). An
-    unregistered architecture or loss (an old run's tag) is shown as it is."""
-    model = _ARCHS[arch].model_name if arch in _ARCHS else arch
+PAPER_BACKBONE = "efficientnet_b0"  # the paper's backbone: a model on it is named without a suffix
+BACKBONE_PARAM = "model.backbone"  # the run param naming the backbone (absent on runs logged before it: the paper's)
+BACKBONE_NAMES = {"efficientnet_lite0": "Lite0"}  # a backbone's short name in a model's name (else its key)
+
+
+def _init_words(init: str | None) -> str:
+    """A run's ``init`` tag in a model's name: "ImageNet", "random", or the weight file's name."""
+    if not init:
+        return ""
+    if init.startswith("imagenet:"):
+        return "ImageNet"
+    if init.startswith("file:"):
+        return init.removeprefix("file:").split("#", 1)[0]
+    return init
+
+
+def model_name(arch: str, rot_loss: str, backbone: str | None = None, init: str | None = None) -> str:
+    """THE name of a model, wherever one is shown: table rows, figure legends, the UI's run names and run and
+    model descriptions, LaTeX. The paper's names: its own name where the paper gives one ("BronchoTrack" for
+    ConvLSTM + MSE+CE, "OffsetNet" with its MSE loss: ``ArchSpec.named``), else its row label in the paper's
+    Tables 2-3 and its loss ("+ConvRNN MSE+DE", "Baseline MSE+MSE"). A backbone other than the paper's
+    (``backbone`` None or ``PAPER_BACKBONE``: none) adds it and the initialisation (the run's ``init`` tag):
+    "BronchoTrack · Lite0 ImageNet", "+LSTM MSE+CE · Lite0 random". An unregistered architecture or loss (an
+    old run's tag) is shown as it is."""
+    spec = _ARCHS.get(arch)
     loss = _ROT_LOSSES[rot_loss].label if rot_loss in _ROT_LOSSES else rot_loss
-    name = dict(_ARCHS[arch].named).get(rot_loss, "") if arch in _ARCHS else ""
-    name = name or role
-    return f"{name} ({model}, {loss})" if name else f"{model} ({loss})"
+    name = dict(spec.named).get(rot_loss, "") if spec is not None else ""
+    name = name or f"{spec.label if spec is not None else arch} {loss}"
+    if backbone and backbone != PAPER_BACKBONE:
+        name += " · " + " ".join(w for w in (BACKBONE_NAMES.get(backbone, backbone), _init_words(init)) if w)
+    return name
 
 
-def short_name(arch: str, rot_loss: str) -> str:
-    """The display name where space is short (figure legends, run names), from the same entries: the paper's
-    name alone ("BronchoTrack"), else "LSTM MSE+CE"."""
-    name = dict(_ARCHS[arch].named).get(rot_loss, "") if arch in _ARCHS else ""
-    if name:
-        return name
-    model = _ARCHS[arch].model_name if arch in _ARCHS else arch
-    return f"{model} {_ROT_LOSSES[rot_loss].label if rot_loss in _ROT_LOSSES else rot_loss}"
+def grouped_label(arch: str, rot_loss: str, backbone: str | None = None, init: str | None = None) -> str:
+    """A model's row label under its architecture's group (Tables 2-5, 9: "+ConvRNN" | "MSE+DE"), read from
+    :func:`model_name`: the rest of its name after the group, or, for a model the paper names, its loss with the
+    name ("MSE+CE (BronchoTrack)"), so the row shows the paper's labels and the model's one name."""
+    name = model_name(arch, rot_loss, backbone, init)
+    group = f"{_ARCHS[arch].label} " if arch in _ARCHS else f"{arch} "
+    if name.startswith(group):
+        return name[len(group):]
+    loss = _ROT_LOSSES[rot_loss].label if rot_loss in _ROT_LOSSES else rot_loss
+    return f"{loss} ({name})"
 
 
 def table_order() -> list[ArchSpec]:
@@ -257,4 +280,4 @@ register(ArchSpec("conv3d", "bronchocli.models.conv3d:Conv3dNet", label="+3D", m
                   paper_params_m="13.983", paper_row=3))
 # Sganga et al. 2019 as the BronchoPose authors ran it: the sota and ablation tables, not Tables 2-5.
 register(ArchSpec("offsetnet", "bronchocli.models.offsetnet:OffsetNet", label="OffsetNet", model_name="OffsetNet",
-                  paper_params_m="43.6", paper_tables=False, paper_row=5))
+                  paper_params_m="43.6", paper_tables=False, paper_row=5, named=(("mse", "OffsetNet"),)))

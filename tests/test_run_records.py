@@ -25,7 +25,7 @@ def test_flatten_and_cell_tags():
     assert "train_trajectories" not in tags and "profile" not in tags and all(v != "" for v in tags.values())
     assert set(FIELDS) - {"train_trajectories"} <= set(tags) and CELL_TAGS == FIELDS
     assert tags["cell_key"] == cell.key and tags["run_kind"] == "cell" and tags["hparams_source"] == "config"
-    assert tags["mlflow.runName"] == "LSTM MSE+CE · xs-p01 · s3 · camera"
+    assert tags["mlflow.runName"] == "+LSTM MSE+CE · s3 · xs-p01 · camera"
     assert Cell.from_tags(tags) == cell  # the run's tags give its cell back, key included
     tuned = cfg.with_values({"tune.applied": "optuna:s#4"})
     assert cell_tags(tuned, cell)["hparams_source"] == "optuna:s#4"

@@ -18,6 +18,7 @@ from bronchocli.runs.views import (
     EVAL_PARAMS,
     HEADLINE_SECTION,
     VIEW_METRICS,
+    ACC_RATIO,
     config_value,
     describe,
     eval_params,
@@ -89,7 +90,7 @@ def test_headline_ratios_and_skills_against_both_references():
 def test_description_states_the_cell_and_the_result():
     cell = Config(name="t").cell(arch="offsetnet", rot_loss="mse", population="cross-subject", fold="p02", seed=1)
     before = describe(cell, dataset="synthetic-cpu")
-    assert before.startswith("**OffsetNet (MSE+MSE)** (offsetnet/mse/cross-subject/p02/s1/world)")
+    assert before.startswith("**OffsetNet**: cross-subject (test patient p02), seed 1")
     assert "test patient p02" in before and "seed 1" in before and "Test:" not in before
     after = describe(cell, METRICS)
     assert "0.84 × the training-mean reference" in after and "position 0.16" in after
@@ -124,9 +125,9 @@ def test_the_headline_view_is_stored_as_a_saved_view_mlflow_lists_by_name():
 def test_headline_view_sorts_by_the_headline_and_shows_it_as_columns():
     view = headline_view()
     assert view["orderByKey"] == f"metrics.`{HEADLINE}`" and view["orderByAsc"] is True  # a ratio: lower is better
-    assert view["selectedColumns"][0] == f"metrics.`{HEADLINE}`"
+    assert view["selectedColumns"][:2] == [f"metrics.`{ACC_RATIO}`", f"metrics.`{HEADLINE}`"]  # accumulated beside
     assert all(f"metrics.`{m}`" in view["selectedColumns"] for m in VIEW_METRICS)
-    assert sorted(VIEW_METRICS)[0] == HEADLINE  # MLflow orders the columns by name: the headline comes first
+    assert sorted(VIEW_METRICS)[:2] == [ACC_RATIO, HEADLINE]  # MLflow orders the columns by name: these come first
     assert "tags.run_kind != 'sweep'" in view["searchFilter"]  # parents (nothing trained) are not in the table
 
 
@@ -194,12 +195,15 @@ def test_the_sweep_parent_has_no_csv_import_params_unless_the_dataset_is_one():
     assert any(k.startswith("dataset.csv.") for k in csv)
 
 
-def test_run_names_are_the_model_display_name_then_the_telling_coordinates():
+def test_run_names_are_the_model_name_and_seed_then_the_telling_coordinates():
     cfg = Config(name="t")
     assert run_name(cfg.cell(arch="convlstm", rot_loss="ce", population="personalized")) == \
-        "BronchoTrack · pers · s0 · world"
+        "BronchoTrack · s0 · pers · world"
     assert run_name(cfg.cell(arch="lstm", rot_loss="mse", population="cross-subject", fold="p01", seed=3,
-                             pose_frame="camera", train_trajectories=5)) == "LSTM MSE+MSE · xs-p01 · s3 · camera · t5"
+                             pose_frame="camera", train_trajectories=5)) == "+LSTM MSE+MSE · s3 · xs-p01 · camera · t5"
+    lite = cfg.cell(arch="convlstm", rot_loss="ce", population="personalized", seed=2)
+    assert run_name(lite, "efficientnet_lite0", "imagenet:efficientnet_lite0.pth") == \
+        "BronchoTrack · Lite0 ImageNet · s2 · pers · world"
 
 
 def test_parent_run_is_created_once_and_found_again(tmp_path):

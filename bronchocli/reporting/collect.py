@@ -30,10 +30,11 @@ from typing import TYPE_CHECKING, Iterable, Iterator, Mapping, Sequence
 from urllib.parse import urlparse
 from urllib.request import url2pathname
 
+from .. import registry
 from ..cells import FIELDS
 from ..errors import BronchoError
 from ..runs.client import find_experiment
-from ..runs.records import (TAG_CELL_KEY, TAG_KIND, TAG_SWEEP, deleted_cell_runs, deleted_runs_line, run_title,
+from ..runs.records import (TAG_CELL_KEY, TAG_INIT, TAG_KIND, TAG_SWEEP, deleted_cell_runs, deleted_runs_line, run_title_of,
                             search_runs)
 from ..runs.views import config_value
 from .scope import PlanView, fetch_selections
@@ -98,9 +99,15 @@ class RunRecord:
 
     @property
     def title(self) -> str:
-        """The run's name in figure legends: the UI's run name (records.run_title: the model's display name and
+        """The run's name in figure legends: the UI's run name (records.run_title: the model's name, its seed and
         the coordinates)."""
-        return run_title(*self.identity)
+        return run_title_of(self.tags, self.params)
+
+    @property
+    def model(self) -> str:
+        """The run's model by its one name (registry.model_name: architecture, loss, backbone, initialisation)."""
+        return registry.model_name(self.tag("arch"), self.tag("rot_loss"), self.params.get(registry.BACKBONE_PARAM),
+                                   self.tag(TAG_INIT))
 
 
 def identity_label(ident: Identity) -> str:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 from .. import registry, runkeys
+from ..runs.records import TAG_INIT
 from .aggregate import Frames
 from .collect import FOLD, SEED, Identity, RunIndex, RunRecord, identity_label, seed_key
 from .judge import Line, Settings
@@ -195,8 +196,17 @@ class Collector:
                           f"ignoring {', '.join(d.run_id for d in dropped)}")
         return out
 
-    def line(self, group: str, label: str, arch: str, loss: str, extra: Sequence = ()) -> Line:
-        return Line(group, label, self.runs(arch, loss), list(extra))
+    def line(self, arch: str, loss: str, grouped: bool = False, extra: Sequence = ()) -> Line:
+        """The row of (arch, loss): its runs and its model's one name (registry.model_name, with the runs'
+        backbone and initialisation), as the row label or, ``grouped``, under its architecture's group."""
+        runs = self.runs(arch, loss)
+        first = runs[0] if runs else None
+        how = (first.params.get(registry.BACKBONE_PARAM), first.tag(TAG_INIT)) if first is not None else (None, None)
+        model = registry.model_name(arch, loss, *how)
+        if not grouped:
+            return Line("", model, runs, list(extra), model)
+        group = registry.arch(arch).label if arch in registry.arch_names() else arch
+        return Line(group, registry.grouped_label(arch, loss, *how), runs, list(extra), model)
 
 
 def source_text(ctx: ReportContext, c: Collector) -> str:

@@ -83,7 +83,7 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
         labels = losses()
         used = [lo for lo in labels if lo in used and any(i[LOSS] == lo and i[FRAME] == frame
                                                           for i in ctx.index.runs)]
-        lines = [c.line(name, labels[lo], a, lo) for a, name in arch_names().items() if a in archs for lo in used]
+        lines = [c.line(a, lo, grouped=True) for a in arch_names() if a in archs for lo in used]
         lines = [ln for ln in lines if ln.runs]
         every = [r for ln in lines for r in ln.runs]
         built = metric_rows(lines, ctx.frames(every), metrics, evaluation, grouped=False, settings=ctx.settings,
@@ -93,7 +93,6 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
     both = [k for k in per_frame["world"][0] if k in per_frame["camera"][0]]
     if not both:
         raise NoData("frames table skipped: no architecture/loss has FINISHED runs in both pose frames")
-    several_losses = len({k[1] for k in both}) > 1
     s = ctx.settings
     cells: dict[tuple, list] = {k: [] for k in both}
     raw: dict[str, list[float]] = {m: [] for m in metrics}
@@ -117,10 +116,9 @@ def frames(ctx: ReportContext, evaluation: str) -> Table:
             values += cells[k][2 * j: 2 * j + 2]
             a = adjusted[m].get(i)
             values.append("—" if a is None else f"{a:.3f}" + (" (significant)" if a < s.alpha else ""))
-        arch_name, loss_name = k
-        label = f"{arch_name} ({loss_name})" if several_losses else arch_name
-        runs = per_frame["world"][0][k].runs + per_frame["camera"][0][k].runs
-        rows.append(Row("", label, values, [r.run_id for r in runs]))
+        line = per_frame["world"][0][k]
+        runs = line.runs + per_frame["camera"][0][k].runs
+        rows.append(Row("", line.model, values, [r.run_id for r in runs], model=line.model))
     columns = []
     for m in metrics:
         spec = registry.metric(m)

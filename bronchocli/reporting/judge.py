@@ -62,6 +62,7 @@ class Line:
     label: str
     runs: list[RunRecord]
     extra: list[Value] = field(default_factory=list)
+    model: str = ""  # the model's one name (registry.model_name); the label shows it, or it with the group
 
 
 @dataclass
@@ -107,7 +108,8 @@ def _model_row(line: Line, frames: Frames, metrics: Sequence[str], evaluation: s
             "refused": stats.refusal(first) if first is not None else "",
             "trajectories": first.trajectories if first else None, "pairs": first.pairs if first else None}
     flags = {"ignores"} if line.runs and ignores_input(line.runs) else set()
-    return Row(line.group, line.label, values, [r.run_id for r in line.runs], flags=flags, info=info)
+    return Row(line.group, line.label, values, [r.run_id for r in line.runs], flags=flags, info=info,
+               model=line.model)
 
 
 def _reference_rows(runs: Sequence[RunRecord], frames: Frames, metrics: Sequence[str], evaluation: str,

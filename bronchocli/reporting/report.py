@@ -87,7 +87,38 @@ def build_tables(ctx: ReportContext, names: Sequence[str], evaluations: Sequence
                 if warnings is not None:
                     warnings.append(str(exc))
                 break
-    return out
+    return without_repeats(out, warnings)
+
+
+def _rows_of(table: Table) -> frozenset:
+    """A table's model rows as what they hold: each row's runs (its labels aside)."""
+    return frozenset(frozenset(r.runs) for r in table.rows if r.kind == "model" and r.runs)
+
+
+def _evaluation(table: Table) -> str:
+    return table.key.rsplit("-", 1)[-1]
+
+
+def repeats(table: Table, other: Table) -> bool:
+    """Whether ``table``'s rows are ``other``'s (the same runs per row, the same evaluation) and ``other`` shows
+    every column it shows: e.g. a two-model plan's Table 2, its rows Table 6's (accumulated) under other labels."""
+    mine = _rows_of(table)
+    return (bool(mine) and table is not other and mine == _rows_of(other) and _evaluation(table) == _evaluation(other)
+            and {c.heading for c in table.columns} <= {c.heading for c in other.columns})
+
+
+def without_repeats(tables: Sequence[Table], warnings: list[str] | None = None) -> list[Table]:
+    """The tables less each that repeats another (``repeats``; of two that repeat each other, the later goes):
+    it is not written, and its skill figure with it; one line in ``warnings`` says which table holds its rows."""
+    kept: list[Table] = []
+    for i, t in enumerate(tables):
+        other = next((o for j, o in enumerate(tables) if repeats(t, o) and not (repeats(o, t) and j > i)), None)
+        if other is None:
+            kept.append(t)
+        elif warnings is not None:
+            warnings.append(f"{t.key} not written: its rows are those of {other.title.split('.')[0]} "
+                            f"({other.key}) under other labels")
+    return kept
 
 
 def write_tables(tables: Sequence[Table], out: Path, suffixes: Sequence[str]) -> list[Path]:

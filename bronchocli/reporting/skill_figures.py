@@ -122,10 +122,7 @@ def curve_points(ctx: ReportContext) -> dict:
     for size in sizes:
         c = Collector(ctx, "learning", population, size=size)
         archs, used = c.combos()
-        several = len(used) > 1
-        labels = losses()
-        lines = [c.line(name, labels.get(lo, lo) if several else "", a, lo)
-                 for a, name in arch_names().items() if a in archs for lo in labels if lo in used]
+        lines = [c.line(a, lo) for a in arch_names() if a in archs for lo in losses() if lo in used]
         lines = [ln for ln in lines if ln.runs]
         if not lines:
             continue

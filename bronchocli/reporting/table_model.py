@@ -63,10 +63,12 @@ class Row:
     kind: str = "model"  # "model" or "reference" (image-blind; never ranked)
     flags: set[str] = field(default_factory=set)  # {"ignores"}
     info: dict[str, Any] = field(default_factory=dict)  # what the builder knows (n, samples), not rendered
+    model: str = ""  # a model row: the model's one name (registry.model_name), which its labels show
 
     @property
     def name(self) -> str:
-        return f"{self.group} {self.label}".strip()
+        """The row's name in notes, run lists and figures: the model's name, else its labels."""
+        return self.model or f"{self.group} {self.label}".strip()
 
 
 @dataclass

@@ -36,6 +36,7 @@ from .captions import budget_text, caption, dataset_text, fixed_seeds_note, init
 from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
+    BRONCHOTRACK,
     OFFSETNET,
     Collector,
     NoData,
@@ -129,8 +130,7 @@ def _grid_lines(c: Collector) -> list[Line]:
     paper = arch_names(paper_tables=True)
     if not any(c.has(arch, loss) for arch in paper for loss in losses()):
         return []
-    return [c.line(group, label, arch, loss)
-            for arch, group in arch_names().items() for loss, label in losses().items()
+    return [c.line(arch, loss, grouped=True) for arch in arch_names() for loss in losses()
             if (c.has(arch, loss) if arch in paper else c.ran(arch, loss))]
 
 
@@ -248,26 +248,29 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "sota", "personalized")
     arch, loss, how = bronchotrack(ctx.index)
     lines = []
-    ours = registry.display_name(arch, loss, role="BronchoTrack")
-    for (a, lo), name in (((arch, loss), ours), (OFFSETNET, registry.display_name(*OFFSETNET))):
+    for a, lo in ((arch, loss), OFFSETNET):
         if c.expected is not None and not c.wanted(a, lo):
-            c.warn(f"sota: this config has no {a}/{lo} personalized cell, so the {name} row is empty")
-        line = c.line("", name, a, lo)
-        line.extra = [_params_m(c, line.runs, name)]
+            c.warn(f"sota: this config has no {a}/{lo} personalized cell, so the {registry.model_name(a, lo)} row "
+                   f"is empty")
+        line = c.line(a, lo)
+        line.extra = [_params_m(c, line.runs, line.model)]
         lines.append(line)
+    ours, theirs = lines[0].model, lines[1].model
     table = Table(f"table6-sota-{evaluation}", f"Table 6. State of the art, personalized population, {evaluation} "
                   "evaluation", ("Model",), [Column("Params", "M", highlight=False, decimals=3)]
                   + _metric_columns(metrics_of("paper")),
                   [])
-    what = (f"{ours}{', ' + how + ',' if how else ''} against OffsetNet with its original MSE loss and {REFERENCES}, "
-            f"personalized population")
+    role = f" in the role of the paper's {registry.model_name(*BRONCHOTRACK)}" if ours != registry.model_name(
+        *BRONCHOTRACK) else ""
+    what = (f"{ours}{', ' + how + role + ',' if how else role} against {theirs} with its original loss and "
+            f"{REFERENCES}, personalized population")
     return _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what,
                   ["Params: trainable parameters of the trained model, in millions."])
 
 
-def _profile_values(ctx: ReportContext, c: Collector, arch: str, runs) -> list[Value]:
+def _profile_values(ctx: ReportContext, c: Collector, arch: str, runs, name: str) -> list[Value]:
     prof = ctx.profile(arch)
-    params = _params_m(c, runs, arch_names()[arch]) if runs else None
+    params = _params_m(c, runs, name) if runs else None
     if prof is None:
         return [params, None, None]
     if params is None and prof.get("params") is not None:
@@ -288,11 +291,11 @@ def _profile_caption(ctx: ReportContext) -> str:
 def ablation(ctx: ReportContext, evaluation: str) -> Table:
     c = Collector(ctx, "ablation", "personalized")
     lines = []
-    for arch, name in arch_names().items():
+    for arch in arch_names():
         if not c.has(arch, ABLATION_LOSS):
             continue
-        line = c.line("", name, arch, ABLATION_LOSS)
-        line.extra = _profile_values(ctx, c, arch, line.runs)
+        line = c.line(arch, ABLATION_LOSS)
+        line.extra = _profile_values(ctx, c, arch, line.runs, line.model)
         lines.append(line)
     columns = [Column("Params", "M", highlight=False, decimals=3),
                Column("Latency", "ms/pair", highlight=False, decimals=2),
@@ -331,9 +334,7 @@ def tracking(ctx: ReportContext, evaluation: str) -> Table:
     """The literature's camera-tracking metrics (the paper's Table 1 and the visual-odometry benchmarks)."""
     del evaluation  # whole-trajectory metrics: one table
     c = Collector(ctx, "tracking", "personalized")
-    labels = losses()
-    lines = [c.line(name, labels[loss], arch, loss)
-             for arch, name in arch_names().items() for loss in labels if c.has(arch, loss)]
+    lines = [c.line(arch, loss, grouped=True) for arch in arch_names() for loss in losses() if c.has(arch, loss)]
     every = [r for line in lines for r in line.runs]
     order = tracking_order(every)
     table = Table("table9-tracking", "Table 9. Camera tracking: CTF, ATE, RPE and drift, personalized population",

@@ -23,7 +23,6 @@ from ..cells import FIELDS, Cell
 from ..config import Config
 
 # Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
-# Tags every cell run carries (report/status/sweep filter on them): the cell's coordinates, and these.
 CELL_TAGS = FIELDS
 TAG_CELL_KEY = "cell_key"
 TAG_SWEEP = "sweep"
@@ -100,22 +99,34 @@ POPULATION_SHORT = {"personalized": "pers", "cross-subject": "xs"}
 
 
 def run_title(arch: str, rot_loss: str, population: str, fold: str | None, seed: object, pose_frame: str,
-              train_trajectories: object = None) -> str:
-    """A cell run's name wherever one run is named (the UI's run name, the report's figure legends): the model's
-    short display name (``registry.short_name``), then the coordinates that tell its runs apart:
-    ``BronchoTrack · pers · s0 · world``, ``LSTM MSE+DE · xs-p01 · s3 · camera · t5`` (cross-subject: the test
-    patient; ``t5``: a training-set size)."""
-    parts = [registry.short_name(arch, rot_loss), POPULATION_SHORT.get(population, population)
-             + (f"-{fold}" if fold else ""), f"s{seed}", pose_frame]
+              train_trajectories: object = None, backbone: str | None = None, init: str | None = None) -> str:
+    """A cell run's name wherever one run is named (the UI's run name, ``status``, the report's figure legends):
+    the model's name (``registry.model_name``), its seed, then the coordinates that tell its runs apart:
+    ``BronchoTrack · s0 · pers · world``, ``+LSTM MSE+DE · s3 · xs-p01 · camera · t5`` (cross-subject: the test
+    patient; ``t5``: a training-set size). Model and seed first: a column that cuts the name off still shows
+    them."""
+    parts = [registry.model_name(arch, rot_loss, backbone, init), f"s{seed}",
+             POPULATION_SHORT.get(population, population) + (f"-{fold}" if fold else ""), pose_frame]
     if train_trajectories not in (None, ""):
         parts.append(f"t{train_trajectories}")
     return " · ".join(parts)
 
 
-def run_name(cell: Cell) -> str:
+def backbone_of(cfg: Config) -> str | None:
+    """The config's backbone (``model.backbone``; None before the key exists: the paper's)."""
+    return getattr(cfg.model, "backbone", None)
+
+
+def run_name(cell: Cell, backbone: str | None = None, init: str | None = None) -> str:
     """The cell as a run name (``run_title``); the full coordinates are in the description."""
     return run_title(cell.arch, cell.rot_loss, cell.population, cell.fold, cell.seed, cell.pose_frame,
-                     cell.train_trajectories)
+                     cell.train_trajectories, backbone, init)
+
+
+def run_title_of(tags: Mapping[str, str], params: Mapping[str, str]) -> str:
+    """A logged cell run's name from its tags (the cell's coordinates, ``init``) and params (the backbone)."""
+    return run_title(*(tags.get(k, "") or "" for k in FIELDS), backbone=params.get(registry.BACKBONE_PARAM),
+                     init=tags.get(TAG_INIT))
 
 
 def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
@@ -129,7 +140,7 @@ def cell_tags(cfg: Config, cell: Cell, **extra: str) -> dict[str, str]:
         TAG_HPARAMS: cfg.tune.applied or "config",
         TAG_KIND: "cell",
         "profile": cfg.profile,
-        "mlflow.runName": run_name(cell),
+        "mlflow.runName": run_name(cell, backbone_of(cfg), extra.get(TAG_INIT)),
         **source_tags(cfg),
         **python_tags(),
     })

@@ -41,12 +41,14 @@ new view" writes (``saved_view``), so its Views menu lists it by name. The view 
 the runs that trained (no sweep/study/selection parents, so nothing is nested
 and collapsed), one row per run sorted by the headline, best first, with the
 headline figures as columns (logged to 4 significant digits: MLflow shows a
-metric whole); its "Chart" view opens with the training and validation curves
+metric whole): the accumulated position ratio (the paper's headline scope)
+beside the per-pair one, the skills of both, and the ``vs_references`` tag
+(``verdict``: † where a scope does not beat the better reference); its "Chart" view opens with the training and validation curves
 as the first section, the headline figures a point per run the second
 (``chart_sections``). ``bronchopose ui`` also stores the view as the
 experiment's table state in a browser that has none, and a run page's chart
-layout (``run_page_layout``: ``uiapp``). Run names (``records.run_name``) are the cell in a
-compact form whose first words tell cells apart where the table cuts names off.
+layout (``run_page_layout``: ``uiapp``). Run names (``records.run_name``) are the model's
+one name and the seed first, within the name column's width (``RUN_NAME_WIDTH``).
 
 Parent runs are in ``parents.py``.
 """
@@ -77,8 +79,13 @@ HEADLINE = README_RATIO  # the runs table's sort key (lower is better)
 # is not applied when the table opens), so these are chosen to sort headline first. Every one is comparable across
 # rows (ratios and skills against the image-blind references): no loss, whose scale differs between rotation losses
 # (CE, DE and MSE losses rank runs differently from the headline).
-VIEW_METRICS = (README_RATIO, runkeys.ratio("pos_l2", ref="zero_motion"), runkeys.skill("pos_l2"),
-                runkeys.skill("rot_l2"))
+# The paper's headline is the accumulated position error: its ratio and skill sit beside the per-pair ones (the
+# accumulated ratio sorts first), and the tag ``TAG_VERDICT`` marks with † a figure that does not beat the references.
+ACC_RATIO = runkeys.ratio("pos_l2", "acc")
+VIEW_METRICS = (ACC_RATIO, README_RATIO, runkeys.skill("pos_l2", "acc"), runkeys.skill("pos_l2"))
+TAG_VERDICT = "vs_references"  # "pair ✓ · acc †": per headline scope, whether the run beats the better reference
+DAGGER = "†"  # does not beat the better image-blind reference (skill <= 0), as the report's tables mark it
+BEATS = "✓"
 # The charts. MLflow 3.17 makes one chart per metric, sorted by name, in one "Model metrics" section (a metric
 # named "prefix/name" gets a section "prefix"; ours have none): the curves among ~160 one-value bars. A chart
 # layout is what MLflow saves of them: the runs table's Chart view keeps it in the view (compareRunSections and
@@ -92,8 +99,8 @@ CURVES_SECTION = "Training and validation curves"
 HEADLINE_SECTION = "Headline (test, vs the image-blind references)"
 # The view's headline charts: scatter plots, a point per run (a bar chart's axis starts at 0 and hides differences
 # of ratios near 1): position against rotation skill, and the position ratio to either reference
-HEADLINE_SCATTERS = ((runkeys.skill("pos_l2"), runkeys.skill("rot_l2")),
-                     (README_RATIO, runkeys.ratio("pos_l2", ref="zero_motion")))
+HEADLINE_SCATTERS = ((README_RATIO, ACC_RATIO), (runkeys.skill("pos_l2"), runkeys.skill("pos_l2", "acc")))
+RUN_NAME_WIDTH = 290  # px: "+ConvRNN MSE+DE · s0 · pers · world" whole (model, loss and seed at least)
 HEADLINE_DIGITS = 4  # significant digits of the logged ratios and skills (MLflow shows a metric's value whole)
 VIEW_KEY = "bronchopose-headline"
 VIEW_NAME = "Headline: best first"  # its name in the runs table's Views menu
@@ -177,6 +184,16 @@ def headline(metrics: Mapping[str, float]) -> dict[str, float]:
     return {**first, **out}
 
 
+def verdict(metrics: Mapping[str, float]) -> str:
+    """The ``TAG_VERDICT`` of a run's test metrics: per headline scope (pair, acc), ``BEATS`` where its position
+    error is below the better image-blind reference's (skill > 0), ``DAGGER`` where not, as the report's tables
+    mark a row (there with a paired test over the seeds' trajectories; here one run's means): "pair ✓ · acc †"."""
+    h = headline(metrics)
+    parts = [f"{ev} {BEATS if h[k] > 0 else DAGGER}" for ev in HEADLINE_EVALS
+             if (k := runkeys.skill("pos_l2", ev)) in h and math.isfinite(h[k])]
+    return " · ".join(parts)
+
+
 def rounded(value: float, digits: int = HEADLINE_DIGITS) -> float:
     """``value`` to ``digits`` significant digits (a float whose shortest form has no more)."""
     return float(f"{value:.{digits}g}") if math.isfinite(value) else value
@@ -192,10 +209,12 @@ def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
     return [head, rest]
 
 
-def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "") -> str:
-    """The run's description (``mlflow.note.content``, Markdown): what the cell is and, once done, its result,
-    the headline first."""
-    lines = [f"**{registry.display_name(cell.arch, cell.rot_loss)}** ({cell.label}): {cell.population}"
+def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "", backbone: str | None = None,
+             init: str | None = None) -> str:
+    """The run's description (``mlflow.note.content``, Markdown): what the cell is, its model by its one name
+    (``registry.model_name``: ``backbone`` and ``init`` as the run's), and, once done, its result, the headline
+    first."""
+    lines = [f"**{registry.model_name(cell.arch, cell.rot_loss, backbone, init)}**: {cell.population}"
              + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
              f"{cell.pose_frame}-frame relative poses"
              + (f", {cell.train_trajectories} training trajectories per patient and lobe"
@@ -267,15 +286,17 @@ def headline_view() -> dict:
     figures as columns (rounded: ``HEADLINE_DIGITS``), and the charts of ``chart_sections``. Not grouped: MLflow
     shows a group's mean with every digit of the sum it computes, and draws groups rather than runs."""
     metrics = [_column("metrics", m) for m in VIEW_METRICS]
+    verdict = _column("tags", TAG_VERDICT)
     return {
         "searchFilter": " and ".join(f"tags.run_kind != '{k}'" for k in PARENT_KINDS),
         "orderByKey": _column("metrics", HEADLINE),
         "orderByAsc": True,
-        "selectedColumns": metrics,
+        "selectedColumns": [*metrics, verdict],
         # MLflow applies widths to the columns listed in columnOrder only (its order inside a group is ignored)
-        "columnOrder": [_column("attributes", "Run Name"), *metrics],
-        "columnWidths": {_column("attributes", "Run Name"): 210,  # run names whole
-                         **{c: 24 + 7 * len(m) for c, m in zip(metrics, VIEW_METRICS)}},  # headers whole
+        "columnOrder": [_column("attributes", "Run Name"), *metrics, verdict],
+        "columnWidths": {_column("attributes", "Run Name"): RUN_NAME_WIDTH,  # model, loss and seed whole
+                         **{c: 24 + 7 * len(m) for c, m in zip(metrics, VIEW_METRICS)},  # headers whole
+                         verdict: 24 + 7 * len(TAG_VERDICT)},
         "groupBy": None,
         "useGroupedValuesInCharts": False,  # the charts draw runs
         **chart_sections(),  # the Chart view: the training and validation curves first, then the headline

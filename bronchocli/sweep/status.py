@@ -25,7 +25,8 @@ from ..errors import BronchoError
 from ..io import fmt_bytes, folder_bytes
 from ..runs.client import ExperimentDeleted, client_for, redacted_uri, store_missing
 from ..runs.parents import KIND_SWEEP, find_parent
-from ..runs.records import deleted_runs_line
+from ..runs.records import deleted_runs_line, run_name
+from ..runs.views import DAGGER
 from .housekeeping import Checkpoint, inventory
 from .plan import Plan, StageWalk, read_plan, source_of
 from .record import deleted_finished, missing_line, missing_runs, overlay, rebuilt_count
@@ -40,8 +41,10 @@ from .worker import WorkerId, job_of
 
 log = logging.getLogger(__name__)
 
-# What status shows per finished cell: the headline's error and its accumulated twin (voxels; runkeys.py)
-ERRORS = (runkeys.HEADLINE_ERROR, runkeys.metric(runkeys.HEADLINE_METRIC, "acc"))
+# What status shows per finished cell, as the UI's headline view: the position ratio to the training mean and the
+# skill against the better reference, per pair and accumulated (the paper's headline), † where it does not beat it
+HEADLINE_COLUMNS = {"pair ratio": runkeys.ratio("pos_l2"), "pair skill": runkeys.skill("pos_l2"),
+                    "acc ratio": runkeys.ratio("pos_l2", "acc"), "acc skill": runkeys.skill("pos_l2", "acc")}
 TRIAL_VALUE = runkeys.best_of(runkeys.VAL_LOSS)  # shown for a study's trial rows (``studyrows``)
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
 
@@ -172,7 +175,7 @@ def fetch_metrics(cfg: Config, run_ids: Sequence[str]) -> dict[str, dict[str, An
             "status": info.status,
             "duration_s": (info.end_time - info.start_time) / 1000 if info.end_time and info.start_time else None,
             "pairs_seen": run.data.metrics.get(runkeys.train("pairs_seen")),  # logged at every validation
-            **{k: run.data.metrics.get(k) for k in (*ERRORS, runkeys.HEADLINE, TRIAL_VALUE)},
+            **{k: run.data.metrics.get(k) for k in (*HEADLINE_COLUMNS.values(), runkeys.HEADLINE, TRIAL_VALUE)},
         }
     return out
 
@@ -190,8 +193,8 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
     with_jobs = bool(launchers)  # workers with a job of their launcher (a Slurm array task)
     trials = any(isinstance(c, cells.TrialCell) for c in plan.cells)  # a study's rows: each trial's value too
     cols = (("cell", "left"), ("state", "left"), ("tries", "right"), ("MLflow run", "left"), ("worker", "left"),
-            *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if with_jobs else ()), ("duration", "right"), ("pair pos L2", "right"),
-            ("acc pos L2", "right"), *(((TRIAL_VALUE, "right"),) if trials else ()))
+            *(((f"{'/'.join(_title(n) for n in launchers)} task", "left"),) if with_jobs else ()), ("duration", "right"),
+            *((name, "right") for name in HEADLINE_COLUMNS), *(((TRIAL_VALUE, "right"),) if trials else ()))
     for col, just in cols:
         table.add_column(col, justify=just, no_wrap=col != "cell", overflow="ellipsis" if col == "cell" else "fold")
     if ckpt_bytes is not None:
@@ -208,19 +211,27 @@ def status_table(plan: Plan, metrics: dict[str, dict[str, Any]], max_retries: in
             if budget_pairs and m.get("pairs_seen") is not None:
                 shown += f", {min(1.0, m['pairs_seen'] / budget_pairs):.0%} trained"
         values = [
-            cell.label, Text(_state_label(row, max_retries, now, stale_after_s),
+            _name(cell), Text(_state_label(row, max_retries, now, stale_after_s),
                              style="yellow" if stale else STYLE.get(row.state if row else PENDING, "")),
             str(row.attempts if row else 0), (row.run_id or "-") if row else "-",
             (row.worker or "-") if row and row.state == RUNNING else "",
             *(((job_of(row.worker) if row and row.state in (RUNNING, FINISHED, FAILED) else None) or "",)
               if with_jobs else ()),
-            shown, _num(m.get(ERRORS[0])), _num(m.get(ERRORS[1])), *((_num(m.get(TRIAL_VALUE)),) if trials else ()),
+            shown, *(_headline(name, m.get(key)) for name, key in HEADLINE_COLUMNS.items()),
+            *((_num(m.get(TRIAL_VALUE)),) if trials else ()),
         ]
         if ckpt_bytes is not None:
             size = ckpt_bytes.get(row.run_id) if row and row.run_id else None
             values.append(fmt_bytes(size) if size is not None else "-")
         table.add_row(*values)
     return table
+
+
+def _name(cell: cells.Cell) -> str:
+    """A cell as ``status`` shows it: its run's name (records.run_name: model, loss and seed first), a study's
+    trial slot before it."""
+    name = run_name(cell)
+    return f"trial {cell.trial} · {name}" if isinstance(cell, cells.TrialCell) else name
 
 
 def _title(launcher: str | None) -> str:
@@ -230,6 +241,14 @@ def _title(launcher: str | None) -> str:
 
 def _num(v: float | None) -> str:
     return "-" if v is None else f"{v:.3f}"
+
+
+def _headline(column: str, v: float | None) -> str:
+    """A headline figure at 4 significant digits, as the UI shows it; a skill that does not beat the better
+    image-blind reference (<= 0) marked † (views.DAGGER)."""
+    if v is None:
+        return "-"
+    return f"{v:.4g}" + (f" {DAGGER}" if column.endswith("skill") and not v > 0 else "")
 
 
 def failures(plan: Plan) -> list[tuple[str, str]]:

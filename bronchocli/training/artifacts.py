@@ -20,8 +20,9 @@
   (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
   ``pred.std*``) and the budget (``train.steps``, ``train.time_s``,
-  ``train.pairs_per_s`` averaged over the run, ...), the ``stop_reason`` tag, ``predictions.csv`` (one row
-  per test frame), ``trajectory_errors.csv`` (one row per test trajectory: what
+  ``train.pairs_per_s`` averaged over the run, ...), the ``stop_reason`` tag, the ``vs_references`` tag
+  (``views.verdict``: "pair ✓ · acc †"), ``predictions.csv`` (one row per test frame, with the training-mean
+  reference's chained poses), ``trajectory_errors.csv`` (one row per test trajectory: what
   ``report`` pairs models on), ``trajectories.png`` and, per
   ``runs.model_artifact`` (fp16, fp32 or none), the MLflow Model ``model``
   (``model_logging``: ``mlflow.pyfunc.load_model("runs:/<id>/model")``); the
@@ -42,10 +43,10 @@ from ..cells import Cell
 from ..config import Config
 from ..io import save_figure
 from ..plots import trajectory_figure
-from ..runs.records import TAG_FINGERPRINT, TAG_NOTE, log_metrics, log_params
-from ..runs.views import describe, eval_params, ordered_metrics, run_params
+from ..runs.records import TAG_FINGERPRINT, TAG_INIT, TAG_NOTE, backbone_of, log_metrics, log_params
+from ..runs.views import TAG_VERDICT, describe, eval_params, ordered_metrics, run_params, verdict
 from .engine import Outcome
-from .evaluate import predictions_table
+from .evaluate import predictions_table, reference_predictions
 from .model_logging import log_model
 from .prepare import RunData
 
@@ -82,12 +83,19 @@ def dataset_inputs(cfg: Config, data: RunData) -> list[DatasetInput]:
     return out
 
 
+def described(client, run_id: str, cfg: Config, cell: Cell, metrics: dict[str, float] | None = None) -> str:
+    """The run's description (``views.describe``), its model named with the config's backbone and the run's
+    ``init`` tag, as its run name is."""
+    init = client.get_run(run_id).data.tags.get(TAG_INIT)
+    return describe(cell, metrics, cfg.paths.dataset.name, backbone_of(cfg), init)
+
+
 def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
               extra_params: dict[str, str] | None = None) -> None:
     client.set_tag(run_id, TAG_FINGERPRINT, data.fingerprint)
     log_params(client, run_id, {**run_params(cfg, cell), **(extra_params or {})})
     client.log_batch(run_id, tags=[RunTag(k, v) for k, v in {
-        **environment_tags(), TAG_NOTE: describe(cell, dataset=cfg.paths.dataset.name)}.items()])
+        **environment_tags(), TAG_NOTE: described(client, run_id, cfg, cell)}.items()])
     client.log_inputs(run_id, datasets=dataset_inputs(cfg, data))
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)
@@ -110,11 +118,14 @@ def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, out
     final = {k: v for k, v in outcome.metrics.items() if k not in VALIDATION_LOGGED}
     for batch in ordered_metrics(final):  # headline first: the UI lists metrics as logged
         log_metrics(client, run_id, batch, model_id=model_id, dataset=test)
-    client.set_tag(run_id, TAG_NOTE, describe(cell, outcome.metrics, cfg.paths.dataset.name))
+    client.set_tag(run_id, TAG_NOTE, described(client, run_id, cfg, cell, outcome.metrics))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
+    if judged := verdict(outcome.metrics):
+        client.set_tag(run_id, TAG_VERDICT, judged)
     with tempfile.TemporaryDirectory(prefix="bronchopose-") as tmp:
         out = Path(tmp)
-        predictions_table(outcome.predictions).to_csv(out / "predictions.csv", index=False)
+        mean = reference_predictions(outcome.predictions, data.label_mean, cell.pose_frame)[runkeys.REFERENCES[1]]
+        predictions_table(outcome.predictions, mean).to_csv(out / "predictions.csv", index=False)
         _log_file(client, run_id, out / "predictions.csv")
         outcome.trajectories.to_csv(out / "trajectory_errors.csv", index=False)
         _log_file(client, run_id, out / "trajectory_errors.csv")

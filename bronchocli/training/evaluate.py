@@ -202,15 +202,20 @@ def evaluate(preds: list[TrajectoryPrediction], train_mean: np.ndarray, frame: s
     return out, trajectory_table(preds, refs, thresholds)
 
 
-def predictions_table(preds: list[TrajectoryPrediction]) -> pd.DataFrame:
-    """One row per frame: ground truth and prediction, relative (NaN for frame 0) and accumulated."""
+def predictions_table(preds: list[TrajectoryPrediction], train_mean: list[TrajectoryPrediction] | None = None
+                      ) -> pd.DataFrame:
+    """One row per frame: ground truth and prediction, relative (NaN for frame 0) and accumulated; with
+    ``train_mean`` (``reference_predictions``' training-mean reference of the same trajectories), its accumulated
+    pose too (``train_mean_abs_*``: the report's error-vs-frame figures draw it as a reference line)."""
     frames = []
-    for p in preds:
+    for i, p in enumerate(preds):
         n = len(p.gt_abs)
         nan = np.full((1, 6), np.nan)
         cols = {"patient": p.patient, "lobe": p.lobe, "trajectory": p.traj_id, "frame": np.arange(n)}
         blocks = {"gt_rel": np.vstack([nan, p.gt_rel]), "pred_rel": np.vstack([nan, p.pred_rel]),
                   "gt_abs": p.gt_abs, "pred_abs": p.pred_abs}
+        if train_mean is not None:
+            blocks[f"{REFERENCES[1]}_abs"] = train_mean[i].pred_abs
         for prefix, block in blocks.items():
             for j, c in enumerate(POSE_COLS):
                 cols[f"{prefix}_{c}"] = block[:, j]

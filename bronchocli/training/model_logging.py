@@ -47,11 +47,11 @@ from mlflow.entities import LoggedModelOutput
 from mlflow.models import Model, ModelSignature
 from mlflow.types import Schema, TensorSpec
 
-from .. import __version__
+from .. import __version__, registry
 from ..cells import Cell
 from ..config import Config
 from ..models.portable import SPEC_FILE, WEIGHTS_FILE
-from ..runs.records import TAG_NOTE, redacted
+from ..runs.records import TAG_INIT, TAG_NOTE, backbone_of, redacted
 from ..runs.views import describe
 from . import bundle, evaluate
 from .engine import EVAL_CHUNK, Outcome
@@ -61,6 +61,7 @@ from .prepare import RunData
 log = logging.getLogger(__name__)
 
 MODEL_NAME = "model"  # runs:/<run_id>/model
+MODEL_NAME_TAG = "model_name"  # the logged model's tag with the model's one name (registry.model_name)
 DATA_DIR = "bronchopose"  # MLflow copies it to model/data/bronchopose/ (SPEC_FILE and WEIGHTS_FILE)
 SPEC_FORMAT = "bronchopose-pyfunc"
 SPEC_VERSION = 1
@@ -139,12 +140,15 @@ def _compact_json(path: Path) -> None:
         path.write_text(json.dumps(json.loads(path.read_text()), separators=(",", ":")))
 
 
-def model_tags(cfg: Config, cell: Cell, outcome: Outcome, precision: str) -> dict[str, str]:
+def model_tags(cfg: Config, cell: Cell, outcome: Outcome, precision: str, init: str | None = None) -> dict[str, str]:
     """The logged model's tags: which cell it is (``cell``: its label; the description, ``mlflow.note.content``,
     the run's, which the model's page shows) besides its coordinates. Its name stays ``MODEL_NAME``: MLflow 3
     resolves ``runs:/<run_id>/<name>`` by the logged model's name, so a model named after its cell would break
-    ``runs:/<run_id>/model``; the Models tab's "Source run" column shows the run's name (the cell, compact)."""
-    return {"cell": cell.label, TAG_NOTE: describe(cell, outcome.metrics, cfg.paths.dataset.name),
+    ``runs:/<run_id>/model``; the Models tab's "Source run" column shows the run's name (the model's name and
+    seed), and ``MODEL_NAME_TAG`` holds the model's name (``registry.model_name``)."""
+    backbone = backbone_of(cfg)
+    return {"cell": cell.label, TAG_NOTE: describe(cell, outcome.metrics, cfg.paths.dataset.name, backbone, init),
+            MODEL_NAME_TAG: registry.model_name(cell.arch, cell.rot_loss, backbone, init),
             "arch": cell.arch, "pose_frame": cell.pose_frame, "cell_key": cell.key, "precision": precision}
 
 
@@ -157,7 +161,7 @@ def log_model(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outco
     logged = client.create_logged_model(
         run.info.experiment_id, name=MODEL_NAME, source_run_id=run_id, model_type="bronchopose-pose",
         params=redacted(run.data.params),
-        tags=model_tags(cfg, cell, outcome, precision))
+        tags=model_tags(cfg, cell, outcome, precision, run.data.tags.get(TAG_INIT)))
     try:
         client.log_outputs(run_id, [LoggedModelOutput(logged.model_id, step=0)])
         meta = Model(artifact_path=logged.artifact_location, model_uuid=logged.model_id, run_id=run_id,

@@ -60,7 +60,7 @@ def test_table6_caption_fits_600_characters_in_markdown_and_latex(built, evaluat
     tex = to_latex(t)
     caption = re.search(r"\\caption\{(.*)\}\n\\label", tex).group(1)
     assert len(caption) <= 600
-    assert "BronchoTrack (ConvLSTM, MSE+DE)" in t.caption and "OffsetNet" in t.caption
+    assert "+ConvRNN MSE+DE" in t.caption and "role of the paper's BronchoTrack" in t.caption and "OffsetNet" in t.caption
     assert "for new seeds and new test trajectories of these 3 patients (p00, p01, p02), not a new patient" in \
         t.caption
 

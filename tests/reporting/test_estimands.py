@@ -228,7 +228,7 @@ def test_rows_at_different_precisions_are_named_in_a_note_with_one_warning():
 
     t = sota(m.context(), "accumulated")
     note = next(n for n in t.notes if n.startswith("Numerics differ between rows ("))
-    assert "OffsetNet (MSE+MSE): bf16 autocast" in note and ": fp32" in note and "Numerics" not in t.caption
+    assert "OffsetNet: bf16 autocast" in note and ": fp32" in note and "Numerics" not in t.caption
     assert [w for w in t.warnings if "different precisions" in w] == [
         "table6-sota-accumulated: rows trained at different precisions (bf16 autocast, fp32): the table's note "
         "names each row's; set train.precision in the config to compare at equal numerics"]

@@ -17,7 +17,7 @@ from bronchocli.reporting.tables import frames
 def test_frames_table_compares_skill_in_each_frames_own_terms():
     t = frames(frames_runs().context(), "pair")
     assert t.key == "table8-frames-pair"
-    assert [r.label for r in t.rows] == ["+LSTM", "+ConvRNN"]
+    assert [r.label for r in t.rows] == ["+LSTM MSE+CE", "BronchoTrack"]  # the models by their one name
     lstm, convlstm = t.rows
     world, camera, p = lstm.values[:3]
     assert isinstance(world, Estimate) and world.mean == pytest.approx(1 - 3.48 / 5.8, abs=0.03)
@@ -61,9 +61,9 @@ def test_learning_curve_points_follow_the_training_set_size():
     assert list(data["points"]) == ["2", "4", ""]
     assert [p["x"] for p in data["points"].values()] == [100.0, 200.0, 400.0]
     assert [p["label"] for p in data["points"].values()] == ["2", "4", "8"]
-    errors = [next(r for r in p["rows"] if r.name == "+LSTM").values[0].mean for p in data["points"].values()]
+    errors = [next(r for r in p["rows"] if r.name == "+LSTM MSE+CE").values[0].mean for p in data["points"].values()]
     assert errors[0] > errors[1] > errors[2]  # more data, less error (planted)
-    skills = [p["skill"]["+LSTM"]["pos_l2"].value for p in data["points"].values()]
+    skills = [p["skill"]["+LSTM MSE+CE"]["pos_l2"].value for p in data["points"].values()]
     assert skills[0] < skills[1] < skills[2]
 
 

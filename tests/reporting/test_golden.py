@@ -96,14 +96,14 @@ def _cells(md: str, group: str, loss: str) -> list[str]:
 def test_table2_marks_follow_the_planted_values(built):
     tabs, names, _ = built
     md = normalise(to_markdown(tabs["table2-personalized-accumulated"]), names)
-    pos = {(g, lo): _cells(md, g, lo)[0] for g, lo in (("+ConvRNN", "MSE+CE"), ("+ConvRNN", "MSE+DE"))}
+    pos = {(g, lo): _cells(md, g, lo)[0] for g, lo in (("+ConvRNN", "MSE+CE (BronchoTrack)"), ("+ConvRNN", "MSE+DE"))}
     # Position L2: ConvLSTM MSE+CE (planted 2.0) is 10 % below the next (2.2): significantly best, alone.
-    assert re.fullmatch(r"\*\*(1\.9|2\.0)\d \[\S+, \S+\]\*\*", pos[("+ConvRNN", "MSE+CE")])
+    assert re.fullmatch(r"\*\*(1\.9|2\.0)\d \[\S+, \S+\]\*\*", pos[("+ConvRNN", "MSE+CE (BronchoTrack)")])
     assert not pos[("+ConvRNN", "MSE+DE")].startswith("**")
     # Rotation L2: LSTM MSE+CE 12.0 and ConvLSTM MSE+MSE 12.05 are tied; ConvLSTM MSE+CE 13.0 is not.
     assert _cells(md, "+LSTM", "MSE+CE")[1].endswith("**≈")
     assert _cells(md, "+ConvRNN", "MSE+MSE")[1].endswith("**≈")
-    assert "≈" not in _cells(md, "+ConvRNN", "MSE+CE")[1]
+    assert "≈" not in _cells(md, "+ConvRNN", "MSE+CE (BronchoTrack)")[1]
     assert sum(line.count("**≈") for line in md.splitlines() if line.startswith("|")) == 2
     # conv3d MSE+MSE ignores its input; it does not beat the training mean where its planted errors lie above
     # the reference's (position L2, DE), and does where they lie below it on every shared test trajectory
@@ -112,7 +112,7 @@ def test_table2_marks_follow_the_planted_values(built):
     cells = _cells(md, "+3D", "MSE+MSE ‡")
     assert "| +3D | MSE+MSE ‡ |" in md and [c.endswith("†") for c in cells] == [True, False, True, False]
     assert _cells(md, "+3D", "MSE+CE") == ["—"] * 4
-    assert not any(c.endswith("†") for c in _cells(md, "+ConvRNN", "MSE+CE"))
+    assert not any(c.endswith("†") for c in _cells(md, "+ConvRNN", "MSE+CE (BronchoTrack)"))
     for ref in ("Zero motion", "Training mean"):
         assert md.count(f"| {ref} |") == 1
 
@@ -132,16 +132,16 @@ def test_staged_tables_take_their_stage_and_the_recorded_selections(built):
     tabs, _, _ = built
     cross = tabs["table4-cross-subject-accumulated"]
     assert [r.name for r in cross.rows if r.kind == "model"] == ["+LSTM MSE+CE", "+ConvRNN MSE+DE",
-                                                                "+ConvRNN MSE+CE"]
+                                                                "BronchoTrack"]
     assert cross.rows[1].info["replicates"] == 2  # seed 1 lacks fold p01: 2 seeds, read for their trained models
     assert all(isinstance(v, Estimate) and v.has_interval for v in cross.rows[1].values)
     assert any("Rows with fewer than 3 seeds (+ConvRNN MSE+DE): about those trained models (seeds fixed)" in n
                for n in cross.notes)
     assert "for a new patient" in cross.caption and "resting on 3 patients (p00, p01, p02)" in cross.caption
     sota = tabs["table6-sota-pair"]
-    assert sota.rows[0].label == "BronchoTrack (ConvLSTM, MSE+DE)"  # this plan's selection, not another plan's
+    assert sota.rows[0].label == "+ConvRNN MSE+DE"  # this plan's selection, not another plan's
     assert [r.label for r in tabs["table7-ablation-pair"].rows if r.kind == "model"] == [
-        "Baseline", "+LSTM", "+3D", "+ConvRNN"]  # offsetnet has no MSE+CE cell in this config
+        "Baseline MSE+CE", "+LSTM MSE+CE", "+3D MSE+CE", "BronchoTrack"]  # offsetnet has no MSE+CE cell here
 
 
 def test_only_runs_of_the_configs_cells_are_used(built):
@@ -166,9 +166,9 @@ def test_tracking_table_marks_ctf_higher_is_better(built):
     t = tabs["table9-tracking"]
     row = {r.name: i for i, r in enumerate(t.rows)}
     ctf, ate = 0, 2
-    best = row["+ConvRNN MSE+CE"]  # the lowest planted errors: the highest CTF and the lowest ATE
+    best = row["BronchoTrack"]  # the lowest planted errors: the highest CTF and the lowest ATE
     assert t.marks[best][ctf] == {"best"} and t.marks[best][ate] == {"best"}
-    offsetnet = row["OffsetNet MSE+MSE"]  # CTF below the better reference's (training mean): no skill
+    offsetnet = row["OffsetNet"]  # CTF below the better reference's (training mean): no skill
     assert "noskill" in t.marks[offsetnet][ctf] and "noskill" in t.marks[offsetnet][ate]
     assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]
     assert any("position error below 5 mm (CTF mm) or 5 voxels (CTF vox) and rotation error below 10°" in n

@@ -24,7 +24,7 @@ def test_rows_closer_than_their_noise_are_a_tie():
         m.add("lstm", "ce", (2.000, 10.0, 0.10, 0.010), seed=seed, noise=0.10)
         m.add("convlstm", "ce", (2.004, 10.1, 0.10, 0.010), seed=seed, noise=0.10)
     t = personalized(m.context(), "accumulated")
-    a, b = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE")
+    a, b = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE (BronchoTrack)")
     assert t.marks[a][0] == {"tie"} and t.marks[b][0] == {"tie"}
     assert not any("best" in mk for row in t.marks for mk in row)
 
@@ -35,7 +35,7 @@ def test_a_clearly_better_row_is_the_single_best():
         m.add("lstm", "ce", (2.0, 10.0, 0.10, 0.010), seed=seed)
         m.add("convlstm", "ce", (2.4, 12.0, 0.12, 0.012), seed=seed)
     t = personalized(m.context(), "accumulated")
-    a, b = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE")
+    a, b = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE (BronchoTrack)")
     for j in METRIC_COLS:
         assert t.marks[a][j] == {"best"} and t.marks[b][j] == set()
 
@@ -180,7 +180,7 @@ def test_the_tracking_table_is_built_once_with_both_references():
     built = report.build_tables(m.context(), ["tracking"], ["accumulated", "pair"])
     assert [t.key for t in built] == ["table9-tracking"]
     t = built[0]
-    lstm, conv = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE")
+    lstm, conv = _row(t, "+LSTM", "MSE+CE"), _row(t, "+ConvRNN", "MSE+CE (BronchoTrack)")
     assert t.marks[lstm][0] == {"best"} and t.rows[lstm].values[0].mean > t.rows[conv].values[0].mean  # CTF
     assert t.marks[lstm][2] == {"best"} and t.rows[lstm].values[2].mean < t.rows[conv].values[2].mean  # ATE
     assert [r.label for r in t.rows if r.kind == "reference"] == ["Zero motion", "Training mean"]

@@ -31,7 +31,7 @@ def test_one_table_one_evaluation_one_format_and_latency_from_json(cli, golden_s
                           "--format", "latex", "--latency-from", str(prof), "--out", str(out), "-q")
     assert code == 0, stderr
     assert [p.name for p in out.iterdir()] == ["table7-ablation-pair.tex"]  # no figures unless --table all
-    assert r"+LSTM & 14.164 & 3.90 & 0.420 &" in (out / "table7-ablation-pair.tex").read_text()
+    assert r"+LSTM MSE+CE & 14.164 & 3.90 & 0.420 &" in (out / "table7-ablation-pair.tex").read_text()
 
 
 @pytest.mark.parametrize("args, message", [

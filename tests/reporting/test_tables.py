@@ -22,8 +22,8 @@ def test_rows_follow_the_paper_order_restricted_to_what_the_sweep_ran():
     m.add("lstm", "ce", status="FAILED")
     t = personalized(m.context(), "accumulated")
     assert [(r.group, r.label) for r in t.rows] == [
-        ("+LSTM", "MSE+MSE"), ("+LSTM", "MSE+CE"), ("+ConvRNN", "MSE+MSE"), ("+ConvRNN", "MSE+CE"),
-        ("OffsetNet", "MSE+MSE"),  # a run of it: its row after the paper's groups, only the loss it ran
+        ("+LSTM", "MSE+MSE"), ("+LSTM", "MSE+CE"), ("+ConvRNN", "MSE+MSE"), ("+ConvRNN", "MSE+CE (BronchoTrack)"),
+        ("OffsetNet", "MSE+MSE (OffsetNet)"),  # a run of it: its row after the paper's groups, only the loss it ran
         ("Image-blind", "Zero motion"), ("Image-blind", "Training mean")]
     lacks = [w for w in t.warnings if "lacks" in w]
     assert len(lacks) == 1 and "lstm/ce/personalized/s0/world (FAILED r002)" in lacks[0]
@@ -48,7 +48,7 @@ def test_a_table_planned_in_part_names_the_paper_cells_it_lacks_and_the_profile_
                                  "learning-curve": {("baseline", "ce", "personalized"),
                                                     ("convlstm", "ce", "personalized")}}
     t = personalized(ctx, "pair")
-    assert [r.name for r in t.rows if r.kind == "model"] == ["+ConvRNN MSE+CE", "OffsetNet MSE+MSE"]
+    assert [r.name for r in t.rows if r.kind == "model"] == ["BronchoTrack", "OffsetNet"]
     note = ("This config plans 1 of the paper's 12 personalized network/loss cells; not planned: Baseline: MSE+MSE, "
             "MSE+DE, MSE+CE; +LSTM: MSE+MSE, MSE+DE, MSE+CE; +3D: MSE+MSE, MSE+DE, MSE+CE; +ConvRNN: MSE+MSE, "
             "MSE+DE; the profile paper plans them (bronchopose report --profile paper).")
@@ -84,8 +84,9 @@ def test_sota_follows_the_recorded_selection():
     plan = _plan({"sota": [_ident("lstm", "de"), _ident("offsetnet", "mse")]})
     plan.selections = {"sota": {"selected": [{"arch": "lstm", "rot_loss": "de"}], "by": "val_best.ce"}}
     t = sota(m.context(plan=plan), "accumulated")
-    assert t.rows[0].label == "BronchoTrack (LSTM, MSE+DE)" and t.rows[0].runs == [chosen.run_id]
-    assert "BronchoTrack (LSTM, MSE+DE), selected on validation CE, against OffsetNet" in t.caption
+    assert t.rows[0].label == "+LSTM MSE+DE" and t.rows[0].runs == [chosen.run_id]  # its one name, its role said
+    assert ("+LSTM MSE+DE, selected on validation CE in the role of the paper's BronchoTrack, against OffsetNet"
+            in t.caption)
 
 
 def test_a_pending_selection_is_said_once():
@@ -107,7 +108,7 @@ def test_a_table_none_of_whose_cells_ran_is_skipped_not_broken():
     for build in (personalized, ablation):
         with pytest.raises(NoData, match="skipped: none of the runs' cells belongs to it"):
             build(ctx, "pair")
-    assert [r.label for r in sota(ctx, "pair").rows if r.kind == "model" and r.runs] == ["OffsetNet (MSE+MSE)"]
+    assert [r.label for r in sota(ctx, "pair").rows if r.kind == "model" and r.runs] == ["OffsetNet"]
 
 
 def test_cross_subject_best_n_keeps_the_lowest_mean_rank():
@@ -127,7 +128,7 @@ def test_sota_without_offsetnet_and_without_n_params():
     m = MemRuns()
     m.add("convlstm", "ce")
     t = sota(m.context(), "accumulated")
-    assert [r.label for r in t.rows if r.kind == "model"] == ["BronchoTrack (ConvLSTM, MSE+CE)", "OffsetNet (MSE+MSE)"]
+    assert [r.label for r in t.rows if r.kind == "model"] == ["BronchoTrack", "OffsetNet"]
     assert t.rows[0].values[0] is None and t.rows[1].values == [None] * 5
     assert any("no run logged n_params" in w for w in t.warnings)
     assert any("offsetnet/mse/personalized/s0/world" in w for w in t.warnings)

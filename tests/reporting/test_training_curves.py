@@ -19,7 +19,7 @@ def test_the_curves_pair_each_validation_with_the_pairs_seen_at_its_step():
                                   "val.ratio.pos_l2": [(250, 0.97), (500, 0.93)],
                                   "val.mode_gap": [(250, 1.02), (500, 1.01)]}})
     got = curves(runs, history)
-    assert got == {"Baseline MSE+CE · pers · s0 · camera": {"val.ratio.pos_l2": [(5000.0, 0.97), (10000.0, 0.93)],
+    assert got == {"Baseline MSE+CE · s0 · pers · camera": {"val.ratio.pos_l2": [(5000.0, 0.97), (10000.0, 0.93)],
                                                          "val.mode_gap": [(5000.0, 1.02), (10000.0, 1.01)]}}
 
 
@@ -44,5 +44,5 @@ def test_the_csv_holds_each_validation_of_the_kept_runs_with_the_loss_logged_at_
     files = training_curves(runs, history, tmp_path, [])
     csv = next(p for p in files if p.suffix == ".csv").read_text().splitlines()
     assert csv == ["run,step,train.pairs_seen,val.ratio.pos_l2,val.mode_gap,train_loss",
-                   "Baseline MSE+CE · pers · s0 · camera,250,5000,0.97,,1.5",
-                   "Baseline MSE+CE · pers · s0 · camera,500,10000,0.93,1.01,1.25"]
+                   "Baseline MSE+CE · s0 · pers · camera,250,5000,0.97,,1.5",
+                   "Baseline MSE+CE · s0 · pers · camera,500,10000,0.93,1.01,1.25"]

@@ -37,11 +37,15 @@ def test_sweep_runs_the_plan_exits_1_on_failures_and_status_reports_them(cli, pr
     assert code == 1, out + err
     assert "done 1/2" in out and "failed lstm/mse/personalized/s0/world: fake failure" in out
     code, out, _ = cli("status", "-c", path, "--set", "sweep.max_retries=0")
-    assert code == 0 and "fake failure" in out and re.search(r"lstm/mse\S*\s+failed\s", out)
+    # each cell by its run name (model, loss, seed first); the headline ratios and skills, pair and accumulated
+    assert code == 0 and "fake failure" in out and re.search(r"\+LSTM MSE\+MSE · s0\S*.*\s+failed\s", out)
     base = cells_of(project)["baseline"]
     line = next(line for line in out.splitlines() if base.run_id in line)
-    metric = int(base.cell_key[:6], 16) / 2**24  # what the fake logged as pair.pos_l2.mean
-    assert "finished" in line and f"{metric:.3f}" in line and f"{10 * metric:.3f}" in line
+    metric = int(base.cell_key[:6], 16) / 2**24  # what the fake logged as pair.pos_l2.mean (acc: 10x; refs 0.5, 4)
+    acc_skill = 1 - 10 * metric / 4.0
+    assert "finished" in line and "Baseline MSE+MSE · s0" in line
+    assert f"{metric / 0.5:.4g}" in line and f"{1 - metric / 0.5:.4g}" in line and f"{10 * metric / 4:.4g}" in line
+    assert f"{acc_skill:.4g}" + (" †" if acc_skill <= 0 else "") in line
     code, out, _ = cli("sweep", "-c", path, "--set", "sweep.max_retries=0", "--retry-failed", *FAKE)
     assert code == 0 and "done 2/2" in out
     code, out, _ = cli("sweep", "-c", path, *FAKE)  # nothing left: no worker runs anything again

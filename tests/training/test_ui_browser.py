@@ -31,7 +31,10 @@ from bronchocli.runs.views import (
     CURVE_METRICS,
     CURVES_SECTION,
     HEADLINE,
+    HEADLINE_SCATTERS,
     HEADLINE_SECTION,
+    ACC_RATIO,
+    TAG_VERDICT,
     VIEW_KEY,
     VIEW_METRICS,
     VIEW_NAME,
@@ -235,9 +238,46 @@ def test_the_link_lands_on_the_runs_sorted_by_the_headline_best_first(ui, sweep,
     assert max(significant_digits(v) for v in every) <= 4, shown  # rounded (issue 48.5): MLflow shows them whole
     best = min(runs, key=lambda r: r.data.metrics[HEADLINE])
     first_name = page.locator('.ag-row[row-index="0"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
-    assert first_name == best.info.run_name and re.fullmatch(r"Baseline MSE\+MSE · pers · s\d · world", first_name)
+    assert first_name == best.info.run_name and re.fullmatch(r"Baseline MSE\+MSE · s\d · pers · world", first_name)
     assert not page.locator('.ag-header-cell[col-id*="loss"]').count()  # no loss of mixed scale among the columns
     _docs_screenshot(page, "mlflow-runs-table.png")
+
+
+def test_the_bare_address_lands_on_the_accumulated_column_and_the_seed_of_every_row(ui, sweep, page):
+    """Issue 57.1: from the UI's bare address, the landing view shows the accumulated position ratio (the paper's
+    headline) beside the per-pair one and the † verdict column, all on screen, and every row's run name shows its
+    model, loss and seed inside the name column (not cut off)."""
+    base, _ = ui
+    _, _, _, runs = sweep
+    page.goto(f"{base}/")
+    acc, verdict = f"metrics.`{ACC_RATIO}`", f"tags.`{TAG_VERDICT}`"
+    for column in (acc, f"metrics.`{HEADLINE}`", verdict):
+        header = page.locator(f'.ag-header-cell[col-id="{column}"]')
+        header.wait_for(state="visible")
+        box = header.bounding_box()
+        assert box is not None and box["x"] + box["width"] <= page.viewport_size["width"], (column, box)
+    shown = _columns(page, [acc], len(runs))[acc]  # row-index order
+    by_name = {r.info.run_name: r for r in runs}
+    names = [page.locator(f'.ag-row[row-index="{i}"] [col-id="attributes.`Run Name`"] a').inner_text().strip()
+             for i in range(len(runs))]  # the name column is pinned: its cells are outside the centre container
+    for value, name in zip(shown, names):
+        assert float(value) == by_name[name].data.metrics[ACC_RATIO]
+    judged = page.evaluate(f"() => [...document.querySelectorAll('.ag-center-cols-container .ag-row')].map(r => "
+                           f"((r.querySelector('[col-id=\"{verdict}\"]') || {{}}).innerText || '').trim())")
+    assert sorted(judged) == sorted(r.data.tags[TAG_VERDICT] for r in runs), judged
+    assert all(re.fullmatch(r"pair [✓†] · acc [✓†]", j) for j in judged), judged
+    # the model, the loss and the seed lie inside the visible name column, in every row
+    inside = page.evaluate("""() => [...document.querySelectorAll('.ag-cell[col-id="attributes.`Run Name`"]')]
+      .filter(cell => cell.querySelector('a')).map(cell => {
+        const link = cell.querySelector('a'), text = link.innerText, m = text.match(/^.*? · s\\d+/);
+        const walker = document.createTreeWalker(link, NodeFilter.SHOW_TEXT);
+        let node, left = m[0].length, range = document.createRange();
+        while ((node = walker.nextNode()) && left > node.length) left -= node.length;
+        range.setStart(link, 0); range.setEnd(node, left);
+        return [m[0], range.getBoundingClientRect().right <= cell.getBoundingClientRect().right];
+    })""")
+    assert len(inside) == len(runs) and all(ok for _, ok in inside), inside
+    assert sorted(seed for seed, _ in inside) == sorted(re.match(r"^.*? · s\d+", n)[0] for n in by_name)
 
 
 def _headline_rows(page, runs) -> list[float]:
@@ -341,7 +381,7 @@ def test_the_views_charts_open_on_the_training_and_validation_curves(ui, sweep, 
     page.wait_for_function(f"() => ({scatters})().every(([xs, ys, xr, yr]) => Math.min(...xs) >= xr[0] && "
                            "Math.max(...xs) <= xr[1] && Math.min(...ys) >= yr[0] && Math.max(...ys) <= yr[1])")
     plots = page.evaluate(scatters)  # laid out: each axis spans its points
-    assert len(plots) == 2, plots
+    assert len(plots) == len(HEADLINE_SCATTERS), plots
     for xs, ys, x_range, y_range in plots:  # each axis spans about its points: from 0 only where they straddle it
         for values, (low, high) in ((xs, x_range), (ys, y_range)):
             assert low <= min(values) <= max(values) <= high, (values, low, high)
