@@ -74,6 +74,7 @@ def pos_mse(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
 
 
 def pos_l2(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Position L2: the Euclidean norm of the predicted minus the true position change (x, y, z), in voxels."""
     return _safe_norm(_pos_err(pred, gt))
 
 
@@ -84,6 +85,8 @@ def rot_mse(pred: torch.Tensor, gt: torch.Tensor, scale: torch.Tensor | None = N
 
 
 def rot_l2(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """Rotation L2: the Euclidean norm of the predicted minus the true Euler angles (each difference wrapped into
+    (-180°, 180°]), in degrees."""
     return _safe_norm(_rot_err(pred, gt))
 
 
@@ -93,12 +96,15 @@ def pos_l2_mm(pred: torch.Tensor, gt: torch.Tensor, spacing_mm: torch.Tensor) ->
 
 
 def direction_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """DE: the angle arccos(v_E · v_GT) between the predicted and the true viewing direction, v = R·(1, 0, 0) the
+    camera's forward axis (the cosine clamped to [-1, 1]), in radians."""
     v_pred = geometry.forward_vector(pred[..., 3:])
     v_gt = geometry.forward_vector(gt[..., 3:])
     return _safe_acos((v_pred * v_gt).sum(-1))
 
 
 def cosine_error(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """CE: the mean over the three Euler angles of 1 − cos(predicted − true angle), unitless (0 = exact)."""
     return (1.0 - torch.cos(torch.deg2rad(pred[..., 3:] - gt[..., 3:]))).mean(-1)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 
@@ -26,6 +27,7 @@ from bronchocli.runs.views import (
     headline_view,
     ordered_metrics,
     rounded,
+    text_figure,
     run_params,
     saved_view,
     runs_table_url,
@@ -87,14 +89,29 @@ def test_headline_ratios_and_skills_against_both_references():
     assert set(first) | set(rest) == set(METRICS) | set(h) and not set(first) & set(rest)
 
 
-def test_description_states_the_cell_and_the_result():
+def test_description_opens_with_the_model_population_and_seed_and_writes_4_significant_digits():
+    """Issue 57.4: the first words a reviewer reads are the model's name (with its loss), population and seed,
+    never an internal key (the cell's key and the metric key come last); every figure at 4 significant digits."""
     cell = Config(name="t").cell(arch="offsetnet", rot_loss="mse", population="cross-subject", fold="p02", seed=1)
     before = describe(cell, dataset="synthetic-cpu")
-    assert before.startswith("**OffsetNet**: cross-subject (test patient p02), seed 1")
-    assert "test patient p02" in before and "seed 1" in before and "Test:" not in before
+    assert before.startswith("**OffsetNet**, cross-subject (test patient p02), seed 1: ")
+    assert before.endswith("cell `offsetnet/mse/cross-subject/p02/s1/world`.") and "Test:" not in before
     after = describe(cell, METRICS)
-    assert "0.84 × the training-mean reference" in after and "position 0.16" in after
-    assert after.startswith(f"**{HEADLINE} = 0.84**")  # the headline first
+    first, *rest = after.split("\n\n")
+    assert first.startswith("**OffsetNet**, cross-subject (test patient p02), seed 1: ")
+    assert cell.label not in first and HEADLINE not in first  # the keys: later in the text
+    assert cell.label in rest[-1] and HEADLINE in rest[-1]
+    assert "**0.8400 ×** the training-mean reference" in first  # the headline: 0.84 / 1.0
+    assert "accumulated (whole trajectories, last pose) **0.5000 ×**" in first  # 10 / 20
+    assert "position 0.1600" in after and "accumulated position error 10.00 vox" in after
+    figures = re.findall(r"(?<![\w.])-?\d+\.\d+", after)
+    assert figures and all(len(f.lstrip("-").lstrip("0.").replace(".", "")) == 4 for f in figures), figures
+
+
+def test_text_figure_keeps_4_significant_digits_and_their_zeros():
+    assert [text_figure(v) for v in (0.84, 12.3, 1234.4, 0.012345, -0.5, 1.5e7)] == [
+        "0.8400", "12.30", "1234", "0.01235", "-0.5000", "1.500e+07"]
+    assert text_figure(math.nan) == "n/a" and text_figure(math.inf) == "inf"
 
 
 def test_source_name_is_the_command():

@@ -108,6 +108,22 @@ def test_the_server_is_sized_for_the_machine(tmp_path, monkeypatch):
     assert ui.server_env({ui.JOB_EXECUTION_ENV: "true"})[ui.JOB_EXECUTION_ENV] == "true"  # the user's choice wins
 
 
+def test_the_server_runs_without_mlflows_ai_gateway_unless_asked(monkeypatch):
+    """Issue 57.5: MLflow's documented switch of its AI Gateway (endpoints and UI entry points) is off for the UI
+    server; MLflow reads it under that name (a rename in a new MLflow fails here), a user's value wins."""
+    from mlflow.environment_variables import MLFLOW_ENABLE_AI_GATEWAY
+
+    from bronchocli.runs import ui
+
+    monkeypatch.delenv(ui.GATEWAY_ENV, raising=False)
+    env = ui.server_env()
+    assert env[ui.GATEWAY_ENV] == "false" and MLFLOW_ENABLE_AI_GATEWAY.name == ui.GATEWAY_ENV
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    assert MLFLOW_ENABLE_AI_GATEWAY.get() is False  # what MLflow's server-info reports as features_enabled.gateway
+    assert ui.server_env({ui.GATEWAY_ENV: "true"})[ui.GATEWAY_ENV] == "true"
+
+
 def test_the_store_uri_goes_to_the_server_through_its_environment_never_its_argv():
     from bronchocli.config import Config
     from bronchocli.runs import ui

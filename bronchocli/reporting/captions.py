@@ -5,8 +5,10 @@ A table carries three texts (``table_model.Table``):
 * ``caption`` — at most three sentences (``caption``): what is compared; what a
   cell is, the estimand in words; n with the unit of the evaluation (pairs,
   trajectories or frames) and the direction of the columns. The method
-  (interval construction, tests, calibration) is docs/reports.md's "Methods",
-  referenced by one phrase (``METHODS``);
+  (estimands, metrics, references, interval construction, tests) is the Methods
+  page the report writes beside the tables (``methods.py``: methods.md,
+  methods.tex), referenced by one phrase (``METHODS``) that the rendered
+  caption links to that page (``methods_pointer``);
 * footnotes (``footnotes``) — one per mark that appears in the table (bold,
   bold ≈, †, ‡, —), plus the notes the builder attached because they apply
   (rows with means only, latency definitions, differing numerics);
@@ -31,6 +33,16 @@ from .stats import ALPHA, MIN_SEEDS
 from .table_model import IGNORES, MISSING, NOSKILL, TIE, Row, Table, cell_texts, marks
 
 METHODS = "intervals and tests as in Methods"
+METHODS_PAGE = "methods"  # the page METHODS refers to: methods.md / methods.tex beside the tables (methods.py)
+POINTERS = {"md": f"[Methods]({METHODS_PAGE}.md)", "tex": f"Methods ({METHODS_PAGE}.tex)",
+            "text": f"Methods ({METHODS_PAGE}.md)"}
+
+
+def methods_pointer(text: str, fmt: str) -> str:
+    """A rendered caption whose "as in Methods" names the page it refers to, in the table's format: a link to
+    methods.md in Markdown, methods.tex in LaTeX, "(methods.md)" in the terminal. The caption itself (the
+    table's model, checked for internal names) keeps the plain phrase."""
+    return text.replace(METHODS, METHODS.replace("Methods", POINTERS[fmt]))
 WHAT = {
     "accumulated": "the last-pose error of each test trajectory, its predicted relative poses chained from the true "
                    "first pose",

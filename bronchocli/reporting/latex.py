@@ -16,6 +16,7 @@ file as comments.
 
 from __future__ import annotations
 
+from .captions import methods_pointer
 from .markdown import label_cells, note_lines, run_lines
 from .table_model import MISSING, Table, cell_texts, marks
 
@@ -28,7 +29,8 @@ _UNICODE = {
     "σ": r"\ensuremath{\sigma}", "μ": r"\ensuremath{\mu}", "Σ": r"\ensuremath{\Sigma}", "²": r"\ensuremath{^{2}}",
     "×": r"\ensuremath{\times}", "†": r"\ensuremath{^\dagger}", "‡": r"\ensuremath{^\ddagger}",
     "≈": r"\ensuremath{\approx}", "≥": r"\ensuremath{\geq}", "≤": r"\ensuremath{\leq}", "·": r"\ensuremath{\cdot}",
-    "Δ": r"\ensuremath{\Delta}", "α": r"\ensuremath{\alpha}", "’": "'", "‘": "`", "“": "``", "”": "''",
+    "Δ": r"\ensuremath{\Delta}", "α": r"\ensuremath{\alpha}", "β": r"\ensuremath{\beta}", "γ": r"\ensuremath{\gamma}",
+    "÷": r"\ensuremath{\div}", "’": "'", "‘": "`", "“": "``", "”": "''",
 }
 
 PREAMBLE = r"""\documentclass{article}
@@ -92,7 +94,7 @@ def table_environment(table: Table) -> str:
     spec = "l" * len(table.headers) + "r" * len(table.columns)
     head = [escape(h) for h in table.headers] + [escape(c.heading) for c in table.columns]
     lines = [r"\begin{table}[ht]", r"\centering", r"\small", r"\setlength{\tabcolsep}{4pt}",
-             r"\begin{threeparttable}", rf"\caption{{{escape(table.caption)}}}",
+             r"\begin{threeparttable}", rf"\caption{{{methods_pointer(escape(table.caption), 'tex')}}}",
              rf"\label{{tab:{table.key}}}", rf"\begin{{tabular}}{{{spec}}}", r"\toprule",
              " & ".join(head) + r" \\", r"\midrule", *_body(table), r"\bottomrule", r"\end{tabular}"]
     notes = _notes(table)

@@ -13,7 +13,7 @@ from __future__ import annotations
 from rich.table import Table as RichTable
 from rich.text import Text
 
-from .captions import footnotes
+from .captions import footnotes, methods_pointer
 from .table_model import MISSING, NOSKILL, TIE, Table, cell_texts, marks, row_label
 
 
@@ -64,7 +64,7 @@ def run_lines(table: Table) -> list[str]:
 def to_markdown(table: Table) -> str:
     texts, mk = cell_texts(table), marks(table)
     head = list(table.headers) + [c.heading for c in table.columns]
-    lines = [f"### {table.title}", ""] + ([table.caption, ""] if table.caption else [])
+    lines = [f"### {table.title}", ""] + ([methods_pointer(table.caption, "md"), ""] if table.caption else [])
     lines += ["| " + " | ".join(map(_md_escape, head)) + " |",
              "|" + ":---|" * len(table.headers) + "---:|" * len(table.columns)]
     for labels, row_texts, row_marks in zip(label_cells(table), texts, mk):
@@ -85,7 +85,7 @@ def to_markdown(table: Table) -> str:
 def to_rich(table: Table):
     """A rich Table: bold best, bold + ≈ tied group, dim + † no better than the reference."""
     texts, mk = cell_texts(table), marks(table)
-    text = "\n".join([table.caption] + note_lines(table, "bold"))
+    text = "\n".join([methods_pointer(table.caption, "text")] + note_lines(table, "bold"))
     out = RichTable(title=table.title, caption=text, caption_justify="left", title_justify="left")
     for h in table.headers:
         out.add_column(h)

@@ -32,6 +32,7 @@ from .figure_cache import RECORD, FigureCache, digest, files_key
 from .figures import FORMATS, Loader, make_figures
 from .latex import to_latex
 from .markdown import to_markdown
+from .methods import write_methods
 from .scope import config_plan
 from .curves import training_curves
 from .skill_figures import learning_curve, skill_figures
@@ -122,7 +123,9 @@ def without_repeats(tables: Sequence[Table], warnings: list[str] | None = None) 
 
 
 def write_tables(tables: Sequence[Table], out: Path, suffixes: Sequence[str]) -> list[Path]:
-    return [write_text(Path(out) / f"{t.key}.{s}", RENDERERS[s](t)) for t in tables for s in suffixes]
+    """The tables in each format and, when there is one, the Methods page their captions point to."""
+    files = [write_text(Path(out) / f"{t.key}.{s}", RENDERERS[s](t)) for t in tables for s in suffixes]
+    return files + (write_methods(out, list(suffixes)) if tables else [])
 
 
 def dataset_figures(root: Path, out: Path, warnings: list[str]) -> list[Path]:

@@ -28,7 +28,10 @@ training and validation curves, then the headline figures a point per run
 (``views.chart_sections``). The server is sized for the machine:
 ``workers`` (default: half the cores, 1 to 4) and no GenAI job runner
 (``MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false``: its task consumers serve LLM
-judges and trace jobs that a training experiment never uses).
+judges and trace jobs that a training experiment never uses) and no AI Gateway
+(``MLFLOW_ENABLE_AI_GATEWAY=false``: MLflow's documented switch of its endpoints
+and UI). No documented setting of MLflow 3.17 hides the "Traces" entries of a
+model-training experiment and run (docs/training.md, "Links to GenAI pages").
 """
 
 from __future__ import annotations
@@ -54,6 +57,10 @@ from ..runs.views import SHARED_VIEW_TAG, VIEW_KEY, headline_view, runs_table_fr
 from .uiapp import APP_NAME, EXPERIMENT_ENV, LANDING_ENV
 
 JOB_EXECUTION_ENV = "MLFLOW_SERVER_ENABLE_JOB_EXECUTION"
+# MLflow's documented switch of its AI Gateway "endpoints and UI" (environment_variables.py; the server reports it
+# as server-info's features_enabled.gateway): off, the UI's GenAI entry points that hang on it (AI Gateway,
+# Judges, Playground) are not shown. The experiment's and run's "Traces" tabs have no such switch (docs/training.md).
+GATEWAY_ENV = "MLFLOW_ENABLE_AI_GATEWAY"
 STORE_ENV = "MLFLOW_BACKEND_STORE_URI"  # `mlflow ui --backend-store-uri` read from the environment
 
 
@@ -135,10 +142,11 @@ def ui_command(cfg: Config, host: str, port: int, workers: int | None = None, ap
 def server_env(environ: dict[str, str] | None = None, store_uri: str | None = None, landing: str | None = None,
                experiment: str | None = None) -> dict[str, str]:
     """The server's environment: the store's URI (``store_uri``: never on the command line), the GenAI job
-    runner off unless the user asked for it, the page's landing (``landing``: a UI route) and the experiment whose
+    runner and the AI Gateway (its endpoints and UI entry points) off unless the user asked for them, the page's landing (``landing``: a UI route) and the experiment whose
     table opens on the headline view (``experiment``, ``uiapp``)."""
     env = dict(os.environ if environ is None else environ)
     env.setdefault(JOB_EXECUTION_ENV, "false")
+    env.setdefault(GATEWAY_ENV, "false")  # a training experiment has no LLM endpoints; the user's choice wins
     if store_uri is not None:
         env[STORE_ENV] = store_uri
     if landing is not None:

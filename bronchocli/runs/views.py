@@ -209,27 +209,48 @@ def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
     return [head, rest]
 
 
+def text_figure(value: float, digits: int = HEADLINE_DIGITS) -> str:
+    """A figure as the platform writes it into text the UI shows (run and parent descriptions): ``digits``
+    significant digits, trailing zeros kept (``0.8400``, ``12.30``, ``1235``), "n/a" for NaN."""
+    if not math.isfinite(value):
+        return "n/a" if math.isnan(value) else str(value)
+    text = f"{value:#.{digits}g}"
+    return text[:-1] if text.endswith(".") else text
+
+
 def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: str = "", backbone: str | None = None,
              init: str | None = None) -> str:
-    """The run's description (``mlflow.note.content``, Markdown): what the cell is, its model by its one name
-    (``registry.model_name``: ``backbone`` and ``init`` as the run's), and, once done, its result, the headline
-    first."""
-    lines = [f"**{registry.model_name(cell.arch, cell.rot_loss, backbone, init)}**: {cell.population}"
-             + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}, "
-             f"{cell.pose_frame}-frame relative poses"
-             + (f", {cell.train_trajectories} training trajectories per patient and lobe"
-                if cell.train_trajectories else "") + (f"; dataset {dataset}" if dataset else "") + "."]
-    if metrics and runkeys.HEADLINE_ERROR in metrics:
-        h = headline(metrics)
-        ratio = h.get(README_RATIO, math.nan)
-        lines.insert(0, f"**{HEADLINE} = {ratio:.3g}** (the headline: pair position error ÷ the training-mean "
-                        "reference's; < 1 beats it, lower is better)")
-        lines.append(f"Test: pair position error {metrics[runkeys.HEADLINE_ERROR]:.4g} vox = {ratio:.3g} × the "
-                     f"training-mean reference's (zero motion: "
-                     f"{h.get(runkeys.ratio('pos_l2', ref='zero_motion'), math.nan):.3g} ×); skill vs the better "
-                     f"reference: position {h.get(runkeys.skill('pos_l2'), math.nan):.3g}, rotation "
-                     f"{h.get(runkeys.skill('rot_l2'), math.nan):.3g}; accumulated position error "
-                     f"{metrics.get(runkeys.metric('pos_l2', 'acc'), math.nan):.4g} vox.")
+    """The run's description (``mlflow.note.content``, Markdown): the model's one name (``registry.model_name``:
+    ``backbone`` and ``init`` as the run's), population and seed first, then, once done, its result (the headline first, figures at ``HEADLINE_DIGITS`` significant
+    digits), then the setting; the cell's key and the metric keys last, never the first words a reviewer reads."""
+    who = (f"**{registry.model_name(cell.arch, cell.rot_loss, backbone, init)}**, {cell.population}"
+           + (f" (test patient {cell.fold})" if cell.fold else "") + f", seed {cell.seed}")
+    setting = (f"{cell.pose_frame}-frame relative poses"
+               + (f", {cell.train_trajectories} training trajectories per patient and lobe"
+                  if cell.train_trajectories else "") + (f"; dataset {dataset}" if dataset else "")
+               + f"; cell `{cell.label}`.")
+    if not metrics or runkeys.HEADLINE_ERROR not in metrics:
+        return f"{who}: {setting}"
+    h = headline(metrics)
+
+    def ratio(scope: str, ref: str = "train_mean") -> str:
+        return text_figure(h.get(runkeys.ratio("pos_l2", scope, ref), math.nan))
+
+    def skill(name: str, scope: str = "pair") -> str:
+        return text_figure(h.get(runkeys.skill(name, scope), math.nan))
+
+    error, acc_error = (text_figure(metrics.get(k, math.nan)) for k in (runkeys.HEADLINE_ERROR,
+                                                                         runkeys.metric("pos_l2", "acc")))
+    lines = [
+        f"{who}: pair position error **{ratio('pair')} ×** the training-mean reference's (the headline: below 1 "
+        f"beats predicting the training set's mean motion for every pair; lower is better); accumulated "
+        f"(whole trajectories, last pose) **{ratio('acc')} ×**.",
+        f"Test: pair position error {error} vox ({ratio('pair', 'zero_motion')} × "
+        f"zero motion's); skill vs the better reference: position {skill('pos_l2')}, rotation {skill('rot_l2')}; "
+        f"accumulated position error {acc_error} vox "
+        f"({ratio('acc', 'zero_motion')} × zero motion's, skill {skill('pos_l2', 'acc')}).",
+        f"{setting[0].upper()}{setting[1:]} Headline metric: `{HEADLINE}`.",
+    ]
     return "\n\n".join(lines)
 
 

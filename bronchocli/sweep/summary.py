@@ -46,6 +46,7 @@ from ..io import save_figure
 from ..runs.parents import KIND_SWEEP, find_parent, log_plan_params, set_parent_status
 from ..runs.processes import TAG_HOST, TAG_PID, TAG_PSTART, pid_alive, process_tags
 from ..runs.records import TAG_NOTE, log_metrics, set_tags
+from ..runs.views import text_figure
 from . import plan as planning
 from .selection import describe_selection, finished_runs
 from .storage import FAILED, FINISHED
@@ -224,8 +225,9 @@ def describe_sweep(walk: planning.StageWalk, metrics: Mapping[str, float], tags:
         best = ""
         if p + "cell" in tags:
             by = ranked_by(walk.cfg, stage)
-            figures = [f"{h} {metrics[p + h]:.4g}" for h in HEADLINES if p + h in metrics]
-            best = (f"; best by validation: {tags[p + 'cell']} (" + ", ".join(figures + [f"{by} {metrics[p + by]:.4g}"])
+            figures = [f"{h} {text_figure(metrics[p + h])}" for h in HEADLINES if p + h in metrics]
+            best = (f"; best by validation: {tags[p + 'cell']} ("
+                    + ", ".join(figures + [f"{by} {text_figure(metrics[p + by])}"])
                     + ")")
         lines.append(f"- **{stage.name}**: {what}{best}")
     lines.append("The tables and figures of `bronchopose report` are the artifacts under `report/`.")
@@ -286,13 +288,13 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
 def describe_study(info: Mapping[str, Any], n_finished: int, importances: Mapping[str, float], note: str) -> str:
     """The study parent's description (Markdown): trial counts, the best trial and its values, importances."""
     c, best = info["counts"], info["best"]
-    values = ", ".join(f"`{k}` = {v:.4g}" if isinstance(v, float) else f"`{k}` = {v}"
+    values = ", ".join(f"`{k}` = {text_figure(v)}" if isinstance(v, float) else f"`{k}` = {v}"
                        for k, v in best["params"].items())
-    ranked = ", ".join(f"`{k}` {v:.2f}" for k, v in sorted(importances.items(), key=lambda kv: -kv[1]))
+    ranked = ", ".join(f"`{k}` {text_figure(v)}" for k, v in sorted(importances.items(), key=lambda kv: -kv[1]))
     return "\n\n".join([
         f"Optuna study **{info['study']}**: {n_finished} finished trials ({c.get('complete', 0)} complete, "
         f"{c.get('pruned', 0)} pruned), {c.get('fail', 0)} failed; each trial is a nested run.",
-        f"Best: trial #{best['number']}, {info.get('objective', DEFAULT_OBJECTIVE)} {best['value']:.5g}"
+        f"Best: trial #{best['number']}, {info.get('objective', DEFAULT_OBJECTIVE)} {text_figure(best['value'])}"
         + (f", with {values}" if values else "")
         + " (apply it with `--use-tuned`).",
         *([f"Importances: {ranked}" + (f" ({note})" if note else "") + "; figure `param_importances.png`."]

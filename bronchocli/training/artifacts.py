@@ -12,8 +12,10 @@
   and ``pairs_per_s`` (training throughput since the previous point), one
   ``log_batch`` per validation;
 * per validation: ``val_loss``, ``val.*``, ``train.pairs_seen``,
-  ``train.epochs`` and ``train.skipped_steps`` (their last point is the run's
-  value: the end of a run is a validation, so they are not logged again);
+  ``train.epochs``, ``train.skipped_steps`` and ``train.core_s`` (their last
+  point is the run's value: the end of a run is a validation, so a key every
+  validation logs is not logged again at the end, and never at step 0 after
+  later steps: ``final_points``);
 * at the end: the evaluation's constants as params (``eval.ctf_position``,
   ``eval.ctf_position_mm``, ``eval.ctf_angle``, ``eval.rpe_gap``:
   ``views.eval_params``), the headline ratios and skills against both references
@@ -105,8 +107,16 @@ def log_start(client, run_id: str, cfg: Config, data: RunData, cell: Cell,
         _log_file(client, run_id, out / "split_manifest.csv")
 
 
-# Logged per validation (their last value is the run's value), so not again with the test metrics at the end.
-VALIDATION_LOGGED = tuple(runkeys.train(k) for k in ("pairs_seen", "epochs", "skipped_steps"))
+def final_points(metrics: dict[str, float], history: list[dict[str, float]]) -> tuple[dict[str, float],
+                                                                                       dict[str, float]]:
+    """The end-of-run metrics split by where they are logged: (at step 0: those with no per-validation history,
+    at the last validation's step: the history's keys whose final value differs from that validation's). A key
+    every validation logs (``train.core_s``, ``train.pairs_seen``, ...) has its run value as its last point, so its
+    curve never jumps back to step 0; it is not logged again when the last validation logged the same value."""
+    last = history[-1] if history else {}
+    at_zero = {k: v for k, v in metrics.items() if not any(k in h for h in history)}
+    at_last = {k: v for k, v in metrics.items() if k not in at_zero and last.get(k) != v}
+    return at_zero, at_last
 
 
 def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, outcome: Outcome) -> None:
@@ -115,9 +125,11 @@ def log_outcome(client, run_id: str, cfg: Config, cell: Cell, data: RunData, out
     log_params(client, run_id, eval_params(cfg))
     model_id = log_model(client, run_id, cfg, cell, data, outcome) if cfg.runs.model_artifact != "none" else None
     test = (dataset_name(cfg, "test"), data.fingerprint[:DIGEST_CHARS])
-    final = {k: v for k, v in outcome.metrics.items() if k not in VALIDATION_LOGGED}
+    final, at_last = final_points(outcome.metrics, outcome.fit.history)
     for batch in ordered_metrics(final):  # headline first: the UI lists metrics as logged
         log_metrics(client, run_id, batch, model_id=model_id, dataset=test)
+    if at_last:  # a curve's end value, where the last validation did not log it: at that step, never at step 0
+        log_metrics(client, run_id, at_last, step=int(outcome.fit.history[-1]["step"]))
     client.set_tag(run_id, TAG_NOTE, described(client, run_id, cfg, cell, outcome.metrics))
     client.set_tag(run_id, TAG_STOP, outcome.fit.stop_reason)
     if judged := verdict(outcome.metrics):

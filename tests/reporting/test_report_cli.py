@@ -30,7 +30,8 @@ def test_one_table_one_evaluation_one_format_and_latency_from_json(cli, golden_s
     code, _, stderr = cli("report", "-c", str(golden_store.config), "-t", "ablation", "--eval", "pair",
                           "--format", "latex", "--latency-from", str(prof), "--out", str(out), "-q")
     assert code == 0, stderr
-    assert [p.name for p in out.iterdir()] == ["table7-ablation-pair.tex"]  # no figures unless --table all
+    # no figures unless --table all; the Methods page its caption points to, in the format written
+    assert sorted(p.name for p in out.iterdir()) == ["methods.tex", "table7-ablation-pair.tex"]
     assert r"+LSTM MSE+CE & 14.164 & 3.90 & 0.420 &" in (out / "table7-ablation-pair.tex").read_text()
 
 
@@ -84,7 +85,7 @@ def test_report_all_writes_every_table_and_figure_even_without_vtk(cli, golden_s
     assert code == 0, stderr
     # + the record of what each figure group was drawn from (figures are redrawn only when that changes)
     assert sorted(p.name for p in out.iterdir()) == sorted(TABLE_FILES + _files(FIGURE_STEMS + DATASET_STEMS) +
-                                                           [".figure-keys.json"])
+                                                           [".figure-keys.json", "methods.md", "methods.tex"])
     assert "Table 2. Personalized population, accumulated evaluation" in stdout
     flat = " ".join(stdout.split())  # rich wraps at the terminal width
     assert ("62 of the config's 66 cells have a FINISHED run, 1 superseded duplicate(s), 1 cell(s) with only "

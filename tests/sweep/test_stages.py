@@ -125,8 +125,8 @@ def check_parent(client, run_id: str, stages) -> None:
     assert tags["best.sota.cell"] == min(values, key=lambda k: (values[k], k))
     note = tags["mlflow.note.content"]  # the run page's description: counts, then each stage, headline first
     assert note.startswith("Sweep **t**: 18 cells planned, 18 finished, 0 failed.")
-    assert ("- **personalized**: 12 cells; best by validation: lstm/ce/personalized/s0/world (pair.pos_l2.mean 9.9, "
-            "val_best.pos_l2 0.1)") in note
+    assert ("- **personalized**: 12 cells; best by validation: lstm/ce/personalized/s0/world (pair.pos_l2.mean 9.900, "
+            "val_best.pos_l2 0.1000)") in note
     assert "- **cross-subject**: 4 cells, top 2 of stage personalized by val_best.pos_l2" in note
 
 

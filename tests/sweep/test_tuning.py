@@ -19,6 +19,7 @@ from bronchocli.config import load_config
 from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
+from bronchocli.runs.views import text_figure
 from bronchocli.sweep import StorageError, SweepStore, WorkerId, studies, tuning
 from bronchocli.sweep import trials as trialrows
 from bronchocli.sweep.studyrows import study_sweep
@@ -194,7 +195,7 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
         assert not any(k.startswith("importance.") for k in metrics)
     assert (caveat in tags["importances"]) if caveat else "importances" not in tags
     note = tags["mlflow.note.content"]  # the description says the same, best trial first
-    assert f"Best: trial #{best.number}, val_best.loss {best.value:.5g}, with `train.lr` = " in note
+    assert f"Best: trial #{best.number}, val_best.loss {text_figure(best.value)}, with `train.lr` = " in note
     assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
 
 

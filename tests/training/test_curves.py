@@ -57,6 +57,25 @@ def test_no_metric_is_logged_twice_or_again_at_step_zero(curved):
     assert "val_best.loss" in metrics and "skill.pair.pos_l2" in metrics
 
 
+def test_no_metric_goes_back_to_step_zero_after_later_steps(curved):
+    """Every metric of a trained run: no point at step 0 is logged after a point at a later step (the curve would
+    jump back: a system metric's first sample is at step 0, before the others), and the run value is the curve's
+    end. ``train.core_s`` is logged at every validation, so the end of the run adds no point of it."""
+    client, run_id = curved
+    metrics = client.get_run(run_id).data.metrics
+    back = {}
+    for key, value in metrics.items():
+        points = client.get_metric_history(run_id, key)
+        later = [p.timestamp for p in points if p.step > 0]
+        if later and any(p.step == 0 and p.timestamp > min(later) for p in points):
+            back[key] = [(p.step, p.timestamp) for p in points]
+        last = max(points, key=lambda p: (p.step, p.timestamp))
+        assert last.value == value or math.isnan(last.value) and math.isnan(value), key  # the curve's end
+    assert not back, f"metrics logged at step 0 after later steps: {back}"
+    assert _steps(client, run_id, "train.core_s") == [4, 8] and metrics["train.core_s"] > 0
+    assert 0 in _steps(client, run_id, "pair.pos_l2.mean")  # a one-off test metric stays at step 0
+
+
 def test_system_metrics_are_sampled_during_the_run(curved):
     client, run_id = curved
     metrics = client.get_run(run_id).data.metrics
@@ -78,3 +97,14 @@ def test_a_missing_gpu_library_is_harmless_and_the_switch_turns_sampling_off(tin
     client, run_id = _run(tiny_cfg, **{"name": "nosys", "train.steps": 2, "train.val_every": 2,
                                        "runs.system_metrics": False})
     assert not any(k.startswith("system/") for k in client.get_run(run_id).data.metrics)
+
+
+def test_final_points_log_a_curves_end_at_its_last_step_never_at_zero():
+    from bronchocli.training.artifacts import final_points
+
+    history = [{"step": 4.0, "train.core_s": 1.0, "val_loss": 2.0}, {"step": 8.0, "train.core_s": 2.0, "val_loss": 1.5}]
+    at_zero, at_last = final_points({"train.core_s": 2.0, "train.epochs": 3.0, "pair.pos_l2.mean": 0.5}, history)
+    assert at_zero == {"train.epochs": 3.0, "pair.pos_l2.mean": 0.5} and at_last == {}  # the last validation has it
+    at_zero, at_last = final_points({"train.core_s": 2.5, "pair.pos_l2.mean": 0.5}, history)
+    assert at_zero == {"pair.pos_l2.mean": 0.5} and at_last == {"train.core_s": 2.5}  # differs: at step 8
+    assert final_points({"train.core_s": 2.0}, []) == ({"train.core_s": 2.0}, {})  # no validation: its only point
