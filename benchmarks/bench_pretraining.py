@@ -110,6 +110,8 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         for k in TEST:
             vals = [r["test"][k] for r in rs if k in r["test"]]
             a[k] = [min(vals), max(vals)] if vals else None
+        per = [r["core_s"] / r["budget_pairs"] * 1000 for r in rs if r["core_s"] and r["budget_pairs"]]
+        a["core_s_mean_per_kpair"] = round(statistics.fmean(per), 2) if per else None
         once = [r["features_core_s"] for r in rs if r.get("features_core_s")]
         a["features_core_s"] = round(max(once), 1) if once else None
     ref = arms.get("b0-random", {})

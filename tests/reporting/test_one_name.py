@@ -95,7 +95,7 @@ train: {{steps: 2, val_every: 2, batch_size: 6, threads: 1}}
     assert len(runs) == len(MODELS)
     for run in runs:
         name = re.fullmatch(r"(.+) · s0 · pers · world", run.info.run_name)
-        described = re.match(r".*\*\*(.+?)\*\*: personalized", run.data.tags["mlflow.note.content"], re.S)
+        described = re.match(r".*\*\*(.+?)\*\*, personalized", run.data.tags["mlflow.note.content"], re.S)
         assert name and described, (run.info.run_name, run.data.tags["mlflow.note.content"])
         seen |= {name.group(1), described.group(1)}
         assert name.group(1) == registry.model_name(run.data.tags["arch"], run.data.tags["rot_loss"])
