@@ -125,6 +125,24 @@ def report_tables(folder: Path) -> dict[str, list[str]]:
             for p in sorted(folder.glob("*.md"))} if folder.is_dir() else {}
 
 
+def marks(tables: dict[str, list[str]]) -> dict[str, dict[str, int]]:
+    """Per report table, how many model rows carry † (does not beat the better image-blind reference) in each
+    metric column, and how many model rows there are (``rows``): the tables' verdicts as figures."""
+    out: dict[str, dict[str, int]] = {}
+    for key, lines in tables.items():
+        rows = [[c.strip() for c in line.strip().strip("|").split("|")] for line in lines if line.startswith("|")]
+        if len(rows) < 3:
+            continue
+        head, body = rows[0], [r for r in rows[2:] if "reference" not in " ".join(r[:2]).lower()
+                                and not any(w in " ".join(r[:2]) for w in ("Zero motion", "Training mean"))]
+        counts = {"rows": len(body)}
+        for i, name in enumerate(head):
+            if ("(" in name or name == "CE") and not name.startswith("Params"):  # a metric column
+                counts[name] = sum("†" in r[i] for r in body if i < len(r))
+        out[key.removeprefix("docs_")] = counts
+    return out
+
+
 PHASES = ("clone_venv_s", "torch_s", "project_s", "install_s", "sweep_s", "report_s", "total_s")
 
 
@@ -164,6 +182,9 @@ def main(argv: list[str] | None = None) -> int:
                **flat(summarise(cells)),
                "max_mode_gap": max((c["mode_gap"] for c in cells if c["mode_gap"] is not None), default=None),
                **report_tables(args.reports or args.project / "reports")}
+    figures["daggers"] = marks({k: v for k, v in figures.items() if k.startswith("docs_table")})
+    for key in ("ratio_pos", "ratio_pos_acc", "ratio_rot"):  # every cell's, for a study-wide range
+        figures[f"all_{key}"] = sorted(v for vals in figures.get(key, {}).values() for v in vals if v is not None)
     if args.wall_s is not None:
         figures["wall_s"] = args.wall_s
     if args.phases is not None:

@@ -152,7 +152,7 @@ def fmt(value, spec: str | None) -> str:
     """A figure as the prose shows it. ``spec``: none (the value as recorded), a format spec (``.3f``),
     ``dur`` (seconds as 'M min S s'), ``range SPEC`` (a list as 'min–max'), ``join SPEC`` (a list as 'a / b')."""
     spec = (spec or "").strip()
-    one = (lambda v, s: format(v, s) if s else str(v))
+    one = (lambda v, s: "—" if v is None else format(v, s) if s else str(v))  # None: not reached, not measured
     if spec == "dur":
         return duration(float(value))
     if spec.split(" ")[0] in ("range", "join"):
