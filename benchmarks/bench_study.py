@@ -183,6 +183,9 @@ def main(argv: list[str] | None = None) -> int:
                "max_mode_gap": max((c["mode_gap"] for c in cells if c["mode_gap"] is not None), default=None),
                **report_tables(args.reports or args.project / "reports")}
     figures["daggers"] = marks({k: v for k, v in figures.items() if k.startswith("docs_table")})
+    # the tables alone (their header and rows, without title and caption, whose links are relative to reports/)
+    figures |= {k.replace("docs_", "table_only_", 1): [line for line in v if line.startswith("|")]
+                for k, v in list(figures.items()) if k.startswith("docs_table")}
     for key in ("ratio_pos", "ratio_pos_acc", "ratio_rot"):  # every cell's, for a study-wide range
         figures[f"all_{key}"] = sorted(v for vals in figures.get(key, {}).values() for v in vals if v is not None)
     if args.wall_s is not None:

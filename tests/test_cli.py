@@ -58,9 +58,13 @@ def test_config_command_prints_resolved_yaml_and_grid(cli, repo):
     code, out, _ = cli("config", "--config", str(repo / "experiments.yaml"), "--set", "train.lr=0.5")
     assert code == 0 and "lr: 0.5" in out
     code, out, _ = cli("config", "-c", str(repo / "experiments.yaml"), "--grid", "--set", "grid.seed=[0]")
-    assert code == 0 and re.search(r"\b2 cells\b", out)  # the sota stage's two models, one seed
-    # the sota stage sets arch itself: a --set grid.arch would change nothing, so it is refused in one line
-    code, _, err = cli("config", "-c", str(repo / "experiments.yaml"), "--grid", "--set", "grid.arch=[lstm]")
+    assert code == 0 and re.search(r"\b12 cells\b", out)  # the default plan: 4 architectures x 3 losses, one seed
+    # the table6 profile's sota stage sets arch itself: a --set grid.arch would change nothing, so it is refused
+    code, out, _ = cli("config", "-c", str(repo / "experiments.yaml"), "--profile", "table6", "--grid",
+                       "--set", "grid.seed=[0]")
+    assert code == 0 and re.search(r"\b2 cells\b", out)  # BronchoTrack and OffsetNet, one seed
+    code, _, err = cli("config", "-c", str(repo / "experiments.yaml"), "--profile", "table6", "--grid",
+                       "--set", "grid.arch=[lstm]")
     assert code == 2 and "has no effect: the stages decide the cells" in err
 
 

@@ -252,14 +252,21 @@ def test_readme_gives_a_newcomer_what_they_need_first():
 
 
 def test_readme_markers_hold_the_commands_ci_reads():
-    """.ci/run takes the line after the test-command marker and its fence; the fast tier has its own slot."""
+    """.ci/run takes the line after the test-command marker and its fence; the fast tier has its own slot; the main
+    command is a fenced block of steps (benchmarks/main_job_phases.sh runs them) whose steps sweep, then report."""
     lines = README.read_text(encoding="utf-8").splitlines()
-    for marker in ("<!-- main-command -->", "<!-- test-command -->", "<!-- fast-test-command -->"):
+    for marker in ("<!-- test-command -->", "<!-- fast-test-command -->"):
         i = lines.index(marker)
         assert lines[i + 1].startswith("```") and lines[i + 3] == "```", marker
     test = lines[lines.index("<!-- test-command -->") + 2]
     assert "pytest" in test
-    assert "bronchopose sweep" in lines[lines.index("<!-- main-command -->") + 2]
+    i = lines.index("<!-- main-command -->")
+    assert lines[i + 1].startswith("```")
+    steps = lines[i + 2:lines.index("```", i + 2)]
+    commands = [s.split("#", 1)[0].strip() for s in steps]
+    assert commands[0].startswith("git clone ") and any(c.startswith("pip install torch==2.13.0") for c in commands)
+    sweep = next(k for k, c in enumerate(commands) if c.startswith("bronchopose sweep"))
+    assert commands[sweep + 1].startswith("bronchopose report")
 
 
 def test_readme_quotes_no_timing_or_ratio_outside_a_generated_span():

@@ -9,6 +9,7 @@ from rich.console import Console
 
 from bronchocli.config import Config, expand_grid
 from bronchocli.errors import BronchoError
+from bronchocli.runs.records import run_name
 from bronchocli.sweep import FINISHED, RUNNING, SweepStore, read_plan
 from bronchocli.sweep.plan import Plan
 from bronchocli.sweep.status import status_table
@@ -46,7 +47,14 @@ def test_status_shows_a_running_cells_elapsed_time_and_share_of_its_budget():
     metrics = {"r1": {"pairs_seen": 4800.0}, "r2": {"pairs_seen": 6400.0, "pair.pos_l2.mean": 1.5}}
     out = StringIO()
     Console(file=out, width=250).print(status_table(plan, metrics, 1, budget_pairs=6400, now=1300.0))
-    lines = {line.split()[0]: line for line in out.getvalue().splitlines() if "/" in line}
-    assert "5m00s, 75% trained" in lines[running.label]
-    assert "1m15s" in lines[done.label] and "trained" not in lines[done.label]
-    assert "10s" in lines[fresh.label] and "trained" not in lines[fresh.label]
+    # each row opens with its run's name (records.run_name: the model, its seed, then the coordinates)
+    text = out.getvalue().splitlines()
+
+    def line(cell) -> str:
+        (found,) = [row for row in text if row.strip().startswith(run_name(cell)[:24])]
+        return found
+
+    assert len({run_name(c)[:24] for c in (running, done, fresh)}) == 3
+    assert "5m00s, 75% trained" in line(running)
+    assert "1m15s" in line(done) and "trained" not in line(done)
+    assert "10s" in line(fresh) and "trained" not in line(fresh)

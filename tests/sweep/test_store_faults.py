@@ -117,7 +117,7 @@ def test_status_all_shows_a_row_whose_coords_name_no_cell_in_one_line(cli, proje
     sql(project, f"UPDATE {TABLE} SET coords = ? WHERE cell_key = ?", '{"arch": "transformer"}', lstm.cell_key)
     code, out, err = cli("status", "-c", path_of(project), "--all")
     no_traceback(out, err)
-    assert code == 0 and "baseline/mse" in out
+    assert code == 0 and "Baseline MSE+MSE" in out  # the other cells' rows, by their runs' names
     one_line(out, f"claims row t/{lstm.cell_key}", "coords name no cell")
 
 
@@ -209,7 +209,7 @@ def test_a_deleted_cell_run_makes_status_sweep_and_report_agree_with_mlflow(cli,
     assert code == 0
     line = one_line(out, "1 cell run(s) of sweep 't' in MLflow experiment 't' were deleted")
     assert "restore them there" in line and "`bronchopose sweep run` trains those cells again" in line
-    assert re.search(r"lstm/mse\S*\s+pending\s", out) and before["lstm"].run_id not in out
+    assert re.search(r"\+LSTM MSE\+MSE · s0[^\n]*\s+pending\s", out) and before["lstm"].run_id not in out
     code, out, err = cli(*REPORT, "-c", path_of(project), "--out", str(project.paths.base / "reports"))
     no_traceback(out, err)
     assert code == 0, out + err

@@ -75,7 +75,8 @@ def test_study_prunes_logs_every_trial_and_its_best_params_apply(project, cli):
     assert [r.cell_key for r in rows] == [f"trial-{i:04d}" for i in range(4)] and {r.state for r in rows} == {"finished"}
     assert sorted(r.run_id for r in rows) == sorted(r.info.run_id for r in runs)
     code, out, err = cli("status", "-c", str(project / "experiments.yaml"), "--sweep", study_sweep(study.study_name))
-    assert code == 0 and out.count("finished") >= 4 and "trial 1 · baseline/mse/personalized" in out, out + err
+    # each trial row named as its run is: the trial slot, the model and its seed first
+    assert code == 0 and out.count("finished") >= 4 and "trial 1 · Baseline MSE+MSE · s0" in out, out + err
     assert all(r.run_id in out for r in rows)
     code, out, err = cli("status", "-c", str(project / "experiments.yaml"))  # the config's status names the study
     assert code == 0 and f"study {study.study_name}: 4 trial row(s) (4 finished)" in out, out + err

@@ -15,6 +15,7 @@ import pytest
 from weights_server import serve_weights
 
 from bronchocli.config import load_config
+from bronchocli.models import initialisation
 from bronchocli.runs.client import client_for
 from bronchocli.runs.records import TAG_INIT
 from bronchocli.training.run import run_cell
@@ -69,10 +70,17 @@ def test_offline_without_cached_weights_is_one_line_exit_2_and_no_run(tiny_proje
     assert exp is None or not client.search_runs([exp.experiment_id])
 
 
-def test_paper_profile_starts_from_imagenet_and_the_cpu_default_from_random(repo):
+def test_paper_profile_starts_from_imagenet_and_the_cpu_default_from_lite0s_packaged_imagenet_weights(repo):
     paper = load_config(repo / "experiments.yaml", profile="paper")
-    assert paper.paths.pretrained == "imagenet"
+    assert paper.paths.pretrained == "imagenet" and paper.model.backbone == "efficientnet_b0"
     assert paper.train.pairs_per_step == 512 * paper.data.window  # the authors' 512 windows per step
     assert (paper.train.lr, paper.train.schedule, paper.train.warmup) == (1e-4, "constant", 0.0)
     assert (paper.train.patience, paper.train.min_delta) == (25, 0.005)
-    assert load_config(repo / "experiments.yaml").paths.pretrained is None  # offline-reproducible default
+    default = load_config(repo / "experiments.yaml")
+    # offline-reproducible: Lite0's ImageNet file comes with an installed package, nothing is downloaded
+    assert (default.paths.pretrained, default.model.backbone) == ("imagenet", "efficientnet_lite0")
+    assert initialisation(default.paths.pretrained, list(default.grid.arch), default.model.backbone) == \
+        dict.fromkeys(default.grid.arch, "imagenet:efficientnet-lite0-57934424.pth")
+    for profile in ("cpu-study", "table6", "learning-cost"):  # the measured random-initialisation studies, pinned
+        cfg = load_config(repo / "experiments.yaml", profile=profile)
+        assert (cfg.paths.pretrained, cfg.model.backbone, cfg.model.frozen_stages) == (None, "efficientnet_b0", 0)
