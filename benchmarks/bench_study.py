@@ -143,6 +143,11 @@ def marks(tables: dict[str, list[str]]) -> dict[str, dict[str, int]]:
     return out
 
 
+def folder_mb(path: Path) -> float:
+    """Bytes of every file under ``path`` (links not followed), in MB (10^6)."""
+    return round(sum(f.lstat().st_size for f in path.rglob("*") if f.is_file() and not f.is_symlink()) / 1e6, 1)
+
+
 PHASES = ("clone_venv_s", "torch_s", "project_s", "install_s", "sweep_s", "report_s", "total_s")
 
 
@@ -192,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
         figures["wall_s"] = args.wall_s
     if args.phases is not None:
         figures |= phases(args.phases)
+        # what the main job left on disk in its clone (the README's prerequisites): MB per folder and in all
+        sizes = {name: folder_mb(args.project / name) for name in (".venv", "data", "runs", "reports")}
+        figures["disk_mb"] = {**{k.lstrip("."): v for k, v in sizes.items()}, "total": folder_mb(args.project)}
     out = {"title": args.title or f"Study {cfg.name}: every finished cell's test ratios, mode gap and cost",
            "machine": cpu_line(), "date": dt.date.today().isoformat(),
            "command": args.command or f"bronchopose sweep run{' --profile ' + args.profile if args.profile else ''}",
