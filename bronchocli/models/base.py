@@ -80,31 +80,23 @@ class PoseNet(nn.Module):
         With ``prefix_cached`` = n > 0, ``frames`` are not frames but what the first n (frozen) stages of the
         backbones made of them (``training/frozen_features.py``: computed once per dataset), and each backbone runs
         its remaining stages only."""
-        if self.prefix_cached:
-            return self._pair_features_from_prefix(frames)
-        self.check_frames(frames)
+        if not self.prefix_cached:
+            self.check_frames(frames)
         b, t = frames.shape[:2]
         current = frames[:, 1:].reshape(b * (t - 1), *frames.shape[2:])
         previous = frames[:, :-1].reshape(b * (t - 1), *frames.shape[2:])
         if self._memory_format is not torch.contiguous_format:
             current = current.contiguous(memory_format=self._memory_format)
             previous = previous.contiguous(memory_format=self._memory_format)
+        if self.prefix_cached:
+            n = self.prefix_cached
+            return torch.cat([self.backbone_cur.run_stages(current, n), self.backbone_prev.run_stages(previous, n)], 1)
         return torch.cat([self.backbone_cur(current), self.backbone_prev(previous)], dim=1)
 
     def backbones(self) -> tuple[nn.Module, nn.Module]:
         return self.backbone_cur, self.backbone_prev
 
     prefix_cached: int = 0  # inputs are the output of this many (frozen) backbone stages, not frames
-
-    def _pair_features_from_prefix(self, x: Tensor) -> Tensor:
-        b, t = x.shape[:2]
-        current = x[:, 1:].reshape(b * (t - 1), *x.shape[2:])
-        previous = x[:, :-1].reshape(b * (t - 1), *x.shape[2:])
-        if self._memory_format is not torch.contiguous_format:
-            current = current.contiguous(memory_format=self._memory_format)
-            previous = previous.contiguous(memory_format=self._memory_format)
-        n = self.prefix_cached
-        return torch.cat([self.backbone_cur.run_stages(current, n), self.backbone_prev.run_stages(previous, n)], 1)
 
     # -- frozen backbone stages (``model.frozen_stages``) -----------------------------
     frozen: tuple[nn.Module, ...] = ()

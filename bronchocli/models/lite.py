@@ -28,18 +28,9 @@ import math
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .backbones import BatchNorm2d, StochasticDepth, _init_efficientnet
+from .backbones import _B0_STAGES, BatchNorm2d, StochasticDepth, _init_efficientnet
 
-# (expand ratio, kernel, stride, in, out, layers): EfficientNet-B0's stages, which Lite0 keeps
-_LITE0_STAGES = (
-    (1, 3, 1, 32, 16, 1),
-    (6, 3, 2, 16, 24, 2),
-    (6, 5, 2, 24, 40, 2),
-    (6, 3, 2, 40, 80, 3),
-    (6, 5, 1, 80, 112, 3),
-    (6, 5, 2, 112, 192, 4),
-    (6, 3, 1, 192, 320, 1),
-)
+_LITE0_STAGES = _B0_STAGES  # (expand, kernel, stride, in, out, layers): B0's stages, which Lite0 keeps
 BN_EPS = 1e-3  # TensorFlow's batch_norm_epsilon in the builder
 INPUT_MEAN = (127.0 / 255.0,) * 3  # (p/255 - 127/255) / (128/255) = (p - 127) / 128
 INPUT_STD = (128.0 / 255.0,) * 3
