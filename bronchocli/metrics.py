@@ -121,13 +121,15 @@ def metric_functions() -> dict[str, Callable[..., torch.Tensor]]:
 
 
 def pose_loss(pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float = 1.0,
-              scale: torch.Tensor | None = None) -> torch.Tensor:
+              scale: torch.Tensor | None = None, rot_scale: bool = False) -> torch.Tensor:
     """Training loss L_pos(MSE) + w * L_rot, averaged over every pose in the batch.
 
     ``rot_loss``: a registered rotation loss (registry.register_rot_loss). ``scale`` (6,): divide the
     position errors, and the rotation errors of a ``scaled`` rotation loss (MSE), by these (the training
-    labels' std when labels are standardised), so each component weighs the same whatever its unit. DE and
-    CE are bounded angular losses and are never scaled.
+    labels' std when labels are standardised), so each component weighs the same whatever its unit.
+    ``rot_scale`` (train.rot_scale: label_std): with ``scale``, a bounded angular loss (DE, CE) is divided by
+    its own value at an error of one label std in every angle (:func:`rot_loss_unit`), as MSE's squared errors
+    are; without it they enter as the paper writes them, a few hundredths of the position term.
     """
     try:
         spec = registry.rot_loss(rot_loss)
@@ -138,8 +140,21 @@ def pose_loss(pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: f
     if scale is None:
         return pos_mse(pred, gt).mean() + rot_weight * rot(pred, gt).mean()
     pos = ((_pos_err(pred, gt) / scale[:3]) ** 2).mean(-1)
-    rot_term = rot(pred, gt, scale=scale[3:]) if spec.scaled else rot(pred, gt)
+    if spec.scaled:
+        rot_term = rot(pred, gt, scale=scale[3:])
+    elif rot_scale:
+        rot_term = rot(pred, gt) / rot_loss_unit(rot, scale)
+    else:
+        rot_term = rot(pred, gt)
     return pos.mean() + rot_weight * rot_term.mean()
+
+
+def rot_loss_unit(rot: Callable[..., torch.Tensor], scale: torch.Tensor) -> torch.Tensor:
+    """A rotation loss's value at an error of one label std ``scale[3:]`` in every angle (from no rotation): the
+    unit that puts a bounded loss on the scale of standardised MSE (1 at one std; ``pose_loss``)."""
+    err = torch.zeros(6, dtype=scale.dtype, device=scale.device)
+    err[3:] = scale[3:]
+    return rot(err, torch.zeros_like(err)).clamp_min(torch.finfo(scale.dtype).tiny)
 
 
 @dataclass(frozen=True)

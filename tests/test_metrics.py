@@ -84,6 +84,30 @@ def test_pose_loss_gradient_finite_and_descends(rot_loss):
     assert torch.isfinite(zero.grad).all()
 
 
+def test_bounded_rotation_losses_in_units_of_one_label_std():
+    """train.rot_scale label_std: DE and CE divided by their value at one label std of error in every angle
+    (hand-computed CE, SciPy's rotation for DE's forward axis), as MSE's squared errors are; none: unchanged."""
+    scale = torch.tensor([2.0, 3.0, 4.0, 5.0, 7.0, 9.0], dtype=torch.float64)
+    gt = pose(1, 2, 3, 10, 20, 30)[None]
+    pred = gt + torch.tensor([[0.4, -0.6, 0.8, 3.0, -4.0, 6.0]], dtype=torch.float64)
+    pos = float((((pred - gt)[0, :3] / scale[:3]) ** 2).mean())
+    ce_unit = float(np.mean(1 - np.cos(np.deg2rad([5.0, 7.0, 9.0]))))
+    forward = Rotation.from_euler("XYZ", [5.0, 7.0, 9.0], degrees=True).apply([1.0, 0.0, 0.0])
+    de_unit = math.acos(forward[0])  # the angle between (1, 0, 0) and its image
+    for name, unit in (("ce", ce_unit), ("de", de_unit)):
+        raw = float(m.metric_functions()[name](pred, gt)[0])
+        scaled = float(m.pose_loss(pred, gt, name, scale=scale, rot_scale=True))
+        assert scaled == pytest.approx(pos + raw / unit, rel=1e-9)
+        assert float(m.pose_loss(pred, gt, name, scale=scale)) == pytest.approx(pos + raw, rel=1e-9)
+        one_std = torch.zeros(1, 6, dtype=torch.float64)
+        one_std[0, 3:] = scale[3:]
+        at_one_std = float(m.pose_loss(one_std, torch.zeros_like(one_std), name, scale=scale, rot_scale=True))
+        assert at_one_std == pytest.approx(1.0, rel=1e-9)  # no position error: the rotation term alone, 1
+    # MSE is already in std units: rot_scale changes nothing
+    assert float(m.pose_loss(pred, gt, "mse", scale=scale, rot_scale=True)) == \
+        float(m.pose_loss(pred, gt, "mse", scale=scale))
+
+
 def test_unknown_rotation_loss_lists_the_valid_ones():
     with pytest.raises(ValueError, match="mse, de, ce"):
         m.pose_loss(pose()[None], pose()[None], "huber")

@@ -250,6 +250,9 @@ class Train(Section):
     bn_freeze: float = Field(0.0, ge=0, lt=1)
     tbptt_chunks: int = Field(1, ge=1, le=1000)  # K chunks of L pairs per training sequence
     rot_weight: float = Field(1.0, ge=0, le=1e6)
+    # label_std: a bounded rotation loss (DE, CE) in units of its value at one label std of error, as MSE's are
+    # with standardised labels; none: as the paper writes it (metrics.pose_loss; benchmarks/README.md)
+    rot_scale: spelled(Literal["label_std", "none"]) = "label_std"
     # auto = the measured per-architecture setting for the device (bronchocli/speed.py; docs/training.md, "Speed")
     precision: spelled(Literal["auto", "32", "16-mixed", "bf16-mixed"]) = "auto"
     speed_settings: str | None = None  # a settings file of `bronchopose profile --speed`; None = the shipped one

@@ -89,10 +89,10 @@ def check(cfg: Config, cell: Cell, *, pairs: int = PAIRS, steps: int = STEPS) ->
     fit = trainer.fit()
     frames, labels = trainer._batch(0)  # the whole set, as every step saw it
     recalibrate_bn(net, iter([frames]), trainer.autocast, biased=True)  # its own statistics, as trained
-    gap = mode_gap(net, [(frames, labels)], lambda out, y: net.loss(out, y, s.rot_loss, s.rot_weight),
+    gap = mode_gap(net, [(frames, labels)], lambda out, y: net.loss(out, y, s.rot_loss, s.rot_weight, s.rot_scale),
                    trainer.autocast)
     mean = torch.from_numpy(data.label_mean.astype("float32")).to(device)
-    reference = float(net.loss(mean.expand_as(labels), labels, s.rot_loss, s.rot_weight))
+    reference = float(net.loss(mean.expand_as(labels), labels, s.rot_loss, s.rot_weight, s.rot_scale))
     overfit = gap["mode_gap.eval_loss"] / reference if reference > 0 else math.inf
     return Verdict(cell.arch, len(subset) * per_sample, fit.steps, overfit, gap["mode_gap"],
                    time.perf_counter() - t0)

@@ -43,6 +43,7 @@ def settings(cfg: Config, cell: Cell, device: torch.device) -> Settings:
         bn_recalibrate=t.bn_recalibrate, augment=cfg.data.augment, seed=cell.seed,
         checkpoint_every_s=t.checkpoint_every_s, log_every=cfg.runs.log_every, bn_freeze=t.bn_freeze,
         stop_at_ratio=t.stop_at_ratio, grad_clip=t.grad_clip, backbone_lr=t.backbone_lr,
+        rot_scale=t.rot_scale == "label_std",
     )
 
 

@@ -111,6 +111,7 @@ class Settings:
     stop_at_ratio: float | None = None  # stop once val.ratio.pos_l2 <= this (train.stop_at_ratio)
     grad_clip: float | None = None  # clip the gradients' global L2 norm to this (train.grad_clip)
     backbone_lr: float = 1.0  # the backbones' learning rate as a fraction of the head's (train.backbone_lr)
+    rot_scale: bool = False  # a bounded rotation loss in units of one label std (train.rot_scale: label_std)
 
     @property
     def pairs_per_step(self) -> int:
@@ -209,7 +210,7 @@ class Trainer:
             with self.autocast():
                 out, state = self.forward(frames[:, start: start + self.s.chunk + 1], state)
             loss = self.net.loss(out.float(), labels[:, start: start + self.s.chunk], self.s.rot_loss,
-                                 self.s.rot_weight)
+                                 self.s.rot_weight, self.s.rot_scale)
             self.scaler.scale(loss / self.s.accum).backward()
             self._loss_sum += loss.detach()  # a NaN/inf loss makes the sum non-finite: checked in _check_finite
             self._loss_n += 1
@@ -346,7 +347,7 @@ class Trainer:
             with self.autocast():
                 out, _ = self.net(frames)
             out = out.float()
-            loss = self.net.loss(out, labels, self.s.rot_loss, self.s.rot_weight)
+            loss = self.net.loss(out, labels, self.s.rot_loss, self.s.rot_weight, self.s.rot_scale)
             pairs = labels.shape[0] * labels.shape[1]
             vals = [loss] + [fn(out, labels).mean() for fn in fns.values()]
             vals.append(metrics.pos_l2(mean.expand_as(labels), labels).mean())
@@ -365,8 +366,8 @@ class Trainer:
         values = self.validate()
         if self.s.mode_gap_batches:  # training batches far from the stream's position and the recalibration's
             batches = [self._batch(20_000_000 + k) for k in range(self.s.mode_gap_batches)]
-            gap = mode_gap(self.net, batches, lambda out, y: self.net.loss(out, y, self.s.rot_loss, self.s.rot_weight),
-                           self.autocast)
+            gap = mode_gap(self.net, batches, lambda out, y: self.net.loss(out, y, self.s.rot_loss, self.s.rot_weight,
+                                                                          self.s.rot_scale), self.autocast)
             values |= {runkeys.val(k): v for k, v in gap.items()}
         self._check_finite()
         curves = self._curves()

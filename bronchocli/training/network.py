@@ -17,10 +17,12 @@ from ..models.portable import Regressor, restore
 
 
 class PoseRegressor(Regressor):
-    def loss(self, pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float) -> torch.Tensor:
-        """The paper's loss; with standardised labels its squared errors are in units of the label std."""
+    def loss(self, pred: torch.Tensor, gt: torch.Tensor, rot_loss: str, rot_weight: float,
+             rot_scale: bool = False) -> torch.Tensor:
+        """The paper's loss; with standardised labels its squared errors are in units of the label std, and with
+        ``rot_scale`` (train.rot_scale: label_std) a bounded rotation loss too (metrics.pose_loss)."""
         scale = self.label_std if self.standardized else None
-        return metrics.pose_loss(pred, gt, rot_loss, rot_weight, scale=scale)
+        return metrics.pose_loss(pred, gt, rot_loss, rot_weight, scale=scale, rot_scale=rot_scale)
 
 
 def export(net: PoseRegressor, cell, image_size: int, precision: str = "fp32") -> dict:
