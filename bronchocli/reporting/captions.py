@@ -25,9 +25,9 @@ from __future__ import annotations
 from collections import Counter
 from typing import Sequence
 
-from .. import runkeys
+from .. import registry, runkeys
 from ..runs.records import TAG_FINGERPRINT, TAG_INIT
-from .collect import RunRecord, stop_reasons
+from .collect import LOSS, RunRecord, stop_reasons
 from .estimand import estimand_phrase
 from .stats import ALPHA, MIN_SEEDS
 from .table_model import IGNORES, MISSING, NOSKILL, TIE, Row, Table, cell_texts, marks
@@ -185,13 +185,30 @@ def init_text(runs: Sequence[RunRecord]) -> str:
         if init == "random":
             what = "random weights (no pretrained backbone)"
         elif init.startswith("imagenet:"):
-            what = f"ImageNet weights (torchvision {init.split(':', 1)[1]})"
+            what = f"ImageNet weights (the file {init.split(':', 1)[1]})"  # torchvision's or a package's
         elif init.startswith("file:"):
             what = f"weights from the file {init.split(':', 1)[1]}"
         else:
             what = "not recorded (runs made before the init tag: random unless model.pretrained was set)"
         parts.append(what + (f" ({n} of {len(runs)} runs)" if len(seen) > 1 else ""))
     return "Backbone initialisation: " + "; ".join(parts) + "."
+
+
+def rot_scale_text(runs: Sequence[RunRecord]) -> str:
+    """How the runs trained with a bounded rotation loss (DE, CE: not ``scaled`` in the registry) weighed it
+    (``train.rot_scale``): in units of one label std, or as the paper writes it (runs logged before the setting
+    existed trained so). Empty without such runs."""
+    names = registry.rot_loss_names()
+    bounded = [r for r in runs if r.identity[LOSS] in names and not registry.rot_loss(r.identity[LOSS]).scaled]
+    if not bounded:
+        return ""
+    seen = Counter(r.params.get("train.rot_scale", "none") for r in bounded)
+    words = {"label_std": "divided by their value at one label std of error, as MSE's squared errors are "
+                          "(train.rot_scale label_std)",
+             "none": "as the paper writes them, unscaled (train.rot_scale none)"}
+    parts = [words.get(k, k) + (f" ({n} of {len(bounded)} runs)" if len(seen) > 1 else "")
+             for k, n in sorted(seen.items())]
+    return "Rotation losses DE and CE: " + "; ".join(parts) + "."
 
 
 FINGERPRINT_CHARS = 12  # of the dataset's SHA-256 fingerprint: enough to tell datasets apart in a source line

@@ -32,7 +32,7 @@ from .. import registry, runkeys
 from ..errors import BronchoError
 from ..runs.views import EVAL_PARAMS
 from .aggregate import EVALS, nonfinite_rows
-from .captions import budget_text, caption, dataset_text, fixed_seeds_note, init_text
+from .captions import budget_text, caption, dataset_text, fixed_seeds_note, init_text, rot_scale_text
 from .collect import RunRecord
 from .context import (
     ABLATION_LOSS,
@@ -93,8 +93,8 @@ def _build(ctx: ReportContext, c: Collector, table: Table, lines: Sequence[Line]
         table.notes.append(f"Logged means without interval, not ranked ({', '.join(built.fallback)}): their runs "
                            f"have no per-trajectory errors; † there means the mean does not lie below the better "
                            f"reference's.")
-    table.source = [p for p in (source_text(ctx, c), budget_text(every), init_text(every), dataset_text(every),
-                                source) if p]
+    table.source = [p for p in (source_text(ctx, c), budget_text(every), init_text(every), rot_scale_text(every),
+                                dataset_text(every), source) if p]
     finish(table, c, expected_empty)
     if mixed:
         table.warnings.append(mixed)

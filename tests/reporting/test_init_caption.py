@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from report_fakes import MemRuns, frames_runs
 
-from bronchocli.reporting.captions import dataset_text, init_text
+from bronchocli.reporting.captions import dataset_text, init_text, rot_scale_text
 from bronchocli.reporting.tables import TABLES, NoData
 
 IMAGENET = "imagenet:efficientnet_b0_rwightman-7f5810bc.pth"
@@ -23,7 +23,7 @@ def _runs(init: str) -> MemRuns:
 
 @pytest.mark.parametrize("name", sorted(TABLES))
 @pytest.mark.parametrize("init, says", [("random", "Backbone initialisation: random weights (no pretrained backbone)."),
-                                        (IMAGENET, "Backbone initialisation: ImageNet weights (torchvision "
+                                        (IMAGENET, "Backbone initialisation: ImageNet weights (the file "
                                                    "efficientnet_b0_rwightman-7f5810bc.pth).")])
 def test_every_table_source_states_the_initialisation(name, init, says):
     m = frames_runs() if name == "frames" else _runs(init)
@@ -44,7 +44,7 @@ def test_mixed_and_unrecorded_initialisations_are_counted():
     m.add("baseline", "ce", init="")
     text = init_text(m.records)
     assert "random weights (no pretrained backbone) (10 of 12 runs)" in text
-    assert "ImageNet weights (torchvision efficientnet_b0_rwightman-7f5810bc.pth) (1 of 12 runs)" in text
+    assert "ImageNet weights (the file efficientnet_b0_rwightman-7f5810bc.pth) (1 of 12 runs)" in text
     assert "not recorded" in text
 
 
@@ -58,3 +58,22 @@ def test_the_source_line_names_the_dataset_fingerprint_and_says_when_runs_differ
     text = dataset_text(mixed)
     assert text.startswith("Dataset fingerprints differ between runs (not one dataset):")
     assert f"29a6a538fb3e ({len(one) - 1} of {len(one)} runs)" in text and "not recorded (1 of" in text
+
+
+def test_the_source_line_says_how_de_and_ce_were_weighed():
+    """train.rot_scale: the DE/CE runs' rotation term in label-std units or as the paper writes it; runs logged
+    before the setting trained unscaled; a table of MSE rows alone says nothing."""
+    m = _runs("random")
+
+    def with_scale(records, value):
+        return [type(r)(r.run_id, r.status, r.start_time, r.tags, r.metrics, r.artifact_uri,
+                        {**r.params, "train.rot_scale": value}) for r in records]
+
+    scaled = with_scale(m.records, "label_std")
+    assert rot_scale_text(scaled) == ("Rotation losses DE and CE: divided by their value at one label std of error, "
+                                      "as MSE's squared errors are (train.rot_scale label_std).")
+    assert "as the paper writes them" in rot_scale_text(m.records)  # no param: logged before it existed
+    mixed = rot_scale_text(scaled[:1] + list(m.records[1:]))
+    assert "(1 of " in mixed and "label std" in mixed and "unscaled" in mixed
+    mse_only = [r for r in scaled if r.identity[1] == "mse"]
+    assert mse_only and rot_scale_text(mse_only) == ""
