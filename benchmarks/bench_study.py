@@ -1,6 +1,7 @@
 """A finished study read back into a results file: every cell's test ratios, mode gap and cost, and its report.
 
-    python benchmarks/bench_study.py PROJECT [--profile NAME] --out NAME [--reports DIR] [--command TEXT]
+    python benchmarks/bench_study.py PROJECT [--profile NAME] [--set KEY=VALUE ...] --out NAME [--reports DIR]
+        [--command TEXT]
 
 PROJECT is the folder the study ran in (its experiments.yaml, MLflow store and claims table; the main job's is
 the clone it ran in). For every finished cell run of the config's experiment (parents and tune trials left
@@ -168,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("project", type=Path, help="the folder the study ran in (experiments.yaml + runs/)")
     ap.add_argument("--profile", default=None)
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override the study ran with (e.g. name=probe: its MLflow experiment)")
     ap.add_argument("--out", required=True, help="results file name, without .json")
     ap.add_argument("--reports", type=Path, default=None, help="the report's folder (default PROJECT/reports)")
     ap.add_argument("--command", default=None, help="the command that ran the study (recorded)")
@@ -177,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="the output of benchmarks/main_job_phases.sh: its phases (clone_venv_s ... total_s) are "
                          "recorded as figures")
     args = ap.parse_args(argv)
-    cfg = load_config(args.project / "experiments.yaml", args.profile)
+    cfg = load_config(args.project / "experiments.yaml", args.profile, args.overrides)
     cells = collect(cfg)
     if not cells:
         sys.exit(f"no finished cell runs in experiment {cfg.name!r}")
