@@ -74,9 +74,6 @@ def count(scope: str) -> str:
     return "test.n_pairs" if scope == "pair" else "test.n_trajectories"
 
 
-COUNTS = (count("pair"), count("traj"))
-
-
 def column(name: str, scope: str = "pair", source: str = MODEL) -> str:
     """A column of ``trajectory_errors.csv`` (one row per test trajectory): ``model.pair.pos_l2``."""
     _check("scope", scope, SCOPES)
