@@ -261,7 +261,7 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
         console.print("no completed trial yet")
         return info
     table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
-                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
+                  f"{info['objective']} {best['value']:.5g} (MLflow run {best['run_id']})")  # the metric minimised
     for name, value in best["params"].items():
         imp = info["importances"].get(name)
         table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),
