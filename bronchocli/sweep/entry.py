@@ -170,8 +170,9 @@ def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool
 
 def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False,
            console: Console) -> SweepState:
-    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells;
-    returns what it showed (``status.SweepState``: the cells, their runs and metrics)."""
+    """``bronchopose status``: show the sweep's cells; returns what it showed (``status.SweepState``: the cells, their
+    runs and metrics). It writes nothing, unless ``repair``: first end the runs a dead process left RUNNING, the
+    parent of a detached sweep whose workers are all gone (``settle_detached``), and repair damaged claims rows."""
     store = open_store(cfg)
     if repair:
         done = repair_zombies(cfg, store if store.exists() else None)
@@ -192,8 +193,8 @@ def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = Fal
             for r in reset:
                 console.print(f"repaired claims row {r.sweep}/{r.cell_key} ({r.label}): pending again (its run "
                               f"{r.run_id} does not exist in MLflow)", highlight=False, soft_wrap=True)
-    if name == cfg.name and store.exists():
-        settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
+        if name == cfg.name and store.exists():
+            settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
     return show_status(cfg, store, name, show_all, console)
 
 
@@ -201,7 +202,8 @@ def settle_detached(cfg: Config, store: SweepStore) -> str | None:
     """The sweep's parent run RUNNING though it was submitted with a detachable launcher (``TAG_LAUNCHER``), no
     watcher of it lives (``TAG_WATCHER``) and none of its workers is queued or running (they were all cancelled
     before any ran, say): ended as its last worker would have (``stagework.end_abandoned``); the reason, or None.
-    A local sweep's parent is ``status --repair``'s (its process tags)."""
+    ``status --repair`` asks it (a local sweep's parent it ends by its process tags); plain ``status`` writes
+    nothing."""
     try:
         if store_missing(cfg):
             return None
