@@ -31,7 +31,8 @@ FAMILIES = re.compile(
     r"|\{\}\.(?:mean|std)\b"  # a mean or std built from parts: f"{scope}.{m}.mean"
 )
 SECTIONED = re.compile(rf"{START}(train|eval)\.([a-z_]+|\{{\}})")  # train.* / eval.*: a metric or a config path
-BARE = {runkeys.VAL_LOSS, runkeys.TRAIN_LOSS, runkeys.N_PARAMS, runkeys.THREADS, runkeys.RESUMED_FROM_STEP}  # metric keys without a family
+# metric keys without a family
+BARE = {runkeys.VAL_LOSS, runkeys.TRAIN_LOSS, runkeys.N_PARAMS, runkeys.THREADS, runkeys.RESUMED_FROM_STEP}
 
 # Where a key-shaped literal is allowed, each with its reason (module path relative to bronchocli/, literal).
 ALLOWED = {

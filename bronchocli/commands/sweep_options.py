@@ -5,15 +5,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import typer
 from typer._click import Context  # Typer 0.29 vendors click (pyproject pins typer < 0.30)
 from typer.core import TyperGroup
 
-from ..cells import FIELDS
-from ..config.arguments import RULES
+from ..api.arguments import FIELDS, RULES
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
@@ -36,16 +34,8 @@ app = typer.Typer(cls=SweepGroup, no_args_is_help=False,
                   "gc, cancel.")
 
 
-def task_spec(config: Path, profile: str | None, set_: list[str] | None, storage: str | None,
-              use_tuned: str | None = None, only: list[str] | None = None) -> Any:
-    from ..sweep.task import TaskSpec  # lazy: keeps `bronchopose --help` fast
-
-    return TaskSpec(config=str(config), profile=profile, overrides=tuple(set_ or ()), storage=storage,
-                    use_tuned=use_tuned, only=tuple(only or ()))
-
-
 def wide_console() -> Any:
-    from ..sweep.status import wide  # lazy: keeps `bronchopose --help` fast
+    from ..api.manage import wide  # lazy: keeps `bronchopose --help` fast
 
     return wide(_console)
 

@@ -1,5 +1,5 @@
 """The library calls behind ``bronchopose sweep run | plan | status | gc | cancel``, ``status``, ``tune`` and
-``config --grid``: each command parses its flags, loads the config and calls exactly one of these.
+``config --grid``: each command parses its flags and reaches exactly one of these through ``bronchocli.api``.
 
 The sweep's verbs (the config loaded by ``task.TaskSpec.load``, the same call a detached worker makes):
 
@@ -79,15 +79,17 @@ def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[st
     return workers or placement.default_workers(devices, per_gpu), devices
 
 
-def launcher_options(kind: type[Launcher], given: dict[str, Any]) -> dict[str, Any]:
-    """The options given to ``sweep run`` (``{"--workers": 2}``; None: not given) as ``kind.create`` takes them
-    (``{"workers": 2}``); one line naming those it does not take and the launchers that do."""
-    given = {flag: value for flag, value in given.items() if value is not None}
-    if foreign := [flag for flag in given if flag not in kind.options]:
+def launcher_options(kind: type[Launcher], **given: Any) -> dict[str, Any]:
+    """The launcher options given to ``sweep run`` or ``tune`` (``workers=2``; None: not given) as ``kind.create``
+    takes them (``{"workers": 2}``); one line naming, as the command line spells them (``kind.options``), those it
+    does not take and the launchers that do."""
+    given = {name: value for name, value in given.items() if value is not None}
+    flags = {name: "--" + name.replace("_", "-") for name in given}
+    if foreign := [flags[name] for name in given if flags[name] not in kind.options]:
         owners = [k.name for k in loadable(launcher_names()) if set(foreign) & set(k.options)]
         raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
                            f"{kind.name} sizes its workers itself (docs/cluster.md)")
-    return {flag.lstrip("-").replace("-", "_"): value for flag, value in given.items()}
+    return given
 
 
 def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str, Any] | None = None,
