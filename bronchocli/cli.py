@@ -1,4 +1,6 @@
-"""The `bronchopose` command line: registers the commands, nothing else."""
+"""The `bronchopose` command line: registers the commands (one module each in ``commands/``, thin layers over
+``bronchocli.api``) and turns whatever escapes one into one line and an exit code (``BronchoError``: 2; a stop
+signal: the shell's code for it; ``--debug``: the traceback after the line)."""
 
 from __future__ import annotations
 

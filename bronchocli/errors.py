@@ -87,10 +87,6 @@ class MlflowUnreachable(BronchoError):
     resumable = True
 
 
-# Kinds renamed since: a failure_reason recorded under the old name is still read as the new kind.
-RENAMED_KINDS = {"TrackingBusy": MlflowBusy}
-
-
 def _kinds(cls: type[BaseException]) -> list[type[BaseException]]:
     return [cls] + [k for sub in cls.__subclasses__() for k in _kinds(sub)]
 
@@ -100,6 +96,4 @@ def resumable(failure: BaseException | str) -> bool:
     if isinstance(failure, BaseException):
         return bool(getattr(failure, "resumable", False))
     kind, sep, _ = failure.partition(":")
-    if kind in RENAMED_KINDS:
-        return bool(sep) and RENAMED_KINDS[kind].resumable
     return bool(sep) and any(k.__name__ == kind and getattr(k, "resumable", False) for k in _kinds(BronchoError))

@@ -25,15 +25,28 @@ validation          ``val_loss``, ``val.pos_l2``,                   :func:`val`,
                     ``val_best.loss``, ``val_best.pos_l2``
 evaluation          ``eval.mode_gap``, ``eval.time_s``; the         :func:`evaluation`
                     thresholds' params ``eval.ctf_angle``, ...
-training            ``train.steps``, ``train.pairs_seen``, ...      :func:`train`
+training            ``train.steps``, ``train.pairs_seen``, ...;     :func:`train`,
+                    the torch threads at each validation            ``THREADS``,
+                    ``threads``; each resume ``resumed_from_step``  ``RESUMED_FROM_STEP``
 cost of learning    ``cost.pairs_to_0.90``, ...                     :func:`cost`
+a sweep's parent    ``cells.planned``, ``cells.finished``,          :func:`cells`, :func:`best`
+                    ``cells.failed``; a stage's best cell:
+                    ``best.<stage>.val_best.loss``, ...
+a study's parent    ``trials.complete``, ``trials.pruned``, ...;    :func:`trials`,
+                    ``importance.<path>``; the objective            :func:`importance`
 ==================  ==============================================  ==========================
 
+A parent's tags beside those metrics share their prefixes and are built here too: a stage's best cell and run
+(``best.<stage>.cell``, ``best.<stage>.run``: :func:`best`) and a study's best value of each searched path
+(``best.<path>``: :func:`best_value`).
+
 The headline (``HEADLINE``) is the test pair position error divided by the training-mean reference's on the
-same test pairs: below 1 beats predicting the training set's mean motion for every pair. Runs log it
-(``runs.views.headline``); the runs table sorts by it, ``track --best`` ranks by it, a sweep's parent shows
-it beside each stage's best cell. :func:`headline` computes it from the two logged errors, so a run logged
-before the ratio was a metric has one too.
+same test pairs: below 1 beats predicting the training set's mean motion for every pair. "Headline" means
+that one figure and nothing else. Runs log it with the other ratios and skills (``runs.views.reference_figures``);
+the runs table sorts by it, ``track --best`` ranks by it, a sweep's parent shows it beside each stage's best
+cell, ``train`` ends with it. :func:`headline` is the one computation of it (NaN unless the reference's error
+is a positive finite number), from the two logged errors, so a run logged before the ratio was a metric has
+one too.
 """
 
 from __future__ import annotations
@@ -50,6 +63,8 @@ STATS = ("mean", "std")
 VAL_LOSS = "val_loss"  # the validation loss, per validation (early stopping, the pruner)
 TRAIN_LOSS = "train_loss"  # the training loss, per logged step
 N_PARAMS = "n_params"  # the model's parameter count
+THREADS = "threads"  # the torch threads a run trained with, at each validation (its core share may change)
+RESUMED_FROM_STEP = "resumed_from_step"  # one value per resume, at step = the checkpoint's: the run's history
 
 
 def _check(what: str, value: str | None, allowed: tuple[str | None, ...]) -> None:
@@ -72,9 +87,6 @@ def count(scope: str) -> str:
     """The test set's size a scope's means are over: ``test.n_pairs`` (pair), ``test.n_trajectories``."""
     _check("scope", scope, SCOPES)
     return "test.n_pairs" if scope == "pair" else "test.n_trajectories"
-
-
-COUNTS = (count("pair"), count("traj"))
 
 
 def column(name: str, scope: str = "pair", source: str = MODEL) -> str:
@@ -181,3 +193,37 @@ def cost(what: str, target: float) -> str:
     first reached ``target``: ``cost.pairs_to_0.90``."""
     _check("cost", what, ("pairs", "step", "core_s"))
     return f"cost.{what}_to_{target:.2f}"
+
+
+# -- the parent runs: a sweep's, a study's ---------------------------------------------------------------
+
+CELL_STATES = ("planned", "finished", "failed")
+TRIAL_STATES = ("finished", "complete", "pruned", "fail")
+
+
+def cells(state: str) -> str:
+    """A sweep parent's count of its planned cells (``planned``) or of those in a state: ``cells.finished``."""
+    _check("cells", state, CELL_STATES)
+    return f"cells.{state}"
+
+
+def best(stage: str, name: str) -> str:
+    """A sweep parent's figure of ``stage``'s best cell by validation (``best.personalized.val_best.loss``, its
+    headline, its error), or the tag naming that cell or its run (``name`` ``cell``, ``run``)."""
+    return f"best.{stage}.{name}"
+
+
+def best_value(path: str) -> str:
+    """A study parent's tag: the best trial's value of a searched config path (``best.train.lr``)."""
+    return f"best.{path}"
+
+
+def trials(state: str) -> str:
+    """A study parent's trial count: ``trials.finished`` (pruned or complete), ``trials.complete``, ..."""
+    _check("trials", state, TRIAL_STATES)
+    return f"trials.{state}"
+
+
+def importance(path: str) -> str:
+    """A study parent's importance of a searched config path (``importance.train.lr``)."""
+    return f"importance.{path}"

@@ -879,7 +879,7 @@ def test_out_of_memory_outside_a_run_is_one_line(cli, monkeypatch):
     def allocate(*args, **kwargs):
         raise ImportError("libopenblas.so.0: cannot allocate memory for thread-local data")
 
-    monkeypatch.setattr("bronchocli.commands.common.load_config", allocate)
+    monkeypatch.setattr("bronchocli.api.work.load_config", allocate)
     code, out, err = cli("config", "-c", str(REPO / "experiments.yaml"))
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("error: out of memory"), err

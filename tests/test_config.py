@@ -213,46 +213,17 @@ def test_eval_thresholds_are_validated_and_reach_the_evaluation(tmp_path):
                                                           {"arch": "lstm"})  # thresholds do not retrain
 
 
-# -- renamed keys: `tracking` is `runs` now (read for one release, with a warning) -------------------------------
+# -- no renamed keys: 0.1.0 has had no release, so an old section name is an unknown key ------------------------
 
 
-@pytest.fixture
-def fresh_warnings(monkeypatch):
-    monkeypatch.setattr("bronchocli.config.loading._warned", set())
-
-
-def test_the_old_tracking_section_is_read_as_runs_with_a_warning(tmp_path, caplog, fresh_warnings):
-    path = write(tmp_path, """\
-        name: t
-        tracking: {uri: sqlite:///old.db, busy_timeout_s: 7}
-        profiles:
-          p: {tracking: {timeout_s: 3}}
-        """)
-    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):
-        cfg = C.load_config(path, "p")
-    assert cfg.runs.busy_timeout_s == 7 and cfg.runs.timeout_s == 3
-    assert cfg.paths.mlflow_uri == f"sqlite:///{tmp_path}/old.db"
-    [warning] = [r.getMessage() for r in caplog.records]  # once per process, however many places use it
-    assert f"{path}:2" in warning and "'tracking' is now 'runs'" in warning
-
-
-def test_an_error_under_the_old_name_still_names_its_line(tmp_path, fresh_warnings):
-    path = write(tmp_path, "name: t\n\ntracking:\n  timeout_s: -1\n")
-    with pytest.raises(ConfigError, match=rf"{path}:4: runs.timeout_s: -1"):
+def test_the_old_section_names_are_unknown_keys(tmp_path):
+    """``tracking`` (now ``runs``) and ``slurm`` (now ``sweep.launchers.slurm``) are refused like any unknown key,
+    naming the line and the allowed sections: nothing reads them as the new ones."""
+    path = write(tmp_path, "name: t\ntracking: {uri: sqlite:///old.db}\n")
+    with pytest.raises(ConfigError, match=rf"{path}:2: tracking: unknown key 'tracking' \(allowed: .*runs"):
         C.load_config(path)
-
-
-def test_both_names_at_once_is_one_clear_error(tmp_path, fresh_warnings):
-    path = write(tmp_path, "name: t\ntracking: {timeout_s: 2}\nruns: {timeout_s: 3}\n")
-    with pytest.raises(ConfigError, match="both 'tracking' and 'runs' are set"):
-        C.load_config(path)
-
-
-def test_a_set_override_under_the_old_name_is_renamed(tmp_path, caplog, fresh_warnings):
-    with caplog.at_level("WARNING", logger="bronchocli.config.loading"):
-        cfg = C.load_config(write(tmp_path, "name: t\n"), overrides=["tracking.experiment=other"])
-    assert cfg.runs.experiment == "other" and cfg.experiment_name == "other"
-    assert "--set tracking.experiment=other" in caplog.records[0].getMessage()
+    with pytest.raises(ConfigError, match=r"--set slurm.partition=gpu: slurm: unknown key 'slurm'"):
+        C.load_config(write(tmp_path, "name: t\n"), overrides=["slurm.partition=gpu"])
 
 
 def test_paper_profile_follows_the_authors_code_where_the_text_differs(repo):

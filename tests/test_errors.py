@@ -54,6 +54,7 @@ def test_the_resumable_kinds_are_those_of_the_machine_and_all_live_in_errors_py(
     assert {k.__name__ for k in kinds(errors.BronchoError) if k.resumable} == MACHINE  # subclasses inherit it
 
 
-def test_a_reason_recorded_under_a_renamed_kind_is_still_resumable():
-    assert resumable("TrackingBusy: database is locked")  # MlflowBusy's name before the runs/ package
+def test_a_reason_under_no_kind_of_errors_py_is_not_resumable():
+    assert resumable("MlflowBusy: database is locked")
+    assert not resumable("TrackingBusy: database is locked")  # no kind of that name (0.1.0 renamed none)
     assert not resumable("TrackingUnreachable: no answer")

@@ -23,7 +23,7 @@ from bronchocli.runs.views import (
     config_value,
     describe,
     eval_params,
-    headline,
+    reference_figures,
     headline_view,
     ordered_metrics,
     rounded,
@@ -75,7 +75,7 @@ def test_the_evaluation_constants_are_params_read_back_with_the_old_metrics_as_f
 
 
 def test_headline_ratios_and_skills_against_both_references():
-    h = headline(METRICS)
+    h = reference_figures(METRICS)
     assert list(h)[:3] == [README_RATIO, "skill.pair.pos_l2", "skill.pair.rot_l2"]
     assert h["ratio.train_mean.pair.pos_l2"] == pytest.approx(0.84)  # the README's figure: 0.84 / 1.0
     assert h["ratio.zero_motion.pair.pos_l2"] == pytest.approx(0.7)
@@ -167,7 +167,7 @@ def test_the_headline_figures_are_logged_to_4_significant_digits_and_the_errors_
     assert first["skill.pair.rot_l2"] == 0.5885  # 1 - 0.0123456 / 0.03 = 0.58848
     assert all(len(repr(first[k]).lstrip("0.").replace(".", "")) <= 4 for k in first if k.startswith(("ratio.",
                                                                                                       "skill.")))
-    assert headline(metrics)[README_RATIO] == pytest.approx(1.23456789 / 1.5, rel=1e-12)  # computed whole
+    assert reference_figures(metrics)[README_RATIO] == pytest.approx(1.23456789 / 1.5, rel=1e-12)  # computed whole
     assert rounded(-0.0012346) == -0.001235 and rounded(12345.6) == 12350.0 and math.isnan(rounded(math.nan))
 
 

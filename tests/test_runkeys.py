@@ -27,10 +27,12 @@ FAMILIES = re.compile(
     rf"{START}(?:(?:model|zero_motion|train_mean)\.)?(?:pair|acc|traj)\.{NAME}"  # test metrics, errors table
     rf"|{START}(?:ratio|skill|val|val_best|cost)\.{NAME}"  # headline, validation, cost of learning
     rf"|{START}(?:pred\.std|test\.n_)"  # prediction spread, test size
+    rf"|{START}(?:cells|best|trials|importance)\.{NAME}"  # a sweep's and a study's parent run
     r"|\{\}\.(?:mean|std)\b"  # a mean or std built from parts: f"{scope}.{m}.mean"
 )
 SECTIONED = re.compile(rf"{START}(train|eval)\.([a-z_]+|\{{\}})")  # train.* / eval.*: a metric or a config path
-BARE = {runkeys.VAL_LOSS, runkeys.TRAIN_LOSS, runkeys.N_PARAMS}  # metric keys without a family
+# metric keys without a family
+BARE = {runkeys.VAL_LOSS, runkeys.TRAIN_LOSS, runkeys.N_PARAMS, runkeys.THREADS, runkeys.RESUMED_FROM_STEP}
 
 # Where a key-shaped literal is allowed, each with its reason (module path relative to bronchocli/, literal).
 ALLOWED = {
@@ -38,6 +40,9 @@ ALLOWED = {
     ("config/sections.py", "val_loss"): "a name of tune.objective's choices (what a trial minimises), not a key",
     ("sweep/tuning.py", "val_loss"): "the same choice name, as the key of OBJECTIVES",
     ("models/__init__.py", "n_params"): "the name of the function models exports (__all__), not a key",
+    ("config/grid.py", "threads"): "the config field train.threads (NOT_IN_KEY), not a key",
+    ("diagnostics/speed.py", "threads"): "a field of speed_settings.json's measurement record, not a key",
+    ("runs/cores.py", "threads"): "a field of a core claim's JSON and the run param threads (with threads.source)",
 }
 
 
@@ -122,6 +127,14 @@ def test_every_allowed_literal_is_still_there():
     'KEY = "test.n_pairs"',
     'def f(m):\n    return m.get("val_loss")',
     'def f(text):\n    raise ValueError(f"{text}: ranked by val_best.loss")',  # a key inside a message
+    'KEY = "cells.finished"',  # a sweep's parent run
+    'def f(stage, by):\n    return f"best.{stage}.{by}"',
+    'def f(stage):\n    p = f"best.{stage}."\n    return p',
+    'def f(k):\n    return f"trials.{k}"',  # a study's parent run
+    'KEY = "trials.pruned"',
+    'def f(path):\n    return {f"importance.{path}": 1.0}',
+    'def f(client, run, step):\n    client.log_metric(run, "resumed_from_step", step)',
+    'VALUES = {"threads": 2.0}',
 ])
 def test_the_scan_finds_a_planted_key(planted, tmp_path):
     package = tmp_path / "bronchocli"
@@ -183,6 +196,18 @@ def test_validation_training_and_cost_keys():
         runkeys.best_of("pair.pos_l2.mean")
 
 
+def test_parent_run_keys():
+    assert [runkeys.cells(s) for s in runkeys.CELL_STATES] == ["cells.planned", "cells.finished", "cells.failed"]
+    assert runkeys.best("personalized", "val_best.loss") == "best.personalized.val_best.loss"
+    assert runkeys.best("sota", "run") == "best.sota.run" and runkeys.best_value("train.lr") == "best.train.lr"
+    assert [runkeys.trials(s) for s in runkeys.TRIAL_STATES] == [
+        "trials.finished", "trials.complete", "trials.pruned", "trials.fail"]
+    assert runkeys.importance("model.dropout") == "importance.model.dropout"
+    assert (runkeys.THREADS, runkeys.RESUMED_FROM_STEP) == ("threads", "resumed_from_step")
+    with pytest.raises(ValueError, match="trials 'failed'"):
+        runkeys.trials("failed")
+
+
 def test_a_misspelt_part_is_refused_not_turned_into_a_key_nothing_reads():
     with pytest.raises(ValueError, match="scope 'pairs'"):
         runkeys.metric("pos_l2", "pairs")
@@ -196,3 +221,18 @@ def test_the_headline_is_the_pair_position_error_over_the_training_means():
     assert math.isnan(runkeys.headline({"pair.pos_l2.mean": 0.42}))
     assert math.isnan(runkeys.headline({**m, "train_mean.pair.pos_l2.mean": 0.0}))
     assert math.isnan(runkeys.headline({**m, "train_mean.pair.pos_l2.mean": math.nan}))
+
+
+@pytest.mark.parametrize("reference", [0.5, 0.0, -0.5, math.inf, math.nan, None])
+def test_train_results_headline_is_the_one_headline(reference):
+    """``TrainResult.headline`` (what ``train`` ends with, ``api.train`` returns) is ``runkeys.headline``: the same
+    edge rule (NaN unless the reference's error is a positive finite number), not a division of its own."""
+    from bronchocli.runs.contract import RunResult
+    from bronchocli.training.outcome import TrainResult
+
+    metrics = {"pair.pos_l2.mean": 0.42, **({} if reference is None else {"train_mean.pair.pos_l2.mean": reference})}
+    cell = Config(name="x").cell(arch="baseline", rot_loss="mse", population="personalized")
+    result = TrainResult(cell, "x", RunResult("r", "FINISHED", metrics))
+    expected = runkeys.headline(metrics)
+    assert result.headline == pytest.approx(expected, nan_ok=True)
+    assert (reference == 0.5) == math.isfinite(result.headline)

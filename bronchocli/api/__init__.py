@@ -25,6 +25,12 @@ Inference (``api.inference``):
 
 Poses follow the project's convention (docs/conventions.md): position in voxels, orientation as intrinsic XYZ
 Euler angles in degrees.
+
+The command line is a thin layer over this package: every ``bronchopose`` command calls these functions, and
+those of ``api.manage`` (the sweep's plan, gc, cancel; ``config``) and ``api.tools`` (data, profile, selftest,
+track, ui, weights); ``api.arguments`` holds the names and bounds their arguments take, light enough for the
+command line's start-up. Importing ``bronchocli.api`` loads neither torch nor MLflow: the inference half loads
+when one of its names is first used.
 """
 
 from __future__ import annotations
@@ -32,7 +38,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from ..training.outcome import TrainResult
-from .inference import PoseModel, chain, load_model, predict, read_frames, read_poses, score
 from .results import StudyResult, SweepResult
 from .work import config_of, report, status, study, sweep, train, tune
 
@@ -43,11 +48,18 @@ __all__ = ["PoseModel", "load_model", "read_frames", "read_poses", "predict", "c
 if TYPE_CHECKING:
     from ..reporting.report import ReportResult
     from ..reporting.table_model import Table
+    from .inference import PoseModel, chain, load_model, predict, read_frames, read_poses, score
+
+INFERENCE = ("PoseModel", "load_model", "read_frames", "read_poses", "predict", "chain", "score")
 
 
 def __getattr__(name: str) -> Any:
-    """``ReportResult`` and ``Table`` load the reporting stack only when asked for (``import bronchocli.api``
-    stays as light as the inference half needs)."""
+    """The inference half (MLflow, torch) and ``ReportResult``/``Table`` (the reporting stack) load only when one
+    of their names is asked for: ``import bronchocli.api`` stays light enough for the command line's start-up."""
+    if name in INFERENCE:
+        from . import inference  # lazy: MLflow and torch only once the inference half is used
+
+        return getattr(inference, name)
     if name == "ReportResult":
         from ..reporting.report import ReportResult  # lazy: the reporting stack only when asked for
 
@@ -57,3 +69,7 @@ def __getattr__(name: str) -> Any:
 
         return Table
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

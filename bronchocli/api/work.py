@@ -181,7 +181,7 @@ def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popul
     target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
                      train_trajectories=train_trajectories)
     kind = entry.launcher_kind(cfg, launcher or entry.TUNE_LAUNCHER)
-    options = entry.launcher_options(kind, {"--workers": workers, "--gpus": gpus, "--per-gpu": per_gpu})
+    options = entry.launcher_options(kind, workers=workers, gpus=gpus, per_gpu=per_gpu)
     spec = None if isinstance(config, Config) else TaskSpec(config=str(config), profile=profile,
                                                              overrides=tuple(overrides), storage=storage)
     info = entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, kind=kind, options=options,
@@ -237,7 +237,7 @@ def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (
     spec.selection()  # a bad --only or --runner: one line before anything else
     spec.cell_runner()
     kind = entry.launcher_kind(cfg, launcher)
-    options = entry.launcher_options(kind, {"--workers": workers, "--gpus": gpus, "--per-gpu": per_gpu})
+    options = entry.launcher_options(kind, workers=workers, gpus=gpus, per_gpu=per_gpu)
     if detach and not kind.detachable:
         raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
                            "whose workers outlive it (slurm) can detach")

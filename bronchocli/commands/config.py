@@ -6,8 +6,8 @@ from pathlib import Path
 
 import typer
 
-from ..config import DEFAULT_CONFIG, check_paths
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+from ..api.arguments import DEFAULT_CONFIG
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def config(
@@ -22,15 +22,10 @@ def config(
     path it names could not be written: the same checks `sweep` makes before it starts (creates nothing, contacts
     no server).
     """
-    cfg = load(config, profile, set_)
-    from ..sweep.launchers import log_roots  # lazy: keeps `bronchopose --help` fast
+    from ..api import manage  # lazy: keeps `bronchopose --help` fast
 
-    # sweep.launcher a known launcher, each sweep.launchers section valid (the config package cannot see them)
-    roots = log_roots(cfg)
-    check_paths(cfg, storage=True, logs=True, extra=roots)  # what `sweep` checks: roots inside each other, ...
+    cfg = manage.check_config(config, profile, set_ or ())  # what `sweep` checks: launchers, paths, ...
     if not grid:
         console.print(cfg.to_yaml(), end="", markup=False, highlight=False)
         return
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
-
-    entry.grid(cfg, console)
+    manage.grid(cfg, console)

@@ -1,27 +1,15 @@
 """`bronchopose data generate`: render a synthetic bronchoscopy dataset (frames + poses) from airway anatomy
-(``generation.entry.generate``)."""
+(``bronchocli.api.tools.generate``)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from .. import pathcheck
-from ..config import DEFAULT_CONFIG
-from ..extras import require
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load_or_defaults
-
-
-def _flag_overrides(anatomy: str | None, **flags) -> list[str]:
-    """The flags as ``--set`` overrides, so a bad value is reported like any other override."""
-    values = {k: v for k, v in flags.items() if v is not None}
-    if anatomy is not None:
-        # A path on the command line is relative to the working directory, not to the config file.
-        values["anatomy"] = anatomy if anatomy == "procedural" else str(pathcheck.resolve(anatomy, "--anatomy"))
-    return [f"dataset.generate.{k}={json.dumps(v)}" for k, v in values.items()]
+from ..api.arguments import DEFAULT_CONFIG
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def generate(
@@ -45,9 +33,8 @@ def generate(
     Resumable: run it again after an interruption and it continues where it stopped (same seed, same bytes).
     A folder holding a dataset of a different config is refused. See docs/generator.md.
     """
-    require("render", "data generate", ("vtkmodules",))
-    from ..generation import entry  # lazy: keeps `bronchopose --help` fast
+    from ..api import tools  # lazy: keeps `bronchopose --help` fast
 
-    flags = _flag_overrides(anatomy, patients=patients, image_size=image_size, trajectories=trajectories, seed=seed)
-    cfg = load_or_defaults(config, profile, [*(set_ or []), *flags], "data-generate")
-    entry.generate(cfg, out, workers=workers, progress=progress, console=console)
+    tools.generate(config, anatomy=anatomy, patients=patients, image_size=image_size, trajectories=trajectories,
+                   seed=seed, out=out, workers=workers, progress=progress, profile=profile, overrides=set_ or (),
+                   console=console)

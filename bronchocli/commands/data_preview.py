@@ -7,9 +7,7 @@ from typing import Optional
 
 import typer
 
-from .. import pathcheck
-from ..errors import BronchoError
-from .common import console, output_folder
+from .common import console
 
 
 def preview(
@@ -22,15 +20,7 @@ def preview(
     """Draw a dataset: a PNG montage of frames sampled along one trajectory per patient and lobe, and a
     3-D plot of every camera position visited per patient (voxel axes, coloured by lobe, over the centreline).
     """
-    from ..reporting.dataset_figures import preview as draw  # lazy: matplotlib only when drawing
+    from ..api import tools  # lazy: matplotlib only when drawing
 
-    root = pathcheck.resolve(dataset, "--dataset")
-    target = out if out is not None else Path("reports") / f"{root.name}-montage.png"
-    if target.is_dir():
-        raise BronchoError(f"--out {target}: is a folder; give the montage's file name, e.g. {target / 'montage.png'}")
-    if target.suffix.lower() not in (".png", ".pdf"):
-        target = target.with_suffix(".png")
-    output_folder(target, "--out", "file")  # the montage file itself (its folder may be /tmp)
-    formats = ["png", "pdf"] if pdf else [target.suffix.lstrip(".").lower()]
-    for path in draw(root, target, columns=columns, formats=formats):
+    for path in tools.preview(dataset, out=out, columns=columns, pdf=pdf):
         console.print(f"wrote {path}")

@@ -1,5 +1,5 @@
 """`bronchopose data stats`: counts, lengths and pose ranges of a dataset, and of one population's split
-(``data.entry.stats``)."""
+(``bronchocli.api.tools.data_stats``)."""
 
 from __future__ import annotations
 
@@ -8,11 +8,8 @@ from typing import Optional
 
 import typer
 
-from .. import pathcheck
-from ..cells import Population
-from ..config import DEFAULT_CONFIG
-from ..errors import ConfigError
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load, load_or_defaults
+from ..api.arguments import DEFAULT_CONFIG, Population
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def stats(
@@ -34,12 +31,7 @@ def stats(
 
     The dataset is read as the config's dataset.format (bronchopose, or csv with dataset.csv's mapping).
     """
-    from ..data import entry  # lazy: pandas only when the command runs (keeps --help fast)
+    from ..api import tools  # lazy: pandas only when the command runs (keeps --help fast)
 
-    if manifest is not None and population is None:
-        raise ConfigError("--manifest needs --population (personalized or cross-subject)")
-    # Inspecting a dataset should not need an experiments.yaml: without one, the defaults apply.
-    cfg = load_or_defaults(config, profile, set_, "data-stats") if dataset is not None else load(config, profile, set_)
-    if dataset is not None:
-        cfg = cfg.with_values({"dataset.root": str(pathcheck.resolve(dataset, "--dataset"))})
-    entry.stats(cfg, population=population, fold=fold, manifest=manifest, console=console)
+    tools.data_stats(config, dataset=dataset, population=population, fold=fold, manifest=manifest, profile=profile,
+                     overrides=set_ or (), console=console)

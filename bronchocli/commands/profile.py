@@ -1,5 +1,5 @@
 """`bronchopose profile`: parameters, GMACs, latency and peak memory per architecture (the ablation table;
-``diagnostics.entry.profile``)."""
+``bronchocli.api.tools.profile``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..errors import BronchoError
 from .common import ShowFormat, console, err_console
 
 
@@ -55,15 +54,8 @@ def profile(
     settings `train.precision: auto` / `model.channels_last: auto` use; the
     project ships the CPU's). docs/training.md, "Speed settings".
     """
-    if fmt not in ("table", "json"):
-        raise BronchoError(f"--format {fmt!r}: must be table or json")
-    from ..diagnostics import entry  # lazy: torch loads only when the command runs
+    from ..api import tools  # lazy: torch loads only when the command runs
 
-    if speed is not None:
-        entry.speed(arch, speed, device=device, image_size=image_size or 128, pairs=batch or 10, steps=steps,
-                    threads=threads, console=console, err_console=err_console)
-        return
-    entry.profile(arch, fmt=fmt, threads=threads, console=console, err_console=err_console,
-                  image_size=image_size or 256, device=device, batch=batch or (8 if full else 2),
-                  repeats=repeats or (10 if full else 3), warmup=(2 if full else 1) if warmup is None else warmup,
-                  window=window, precision=precision, channels_last=channels_last)
+    tools.profile(arch, image_size=image_size, device=device, full=full, batch=batch, repeats=repeats, warmup=warmup,
+                  window=window, precision=precision, channels_last=channels_last, threads=threads, fmt=fmt,
+                  speed=speed, steps=steps, console=console, err_console=err_console)

@@ -7,9 +7,7 @@ from typing import Literal, Optional
 
 import typer
 
-from ..cells import PoseFrame
-from ..config import DEFAULT_CONFIG
-from ..config.arguments import RULES
+from ..api.arguments import DEFAULT_CONFIG, RULES, PoseFrame
 from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console
 
 Evaluation = Literal["accumulated", "pair", "both"]
@@ -17,9 +15,9 @@ Evaluation = Literal["accumulated", "pair", "both"]
 
 def complete_tables(incomplete: str) -> list[str]:
     """Shell completion of --table: the registered tables (read when completing, not at start-up)."""
-    from ..reporting.tables import TABLES  # lazy: the reporting stack loads only when completing --table
+    from ..api.tools import table_names  # lazy: the reporting stack loads only when completing --table
 
-    return [n for n in ("all", *TABLES) if n.startswith(incomplete)]
+    return [n for n in table_names() if n.startswith(incomplete)]
 
 
 def report(

@@ -1,5 +1,5 @@
 """`bronchopose selftest`: prove training works on this machine's device (CUDA or CPU) in about a minute
-(``diagnostics.entry.selftest``)."""
+(``bronchocli.api.tools.selftest``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ from typing import Optional
 
 import typer
 
-from ..cells import RotLoss
-from ..config import DEFAULT_CONFIG
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load
+from ..api.arguments import DEFAULT_CONFIG, RotLoss
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def selftest(
@@ -50,10 +49,10 @@ def selftest(
     per architecture, exit code 1 when one cannot (docs/training.md, "Can it
     learn here?").
     """
-    from ..diagnostics import entry  # lazy: torch loads only when the command runs
+    from ..api import tools  # lazy: torch loads only when the command runs
 
     if learn:
-        raise typer.Exit(entry.learn(load(config, profile, set_), arch or ["convlstm"], rot_loss, steps=steps,
-                                     threads=threads, console=console))
+        raise typer.Exit(tools.learn(config, arch, rot_loss, steps=steps, threads=threads, profile=profile,
+                                     overrides=set_ or (), console=console))
 
-    raise typer.Exit(entry.selftest(device, precision, arch, threads=threads or 1, console=console))
+    raise typer.Exit(tools.selftest(device, precision, arch, threads=threads, console=console))

@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG
+from ..api.arguments import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt
 from .common import console as _console
 
@@ -18,8 +18,10 @@ def status(
                                   help="Every stored cell of the sweep, also those of earlier configs."),
     storage: Optional[str] = typer.Option(None, "--storage", help="Claims database URL, overriding storage.url."),
     repair: bool = typer.Option(False, "--repair", help="First end the runs left RUNNING by a process that died "
-                                "(FAILED) or by a sweep worker that lost its claim (KILLED), and make pending again the "
-                                "claims rows that are damaged or whose run MLflow does not have."),
+                                "(FAILED) or by a sweep worker that lost its claim (KILLED) and the parent run of a "
+                                "detached sweep whose workers all went before any ran, and make pending again the "
+                                "claims rows that are damaged or whose run MLflow does not have. Without it, status "
+                                "writes nothing."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
     set_: SetOpt = None,
@@ -33,7 +35,7 @@ def status(
     (`bronchopose sweep gc` frees it).
     """
     from .. import api  # lazy: keeps `bronchopose --help` fast
-    from ..sweep.status import wide
+    from ..api import manage
 
     api.status(config, sweep=sweep, show_all=show_all, repair=repair, storage=storage, profile=profile,
-               overrides=set_ or (), console=wide(_console))
+               overrides=set_ or (), console=manage.wide(_console))

@@ -1,5 +1,5 @@
 """`bronchopose sweep plan | gc | cancel`: print the plan, reclaim checkpoints, stop a sweep's workers (each a
-thin layer over ``sweep.entry``)."""
+thin layer over ``bronchocli.api.manage``)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG
+from ..api.arguments import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt
-from .sweep_options import GpusOpt, OnlyOpt, PerGpuOpt, StorageOpt, UseTunedOpt, WorkersOpt, task_spec, wide_console
+from .sweep_options import GpusOpt, OnlyOpt, PerGpuOpt, StorageOpt, UseTunedOpt, WorkersOpt, wide_console
 
 
 def plan(
@@ -28,12 +28,11 @@ def plan(
 
     Changes nothing anywhere: no job submitted, no file or row written.
     """
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from ..api import manage  # lazy: keeps `bronchopose --help` fast
 
-    spec = task_spec(config, profile, set_, storage, use_tuned, only)
-    cfg = spec.load()
-    raise typer.Exit(entry.dry_run(cfg, spec.selection(), workers=workers, gpus=gpus or "auto",
-                                   per_gpu=per_gpu or 1, console=wide_console()))
+    raise typer.Exit(manage.plan(config, only=only or (), workers=workers, gpus=gpus, per_gpu=per_gpu,
+                                 storage=storage, use_tuned=use_tuned, profile=profile, overrides=set_ or (),
+                                 console=wide_console()))
 
 
 def gc(
@@ -46,10 +45,10 @@ def gc(
     """Remove the checkpoints no live cell needs on this machine (finished, orphaned, failed for good, refused
     files, tune trials no trial will resume) and print what was freed, then what is kept and why; only what a run
     provably wrote is ever removed."""
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from ..api import manage  # lazy: keeps `bronchopose --help` fast
 
-    cfg = task_spec(config, profile, set_, storage).load()
-    raise typer.Exit(entry.gc(cfg, wide_console(), dry_run=dry_run))
+    raise typer.Exit(manage.gc(config, dry_run=dry_run, storage=storage, profile=profile, overrides=set_ or (),
+                               console=wide_console()))
 
 
 def cancel(
@@ -65,8 +64,7 @@ def cancel(
 ) -> None:
     """Stop this sweep's (or --study's) queued and running workers (Slurm: scancel its jobs); running cells and
     trials are released and resume from their checkpoints when the sweep (or tune) is run again."""
-    from ..sweep import entry  # lazy: keeps `bronchopose --help` fast
+    from ..api import manage  # lazy: keeps `bronchopose --help` fast
 
-    cfg = task_spec(config, profile, set_, storage).load()
-    raise typer.Exit(entry.cancel(cfg, entry.launcher_kind(cfg, launcher), wide_console(), dry_run=dry_run,
-                                  study=study))
+    raise typer.Exit(manage.cancel(config, launcher=launcher, dry_run=dry_run, study=study, storage=storage,
+                                   profile=profile, overrides=set_ or (), console=wide_console()))

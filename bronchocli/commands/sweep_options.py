@@ -1,21 +1,17 @@
 """The options and the verb group that `bronchopose sweep`'s verbs share (commands/sweep.py, sweep_manage.py).
 
-``bronchopose sweep`` with no verb (or with run's options only) is ``sweep run``. The modes that were flags
-(``--gc``, ``--cancel``, ``--dry-run``) are verbs; given as flags they are refused in one line, exit 2.
+``bronchopose sweep`` with no verb (or with run's options only) is ``sweep run``.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import typer
 from typer._click import Context  # Typer 0.29 vendors click (pyproject pins typer < 0.30)
-from typer._click.exceptions import UsageError
 from typer.core import TyperGroup
 
-from ..cells import FIELDS
-from ..config.arguments import RULES
+from ..api.arguments import FIELDS, RULES
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
@@ -23,8 +19,6 @@ ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' 
 STORAGE_HELP = ("Claims database URL, overriding storage.url (sqlite:///runs/sweep.db; "
                 "postgresql://user:${PGPASSWORD}@host/db for many machines).")
 DEFAULT_VERB = "run"
-# The modes that were flags of `bronchopose sweep`, and the verb each is now.
-OLD_FLAGS = {"--gc": "gc", "--cancel": "cancel", "--dry-run": "plan"}
 
 class SweepGroup(TyperGroup):
     """A group whose default verb is ``run``: ``sweep [run's options]`` is ``sweep run [...]``."""
@@ -32,10 +26,6 @@ class SweepGroup(TyperGroup):
     def parse_args(self, ctx: Context, args: list[str]) -> list[str]:
         if not args or (args[0] not in self.commands and args[0] not in ctx.help_option_names):
             args = [DEFAULT_VERB, *args]
-        old = [a for a in args if a.split("=", 1)[0] in OLD_FLAGS] if args[0] == DEFAULT_VERB else []
-        if old:
-            verbs = ", ".join(f"{a} is `bronchopose sweep {OLD_FLAGS[a.split('=', 1)[0]]}`" for a in old)
-            raise UsageError(f"{' '.join(old)}: the sweep's modes are verbs, one at a time: {verbs}", ctx)
         return super().parse_args(ctx, args)
 
 
@@ -44,16 +34,8 @@ app = typer.Typer(cls=SweepGroup, no_args_is_help=False,
                   "gc, cancel.")
 
 
-def task_spec(config: Path, profile: str | None, set_: list[str] | None, storage: str | None,
-              use_tuned: str | None = None, only: list[str] | None = None) -> Any:
-    from ..sweep.task import TaskSpec  # lazy: keeps `bronchopose --help` fast
-
-    return TaskSpec(config=str(config), profile=profile, overrides=tuple(set_ or ()), storage=storage,
-                    use_tuned=use_tuned, only=tuple(only or ()))
-
-
 def wide_console() -> Any:
-    from ..sweep.status import wide  # lazy: keeps `bronchopose --help` fast
+    from ..api.manage import wide  # lazy: keeps `bronchopose --help` fast
 
     return wide(_console)
 

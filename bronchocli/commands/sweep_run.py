@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG
+from ..api.arguments import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt
 from .sweep_options import GpusOpt, OnlyOpt, PerGpuOpt, StorageOpt, UseTunedOpt, WorkersOpt, wide_console
 

@@ -7,9 +7,8 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG
-from ..errors import BronchoError
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, load, output_folder
+from ..api.arguments import DEFAULT_CONFIG
+from .common import ConfigOpt, ProfileOpt, SetOpt, console
 
 
 def track(
@@ -42,26 +41,8 @@ def track(
     `errors.csv` and a table of per-pair and accumulated errors next to both image-blind
     references. Frames of another size than the model's are resized with a warning.
     """
-    from ..inference import entry, reader, trajectory  # lazy: MLflow (~1 s) only once the command runs
+    from ..api import tools  # lazy: MLflow (~1 s) only once the command runs
 
-    chosen = [f for f, v in (("--run", run), ("--model", model), ("--best", best)) if v]
-    if len(chosen) != 1:
-        raise BronchoError(f"give exactly one of --run, --model, --best (got {', '.join(chosen) or 'none'})")
-    first = trajectory.parse_pose(first_pose) if first_pose is not None else None
-    inp = reader.open_input(input_path)
-    name = "-".join(input_path.parts[-3:]) if inp.kind == "trajectory" else (input_path.stem or "input")
-    out = output_folder(out or Path("track") / name, "--out")
-    truth = reader.read_ground_truth(ground_truth) if ground_truth is not None else None
-    cfg = load(config, profile, set_)
-    client = None
-    if best:  # a report table's choice: resolved here, reporting sits above inference
-        from ..reporting.best import best_run  # lazy: the report's run collection only for --best
-        from ..runs.client import client_for, require_store
-
-        require_store(cfg)
-        client = client_for(cfg)
-        chosen_best = best_run(client, cfg, best)
-        console.print(chosen_best.describe())
-        run = chosen_best.run.run_id
-    entry.track(cfg, inp, run or model, out, first_pose=first, truth=truth, register=register,
-                progress=not quiet, console=console, client=client)
+    tools.track(input_path, run=run, model=model, best=best, first_pose=first_pose, ground_truth=ground_truth,
+                out=out, register=register, progress=not quiet, config=config, profile=profile,
+                overrides=set_ or (), console=console)

@@ -8,10 +8,7 @@ from typing import Optional
 
 import typer
 
-from ..cells import Arch, Population, PoseFrame, RotLoss
-from ..config import DEFAULT_CONFIG
-from ..config.arguments import RULES
-from ..errors import BronchoError
+from ..api.arguments import DEFAULT_CONFIG, RULES, Arch, BronchoError, Population, PoseFrame, RotLoss
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console
 
 

@@ -1,5 +1,6 @@
 """`bronchopose ui`: the MLflow UI on 127.0.0.1 for the configured tracking store, opened on the runs table
-(``runs.ui.serve``); another interface only with ``--expose``, which warns (MLflow's UI has no authentication)."""
+(``bronchocli.api.tools.serve_ui``); another interface only with ``--expose``, which warns (MLflow's UI has no
+authentication)."""
 
 from __future__ import annotations
 
@@ -8,8 +9,8 @@ from typing import Optional
 
 import typer
 
-from ..config import DEFAULT_CONFIG
-from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console, load
+from ..api.arguments import DEFAULT_CONFIG
+from .common import ConfigOpt, ProfileOpt, SetOpt, console, err_console
 
 
 def ui(
@@ -37,8 +38,8 @@ def ui(
     (it prints a warning); see docs/training.md for putting it behind authentication. With --expose it
     answers requests naming this machine; --allowed-host NAME (repeatable) adds other names it is reached by.
     """
-    from ..runs import ui as mlflow_ui  # lazy: mlflow loads only when the UI starts
+    from ..api import tools  # lazy: mlflow loads only when the UI starts
 
-    mlflow_ui.serve(load(config, profile, set_), host, port, workers, console, expose=expose,
-                    allowed=allowed_host or (),
-                    warn=lambda line: err_console.print(line, markup=False, highlight=False, soft_wrap=True))
+    tools.serve_ui(config, host=host, port=port, workers=workers, expose=expose, allowed=allowed_host or (),
+                   warn=lambda line: err_console.print(line, markup=False, highlight=False, soft_wrap=True),
+                   profile=profile, overrides=set_ or (), console=console)

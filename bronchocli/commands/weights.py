@@ -1,4 +1,4 @@
-"""`bronchopose weights ...`: backbone weights a user brings (``models.pretrained.install_weights``)."""
+"""`bronchopose weights ...`: backbone weights a user brings (``bronchocli.api.tools.install_weights``)."""
 
 from __future__ import annotations
 
@@ -24,8 +24,8 @@ def install(
     ($TORCH_HOME/hub/checkpoints). Then `--profile paper` (imagenet) and `--profile gpu-bench`
     (imagenet-if-present) start from ImageNet weights, as the paper's authors did. A wrong file: one line, exit 2.
     """
-    from ..models.pretrained import install_weights  # lazy: torch loads only when the command runs
+    from ..api import tools  # lazy: torch loads only when the command runs
 
     for f in files:
-        kind, dest = install_weights(f)
+        kind, dest = tools.install_weights(f)
         console.print(f"installed {kind} ImageNet weights: {dest}", highlight=False)

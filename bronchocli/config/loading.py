@@ -1,4 +1,4 @@
-"""Reading experiments.yaml: YAML with line numbers, profiles, ``--set`` overrides, renamed keys.
+"""Reading experiments.yaml: YAML with line numbers, profiles, ``--set`` overrides.
 
 ``load_config(path, profile, overrides)`` reads the YAML (duplicate keys, recursive aliases and alias bombs
 refused, naming the line), deep-merges the named profile over it, applies ``--set key.path=value``
@@ -24,60 +24,6 @@ from .schema import Config, set_path, validate
 
 DEFAULT_CONFIG = "experiments.yaml"
 log = logging.getLogger(__name__)
-
-# Renamed top-level sections, old -> new key path: for one release the old name is read as the new one, with a
-# warning (and a --set of the old path is moved as well).
-RENAMED = {
-    "tracking": "runs",  # "tracking" now means camera tracking only; MLflow's runs are "runs"
-    "slurm": "sweep.launchers.slurm",  # a launcher's settings are its own section (sweep/launchers/slurm.py)
-}
-_warned: set[str] = set()
-
-
-def _warn_renamed(old: str, new: str, where: str) -> None:
-    if old not in _warned:
-        _warned.add(old)
-        log.warning("%s: config key '%s' is now '%s' (the old name is read for one more release); rename it",
-                    where, old, new)
-
-
-def _rename_sections(raw: dict[str, Any], lines: dict[tuple, str], source: str) -> None:
-    """Read renamed sections (top level and inside every profile) under their new names, line index included."""
-    places: list[tuple[tuple, dict[str, Any]]] = [((), raw)]
-    profiles = raw.get("profiles")
-    if isinstance(profiles, dict):
-        places += [(("profiles", name), p) for name, p in profiles.items() if isinstance(p, dict)]
-    for prefix, data in places:
-        for old, new in RENAMED.items():
-            if old not in data:
-                continue
-            where = lines.get(prefix + (old,), source)
-            *parents, last = new.split(".")
-            node = data
-            for part in parents:
-                if node.get(part) is None:
-                    node[part] = {}
-                node = node[part]
-                if not isinstance(node, dict):
-                    raise ConfigError(f"{where}: '{old}' is now '{new}', but '{part}' is a value, not a section")
-            if last in node:
-                raise ConfigError(f"{where}: both '{old}' and '{new}' are set; '{old}' is the old name of '{new}': "
-                                  f"keep only '{new}'")
-            node[last] = data.pop(old)
-            _warn_renamed(old, new, where)
-            n, moved = len(prefix), tuple(new.split("."))
-            for key in [k for k in lines if k[: n + 1] == prefix + (old,)]:
-                lines[prefix + moved + key[n + 1:]] = lines.pop(key)
-
-
-def renamed_key(dotted: str, where: str) -> str:
-    """A ``--set``/override key path with a renamed section replaced by its new name (warned once)."""
-    head, dot, rest = dotted.partition(".")
-    if head in RENAMED:
-        _warn_renamed(head, RENAMED[head], where)
-        return RENAMED[head] + dot + rest
-    return dotted
-
 
 def parse_override(text: str) -> tuple[str, Any]:
     """``key.path=value`` -> (path, YAML-parsed value)."""
@@ -228,7 +174,6 @@ def load_config(
     """Load, merge profile and ``--set`` overrides, and validate ``experiments.yaml``."""
     path = Path(path)
     raw, lines = _read_yaml(path)
-    _rename_sections(raw, lines, str(path))
     if profile is not None:
         profiles = raw.get("profiles") or {}
         if profile not in profiles:
@@ -242,7 +187,6 @@ def load_config(
     keys = []
     for text in overrides:
         key, value = parse_override(text)
-        key = renamed_key(key, f"--set {text}")
         set_path(raw, key, value, where=f"--set {text}")
         _blame_override(lines, tuple(key.split(".")), f"--set {text}")
         keys.append((key, text))

@@ -68,7 +68,6 @@ ASSISTANT_KEY = "mlflow.assistant.panelOpen_v1"  # MLflow 3.17's Assistant panel
 ASSISTANT_OPENED_KEY = "mlflow.assistant.fab.autoOpenedOnFirstLoad_v1"
 STORE_PREFIX = "MLflowLocalStorage-1.1-"  # MLflow 3.17's LocalStorageUtils: <prefix><component>-<id>-<item>
 RUN_LAYOUT_KEY = re.compile(r"^MLflowLocalStorage-1\.1-RunPage-[0-9a-zA-Z]+-model-chartUIState$")
-UI_PATH = "/?ui=bronchopose"  # an address of MLflow's page (any query is the same page)
 _DROPPED = {b"if-none-match", b"if-modified-since", b"accept-encoding"}  # the page itself, whole and plain
 
 _mlflow_app: Any = None

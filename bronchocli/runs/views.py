@@ -22,7 +22,7 @@ run, beside what its plan ran (``sweep/summary.py``: stages and cells, not the
 config's grid lists, which stages and selections override). The coordinates stay tags too: report, status and the
 sweep find runs by tags.
 
-Headline metrics (``headline``): the image-blind references as ratios,
+Reference figures (``reference_figures``): the image-blind references as ratios,
 ``ratio.<ref>.<eval>.<m> = error / reference error`` for both references, and
 ``skill.<eval>.<m> = 1 - error / reference error`` against the better
 (lower-error) of the two, as the report's skill figures define it (one name
@@ -167,7 +167,7 @@ def parent_params(cfg: Config) -> dict[str, str]:
 # -- metrics ------------------------------------------------------------------------------------------
 
 
-def headline(metrics: Mapping[str, float]) -> dict[str, float]:
+def reference_figures(metrics: Mapping[str, float]) -> dict[str, float]:
     """Ratios against both references and skills against the better one, README ratio first (missing inputs:
     left out)."""
     out: dict[str, float] = {}
@@ -188,7 +188,7 @@ def verdict(metrics: Mapping[str, float]) -> str:
     """The ``TAG_VERDICT`` of a run's test metrics: per headline scope (pair, acc), ``BEATS`` where its position
     error is below the better image-blind reference's (skill > 0), ``DAGGER`` where not, as the report's tables
     mark a row (there with a paired test over the seeds' trajectories; here one run's means): "pair ✓ · acc †"."""
-    h = headline(metrics)
+    h = reference_figures(metrics)
     parts = [f"{ev} {BEATS if h[k] > 0 else DAGGER}" for ev in HEADLINE_EVALS
              if (k := runkeys.skill("pos_l2", ev)) in h and math.isfinite(h[k])]
     return " · ".join(parts)
@@ -202,7 +202,7 @@ def rounded(value: float, digits: int = HEADLINE_DIGITS) -> float:
 def ordered_metrics(metrics: Mapping[str, float]) -> list[dict[str, float]]:
     """The test metrics in logging batches: headline ratios/skills (rounded to ``HEADLINE_DIGITS``: the runs table
     shows them as logged; the errors they come from keep every digit) and the headline errors, then the rest."""
-    head = {k: rounded(v) for k, v in headline(metrics).items()}
+    head = {k: rounded(v) for k, v in reference_figures(metrics).items()}
     errors = [runkeys.metric(m, ev) for ev in HEADLINE_EVALS for m in HEADLINE_METRICS]
     head |= {k: metrics[k] for k in errors if k in metrics}
     rest = {k: v for k, v in metrics.items() if k not in head}
@@ -231,7 +231,7 @@ def describe(cell: Cell, metrics: Mapping[str, float] | None = None, dataset: st
                + f"; cell `{cell.label}`.")
     if not metrics or runkeys.HEADLINE_ERROR not in metrics:
         return f"{who}: {setting}"
-    h = headline(metrics)
+    h = reference_figures(metrics)
 
     def ratio(scope: str, ref: str = "train_mean") -> str:
         return text_figure(h.get(runkeys.ratio("pos_l2", scope, ref), math.nan))

@@ -28,7 +28,7 @@
 See docs/sweep.md for the model and the exactly-once argument.
 """
 
-from .launchers import Launcher  # before stagework: the local launcher imports it while the registry loads
+from .launchers import Launcher
 from .plan import Plan, plan_cells, prepare, read_plan
 from .stagework import WorkerJob, worker_config, worker_main
 from .storage import FAILED, FINISHED, PENDING, RUNNING, TAG_CLAIM, CellRow, Claim, StorageError, SweepStore

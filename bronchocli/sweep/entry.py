@@ -1,5 +1,5 @@
 """The library calls behind ``bronchopose sweep run | plan | status | gc | cancel``, ``status``, ``tune`` and
-``config --grid``: each command parses its flags, loads the config and calls exactly one of these.
+``config --grid``: each command parses its flags and reaches exactly one of these through ``bronchocli.api``.
 
 The sweep's verbs (the config loaded by ``task.TaskSpec.load``, the same call a detached worker makes):
 
@@ -79,15 +79,17 @@ def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[st
     return workers or placement.default_workers(devices, per_gpu), devices
 
 
-def launcher_options(kind: type[Launcher], given: dict[str, Any]) -> dict[str, Any]:
-    """The options given to ``sweep run`` (``{"--workers": 2}``; None: not given) as ``kind.create`` takes them
-    (``{"workers": 2}``); one line naming those it does not take and the launchers that do."""
-    given = {flag: value for flag, value in given.items() if value is not None}
-    if foreign := [flag for flag in given if flag not in kind.options]:
+def launcher_options(kind: type[Launcher], **given: Any) -> dict[str, Any]:
+    """The launcher options given to ``sweep run`` or ``tune`` (``workers=2``; None: not given) as ``kind.create``
+    takes them (``{"workers": 2}``); one line naming, as the command line spells them (``kind.options``), those it
+    does not take and the launchers that do."""
+    given = {name: value for name, value in given.items() if value is not None}
+    flags = {name: "--" + name.replace("_", "-") for name in given}
+    if foreign := [flags[name] for name in given if flags[name] not in kind.options]:
         owners = [k.name for k in loadable(launcher_names()) if set(foreign) & set(k.options)]
         raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
                            f"{kind.name} sizes its workers itself (docs/cluster.md)")
-    return {flag.lstrip("-").replace("-", "_"): value for flag, value in given.items()}
+    return given
 
 
 def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str, Any] | None = None,
@@ -170,8 +172,9 @@ def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool
 
 def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = False,
            console: Console) -> SweepState:
-    """``bronchopose status``: optionally end the runs a dead process left RUNNING, then show the sweep's cells;
-    returns what it showed (``status.SweepState``: the cells, their runs and metrics)."""
+    """``bronchopose status``: show the sweep's cells; returns what it showed (``status.SweepState``: the cells, their
+    runs and metrics). It writes nothing, unless ``repair``: first end the runs a dead process left RUNNING, the
+    parent of a detached sweep whose workers are all gone (``settle_detached``), and repair damaged claims rows."""
     store = open_store(cfg)
     if repair:
         done = repair_zombies(cfg, store if store.exists() else None)
@@ -192,8 +195,8 @@ def status(cfg: Config, name: str, *, show_all: bool = False, repair: bool = Fal
             for r in reset:
                 console.print(f"repaired claims row {r.sweep}/{r.cell_key} ({r.label}): pending again (its run "
                               f"{r.run_id} does not exist in MLflow)", highlight=False, soft_wrap=True)
-    if name == cfg.name and store.exists():
-        settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
+        if name == cfg.name and store.exists():
+            settle_detached(cfg, store)  # a detached sweep whose workers are all gone: its parent ends (status says so)
     return show_status(cfg, store, name, show_all, console)
 
 
@@ -201,7 +204,8 @@ def settle_detached(cfg: Config, store: SweepStore) -> str | None:
     """The sweep's parent run RUNNING though it was submitted with a detachable launcher (``TAG_LAUNCHER``), no
     watcher of it lives (``TAG_WATCHER``) and none of its workers is queued or running (they were all cancelled
     before any ran, say): ended as its last worker would have (``stagework.end_abandoned``); the reason, or None.
-    A local sweep's parent is ``status --repair``'s (its process tags)."""
+    ``status --repair`` asks it (a local sweep's parent it ends by its process tags); plain ``status`` writes
+    nothing."""
     try:
         if store_missing(cfg):
             return None
@@ -261,7 +265,7 @@ def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, co
         console.print("no completed trial yet")
         return info
     table = Table("parameter", "best value", "importance", title=f"best trial #{best['number']}: "
-                  f"val_loss {best['value']:.5g} (MLflow run {best['run_id']})")
+                  f"{info['objective']} {best['value']:.5g} (MLflow run {best['run_id']})")  # the metric minimised
     for name, value in best["params"].items():
         imp = info["importances"].get(name)
         table.add_row(name, f"{value:.4g}" if isinstance(value, float) else str(value),

@@ -1,4 +1,4 @@
-"""``bronchopose sweep run`` with any launcher: the one driver. Check, prepare the shared state, print the plan,
+"""``bronchopose sweep run`` with any launcher: the one driver. Prepare the shared state, print the plan,
 submit what the launcher's queued and running workers do not cover, and (unless ``--detach``) watch the table
 until they are gone, moving on to the next stage and topping up when workers ended with cells left; ``cancel``
 stops them. The launcher is the protocol (``launchers.base``); nothing here names one. ``drive`` (submit, then
@@ -152,15 +152,14 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record
 
 def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, *, detach: bool,
            console: Console, retry_failed: bool = False) -> int:
-    """``bronchopose sweep run``: check, prepare the shared state, print the plan, submit workers for what is
-    missing, and (unless ``detach``) watch the table until the sweep's workers are gone; exit code 0 (every cell
-    FINISHED), 1 (some FAILED, or workers gone with cells left), 130 (stopped).
+    """``bronchopose sweep run``: prepare the shared state, print the plan, submit workers for what is missing, and
+    (unless ``detach``) watch the table until the sweep's workers are gone; exit code 0 (every cell FINISHED), 1
+    (some FAILED, or workers gone with cells left), 130 (stopped). The caller has checked once what would refuse
+    the sweep (``entry.run``: paths, ``launcher.check()``, the storage answering) before anything was created.
 
     The sweep's parent MLflow run (its cells nest under it) is RUNNING while the sweep runs, with the plan and
     its selections; when the watch ends, the outcome (``summary.record_parent``). Workers that die with this
     command (not ``detachable``) make it this process's: ``status --repair`` ends it if the command is killed."""
-    launcher.check()  # before touching storage: one line, nothing created, nothing submitted
-    store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     console.print(f"[bold]sweep[/] {cfg.name} {launcher.describe()}  storage {store.redacted}  MLflow "
                   f"{urls.redact(cfg.paths.mlflow_uri)}  experiment {cfg.experiment_name}"
                   + (f"  hyperparameters {cfg.tune.applied}" if cfg.tune.applied else ""), highlight=False)

@@ -22,7 +22,7 @@ import socket
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from .. import interrupts, urls
 from ..cells import Selection
@@ -32,7 +32,6 @@ from ..runs.client import client_for, experiment_id
 from ..runs import cores
 from ..runs.parents import KIND_SWEEP, find_parent, set_parent_status, sweep_parent
 from . import plan as planning
-from .launchers.base import Launcher, WorkerEnvironment
 from .liveness import StopSignals
 from .placement import pin_env
 from .selection import describe_selection
@@ -40,6 +39,9 @@ from .storage import FINISHED, RUNNING, SweepStore
 from .studyrows import StudyTask
 from .summary import TAG_CANCELLED, cancelled, record_stop, reopen
 from .worker import EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDED, Runner, Worker, WorkerId, default_runner, job_of
+
+if TYPE_CHECKING:  # the launchers start workers through this module (local imports it): it names them, never imports
+    from .launchers.base import Launcher, WorkerEnvironment
 
 log = logging.getLogger(__name__)
 

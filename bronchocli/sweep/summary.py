@@ -12,8 +12,9 @@ and a selection override those):
 * tags ``selection.<s>``: the selection line with the values it ranked by (as ``sweep`` prints it);
 * metrics ``cells.planned``, ``cells.finished``, ``cells.failed`` (the claims table's states of every
   planned cell) and, per stage, the best cell by validation: ``best.<s>.<metric>`` (the metric a later stage
-  selects this one by, else ``select.by``'s default) and its headline test figures ``best.<s>.<headline>``
-  (``HEADLINES``), with tags ``best.<s>.cell`` (the cell's label) and ``best.<s>.run`` (its run id).
+  selects this one by, else ``select.by``'s default) and its test figures ``best.<s>.<figure>``
+  (``BEST_FIGURES``: the headline and the error it divides), with tags ``best.<s>.cell`` (the cell's label)
+  and ``best.<s>.run`` (its run id). Every key is built by ``runkeys``.
 
 The driver (``launch.launch``) records the plan when it has submitted and everything when its watch ends
 (not when it detaches). Recording is best effort: the cells' own runs carry the results.
@@ -132,7 +133,7 @@ def reopen(client, parent: str) -> bool:
     return True
 
 
-HEADLINES = (runkeys.HEADLINE, runkeys.HEADLINE_ERROR)  # the test figures shown next to each stage's best cell
+BEST_FIGURES = (runkeys.HEADLINE, runkeys.HEADLINE_ERROR)  # the test figures shown next to each stage's best cell
 DEFAULT_OBJECTIVE = runkeys.best_of(runkeys.VAL_LOSS)  # a study's objective metric where it names none
 
 
@@ -190,8 +191,8 @@ def outcome(walk: planning.StageWalk) -> tuple[dict[str, float], dict[str, str]]
     cells = _all_cells(walk)
     rows = planning.read_plan(walk.store, walk.sweep, cells)
     states = [rows.state(c) for c in cells]
-    metrics = {"cells.planned": float(len(cells)), "cells.finished": float(states.count(FINISHED)),
-               "cells.failed": float(states.count(FAILED))}
+    metrics = {runkeys.cells("planned"): float(len(cells)), runkeys.cells("finished"): float(states.count(FINISHED)),
+               runkeys.cells("failed"): float(states.count(FAILED))}
     tags: dict[str, str] = {}
     runs = finished_runs(cfg, cells, walk.sweep) if cells else {}
     for stage in walk.stages:
@@ -201,19 +202,18 @@ def outcome(walk: planning.StageWalk) -> tuple[dict[str, float], dict[str, str]]
         if not scored:
             continue
         value, label, run = min(scored, key=lambda t: (t[0], t[1]))
-        p = f"best.{stage.name}."
-        metrics[p + by] = value
-        metrics |= {p + h: run.data.metrics[h] for h in HEADLINES if h in run.data.metrics}
-        tags |= {p + "cell": label, p + "run": run.info.run_id}
+        metrics[runkeys.best(stage.name, by)] = value
+        metrics |= {runkeys.best(stage.name, h): run.data.metrics[h] for h in BEST_FIGURES if h in run.data.metrics}
+        tags |= {runkeys.best(stage.name, "cell"): label, runkeys.best(stage.name, "run"): run.info.run_id}
     return metrics, tags
 
 
 def describe_sweep(walk: planning.StageWalk, metrics: Mapping[str, float], tags: Mapping[str, str]) -> str:
     """The parent's description (Markdown, the top of its run page): counts, then per stage what ran, what it
     selected and its best cell, headline first."""
-    m = {k: int(v) for k, v in metrics.items() if k.startswith("cells.")}
-    lines = [f"Sweep **{walk.sweep}**: {m['cells.planned']} cells planned, {m['cells.finished']} finished, "
-             f"{m['cells.failed']} failed. Per stage (params `stage.<name>.*`, metrics `best.<name>.*`):"]
+    planned, finished, failed = (int(metrics[runkeys.cells(s)]) for s in runkeys.CELL_STATES)
+    lines = [f"Sweep **{walk.sweep}**: {planned} cells planned, {finished} finished, "
+             f"{failed} failed. Per stage (params `stage.<name>.*`, metrics `best.<name>.*`):"]
     for stage in walk.stages:
         cells = walk.cells(stage, mine=False)
         what = f"{len(cells)} cells" if cells is not None else "not known yet"
@@ -221,13 +221,13 @@ def describe_sweep(walk: planning.StageWalk, metrics: Mapping[str, float], tags:
             what += f", {describe_selection(sel).split(': ', 1)[1]}"
         elif stage.select is not None:
             what += f", selects the top {stage.select.top} of stage {planning.source_of(walk.cfg, stage).name}"
-        p = f"best.{stage.name}."
         best = ""
-        if p + "cell" in tags:
+        if (cell := runkeys.best(stage.name, "cell")) in tags:
             by = ranked_by(walk.cfg, stage)
-            figures = [f"{h} {text_figure(metrics[p + h])}" for h in HEADLINES if p + h in metrics]
-            best = (f"; best by validation: {tags[p + 'cell']} ("
-                    + ", ".join(figures + [f"{by} {text_figure(metrics[p + by])}"])
+            figures = [f"{h} {text_figure(metrics[k])}" for h in BEST_FIGURES
+                       if (k := runkeys.best(stage.name, h)) in metrics]
+            best = (f"; best by validation: {tags[cell]} ("
+                    + ", ".join(figures + [f"{by} {text_figure(metrics[runkeys.best(stage.name, by)])}"])
                     + ")")
         lines.append(f"- **{stage.name}**: {what}{best}")
     lines.append("The tables and figures of `bronchopose report` are the artifacts under `report/`.")
@@ -262,18 +262,18 @@ def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> 
     ``importance.<path>``, the figure ``param_importances.png``) only where they mean something: two or more
     searched parameters and complete trials (tag ``importances``: why not, or the caveat of few trials).
     """
-    log_metrics(client, parent, {"trials.finished": n_finished,
-                                 **{f"trials.{k}": info["counts"].get(k, 0) for k in ("complete", "pruned", "fail")}})
+    counts = {runkeys.trials(k): info["counts"].get(k, 0) for k in ("complete", "pruned", "fail")}
+    log_metrics(client, parent, {runkeys.trials("finished"): n_finished, **counts})
     best = info["best"]
     if best is None:
         return
     log_metrics(client, parent, {info.get("objective", DEFAULT_OBJECTIVE): best["value"]}, step=best["number"])
     tags = {"best_trial": str(best["number"]), "best_run": best["run_id"],
-            **{f"best.{k}": str(v) for k, v in best["params"].items()}}
+            **{runkeys.best_value(k): str(v) for k, v in best["params"].items()}}
     note = importance_note(info)
     shown = info["importances"] if len(info["importances"]) > 1 else {}  # one parameter: 1 by definition
     if shown:
-        log_metrics(client, parent, {f"importance.{k}": v for k, v in shown.items()})
+        log_metrics(client, parent, {runkeys.importance(k): v for k, v in shown.items()})
     if note:
         tags["importances"] = note
     tags[TAG_NOTE] = describe_study(info, n_finished, shown, note)

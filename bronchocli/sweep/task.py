@@ -1,7 +1,8 @@
 """A detached sweep worker: ``python -m bronchocli.sweep.task '<spec>'`` (a Slurm array task, or a worker of any
 launcher whose workers outlive the command) runs the one worker entry, ``stagework.worker_main``.
 
-The launcher (``launch.launch``) writes the spec, a small JSON object
+The command that submits the workers (``entry.run``; ``trials.tune`` for a study's) writes the spec
+(``command``), a small JSON object
 (``TaskSpec``: the config file, profile, ``--set`` overrides, ``--storage``,
 ``--use-tuned``, ``--only``, ``--runner``, the launcher's name, and for a
 tuning study's workers the study: they claim its trial rows), into the

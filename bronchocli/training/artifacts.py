@@ -19,7 +19,7 @@
 * at the end: the evaluation's constants as params (``eval.ctf_position``,
   ``eval.ctf_position_mm``, ``eval.ctf_angle``, ``eval.rpe_gap``:
   ``views.eval_params``), the headline ratios and skills against both references
-  (``ratio.*``, ``skill.*``, see ``runs.views.headline``) and the headline errors
+  (``ratio.*``, ``skill.*``, see ``runs.views.reference_figures``) and the headline errors
   first, then every test metric (model, ``zero_motion.*``, ``train_mean.*``,
   ``pred.std*``) and the budget (``train.steps``, ``train.time_s``,
   ``train.pairs_per_s`` averaged over the run, ...), the ``stop_reason`` tag, the ``vs_references`` tag

@@ -41,10 +41,10 @@ class TrainResult:
         return out
 
     @property
-    def headline(self) -> float | None:
-        """The headline (runkeys.py): pair position error ÷ the training-mean predictor's; None when not logged."""
-        e = self.errors()
-        return e[runkeys.MODEL] / e["train_mean"] if runkeys.MODEL in e and e.get("train_mean") else None
+    def headline(self) -> float:
+        """The headline (``runkeys.headline``, its one computation): pair position error ÷ the training-mean
+        predictor's; NaN when either is not logged or the reference's is not a positive finite number."""
+        return runkeys.headline(self.metrics)
 
     def summary(self) -> str:
         """The one line ``bronchopose train`` ends with."""

@@ -62,7 +62,6 @@ from .engine import fit_and_evaluate
 from .prepare import prepare
 
 log = logging.getLogger(__name__)
-TAG_RESUMED = "resumed_from_step"  # a metric, one value per resume at step = the checkpoint's: the run's history
 
 
 class StopFlag:
@@ -139,7 +138,7 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
     for key, value in {**extra_tags, **process_tags()}.items():  # the worker, claim, attempt resuming it now
         client.set_tag(run_id, key, value)
     log.info("resuming run %s from its checkpoint of step %d (%s)", run_id, state["step"], path)
-    client.log_metric(run_id, TAG_RESUMED, float(state["step"]), step=int(state["step"]))
+    client.log_metric(run_id, runkeys.RESUMED_FROM_STEP, float(state["step"]), step=int(state["step"]))
     return run_id, state
 
 
@@ -229,7 +228,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
                 metrics_out.log({k: v for k, v in h.items() if k != "step"}, int(h["step"]))
 
     def validated(step: int, values: dict[str, float]) -> None:
-        metrics_out.log({**values, "threads": float(share.check().threads)}, step)  # at step = optimiser step
+        metrics_out.log({**values, runkeys.THREADS: float(share.check().threads)}, step)  # at step = optimiser step
         bar.validated(step, values)
         if on_validation is not None:
             on_validation(step, values)

@@ -30,7 +30,7 @@ from bronchocli.errors import WriteFailed
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunInterrupted, RunResult, resume_file
 from bronchocli.runs.ownership import mark
-from bronchocli.runs.views import headline
+from bronchocli.runs.views import reference_figures
 from bronchocli.runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_SWEEP, cell_tags, log_metrics, search_runs
 
 HERE = Path(__file__).resolve().parent
@@ -100,10 +100,10 @@ def fake_runner(cfg, cell, *, resume=None, extra_tags=None, progress=True, run_i
         metrics = {"pair.pos_l2.mean": _metric(cell.key), "acc.pos_l2.mean": 10 * _metric(cell.key),
                    "val_best.pos_l2": _metric(cell.key),
                    # the references' errors: pair 0.5 (training mean) and 1 (zero motion), accumulated 4 and 5, so
-                   # the headline ratios and skills status shows are known (views.headline, as training logs them)
+                   # the headline ratios and skills status shows are known (views.reference_figures, as training logs them)
                    "train_mean.pair.pos_l2.mean": 0.5, "zero_motion.pair.pos_l2.mean": 1.0,
                    "train_mean.acc.pos_l2.mean": 4.0, "zero_motion.acc.pos_l2.mean": 5.0}
-        metrics |= headline(metrics)
+        metrics |= reference_figures(metrics)
     log_metrics(client, run_id, metrics)
     client.set_terminated(run_id, "FINISHED")
     return RunResult(run_id, "FINISHED", metrics, duration_s=time.perf_counter() - t0)

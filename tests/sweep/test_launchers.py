@@ -54,10 +54,8 @@ def test_the_worker_id_text_is_what_status_always_showed():
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--gc", "--cancel"], "--gc --cancel: the sweep's modes are verbs, one at a time"),
-    (["--launcher", "slurm", "--gc", "--cancel", "--dry-run", "--workers", "3", "--detach"], "--dry-run is "
-     "`bronchopose sweep plan`"),
-    (["run", "--dry-run"], "--dry-run is `bronchopose sweep plan`"),
+    (["--gc", "--cancel"], "No such option: --gc"),  # the verbs are verbs, not flags of run
+    (["run", "--dry-run"], "No such option: --dry-run"),
     (["gc", "--cancel"], "No such option: --cancel"),
     (["plan", "--retry-failed"], "No such option: --retry-failed"),
     (["cancel", "--workers", "2"], "No such option: --workers"),
@@ -286,3 +284,33 @@ def test_a_cancel_touches_only_what_runs_and_names_a_study_that_is_not_there(cli
     assert code == 2 and err.strip().startswith("error: sweep cancel --study nosuch: no such study (no parent run "
                                                 "of it in experiment"), err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_sweep_run_checks_the_launcher_and_the_storage_once(make_config, monkeypatch):
+    """Issue 58.3: ``launcher.check()`` (Slurm: ``sbatch --test-only``) and the storage's answer are asked once per
+    ``sweep run``, before anything is created, not again by the driver."""
+    from rich.console import Console
+    from subprocess_launcher import SubprocessLauncher
+
+    from bronchocli.sweep import entry, launch
+    from bronchocli.sweep.storage import SweepStore
+    from bronchocli.sweep.task import TaskSpec
+
+    calls: list[str] = []
+    exists = SweepStore.exists
+    monkeypatch.setattr(SubprocessLauncher, "check", lambda self: calls.append("check"))
+    monkeypatch.setattr(SweepStore, "exists", lambda self: calls.append("exists") or exists(self))
+
+    class Prepared(Exception):
+        """The driver began preparing the sweep's shared state: every check is behind it."""
+
+    def prepare(*args, **kwargs):
+        calls.append("prepare")
+        raise Prepared
+
+    monkeypatch.setattr(launch, "prepare_walk", prepare)
+    cfg = make_config()
+    spec = TaskSpec(config=str(cfg.paths.base / "experiments.yaml"))
+    with pytest.raises(Prepared):
+        entry.run(cfg, spec, SubprocessLauncher, detach=True, console=Console(quiet=True))
+    assert calls == ["check", "exists", "prepare"]  # the driver checks nothing again

@@ -320,7 +320,8 @@ def test_a_task_leaving_while_another_task_of_the_sweep_is_queued_or_a_cell_runs
 
 
 def test_status_ends_the_parent_of_a_detached_sweep_whose_tasks_all_went_before_any_ran(make_config, monkeypatch):
-    """Every task cancelled while still pending: none ran to end the parent; `status` does, and says so in one line.
+    """Every task cancelled while still pending: none ran to end the parent; `status --repair` does (settle_detached),
+    and `status` says so in one line.
     A sweep whose watcher lives here, or with a task still queued, is left RUNNING."""
     from bronchocli.sweep.entry import settle_detached
     from bronchocli.sweep.status import stopped_line
@@ -344,3 +345,28 @@ def test_status_ends_the_parent_of_a_detached_sweep_whose_tasks_all_went_before_
     assert stopped_line(cfg, cfg.name) == f"sweep t: its parent run {parent} ended KILLED: {reason}"
     assert reopen(client, parent) and client.get_run(parent).info.status == "RUNNING"  # a task starts on it again
     assert stopped_line(cfg, cfg.name) is None
+
+
+def test_status_is_read_only_and_status_repair_ends_an_abandoned_detached_parent(make_config, monkeypatch):
+    """Issue 58.4: plain `status` writes nothing to MLflow (the abandoned detached sweep's parent stays RUNNING,
+    its tags and end time untouched); `status --repair` ends it as its last worker would have, and says so."""
+    from bronchocli.sweep import entry
+    from bronchocli.sweep.summary import TAG_LAUNCHER, TAG_STOPPED, TAG_WATCHER, watcher_tag
+
+    cfg = two_stages(make_config)
+    walk, store = walk_of(cfg)
+    client, parent = _parent(cfg)
+    client.set_tag(parent, TAG_LAUNCHER, "slurm")
+    client.set_tag(parent, TAG_WATCHER, watcher_tag(detached=True))
+    FakeSlurm(monkeypatch, [])  # every task cancelled while it was pending: none ran to end the parent
+    before = client.get_run(parent)
+    state = entry.status(cfg, cfg.name, console=Console(quiet=True))
+    after = client.get_run(parent)
+    assert len(state.cells()) == len(walk.cells(walk.stages[0]))  # shown: the first stage's cells
+    assert (after.info.status, after.info.end_time, after.data.tags) == ("RUNNING", before.info.end_time,
+                                                                        before.data.tags)
+    console = Console(record=True, width=300)
+    entry.status(cfg, cfg.name, repair=True, console=console)
+    ended = client.get_run(parent)
+    assert ended.info.status == "KILLED" and ended.data.tags[TAG_STOPPED].startswith("no Slurm task of sweep t")
+    assert f"its parent run {parent} ended KILLED" in console.export_text()

@@ -89,28 +89,6 @@ def test_bad_slurm_values_are_refused_when_the_launcher_is_looked_up(cli, make_c
         assert code == 2 and message in err and len(err.strip().splitlines()) == 1, (args, out, err)
 
 
-def test_the_old_slurm_section_is_read_for_one_release_with_a_rename_hint(cli, make_config, caplog, monkeypatch):
-    from bronchocli.config import loading
-
-    monkeypatch.setattr(loading, "_warned", set())
-    cfg = make_config(sweep={"launcher": "slurm"})
-    path = cfg.paths.base / "experiments.yaml"
-    line = len(path.read_text().splitlines()) + 1
-    path.write_text(path.read_text() + "slurm:\n  partition: gpu\n  tasks: 3\n")
-    loaded = loading.load_config(path)
-    assert SlurmLauncher.settings(loaded).partition == "gpu" and SlurmLauncher.settings(loaded).tasks == 3
-    hints = [r.getMessage() for r in caplog.records if "is now" in r.getMessage()]
-    assert hints == [f"{path}:{line}: config key 'slurm' is now 'sweep.launchers.slurm' (the old name is read for one "
-                     "more release); rename it"], hints
-    monkeypatch.setattr(loading, "_warned", set())
-    over = loading.load_config(path, overrides=["slurm.partition=debug"])  # an old --set too
-    assert SlurmLauncher.settings(over).partition == "debug"
-    both = path.read_text().replace("sweep:\n", "sweep:\n  launchers: {slurm: {tasks: 1}}\n")
-    path.write_text(both)
-    with pytest.raises(ConfigError, match="both 'slurm' and 'sweep.launchers.slurm' are set"):
-        loading.load_config(path)
-
-
 def test_the_slurm_worker_environment_reads_its_task_and_requeues_only_on_its_warning(make_config, monkeypatch):
     import signal
 

@@ -124,8 +124,8 @@ def test_release_gives_the_cell_back_without_using_an_attempt(store):
     assert store.fail(again.token, "boom", "failed-run")
     # A failed run is offered too: the worker resumes it only when the machine failed it (disk full, busy database).
     assert claim(store, keys=KEYS[:1], max_retries=1).released_run == "failed-run"
-    assert store.release(claim(store, keys=KEYS[1:2]).token, "TrackingBusy: database is locked")
-    assert state(store, KEYS[1]).failure_reason == "TrackingBusy: database is locked"  # the reason stays visible
+    assert store.release(claim(store, keys=KEYS[1:2]).token, "MlflowBusy: database is locked")
+    assert state(store, KEYS[1]).failure_reason == "MlflowBusy: database is locked"  # the reason stays visible
 
 
 def test_database_clock_is_epoch_seconds(store):

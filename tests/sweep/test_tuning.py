@@ -200,6 +200,25 @@ def test_study_parent_shows_the_best_trial_and_importances_only_where_they_mean_
     assert ("Importances: `train.lr`" in note) == plot and (caveat is None or caveat in note)
 
 
+@pytest.mark.parametrize("objective", ["val_best.loss", "val_best.ratio.pos_l2", "cost.pairs_to_0.90"])
+def test_tune_show_names_the_metric_the_study_minimises(tmp_path, monkeypatch, objective):
+    """``tune --show`` labels the best value by the study's own objective metric, not always ``val_loss``."""
+    from rich.console import Console
+
+    from bronchocli.config import Config
+    from bronchocli.sweep import entry
+
+    s = _study(6, ("train.lr",))
+    s.set_user_attr(studies.ATTR_OBJECTIVE, objective)
+    monkeypatch.setattr(studies, "summary", lambda cfg, name: studies.describe_study(s))
+    console = Console(record=True, width=200)
+    info = entry.show_study(Config(name="st"), s.study_name, None, "table", console)
+    out = " ".join(console.export_text().split())  # the title wraps over the table's width
+    assert info["objective"] == objective
+    assert f"best trial #{s.best_trial.number}: {objective} {s.best_value:.5g}" in out, out
+    assert "val_loss" not in out
+
+
 def test_a_stop_request_during_a_trials_evaluation_completes_it_and_starts_no_other(project, monkeypatch):
     """Issue 32, item 7: Ctrl-C in a trial's last steps (the run finishes its evaluation first) ends `tune` with
     that trial counted, no next trial started, and the study's parent run KILLED, not left RUNNING."""
