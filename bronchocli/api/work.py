@@ -11,6 +11,7 @@ functions: flags -> call -> print.
 from __future__ import annotations
 
 import os
+import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -76,7 +77,8 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
     not trained again unless ``again`` (``result.trained`` is then False and ``result.run`` is that run).
     Returns a :class:`~bronchocli.training.outcome.TrainResult`: ``run_id``, ``ok``, ``metrics``, ``errors()``,
     ``headline`` (pair position error ÷ the training mean's) and ``summary()``. Inside a launcher's job (a Slurm
-    batch job) the run also stops, and checkpoints, on that launcher's warning signal (``launchers.detected``).
+    batch job) the run also stops, and checkpoints, on that launcher's warning signal (``launchers.detected``); outside
+    one, SIGUSR1 stops it as SIGTERM does (never a silent kill that leaves the run RUNNING).
     """
     from ..sweep.launchers import detected  # lazy: the sweep stack (and torch) load only when training
     from ..training import entry
@@ -89,8 +91,10 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-    env = detected()
-    with interrupts.warned_by(env.warning_signal if env else None, env.warning_meaning if env else ""):
+    env = detected()  # a launcher's job: its warning signal; else SIGUSR1 stops `train` as SIGTERM does
+    warning = (env.warning_signal, env.warning_meaning) if env and env.warning_signal else \
+        (getattr(signal, "SIGUSR1", None), interrupts.UNWARNED_USR1)
+    with interrupts.stopped_by(*warning):
         return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
 
 
