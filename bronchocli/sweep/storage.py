@@ -45,7 +45,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
-from .. import extras, urls
+from .. import extras, pathcheck, urls
 from ..cells import Cell
 from ..errors import BronchoError
 from ..retry import disk_full, disk_full_line, retry
@@ -201,6 +201,10 @@ class SweepStore:
             place = disk_full_line(where, full[0]) if where is not None else f"the database server's disk is full "\
                 f"({full[0]})"
             return f"sweep storage {self.redacted}: {place}; free space there and run the same command again"
+        if (db := urls.sqlite_file(self.url)) is not None and (why := pathcheck.not_writable(db.parent)) is not None:
+            return (f"sweep storage {self.redacted}: its folder {db.parent} is not writable ({why}); SQLite writes "
+                    f"beside the database even to read it (the index {db.name}-shm of its write-ahead log): make "
+                    "the folder writable, or copy it somewhere writable and point storage.url there")
         text = f"sweep storage {self.redacted}: {urls.error_line(exc)}"
         if self.dialect != "sqlite" and "connect" in text.lower():  # a server that is down, elsewhere or misnamed
             text += "; check the host, port, database name and credentials, and that the server is running"
