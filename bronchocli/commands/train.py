@@ -53,7 +53,6 @@ def train(
     Exit code 1 when the run FAILED.
     """
     from .. import api  # lazy: torch loads only when the command runs
-    from ..training.resumable import resumed_by
 
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
@@ -62,10 +61,10 @@ def train(
              *(["--train-trajectories", str(train_trajectories)] if train_trajectories else []),
              *(["--profile", profile] if profile else []), *[a for s in set_ or () for a in ("--set", s)],
              *(["--use-tuned", use_tuned] if use_tuned else []), *(["--quiet"] if quiet else [])]
-    with resumed_by(lambda rid: shlex.join(["bronchopose", "train", *flags, "--resume", "--run-id", rid])):
-        result = api.train(config, arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
-                           pose_frame=pose_frame, train_trajectories=train_trajectories, profile=profile,
-                           overrides=set_ or (), use_tuned=use_tuned, resume=run_id or resume, again=again,
-                           progress=not quiet, console=console)
+    result = api.train(config, arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
+                       pose_frame=pose_frame, train_trajectories=train_trajectories, profile=profile,
+                       overrides=set_ or (), use_tuned=use_tuned, resume=run_id or resume, again=again,
+                       progress=not quiet, console=console,
+                       resumed_by=lambda rid: shlex.join(["bronchopose", "train", *flags, "--resume", "--run-id", rid]))
     console.print(result.summary() if result.ok else f"[red]{result.summary()}[/]", highlight=False)
     raise typer.Exit(0 if result.ok else 1)

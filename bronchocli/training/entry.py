@@ -49,12 +49,16 @@ def check_fresh(cfg: Config, cell: Cell, again: bool, say: Callable[[str], None]
 
 
 def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool = True, again: bool = False,
-          console: Console) -> TrainResult:
+          console: Console, resumed_by: Callable[[str], str] | None = None) -> TrainResult:
     """Train and evaluate ``cell`` as one MLflow run (``resume``: continue its latest, or this, KILLED/FAILED run
     from its checkpoint). A cell with a FINISHED run is not trained again unless ``again`` (the result says
     ``trained=False`` and carries that run); a ``train`` of the same cell in progress is waited for first
     (``once.cell_turn``), so two started together train it once. ``console`` gets the progress lines; the
-    result's ``summary()`` is the closing line."""
+    result's ``summary()`` is the closing line. ``resumed_by(run_id)``: the call its lines name to resume a run
+    (``resumable.how``)."""
+    if resumed_by is not None:
+        with resumable.resumed_by(resumed_by):
+            return train(cfg, cell, resume=resume, progress=progress, again=again, console=console)
     if cfg.tune.applied:
         console.print(f"hyperparameters from {cfg.tune.applied}")
     check_paths(cfg)  # one line before anything is created
