@@ -48,6 +48,32 @@ def warned_by(signum: int | None, meaning: str) -> Iterator[None]:
             _warnings[int(signum)] = before
 
 
+# SIGUSR1 reaching a command that no launcher warns with it (a plain `train`, outside Slurm): by default it would
+# kill the process silently, leaving its run RUNNING; the command stops on it as on SIGTERM instead
+UNWARNED_USR1 = "sent by no launcher of this process: stopped as on SIGTERM"
+
+
+@contextmanager
+def stopped_by(signum: int | None, meaning: str) -> Iterator[None]:
+    """Inside: ``signum`` stops this command like the other stop signals: a run stops on it after its step and
+    checkpoints (``warned_by``), and outside a run it raises KeyboardInterrupt (recorded, so the command exits
+    with 128 + its number). A signal this process ignores stays ignored; None: nothing changes."""
+    if signum is None or threading.current_thread() is not threading.main_thread():
+        with warned_by(signum, meaning):
+            yield
+        return
+    before = signal.getsignal(signum)
+    replaced = before is signal.SIG_DFL
+    if replaced:
+        signal.signal(signum, _raise)
+    try:
+        with warned_by(signum, meaning):
+            yield
+    finally:
+        if replaced:
+            signal.signal(signum, before)
+
+
 def stop_signals() -> tuple[int, ...]:
     """``STOP_SIGNALS`` and the warning signal of the launcher this process works for (``warned_by``)."""
     return (*STOP_SIGNALS, *(s for s in _warnings if s not in STOP_SIGNALS))

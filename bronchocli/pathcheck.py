@@ -104,6 +104,30 @@ def nearest_existing(path: str | os.PathLike) -> Path:
     return p
 
 
+def mount_point(path: str | os.PathLike) -> Path:
+    """The mount point of the file system that holds ``path`` (or its nearest existing ancestor): the file system
+    a disk-full line names, with its free space."""
+    folder = Path(os.path.abspath(nearest_existing(path)))
+    while not os.path.ismount(folder) and folder != folder.parent:
+        folder = folder.parent
+    return folder
+
+
+def not_writable(folder: str | os.PathLike) -> str | None:
+    """Why nothing can be created in the existing folder ``folder`` ("read-only file system", "permission
+    denied"); None: it can."""
+    return _why_not_writable(Path(folder))
+
+
+def sqlite_unwritable(db: Path) -> str | None:
+    """Why a SQLite database in write-ahead-log mode cannot be opened, even to read it: its folder is not writable
+    (its ``-shm`` index is made there); None when the folder is writable."""
+    why = not_writable(db.parent)
+    return None if why is None else (
+        f"its folder {db.parent} is not writable ({why}); SQLite writes beside the database even to read it (the "
+        f"index {db.name}-shm of its write-ahead log): make the folder writable, or copy it somewhere writable")
+
+
 def _why_not_writable(folder: Path) -> str | None:
     """Why nothing can be created in the existing folder ``folder`` (None: it can)."""
     try:

@@ -86,12 +86,14 @@ DISK_TEXTS = ("database or disk is full", "disk i/o error", "no space left on de
 
 
 def disk_full(exc: BaseException) -> tuple[str, str | None] | None:
-    """``(why, file)`` when ``exc`` (or one it was raised from) is a write the disk refused (``file``: the path an
-    OSError names, else None); None for anything else."""
+    """``(why, file)`` when ``exc`` (or one it was raised from) is a write the disk refused (``file``: the path
+    written, else None); None for anything else. A copy (``shutil.copyfile``'s sendfile, MLflow's artifact
+    upload) names its source first and the file it was writing second: the second is the one on the full disk."""
     seen, e = 0, exc
     while e is not None and seen < 8:
         if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
-            return os.strerror(e.errno), (str(e.filename) if e.filename else None)
+            written = getattr(e, "filename2", None) or e.filename
+            return os.strerror(e.errno), (str(written) if written else None)
         text = f"{e} {getattr(e, 'orig', '') or ''}".lower()
         found = next((t for t in DISK_TEXTS if t in text), None)
         if found:
@@ -101,12 +103,12 @@ def disk_full(exc: BaseException) -> tuple[str, str | None] | None:
 
 
 def disk_full_line(where: str | os.PathLike, why: str, need: int | None = None) -> str:
-    """One line for a full disk: the file or folder written (``where``), why, the space free in its folder (the
-    nearest that exists) and, when known, the space needed (``need`` bytes)."""
+    """One line for a full disk: the file or folder written (``where``), why, the file system that is full (its
+    mount point) and the space free on it and, when known, the space needed (``need`` bytes)."""
     folder = pathcheck.nearest_existing(where)
     folder = folder if folder.is_dir() else folder.parent  # a file that exists: the space of its folder
     try:
-        free = f"{fmt_bytes(shutil.disk_usage(folder).free)} free" + ("" if folder == Path(where) else f" in {folder}")
+        free = f"{fmt_bytes(shutil.disk_usage(folder).free)} free on the file system mounted at {pathcheck.mount_point(folder)}"
     except OSError:
         free = "free space unknown"
     needs = f"; needs about {fmt_bytes(need)} free there" if need else ""
@@ -135,6 +137,18 @@ def with_races(transient: Callable[[BaseException], bool], races: int = RACE_RET
     return judge
 
 
+def planned_attempts(bound_s: float | None, attempts: int | None, first_delay_s: float, max_delay_s: float) -> int:
+    """The most calls :func:`retry` makes: ``attempts``, or as many as its pauses allow within ``bound_s`` (each
+    call takes time too, so fewer may be made), whichever is smaller."""
+    most = attempts if attempts is not None else 10**9
+    if bound_s is None:
+        return most
+    calls, waited, delay = 1, 0.0, first_delay_s
+    while waited < bound_s and calls < most:
+        waited, calls, delay = waited + delay, calls + 1, min(2 * delay, max_delay_s)
+    return calls
+
+
 def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], what: str,
           bound_s: float | None = None, attempts: int | None = None,
           give_up: Callable[[BaseException], BaseException | None] | None = None,
@@ -143,16 +157,19 @@ def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], wh
 
     Stops after ``bound_s`` seconds or ``attempts`` calls (whichever is given; both: the first reached).
     Then ``give_up(last error)`` is raised if it returns an exception, else the last error itself.
-    A non-transient error is raised at once. Each retry logs one warning naming ``what`` (unless ``quiet``).
+    A non-transient error is raised at once. An outage is announced once (unless ``quiet``): one warning naming
+    ``what``, the error and the attempt (``retrying (attempt 2/N)``, N the most it makes), again only when the
+    error changes; the later attempts are logged at debug level, and a call that succeeds after a warning says so.
     """
     if bound_s is None and attempts is None:
         raise ValueError("retry needs bound_s or attempts")
     deadline = None if bound_s is None else time.monotonic() + bound_s
-    delay, calls = first_delay_s, 0
+    most = planned_attempts(bound_s, attempts, first_delay_s, max_delay_s)
+    delay, calls, announced = first_delay_s, 0, None
     while True:
         calls += 1
         try:
-            return fn()
+            result = fn()
         except Exception as exc:  # noqa: BLE001 - re-raised unless transient and within the bound
             if not transient(exc):
                 raise
@@ -162,7 +179,17 @@ def retry(fn: Callable[[], T], *, transient: Callable[[BaseException], bool], wh
                 if replacement is None:
                     raise
                 raise replacement from None
-            if not quiet:
-                log.warning("%s: %s; retrying", what, urls.error_line(exc))  # a URL may hold a password
+            line = urls.error_line(exc)  # a URL may hold a password
+            bound = f" within {bound_s:g} s" if bound_s is not None else ""
+            if not quiet and line != announced:
+                log.warning("%s: %s; retrying (attempt %d/%d%s)...", what, line, calls + 1, max(most, calls + 1),
+                            bound)
+                announced = line
+            else:
+                log.debug("%s: %s; retrying (attempt %d/%d%s)", what, line, calls + 1, max(most, calls + 1), bound)
             time.sleep(delay if left is None else min(delay, left))
             delay = min(2 * delay, max_delay_s)
+            continue
+        if announced is not None:
+            log.info("%s: succeeded at attempt %d", what, calls)
+        return result

@@ -487,6 +487,39 @@ def test_the_learning_cost_profile_searches_the_cost_of_bronchotrack_from_todays
         C.load_config(repo / "experiments.yaml", "learning-cost", overrides=["tune.enqueue=[{train.bogus: 1}]"])
 
 
+@pytest.mark.parametrize("enqueue, message", [
+    ("[{train.lr: 0.5}]", r"tune.enqueue\[0\].train.lr: 0.5: must be a number within tune.space.train.lr's range "
+                          r"\[0.0003, 0.003\]"),
+    ("[{train.lr: 1.0e-3}, {train.batch_size: 25}]",
+     r"tune.enqueue\[1\].train.batch_size: 25: must be one of tune.space.train.batch_size's choices \(10, 20, 40\)"),
+    ("[{train.lr: abc}]", r"tune.enqueue\[0\].train.lr: 'abc': must be a number"),
+    ("[{model.dropout: true}]", r"tune.enqueue\[0\].model.dropout: True: must be a number"),
+])
+def test_every_enqueued_trial_meets_the_rules_a_trial_meets_when_the_config_loads(repo, enqueue, message):
+    """Issue 60: a recipe Optuna would refuse (a choice not in the space) or that lies outside the searched range
+    fails at load (`bronchopose config`), in one line naming the trial and the key, not as a failed trial."""
+    with pytest.raises(ConfigError, match=message) as info:
+        C.load_config(repo / "experiments.yaml", "learning-cost", overrides=[f"tune.enqueue={enqueue}"])
+    assert len(str(info.value).splitlines()) == 1
+
+
+def test_an_enqueued_trial_whose_config_is_invalid_is_refused_naming_the_trial(tmp_path):
+    path = tmp_path / "experiments.yaml"
+    path.write_text("name: t\ntune:\n  space:\n    train.batch_size: {type: int, low: 1, high: 64}\n"
+                    "  enqueue:\n    - {train.batch_size: 8}\n    - {train.batch_size: 7.5}\n")
+    with pytest.raises(ConfigError, match=r"tune.enqueue\[1\].train.batch_size: 7.5: must be a whole number"):
+        C.load_config(path)
+    # each value alone is one the space takes; together they make a config no trial could train with
+    path.write_text("name: t\ntrain: {batch_size: 4, effective_batch: 8}\ntune:\n  space:\n"
+                    "    train.batch_size: {type: categorical, choices: [4, 8]}\n"
+                    "    train.effective_batch: {type: categorical, choices: [8, 12]}\n"
+                    "  enqueue:\n    - {train.batch_size: 8, train.effective_batch: 12}\n")
+    with pytest.raises(ConfigError, match=r"tune.enqueue\[0\] \(trial 0\): .*effective_batch \(12\) must be a "
+                                          r"multiple of batch_size") as info:
+        C.load_config(path)
+    assert len(str(info.value).splitlines()) == 1
+
+
 def test_the_cpu_study_is_the_papers_personalized_grid_at_the_recipe_the_cost_study_measured(repo):
     """Issue 45.3: Tables 2-3's grid (4 architectures x 3 rotation losses, personalized, >= 2 seeds), every cell at
     one budget, with the hyperparameters of the learning-cost study's first trial on a schedule that spans it."""

@@ -2,9 +2,21 @@
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 
-from bronchocli.retry import RACE_RETRIES, is_transient_db, is_transient_store, is_write_race, retry, with_races
+from bronchocli.retry import (
+    RACE_RETRIES,
+    disk_full,
+    disk_full_line,
+    is_transient_db,
+    is_transient_store,
+    is_write_race,
+    planned_attempts,
+    retry,
+    with_races,
+)
 
 
 class Flaky:
@@ -150,3 +162,50 @@ def test_the_platforms_mlflow_client_retries_a_lost_race_and_an_outage_but_no_ot
     with pytest.raises(MlflowException, match="not active"):
         BusyRetryClient(wrong, 5.0, "http://mlflow").log_inputs("r1")
     assert wrong.calls == 1
+
+
+def test_an_outage_is_announced_once_with_its_attempt_count_not_once_per_retry(caplog):
+    """Issue 60: a storage outage printed ~10 identical lines; now one, saying which attempt of how many."""
+    fn = Flaky(6, ConnectionError("could not connect to server"))
+    with caplog.at_level("WARNING", logger="bronchocli.retry"):
+        assert retry(fn, **fast(attempts=10)) == "ok"
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["test: could not connect to server; retrying (attempt 2/10)..."]
+    caplog.clear()
+    errors = [ConnectionError("could not connect to server")] * 2 + [ConnectionError("connection refused")] * 2
+
+    def changing():
+        if errors:
+            raise errors.pop(0)
+        return "ok"
+
+    with caplog.at_level("WARNING", logger="bronchocli.retry"):
+        assert retry(changing, **fast(attempts=10)) == "ok"
+    assert [r.getMessage() for r in caplog.records] == [  # a new error is announced; its repeats are not
+        "test: could not connect to server; retrying (attempt 2/10)...",
+        "test: connection refused; retrying (attempt 4/10)..."]
+
+
+def test_a_time_bound_gives_the_most_attempts_its_pauses_allow():
+    assert planned_attempts(None, 7, 0.05, 2.0) == 7
+    assert planned_attempts(1.0, None, 0.05, 2.0) == 6  # pauses 0.05, 0.1, 0.2, 0.4, 0.8: the fifth passes 1 s
+    assert planned_attempts(1.0, 3, 0.05, 2.0) == 3
+
+
+def test_a_copy_that_fills_a_disk_names_the_file_written_and_the_full_file_system(tmp_path):
+    """Issue 60: shutil's copy (MLflow's artifact upload) names its temporary source first; the line names the
+    destination, the file system that is full (its mount point) and the space free on it."""
+    from mounts import tmpfs
+
+    source = tmp_path / "tmpabc" / "predictions.csv"
+    source.parent.mkdir()
+    source.write_bytes(b"x" * 300_000)
+    with tmpfs(tmp_path / "small", "256k") as disk:
+        (disk / "artifacts").mkdir()
+        with pytest.raises(OSError) as info:
+            shutil.copyfile(source, disk / "artifacts" / "predictions.csv")
+        why, file = disk_full(info.value)
+        assert file == str(disk / "artifacts" / "predictions.csv")
+        line = disk_full_line(file, why)
+    assert line.startswith(f"{disk / 'artifacts' / 'predictions.csv'}: disk full (No space left on device; ")
+    assert f"free on the file system mounted at {disk})" in line and "tmpabc" not in line

@@ -11,8 +11,9 @@ functions: flags -> call -> print.
 from __future__ import annotations
 
 import os
+import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -68,15 +69,18 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
           fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
           train_trajectories: int | None = None, profile: str | None = None, overrides: Sequence[str] = (),
           use_tuned: str | None = None, resume: bool | str = False, again: bool = False, progress: bool = False,
-          console: Console | None = None) -> TrainResult:
+          console: Console | None = None, resumed_by: Callable[[str], str] | None = None) -> TrainResult:
     """Train and evaluate one cell as one MLflow run, as ``bronchopose train`` does.
 
     ``resume``: ``True`` continues the cell's latest KILLED/FAILED run from its checkpoint, a run id that run.
-    ``use_tuned``: apply the best trial of this Optuna study first. A cell that already has a FINISHED run is
+    ``use_tuned``: apply the best trial of this Optuna study first. ``resumed_by(run_id)``: the call that resumes a
+    run, which a stopped or resumably failed run's line names (default ``api.train(..., resume='<id>')``; the
+    command line passes its own command with ``--resume --run-id``). A cell that already has a FINISHED run is
     not trained again unless ``again`` (``result.trained`` is then False and ``result.run`` is that run).
     Returns a :class:`~bronchocli.training.outcome.TrainResult`: ``run_id``, ``ok``, ``metrics``, ``errors()``,
     ``headline`` (pair position error ÷ the training mean's) and ``summary()``. Inside a launcher's job (a Slurm
-    batch job) the run also stops, and checkpoints, on that launcher's warning signal (``launchers.detected``).
+    batch job) the run also stops, and checkpoints, on that launcher's warning signal (``launchers.detected``); outside
+    one, SIGUSR1 stops it as SIGTERM does (never a silent kill that leaves the run RUNNING).
     """
     from ..sweep.launchers import detected  # lazy: the sweep stack (and torch) load only when training
     from ..training import entry
@@ -89,9 +93,12 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key
-    env = detected()
-    with interrupts.warned_by(env.warning_signal if env else None, env.warning_meaning if env else ""):
-        return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent())
+    env = detected()  # a launcher's job: its warning signal; else SIGUSR1 stops `train` as SIGTERM does
+    warning = (env.warning_signal, env.warning_meaning) if env and env.warning_signal else \
+        (getattr(signal, "SIGUSR1", None), interrupts.UNWARNED_USR1)
+    with interrupts.stopped_by(*warning):
+        return entry.train(cfg, cell, resume=resume, progress=progress, again=again, console=console or _silent(),
+                           resumed_by=resumed_by)
 
 
 @checked

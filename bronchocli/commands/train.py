@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shlex
 from pathlib import Path
 from typing import Optional
 
@@ -26,8 +27,8 @@ def train(
     resume: bool = typer.Option(False, "--resume", help="Continue this cell's latest KILLED/FAILED run from its checkpoint."),
     run_id: Optional[str] = typer.Option(None, "--run-id", help="With --resume: the MLflow run to continue."),
     use_tuned: Optional[str] = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study."),
-    again: bool = typer.Option(False, "--again", help="Train even when the cell already has a FINISHED MLflow run "
-                               "(by default it is not trained twice)."),
+    again: bool = typer.Option(False, "--again", help="Train a new run even when the cell already has a FINISHED "
+                               "run, or a KILLED/FAILED one that --resume would continue."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
     config: ConfigOpt = Path(DEFAULT_CONFIG),
     profile: ProfileOpt = None,
@@ -40,8 +41,10 @@ def train(
     zero-motion and training-mean references), the resolved config, split manifest,
     predictions, per-trajectory errors, trajectory plot and weights land in MLflow
     (`bronchopose ui`). Ctrl-C stops after the current step, saves a checkpoint and
-    marks the run KILLED; `--resume` continues it. A cell that already has a FINISHED
-    run (in MLflow) is not trained again unless `--again`. One `train` of a cell at a time:
+    marks the run KILLED; the line it ends with is the command that resumes it (`--resume --run-id`).
+    A cell that already has a FINISHED run (in MLflow) is not trained again unless `--again`; one
+    whose KILLED/FAILED run has a checkpoint is not started afresh either: `--resume` continues
+    that run, `--again` trains a new one beside it. One `train` of a cell at a time:
     a second `train` of the same cell waits for the first to end (saying so), then reports
     its FINISHED run instead of training again (`--again`: trains another run after it).
     Exit code 1 when the run FAILED.
@@ -50,9 +53,15 @@ def train(
 
     if run_id and not resume:
         raise BronchoError("--run-id: only meaningful with --resume")
+    flags = ["-c", str(config), "-a", arch, "-l", rot_loss, "-P", population, *(["--fold", fold] if fold else []),
+             "--seed", str(seed), *(["--pose-frame", pose_frame] if pose_frame else []),
+             *(["--train-trajectories", str(train_trajectories)] if train_trajectories else []),
+             *(["--profile", profile] if profile else []), *[a for s in set_ or () for a in ("--set", s)],
+             *(["--use-tuned", use_tuned] if use_tuned else []), *(["--quiet"] if quiet else [])]
     result = api.train(config, arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
                        pose_frame=pose_frame, train_trajectories=train_trajectories, profile=profile,
                        overrides=set_ or (), use_tuned=use_tuned, resume=run_id or resume, again=again,
-                       progress=not quiet, console=console)
+                       progress=not quiet, console=console,
+                       resumed_by=lambda rid: shlex.join(["bronchopose", "train", *flags, "--resume", "--run-id", rid]))
     console.print(result.summary() if result.ok else f"[red]{result.summary()}[/]", highlight=False)
     raise typer.Exit(0 if result.ok else 1)

@@ -176,6 +176,41 @@ def space_problems(cfg: Config) -> list[str]:
                 last = str(exc).splitlines()[-1].strip().removeprefix("invalid config: ")
                 problems.append(f"{where}: {last.partition(': ')[2] or last}")
                 break
+    return problems or enqueue_problems(cfg)
+
+
+def _outside(p: TuneParam, value: Any, key: str) -> str | None:
+    """Why an enqueued ``value`` is no value a trial of ``tune.space.<key>`` (``p``) takes (None: it is)."""
+    if p.type == "categorical":
+        return None if value in (p.choices or []) else f"must be one of tune.space.{key}'s choices " \
+            f"({', '.join(map(repr, p.choices or []))}): Optuna refuses any other"
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if p.type == "int" and not (number and float(value).is_integer()):
+        return f"must be a whole number (tune.space.{key} is an int)"
+    if not number or not p.low <= value <= p.high:
+        return f"must be a number within tune.space.{key}'s range [{p.low:g}, {p.high:g}]"
+    return None
+
+
+def enqueue_problems(cfg: Config) -> list[str]:
+    """What a trial of ``tune.enqueue`` would meet: each value one its ``tune.space`` distribution takes, and the
+    trial's config (the base config with those values) valid, so a bad recipe fails at load, not as a trial."""
+    problems = []
+    for i, params in enumerate(cfg.tune.enqueue):
+        where = f"tune.enqueue[{i}]"
+        bad = [f"{where}.{key}: {value!r}: {why}" for key, value in params.items()
+               if key in cfg.tune.space and (why := _outside(cfg.tune.space[key], value, key)) is not None]
+        if bad:
+            problems += bad
+            continue
+        raw = cfg.model_dump(mode="json")
+        try:
+            for key, value in params.items():
+                set_path(raw, key, value, where=f"{where}.{key}")
+            validate(raw, cfg._source, {}, cfg.paths.base, cfg._profile, space=False)
+        except ConfigError as exc:
+            last = str(exc).splitlines()[-1].strip().removeprefix("invalid config: ")
+            problems.append(f"{where} (trial {i}): {last.partition(': ')[2] or last}")
     return problems
 
 
@@ -204,8 +239,10 @@ def validate(raw: dict[str, Any], source: str, lines: dict[tuple, str], base: Pa
     cfg._paths = Paths.of(cfg, base)
     problems = space_problems(cfg) if space else []
     if problems:  # the same check as `tune`, so `config` never calls a space valid that tune refuses
-        where = next((v for k, v in lines.items() if k[:2] == ("tune", "space")), source)
-        shown = [f"{where}: {p}" for p in problems]
+        def where(problem: str) -> str:  # the line of tune.enqueue or tune.space
+            part = "enqueue" if problem.startswith("tune.enqueue") else "space"
+            return next((v for k, v in lines.items() if k[:2] == ("tune", part)), source)
+        shown = [f"{where(p)}: {p}" for p in problems]
         raise ConfigError(urls.redact(f"invalid config: {shown[0]}" if len(shown) == 1 else
                                       "\n".join([f"invalid config ({len(shown)} problems):",
                                                   *("  " + p for p in shown)])))

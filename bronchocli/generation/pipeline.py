@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, interrupts, io
+from .. import __version__, interrupts, io, pathcheck
 from ..anatomy import centreline_distance, load_anatomy, lumen_surface, save_centreline
 from ..config import Config, Generate
 from ..data.naming import DATASET_JSON
@@ -355,7 +355,8 @@ def _disk_full(root: Path, gen: Generate, tasks: list[RenderTask] | None) -> Wri
     kept, size = frames_on_disk(root)
     free = writer.free_bytes(root)
     total = sum(len(t.filenames) for t in tasks) if tasks is not None else None
-    line = f"data generate: {root}: disk full ({io.fmt_bytes(free) if free is not None else 'unknown'} free"
+    line = (f"data generate: {root}: disk full ({io.fmt_bytes(free) if free is not None else 'unknown'} free on the "
+            f"file system mounted at {pathcheck.mount_point(root)}")
     if total is not None:
         per_frame = size / kept if kept else 3 * gen.image_size ** 2  # none yet: an uncompressed frame's size
         need = int((total - kept) * per_frame) + writer.FRAME_MARGIN + (total * 200)  # + the CSV rows

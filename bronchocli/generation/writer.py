@@ -81,8 +81,8 @@ def disk_full(folder: Path, need: int, os_error: OSError | None = None) -> Write
     adds what was kept and what is left)."""
     free = free_bytes(folder)
     why = os.strerror(os_error.errno) if os_error is not None and os_error.errno else "not enough free space"
-    return WriteFailed(f"{folder}: disk full ({why}: {fmt_bytes(free) if free is not None else 'unknown'} free, "
-                       f"needs at least {fmt_bytes(need)})")
+    return WriteFailed(f"{folder}: disk full ({why}: {fmt_bytes(free) if free is not None else 'unknown'} free on "
+                       f"the file system mounted at {pathcheck.mount_point(folder)}, needs at least {fmt_bytes(need)})")
 
 
 def ensure_room(folder: Path, need: int) -> None:

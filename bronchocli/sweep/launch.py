@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from rich.console import Console
 from rich.live import Live
 
-from .. import urls
+from .. import interrupts, urls
 from ..cells import Selection
 from ..config import Config, Stage
 from ..errors import DEBUG_HINT, BronchoError
@@ -194,6 +194,16 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
                 set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED, FAILED or KILLED
 
 
+def interrupted_line(then: str) -> str:
+    """``interrupted: SIGTERM received (scancel, requeue or preemption); <then>``: the signal that stopped the
+    command, by name and what sends it (a worker that stopped on its own: said so)."""
+    last = interrupts.last()
+    if last is None:
+        return f"[bold yellow]interrupted:[/] a worker was stopped; {then}"
+    meaning = interrupts.meaning(last)
+    return f"[bold yellow]interrupted:[/] {interrupts.name(last)} received{f' ({meaning})' if meaning else ''}; {then}"
+
+
 def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool, cancelled: Callable[[], bool],
           resubmitted: Callable[[], object] = lambda: None, submitted: Callable[[], object] = lambda: None,
           cancel_hint: str = "`bronchopose sweep cancel`", resume_hint: str = "`bronchopose sweep run`",
@@ -289,9 +299,9 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
             launcher.tick(tasks)
             if not tasks:
                 report_workers(console, launcher.exit_codes(), launcher.logs(cfg))
-                if launcher.stopped:
-                    console.print("[yellow]interrupted:[/] running cells were released; run the same command "
-                                  "again to resume")
+                if launcher.stopped:  # on stderr, worded as every command's interruption (train, report, ...)
+                    Console(stderr=True).print(interrupted_line("running cells were released; run the same command "
+                                                                "again to resume"), highlight=False, soft_wrap=True)
                     return EXIT_INTERRUPTED
             if not tasks or time.monotonic() - asked > CANCEL_CHECK_S:  # never a top-up after a cancel
                 asked = time.monotonic()

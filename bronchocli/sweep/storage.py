@@ -45,7 +45,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.exc import DBAPIError, IntegrityError, OperationalError, ProgrammingError, SQLAlchemyError
 
-from .. import extras, urls
+from .. import extras, pathcheck, urls
 from ..cells import Cell
 from ..errors import BronchoError
 from ..retry import disk_full, disk_full_line, retry
@@ -198,9 +198,10 @@ class SweepStore:
     def _problem(self, exc: BaseException) -> str:
         if (full := disk_full(exc)) is not None:  # one line naming the folder, not SQLAlchemy's SQL and parameters
             where = full[1] or urls.sqlite_file(self.url)
-            place = disk_full_line(where, full[0]) if where is not None else f"the database server's disk is full "\
-                f"({full[0]})"
+            place = disk_full_line(where, full[0]) if where else f"the database server's disk is full ({full[0]})"
             return f"sweep storage {self.redacted}: {place}; free space there and run the same command again"
+        if (db := urls.sqlite_file(self.url)) and (line := pathcheck.sqlite_unwritable(db)):  # read-only runs/
+            return f"sweep storage {self.redacted}: {line} and point storage.url there"
         text = f"sweep storage {self.redacted}: {urls.error_line(exc)}"
         if self.dialect != "sqlite" and "connect" in text.lower():  # a server that is down, elsewhere or misnamed
             text += "; check the host, port, database name and credentials, and that the server is running"
@@ -208,8 +209,7 @@ class SweepStore:
 
     # -- schema ------------------------------------------------------------------
     def exists(self) -> bool:
-        db = urls.sqlite_file(self.url)
-        if db is not None and not db.exists():  # do not create an empty database just to look
+        if (db := urls.sqlite_file(self.url)) is not None and not db.exists():  # none created just to look
             return False
         try:
             with self.engine.connect() as conn:

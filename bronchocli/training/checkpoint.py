@@ -203,7 +203,8 @@ def check_space(path: Path, need: int, what: str = "checkpoint") -> None:
     if free < need:
         raise CheckpointWriteError(
             f"{path}: not enough disk space for the {what}: needs {io.fmt_bytes(need)} free ({SPACE_FACTOR}x its "
-            f"size), {io.fmt_bytes(free)} available; free space there or point runs.checkpoints elsewhere")
+            f"size), {io.fmt_bytes(free)} available on the file system mounted at {pathcheck.mount_point(folder)}; "
+            "free space there or point runs.checkpoints elsewhere")
 
 
 def check_space_for(path: Path, state: dict[str, Any]) -> int:
@@ -241,10 +242,19 @@ def save(path: str | os.PathLike, state: dict[str, Any]) -> Path:
         if code in NOT_WRITABLE:  # a folder made read-only is not a full one: freeing space would not help
             raise CheckpointWriteError(not_writable_line(path, code)) from None
         why = os.strerror(code) if code in (errno.ENOSPC, errno.EIO, errno.EDQUOT) else urls.error_line(exc, 200)
-        raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}); it needs about "
+        raise CheckpointWriteError(f"{path}: could not write the checkpoint ({why}{_free_on(path)}); it needs about "
                                    f"{io.fmt_bytes(need)} free there; free space or point runs.checkpoints "
                                    "elsewhere") from None
     return path
+
+
+def _free_on(path: Path) -> str:
+    """``; 1.2 MB free on the file system mounted at /mnt``: the disk a failed write met (empty if unknown)."""
+    try:
+        return (f"; {io.fmt_bytes(shutil.disk_usage(pathcheck.nearest_existing(path.parent)).free)} free on the "
+                f"file system mounted at {pathcheck.mount_point(path.parent)}")
+    except OSError:
+        return ""
 
 
 NOT_WRITABLE = (errno.EROFS, errno.EACCES, errno.EPERM)  # the folder refuses writes, whatever space it has

@@ -57,6 +57,7 @@ from ..runs.processes import fail_pending_models, process_alive, process_tags, r
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_INIT, cell_tags, search_runs
 from ..runs.system import system_metrics
 from . import artifacts, checkpoint
+from .resumable import differences, find_resumable
 from .device import device_for, env_tags, speed_for
 from .engine import fit_and_evaluate
 from .prepare import prepare
@@ -96,13 +97,6 @@ def _stop_on_signals(flag: StopFlag) -> Iterator[None]:
             signal.signal(s, h)
 
 
-def _find_resumable(client, exp_id: str, cell: Cell) -> str:
-    runs = search_runs(client, [exp_id], {TAG_CELL_KEY: cell.key}, ["KILLED", "FAILED", "RUNNING"])
-    if not runs:
-        raise BronchoError(f"--resume: no KILLED/FAILED run of cell {cell.label} (key {cell.key}) to resume")
-    return runs[0].info.run_id
-
-
 def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool | None,
               extra_tags: dict[str, str]) -> tuple[str, dict[str, Any] | None]:
     """Create a new MLflow run for the cell, or reopen the one to resume; returns (run_id, its saved state)."""
@@ -112,14 +106,18 @@ def _open_run(client, exp_id: str, cfg: Config, cell: Cell, resume: str | bool |
                 repair_zombie(client, zombie, "a new run of its cell")
         run = client.create_run(exp_id, tags=cell_tags(cfg, cell, **extra_tags, **process_tags()))
         return run.info.run_id, None
-    run_id = resume if isinstance(resume, str) else _find_resumable(client, exp_id, cell)
+    run_id = resume if isinstance(resume, str) else find_resumable(cfg, client, exp_id, cell)
     try:
         run = client.get_run(run_id)
     except Exception:  # noqa: BLE001 - MLflow raises its own exception types for a missing run
         raise BronchoError(f"--run-id {run_id}: no such MLflow run in {redacted_uri(cfg)}") from None
     if run.data.tags.get(TAG_CELL_KEY) != cell.key:
-        raise BronchoError(f"--resume {run_id}: that run belongs to another cell or config (key "
-                           f"{run.data.tags.get(TAG_CELL_KEY)} != {cell.key})")
+        theirs = {k: run.data.tags.get(k) or "" for k in cell.tags()}
+        what = (f"made with other settings: {differences(cfg, client, run_id)}" if theirs == cell.tags() else
+                "of another cell: " + ", ".join(f"{k} {v or '(unset)'} (now {cell.tags()[k] or '(unset)'})"
+                                                 for k, v in theirs.items() if v != cell.tags()[k]))
+        raise BronchoError(f"--resume {run_id}: that run (key {run.data.tags.get(TAG_CELL_KEY)}, this cell's is "
+                           f"{cell.key}) was {what}; resume it with the flags and settings it was made with")
     repaired = repair_zombie(client, run, "train --resume")
     path = resume_file(cfg, run_id)
     if not path.is_file():
@@ -260,6 +258,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
         log.warning("%s", exc)  # nothing written: the run, its status and its checkpoint are the new owner's
         raise
     except RunStopped as exc:
+        exc.run_id = run_id  # `train` names the run and the call that resumes it (resumable.advised)
         if isinstance(exc, RunPruned):
             client.set_tag(run_id, "pruned", "true")
             remove_checkpoint(ckpt, "pruned trial")  # a pruned trial is never resumed
@@ -268,7 +267,9 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
     except KeyboardInterrupt:
         if still_ours():
             _end_run(client, run_id, "KILLED", "interrupted (second Ctrl-C)")
-        raise RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point") from None
+        stopped = RunInterrupted(f"run {run_id} interrupted; no checkpoint was saved at this point")
+        stopped.run_id = run_id
+        raise stopped from None
     except Exception as exc:  # noqa: BLE001 - any failure must terminate the run as FAILED
         full = checkpoint.as_write_failure(exc, checkpoint.run_needs(ckpt), checkpoint.failure_folder(cfg))
         if full is not None:  # a full disk anywhere under the run: one line (the folder, the space), resumable;
@@ -286,6 +287,7 @@ def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags:
         if not resumable(exc):  # only a failure of the machine (errors.py) is worth resuming
             remove_checkpoint(ckpt, "run failed, not resumable")
         if isinstance(exc, RAISE_AFTER_FAILED):  # one line and exit 2 for `train`; the sweep releases/fails the cell
+            exc.run_id = run_id  # `train` says how to resume it (resumable.advised)
             raise exc from None
         if not isinstance(exc, BronchoError):
             log.exception("run %s failed", run_id)

@@ -56,7 +56,8 @@ def test_a_disk_that_fills_while_rendering_keeps_the_frames_and_resumes(tmp_path
             generate_dataset(tiny_config(root), workers=1, progress=False, callback=fill)
         line = str(err.value)
         assert "\n" not in line and line.startswith(f"data generate: {root}: disk full (")
-        assert " free, about " in line and "more needed for the 9 frames left" in line
+        assert f" free on the file system mounted at {disk}, about " in line  # the full file system, named
+        assert "more needed for the 9 frames left" in line
         assert "the 3 frames rendered so far are kept" in line and "run the same command again to resume" in line
         assert frames_on_disk(root)[0] == 3 and not [p for p in root.rglob("*.tmp")]  # nothing half-written
 

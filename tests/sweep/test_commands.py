@@ -83,15 +83,17 @@ def test_ctrl_c_stops_the_sweep_with_130_and_a_rerun_resumes_the_cell(cli, proje
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(HERE), os.environ.get("PYTHONPATH", "")])}
     code = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
     proc = subprocess.Popen([sys.executable, "-c", code, "sweep", "-c", path, *FAKE],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     end = time.monotonic() + 120
     while not any(fake_dir.glob("started-*")):  # wait for the worker to be inside the lstm cell
         assert proc.poll() is None and time.monotonic() < end, proc.stdout.read() if proc.poll() is not None else ""
         time.sleep(0.05)
     proc.send_signal(signum)  # SIGINT: what Ctrl-C sends to the foreground process
-    out, _ = proc.communicate(timeout=120)
-    assert proc.returncode == exit_code, out
-    assert "interrupted" in out and "Traceback" not in out
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == exit_code, out + err
+    # on stderr, naming the signal, worded as train's (issue 60): "interrupted: SIGTERM received (...); ..."
+    assert f"interrupted: {signal.Signals(signum).name} received" in " ".join(err.split()), err
+    assert "run the same command again to resume" in " ".join(err.split()) and "Traceback" not in out + err
     assert cells_of(project)["lstm"].state == PENDING and cells_of(project)["baseline"].state == FINISHED
     assert runs_by_cell(project, "KILLED") == {cells_of(project)["lstm"].cell_key: 1}
     (fake_dir / "block-lstm").unlink()

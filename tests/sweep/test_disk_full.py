@@ -128,7 +128,7 @@ def test_a_disk_filled_while_the_model_is_logged_fails_in_one_line_and_resumes_o
     assert "Traceback" not in out + err and "[SQL:" not in out + err and err.strip() == "", out + err
     assert "crashed" not in out and "worker(s)" not in out, out  # the worker stopped after the cell's line: no crash
     line = re.sub(r"\s+", "", out[out.index("failed "):])  # the cell's failure (one line, wrapped by the console)
-    assert "WriteFailed:" in line and "diskfull(" in line and f"freein{disk})" in line and "needsabout" in line, out
+    assert "WriteFailed:" in line and "diskfull(" in line and f"freeonthefilesystemmountedat{disk})" in line and "needsabout" in line, out
     (row,) = SweepStore(cfg.paths.storage_url).rows(cfg.name)
     assert (row.state, row.attempts) == (FAILED, 0)
     client = client_for(cfg)
