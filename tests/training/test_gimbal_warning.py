@@ -23,7 +23,7 @@ def test_world_frame_training_warns_about_gimbal_lock(tmp_path, monkeypatch, cap
     table.to_csv(root / "p00.csv", index=False)
     config = tmp_path / "exp.yaml"
     config.write_text(f"name: t\ndataset: {{root: {root}}}\nsplits: {{train: 4, val: 1, test: 1}}\n"
-                      f"tracking: {{uri: sqlite:///{tmp_path / 'm.db'}}}\ndata: {{window: 2}}\n"
+                      f"runs: {{uri: sqlite:///{tmp_path / 'm.db'}}}\ndata: {{window: 2}}\n"
                       "train: {batch_size: 4}\n")
     cfg = load_config(config)
     cell = cfg.cell(arch="baseline", rot_loss="mse", population="personalized", seed=0, pose_frame=frame)
