@@ -170,8 +170,10 @@ def test_a_refused_requeue_is_retried_and_logged_not_ignored(tmp_path, monkeypat
     monkeypatch.setattr(slurm_launcher.time, "sleep", lambda s: None)
     assert requeue("7_1") is False
     assert (fake.parent / "calls").read_text().splitlines() == ["requeue 7_1"] * 3
-    # every refusal is logged with its reason: a warning per retry, then the error of the last try
+    # the refusal is announced once with its reason and the attempt count (the same error again goes to debug),
+    # then the error of the last try
     warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
-    assert len(warnings) == 2 and all("presently disabled for job 7_1" in w for w in warnings), warnings
+    assert len(warnings) == 1 and "presently disabled for job 7_1" in warnings[0] and "attempt 2/3" in warnings[0], \
+        warnings
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "7_1 was not requeued" in errors[0] and "presently disabled" in errors[0]

@@ -156,10 +156,16 @@ def test_the_api_is_told_the_call_that_resumes_and_a_run_without_checkpoint_the_
                                                       "left no checkpoint: a new run starts from step 0)")
 
 
-def test_sigusr1_outside_slurm_stops_a_plain_train_like_sigterm_never_a_silent_kill(project, cli, monkeypatch):
+def test_sigusr1_outside_slurm_stops_a_plain_train_like_sigterm_never_a_silent_kill(project, cli, monkeypatch,
+                                                                                     request):
     """Issue 60 item 5: SIGUSR1's default action kills the process and leaves its run RUNNING; a plain `train`
     (no launcher sends it) checkpoints, ends the run KILLED and exits 128 + 10, before its run too."""
     from bronchocli.training import entry
+
+    # as in a fresh process: SIGUSR1 at its default (a handler an earlier test left in this worker process would
+    # be kept by train, which only replaces the default action)
+    previous = signal.signal(signal.SIGUSR1, signal.SIG_DFL)
+    request.addfinalizer(lambda: signal.signal(signal.SIGUSR1, previous))
 
     cfg = project
     config = str(cfg.paths.base / "experiments.yaml")
