@@ -17,6 +17,7 @@ exactly one per row.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -45,6 +46,29 @@ class TrialResult:
     failure_reason: str | None = None
     duration_s: float | None = None
     stop_requested: int | None = None  # a stop signal that arrived while the trial evaluated
+
+
+HEARTBEAT_TARGET = "HeartbeatThread._record_heartbeat"  # optuna.storages._heartbeat: the trial's heartbeat loop
+
+
+def end_heartbeats(timeout_s: float = 5.0) -> int:
+    """Stop the Optuna trial heartbeat threads still running in this process; how many were stopped.
+
+    Optuna starts a trial's heartbeat (a non-daemon thread) in the ``__enter__`` of a ``with`` around the trial and
+    stops it in ``__exit__``. A stop signal that lands between the thread's start and the ``with`` body (our
+    handlers raise) skips ``__exit__``: the thread then runs for ever and the worker process hangs at interpreter
+    shutdown, waiting for it. After a trial raised, every such thread is told to stop (its stop event, the third
+    argument of its target) and joined."""
+    stopped = 0
+    for thread in threading.enumerate():
+        target, args = getattr(thread, "_target", None), getattr(thread, "_args", ())
+        if getattr(target, "__qualname__", "") != HEARTBEAT_TARGET or len(args) < 3 \
+                or not isinstance(args[2], threading.Event):
+            continue
+        args[2].set()
+        thread.join(timeout_s)
+        stopped += not thread.is_alive()
+    return stopped
 
 
 class TrialRunner:
@@ -76,6 +100,7 @@ class TrialRunner:
             s.optimize(one, n_trials=1, catch=(TrialFailed,))
         except BaseException as exc:  # a stop (the row is released) or an error (the row fails): the Worker says
             self.stopped = (numbers[-1] if numbers else None, exc)
+            end_heartbeats()
             raise
         if not numbers:  # Optuna started no trial: the row fails with this reason (retried as any failure)
             raise BronchoError(f"study {self.study}: Optuna started no trial")
