@@ -74,7 +74,7 @@ def train(cfg: Config, cell: Cell, *, resume: str | bool = False, progress: bool
         ensure_dataset(cfg)
         console.print(f"[bold]train[/] {cell.label}  (cell {cell.key}, experiment {cfg.experiment_name})")
         try:
-            result = run_cell(cfg, cell, resume=resume, progress=progress)
+            result = run_cell(cfg, cell, resume=resume, progress=progress, reachable=True)  # checked above
         except BronchoError as exc:  # a stopped or failed run: its line says how to resume it, at this door
             raise resumable.advised(exc, cfg) from None
     if result.stop_requested:

@@ -185,23 +185,27 @@ def run_cell(
     on_validation: Callable[[int, dict[str, float]], None] | None = None,
     run_id_callback: Callable[[str], None] | None = None,
     owns: Callable[[], bool] | None = None,
+    reachable: bool = False,
 ) -> RunResult:
     """Train and evaluate one cell; always leaves its MLflow run terminated (see the module doc), unless ``owns``
-    says another worker took it over. From its start the process holds a claim on its share of the CPU cores
+    says another worker took it over. ``reachable``: the caller has just checked that the MLflow store answers
+    (``train``'s entry does, before it looks for the cell's runs); otherwise it is checked here, before any work. From its start the process holds a claim on its share of the CPU cores
     (``runs.cores``), decided when training starts, at each validation and every few seconds of training."""
     with cores.for_run(cfg) as share:
         return _run_cell(cfg, cell, resume=resume, extra_tags=extra_tags, progress=progress,
-                         on_validation=on_validation, run_id_callback=run_id_callback, owns=owns, share=share)
+                         on_validation=on_validation, run_id_callback=run_id_callback, owns=owns, share=share,
+                         reachable=reachable)
 
 
 def _run_cell(cfg: Config, cell: Cell, *, resume: str | bool | None, extra_tags: dict[str, str] | None,
               progress: bool, on_validation: Callable[[int, dict[str, float]], None] | None,
               run_id_callback: Callable[[str], None] | None, owns: Callable[[], bool] | None,
-              share: cores.CoreShare) -> RunResult:
+              share: cores.CoreShare, reachable: bool) -> RunResult:
     t0 = time.perf_counter()
     device = device_for(cfg)  # an explicit device this machine lacks: one line, before any work or MLflow run
     fast = speed_for(cfg, cell.arch, device)  # a bad train.speed_settings file: one line, before any work
-    check_reachable(cfg)  # a dead server fails within runs.timeout_s, before any work
+    if not reachable:
+        check_reachable(cfg)  # a dead server fails within runs.timeout_s, before any work
     tags = dict(extra_tags or {})
     if not resume:  # missing/unreachable backbone weights fail before any work; the run records its initialisation
         tags[TAG_INIT] = initialisation(cfg.paths.pretrained, [cell.arch], cfg.model.backbone)[cell.arch]

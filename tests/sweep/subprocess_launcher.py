@@ -43,6 +43,10 @@ class SubprocessSettings(Section):
 
 
 class SubprocessEnvironment(WorkerEnvironment):
+    @classmethod
+    def detect(cls) -> bool:
+        return JOB_ENV in os.environ  # a process its workers started (`bronchopose train` inside one, too)
+
     @property
     def job_id(self) -> str | None:
         return os.environ.get(JOB_ENV)

@@ -203,6 +203,25 @@ def test_a_launcher_installed_through_an_entry_point_runs_a_sweep_with_its_own_v
                 "range [1, 64])") in err, err
 
 
+def test_detected_asks_launchers_that_only_an_entry_point_offers(tmp_path):
+    """Issue 58, item 4: inside a job of a launcher that an installed package offers (nothing imported it yet),
+    ``detected()`` finds that launcher's environment, as it finds Slurm's inside a Slurm job; outside, none."""
+    import os
+    import subprocess
+    import sys
+
+    from subprocess_launcher import JOB_ENV
+
+    site = _install_entry_point(tmp_path / "site")
+    probe = "from bronchocli.sweep.launchers import detected; e = detected(); print(e and e.__name__)"
+    env = {k: v for k, v in os.environ.items() if k not in ("SLURM_JOB_ID", JOB_ENV)}
+    env["PYTHONPATH"] = os.pathsep.join([str(site), *sys.path])
+    outside = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    inside = subprocess.run([sys.executable, "-c", probe], env={**env, JOB_ENV: "77_0"}, capture_output=True,
+                            text=True, check=True)
+    assert (outside.stdout.strip(), inside.stdout.strip()) == ("None", "SubprocessEnvironment"), (outside, inside)
+
+
 def test_a_plugin_whose_import_raises_is_one_line_naming_it_and_debug_shows_the_traceback(project, tmp_path):
     """Issue 60, item 2: any exception while loading a launcher plugin (here RuntimeError at import) is one line
     naming the entry point, its module, the exception's type and message, exit 2; ``--debug`` adds the

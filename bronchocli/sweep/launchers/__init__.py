@@ -88,8 +88,10 @@ def loadable(names_: list[str]) -> list[type[Launcher]]:
 
 
 def detected() -> type[WorkerEnvironment] | None:
-    """The worker environment of the registered launcher whose job this process runs in (``detect``), else None."""
-    return next((k.Environment for k in _LAUNCHERS.values() if k.Environment.detect()), None)
+    """The worker environment of the launcher whose job this process runs in (``detect``), else None: every
+    launcher is asked, the registered ones and those installed packages offer through entry points (loaded here;
+    one that does not load is left out), as submitit's ``JobEnvironment`` asks each plugin whether it is active."""
+    return next((k.Environment for k in loadable(names()) if k.Environment.detect()), None)
 
 
 def log_roots(cfg: Config, kind: type[Launcher] | None = None) -> list[tuple[str, Path]]:
