@@ -245,7 +245,7 @@ def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (
     spec.cell_runner()
     kind = entry.launcher_kind(cfg, launcher)
     options = entry.launcher_options(kind, workers=workers, gpus=gpus, per_gpu=per_gpu)
-    if detach and not kind.detachable:
+    if detach and not kind.Session.outlives_command:
         raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
                            "whose workers outlive it (slurm) can detach")
     code = entry.run(cfg, spec, kind, options=options, detach=detach, retry_failed=retry_failed,

@@ -154,7 +154,7 @@ def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool
            study: str | None = None) -> int:
     """Stop every queued or running worker of the sweep (running ones release their cells), or of the tuning
     study ``study`` (``trials.cancel_study``); ``dry_run``: list them and stop nothing."""
-    if not kind.detachable:
+    if not kind.Session.outlives_command:
         raise BronchoError(f"--launcher {kind.name}: its workers are the `{'tune' if study else 'sweep run'}` "
                            "command's own processes; stop that command (Ctrl-C) instead")
     if study is not None:
@@ -221,7 +221,7 @@ def settle_detached(cfg: Config, store: SweepStore) -> str | None:
     except Exception as exc:  # noqa: BLE001 - the table's own reading of MLflow says what is wrong, in one line
         log.debug("could not read the sweep's parent run: %s", exc)
         return None
-    return end_abandoned(cfg, store, None, kind) if kind.detachable else None
+    return end_abandoned(cfg, store, None, kind) if kind.Session.outlives_command else None
 
 
 def grid(cfg: Config, console: Console) -> None:
@@ -296,7 +296,7 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     if "--workers" in kind.options:  # workers placed here (--workers, --gpus, --per-gpu): one per trial at most
         n, devices = _workers(options.get("workers"), options.get("gpus") or "auto", options.get("per_gpu") or 1)
         options["workers"] = min(n, trials)
-        here = not kind.detachable and options["workers"] <= 1 and not devices  # one worker, no GPU: this process
+        here = not kind.Session.outlives_command and options["workers"] <= 1 and not devices  # one worker, no GPU: this process
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched

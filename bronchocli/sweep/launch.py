@@ -5,17 +5,18 @@ stops them. The launcher is the protocol (``launchers.base``); nothing here name
 watch) is the part that does not know the sweep's parent run: ``tune`` drives a study's trial rows through it.
 
 A worker works the stages up to the one it was submitted for (``STAGE_ENV``), never a later one, so each
-stage counts the workers labelled with it; a later stage's submission waits (``after``) for those before it,
-or, with a launcher that cannot make a submission wait (``defers`` False: the local one), is made once the
-stages before it are done. The watch runs inside ``launcher.supervised()``: the local launcher's Ctrl-C stops
-its workers there (they release their cells; the sweep exits 130), a detached launcher's stops the watch only.
+stage counts the workers labelled with it. What depends on where the workers live is the launcher's ``Session``
+(``sweep.session``), made once per command and asked unconditionally: which stages to submit now (a batch
+system's: all, later ones waiting for the earlier ones; the local launcher's: one at a time), what to re-read on
+a refresh, whether workers that ended with cells left are replaced, how the parent run is held and what Ctrl-C
+does (the local launcher's stops its workers in the session's block; a detached one's stops the watch only).
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from rich.console import Console
@@ -26,13 +27,14 @@ from ..cells import Selection
 from ..config import Config, Stage
 from ..errors import DEBUG_HINT, BronchoError
 from ..runs.client import client_for, experiment_id
-from ..runs.parents import set_parent_status, start_parent, sweep_parent
+from ..runs.parents import set_parent_status, sweep_parent
 from ..runs.contract import failure_reason
 from ..runs.records import TAG_FAILURE, set_tags
 from . import summary
 from .launchers import reference
-from .launchers.base import Launcher, Workers
+from .launchers.base import Launcher, Workers, words
 from .plan import Plan, Step, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
+from .session import Session
 from .planview import final, print_plan, report_workers, stage_title, waits_line
 from .selection import describe_selection
 from .status import live_view, progress, summary_line
@@ -78,11 +80,9 @@ class Submitted:
     waiting: Step | None = None
 
 
-def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted) -> list[tuple[Stage, int]]:
-    """Settle (and print) each stage whose source is done; the stages to size submissions for, with their cells
-    left. A launcher that submits one stage at a time (``defers`` False) gets the first stage with cells left and
-    decides a stage only once those before it are done: each selection is read when planned, decided and settled."""
-    retries, first_open = walk.cfg.sweep.max_retries, None
+def _steps(walk: StageWalk, console: Console, record: Submitted) -> Iterator[Step]:
+    """The walk's steps as they are taken: each stage whose source is done settled (and printed); the stage that
+    waits recorded (``record.waiting``), not given."""
     record.waiting = None
     for step in walk.steps():
         if step.settled is not None:
@@ -91,13 +91,8 @@ def _walk(walk: StageWalk, launcher: Launcher, console: Console, record: Submitt
             print_stage(walk, step.stage, console)
         if step.waits:
             record.waiting = step
-        elif not launcher.defers and step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells,
-                                                                          sweep=walk.sweep), retries):
-            first_open = step.stage
-            break
-    if launcher.defers:
-        return walk.work_left()
-    return [(first_open, 1)] if first_open is not None else []
+        else:
+            yield step
 
 
 def _submit(launcher: Launcher, n: int, stage: str, after: Sequence[str]) -> str:
@@ -112,24 +107,27 @@ def _submit(launcher: Launcher, n: int, stage: str, after: Sequence[str]) -> str
                            f"{failure_reason(exc)}{DEBUG_HINT}") from exc
 
 
-def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None,
-                   ) -> list[str]:
+def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None, *,
+                   session: Session | None = None) -> list[str]:
     """Submit workers for what the queued/running ones will not cover; returns the new submissions (none: covered);
     ``record`` gets the stage of each, and the stage that waits.
 
     The first stage with cells left wants a worker per cell runnable now (``runnable_now``, at most
     ``launcher.capacity``); a later stage's submission waits (``after``) for the ones before it, and one queued
-    for a later stage is made to wait for an earlier stage's new submission too (``launcher.follow``)."""
+    for a later stage is made to wait for an earlier stage's new submission too (``session.follow``). Which
+    stages are sized now is the session's answer (``Session.to_submit``; ``session``: the command's, else a new
+    one)."""
+    session = session or launcher.Session(launcher)
     record = record if record is not None else Submitted()
     # Workers being stopped (scancel: COMPLETING until their processes are gone) claim nothing more: not cover.
     active = [t for t in launcher.active() if not t.ending]
     submitted: list[str] = []
     earlier: list[str] = []  # submissions labelled with an earlier stage (queued, running or just submitted)
     first = True
-    for stage, left in _walk(walk, launcher, console, record):
+    for stage, left in session.to_submit(walk, _steps(walk, console, record)):
         mine = [t for t in active if t.stage == stage.name]
         if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=_job_order)):
-            launcher.follow(queued, earlier)
+            session.follow(queued, earlier)
         if left:
             have = sum(t.count for t in mine)
             if first:
@@ -140,7 +138,7 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record
                 want = launcher.capacity(left)
             if want > have:
                 job = _submit(launcher, want - have, stage.name, () if first else earlier)
-                console.print(launcher.submitted(job, want - have, stage.name, () if first else earlier),
+                console.print(session.submitted(job, want - have, stage.name, () if first else earlier),
                               highlight=False)
                 submitted.append(job)
                 earlier.append(job)
@@ -158,24 +156,23 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
     the sweep (``entry.run``: paths, ``launcher.check()``, the storage answering) before anything was created.
 
     The sweep's parent MLflow run (its cells nest under it) is RUNNING while the sweep runs, with the plan and
-    its selections; when the watch ends, the outcome (``summary.record_parent``). Workers that die with this
-    command (not ``detachable``) make it this process's: ``status --repair`` ends it if the command is killed."""
+    its selections; when the watch ends, the outcome (``summary.record_parent``). The session holds it
+    (``Session.open_parent``): workers that die with this command make it this process's, which ``status
+    --repair`` ends if the command is killed."""
     console.print(f"[bold]sweep[/] {cfg.name} {launcher.describe()}  storage {store.redacted}  MLflow "
                   f"{urls.redact(cfg.paths.mlflow_uri)}  experiment {cfg.experiment_name}"
                   + (f"  hyperparameters {cfg.tune.applied}" if cfg.tune.applied else ""), highlight=False)
     walk, _ = prepare_walk(cfg, store, only, retry_failed=retry_failed)
     client = client_for(cfg)
     parent = sweep_parent(client, cfg, experiment_id(client, cfg))  # the cells nest under it
-    if launcher.detachable:
-        client.update_run(parent, "RUNNING")  # again RUNNING when the sweep is submitted again
-    else:
-        start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
+    session = launcher.Session(launcher)
+    session.open_parent(client, parent)
     set_tags(client, parent, {summary.TAG_LAUNCHER: reference(type(launcher)),  # `status` can ask its workers
                               summary.TAG_WATCHER: summary.watcher_tag(detach)})
     summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
     code: int | None = None
     try:
-        code = drive(walk, launcher, console, detach=detach, cancelled=lambda: summary.cancelled(client, parent),
+        code = drive(walk, launcher, console, detach=detach, session=session, cancelled=lambda: summary.cancelled(client, parent),
                      resubmitted=lambda: summary.reopen(client, parent),  # a top-up after its last worker stopped it
                      submitted=lambda: summary.record_parent(client, parent, walk))  # the plan on the parent run
         return code
@@ -187,10 +184,10 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
         set_parent_status(client, parent, 1)
         raise
     finally:
-        if not detach and (code is not None or launcher.stopped):
+        if not detach and (code is not None or session.stopped):
             code = 1 if code is None else code  # this command failed: its workers were stopped
             summary.record_parent(client, parent, walk, finished=True)
-            if code != EXIT_INTERRUPTED or launcher.stopped:  # stopped watching only: the workers go on
+            if code != EXIT_INTERRUPTED or session.stopped:  # stopped watching only: the workers go on
                 set_parent_status(client, parent, code)  # the sweep's parent run ends FINISHED, FAILED or KILLED
 
 
@@ -207,30 +204,32 @@ def interrupted_line(then: str) -> str:
 def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool, cancelled: Callable[[], bool],
           resubmitted: Callable[[], object] = lambda: None, submitted: Callable[[], object] = lambda: None,
           cancel_hint: str = "`bronchopose sweep cancel`", resume_hint: str = "`bronchopose sweep run`",
-          what: str | None = None) -> int:
-    """Inside ``launcher.supervised()``: print the stages, submit workers for what is missing (then ``submitted``),
-    and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s exit code). ``walk``: a sweep's
-    ``StageWalk``, or anything walked alike (a study's trial rows: ``trials.StudyWalk``)."""
-    with launcher.supervised():  # the local launcher's Ctrl-C stops its workers; a failure stops them first
+          what: str | None = None, session: Session | None = None) -> int:
+    """Inside the launcher's session (``session``, else a new one): print the stages, submit workers for what is
+    missing (then ``submitted``), and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s
+    exit code). ``walk``: a sweep's ``StageWalk``, or anything walked alike (a study's trial rows:
+    ``trials.StudyWalk``)."""
+    session = session or launcher.Session(launcher)
+    with session:  # the local launcher's Ctrl-C stops its workers; a failure stops them first
         for stage in walk.stages:
             print_stage(walk, stage, console)
         record = Submitted()
-        if not submit_missing(walk, launcher, console, record):
+        if not submit_missing(walk, launcher, console, record, session=session):
             tasks = launcher.active()
-            console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {launcher.task_word}(s) of "
+            console.print(f"nothing new to submit: {sum(t.count for t in tasks)} {words(type(launcher))[2]}(s) of "
                           "this sweep queued or running" if tasks else "nothing left to run")
         submitted()
         if detach:
             console.print(f"detached: `bronchopose status` shows progress, {cancel_hint} stops the workers")
             return 0
         return watch(walk, launcher, console, cancelled, resubmitted, record,
-                     (what or f"sweep {walk.sweep}", cancel_hint, resume_hint))
+                     (what or f"sweep {walk.sweep}", cancel_hint, resume_hint), session=session)
 
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
     """``bronchopose sweep cancel``: stop every worker of this sweep (running ones release their cells);
     ``dry_run``: only list them."""
-    cfg, what = launcher.cfg, f"{launcher.title} job"
+    cfg, what = launcher.cfg, f"{words(type(launcher))[0]} job"
     jobs = launcher.cancel(dry_run=dry_run)
     if not jobs:
         console.print(f"no {what} of sweep {cfg.name} is queued or running")
@@ -257,49 +256,46 @@ def _open_stage(walk: StageWalk, plan: Plan, retries: int) -> str | None:
     return None
 
 
-def _rows(walk: StageWalk, launcher: Launcher) -> Plan:
-    """The known cells' rows. A launcher that submits later stages ahead (``defers``) has workers that settle
-    their selections: read on every refresh; otherwise this process settles each stage as it submits it."""
-    return walk.rows() if launcher.defers else read_plan(walk.store, walk.sweep, walk.known_cells())
-
-
 def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Callable[[], bool] = lambda: False,
           resubmitted: Callable[[], object] = lambda: None, record: Submitted | None = None,
-          hints: tuple[str, str, str] | None = None) -> int:
-    """The live view of the table while the sweep's workers run (``launcher.tick`` on every refresh: Slurm starts
+          hints: tuple[str, str, str] | None = None, *, session: Session | None = None) -> int:
+    """The live view of the table while the sweep's workers run (``session.tick`` on every refresh: Slurm starts
     requeued tasks without its hold). When none is left: the next stage's workers once a stage is done; a top-up
-    when workers ended with cells left (``launcher.resubmits``) but progress was made since the last submission
-    (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first (a worker submitted
-    before would find nothing to claim), then ``resubmitted`` (the parent RUNNING again). Workers stopped by this
-    command (``launcher.stopped``) end it with 130; Ctrl-C of a detached launcher's watch stops watching only."""
+    when workers ended with cells left (unless ``session.gives_up``) but progress was made since the last
+    submission (a cancelled worker's released cell), waiting for a dead worker's claim to go stale first (a worker
+    submitted before would find nothing to claim), then ``resubmitted`` (the parent RUNNING again). Workers
+    stopped by this command (``session.stopped``) end it with 130; Ctrl-C is the session's
+    (``session.interrupted``). ``session``: the command's (``drive``'s), else a new one."""
+    session = session or launcher.Session(launcher)
     cfg = walk.cfg
     retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
     record = record if record is not None else Submitted()  # what this command submitted, what waits
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    last_line, plan, asked = "", _rows(walk, launcher), time.monotonic()
+    _, _, task_word = words(type(launcher))
+    last_line, plan, asked = "", session.rows(walk), time.monotonic()
     seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
     if live is not None:
         live.start()
     try:
         while True:
             try:
-                plan, now = _rows(walk, launcher), walk.store.db_now()
+                plan, now = session.rows(walk), walk.store.db_now()
                 tasks = launcher.active()
             except BronchoError as exc:  # a storage or scheduler hiccup must not end the watch
                 log.warning("%s", exc)
-                launcher.wait(launcher.poll_s)
+                session.wait(session.poll_s)
                 continue
             n = sum(t.count for t in tasks)
             if live is not None:
                 live.update(live_view(plan, retries, max(1, n), now))
             elif (line := summary_line(progress(plan, retries, max(1, n), now, stale_s)).plain
-                  + f"  {launcher.task_word}s {n}") != last_line:
+                  + f"  {task_word}s {n}") != last_line:
                 console.print(line, highlight=False)
                 last_line = line
-            launcher.tick(tasks)
+            session.tick(tasks)
             if not tasks:
-                report_workers(console, launcher.exit_codes(), launcher.logs(cfg))
-                if launcher.stopped:  # on stderr, worded as every command's interruption (train, report, ...)
+                report_workers(console, session.exit_codes(), launcher.logs(cfg))
+                if session.stopped:  # on stderr, worded as every command's interruption (train, report, ...)
                     Console(stderr=True).print(interrupted_line("running cells were released; run the same command "
                                                                 "again to resume"), highlight=False, soft_wrap=True)
                     return EXIT_INTERRUPTED
@@ -315,21 +311,21 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
                 left = cells_left(plan, retries)
                 if not left and walk.complete:
                     break
-                if not launcher.resubmits and _open_stage(walk, plan, retries) in record.stages:
+                if session.gives_up(_open_stage(walk, plan, retries), record.stages):
                     return final(console, plan, retries)  # its workers ended with cells left: a new one would too
                 claimable = claimable_now(plan, retries, now, stale_s)
                 if left and not claimable:  # a dead worker's cell: claimable once its claim is stale, not before
-                    launcher.wait(launcher.poll_s)
+                    session.wait(session.poll_s)
                     continue
                 # workers ended with cells left (a stage done, a cancelled one gave its cell back, a stage was
                 # selected, a dead one's claim went stale): submit again, but only when the table moved since the
                 # last submission (workers that crash at start would otherwise be resubmitted for ever)
                 now_seen = _table_state(plan, claimable)
-                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console, record):
+                if now_seen == seen_at_submit or not submit_missing(walk, launcher, console, record, session=session):
                     if record.waiting is not None and not left:  # the walk stops at a stage that cannot start
                         console.print(waits_line(record.waiting), highlight=False)
-                        return final(console, _rows(walk, launcher), retries)
-                    console.print(f"[yellow]no {launcher.title} {launcher.task_word} of sweep {cfg.name} is left and "
+                        return final(console, session.rows(walk), retries)
+                    console.print(f"[yellow]no {words(type(launcher))[0]} {task_word} of sweep {cfg.name} is left and "
                                   f"{left} cell(s) are not done[/]; see the logs ({launcher.describe()}) and run the "
                                   "command again")
                     return 1
@@ -338,12 +334,9 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
                     resubmitted()  # the sweep's last worker may have ended its parent run: RUNNING again
                 except Exception as exc:  # noqa: BLE001 - a busy store must not end a watch
                     log.warning("could not reopen the sweep's parent run: %s", exc)
-            launcher.wait(launcher.poll_s)
+            session.wait(session.poll_s)
     except KeyboardInterrupt:
-        if not launcher.detachable:
-            raise
-        console.print(f"stopped watching: the {launcher.title} jobs go on (`bronchopose sweep cancel` stops them)")
-        return EXIT_INTERRUPTED
+        return session.interrupted(console)
     finally:
         if live is not None:
             live.stop()

@@ -150,13 +150,13 @@ def _worker_main(job: WorkerJob, env: WorkerEnvironment, stop_event: Any) -> int
     cfg = job.cfg
     if cfg.train.threads is None and (threads := env.threads):
         cfg = cfg.with_values({"train.threads": threads})
+    title, _, task_word = job.launcher.Session.words(job.launcher.name)
     log.info("%s, %s %s %s, CUDA_VISIBLE_DEVICES=%s",
              f"tune worker of study {job.study.study}" if job.study else f"sweep worker {cfg.name}",
-             job.launcher.title, job.launcher.task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES",
-                                                                                          "unset"))
+             title, task_word, ident.job or ident, os.environ.get("CUDA_VISIBLE_DEVICES", "unset"))
     code, store = EXIT_INTERRUPTED, None
     # no watcher may be left to keep a detached sweep's parent run true (a study's: its `tune` command ends it)
-    detached = job.ends_parent and job.launcher.detachable and job.study is None
+    detached = job.ends_parent and job.launcher.Session.outlives_command and job.study is None
     try:
         store = planning.open_store(cfg, job.storage_url)
         if detached:
@@ -300,8 +300,9 @@ def end_abandoned(cfg: Config, store: SweepStore, only: Selection | None, launch
             set_parent_status(client, parent, 0)
             return None
         code = EXIT_INTERRUPTED if left or not walk.complete else 1
-        reason = (f"no {launcher.title} {launcher.task_word} of sweep {cfg.name} is queued or running and "
-                  + (f"{f'{left} cell(s) are' if left else 'a later stage is'} not done (its {launcher.task_word}s "
+        title, _, task_word = launcher.Session.words(launcher.name)
+        reason = (f"no {title} {task_word} of sweep {cfg.name} is queued or running and "
+                  + (f"{f'{left} cell(s) are' if left else 'a later stage is'} not done (its {task_word}s "
                      "were stopped: `scancel`, a node gone); "
                      "`bronchopose sweep run` resumes it" if code == EXIT_INTERRUPTED else
                      "every cell is done, some failed for good; `bronchopose sweep run --retry-failed` runs them "

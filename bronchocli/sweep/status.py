@@ -37,6 +37,7 @@ from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
 from .studyrows import TRIALS_SUFFIX
 from .launchers import names as launcher_names
 from .launchers import launcher_class
+from .launchers.base import words
 from .worker import WorkerId, job_of
 
 log = logging.getLogger(__name__)
@@ -236,7 +237,7 @@ def _name(cell: cells.Cell) -> str:
 
 def _title(launcher: str | None) -> str:
     """How messages name a launcher ("Slurm"); a name no longer registered as it is."""
-    return launcher_class(launcher).title if launcher in launcher_names() else str(launcher)
+    return words(launcher_class(launcher))[0] if launcher in launcher_names() else str(launcher)
 
 
 def _num(v: float | None) -> str:

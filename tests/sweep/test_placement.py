@@ -44,9 +44,9 @@ def test_each_worker_process_sees_only_its_gpu(make_config, tmp_path, fake_dir):
     store = SweepStore(cfg.paths.storage_url)
     walk, plan = prepare_walk(cfg, store, dataset=False)
     launcher, console, record = LocalLauncher(cfg, runner=fake_runner, gpus=["3", "5"], workers=2), Console(), Submitted()
-    with launcher.supervised():  # as `sweep run` drives it
-        submit_missing(walk, launcher, console, record)
-        exit_code = watch(walk, launcher, console, record=record)
+    with launcher.Session(launcher) as session:  # as `sweep run` drives it
+        submit_missing(walk, launcher, console, record, session=session)
+        exit_code = watch(walk, launcher, console, record=record, session=session)
     assert exit_code == 0
     seen = {c.key: (fake_dir / f"gpu-{c.key}").read_text() for c in plan.cells}
     assert set(seen.values()) <= {"3", "5"} and len(runs_by_cell(cfg)) == 4

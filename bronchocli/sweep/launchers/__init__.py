@@ -18,7 +18,7 @@ from pathlib import Path
 
 from ...config import Config
 from ...errors import DEBUG_HINT, BronchoError, ConfigError
-from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
+from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers, words
 from .local import LocalLauncher
 from .slurm import SlurmLauncher
 
@@ -125,4 +125,4 @@ register(LocalLauncher)
 register(SlurmLauncher)
 
 __all__ = ["GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "SlurmLauncher", "WorkerEnvironment", "Workers",
-           "detected", "launcher_class", "loadable", "log_roots", "names", "reference", "register"]
+           "detected", "launcher_class", "loadable", "log_roots", "names", "reference", "register", "words"]

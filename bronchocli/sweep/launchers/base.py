@@ -15,45 +15,36 @@ them) with the sweep's claims model in place of job results:
   cells); returns the submissions stopped (``dry_run``: those it would stop);
 - ``describe()``: one line saying where the workers run and where they log.
 
-What a launcher needs beyond that has a default: ``create`` (built for ``sweep run`` with the options it
-takes, ``options``), ``check`` (refuse what would make workers fail, before anything is created),
-``capacity`` (workers worth starting for ``runnable`` cells), ``follow`` (make queued later-stage
-submissions wait for a new earlier one), ``tick`` (called on every refresh of the watch). The driver
-(``sweep.launch``) asks a few more things and never the launcher's name: ``supervised`` (the block its
-workers live in: the local launcher's Ctrl-C stops them there), ``wait`` (until something may have
-changed), ``stopped`` (its workers were told to stop), ``exit_codes`` (how the workers that ended
-exited, where it can tell), ``defers`` (a later stage's submission can wait for the earlier ones:
-without it one stage is submitted at a time) and ``resubmits`` (workers that ended with cells left
-are replaced: they were cancelled or timed out; without it they stopped for a reason a new worker
-would meet too), ``runs_command`` (its workers run ``command``), ``poll_s`` (how often the watch asks)
-and ``submitted`` (the line announcing a submission).
+Those three (and ``name``) are all a launcher must write. What else it may write has a default: ``describe``
+(one line: where the workers run and log), ``create`` (built for ``sweep run`` with the options it takes,
+``options``), ``check`` (refuse what would make workers fail, before anything is created) and ``capacity``
+(workers worth starting for ``runnable`` cells).
 
 What a launcher owns besides: ``Settings``, the model of its own config section ``sweep.launchers.<name>``
 (validated by ``settings(cfg)`` when the launcher is looked up; the core config holds it as a plain mapping),
-``logs`` (its workers' log folder) and ``roots`` (folders of its settings that no other output root may hold),
-and ``Environment``, the worker side (submitit's JobEnvironment): built inside a worker it started
+``logs`` (its workers' log folder) and ``roots`` (folders of its settings that no other output root may hold);
+``Environment``, the worker side (submitit's JobEnvironment): built inside a worker it started
 (``environment(cfg)``), it says the worker's job id and task index, the CPU threads it was given, whether it exits
 when idle, the launcher's *warning signal* (Slurm: SIGUSR1 before the time limit; training stops on it and
 checkpoints, ``interrupts.warned_by``) and what the worker does after its loop (``done``: Slurm ``requeue``s a task
-warned of its time limit).
-
-``detachable``: the workers outlive the command that submitted them (``sweep run --detach``, ``sweep
-cancel``); the local launcher's do not (its workers are the command's own child processes).
+warned of its time limit); and ``Session``, the submitting command's side (``sweep.session``): whether the workers
+outlive the command (the default: a batch system's jobs; the local launcher's are the command's own processes),
+what messages call them, and the watch's hooks (Slurm's ``tick`` releases requeued tasks' holds). The driver
+(``sweep.launch``) calls the session's methods and never asks what kind of launcher it drives.
 """
 
 from __future__ import annotations
 
 import sys
-import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
 from ...config import Config, Section
 from ...errors import ConfigError
+from ..session import Session
 
 STAGE_ENV = "BRONCHOPOSE_SWEEP_STAGE"  # the stage a worker was submitted for: it stops after that stage
 
@@ -125,28 +116,15 @@ class Launcher(ABC):
     (``launchers.register``)."""
 
     name: ClassVar[str]
-    detachable: ClassVar[bool] = True
-    title: ClassVar[str] = ""  # how messages name it ("Slurm"; default: its name)
-    job_word: ClassVar[str] = "job"  # one submission in messages ("Slurm array job")
-    task_word: ClassVar[str] = "worker"  # one worker in messages ("task")
     Settings: ClassVar[type[Section] | None] = None  # the model of its section sweep.launchers.<name>; None: none
     Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
+    Session: ClassVar[type[Session]] = Session  # the submitting command's side (sweep.session): workers outlive it
     options: ClassVar[tuple[str, ...]] = ()  # the `sweep run` options it takes (``create``), e.g. "--workers"
     runs_command: ClassVar[bool] = True  # its workers run ``command`` (the local launcher's get their job by spawn)
-    defers: ClassVar[bool] = True  # ``submit(after=...)`` makes a later stage wait; else one stage at a time
-    resubmits: ClassVar[bool] = True  # workers that ended with cells left are replaced (see the module)
-    poll_s: ClassVar[float] = 1.0  # how often the watch asks ``active``
 
     def __init__(self, cfg: Config, command: Sequence[str] = ()):
         """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``)."""
         self.cfg, self.command = cfg, list(command)
-
-    def __init_subclass__(cls, **kw: Any) -> None:
-        super().__init_subclass__(**kw)
-        if "name" in cls.__dict__ and "title" not in cls.__dict__:
-            cls.title = cls.name
-        if "name" in cls.__dict__ and "job_word" not in cls.__dict__:
-            cls.job_word = f"{cls.title} job"
 
     @classmethod
     def create(cls, cfg: Config, *, only: Any = None, runner: Any = None, **options: Any) -> Launcher:
@@ -167,9 +145,9 @@ class Launcher(ABC):
     def cancel(self, dry_run: bool = False) -> list[str]:
         """Stop every worker of this sweep; the submissions stopped (``dry_run``: would be; nothing is stopped)."""
 
-    @abstractmethod
     def describe(self) -> str:
         """One line: where the workers run and where their logs are."""
+        return f"launcher {self.name}, logs {self.logs(self.cfg)}"
 
     def check(self) -> None:
         """Refuse (one line, ``BronchoError``) what would make every worker fail, before anything is created."""
@@ -177,35 +155,6 @@ class Launcher(ABC):
     def capacity(self, runnable: int) -> int:
         """Workers worth starting for ``runnable`` cells (each works through cells until none is claimable)."""
         return max(0, runnable)
-
-    def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
-        """Make the ``queued`` later-stage submissions wait for the ``earlier`` ones too (a re-submitted stage)."""
-
-    def tick(self, active: Sequence[Workers]) -> None:
-        """Called on every refresh of the watch with what ``active`` listed."""
-
-    def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
-        """The line that says a submission was made."""
-        return (f"submitted {self.job_word} {job}: {n} {self.task_word}(s) for stage {stage}"
-                + (f", after job(s) {', '.join(after)}" if after else ""))
-
-    @contextmanager
-    def supervised(self) -> Iterator[None]:
-        """The block the driver submits and watches in (default: nothing to do; Ctrl-C stops the watch only)."""
-        yield
-
-    def wait(self, timeout: float) -> None:
-        """Until something may have changed (default: ``timeout`` seconds)."""
-        time.sleep(timeout)
-
-    @property
-    def stopped(self) -> bool:
-        """This command told its workers to stop (the local launcher's Ctrl-C): the sweep is interrupted."""
-        return False
-
-    def exit_codes(self) -> list[int | None]:
-        """How the workers that ended since the last call exited, where the launcher can tell (default: none)."""
-        return []
 
     @classmethod
     def settings(cls, cfg: Config) -> Any:
@@ -237,3 +186,9 @@ class Launcher(ABC):
     def python(cls, cfg: Config) -> str:
         """The interpreter its workers run (default: the one running this command)."""
         return sys.executable
+
+
+def words(kind: type[Launcher]) -> tuple[str, str, str]:
+    """What messages call launcher ``kind`` and its workers: (title, one submission, one worker), e.g. ("Slurm",
+    "Slurm array job", "task"); its ``Session`` says them."""
+    return kind.Session.words(kind.name)

@@ -10,12 +10,13 @@ worker one SIGTERM (a second ``stop`` sends SIGINT: abort without waiting for a
 checkpoint). A tuning study's workers are the same processes given a
 ``StudyTask`` (``study``): they claim the study's trial rows.
 
-Not ``detachable``: the workers are the command's own children. The driver
-(``sweep.launch``) drives it as any launcher, inside ``supervised`` (Ctrl-C
-stops the workers), one stage at a time (``defers`` is False: a worker started
-now would not wait for an earlier stage's), never replacing a worker that ended
-with cells left (``resubmits`` is False: it waits for cells held elsewhere, so
-it ended for a reason another would meet too: an error, a full disk).
+Its ``Session`` (``LocalSession``, a ``session.AttachedSession``) says the
+workers are the command's own children: the driver (``sweep.launch``) drives it
+as any launcher, inside the session's block (Ctrl-C stops the workers), one
+stage at a time (a worker started now would not wait for an earlier stage's),
+never replacing a worker that ended with cells left (it waits for cells held
+elsewhere, so it ended for a reason another would meet too: an error, a full
+disk).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import signal
 import socket
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import AbstractContextManager, contextmanager
+from contextlib import contextmanager
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
 from typing import Any
@@ -35,6 +36,7 @@ from ... import interrupts
 from ...cells import Selection
 from ...config import Config
 from ..placement import assign, default_workers, parse_gpus, share_counts, visible_gpus
+from ..session import AttachedSession
 from ..stagework import WorkerJob, local_process, worker_config
 from ..studyrows import StudyTask
 from ..worker import EXIT_INTERRUPTED, Runner, default_runner
@@ -117,70 +119,32 @@ class LocalProcesses:
             self.join()
 
 
-class LocalLauncher(Launcher):
-    """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``;
-    at most ``workers`` at once, pinned round-robin to ``gpus``."""
+class LocalSession(AttachedSession):
+    """The command's side of its local workers: the block they live in (``LocalProcesses.supervised``: Ctrl-C,
+    SIGTERM and SIGHUP stop them), a wait that ends when one exits, their exit codes, and whether they were
+    stopped."""
 
-    name = "local"
-    detachable = False
-    options = ("--workers", "--gpus", "--per-gpu")
-    runs_command = False
-    defers = False
-    resubmits = False
+    title, job_word, task_word = "local", "local job", "worker"
     poll_s = 0.5
 
-    def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
-                 only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
-                 workers: int = 1, log_dir: Path | None = None, study: StudyTask | None = None):
-        super().__init__(cfg, command)
-        self.study = study  # a tuning study's workers: its trial rows (``sweep.trialwork``)
-        self.storage_url = storage_url or cfg.paths.storage_url
-        self.only, self.runner, self.workers = only, runner, max(1, workers)
-        self.processes = LocalProcesses(log_dir or self.logs(cfg), gpus)
-        self.wcfg = worker_config(cfg)
+    def __init__(self, launcher: LocalLauncher):
+        super().__init__(launcher)
+        self.processes = launcher.processes
+        self._block = None
         self._reported = 0  # workers whose exit codes ``exit_codes`` gave already
         self._codes: list[int | None] = []
 
-    @classmethod
-    def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
-               workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
-               study: StudyTask | None = None, **options: Any) -> LocalLauncher:
-        """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
-        ``--per-gpu``, else 1)."""
-        devices = parse_gpus(gpus or "auto", visible_gpus())
-        return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
-                   workers=workers or default_workers(devices, per_gpu or 1), study=study)
+    def __enter__(self) -> LocalSession:
+        self._block = self.processes.supervised()
+        self._block.__enter__()
+        return self
 
-    def describe(self) -> str:
-        gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
-        n = f"{self.workers} worker" + ("s" if self.workers > 1 else "")
-        return f"here{gpus} (at most {n}), logs {self.processes.log_dir}"
+    def __exit__(self, *exc: Any) -> Any:
+        block, self._block = self._block, None
+        return block.__exit__(*exc) if block is not None else None
 
     def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
         return f"stage {stage}: {n} local worker process{'es' if n > 1 else ''} started"
-
-    def capacity(self, runnable: int) -> int:
-        return max(0, min(runnable, self.workers))
-
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
-        def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
-            return WorkerJob(self.wcfg, self.storage_url, self.only, LocalLauncher, self.runner, last_stage=stage or None,
-                             exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
-                             parent_pid=os.getpid(), cpu_workers=n, study=self.study)
-
-        return self.processes.start(n, local_process, job, stage)
-
-    def active(self) -> list[Workers]:
-        return [Workers(str(p.pid), sub, "RUNNING", stage) for p, sub, stage in self.processes.alive()]
-
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        subs = sorted({w.job for w in self.active()})
-        if subs and not dry_run:
-            self.processes.stop()
-        return subs
-
-    def supervised(self) -> AbstractContextManager[None]:
-        return self.processes.supervised()
 
     def wait(self, timeout: float) -> None:
         """Until a worker exits or ``timeout`` seconds pass (none running: the seconds)."""
@@ -204,3 +168,58 @@ class LocalLauncher(Launcher):
     def stopped(self) -> bool:
         """Ctrl-C (or SIGTERM, SIGHUP) reached this command, or a worker was stopped on its own (exit 130)."""
         return self.processes.stops > 0 or EXIT_INTERRUPTED in self._codes
+
+
+class LocalLauncher(Launcher):
+    """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``;
+    at most ``workers`` at once, pinned round-robin to ``gpus``."""
+
+    name = "local"
+    Session = LocalSession
+    options = ("--workers", "--gpus", "--per-gpu")
+    runs_command = False
+
+    def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
+                 only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
+                 workers: int = 1, log_dir: Path | None = None, study: StudyTask | None = None):
+        super().__init__(cfg, command)
+        self.study = study  # a tuning study's workers: its trial rows (``sweep.trialwork``)
+        self.storage_url = storage_url or cfg.paths.storage_url
+        self.only, self.runner, self.workers = only, runner, max(1, workers)
+        self.processes = LocalProcesses(log_dir or self.logs(cfg), gpus)
+        self.wcfg = worker_config(cfg)
+
+    @classmethod
+    def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
+               workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
+               study: StudyTask | None = None, **options: Any) -> LocalLauncher:
+        """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
+        ``--per-gpu``, else 1)."""
+        devices = parse_gpus(gpus or "auto", visible_gpus())
+        return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
+                   workers=workers or default_workers(devices, per_gpu or 1), study=study)
+
+    def describe(self) -> str:
+        gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
+        n = f"{self.workers} worker" + ("s" if self.workers > 1 else "")
+        return f"here{gpus} (at most {n}), logs {self.processes.log_dir}"
+
+    def capacity(self, runnable: int) -> int:
+        return max(0, min(runnable, self.workers))
+
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
+            return WorkerJob(self.wcfg, self.storage_url, self.only, LocalLauncher, self.runner, last_stage=stage or None,
+                             exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
+                             parent_pid=os.getpid(), cpu_workers=n, study=self.study)
+
+        return self.processes.start(n, local_process, job, stage)
+
+    def active(self) -> list[Workers]:
+        return [Workers(str(p.pid), sub, "RUNNING", stage) for p, sub, stage in self.processes.alive()]
+
+    def cancel(self, dry_run: bool = False) -> list[str]:
+        subs = sorted({w.job for w in self.active()})
+        if subs and not dry_run:
+            self.processes.stop()
+        return subs

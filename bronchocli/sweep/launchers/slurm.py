@@ -50,6 +50,7 @@ from ...config.spellings import spelled
 from ...errors import BronchoError
 from ...io import write_text
 from ...retry import retry
+from ..session import Session
 from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
 
 log = logging.getLogger(__name__)
@@ -383,19 +384,40 @@ class SlurmEnvironment(WorkerEnvironment):
                      task, KEY)
 
 
+class SlurmSession(Session):
+    """The command's side of a Slurm sweep: its words, and the watch's hooks (a requeued task's hold released; a
+    queued later stage made to wait for an earlier one submitted again)."""
+
+    title, job_word, task_word = "Slurm", "Slurm array job", "task"
+
+    def __init__(self, launcher: Launcher):
+        super().__init__(launcher)
+        self._held: dict[str, float] = {}
+
+    def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
+        for job in queued:
+            try:
+                _run(["scontrol", "update", f"JobId={job}", "Dependency=afterany:" + ":".join(earlier)],
+                     f"adding job(s) {', '.join(earlier)} to job {job}'s dependency")
+            except SlurmError as exc:  # e.g. the job started meanwhile: nothing left to hold back
+                log.warning("%s", exc)
+
+    def tick(self, active: Sequence[Workers]) -> None:
+        release_held(active, self._held)
+
+
 class SlurmLauncher(Launcher):
     """Workers as Slurm array tasks: ``submit`` is one ``sbatch --array``, ``active`` is ``squeue``, ``cancel``
     is ``scancel``; a task warned of its time limit (SIGUSR1) requeues itself."""
 
     name = "slurm"
-    title, job_word, task_word = "Slurm", "Slurm array job", "task"
     Settings = SlurmSettings
     Environment = SlurmEnvironment
+    Session = SlurmSession
 
     def __init__(self, cfg: Config, command: Sequence[str] = ()):
         super().__init__(cfg, command)
         self.s: SlurmSettings = settings(cfg)
-        self._held: dict[str, float] = {}
 
     def describe(self) -> str:
         return f"on Slurm, logs {logs_dir(self.cfg)}/<job>_<task>.log"
@@ -432,14 +454,3 @@ class SlurmLauncher(Launcher):
         is done, each costing a scheduling round to find nothing."""
         s = self.s
         return max(0, min([runnable, s.array_parallelism, *([s.tasks] if s.tasks else [])]))
-
-    def follow(self, queued: Sequence[str], earlier: Sequence[str]) -> None:
-        for job in queued:
-            try:
-                _run(["scontrol", "update", f"JobId={job}", "Dependency=afterany:" + ":".join(earlier)],
-                     f"adding job(s) {', '.join(earlier)} to job {job}'s dependency")
-            except SlurmError as exc:  # e.g. the job started meanwhile: nothing left to hold back
-                log.warning("%s", exc)
-
-    def tick(self, active: Sequence[Workers]) -> None:
-        release_held(active, self._held)

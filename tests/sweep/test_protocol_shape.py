@@ -1,0 +1,62 @@
+"""Issue 58, item 1: the driver asks a launcher's Session and never tests what kind of launcher it drives."""
+
+from __future__ import annotations
+
+import ast
+import inspect
+
+from bronchocli.sweep import launch
+from bronchocli.sweep.launchers import LocalLauncher, SlurmLauncher
+from bronchocli.sweep.launchers.base import Launcher
+from bronchocli.sweep.session import AttachedSession, Session
+
+# what used to be mode flags of the launcher (and the one that remains, on its Session): no driver condition names them
+MODE_NAMES = {"detachable", "defers", "resubmits", "runs_command", "outlives_command"}
+
+
+def _conditions(tree: ast.AST) -> list[ast.AST]:
+    tests = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.If, ast.IfExp, ast.While, ast.Assert)):
+            tests.append(node.test)
+        elif isinstance(node, ast.comprehension):
+            tests.extend(node.ifs)
+        elif isinstance(node, ast.BoolOp):
+            tests.extend(node.values)
+    return tests
+
+
+def _names_in(expr: ast.AST) -> set[str]:
+    out = set()
+    for node in ast.walk(expr):
+        if isinstance(node, ast.Attribute):
+            out.add(node.attr)
+        elif isinstance(node, ast.Name):
+            out.add(node.id)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            out.add(node.value)
+    return out
+
+
+def test_the_driver_has_no_condition_on_what_kind_of_launcher_it_drives():
+    tree = ast.parse(inspect.getsource(launch))
+    named = set().union(*(_names_in(t) for t in _conditions(tree)))
+    assert not named & MODE_NAMES, named & MODE_NAMES
+    # nor on the launcher's identity: its class, its name, an isinstance test
+    assert not named & {"isinstance", "LocalLauncher", "SlurmLauncher", "LocalSession", "AttachedSession", "local",
+                        "slurm"}, named
+    source = inspect.getsource(launch)
+    assert all(f".{flag}" not in source for flag in MODE_NAMES)  # not read anywhere in the driver
+
+
+def test_the_planted_mode_condition_is_seen():
+    """The reader above can fail: the condition the driver used to have is found in a planted copy."""
+    planted = ast.parse("def f(launcher):\n    if not launcher.defers and x:\n        return 1\n")
+    assert set().union(*(_names_in(t) for t in _conditions(planted))) & MODE_NAMES == {"defers"}
+
+
+def test_the_launchers_say_where_their_workers_live_through_their_session():
+    assert LocalLauncher.Session.outlives_command is False and issubclass(LocalLauncher.Session, AttachedSession)
+    assert SlurmLauncher.Session.outlives_command is True and Launcher.Session is Session
+    for flag in MODE_NAMES - {"runs_command"}:
+        assert not hasattr(Launcher, flag), flag  # moved to the session, not left beside it
