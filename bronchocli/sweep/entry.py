@@ -99,10 +99,10 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
     ``detach``; re-running submits only what the queued and running workers do not cover. 0 all FINISHED, 1
     some FAILED, 130 stopped."""
     check_paths(cfg, storage=True, logs=True, extra=log_roots(cfg, kind))  # before anything is created
-    launcher = kind.create(cfg, only=spec.selection(), runner=spec.cell_runner(), **(options or {}))
-    launcher.check()  # first: a refused submission writes no 0600 secrets file (``command`` seals the spec)
-    if kind.runs_command:
-        launcher.command = command(cfg, replace(spec, launcher=reference(kind)))
+    launcher = kind.create(cfg, only=spec.selection(), runner=spec.cell_runner(),
+                           command=lambda: command(cfg, replace(spec, launcher=reference(kind))), **(options or {}))
+    launcher.check()  # first: a refused submission writes no 0600 secrets file (``command``, made at the first
+    # submission of a launcher whose workers run it, seals the spec)
     store = open_store(cfg)
     store.exists()  # an unreachable storage fails here, in runs.timeout_s, before anything is created
     if cfg.model.pretrained is not None:  # fetch/find backbone weights once, before any worker or run starts
@@ -306,7 +306,8 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
                   + ("in this process" if here else f"launcher {kind.name}")
                   + f", storage {urls.redact(cfg.paths.storage_url)}")
     s = trialrows.tune(cfg, target, trials, study=name, timeout=timeout or cfg.tune.timeout, spec=spec,
-                       make_launcher=None if here else lambda lcfg, task: kind.create(lcfg, study=task, **options),
+                       make_launcher=None if here else lambda lcfg, task, cmd: kind.create(lcfg, study=task, command=cmd,
+                                                                                          **options),
                        progress=progress, enqueue=cfg.tune.enqueue, console=console)
     console.print(f"{studies.finished(s)} finished trials in study {name}")
     return show_study(cfg, name, None, "table", console)

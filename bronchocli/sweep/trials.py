@@ -52,7 +52,8 @@ log = logging.getLogger(__name__)
 
 STAGE = Stage(name="trials")  # the one stage of a study's rows, as the driver and status name it
 RECORDED = "recorded from the study"  # the worker column of a row recorded from a finished trial (``add_rows``)
-MakeLauncher = Callable[[Config, StudyTask], Launcher]  # the launcher's config (named after the rows), the task
+# the launcher from its config (named after the rows), the task and the function making its workers' command
+MakeLauncher = Callable[[Config, StudyTask, Callable[[], list[str]]], Launcher]
 
 
 def launcher_config(cfg: Config, study: str) -> Config:
@@ -153,7 +154,8 @@ def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout:
             if code == EXIT_INTERRUPTED:
                 raise RunInterrupted(_stopped_line(worker.runner.stopped if worker else None))
         else:
-            code = _launched(cfg, lcfg, store, rows, task, make_launcher(lcfg, task), spec, parent, console)
+            launcher = make_launcher(lcfg, task, lambda: _worker_command(lcfg, spec, task, type(launcher)))
+            code = _launched(cfg, lcfg, store, rows, task, launcher, parent, console)
     except BaseException as exc:  # an interrupted or failed tune ends its parent run too (KILLED / FAILED)
         if parent is not None:
             interrupted = isinstance(exc, (KeyboardInterrupt, RunInterrupted))
@@ -163,16 +165,19 @@ def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout:
     return s
 
 
+def _worker_command(lcfg: Config, spec: TaskSpec | None, task: StudyTask, kind: type[Launcher]) -> list[str]:
+    """What each of a study's workers runs, for a launcher whose workers run a command (made at its first
+    submission): the study's spec sealed; one line when the caller gave a loaded Config instead of a file."""
+    if spec is None:
+        raise BronchoError(f"tune --launcher {kind.name}: its workers load the config file themselves; give tune the "
+                           "config file (not a loaded Config)")
+    return command(lcfg, replace(spec, launcher=reference(kind), study=task.study, deadline=task.deadline))
+
+
 def _launched(cfg: Config, lcfg: Config, store: SweepStore, rows: Sequence[TrialCell], task: StudyTask,
-              launcher: Launcher, spec: TaskSpec | None, parent: str | None, console: Console) -> int:
+              launcher: Launcher, parent: str | None, console: Console) -> int:
     """The study's rows run by ``launcher``'s workers, watched by the driver; its exit code (130: RunInterrupted)."""
     launcher.check()  # before anything is submitted: one line
-    if launcher.runs_command:
-        if spec is None:
-            raise BronchoError(f"tune --launcher {type(launcher).name}: its workers load the config file themselves; "
-                               "give tune the config file (not a loaded Config)")
-        launcher.command = command(lcfg, replace(spec, launcher=reference(type(launcher)), study=task.study,
-                                                 deadline=task.deadline))
     client = client_for(cfg)
     console.print(f"[bold]study[/] {task.study}: trial rows {lcfg.name}, workers {launcher.describe()}",
                   highlight=False)

@@ -58,5 +58,37 @@ def test_the_planted_mode_condition_is_seen():
 def test_the_launchers_say_where_their_workers_live_through_their_session():
     assert LocalLauncher.Session.outlives_command is False and issubclass(LocalLauncher.Session, AttachedSession)
     assert SlurmLauncher.Session.outlives_command is True and Launcher.Session is Session
-    for flag in MODE_NAMES - {"runs_command"}:
-        assert not hasattr(Launcher, flag), flag  # moved to the session, not left beside it
+    for flag in MODE_NAMES:
+        assert not hasattr(Launcher, flag), flag  # moved to the session (or gone), not left beside it
+
+
+def _implementable(cls: type) -> tuple[set[str], set[str]]:
+    """The members of ``cls`` an author may write (declared here, not ``typing.final``, not private) and the
+    required ones (abstract methods, and class variables declared without a value)."""
+    members = {name for name, value in vars(cls).items()
+               if not name.startswith("_") and not getattr(value, "__final__", False)
+               and not getattr(getattr(value, "fget", None), "__final__", False)}
+    members |= set(vars(cls).get("__annotations__", {}))  # declared class variables (``name``)
+    members.add("__init__")  # a launcher may take what it needs
+    required = {name for name in members if getattr(getattr(cls, name, None), "__isabstractmethod__", False)}
+    required |= {name for name in vars(cls).get("__annotations__", {}) if not hasattr(cls, name)}
+    return members, required
+
+
+def test_the_protocol_is_small_three_methods_and_a_name_required():
+    members, required = _implementable(Launcher)
+    assert len(members) <= 12 and required == {"name", "submit", "active", "cancel"}, (sorted(members), required)
+    assert len(required - {"name"}) <= 3  # the name is a declaration; three methods to write
+
+
+def test_the_member_count_can_fail():
+    class Grown(Launcher):  # a protocol that grew its old flags back would be counted
+        detachable = True
+        defers = False
+        resubmits = False
+        poll_s = 1.0
+
+        def supervised(self): ...
+
+    members, _ = _implementable(Grown)
+    assert {"detachable", "defers", "resubmits", "poll_s", "supervised"} <= members

@@ -303,7 +303,8 @@ def test_two_tune_workers_on_two_gpus_each_see_their_own_device(project):
     cfg = load_config(project / "experiments.yaml")
     target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
     study = trialrows.tune(cfg, target, 2, progress=False,
-                        make_launcher=lambda lcfg, task: LocalLauncher(lcfg, gpus=["3", "5"], workers=2, study=task))
+                        make_launcher=lambda lcfg, task, command: LocalLauncher(lcfg, gpus=["3", "5"], workers=2,
+                                                                                  study=task))
     assert studies.finished(study) == 2
     logs = sorted((cfg.paths.sweep_logs / study_sweep(study.study_name)).glob("*.log"))
     seen = [re.search(r"tune worker of study .*, CUDA_VISIBLE_DEVICES=(\S+)", p.read_text()) for p in logs]

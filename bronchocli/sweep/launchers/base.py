@@ -21,8 +21,9 @@ Those three (and ``name``) are all a launcher must write. What else it may write
 (workers worth starting for ``runnable`` cells).
 
 What a launcher owns besides: ``Settings``, the model of its own config section ``sweep.launchers.<name>``
-(validated by ``settings(cfg)`` when the launcher is looked up; the core config holds it as a plain mapping),
-``logs`` (its workers' log folder) and ``roots`` (folders of its settings that no other output root may hold);
+(validated by ``settings(cfg)`` when the launcher is looked up; the core config holds it as a plain mapping), in
+which two names mean something to the platform: ``logs``, its workers' log folder (``logs(cfg)``; an output root
+no other may hold, ``roots(cfg)``), and ``python``, the interpreter its workers run (``python(cfg)``);
 ``Environment``, the worker side (submitit's JobEnvironment): built inside a worker it started
 (``environment(cfg)``), it says the worker's job id and task index, the CPU threads it was given, whether it exits
 when idle, the launcher's *warning signal* (Slurm: SIGUSR1 before the time limit; training stops on it and
@@ -37,16 +38,19 @@ from __future__ import annotations
 
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, final
 
-from ...config import Config, Section
+from ...config import Config, Section, output_folder
 from ...errors import ConfigError
 from ..session import Session
 
 STAGE_ENV = "BRONCHOPOSE_SWEEP_STAGE"  # the stage a worker was submitted for: it stops after that stage
+# Settings names the platform reads in any launcher's section where its ``Settings`` declare them:
+SETTING_LOGS = "logs"  # its workers' log folder (an output root, checked with the core config's)
+SETTING_PYTHON = "python"  # the interpreter its workers run (None: the one running the command)
 
 
 @dataclass(frozen=True)
@@ -120,17 +124,27 @@ class Launcher(ABC):
     Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
     Session: ClassVar[type[Session]] = Session  # the submitting command's side (sweep.session): workers outlive it
     options: ClassVar[tuple[str, ...]] = ()  # the `sweep run` options it takes (``create``), e.g. "--workers"
-    runs_command: ClassVar[bool] = True  # its workers run ``command`` (the local launcher's get their job by spawn)
 
-    def __init__(self, cfg: Config, command: Sequence[str] = ()):
-        """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``)."""
-        self.cfg, self.command = cfg, list(command)
+    def __init__(self, cfg: Config, command: Sequence[str] | Callable[[], Sequence[str]] = ()):
+        """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``), or the
+        function that makes it, called at the first use of ``self.command`` (making it seals the spec: a 0600
+        secrets file where the config holds secrets; a launcher whose workers never run it never makes it)."""
+        self.cfg, self._command = cfg, command
+
+    @property
+    @final
+    def command(self) -> list[str]:
+        """What each worker runs (made once, at its first use)."""
+        if callable(self._command):
+            self._command = list(self._command())
+        return list(self._command)
 
     @classmethod
-    def create(cls, cfg: Config, *, only: Any = None, runner: Any = None, **options: Any) -> Launcher:
+    def create(cls, cfg: Config, *, only: Any = None, runner: Any = None,
+               command: Sequence[str] | Callable[[], Sequence[str]] = (), **options: Any) -> Launcher:
         """The launcher ``sweep run`` drives: ``only`` and ``runner`` as the command was given them (a launcher
         whose workers run ``command`` gets them through its spec instead), ``options`` among ``cls.options``."""
-        return cls(cfg)
+        return cls(cfg, command)
 
     # -- the submitting side -------------------------------------------------------------------------------
     @abstractmethod
@@ -156,6 +170,8 @@ class Launcher(ABC):
         """Workers worth starting for ``runnable`` cells (each works through cells until none is claimable)."""
         return max(0, runnable)
 
+    # -- provided, not overridden (``typing.final``): what its settings say -----------------------------------
+    @final
     @classmethod
     def settings(cls, cfg: Config) -> Any:
         """Its section ``sweep.launchers.<name>`` validated against ``Settings`` (its defaults when absent):
@@ -166,26 +182,37 @@ class Launcher(ABC):
             return None
         return cfg.launcher_settings(cls.name, cls.Settings)
 
+    @final
     @classmethod
     def environment(cls, cfg: Config) -> WorkerEnvironment:
         """The worker side, inside a worker this launcher started (its settings validated)."""
         return cls.Environment(cls.settings(cfg))
 
+    @final
     @classmethod
     def logs(cls, cfg: Config) -> Path:
-        """The folder of its workers' logs (and of a sealed spec's 0600 secrets file)."""
-        return cfg.paths.sweep_logs / cfg.name
+        """The folder of its workers' logs (and of a sealed spec's 0600 secrets file): its setting ``logs`` where
+        its ``Settings`` declare one (resolved as the core config's folders are), else ``sweep.logs/<sweep>``."""
+        folder = getattr(cls.settings(cfg), SETTING_LOGS, None)
+        if not folder:
+            return cfg.paths.sweep_logs / cfg.name
+        return output_folder(cfg, folder, f"sweep.launchers.{cls.name}.{SETTING_LOGS}")
 
+    @final
     @classmethod
     def roots(cls, cfg: Config) -> list[tuple[str, Path]]:
         """Output folders of its own settings (setting name, folder) that must not hold, or sit inside, another
-        output root (``config.check_roots``); default: none (``logs`` is under ``sweep.logs``)."""
-        return []
+        output root (``config.check_roots``): its ``logs`` setting's folder, where it declares one."""
+        if not getattr(cls.settings(cfg), SETTING_LOGS, None):
+            return []  # under sweep.logs, which the core config checks
+        return [(f"sweep.launchers.{cls.name}.{SETTING_LOGS}", cls.logs(cfg))]
 
+    @final
     @classmethod
     def python(cls, cfg: Config) -> str:
-        """The interpreter its workers run (default: the one running this command)."""
-        return sys.executable
+        """The interpreter its workers run: its setting ``python`` where its ``Settings`` declare one and it is
+        set, else the one running this command."""
+        return getattr(cls.settings(cfg), SETTING_PYTHON, None) or sys.executable
 
 
 def words(kind: type[Launcher]) -> tuple[str, str, str]:

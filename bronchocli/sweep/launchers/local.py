@@ -177,9 +177,8 @@ class LocalLauncher(Launcher):
     name = "local"
     Session = LocalSession
     options = ("--workers", "--gpus", "--per-gpu")
-    runs_command = False
 
-    def __init__(self, cfg: Config, command: Sequence[str] = (), *, storage_url: str | None = None,
+    def __init__(self, cfg: Config, command: Any = (), *, storage_url: str | None = None,
                  only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
                  workers: int = 1, log_dir: Path | None = None, study: StudyTask | None = None):
         super().__init__(cfg, command)
@@ -192,9 +191,9 @@ class LocalLauncher(Launcher):
     @classmethod
     def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
                workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
-               study: StudyTask | None = None, **options: Any) -> LocalLauncher:
+               study: StudyTask | None = None, command: Any = (), **options: Any) -> LocalLauncher:
         """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
-        ``--per-gpu``, else 1)."""
+        ``--per-gpu``, else 1). Its workers are spawned with their job: ``command`` is never made."""
         devices = parse_gpus(gpus or "auto", visible_gpus())
         return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
                    workers=workers or default_workers(devices, per_gpu or 1), study=study)

@@ -422,18 +422,6 @@ class SlurmLauncher(Launcher):
     def describe(self) -> str:
         return f"on Slurm, logs {logs_dir(self.cfg)}/<job>_<task>.log"
 
-    @classmethod
-    def logs(cls, cfg: Config) -> Path:
-        return logs_dir(cfg)
-
-    @classmethod
-    def roots(cls, cfg: Config) -> list[tuple[str, Path]]:
-        return [(f"{KEY}.logs", logs_dir(cfg))]
-
-    @classmethod
-    def python(cls, cfg: Config) -> str:
-        return settings(cfg).python or sys.executable
-
     def check(self) -> None:
         check(self.cfg)
 
