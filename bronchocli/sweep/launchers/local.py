@@ -38,7 +38,7 @@ from ..placement import assign, default_workers, parse_gpus, share_counts, visib
 from ..stagework import WorkerJob, local_process, worker_config
 from ..studyrows import StudyTask
 from ..worker import EXIT_INTERRUPTED, Runner, default_runner
-from .base import Launcher, Workers
+from .base import GENERIC, Launcher, Workers
 
 
 class LocalProcesses:
@@ -123,7 +123,7 @@ class LocalLauncher(Launcher):
 
     name = "local"
     detachable = False
-    options = ("--workers", "--gpus", "--per-gpu")
+    parameters = dict(GENERIC)  # --workers, --gpus, --per-gpu
     runs_command = False
     defers = False
     resubmits = False
