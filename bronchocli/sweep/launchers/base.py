@@ -18,8 +18,8 @@ them) with the sweep's claims model in place of job results:
 What a launcher needs beyond that has a default: ``parameters`` (the options it takes: name -> ``Parameter``,
 submitit's executor parameters; ``sweep run --<name-with-dashes>`` on the command line, keywords of
 ``bronchocli.api``; a name is ``GENERIC`` or ``<launcher name>_<option>``), ``create`` (built for ``sweep run``
-with the values given for its ``parameters``), ``check`` (refuse what would make workers fail, before anything is created),
-``capacity`` (workers worth starting for ``runnable`` cells), ``follow`` (make queued later-stage
+with the values given for its ``parameters``), ``check`` (refuse what would make workers fail, before anything is
+created), ``capacity`` (workers worth starting for ``runnable`` cells), ``follow`` (make queued later-stage
 submissions wait for a new earlier one), ``tick`` (called on every refresh of the watch). The driver
 (``sweep.launch``) asks a few more things and never the launcher's name: ``supervised`` (the block its
 workers live in: the local launcher's Ctrl-C stops them there), ``wait`` (until something may have
