@@ -17,6 +17,7 @@ from rich.text import Text
 from . import __version__, extras, interrupts, pathcheck, urls
 from .commands import config as config_cmd
 from .commands import data as data_cmd
+from .commands import launcher_flags
 from .commands import profile as profile_cmd
 from .commands import report as report_cmd
 from .commands import selftest as selftest_cmd
@@ -53,6 +54,8 @@ COMMANDS = {
     "track": track_cmd.track,
     "selftest": selftest_cmd.selftest,
 }
+# Commands whose flags include the launchers' options (name -> command class; ``commands/launcher_flags.py``).
+CLASSES = {"tune": launcher_flags.command(helps=tune_cmd.HELPS)}
 # Command groups with subcommands (name -> Typer app).
 GROUPS: dict[str, typer.Typer] = {"data": data_cmd.app, "sweep": sweep_cmd.app, "weights": weights_cmd.app}
 
@@ -71,7 +74,7 @@ def _interruptible(fn):
 
 
 for _name, _fn in COMMANDS.items():
-    app.command(name=_name)(_interruptible(_fn))
+    app.command(name=_name, cls=CLASSES.get(_name))(_interruptible(_fn))
 for _name, _group in GROUPS.items():
     for _info in _group.registered_commands:
         _info.callback = _interruptible(_info.callback)

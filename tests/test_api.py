@@ -166,8 +166,10 @@ def test_the_api_refuses_what_the_command_line_refuses_naming_the_argument_befor
 
 
 def test_the_command_lines_bounds_are_the_apis():
-    """One definition: the options' Typer bounds are read from the same rules (a change of one changes both)."""
+    """One definition: the options' Typer bounds are read from the same rules (a change of one changes both); the
+    launchers' options are added when a command parses its flags (``get_params``: ``commands/launcher_flags.py``)."""
     import typer.main
+    from typer._click import Context
 
     from bronchocli.cli import app
     from bronchocli.config.arguments import RULES
@@ -178,7 +180,7 @@ def test_the_command_lines_bounds_are_the_apis():
         command = group
         for name in path:
             command = command.commands[name]
-        for param in command.params:
+        for param in command.get_params(Context(command)):
             flag = max(param.opts, key=len)
             rule = next((r for r in RULES.values() if r.flag == flag and r.kind in (int, float)), None)
             if rule is None or rule.low is None:

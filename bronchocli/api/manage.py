@@ -36,18 +36,17 @@ def _spec(config: str | os.PathLike, profile: str | None, overrides: Sequence[st
 
 
 @checked
-def plan(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), workers: int | None = None,
-         gpus: str | None = None, per_gpu: int | None = None, storage: str | None = None,
+def plan(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), storage: str | None = None,
          use_tuned: str | None = None, profile: str | None = None, overrides: Sequence[str] = (),
-         console: Console | None = None) -> int:
-    """``sweep plan``: per stage its cells and their state, and the local workers a run would start (``workers``
-    on ``gpus``, ``per_gpu`` each). Changes nothing anywhere. Returns the exit code (0)."""
+         console: Console | None = None, **launcher_options: Any) -> int:
+    """``sweep plan``: per stage its cells and their state, and the local workers a run would start, placed by the
+    generic launcher options (``workers`` on ``gpus``, ``per_gpu`` each; no other is taken). Changes nothing
+    anywhere. Returns the exit code (0)."""
     from ..sweep import entry  # lazy: the sweep stack loads only when a sweep verb runs
 
     spec = _spec(config, profile, overrides, storage, use_tuned, only)
     cfg = spec.load()
-    return entry.dry_run(cfg, spec.selection(), workers=workers, gpus=gpus or "auto", per_gpu=per_gpu or 1,
-                         console=console or _silent())
+    return entry.dry_run(cfg, spec.selection(), options=launcher_options, console=console or _silent())
 
 
 @checked

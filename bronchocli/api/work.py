@@ -169,14 +169,15 @@ def _target(cfg: Config, arch: str | None, rot_loss: str | None, population: str
 def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, population: str,
          fold: str | None = None, seed: int = 0, pose_frame: str | None = None,
          train_trajectories: int | None = None, trials: int | None = None, timeout: float | None = None,
-         storage: str | None = None, study: str | None = None, launcher: str | None = None,
-         workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None, progress: bool = False,
-         profile: str | None = None, overrides: Sequence[str] = (), console: Console | None = None) -> StudyResult:
+         storage: str | None = None, study: str | None = None, launcher: str | None = None, progress: bool = False,
+         profile: str | None = None, overrides: Sequence[str] = (), console: Console | None = None,
+         **launcher_options: Any) -> StudyResult:
     """Tune one cell's hyperparameters over ``tune.space`` with Optuna, as ``bronchopose tune`` does: the study
     (shared storage, resumable) runs to ``trials`` trial rows done (default ``tune.trials``), each row claimed by
     a worker of ``launcher`` (default local: ``workers`` processes here on ``gpus``, one worker and no GPU in this
-    process; ``"slurm"``: array tasks, which load the config file); returns the study's
-    :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
+    process; ``"slurm"``: array tasks, which load the config file); ``launcher_options``: the options that
+    launcher's ``parameters`` declare, as typed values (``workers=2``, ``ssh_hosts=["a", "b"]``); returns the
+    study's :class:`~bronchocli.api.results.StudyResult` (best trial, importances)."""
     _unguarded("api.tune")
     from ..sweep import entry  # lazy: optuna only when tuning
     from ..sweep.task import TaskSpec
@@ -188,7 +189,7 @@ def tune(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popul
     target = _target(cfg, arch, rot_loss, population, fold=fold, seed=seed, pose_frame=pose_frame,
                      train_trajectories=train_trajectories)
     kind = entry.launcher_kind(cfg, launcher or entry.TUNE_LAUNCHER)
-    options = entry.launcher_options(kind, workers=workers, gpus=gpus, per_gpu=per_gpu)
+    options = entry.launcher_options(kind, launcher_options, "api.tune")
     spec = None if isinstance(config, Config) else TaskSpec(config=str(config), profile=profile,
                                                              overrides=tuple(overrides), storage=storage)
     info = entry.tune(cfg, target, trials=trials, study=study, timeout=timeout, kind=kind, options=options,
@@ -218,15 +219,16 @@ def study(config: ConfigLike = DEFAULT_CONFIG, name: str | None = None, *, arch:
 
 
 @checked
-def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), workers: int | None = None,
-          gpus: str | None = None, per_gpu: int | None = None, launcher: str | None = None,
+def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (), launcher: str | None = None,
           retry_failed: bool = False, detach: bool = False, storage: str | None = None,
           use_tuned: str | None = None, runner: str | None = None, profile: str | None = None,
-          overrides: Sequence[str] = (), console: Console | None = None) -> SweepResult:
+          overrides: Sequence[str] = (), console: Console | None = None, **launcher_options: Any) -> SweepResult:
     """Run the config's plan, each cell once, as ``bronchopose sweep run`` does: with the local launcher
     (``workers`` processes here, placed on ``gpus``) or another (``launcher="slurm"``; ``detach``: return once
-    submitted). ``only``: ``--only`` selections (``key=value[,value];...``). The config is a file: the workers
-    load it themselves, as every Slurm array task does.
+    submitted). ``launcher_options``: the options the launcher's ``parameters`` declare, as typed values
+    (``workers=2, gpus="0,1", per_gpu=2``; a plugin's ``ssh_hosts=["a", "b"]``); one the launcher does not take
+    is one line naming the launchers that do. ``only``: ``--only`` selections (``key=value[,value];...``). The
+    config is a file: the workers load it themselves, as every Slurm array task does.
 
     Returns a :class:`~bronchocli.api.results.SweepResult`: ``exit_code``/``ok`` and ``state`` (the sweep's
     ``SweepState`` afterwards, read when first asked).
@@ -244,7 +246,7 @@ def sweep(config: str | os.PathLike = DEFAULT_CONFIG, *, only: Sequence[str] = (
     spec.selection()  # a bad --only or --runner: one line before anything else
     spec.cell_runner()
     kind = entry.launcher_kind(cfg, launcher)
-    options = entry.launcher_options(kind, workers=workers, gpus=gpus, per_gpu=per_gpu)
+    options = entry.launcher_options(kind, launcher_options, "api.sweep")
     if detach and not kind.Session.outlives_command:
         raise BronchoError(f"--detach: launcher {kind.name} runs its workers in this command; only a launcher "
                            "whose workers outlive it (slurm) can detach")

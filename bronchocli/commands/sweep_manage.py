@@ -10,13 +10,12 @@ import typer
 
 from ..api.arguments import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt
-from .sweep_options import GpusOpt, OnlyOpt, PerGpuOpt, StorageOpt, UseTunedOpt, WorkersOpt, wide_console
+from .launcher_flags import given
+from .sweep_options import OnlyOpt, StorageOpt, UseTunedOpt, wide_console
 
 
 def plan(
-    workers: Optional[int] = WorkersOpt,
-    gpus: Optional[str] = GpusOpt,
-    per_gpu: Optional[int] = PerGpuOpt,
+    ctx: typer.Context,
     storage: Optional[str] = StorageOpt,
     only: Optional[list[str]] = OnlyOpt,
     use_tuned: Optional[str] = UseTunedOpt,
@@ -30,9 +29,8 @@ def plan(
     """
     from ..api import manage  # lazy: keeps `bronchopose --help` fast
 
-    raise typer.Exit(manage.plan(config, only=only or (), workers=workers, gpus=gpus, per_gpu=per_gpu,
-                                 storage=storage, use_tuned=use_tuned, profile=profile, overrides=set_ or (),
-                                 console=wide_console()))
+    raise typer.Exit(manage.plan(config, only=only or (), storage=storage, use_tuned=use_tuned, profile=profile,
+                                 overrides=set_ or (), console=wide_console(), **given(ctx)))
 
 
 def gc(

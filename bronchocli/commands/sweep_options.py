@@ -1,6 +1,7 @@
 """The options and the verb group that `bronchopose sweep`'s verbs share (commands/sweep.py, sweep_manage.py).
 
-``bronchopose sweep`` with no verb (or with run's options only) is ``sweep run``.
+``bronchopose sweep`` with no verb (or with run's options only) is ``sweep run``. The launchers' options
+(``--workers``, ``--gpus``, ``--per-gpu``, a plugin's own) are not declared here: ``launcher_flags`` adds them.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import typer
 from typer._click import Context  # Typer 0.29 vendors click (pyproject pins typer < 0.30)
 from typer.core import TyperGroup
 
-from ..api.arguments import FIELDS, RULES
+from ..api.arguments import FIELDS
 from .common import console as _console
 
 ONLY_HELP = ("Run only matching cells: key=value[,value...], keys joined by ';' or repeated --only "
@@ -40,13 +41,6 @@ def wide_console() -> Any:
     return wide(_console)
 
 
-WorkersOpt = typer.Option(None, "--workers", "-w", **RULES["workers"].bounds(), help="Local worker processes (torch "
-                          "threads = cores / N), one per cell left at most. Default: GPUs x --per-gpu on a GPU "
-                          "machine, else 1.")
-GpusOpt = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (every visible one, "
-                       "honouring CUDA_VISIBLE_DEVICES; the default), none, or a list such as 0,1.")
-PerGpuOpt = typer.Option(None, "--per-gpu", **RULES["per_gpu"].bounds(), help="Cells run at once on each GPU (default 1; small cells "
-                         "leave a GPU idle, packing several raises throughput).")
 StorageOpt = typer.Option(None, "--storage", help=STORAGE_HELP)
 OnlyOpt = typer.Option(None, "--only", help=ONLY_HELP)
 UseTunedOpt = typer.Option(None, "--use-tuned", help="Apply the best trial of this Optuna study to every cell.")

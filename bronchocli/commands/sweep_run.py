@@ -1,4 +1,5 @@
-"""`bronchopose sweep run`: the config's plan, each cell once, with a launcher (``bronchocli.api.sweep``)."""
+"""`bronchopose sweep run`: the config's plan, each cell once, with a launcher (``bronchocli.api.sweep``); the
+launchers' options (``--workers``, a plugin's own) are added by ``launcher_flags`` (``commands/sweep.py``)."""
 
 from __future__ import annotations
 
@@ -9,13 +10,12 @@ import typer
 
 from ..api.arguments import DEFAULT_CONFIG
 from .common import ConfigOpt, ProfileOpt, SetOpt
-from .sweep_options import GpusOpt, OnlyOpt, PerGpuOpt, StorageOpt, UseTunedOpt, WorkersOpt, wide_console
+from .launcher_flags import given
+from .sweep_options import OnlyOpt, StorageOpt, UseTunedOpt, wide_console
 
 
 def run(
-    workers: Optional[int] = WorkersOpt,
-    gpus: Optional[str] = GpusOpt,
-    per_gpu: Optional[int] = PerGpuOpt,
+    ctx: typer.Context,
     storage: Optional[str] = StorageOpt,
     only: Optional[list[str]] = OnlyOpt,
     retry_failed: bool = typer.Option(False, "--retry-failed",
@@ -50,7 +50,7 @@ def run(
     """
     from .. import api  # lazy: keeps `bronchopose --help` fast
 
-    result = api.sweep(config, only=only or (), workers=workers, gpus=gpus, per_gpu=per_gpu, launcher=launcher,
-                       retry_failed=retry_failed, detach=detach, storage=storage, use_tuned=use_tuned,
-                       runner=runner, profile=profile, overrides=set_ or (), console=wide_console())
+    result = api.sweep(config, only=only or (), launcher=launcher, retry_failed=retry_failed, detach=detach,
+                       storage=storage, use_tuned=use_tuned, runner=runner, profile=profile, overrides=set_ or (),
+                       console=wide_console(), **given(ctx))
     raise typer.Exit(result.exit_code)

@@ -10,9 +10,18 @@ import typer
 
 from ..api.arguments import DEFAULT_CONFIG, RULES, Arch, BronchoError, Population, PoseFrame, RotLoss
 from .common import ConfigOpt, ProfileOpt, SetOpt, ShowFormat, console
+from .launcher_flags import given as launcher_options
+
+
+# tune's own words for the generic launcher options (``launcher_flags`` adds every launcher's options)
+HELPS = {"workers": "Local worker processes, placed like a sweep's. Default: GPUs x --per-gpu on a GPU machine, else 1 "
+         "(in this process); at most one per trial.",
+         "gpus": "GPUs for the local workers, round-robin: auto (the default), none, or a list such as 0,1.",
+         "per_gpu": "Trials run at once on each GPU."}
 
 
 def tune(
+    ctx: typer.Context,
     arch: Optional[Arch] = typer.Option(None, "--arch", "-a", help="Architecture."),
     rot_loss: Optional[RotLoss] = typer.Option(None, "--rot-loss", "-l", help="Rotation loss."),
     population: Optional[Population] = typer.Option(None, "--population", "-P", help="Population."),
@@ -31,13 +40,6 @@ def tune(
     study: Optional[str] = typer.Option(None, "--study", help="Study name [<config name>-<arch>-<loss>-...]."),
     launcher: Optional[str] = typer.Option(None, "--launcher", help="Where the trials' workers run: local (the "
                                            "default) or slurm (array tasks; `sweep cancel --study` stops them)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", **RULES["workers"].bounds(), help="Local worker "
-                                          "processes, placed like a sweep's. Default: GPUs x --per-gpu on a GPU "
-                                          "machine, else 1 (in this process); at most one per trial."),
-    gpus: Optional[str] = typer.Option(None, "--gpus", help="GPUs for the local workers, round-robin: auto (the "
-                                       "default), none, or a list such as 0,1."),
-    per_gpu: Optional[int] = typer.Option(None, "--per-gpu", **RULES["per_gpu"].bounds(),
-                                          help="Trials run at once on each GPU."),
     show: bool = typer.Option(False, "--show", help="Print the best trial and parameter importances, then exit."),
     fmt: ShowFormat = typer.Option("table", "--format", help="--show output."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars."),
@@ -62,5 +64,5 @@ def tune(
     elif arch is None and rot_loss is None and population is None:
         raise BronchoError("tune needs --arch, --rot-loss and --population (or --show)")
     else:
-        api.tune(config, trials=trials, study=study, timeout=timeout, launcher=launcher, workers=workers, gpus=gpus,
-                 per_gpu=per_gpu, progress=not quiet, **cell, **given)
+        api.tune(config, trials=trials, study=study, timeout=timeout, launcher=launcher, progress=not quiet, **cell,
+                 **given, **launcher_options(ctx))

@@ -121,9 +121,11 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def checked(fn: F) -> F:
-    """``fn`` checking its arguments against ``RULES`` before it runs (``api.<name>: <arg>=<value>: must be …``)."""
+    """``fn`` checking its arguments against ``RULES`` before it runs (``api.<name>: <arg>=<value>: must be …``);
+    those of its ``**keywords`` (a launcher's options) too."""
     signature = inspect.signature(fn)
     call = f"api.{fn.__name__}"
+    keywords = [p.name for p in signature.parameters.values() if p.kind is p.VAR_KEYWORD]
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -131,7 +133,10 @@ def checked(fn: F) -> F:
             bound = signature.bind(*args, **kwargs)
         except TypeError as exc:
             raise ArgumentError(f"{call}: {exc}") from None
-        check(call, bound.arguments)
+        values = dict(bound.arguments)
+        for name in keywords:
+            values.update(values.pop(name, {}))
+        check(call, values)
         return fn(*args, **kwargs)
 
     return wrapper  # type: ignore[return-value]

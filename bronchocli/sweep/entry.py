@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -33,6 +33,7 @@ from rich.table import Table
 from .. import urls
 from ..cells import FIELDS, Cell, Selection
 from ..config import Config, check_paths, check_roots
+from ..config.arguments import ArgumentError
 from ..errors import BronchoError
 from ..generation import ensure_dataset
 from ..io import fmt_bytes
@@ -42,8 +43,8 @@ from . import damage
 from . import launch as launching
 from . import placement, planview, summary
 from .housekeeping import collect_garbage, foreign, inventory, repair_zombies
-from .launchers import Launcher, launcher_class, loadable, log_roots, reference
-from .launchers import names as launcher_names
+from .launchers import GENERIC, Launcher, flag, launcher_class, log_roots, owners, reference
+from .launchers import parameters as launcher_parameters
 from .plan import StageWalk, open_store
 from .stagework import end_abandoned
 from .status import SweepState, show_status
@@ -79,16 +80,26 @@ def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[st
     return workers or placement.default_workers(devices, per_gpu), devices
 
 
-def launcher_options(kind: type[Launcher], **given: Any) -> dict[str, Any]:
-    """The launcher options given to ``sweep run`` or ``tune`` (``workers=2``; None: not given) as ``kind.create``
-    takes them (``{"workers": 2}``); one line naming, as the command line spells them (``kind.options``), those it
-    does not take and the launchers that do."""
+def launcher_options(kind: type[Launcher], given: Mapping[str, Any], call: str = "api.sweep") -> dict[str, Any]:
+    """The launcher options given to ``sweep run`` or ``tune`` (``{"workers": 2}``; None: not given) as
+    ``kind.create`` takes them, each checked against the ``Parameter`` that ``kind.parameters`` declares; one line
+    naming, as the command line spells them, those it does not take and the launchers that do (``call``: the API
+    call a bad value is named by)."""
     given = {name: value for name, value in given.items() if value is not None}
-    flags = {name: "--" + name.replace("_", "-") for name in given}
-    if foreign := [flags[name] for name in given if flags[name] not in kind.options]:
-        owners = [k.name for k in loadable(launcher_names()) if set(foreign) & set(k.options)]
-        raise BronchoError(f"{', '.join(foreign)}: options of the {'/'.join(owners) or 'other'} launcher; launcher "
-                           f"{kind.name} sizes its workers itself (docs/cluster.md)")
+    if foreign := [name for name in given if name not in kind.parameters]:
+        known = launcher_parameters()
+        if unknown := [flag(name) for name in foreign if name not in known]:
+            raise BronchoError(f"{', '.join(unknown)}: no installed launcher takes "
+                               f"{'it' if len(unknown) == 1 else 'them'} (launcher options: "
+                               f"{', '.join(map(flag, known))})")
+        takers = list(dict.fromkeys(k for name in foreign for k in owners(name)))
+        raise BronchoError(f"{', '.join(map(flag, foreign))}: options of the {'/'.join(takers) or 'other'} launcher; "
+                           f"launcher {kind.name} does not take {'it' if len(foreign) == 1 else 'them'} "
+                           "(docs/sweep.md, \"Launcher options\")")
+    for name, value in given.items():
+        if not (param := kind.parameters[name]).ok(name, value):
+            raise ArgumentError(f"{call}: {name}={value!r}: must be {param.allowed(name)} (as {flag(name)} on the "
+                                "command line)")
     return given
 
 
@@ -99,8 +110,8 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
     ``detach``; re-running submits only what the queued and running workers do not cover. 0 all FINISHED, 1
     some FAILED, 130 stopped."""
     check_paths(cfg, storage=True, logs=True, extra=log_roots(cfg, kind))  # before anything is created
-    launcher = kind.create(cfg, only=spec.selection(), runner=spec.cell_runner(),
-                           command=lambda: command(cfg, replace(spec, launcher=reference(kind))), **(options or {}))
+    launcher = kind(cfg, lambda: command(cfg, replace(spec, launcher=reference(kind))), only=spec.selection(),
+                    runner=spec.cell_runner(), **(options or {}))
     launcher.check()  # first: a refused submission writes no 0600 secrets file (``command``, made at the first
     # submission of a launcher whose workers run it, seals the spec)
     store = open_store(cfg)
@@ -115,11 +126,19 @@ def run(cfg: Config, spec: TaskSpec, kind: type[Launcher], *, options: dict[str,
                             retry_failed=retry_failed)
 
 
-def dry_run(cfg: Config, only: Selection, *, workers: int | None = None, gpus: str = "auto", per_gpu: int = 1,
-            console: Console) -> int:
-    """Print the plan (per stage: its cells and their state) and the workers a run would start; starts nothing."""
+def dry_run(cfg: Config, only: Selection, *, options: Mapping[str, Any] | None = None, console: Console) -> int:
+    """Print the plan (per stage: its cells and their state) and the local workers a run would start, placed by
+    the generic launcher ``options`` (workers, gpus, per_gpu; no other is taken); starts nothing."""
+    given = {name: value for name, value in (options or {}).items() if value is not None}
+    if other := [flag(name) for name in given if name not in GENERIC]:
+        raise BronchoError(f"{', '.join(other)}: `sweep plan` takes the generic launcher options only "
+                           f"({', '.join(map(flag, GENERIC))})")
+    for name, value in given.items():
+        if not GENERIC[name].ok(name, value):
+            raise ArgumentError(f"api.plan: {name}={value!r}: must be {GENERIC[name].allowed(name)} (as {flag(name)} "
+                                "on the command line)")
     store = _local_store(cfg, log_roots(cfg))
-    n, _ = _workers(workers, gpus, per_gpu)
+    n, _ = _workers(given.get("workers"), given.get("gpus") or "auto", given.get("per_gpu") or 1)
     planview.dry_run(cfg, store, only, n, console)
     return 0
 
@@ -293,10 +312,11 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     name = study or tuning.study_name(cfg, target)
     trialrows.launcher_config(cfg, name)  # a --study that cannot name the rows: one line first
     here = False
-    if "--workers" in kind.options:  # workers placed here (--workers, --gpus, --per-gpu): one per trial at most
+    if "workers" in kind.parameters:  # workers placed here (--workers, --gpus, --per-gpu): one per trial at most
         n, devices = _workers(options.get("workers"), options.get("gpus") or "auto", options.get("per_gpu") or 1)
         options["workers"] = min(n, trials)
-        here = not kind.Session.outlives_command and options["workers"] <= 1 and not devices  # one worker, no GPU: this process
+        # one worker, no GPU, a launcher whose workers are this command's: this process
+        here = not kind.Session.outlives_command and options["workers"] <= 1 and not devices
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
@@ -305,9 +325,11 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     console.print(f"[bold]tune[/] {name}: {trials} trials, "
                   + ("in this process" if here else f"launcher {kind.name}")
                   + f", storage {urls.redact(cfg.paths.storage_url)}")
+    def make(lcfg: Config, task: Any, cmd: Any) -> Launcher:
+        return kind(lcfg, cmd, study=task, **options)
+
     s = trialrows.tune(cfg, target, trials, study=name, timeout=timeout or cfg.tune.timeout, spec=spec,
-                       make_launcher=None if here else lambda lcfg, task, cmd: kind.create(lcfg, study=task, command=cmd,
-                                                                                          **options),
+                       make_launcher=None if here else make,
                        progress=progress, enqueue=cfg.tune.enqueue, console=console)
     console.print(f"{studies.finished(s)} finished trials in study {name}")
     return show_study(cfg, name, None, "table", console)

@@ -172,7 +172,8 @@ def launch(cfg: Config, store: SweepStore, only: Selection, launcher: Launcher, 
     summary.uncancel(client, parent)  # an explicit run: a `sweep cancel` before it no longer holds
     code: int | None = None
     try:
-        code = drive(walk, launcher, console, detach=detach, session=session, cancelled=lambda: summary.cancelled(client, parent),
+        code = drive(walk, launcher, console, detach=detach, session=session,
+                     cancelled=lambda: summary.cancelled(client, parent),
                      resubmitted=lambda: summary.reopen(client, parent),  # a top-up after its last worker stopped it
                      submitted=lambda: summary.record_parent(client, parent, walk))  # the plan on the parent run
         return code

@@ -7,7 +7,9 @@ Adding a launcher is one module with a ``Launcher`` subclass, found by name in o
 call (below, or in the module that defines it); an entry point of the group ``bronchopose.launchers`` in any
 installed package (``NAME = "package.module:Class"``: nothing in this repository changes); or ``module:Class``
 itself. ``bronchopose sweep run --launcher NAME`` and ``sweep.launcher`` then name it, and its own settings are
-``sweep.launchers.NAME`` (docs/sweep.md, "Adding a launcher").
+``sweep.launchers.NAME`` (docs/sweep.md, "Adding a launcher"). The options it takes are its ``parameters``
+(``GENERIC`` ones, or ``NAME_<option>``), checked when it is registered; ``sweep run`` offers a flag for each
+parameter of every launcher that loads.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 from ...config import Config
 from ...errors import DEBUG_HINT, BronchoError, ConfigError
-from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers, words
+from .base import GENERIC, STAGE_ENV, Launcher, Parameter, WorkerEnvironment, Workers, check_parameters, flag, words
 from .local import LocalLauncher
 from .slurm import SlurmLauncher
 
@@ -27,9 +29,11 @@ GROUP = "bronchopose.launchers"  # the entry-point group of launchers that insta
 
 
 def register(cls: type[Launcher]) -> type[Launcher]:
-    """Make ``cls`` a launcher that ``--launcher cls.name`` names (usable as a class decorator)."""
+    """Make ``cls`` a launcher that ``--launcher cls.name`` names (usable as a class decorator); its ``parameters``
+    are checked first (one line naming the launcher and the parameter: ``base.check_parameters``)."""
     if not isinstance(cls, type) or not issubclass(cls, Launcher):
         raise BronchoError(f"launcher {cls!r}: must be a subclass of sweep.launchers.Launcher")
+    check_parameters(cls)
     _LAUNCHERS[cls.name] = cls
     return cls
 
@@ -87,6 +91,20 @@ def loadable(names_: list[str]) -> list[type[Launcher]]:
     return out
 
 
+def parameters(generic_only: bool = False) -> dict[str, Parameter]:
+    """Every option of the launchers that load (name -> ``Parameter``): the generic ones first and once, then each
+    launcher's own (a broken plugin is left out: it is said when it is named); ``generic_only``: ``GENERIC``."""
+    out = dict(GENERIC)
+    for kind in [] if generic_only else loadable(names()):
+        out.update({name: p for name, p in kind.parameters.items() if name not in out})
+    return out
+
+
+def owners(name: str) -> list[str]:
+    """The launchers that load and take the parameter ``name``."""
+    return [k.name for k in loadable(names()) if name in k.parameters]
+
+
 def detected() -> type[WorkerEnvironment] | None:
     """The worker environment of the launcher whose job this process runs in (``detect``), else None: every
     launcher is asked, the registered ones and those installed packages offer through entry points (loaded here;
@@ -124,5 +142,6 @@ def reference(cls: type[Launcher]) -> str:
 register(LocalLauncher)
 register(SlurmLauncher)
 
-__all__ = ["GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "SlurmLauncher", "WorkerEnvironment", "Workers",
-           "detected", "launcher_class", "loadable", "log_roots", "names", "reference", "register", "words"]
+__all__ = ["GENERIC", "GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "Parameter", "SlurmLauncher",
+           "WorkerEnvironment", "Workers", "detected", "flag", "launcher_class", "loadable", "log_roots", "names",
+           "owners", "parameters", "reference", "register", "words"]

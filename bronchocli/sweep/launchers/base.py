@@ -16,8 +16,10 @@ them) with the sweep's claims model in place of job results:
 - ``describe()``: one line saying where the workers run and where they log.
 
 Those three (and ``name``) are all a launcher must write. What else it may write has a default: ``describe``
-(one line: where the workers run and log), ``create`` (built for ``sweep run`` with the options it takes,
-``options``), ``check`` (refuse what would make workers fail, before anything is created) and ``capacity``
+(one line: where the workers run and log), ``parameters`` (the options it takes: name -> ``Parameter``, submitit's
+executor parameters; ``sweep run --<name-with-dashes>`` on the command line, keywords of ``bronchocli.api``; a
+name is ``GENERIC`` or ``<launcher name>_<option>``), ``__init__`` (built by ``sweep run`` and ``tune`` with the
+values given for its ``parameters``), ``check`` (refuse what would make workers fail, before anything is created) and ``capacity``
 (workers worth starting for ``runnable`` cells).
 
 What a launcher owns besides: ``Settings``, the model of its own config section ``sweep.launchers.<name>``
@@ -36,21 +38,96 @@ what messages call them, and the watch's hooks (Slurm's ``tick`` releases requeu
 
 from __future__ import annotations
 
+import re
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, final
 
 from ...config import Config, Section, output_folder
-from ...errors import ConfigError
+from ...config.arguments import RULES, Rule
+from ...errors import BronchoError, ConfigError
 from ..session import Session
 
 STAGE_ENV = "BRONCHOPOSE_SWEEP_STAGE"  # the stage a worker was submitted for: it stops after that stage
 # Settings names the platform reads in any launcher's section where its ``Settings`` declare them:
 SETTING_LOGS = "logs"  # its workers' log folder (an output root, checked with the core config's)
 SETTING_PYTHON = "python"  # the interpreter its workers run (None: the one running the command)
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One option a launcher takes, as its ``Launcher.parameters`` declares it: ``--<name-with-dashes>`` on ``sweep
+    run`` and ``tune``, ``<name>=`` in ``bronchocli.api``, ``<name>=`` of its ``create``. ``type``: int, float, str,
+    bool or list (of strings: a comma list on the command line); ``default``: what the launcher does when it is not
+    given (said in ``--help``; not giving it passes nothing); ``low``/``high``: a number's inclusive range;
+    ``choices``: a string's allowed values; ``short``: a short flag (the generic ``-w``)."""
+
+    type: type = str
+    help: str = ""
+    default: Any = None
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    short: str | None = None
+
+    def rule(self, name: str) -> Rule:
+        """What a value must be, as ``config.arguments`` says it for the API's other arguments."""
+        return Rule(flag(name), "strings" if self.type is list else self.type, self.low, self.high)
+
+    def allowed(self, name: str) -> str:
+        return f"one of {', '.join(self.choices)}" if self.choices else self.rule(name).allowed()
+
+    def ok(self, name: str, value: Any) -> bool:
+        return self.rule(name).ok(value) and (not self.choices or value in self.choices)
+
+    def parse(self, value: Any) -> Any:
+        """The command line's value as the API takes it (a list's comma list split; the rest as given)."""
+        if self.type is list and isinstance(value, str):
+            return [v.strip() for v in value.split(",") if v.strip()]
+        return value
+
+
+def flag(name: str) -> str:
+    """A parameter's flag, as the command line spells it: ``per_gpu`` -> ``--per-gpu``."""
+    return "--" + name.replace("_", "-")
+
+
+# The parameters every launcher may take under their plain names (any other is ``<launcher name>_<option>``):
+# where the workers run on this machine, as ``sweep run`` always took them (bounds: ``config.arguments.RULES``).
+GENERIC: dict[str, Parameter] = {
+    "workers": Parameter(int, "Local worker processes (torch threads = cores / N), one per cell left at most. "
+                         "Default: GPUs x --per-gpu on a GPU machine, else 1.", low=RULES["workers"].low,
+                         high=RULES["workers"].high, short="-w"),
+    "gpus": Parameter(str, "GPUs for the local workers, round-robin: auto (every visible one, honouring "
+                      "CUDA_VISIBLE_DEVICES; the default), none, or a list such as 0,1.", default="auto"),
+    "per_gpu": Parameter(int, "Cells run at once on each GPU (default 1; small cells leave a GPU idle, packing "
+                         "several raises throughput).", default=1, low=RULES["per_gpu"].low),
+}
+NAME = re.compile(r"[a-z][a-z0-9]*(?:_[a-z0-9]+)*")  # a parameter's name: lower case words joined by _
+
+
+def check_parameters(cls: type[Launcher]) -> None:
+    """Refuse, in one line naming the launcher and the parameter, a ``parameters`` entry that is neither a generic
+    name declared as ``GENERIC`` has it nor ``<launcher name>_<option>`` with a ``Parameter``."""
+    params = getattr(cls, "parameters", None)
+    if not isinstance(params, Mapping):
+        raise BronchoError(f"launcher {cls.name}: parameters must be a mapping of name -> Parameter, not "
+                           f"{type(params).__name__}")
+    own = cls.name.lower().replace("-", "_") + "_"
+    for name, param in params.items():
+        where = f"launcher {cls.name}: parameter {name!r}"
+        if name in GENERIC:
+            if param != GENERIC[name]:
+                raise BronchoError(f"{where}: a generic parameter is declared as launchers.GENERIC has it (its "
+                                   "type, bounds and meaning are every launcher's)")
+        elif not isinstance(name, str) or not name.startswith(own) or not NAME.fullmatch(name) or name == own[:-1]:
+            raise BronchoError(f"{where}: must be generic ({', '.join(GENERIC)}) or the launcher's own, "
+                               f"{own}<option> (lower case, e.g. {own}hosts)")
+        elif not isinstance(param, Parameter) or param.type not in (int, float, str, bool, list):
+            raise BronchoError(f"{where}: must be a Parameter of type int, float, str, bool or list")
 
 
 @dataclass(frozen=True)
@@ -123,13 +200,19 @@ class Launcher(ABC):
     Settings: ClassVar[type[Section] | None] = None  # the model of its section sweep.launchers.<name>; None: none
     Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
     Session: ClassVar[type[Session]] = Session  # the submitting command's side (sweep.session): workers outlive it
-    options: ClassVar[tuple[str, ...]] = ()  # the `sweep run` options it takes (``create``), e.g. "--workers"
+    parameters: ClassVar[Mapping[str, Parameter]] = {}  # the options it takes (``create``): GENERIC or <name>_<option>
 
-    def __init__(self, cfg: Config, command: Sequence[str] | Callable[[], Sequence[str]] = ()):
-        """``command``: what each worker runs (``task.command``: ``python -m bronchocli.sweep.task <spec>``), or the
-        function that makes it, called at the first use of ``self.command`` (making it seals the spec: a 0600
-        secrets file where the config holds secrets; a launcher whose workers never run it never makes it)."""
+    def __init__(self, cfg: Config, command: Sequence[str] | Callable[[], Sequence[str]] = (), *, only: Any = None,
+                 runner: Any = None, study: Any = None, **given: Any):
+        """How ``sweep run`` and ``tune`` build the launcher they drive. ``command``: what each worker runs
+        (``task.command``: ``python -m bronchocli.sweep.task <spec>``), or the function that makes it, called at the
+        first use of ``self.command`` (making it seals the spec: a 0600 secrets file where the config holds secrets;
+        a launcher whose workers never run it never makes it). ``only``, ``runner``, ``study``: what its workers work
+        on, as the command was given them (a launcher whose workers run ``command`` has them in its spec too).
+        ``given``: the values given for its ``parameters`` (those given only, each checked against its
+        ``Parameter``); a launcher with parameters of its own takes them by name in its ``__init__``."""
         self.cfg, self._command = cfg, command
+        self.only, self.runner, self.study, self.given = only, runner, study, given
 
     @property
     @final
@@ -138,13 +221,6 @@ class Launcher(ABC):
         if callable(self._command):
             self._command = list(self._command())
         return list(self._command)
-
-    @classmethod
-    def create(cls, cfg: Config, *, only: Any = None, runner: Any = None,
-               command: Sequence[str] | Callable[[], Sequence[str]] = (), **options: Any) -> Launcher:
-        """The launcher ``sweep run`` drives: ``only`` and ``runner`` as the command was given them (a launcher
-        whose workers run ``command`` gets them through its spec instead), ``options`` among ``cls.options``."""
-        return cls(cfg, command)
 
     # -- the submitting side -------------------------------------------------------------------------------
     @abstractmethod

@@ -40,7 +40,7 @@ from ..session import AttachedSession
 from ..stagework import WorkerJob, local_process, worker_config
 from ..studyrows import StudyTask
 from ..worker import EXIT_INTERRUPTED, Runner, default_runner
-from .base import Launcher, Workers
+from .base import GENERIC, Launcher, Workers
 
 
 class LocalProcesses:
@@ -176,27 +176,21 @@ class LocalLauncher(Launcher):
 
     name = "local"
     Session = LocalSession
-    options = ("--workers", "--gpus", "--per-gpu")
+    parameters = dict(GENERIC)  # --workers, --gpus, --per-gpu
 
-    def __init__(self, cfg: Config, command: Any = (), *, storage_url: str | None = None,
-                 only: Selection | None = None, runner: Runner = default_runner, gpus: Sequence[str] = (),
-                 workers: int = 1, log_dir: Path | None = None, study: StudyTask | None = None):
-        super().__init__(cfg, command)
-        self.study = study  # a tuning study's workers: its trial rows (``sweep.trialwork``)
+    def __init__(self, cfg: Config, command: Any = (), *, only: Selection | None = None, runner: Runner | None = None,
+                 study: StudyTask | None = None, workers: int | None = None, gpus: str | Sequence[str] | None = None,
+                 per_gpu: int | None = None, storage_url: str | None = None, log_dir: Path | None = None):
+        """``gpus``: ``--gpus`` (auto, none or a list such as 0,1; checked against this machine's; default auto), or
+        the GPUs themselves; ``workers``: ``--workers`` (default: the GPUs x ``--per-gpu``, else 1); ``study``: a
+        tuning study's workers (its trial rows, ``sweep.trialwork``). Its workers are spawned with their job:
+        ``command`` is never made."""
+        super().__init__(cfg, command, only=only, runner=runner or default_runner, study=study)
+        devices = parse_gpus(gpus or "auto", visible_gpus()) if gpus is None or isinstance(gpus, str) else list(gpus)
+        self.workers = max(1, workers or default_workers(devices, per_gpu or 1))
         self.storage_url = storage_url or cfg.paths.storage_url
-        self.only, self.runner, self.workers = only, runner, max(1, workers)
-        self.processes = LocalProcesses(log_dir or self.logs(cfg), gpus)
+        self.processes = LocalProcesses(log_dir or self.logs(cfg), devices)
         self.wcfg = worker_config(cfg)
-
-    @classmethod
-    def create(cls, cfg: Config, *, only: Selection | None = None, runner: Runner | None = None,
-               workers: int | None = None, gpus: str | None = None, per_gpu: int | None = None,
-               study: StudyTask | None = None, command: Any = (), **options: Any) -> LocalLauncher:
-        """``--gpus`` (auto, none or a list; checked against this machine's), ``--workers`` (default: the GPUs x
-        ``--per-gpu``, else 1). Its workers are spawned with their job: ``command`` is never made."""
-        devices = parse_gpus(gpus or "auto", visible_gpus())
-        return cls(cfg, only=only, runner=runner or default_runner, gpus=devices,
-                   workers=workers or default_workers(devices, per_gpu or 1), study=study)
 
     def describe(self) -> str:
         gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""

@@ -415,8 +415,8 @@ class SlurmLauncher(Launcher):
     Environment = SlurmEnvironment
     Session = SlurmSession
 
-    def __init__(self, cfg: Config, command: Sequence[str] = ()):
-        super().__init__(cfg, command)
+    def __init__(self, cfg: Config, command: Any = (), **work: Any):
+        super().__init__(cfg, command, **work)
         self.s: SlurmSettings = settings(cfg)
 
     def describe(self) -> str:
