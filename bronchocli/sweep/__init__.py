@@ -28,11 +28,28 @@
 See docs/sweep.md for the model and the exactly-once argument.
 """
 
-from .launchers import Launcher
-from .plan import Plan, plan_cells, prepare, read_plan
-from .stagework import WorkerJob, worker_config, worker_main
-from .storage import FAILED, FINISHED, PENDING, RUNNING, TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
-from .worker import TAG_ATTEMPT, TAG_WORKER, StopSignals, Worker, WorkerId
+import importlib
+from typing import Any
+
+# The package's names, each from its module, imported when first asked for (PEP 562): importing one module of the
+# package (``sweep.launchers`` for the command line's launcher flags) does not load the others (MLflow, SQLAlchemy).
+_FROM = {
+    "Launcher": "launchers",
+    **dict.fromkeys(("Plan", "plan_cells", "prepare", "read_plan"), "plan"),
+    **dict.fromkeys(("WorkerJob", "worker_config", "worker_main"), "stagework"),
+    **dict.fromkeys(("FAILED", "FINISHED", "PENDING", "RUNNING", "TAG_CLAIM", "CellRow", "Claim", "StorageError",
+                     "SweepStore"), "storage"),
+    **dict.fromkeys(("TAG_ATTEMPT", "TAG_WORKER", "StopSignals", "Worker", "WorkerId"), "worker"),
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _FROM:
+        return getattr(importlib.import_module(f".{_FROM[name]}", __name__), name)
+    try:  # a submodule asked for as an attribute (``from bronchocli.sweep import entry`` imports it itself)
+        return importlib.import_module(f".{name}", __name__)
+    except ModuleNotFoundError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
 
 __all__ = [
     "FAILED",

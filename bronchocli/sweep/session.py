@@ -28,12 +28,15 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from rich.console import Console
 
 from ..config import Stage
-from ..runs.parents import start_parent
-from .plan import Plan, Step, cells_left, ensure_rows, read_plan
-from .worker import EXIT_INTERRUPTED
 
 if TYPE_CHECKING:
     from .launchers.base import Launcher, Workers
+    from .plan import Plan, Step
+
+# 130: Ctrl-C or SIGINT/SIGTERM stopped the command or a worker (the worker loop's too). This module imports nothing
+# of the sweep stack at import time: the launchers' registry reads it, and listing their options (the command
+# line's flags) must not load MLflow or SQLAlchemy.
+EXIT_INTERRUPTED = 130
 
 
 class Session:
@@ -123,10 +126,14 @@ class AttachedSession(Session):
     outlives_command = False
 
     def open_parent(self, client: Any, parent: str) -> None:
+        from ..runs.parents import start_parent  # lazy: see EXIT_INTERRUPTED
+
         start_parent(client, parent)  # RUNNING, with this process: `status --repair` ends it if we are killed
 
     def to_submit(self, walk: Any, steps: Iterable[Step]) -> list[tuple[Stage, int]]:
         """The first stage with cells left; a later stage is decided only once those before it are done."""
+        from .plan import cells_left, ensure_rows  # lazy: see EXIT_INTERRUPTED
+
         retries = walk.cfg.sweep.max_retries
         for step in steps:
             if step.cells and cells_left(ensure_rows(walk.cfg, walk.store, step.cells, sweep=walk.sweep), retries):
@@ -135,6 +142,8 @@ class AttachedSession(Session):
 
     def rows(self, walk: Any) -> Plan:
         """This process settles each stage as it submits it: the known cells' rows, no selection read again."""
+        from .plan import read_plan  # lazy: see EXIT_INTERRUPTED
+
         return read_plan(walk.store, walk.sweep, walk.known_cells())
 
     def gives_up(self, open_stage: str | None, submitted: Sequence[str]) -> bool:

@@ -42,13 +42,14 @@ from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_PARENT, search_runs
 from .damage import damage_line, damaged, future_line
 from .liveness import FutureHeartbeats, Heartbeat, StopSignals, is_interrupt
 from .record import duration_of, finished_runs
+from .session import EXIT_INTERRUPTED
 from .storage import TAG_CLAIM, CellRow, Claim, StorageError, SweepStore
 
 log = logging.getLogger(__name__)
 
 TAG_WORKER = "sweep_worker"
 TAG_ATTEMPT = "sweep_attempt"
-EXIT_OK, EXIT_INTERRUPTED = 0, 130
+EXIT_OK = 0  # and EXIT_INTERRUPTED, 130: defined in ``session`` (which the launchers' registry reads without this)
 EXIT_RECORDED = 3  # stopped after a failure recorded on its cell's row (a full disk): reported there, not a crash
 
 Runner = Callable[..., Any]  # run_cell's signature; returns an object with run_id, status, failure_reason, duration_s

@@ -92,3 +92,17 @@ def test_the_member_count_can_fail():
 
     members, _ = _implementable(Grown)
     assert {"detachable", "defers", "resubmits", "poll_s", "supervised"} <= members
+
+
+def test_listing_the_launchers_options_loads_no_sweep_stack():
+    """`sweep run --help` builds its flags from the launchers' parameters: the registry, its protocol and the
+    built-in launchers import without MLflow, SQLAlchemy, Optuna or torch (it took ~10x `train --help` when they
+    did). A fresh process: nothing imported before."""
+    import subprocess
+    import sys
+
+    probe = ("import sys; from bronchocli.sweep.launchers import parameters; names = sorted(parameters()); "
+             "heavy = sorted({m.split('.')[0] for m in sys.modules} & {'mlflow', 'sqlalchemy', 'optuna', 'torch'}); "
+             "print(names, heavy)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == "['gpus', 'per_gpu', 'workers'] []", out

@@ -30,17 +30,18 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from multiprocessing.connection import wait as wait_any
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ... import interrupts
 from ...cells import Selection
 from ...config import Config
 from ..placement import assign, default_workers, parse_gpus, share_counts, visible_gpus
-from ..session import AttachedSession
-from ..stagework import WorkerJob, local_process, worker_config
-from ..studyrows import StudyTask
-from ..worker import EXIT_INTERRUPTED, Runner, default_runner
+from ..session import EXIT_INTERRUPTED, AttachedSession
 from .base import GENERIC, Launcher, Workers
+
+if TYPE_CHECKING:  # the worker side loads when workers are started (the registry lists options without it)
+    from ..studyrows import StudyTask
+    from ..worker import Runner
 
 
 class LocalProcesses:
@@ -185,6 +186,9 @@ class LocalLauncher(Launcher):
         the GPUs themselves; ``workers``: ``--workers`` (default: the GPUs x ``--per-gpu``, else 1); ``study``: a
         tuning study's workers (its trial rows, ``sweep.trialwork``). Its workers are spawned with their job:
         ``command`` is never made."""
+        from ..stagework import worker_config  # lazy: see the imports
+        from ..worker import default_runner
+
         super().__init__(cfg, command, only=only, runner=runner or default_runner, study=study)
         devices = parse_gpus(gpus or "auto", visible_gpus()) if gpus is None or isinstance(gpus, str) else list(gpus)
         self.workers = max(1, workers or default_workers(devices, per_gpu or 1))
@@ -201,6 +205,8 @@ class LocalLauncher(Launcher):
         return max(0, min(runnable, self.workers))
 
     def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+        from ..stagework import WorkerJob, local_process  # lazy: see the imports
+
         def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
             return WorkerJob(self.wcfg, self.storage_url, self.only, LocalLauncher, self.runner, last_stage=stage or None,
                              exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
