@@ -310,7 +310,7 @@ def test_tune_starts_a_worker_per_trial_at_most(monkeypatch, project):
         pass
 
     def fake_tune(cfg, target, n, *, make_launcher, **kw):
-        seen["workers"] = make_launcher(cfg, StudyTask("s", cfg.name)).workers
+        seen["workers"] = make_launcher(cfg, StudyTask("s", cfg.name), lambda: []).workers
         raise Stop  # before any study is opened or process started
 
     monkeypatch.setattr(trials, "tune", fake_tune)
