@@ -53,6 +53,10 @@ def test_params_are_the_coordinates_and_the_settings_that_differ():
     assert "model.dropout" in params  # a tuned path is always a param, even at its default
     assert params["train.threads"] == "3"  # a speed setting, changed: it explains timing differences
     assert params["model.pretrained"] == "None"  # the initialisation is always a param (default: random)
+    # how DE/CE were weighed, at its default too: a run without the param is read as one logged before the setting
+    # existed (unscaled), so a default-scaled run that left it out was captioned "unscaled" (2026-12-07)
+    assert params["train.rot_scale"] == "label_std"
+    assert run_params(cfg.with_values({"train.rot_scale": "none"}), cell)["train.rot_scale"] == "none"
     assert not any(k.startswith(("grid.", "runs.", "storage.", "sweep.", "dataset.")) for k in params)
     assert "train.batch_size" not in params  # at its default: the full value is in config.yaml
     fold = cfg.cell(arch="lstm", rot_loss="ce", population="cross-subject", fold="p01", train_trajectories=4)

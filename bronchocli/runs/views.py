@@ -65,7 +65,9 @@ from ..config import RUN_SECTIONS, Config
 from .records import flatten
 
 # the backbone and its initialisation: params even at their defaults (the paper's B0, random)
-ALWAYS = ("model.backbone", "model.pretrained")
+# Logged by every run even at their defaults: what tells models apart, and what a missing param would misname
+# (a run logged before train.rot_scale existed trained with DE/CE unscaled; the default now is label_std).
+ALWAYS = ("model.backbone", "model.pretrained", "train.rot_scale")
 # Constants of the test evaluation (config eval:), params of every FINISHED run (metrics on runs logged before).
 EVAL_PARAMS = tuple(runkeys.evaluation(k) for k in ("ctf_position", "ctf_position_mm", "ctf_angle", "rpe_gap"))
 PARENT_SECTIONS = ("name", "splits", "dataset")  # shown as params on a sweep's parent (the plan: sweep/summary.py)
