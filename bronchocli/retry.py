@@ -43,7 +43,11 @@ TRANSIENT_DB = ("database is locked", "database table is locked", "database sche
 # Max retries exceeded ... too many 503 error responses"): worth retrying too, within the same bound.
 TRANSIENT_HTTP = ("max retries exceeded", "error responses", "failed with timeout exception", "read timed out",
                   "connection aborted", "remotedisconnected", "temporarily_unavailable", "service unavailable",
-                  "bad gateway", "gateway timeout")
+                  "bad gateway", "gateway timeout",
+                  # MLflow's own line for a 5xx answer its HTTP client did not retry (its cached session's retry
+                  # policy is per process: "... failed with error code 503 != 200")
+                  "failed with error code 500", "failed with error code 502", "failed with error code 503",
+                  "failed with error code 504")
 
 
 # Error texts of a write that lost a race to an equal write (MLflow's store reads, then inserts: two runs

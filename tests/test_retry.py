@@ -209,3 +209,13 @@ def test_a_copy_that_fills_a_disk_names_the_file_written_and_the_full_file_syste
         line = disk_full_line(file, why)
     assert line.startswith(f"{disk / 'artifacts' / 'predictions.csv'}: disk full (No space left on device; ")
     assert f"free on the file system mounted at {disk})" in line and "tmpabc" not in line
+
+
+def test_mlflows_own_line_for_a_5xx_answer_is_transient_and_a_4xx_is_not():
+    """MLflow raises this line for a 5xx its HTTP client did not retry (its cached session's policy is per process):
+    a server briefly away, worth waiting for; a 4xx is the request's own fault."""
+    from bronchocli.retry import is_transient_store
+
+    line = "API request to endpoint /api/2.0/mlflow/runs/log-batch failed with error code {} != 200. Response body: ''"
+    assert all(is_transient_store(Exception(line.format(code))) for code in (500, 502, 503, 504))
+    assert not any(is_transient_store(Exception(line.format(code))) for code in (400, 403, 404))

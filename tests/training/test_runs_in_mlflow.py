@@ -38,7 +38,7 @@ def test_compare_view_params_differ_in_arch_and_seed(swept):
     differ = {k for k in set(a.data.params) | set(b.data.params) if a.data.params.get(k) != b.data.params.get(k)}
     assert {"arch", "seed"} <= differ
     assert differ <= {"arch", "seed"}  # everything else the two runs share (the grid is not a run param)
-    assert len(a.data.params) < 30  # not the flattened config (119 keys before)
+    assert len(a.data.params) <= 32  # not the flattened config (119 keys before)
     assert (a.data.params["threads"], a.data.params["threads.source"]) == ("1", "explicit (train.threads)")
 
 
