@@ -82,7 +82,7 @@ def _workers(workers: int | None, gpus: str, per_gpu: int) -> tuple[int, list[st
 
 def launcher_options(kind: type[Launcher], given: Mapping[str, Any], call: str = "api.sweep") -> dict[str, Any]:
     """The launcher options given to ``sweep run`` or ``tune`` (``{"workers": 2}``; None: not given) as
-    ``kind.create`` takes them, each checked against the ``Parameter`` that ``kind.parameters`` declares; one line
+    ``kind(...)`` takes them, each checked against the ``Parameter`` that ``kind.parameters`` declares; one line
     naming, as the command line spells them, those it does not take and the launchers that do (``call``: the API
     call a bad value is named by)."""
     given = {name: value for name, value in given.items() if value is not None}

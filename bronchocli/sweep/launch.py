@@ -272,7 +272,7 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
     retries, stale_s = cfg.sweep.max_retries, cfg.sweep.stale_after_s
     record = record if record is not None else Submitted()  # what this command submitted, what waits
     live = Live(console=console, refresh_per_second=2) if console.is_terminal else None
-    _, _, task_word = words(type(launcher))
+    title, _, task_word = words(type(launcher))
     last_line, plan, asked = "", session.rows(walk), time.monotonic()
     seen_at_submit = _table_state(plan, claimable_now(plan, retries, walk.store.db_now(), stale_s))
     if live is not None:
@@ -326,7 +326,7 @@ def watch(walk: StageWalk, launcher: Launcher, console: Console, cancelled: Call
                     if record.waiting is not None and not left:  # the walk stops at a stage that cannot start
                         console.print(waits_line(record.waiting), highlight=False)
                         return final(console, session.rows(walk), retries)
-                    console.print(f"[yellow]no {words(type(launcher))[0]} {task_word} of sweep {cfg.name} is left and "
+                    console.print(f"[yellow]no {title} {task_word} of sweep {cfg.name} is left and "
                                   f"{left} cell(s) are not done[/]; see the logs ({launcher.describe()}) and run the "
                                   "command again")
                     return 1

@@ -19,8 +19,8 @@ Those three (and ``name``) are all a launcher must write. What else it may write
 (one line: where the workers run and log), ``parameters`` (the options it takes: name -> ``Parameter``, submitit's
 executor parameters; ``sweep run --<name-with-dashes>`` on the command line, keywords of ``bronchocli.api``; a
 name is ``GENERIC`` or ``<launcher name>_<option>``), ``__init__`` (built by ``sweep run`` and ``tune`` with the
-values given for its ``parameters``), ``check`` (refuse what would make workers fail, before anything is created) and ``capacity``
-(workers worth starting for ``runnable`` cells).
+values given for its ``parameters``), ``check`` (refuse what would make workers fail, before anything is
+created) and ``capacity`` (workers worth starting for ``runnable`` cells).
 
 What a launcher owns besides: ``Settings``, the model of its own config section ``sweep.launchers.<name>``
 (validated by ``settings(cfg)`` when the launcher is looked up; the core config holds it as a plain mapping), in
@@ -60,7 +60,7 @@ SETTING_PYTHON = "python"  # the interpreter its workers run (None: the one runn
 @dataclass(frozen=True)
 class Parameter:
     """One option a launcher takes, as its ``Launcher.parameters`` declares it: ``--<name-with-dashes>`` on ``sweep
-    run`` and ``tune``, ``<name>=`` in ``bronchocli.api``, ``<name>=`` of its ``create``. ``type``: int, float, str,
+    run`` and ``tune``, ``<name>=`` in ``bronchocli.api``, ``<name>=`` of its ``__init__``. ``type``: int, float, str,
     bool or list (of strings: a comma list on the command line); ``default``: what the launcher does when it is not
     given (said in ``--help``; not giving it passes nothing); ``low``/``high``: a number's inclusive range;
     ``choices``: a string's allowed values; ``short``: a short flag (the generic ``-w``)."""
@@ -200,7 +200,7 @@ class Launcher(ABC):
     Settings: ClassVar[type[Section] | None] = None  # the model of its section sweep.launchers.<name>; None: none
     Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
     Session: ClassVar[type[Session]] = Session  # the submitting command's side (sweep.session): workers outlive it
-    parameters: ClassVar[Mapping[str, Parameter]] = {}  # the options it takes (``create``): GENERIC or <name>_<option>
+    parameters: ClassVar[Mapping[str, Parameter]] = {}  # the options its __init__ takes: GENERIC or <name>_<option>
 
     def __init__(self, cfg: Config, command: Sequence[str] | Callable[[], Sequence[str]] = (), *, only: Any = None,
                  runner: Any = None, study: Any = None, **given: Any):
