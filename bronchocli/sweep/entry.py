@@ -300,8 +300,9 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
          timeout: float | None = None, kind: type[Launcher] | None = None, options: dict[str, Any] | None = None,
          spec: TaskSpec | None = None, progress: bool = True, console: Console) -> dict[str, Any]:
     """``bronchopose tune``: the cell's study (shared storage, resumable) to ``trials`` rows done, its trials claimed
-    by workers of launcher ``kind`` (``options``: ``launcher_options``'s; the local one with one worker and no GPU:
-    this process), then show its best trial; returns the study's description (``studies.describe_study``)."""
+    by workers of launcher ``kind`` (``options``: ``launcher_options``'s; the local one with one worker and no GPU
+    runs it in this process, its own choice), then show its best trial; returns the study's description
+    (``studies.describe_study``)."""
     from . import studies, tuning, trials as trialrows  # lazy: optuna only when the command runs
 
     kind = kind or launcher_class(TUNE_LAUNCHER)
@@ -311,25 +312,21 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     trials = trials or cfg.tune.trials
     name = study or tuning.study_name(cfg, target)
     trialrows.launcher_config(cfg, name)  # a --study that cannot name the rows: one line first
-    here = False
     if "workers" in kind.parameters:  # workers placed here (--workers, --gpus, --per-gpu): one per trial at most
-        n, devices = _workers(options.get("workers"), options.get("gpus") or "auto", options.get("per_gpu") or 1)
+        n, _ = _workers(options.get("workers"), options.get("gpus") or "auto", options.get("per_gpu") or 1)
         options["workers"] = min(n, trials)
-        # one worker, no GPU, a launcher whose workers are this command's: this process
-        here = not kind.Session.outlives_command and options["workers"] <= 1 and not devices
     ensure_dataset(cfg)
     if cfg.model.pretrained is not None:  # missing backbone weights: one line before any study or trial run
         from ..models import initialisation  # lazy: torch only when backbone weights must be found or fetched
 
         initialisation(cfg.paths.pretrained, [target.arch], cfg.model.backbone)
-    console.print(f"[bold]tune[/] {name}: {trials} trials, "
-                  + ("in this process" if here else f"launcher {kind.name}")
-                  + f", storage {urls.redact(cfg.paths.storage_url)}")
+    console.print(f"[bold]tune[/] {name}: {trials} trials, launcher {kind.name}, "
+                  f"storage {urls.redact(cfg.paths.storage_url)}")
     def make(lcfg: Config, task: Any, cmd: Any) -> Launcher:
         return kind(lcfg, cmd, study=task, **options)
 
     s = trialrows.tune(cfg, target, trials, study=name, timeout=timeout or cfg.tune.timeout, spec=spec,
-                       make_launcher=None if here else make,
+                       make_launcher=make,
                        progress=progress, enqueue=cfg.tune.enqueue, console=console)
     console.print(f"{studies.finished(s)} finished trials in study {name}")
     return show_study(cfg, name, None, "table", console)

@@ -38,3 +38,4 @@ class StudyTask:
     study: str  # the Optuna study; its rows are ``study_sweep(study)``
     config: str  # the config's own name (a launcher's config is named after the study's rows: its jobs are found so)
     deadline: float | None = None  # epoch seconds (``tune --timeout``): no trial starts after it
+    progress: bool = False  # progress bars: a worker in the command's own process (a worker process logs without)

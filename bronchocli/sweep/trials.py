@@ -5,11 +5,11 @@ sweep ``<study>.trials``, ``trial-0000`` ... ``trial-<N-1>``; raising N later
 adds rows, lowering it removes none) and records on open rows the finished
 trials no row records yet (a study older than its rows, or rebuilt from MLflow
 after its storage was lost: ``record.rebuild_trials``), so none runs twice.
-Then workers claim the rows, one Optuna trial per row (``trialwork``): in this
-process (one worker, no GPU: the Worker itself, no launcher), or started by a
-launcher and watched by the sweep's driver (``launch.drive``): local worker
-processes placed on the GPUs, Slurm array tasks (``tune --launcher slurm``) or
-any registered launcher. The launcher is given the config named after the
+Then workers claim the rows, one Optuna trial per row (``trialwork``), started
+by a launcher and watched by the sweep's driver (``launch.drive``) on every
+machine: local worker processes placed on the GPUs (one worker without a GPU:
+the local launcher runs it in this process, its own choice), Slurm array tasks
+(``tune --launcher slurm``) or any registered launcher. The launcher is given the config named after the
 study's rows, so its jobs are the study's (Slurm: job name
 ``bronchopose-<study>.trials``): ``bronchopose sweep cancel --study NAME``
 stops them, ``bronchopose status --sweep <study>.trials`` shows the rows.
@@ -38,14 +38,13 @@ from ..runs.client import client_for
 from ..runs.contract import RunInterrupted
 from ..runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
 from . import launch, studies, summary, tuning
-from .launchers import reference
+from .launchers import launcher_class, reference
 from .launchers.base import Launcher
 from .plan import Plan, Step, cells_left, open_store, read_plan
 from .record import existing_experiment, rebuild_trials
 from .storage import FAILED, PENDING, SweepStore
 from .studyrows import StudyTask, study_sweep, trial_cell
 from .task import TaskSpec, command
-from .trialwork import work_trials
 from .worker import EXIT_INTERRUPTED
 
 log = logging.getLogger(__name__)
@@ -119,9 +118,10 @@ class StudyWalk:
 def tune(cfg: Config, target: Cell, trials: int, *, study: str | None = None, timeout: float | None = None,
          make_launcher: MakeLauncher | None = None, spec: TaskSpec | None = None, progress: bool = True,
          enqueue: Sequence[Mapping[str, Any]] = (), console: Console | None = None) -> Any:
-    """Run the study of ``target`` to ``trials`` rows done: in this process (``make_launcher`` None) or with the
-    launcher it makes, watched by the sweep's driver (a launcher whose workers run a command needs ``spec``, the
-    config as the workers load it); returns the Optuna study. RunInterrupted when stopped; a failing study
+    """Run the study of ``target`` to ``trials`` rows done by the workers of the launcher ``make_launcher`` makes
+    (None: the local launcher's one worker, which runs in this process), watched by the sweep's driver (a
+    launcher whose workers run a command needs ``spec``, the config as the workers load it); ``progress``: the
+    progress bars of a worker in this process. Returns the Optuna study. RunInterrupted when stopped; a failing study
     storage (read-only, damaged) is one line (``studies.storage_errors``)."""
     with studies.storage_errors(cfg):
         return _tune(cfg, target, trials, study=study, timeout=timeout, make_launcher=make_launcher, spec=spec,
@@ -142,20 +142,16 @@ def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout:
     store = open_store(cfg)
     store.ensure_schema()
     rows = add_rows(cfg, store, s, target, trials)
-    task = StudyTask(name, cfg.name, None if timeout is None else time.time() + timeout)
+    task = StudyTask(name, cfg.name, None if timeout is None else time.time() + timeout, progress)
     parent = tuning.study_parent_or_none(cfg, target, name)  # created here once, found by the workers
     client = client_for(cfg)
     if parent is not None:
         start_parent(client, parent)  # RUNNING with this process: `status --repair` ends it if killed
         summary.uncancel(client, parent)  # an explicit tune: a `sweep cancel --study` before it no longer holds
+    make_launcher = make_launcher or _one_worker_here
     try:
-        if make_launcher is None:
-            code, worker = work_trials(cfg, store, task, progress=progress)
-            if code == EXIT_INTERRUPTED:
-                raise RunInterrupted(_stopped_line(worker.runner.stopped if worker else None))
-        else:
-            launcher = make_launcher(lcfg, task, lambda: _worker_command(lcfg, spec, task, type(launcher)))
-            code = _launched(cfg, lcfg, store, rows, task, launcher, parent, console)
+        launcher = make_launcher(lcfg, task, lambda: _worker_command(lcfg, spec, task, type(launcher)))
+        _launched(cfg, lcfg, store, rows, task, launcher, parent, console)
     except BaseException as exc:  # an interrupted or failed tune ends its parent run too (KILLED / FAILED)
         if parent is not None:
             interrupted = isinstance(exc, (KeyboardInterrupt, RunInterrupted))
@@ -163,6 +159,11 @@ def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout:
         raise
     _close_parent(cfg, parent, s)
     return s
+
+
+def _one_worker_here(lcfg: Config, task: StudyTask, command: Callable[[], list[str]]) -> Launcher:
+    """The default: the local launcher with one worker and no GPU (it runs that worker in this process)."""
+    return launcher_class("local")(lcfg, command, study=task, workers=1, gpus="none")
 
 
 def _worker_command(lcfg: Config, spec: TaskSpec | None, task: StudyTask, kind: type[Launcher]) -> list[str]:
@@ -187,18 +188,9 @@ def _launched(cfg: Config, lcfg: Config, store: SweepStore, rows: Sequence[Trial
                         resume_hint="the same `bronchopose tune` command", what=f"study {task.study}")
     if code == EXIT_INTERRUPTED:
         raise RunInterrupted(f"tune interrupted: the study's workers were stopped (`sweep cancel`, Ctrl-C); running "
-                             f"trials were given back; run the same command to continue (logs: {launcher.describe()})")
+                             "trials were given back; run the same command to continue (workers: "
+                             f"{launcher.describe()})")
     return code
-
-
-def _stopped_line(stopped: tuple[int | None, Any] | None) -> str:
-    if stopped is None:
-        return "tune interrupted; run the same command to continue"
-    number, why = stopped
-    if isinstance(why, int):
-        return (f"tune interrupted (signal {why} while trial #{number} was evaluated: that trial was completed "
-                "first, no other was started); run the same command to continue")
-    return f"tune interrupted: trial #{number} stopped ({why}); run the same command to continue"
 
 
 def _close_parent(cfg: Config, parent: str | None, s: Any) -> None:

@@ -179,3 +179,14 @@ def work_trials(cfg: Config, store: SweepStore, task: StudyTask, *, signals: Sto
                          signals=signals, sweep=study_sweep(task.study), ident=ident, exit_when_idle=exit_when_idle)
     code = worker.run()
     return (0 if worker.timed_out else code), worker
+
+
+def stopped_line(stopped: tuple[int | None, Any] | None) -> str:
+    """Why a study's worker stopped (its runner's ``stopped``: the trial and the signal or error), in one line."""
+    if stopped is None:
+        return "tune interrupted; run the same command to continue"
+    number, why = stopped
+    if isinstance(why, int):
+        return (f"tune interrupted (signal {why} while trial #{number} was evaluated: that trial was completed "
+                "first, no other was started); run the same command to continue")
+    return f"tune interrupted: trial #{number} stopped ({why}); run the same command to continue"

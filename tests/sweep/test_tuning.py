@@ -463,3 +463,35 @@ def test_a_study_storage_that_refuses_writes_is_one_line_as_the_claims_table_say
     db = project / "runs" / "sweep.db"
     assert code == 2 and err.strip() == f"error: study storage sqlite:///{db}: attempt to write a readonly database", \
         (out, err)
+
+
+def test_the_default_tune_goes_through_the_driver_and_the_launcher_runs_its_one_worker_here(project, monkeypatch):
+    """Issue 58: on a machine without a GPU `tune` drives its rows as a cluster's (``launch.drive`` with a
+    launcher); running the one worker in this process is the local launcher's choice, not the driver's — with two
+    workers the same launcher starts processes."""
+    from bronchocli.sweep import launch, trialwork
+    from bronchocli.sweep.launchers.local import InProcess, LocalLauncher, LocalProcesses
+    from bronchocli.sweep.studyrows import StudyTask
+
+    seen: dict = {}
+    real_drive = launch.drive
+
+    def drive(walk, launcher, *args, **kw):
+        seen["launcher"] = launcher
+        return real_drive(walk, launcher, *args, **kw)
+
+    def work(cfg, store, task, **kw):  # the worker's loop itself is tested above: here, where it runs
+        seen.update(pid=os.getpid(), study=task.study, progress=kw["progress"])
+        return 0, None
+
+    monkeypatch.setattr(launch, "drive", drive)
+    monkeypatch.setattr(trialwork, "work_trials", work)
+    cfg = load_config(project / "experiments.yaml")
+    target = cells.make(arch="baseline", rot_loss="mse", population="personalized")
+    trialrows.tune(cfg, target, 2, study="here", progress=True)
+    launcher = seen["launcher"]
+    assert isinstance(launcher, LocalLauncher) and isinstance(launcher.processes, InProcess)
+    assert launcher.describe() == "in this process"
+    assert seen == {"launcher": launcher, "pid": os.getpid(), "study": "here", "progress": True}
+    two = LocalLauncher(cfg, study=StudyTask("here", cfg.name), workers=2, gpus="none")
+    assert type(two.processes) is LocalProcesses

@@ -10,6 +10,10 @@ worker one SIGTERM (a second ``stop`` sends SIGINT: abort without waiting for a
 checkpoint). A tuning study's workers are the same processes given a
 ``StudyTask`` (``study``): they claim the study's trial rows.
 
+A tuning study's only worker on a machine without a GPU runs in this process instead (``InProcess``: no
+interpreter to start, the trials' progress on this terminal): the launcher's choice, made when it is built;
+the driver drives it as any other, its submission returning once the worker is done.
+
 Its ``Session`` (``LocalSession``, a ``session.AttachedSession``) says the
 workers are the command's own children: the driver (``sweep.launch``) drives it
 as any launcher, inside the session's block (Ctrl-C stops the workers), one
@@ -120,6 +124,39 @@ class LocalProcesses:
             self.join()
 
 
+class _Ended:
+    """A worker that ran in this process: done when its submission returned (``LocalProcesses``' process's face)."""
+
+    def __init__(self, code: int):
+        self.exitcode, self.pid, self.sentinel = code, os.getpid(), None
+
+    def is_alive(self) -> bool:
+        return False
+
+    def join(self) -> None:
+        return None
+
+
+class InProcess(LocalProcesses):
+    """A study's one worker run in this process (``LocalProcesses``' members): ``start`` works the study's rows
+    (``trialwork.work_trials``) and returns when none is left; this process's Ctrl-C reaches the trial itself
+    (it completes, the worker starts no other, ``start`` raises RunInterrupted: ``tune`` ends 130)."""
+
+    def __init__(self, log_dir: Path, work: Callable[[], int]):
+        super().__init__(log_dir)
+        self.work = work
+
+    def start(self, n: int, target: Callable[..., Any], job: Callable[[str | None, int, str], Any],
+              stage: str = "") -> str:
+        sub = f"{os.getpid()}-{len({s for _, s, _ in self.procs})}"
+        self.procs.append((_Ended(self.work()), sub, stage))  # type: ignore[arg-type]
+        return sub
+
+    @contextmanager
+    def supervised(self) -> Iterator[None]:
+        yield  # the worker installs nothing: Ctrl-C raises where the trial runs
+
+
 class LocalSession(AttachedSession):
     """The command's side of its local workers: the block they live in (``LocalProcesses.supervised``: Ctrl-C,
     SIGTERM and SIGHUP stop them), a wait that ends when one exits, their exit codes, and whether they were
@@ -145,6 +182,8 @@ class LocalSession(AttachedSession):
         return block.__exit__(*exc) if block is not None else None
 
     def submitted(self, job: str, n: int, stage: str, after: Sequence[str]) -> str:
+        if isinstance(self.processes, InProcess):
+            return f"stage {stage}: its worker ran in this process"
         return f"stage {stage}: {n} local worker process{'es' if n > 1 else ''} started"
 
     def wait(self, timeout: float) -> None:
@@ -173,7 +212,8 @@ class LocalSession(AttachedSession):
 
 class LocalLauncher(Launcher):
     """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``;
-    at most ``workers`` at once, pinned round-robin to ``gpus``."""
+    at most ``workers`` at once, pinned round-robin to ``gpus``. A study's only worker without a GPU: this process
+    (``InProcess``)."""
 
     name = "local"
     Session = LocalSession
@@ -193,10 +233,29 @@ class LocalLauncher(Launcher):
         devices = parse_gpus(gpus or "auto", visible_gpus()) if gpus is None or isinstance(gpus, str) else list(gpus)
         self.workers = max(1, workers or default_workers(devices, per_gpu or 1))
         self.storage_url = storage_url or cfg.paths.storage_url
-        self.processes = LocalProcesses(log_dir or self.logs(cfg), devices)
         self.wcfg = worker_config(cfg)
+        if study is not None and self.workers == 1 and not devices:
+            self.processes: LocalProcesses = InProcess(log_dir or self.logs(cfg), self._work_study)
+        else:
+            self.processes = LocalProcesses(log_dir or self.logs(cfg), devices)
+
+    def _work_study(self) -> int:
+        """The study's rows worked in this process (``InProcess``): the worker's exit code, 0; stopped (a signal
+        while a trial ran): RunInterrupted naming the trial and the signal."""
+        from ...runs.contract import RunInterrupted  # lazy: see the imports
+        from ..plan import open_store
+        from ..trialwork import stopped_line, work_trials
+
+        assert self.study is not None
+        code, worker = work_trials(self.wcfg, open_store(self.wcfg, self.storage_url), self.study,
+                                   progress=self.study.progress, storage_url=self.storage_url)
+        if code == EXIT_INTERRUPTED:
+            raise RunInterrupted(stopped_line(worker.runner.stopped if worker else None))
+        return code
 
     def describe(self) -> str:
+        if isinstance(self.processes, InProcess):
+            return "in this process"
         gpus = f" on GPUs {','.join(self.processes.gpus)}" if self.processes.gpus else ""
         n = f"{self.workers} worker" + ("s" if self.workers > 1 else "")
         return f"here{gpus} (at most {n}), logs {self.processes.log_dir}"
