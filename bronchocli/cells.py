@@ -102,7 +102,7 @@ class Cell(BaseModel):
 
 
 class TrialCell(Cell):
-    """A claims row of a tuning study (``sweep.trials``): trial slot ``trial`` of the study's target cell, whose
+    """A claims row of a tuning study (``sweep.tuning.launch``): trial slot ``trial`` of the study's target cell, whose
     coordinates it carries. Its key is the slot's (``trial-0007``), its label ``trial 7 · <the cell's label>``."""
 
     trial: int = Field(ge=0)

@@ -38,7 +38,7 @@ BARE = {runkeys.VAL_LOSS, runkeys.TRAIN_LOSS, runkeys.N_PARAMS, runkeys.THREADS,
 ALLOWED = {
     ("runkeys.py", None): "the builder itself",
     ("config/sections.py", "val_loss"): "a name of tune.objective's choices (what a trial minimises), not a key",
-    ("sweep/tuning.py", "val_loss"): "the same choice name, as the key of OBJECTIVES",
+    ("sweep/tuning/trial.py", "val_loss"): "the same choice name, as the key of OBJECTIVES",
     ("models/__init__.py", "n_params"): "the name of the function models exports (__all__), not a key",
     ("config/grid.py", "threads"): "the config field train.threads (NOT_IN_KEY), not a key",
     ("diagnostics/speed.py", "threads"): "a field of speed_settings.json's measurement record, not a key",

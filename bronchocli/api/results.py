@@ -27,7 +27,7 @@ class StudyResult:
 
     @classmethod
     def from_info(cls, info: dict[str, Any]) -> StudyResult:
-        """From ``sweep.studies.describe_study``'s description."""
+        """From ``sweep.tuning.studies.describe_study``'s description."""
         best = info.get("best") or {}
         return cls(info["study"], info.get("objective", ""), dict(info["counts"]), best.get("number"),
                    best.get("value"), dict(best.get("params", {})), best.get("run_id"),

@@ -89,7 +89,7 @@ def train(config: ConfigLike = DEFAULT_CONFIG, *, arch: str, rot_loss: str, popu
     cell = cfg.cell(arch=arch, rot_loss=rot_loss, population=population, fold=fold, seed=seed,
                     pose_frame=pose_frame, train_trajectories=train_trajectories)
     if use_tuned:
-        from ..sweep.studies import apply_best  # lazy: optuna only with use_tuned
+        from ..sweep.tuning.studies import apply_best  # lazy: optuna only with use_tuned
 
         cfg = apply_best(cfg, use_tuned)
         cell = cfg.cell(**cell.coords())  # tuned values change what the run computes: a new key

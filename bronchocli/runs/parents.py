@@ -3,7 +3,7 @@
 Found by tags or created once; cells and trials carry ``mlflow.parentRunId`` so the MLflow UI nests them.
 A parent ends like its command (``set_parent_status``). What a parent says about its sweep or study (the
 plan that ran, its outcome, the best trial) is written by the sweep package (``sweep/summary.py``,
-``sweep/tuning.py``) through ``log_plan_params``; ``report`` adds its tables and figures under
+``sweep/tuning/trial.py``) through ``log_plan_params``; ``report`` adds its tables and figures under
 ``report/`` (``log_report``).
 """
 

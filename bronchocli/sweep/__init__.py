@@ -20,10 +20,8 @@
   ``--repair``; what is provably a checkpoint is ``runs.ownership``'s call);
 - ``order``: the claim order; ``status``, ``summary``: tables for the plan, the live view, ``bronchopose status``
   and the parent runs;
-- ``studies``: Optuna studies on the same storage (opening, reading back); ``tuning``: what one trial is (one
-  MLflow run, the objective, the pruner); ``studyrows``, ``trials``, ``trialwork``: a study's trials as rows of
-  the claims table, added by ``tune``, claimed by sweep workers of any launcher through the one driver;
-  ``tuneresume``: a stopped trial's checkpoint handed to a trial that resumes it, and what ``sweep gc`` keeps.
+- ``tuning``: ``bronchopose tune``'s Optuna studies on the same storage, their trials rows of the claims table
+  claimed by sweep workers of any launcher through the one driver (its own modules: ``tuning/__init__.py``).
 
 See docs/sweep.md for the model and the exactly-once argument.
 """

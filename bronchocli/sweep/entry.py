@@ -172,12 +172,12 @@ def gc(cfg: Config, console: Console, *, dry_run: bool = False) -> int:
 def cancel(cfg: Config, kind: type[Launcher], console: Console, *, dry_run: bool = False,
            study: str | None = None) -> int:
     """Stop every queued or running worker of the sweep (running ones release their cells), or of the tuning
-    study ``study`` (``trials.cancel_study``); ``dry_run``: list them and stop nothing."""
+    study ``study`` (``tuning.launch.cancel_study``); ``dry_run``: list them and stop nothing."""
     if not kind.Session.outlives_command:
         raise BronchoError(f"--launcher {kind.name}: its workers are the `{'tune' if study else 'sweep run'}` "
                            "command's own processes; stop that command (Ctrl-C) instead")
     if study is not None:
-        from .trials import cancel_study  # lazy: optuna only for a study
+        from .tuning.launch import cancel_study  # lazy: optuna only for a study
 
         return cancel_study(cfg, study, kind, console, dry_run=dry_run)
     if not dry_run:  # recorded first: a watcher that sees the workers go never submits them again
@@ -266,7 +266,7 @@ def grid(cfg: Config, console: Console) -> None:
 def show_study(cfg: Config, study: str | None, target: Cell | None, fmt: str, console: Console) -> dict[str, Any]:
     """``tune --show``: the best trial and parameter importances of ``study`` (default: the cell's study); returns
     what it showed (``studies.describe_study``)."""
-    from . import studies, tuning  # lazy: optuna only when a study is read
+    from .tuning import studies, trial as tuning  # lazy: optuna only when a study is read
 
     if study is None and target is None:
         names = studies.list_studies(cfg)
@@ -303,7 +303,7 @@ def tune(cfg: Config, target: Cell, *, trials: int | None = None, study: str | N
     by workers of launcher ``kind`` (``options``: ``launcher_options``'s; the local one with one worker and no GPU
     runs it in this process, its own choice), then show its best trial; returns the study's description
     (``studies.describe_study``)."""
-    from . import studies, tuning, trials as trialrows  # lazy: optuna only when the command runs
+    from .tuning import launch as trialrows, studies, trial as tuning  # lazy: optuna only when the command runs
 
     kind = kind or launcher_class(TUNE_LAUNCHER)
     options = dict(options or {})

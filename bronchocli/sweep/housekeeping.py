@@ -10,7 +10,7 @@ something may resume its run:
 * a run of ``bronchopose train`` (no sweep claim) that ``train --resume`` can
   continue: KILLED, or FAILED by the machine (disk full, busy database);
 * a tune trial's run (KILLED or FAILED) while a trial of its study waits to
-  resume it (``tuneresume.checkpoint_need``): once that trial ran, or the
+  resume it (``tuning.resume.checkpoint_need``): once that trial ran, or the
   study's parent run FINISHED without it, or no trial was ever handed it
   (an interruption before this was kept), the checkpoint is reclaimable. A study
   not in ``storage.url`` (or a storage that cannot be read) keeps it: it may
@@ -42,7 +42,7 @@ from ..runs.ownership import owned_checkpoint, removable_bytes, remove_checkpoin
 from ..runs.processes import repair_zombie
 from ..runs.records import TAG_CELL_KEY, TAG_FAILURE, TAG_KIND, TAG_PARENT, search_runs
 from .storage import FAILED, PENDING, RUNNING, TAG_CLAIM, CellRow, StorageError, SweepStore
-from .tuneresume import checkpoint_need
+from .tuning.resume import checkpoint_need
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +118,7 @@ class _Studies:
 
     def _trials(self, name: str) -> list[Any] | str:
         if name not in self.trials:
-            from . import studies  # lazy: Optuna only where a trial's checkpoint lies, not for every status
+            from .tuning import studies  # lazy: Optuna only where a trial's checkpoint lies, not for every status
 
             try:
                 self.trials[name] = studies.load(self.cfg, name).get_trials(deepcopy=False)

@@ -209,7 +209,7 @@ def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool
     """Inside the launcher's session (``session``, else a new one): print the stages, submit workers for what is
     missing (then ``submitted``), and unless ``detach`` (0 once submitted) watch until they are gone (``watch``'s
     exit code). ``walk``: a sweep's ``StageWalk``, or anything walked alike (a study's trial rows:
-    ``trials.StudyWalk``)."""
+    ``tuning.launch.StudyWalk``)."""
     session = session or launcher.Session(launcher)
     with session:  # the local launcher's Ctrl-C stops its workers; a failure stops them first
         for stage in walk.stages:

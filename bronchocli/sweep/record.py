@@ -199,7 +199,7 @@ def rebuilt_count(rows: dict[str, CellRow]) -> int:
 
 
 def distributions(space: Mapping[str, TuneParam]) -> dict[str, Any]:
-    """``tune.space`` as Optuna distributions (what ``tuning.suggest`` samples)."""
+    """``tune.space`` as Optuna distributions (what ``tuning.trial.suggest`` samples)."""
     from optuna import distributions as d  # lazy: optuna only where a study is tuned, not in every sweep
 
     out: dict[str, Any] = {}

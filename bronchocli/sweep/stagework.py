@@ -9,7 +9,7 @@ installed (and its launcher's warning signal, e.g. Slurm's SIGUSR1: ``Launcher.E
 the stages in order (``work_stages``): claims the first stage's cells; goes on
 to a later stage only once every cell before it is done, settling its selection
 first; stops after the stage it was submitted for. A tuning study's worker
-(``WorkerJob.study``) claims the study's trial rows instead (``trialwork``). Exit code 0 (nothing left
+(``WorkerJob.study``) claims the study's trial rows instead (``tuning.worker``). Exit code 0 (nothing left
 here), 130 (stopped), 2 (a user error, logged in one line), 3 (stopped after a failure recorded on its cell's
 row: a full disk; the cell's failure says it).
 """
@@ -36,7 +36,7 @@ from .liveness import StopSignals
 from .placement import pin_env
 from .selection import describe_selection
 from .storage import FINISHED, RUNNING, SweepStore
-from .studyrows import StudyTask
+from .tuning.rows import StudyTask
 from .summary import TAG_CANCELLED, cancelled, record_stop, reopen
 from .worker import EXIT_INTERRUPTED, EXIT_OK, EXIT_RECORDED, Runner, Worker, WorkerId, default_runner, job_of
 
@@ -70,7 +70,7 @@ class WorkerJob:
     gpu_share: int = 1  # workers pinned to that GPU (this one included)
     parent_pid: int | None = None  # a local worker: its own process group; it stops when that process is gone
     cpu_workers: int = 1  # workers its command runs on this machine: each takes at most cores / N (runs.cores)
-    study: StudyTask | None = None  # a tuning study's worker: its trial rows instead of the stages (``trialwork``)
+    study: StudyTask | None = None  # a tuning study's worker: its trial rows instead of the stages (``tuning.worker``)
 
 
 def this_worker(launcher: type[Launcher], env: WorkerEnvironment) -> WorkerId:
@@ -162,7 +162,7 @@ def _worker_main(job: WorkerJob, env: WorkerEnvironment, stop_event: Any) -> int
         if detached:
             reopen_parent(cfg)
         if job.study is not None:
-            from .trialwork import work_trials  # lazy: Optuna loads only in a study's workers
+            from .tuning.worker import work_trials  # lazy: Optuna loads only in a study's workers
 
             code, _ = work_trials(cfg, store, job.study, signals=signals, ident=str(ident),
                                   exit_when_idle=job.exit_when_idle, storage_url=job.storage_url)

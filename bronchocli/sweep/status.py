@@ -34,7 +34,7 @@ from .selection import describe_selection
 from .summary import TAG_STOPPED
 from .damage import damage_line, future_line, future_s
 from .storage import FAILED, FINISHED, PENDING, RUNNING, CellRow, SweepStore
-from .studyrows import TRIALS_SUFFIX
+from .tuning.rows import TRIALS_SUFFIX
 from .launchers import names as launcher_names
 from .launchers import launcher_class
 from .launchers.base import words
@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 # skill against the better reference, per pair and accumulated (the paper's headline), † where it does not beat it
 HEADLINE_COLUMNS = {"pair ratio": runkeys.ratio("pos_l2"), "pair skill": runkeys.skill("pos_l2"),
                     "acc ratio": runkeys.ratio("pos_l2", "acc"), "acc skill": runkeys.skill("pos_l2", "acc")}
-TRIAL_VALUE = runkeys.best_of(runkeys.VAL_LOSS)  # shown for a study's trial rows (``studyrows``)
+TRIAL_VALUE = runkeys.best_of(runkeys.VAL_LOSS)  # shown for a study's trial rows (``tuning.rows``)
 STYLE = {FINISHED: "green", RUNNING: "cyan", FAILED: "red", PENDING: "dim"}
 
 
@@ -374,7 +374,7 @@ def sweep_state(cfg: Config, store: SweepStore, name: str, show_all: bool) -> Sw
 
 
 def study_lines(store: SweepStore) -> list[str]:
-    """A line per tuning study whose trial rows the claims table holds (``studyrows``): how to see them."""
+    """A line per tuning study whose trial rows the claims table holds (``tuning.rows``): how to see them."""
     out = []
     for sweep in (s for s in store.sweeps() if s.endswith(TRIALS_SUFFIX)):
         states = [r.state for r in store.rows(sweep)]

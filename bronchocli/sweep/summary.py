@@ -255,7 +255,7 @@ def record_parent(client, parent: str, walk: planning.StageWalk, *, finished: bo
 
 
 def log_study(client, parent: str, info: Mapping[str, Any], n_finished: int) -> None:
-    """What a reviewer reads on an Optuna study's parent run (``info``: ``studies.describe_study``).
+    """What a reviewer reads on an Optuna study's parent run (``info``: ``tuning.studies.describe_study``).
 
     Trial counts (metrics ``trials.*``), the best trial (its objective's metric, ``val_best.loss`` by default; tags ``best_trial``,
     ``best_run`` and ``best.<path>`` = its value of each searched path), and parameter importances (metrics

@@ -1,7 +1,7 @@
 """A detached sweep worker: ``python -m bronchocli.sweep.task '<spec>'`` (a Slurm array task, or a worker of any
 launcher whose workers outlive the command) runs the one worker entry, ``stagework.worker_main``.
 
-The command that submits the workers (``entry.run``; ``trials.tune`` for a study's) writes the spec
+The command that submits the workers (``entry.run``; ``tuning.launch.tune`` for a study's) writes the spec
 (``command``), a small JSON object
 (``TaskSpec``: the config file, profile, ``--set`` overrides, ``--storage``,
 ``--use-tuned``, ``--only``, ``--runner``, the launcher's name, and for a
@@ -41,7 +41,7 @@ from ..errors import BronchoError
 from ..io import write_text
 from .launchers import STAGE_ENV, launcher_class, log_roots
 from .stagework import WorkerJob, worker_config, worker_main
-from .studyrows import StudyTask
+from .tuning.rows import StudyTask
 from .worker import Runner, default_runner
 
 log = logging.getLogger(__name__)
@@ -91,7 +91,7 @@ class TaskSpec:
         if spec.storage:
             cfg = cfg.with_values({"storage.url": spec.storage})
         if self.use_tuned:  # new values -> new cell keys: tuned cells never reuse untuned runs
-            from .studies import apply_best  # lazy: optuna only with --use-tuned
+            from .tuning.studies import apply_best  # lazy: optuna only with --use-tuned
 
             cfg = apply_best(cfg, self.use_tuned)
         return cfg

@@ -14,7 +14,8 @@ from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import resume_file
 from bronchocli.runs.ownership import mark
 from bronchocli.runs.records import cell_tags
-from bronchocli.sweep import SweepStore, prepare, studies
+from bronchocli.sweep import SweepStore, prepare
+from bronchocli.sweep.tuning import studies
 from bronchocli.sweep.launchers.slurm import job_comment
 
 DRY_RUNS = [  # (the old `sweep --dry-run` with --launcher slurm, --detach, --retry-failed: refused, exit 2)

@@ -13,7 +13,7 @@ from tinyproject import write_config
 from bronchocli.config import load_config
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
-from bronchocli.sweep import studies, tuning
+from bronchocli.sweep.tuning import studies, trial as tuning
 
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
 SPACE = """\

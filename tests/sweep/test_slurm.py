@@ -644,8 +644,8 @@ def test_tune_runs_its_trials_as_slurm_array_tasks_and_sweep_cancel_stops_a_runn
     import optuna
 
     from bronchocli.runs.parents import KIND_STUDY, find_parent
-    from bronchocli.sweep import studies, tuning
-    from bronchocli.sweep.studyrows import study_sweep
+    from bronchocli.sweep.tuning import studies, trial as tuning
+    from bronchocli.sweep.tuning.rows import study_sweep
     from bronchocli.sweep.summary import TAG_CANCELLED
 
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=4, frames=8, image_size=32)

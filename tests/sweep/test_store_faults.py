@@ -300,9 +300,10 @@ def test_plan_reports_the_workers_a_run_starts_and_workers_are_bounded(cli, proj
 
 
 def test_tune_starts_a_worker_per_trial_at_most(monkeypatch, project):
-    from bronchocli.sweep import entry, trials
+    from bronchocli.sweep import entry
+    from bronchocli.sweep.tuning import launch as trials
     from bronchocli.sweep.launchers import LocalLauncher
-    from bronchocli.sweep.studyrows import StudyTask
+    from bronchocli.sweep.tuning.rows import StudyTask
 
     seen = {}
 

@@ -7,7 +7,7 @@ import threading
 import optuna
 from optuna.storages._heartbeat import HeartbeatThread
 
-from bronchocli.sweep.trialwork import end_heartbeats
+from bronchocli.sweep.tuning.worker import end_heartbeats
 
 
 class _Beats:

@@ -22,10 +22,11 @@ from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.contract import RunInterrupted, resume_file
 from bronchocli.runs.parents import study_parent
 from bronchocli.runs.records import TAG_PARENT
-from bronchocli.sweep import SweepStore, studies, tuning
-from bronchocli.sweep import trials as trialrows
-from bronchocli.sweep.studyrows import study_sweep
-from bronchocli.sweep.tuneresume import ATTR_RESUME_CELL, ATTR_RESUME_RUN, ATTR_RESUMES
+from bronchocli.sweep import SweepStore
+from bronchocli.sweep.tuning import studies, trial as tuning
+from bronchocli.sweep.tuning import launch as trialrows
+from bronchocli.sweep.tuning.rows import study_sweep
+from bronchocli.sweep.tuning.resume import ATTR_RESUME_CELL, ATTR_RESUME_RUN, ATTR_RESUMES
 
 SPACE = {"train.lr": {"type": "float", "low": 1.0e-5, "high": 1.0e-3, "log": True}}
 TARGET = dict(arch="baseline", rot_loss="mse", population="personalized")

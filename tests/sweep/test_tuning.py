@@ -20,9 +20,10 @@ from bronchocli.errors import ConfigError
 from bronchocli.runs.client import client_for, experiment_id
 from bronchocli.runs.records import search_runs
 from bronchocli.runs.views import text_figure
-from bronchocli.sweep import StorageError, SweepStore, WorkerId, studies, tuning
-from bronchocli.sweep import trials as trialrows
-from bronchocli.sweep.studyrows import study_sweep
+from bronchocli.sweep import StorageError, SweepStore, WorkerId
+from bronchocli.sweep.tuning import studies, trial as tuning
+from bronchocli.sweep.tuning import launch as trialrows
+from bronchocli.sweep.tuning.rows import study_sweep
 
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
 TARGET = ["-a", "baseline", "-l", "mse", "-P", "personalized", "-q"]
@@ -469,9 +470,10 @@ def test_the_default_tune_goes_through_the_driver_and_the_launcher_runs_its_one_
     """Issue 58: on a machine without a GPU `tune` drives its rows as a cluster's (``launch.drive`` with a
     launcher); running the one worker in this process is the local launcher's choice, not the driver's — with two
     workers the same launcher starts processes."""
-    from bronchocli.sweep import launch, trialwork
+    from bronchocli.sweep import launch
+    from bronchocli.sweep.tuning import worker as trialwork
     from bronchocli.sweep.launchers.local import InProcess, LocalLauncher, LocalProcesses
-    from bronchocli.sweep.studyrows import StudyTask
+    from bronchocli.sweep.tuning.rows import StudyTask
 
     seen: dict = {}
     real_drive = launch.drive

@@ -44,7 +44,7 @@ from ..session import EXIT_INTERRUPTED, AttachedSession
 from .base import GENERIC, Launcher, Workers
 
 if TYPE_CHECKING:  # the worker side loads when workers are started (the registry lists options without it)
-    from ..studyrows import StudyTask
+    from ..tuning.rows import StudyTask
     from ..worker import Runner
 
 
@@ -139,7 +139,7 @@ class _Ended:
 
 class InProcess(LocalProcesses):
     """A study's one worker run in this process (``LocalProcesses``' members): ``start`` works the study's rows
-    (``trialwork.work_trials``) and returns when none is left; this process's Ctrl-C reaches the trial itself
+    (``tuning.worker.work_trials``) and returns when none is left; this process's Ctrl-C reaches the trial itself
     (it completes, the worker starts no other, ``start`` raises RunInterrupted: ``tune`` ends 130)."""
 
     def __init__(self, log_dir: Path, work: Callable[[], int]):
@@ -224,7 +224,7 @@ class LocalLauncher(Launcher):
                  per_gpu: int | None = None, storage_url: str | None = None, log_dir: Path | None = None):
         """``gpus``: ``--gpus`` (auto, none or a list such as 0,1; checked against this machine's; default auto), or
         the GPUs themselves; ``workers``: ``--workers`` (default: the GPUs x ``--per-gpu``, else 1); ``study``: a
-        tuning study's workers (its trial rows, ``sweep.trialwork``). Its workers are spawned with their job:
+        tuning study's workers (its trial rows, ``sweep.tuning.worker``). Its workers are spawned with their job:
         ``command`` is never made."""
         from ..stagework import worker_config  # lazy: see the imports
         from ..worker import default_runner
@@ -244,7 +244,7 @@ class LocalLauncher(Launcher):
         while a trial ran): RunInterrupted naming the trial and the signal."""
         from ...runs.contract import RunInterrupted  # lazy: see the imports
         from ..plan import open_store
-        from ..trialwork import stopped_line, work_trials
+        from ..tuning.worker import stopped_line, work_trials
 
         assert self.study is not None
         code, worker = work_trials(self.wcfg, open_store(self.wcfg, self.storage_url), self.study,

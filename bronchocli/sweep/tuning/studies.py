@@ -4,8 +4,8 @@ A study lives in ``storage.url`` (SQLite file or PostgreSQL) beside the claims
 table, in a schema (or file) of its own when that is MLflow's database too
 (``optuna_url``). Reading a study (``load``, ``describe_study``,
 ``best_values``) creates nothing; ``storage_for`` creates Optuna's tables once
-(under a lock: machines race for it). What a trial does: ``tuning``; how
-trials are claimed and run: ``trials`` and ``trialwork``.
+(under a lock: machines race for it). What a trial does: ``trial``; how
+trials are claimed and run: ``launch`` and ``worker``.
 """
 
 from __future__ import annotations
@@ -22,13 +22,13 @@ from sqlalchemy import create_engine, inspect, make_url, text
 from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 from sqlalchemy.pool import NullPool
 
-from .. import extras, runkeys, urls
-from ..config import Config
-from ..errors import BronchoError
-from ..io import file_lock
-from ..runs.client import MIGRATION_LOCK_KEY, connect_timeout, database_lock
-from .storage import StorageError
-from .tuneresume import ATTR_RUN
+from ... import extras, runkeys, urls
+from ...config import Config
+from ...errors import BronchoError
+from ...io import file_lock
+from ...runs.client import MIGRATION_LOCK_KEY, connect_timeout, database_lock
+from ..storage import StorageError
+from .resume import ATTR_RUN
 
 
 OPTUNA_LOCK_KEY = MIGRATION_LOCK_KEY + 1  # pg_advisory_lock key of Optuna's table creation

@@ -8,7 +8,7 @@ checkpoint is handed to a new trial (Optuna's own pattern for retried trials):
 ``keep_for_resume`` enqueues the same parameters as a WAITING trial whose user
 attributes name the run (``resume_run``), the interrupted trial
 (``resumes_trial``) and the cell key (``resume_cell``). The next claim of
-any of the study's trial rows (``trialwork``) starts that trial first; ``resume_from`` continues the same MLflow run
+any of the study's trial rows (``worker``) starts that trial first; ``resume_from`` continues the same MLflow run
 from its checkpoint (its validations before the checkpoint reported again to
 the pruner), or, when the checkpoint is not on this machine or the config
 changed the cell, trains afresh with those parameters (the old run stays KILLED).
@@ -25,9 +25,9 @@ import logging
 from collections.abc import Sequence
 from typing import Any
 
-from ..config import Config
-from ..errors import resumable
-from ..runs.contract import RunInterrupted, resume_file
+from ...config import Config
+from ...errors import resumable
+from ...runs.contract import RunInterrupted, resume_file
 
 log = logging.getLogger(__name__)
 

@@ -1,11 +1,11 @@
 """``bronchopose tune``: a study's trials as rows of the claims table, run by sweep workers through the one driver.
 
-``tune --trials N`` opens the study, adds the rows it lacks (``studyrows``:
+``tune --trials N`` opens the study, adds the rows it lacks (``rows``:
 sweep ``<study>.trials``, ``trial-0000`` ... ``trial-<N-1>``; raising N later
 adds rows, lowering it removes none) and records on open rows the finished
 trials no row records yet (a study older than its rows, or rebuilt from MLflow
 after its storage was lost: ``record.rebuild_trials``), so none runs twice.
-Then workers claim the rows, one Optuna trial per row (``trialwork``), started
+Then workers claim the rows, one Optuna trial per row (``worker``), started
 by a launcher and watched by the sweep's driver (``launch.drive``) on every
 machine: local worker processes placed on the GPUs (one worker without a GPU:
 the local launcher runs it in this process, its own choice), Slurm array tasks
@@ -30,22 +30,23 @@ from typing import Any
 
 from rich.console import Console
 
-from .. import urls
-from ..cells import Cell, TrialCell
-from ..config import Config, Stage
-from ..errors import BronchoError, ConfigError
-from ..runs.client import client_for
-from ..runs.contract import RunInterrupted
-from ..runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
-from . import launch, studies, summary, tuning
-from .launchers import launcher_class, reference
-from .launchers.base import Launcher
-from .plan import Plan, Step, cells_left, open_store, read_plan
-from .record import existing_experiment, rebuild_trials
-from .storage import FAILED, PENDING, SweepStore
-from .studyrows import StudyTask, study_sweep, trial_cell
-from .task import TaskSpec, command
-from .worker import EXIT_INTERRUPTED
+from ... import urls
+from ...cells import Cell, TrialCell
+from ...config import Config, Stage
+from ...errors import BronchoError, ConfigError
+from ...runs.client import client_for
+from ...runs.contract import RunInterrupted
+from ...runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
+from .. import launch as driver, summary
+from . import studies, trial
+from ..launchers import launcher_class, reference
+from ..launchers.base import Launcher
+from ..plan import Plan, Step, cells_left, open_store, read_plan
+from ..record import existing_experiment, rebuild_trials
+from ..storage import FAILED, PENDING, SweepStore
+from .rows import StudyTask, study_sweep, trial_cell
+from ..task import TaskSpec, command
+from ..worker import EXIT_INTERRUPTED
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +84,8 @@ def record_finished(store: SweepStore, sweep: str, study: Any) -> int:
     """Record each COMPLETE or PRUNED trial whose MLflow run no row names on an open (pending or failed) row."""
     stored = store.rows(sweep)
     named = {r.run_id for r in stored if r.run_id}
-    done = [t.user_attrs[tuning.ATTR_RUN] for t in study.get_trials(deepcopy=False, states=studies.FINISHED_STATES)
-            if t.user_attrs.get(tuning.ATTR_RUN) and t.user_attrs[tuning.ATTR_RUN] not in named]
+    done = [t.user_attrs[trial.ATTR_RUN] for t in study.get_trials(deepcopy=False, states=studies.FINISHED_STATES)
+            if t.user_attrs.get(trial.ATTR_RUN) and t.user_attrs[trial.ATTR_RUN] not in named]
     open_rows = [r for r in stored if r.state in (PENDING, FAILED) and r.damage is None]
     return sum(1 for row, run_id in zip(open_rows, done) if store.record_finished(row, run_id, None, RECORDED))
 
@@ -132,18 +133,18 @@ def _tune(cfg: Config, target: Cell, trials: int, *, study: str | None, timeout:
           make_launcher: MakeLauncher | None, spec: TaskSpec | None, progress: bool,
           enqueue: Sequence[Mapping[str, Any]], console: Console | None) -> Any:
     console = console or Console(quiet=True)
-    tuning.check_space(cfg)
-    name = study or tuning.study_name(cfg, target)
+    trial.check_space(cfg)
+    name = study or trial.study_name(cfg, target)
     lcfg = launcher_config(cfg, name)  # a bad --study: one line before anything is created
-    s = tuning.open_study(cfg, target, study=name)  # created once, before workers race
-    rebuild_trials(cfg, s, tuning.ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
+    s = trial.open_study(cfg, target, study=name)  # created once, before workers race
+    rebuild_trials(cfg, s, trial.ATTR_RUN)  # a lost or new study storage: the trials MLflow records FINISHED count
     for params in enqueue:
         s.enqueue_trial(dict(params), skip_if_exists=True)
     store = open_store(cfg)
     store.ensure_schema()
     rows = add_rows(cfg, store, s, target, trials)
     task = StudyTask(name, cfg.name, None if timeout is None else time.time() + timeout, progress)
-    parent = tuning.study_parent_or_none(cfg, target, name)  # created here once, found by the workers
+    parent = trial.study_parent_or_none(cfg, target, name)  # created here once, found by the workers
     client = client_for(cfg)
     if parent is not None:
         start_parent(client, parent)  # RUNNING with this process: `status --repair` ends it if killed
@@ -182,7 +183,7 @@ def _launched(cfg: Config, lcfg: Config, store: SweepStore, rows: Sequence[Trial
     client = client_for(cfg)
     console.print(f"[bold]study[/] {task.study}: trial rows {lcfg.name}, workers {launcher.describe()}",
                   highlight=False)
-    code = launch.drive(StudyWalk(lcfg, store, rows), launcher, console, detach=False,
+    code = driver.drive(StudyWalk(lcfg, store, rows), launcher, console, detach=False,
                         cancelled=lambda: summary.cancelled(client, parent),
                         cancel_hint=f"`bronchopose sweep cancel --study {task.study}`",
                         resume_hint="the same `bronchopose tune` command", what=f"study {task.study}")
@@ -217,7 +218,7 @@ def cancel_study(cfg: Config, study: str, kind: type[Launcher], console: Console
                            "check the name")
     if parent is not None and not dry_run:
         summary.mark_cancelled(client_for(cfg), parent)
-    return launch.cancel(kind(lcfg), console, dry_run=dry_run)
+    return driver.cancel(kind(lcfg), console, dry_run=dry_run)
 
 
 def _has_rows(cfg: Config, study: str) -> bool:

@@ -1,4 +1,4 @@
-"""A tuning study's trial rows in the claims table, by name: what ``trials`` adds and ``trialwork`` claims.
+"""A tuning study's trial rows in the claims table, by name: what ``launch`` adds and ``worker`` claims.
 
 A study of N trials is N rows: sweep ``<study>.trials`` (``study_sweep``; the
 suffix keeps them apart from every config's own cells), keys ``trial-0000``,
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..cells import Cell, TrialCell
+from ...cells import Cell, TrialCell
 
 TRIALS_SUFFIX = ".trials"
 

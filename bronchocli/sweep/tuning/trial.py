@@ -7,10 +7,10 @@ validation loss by default), which the study minimises. Per-validation values
 are reported to Optuna, whose pruner (median or Hyperband) may stop a trial
 early: its run is KILLED and tagged ``pruned``. The study lives in the shared
 storage (``studies``); its trials are rows of the claims table, claimed and run
-by sweep workers of any launcher (``trials``, ``trialwork``), so
+by sweep workers of any launcher (``launch``, ``worker``), so
 ``--trials N`` is the study's rows, not this process's. A trial stopped by a
 signal hands its checkpoint to a trial of the same parameters that the next
-claim of its row resumes (``tuneresume``).
+claim of its row resumes (``resume``).
 """
 
 from __future__ import annotations
@@ -22,17 +22,17 @@ from typing import Any
 
 import optuna
 
-from .. import runkeys
-from ..cells import Cell
-from ..config import Config, TuneParam, space_problems
-from ..errors import BronchoError, ConfigError
-from ..runs.client import client_for, experiment_id
-from ..runs.contract import RunPruned
-from ..runs.parents import study_parent
-from ..runs.records import TAG_PARENT, run_name
-from ..training.cost import COST_TARGET, cost_value
+from ... import runkeys
+from ...cells import Cell
+from ...config import Config, TuneParam, space_problems
+from ...errors import BronchoError, ConfigError
+from ...runs.client import client_for, experiment_id
+from ...runs.contract import RunPruned
+from ...runs.parents import study_parent
+from ...runs.records import TAG_PARENT, run_name
+from ...training.cost import COST_TARGET, cost_value
 from .studies import ATTR_OBJECTIVE, storage_for
-from .tuneresume import ATTR_RUN, keep_for_resume, resume_from, worth_resuming
+from .resume import ATTR_RUN, keep_for_resume, resume_from, worth_resuming
 
 log = logging.getLogger(__name__)
 
@@ -155,7 +155,7 @@ def objective(cfg: Config, target: Cell, name: str, *, parent: str | None, worke
     under ``tune.budget_pairs``, at pairs seen. ``extra_tags`` (the claim's), ``run_id_callback`` (the row records
     the run) and ``run_kw`` go to ``run_cell``; ``run.stop_requested`` holds the signal that arrived while the
     trial evaluated (the trial counts, its worker stops)."""
-    from ..training.run import run_cell  # lazy: torch loads only where trials run, not for --show
+    from ...training.run import run_cell  # lazy: torch loads only where trials run, not for --show
 
     reported, metric = OBJECTIVES[cfg.tune.objective]
 

@@ -1,11 +1,11 @@
 """A tuning study's worker: claim a trial row of the claims table, run one Optuna trial for it, record the outcome.
 
-A study of N trials is N rows of the claims table (``studyrows``: sweep
-``<study>.trials``, keys ``trial-0000``, ...; added by ``trials``). Any sweep
-worker (``worker.Worker``, started by any launcher through
+A study of N trials is N rows of the claims table (``rows``: sweep
+``<study>.trials``, keys ``trial-0000``, ...; added by ``launch``). Any sweep
+worker (``sweep.worker.Worker``, started by any launcher through
 ``stagework.worker_main`` with a ``StudyTask``) claims them: for each row it
 claims it asks the study for one trial (a WAITING one first: a stopped trial's
-checkpoint handed on, ``tuneresume``), trains it through ``tuning.objective``
+checkpoint handed on, ``resume``), trains it through ``trial.objective``
 with the worker's heartbeat, and records the trial's MLflow run on the row. A
 complete or pruned trial finishes its row; a failed one fails it (retried as a
 sweep's cells are, ``sweep.max_retries``); a stop signal releases it (the trial
@@ -24,15 +24,15 @@ from typing import Any
 
 import optuna
 
-from .. import cells
-from ..cells import TrialCell
-from ..config import Config
-from ..errors import BronchoError
-from .liveness import StopSignals
-from .storage import SweepStore
-from .studyrows import StudyTask, study_sweep
-from .tuning import ATTR_RUN, TrialFailed, objective, open_study, study_parent_or_none
-from .worker import EXIT_OK, TAG_WORKER, Worker
+from ... import cells
+from ...cells import TrialCell
+from ...config import Config
+from ...errors import BronchoError
+from ..liveness import StopSignals
+from ..storage import SweepStore
+from .rows import StudyTask, study_sweep
+from .trial import ATTR_RUN, TrialFailed, objective, open_study, study_parent_or_none
+from ..worker import EXIT_OK, TAG_WORKER, Worker
 
 log = logging.getLogger(__name__)
 
