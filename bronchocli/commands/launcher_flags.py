@@ -21,12 +21,12 @@ TYPES = {int: Optional[int], float: Optional[float], bool: Optional[bool]}  # an
 
 def option(name: str, param: Any, help: str | None = None) -> Any:
     """The click option of a launcher parameter, built as Typer builds a declared ``typer.Option``."""
-    decls = ["--" + name.replace("_", "-"), *([param.short] if param.short else [])]
-    bounds = {k: v for k, v in (("min", param.low), ("max", param.high)) if v is not None}
+    rule = param.rule(name)  # its flag and bounds, as the API checks them
+    decls = [rule.flag, *([param.short] if param.short else [])]
     text = help or param.help
     if param.default is not None and help is None and "default" not in text.lower():
         text += f" Default: {','.join(param.default) if isinstance(param.default, list) else param.default}."
-    info = typer.Option(None, *decls, help=text, **bounds)
+    info = typer.Option(None, *decls, help=text, **rule.bounds())
     return _get_param(ParamMeta(name=name, default=info, annotation=TYPES.get(param.type, Optional[str])))
 
 
