@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import re
 import statistics
 import sys
 from pathlib import Path
@@ -121,8 +122,13 @@ def flat(by_model: dict[str, Any]) -> dict[str, dict[str, list]]:
 
 
 def report_tables(folder: Path) -> dict[str, list[str]]:
-    """The report's Markdown tables, verbatim (one list of lines per file)."""
-    return {f"docs_{p.stem.replace('-', '_')}": p.read_text().rstrip("\n").splitlines()
+    """The report's Markdown tables, verbatim (one list of lines per file) but for their links to the report's own
+    files (``[Methods](methods.md)``), which resolve in the report's folder, not where the docs show the tables:
+    kept as text naming the file."""
+    def unlinked(text: str) -> str:
+        return re.sub(r"\[([^\]]+)\]\(([\w.-]+\.md)\)", r"\1 (the report's \2)", text)
+
+    return {f"docs_{p.stem.replace('-', '_')}": unlinked(p.read_text()).rstrip("\n").splitlines()
             for p in sorted(folder.glob("*.md"))} if folder.is_dir() else {}
 
 

@@ -41,7 +41,9 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     console.print(rep.summary_index(index))
     ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client), history=history_loader(client),
                             profile_plans=(lambda: profile_plans(cfg)) if sweep is None else None,
-                            default_train_trajectories=None if sweep else cfg.splits.train)
+                            default_train_trajectories=None if sweep else cfg.splits.train,
+                            dataset={} if sweep else {f"dataset.generate.{k}": str(getattr(cfg.dataset.generate, k))
+                                                      for k in ("image_size", "patients", "anatomy")})
     if profiles is not None:
         ctx.profiler = profiles
     elif latency:

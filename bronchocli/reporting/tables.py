@@ -26,6 +26,7 @@ image-blind reference rows (judge.py).
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 from .. import registry, runkeys
@@ -269,7 +270,8 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
     if evaluation == "accumulated":
         notes.append(PAPER_TABLE6)
     table = _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what, notes)
-    if evaluation == "accumulated" and (here := _beside_paper(table, [r for line in lines for r in line.runs])):
+    if evaluation == "accumulated" and (here := _beside_paper(table, [r for line in lines for r in line.runs],
+                                                              ctx.dataset)):
         table.notes.insert(table.notes.index(PAPER_TABLE6) + 1, here)
     return table
 
@@ -285,11 +287,12 @@ PAPER_TABLE6 = ("The paper's Table 6, for the direction only (its data, 256² fr
 PAPER_SETTING = {"image_size": 256, "patients": 5, "init": "ImageNet"}
 
 
-def _beside_paper(table: Table, runs: Sequence[RunRecord]) -> str:
+def _beside_paper(table: Table, runs: Sequence[RunRecord], dataset: Mapping[str, str] | None = None) -> str:
     """Our Table 6 in the paper's words: position L2 and CE of the two model rows, which is lower (and whether the
     table finds it significantly so), and every remaining difference from the paper's setting the runs record
     (frame size, patients, initialisation; numerics, when the rows differ, have a note of their own) besides the
-    data itself. Empty without both model rows."""
+    data itself (``dataset``: the config's ``dataset.generate.*`` where the runs do not log them). Empty without
+    both model rows."""
     models = [r for r in table.rows if r.kind == "model"]
     if len(models) != 2:
         return ""
@@ -314,7 +317,7 @@ def _beside_paper(table: Table, runs: Sequence[RunRecord]) -> str:
     params = [r.params for r in runs]
 
     def one(key: str) -> str:
-        seen = sorted({p.get(key, "") for p in params} - {""})
+        seen = sorted({p.get(key, "") or (dataset or {}).get(key, "") for p in params} - {""})
         return "/".join(seen) if seen else "?"
 
     size, patients, anatomy = (one(f"dataset.generate.{k}") for k in ("image_size", "patients", "anatomy"))
@@ -324,8 +327,9 @@ def _beside_paper(table: Table, runs: Sequence[RunRecord]) -> str:
     paper = PAPER_SETTING
     diffs = [(f"{size}² frames" if size != "?" else "frames of unrecorded size")
              + f" (the paper: {paper['image_size']}²)",
-             (f"{patients} {anatomy if anatomy != '?' else 'synthetic'} airway(s)" if patients != "?"
-              else "synthetic airways") + f" (the paper: {paper['patients']} CT patients)",
+             (f"{patients} {'procedural ' if anatomy == 'procedural' else ''}airway(s)"
+              + (f" from {Path(anatomy).name}" if anatomy not in ("procedural", "?") else "")
+              if patients != "?" else "synthetic airways") + f" (the paper: {paper['patients']} CT patients)",
              f"backbones from {init} weights (the paper: {paper['init']})"]
     return (f"Here: {'; '.join(t for t, _, _ in said)} — {verdict} ({sig}: the table's bold). Remaining "
             f"differences from the paper's setting: {', '.join(diffs)}, and the training budget (Source).")

@@ -51,3 +51,14 @@ def test_without_both_model_rows_there_is_no_note():
     t = table((1.0, 2.0), (0.1, 0.2), {})
     t.rows = t.rows[:1] + t.rows[2:]
     assert _beside_paper(t, [run("96", "random")]) == ""
+
+
+def test_the_configs_dataset_stands_in_for_what_cell_runs_do_not_log():
+    """Cell runs do not log dataset.generate.* (the sweep's parent does): the report passes the config's."""
+    bare = RunRecord("r", "FINISHED", 0, {TAG_INIT: "random"}, {})
+    config = {"dataset.generate.image_size": "96", "dataset.generate.patients": "3",
+              "dataset.generate.anatomy": "/data/airways/patient7.vtu"}
+    note = _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [bare] * 2, config)
+    assert "96² frames (the paper: 256²)" in note
+    assert "3 airway(s) from patient7.vtu (the paper: 5 CT patients)" in note
+    assert "frames of unrecorded size" in _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [bare])
