@@ -70,9 +70,7 @@ class ReportContext:
     history: Callable[[str, str], Any] | None = None  # (run id, metric) -> [(step, value)]: fig-training-curves
     settings: Settings = field(default_factory=Settings)
     default_train_trajectories: int | None = None  # what train_trajectories "" means (config's splits.train)
-    # the config's dataset (dataset.generate.<key> -> value, as a run's params would spell them; config mode only):
-    # cell runs do not log it (the sweep's parent does), Table 6's note names it beside the paper's
-    dataset: Mapping[str, str] = field(default_factory=dict)
+    image_size: int | None = None  # the frames' size the config's runs trained at (cell runs do not log it)
     profile_plans: Callable[[], Mapping[str, set]] | None = None  # profile -> its (arch, loss, population) combos
     _profiles: dict[str, Mapping[str, Any] | None] = field(default_factory=dict)
     _plans: Mapping[str, set] | None = None

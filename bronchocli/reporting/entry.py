@@ -42,8 +42,7 @@ def report(cfg: Config, names: Sequence[str], evaluations: Sequence[str], suffix
     ctx = tbl.ReportContext(index, best=best, errors=errors_loader(client), history=history_loader(client),
                             profile_plans=(lambda: profile_plans(cfg)) if sweep is None else None,
                             default_train_trajectories=None if sweep else cfg.splits.train,
-                            dataset={} if sweep else {f"dataset.generate.{k}": str(getattr(cfg.dataset.generate, k))
-                                                      for k in ("image_size", "patients", "anatomy")})
+                            image_size=None if sweep else rep.default_image_size(cfg))
     if profiles is not None:
         ctx.profiler = profiles
     elif latency:

@@ -46,6 +46,11 @@ def _samples(rows: Sequence[Row]) -> list[Sample]:
     return [s for r in rows if r.kind == "model" for s in r.info.get("samples", ()) if s is not None]
 
 
+def patients_of(rows: Sequence[Row]) -> list[str]:
+    """The patients the model rows' per-trajectory samples rest on, sorted (none: the rows have no samples)."""
+    return sorted({k[0] for s in _samples(rows) for k in s.keys})
+
+
 def _names(patients: Sequence[str]) -> str:
     shown = ", ".join(patients[:4]) + (f" and {len(patients) - 4} more" if len(patients) > 4 else "")
     return f"{len(patients)} patient{'s' if len(patients) != 1 else ''} ({shown})"
@@ -55,7 +60,7 @@ def estimand_phrase(unit: str, rows: Sequence[Row]) -> str:
     """The caption's estimand in words (what every interval and test of the table is about) and how many
     patients it rests on: "for new seeds and new test trajectories of these 3 patients (p00, p01, p02), not a
     new patient"."""
-    patients = sorted({k[0] for s in _samples(rows) for k in s.keys})
+    patients = patients_of(rows)
     if not patients:
         return ""
     reps = {r.info.get("replicates") for r in rows if r.kind == "model" and r.info.get("replicates")}

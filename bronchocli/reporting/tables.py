@@ -26,7 +26,6 @@ image-blind reference rows (judge.py).
 from __future__ import annotations
 
 import math
-from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 from .. import registry, runkeys
@@ -52,7 +51,7 @@ from .context import (
     precision_text,
     source_text,
 )
-from .estimand import unit_of
+from .estimand import patients_of, unit_of
 from .frames_table import frames
 from .judge import Line, metric_rows
 from .table_model import Column, Row, Table, Value
@@ -271,7 +270,7 @@ def sota(ctx: ReportContext, evaluation: str) -> Table:
         notes.append(PAPER_TABLE6)
     table = _build(ctx, c, table, lines, metrics_of("paper"), evaluation, what, notes)
     if evaluation == "accumulated" and (here := _beside_paper(table, [r for line in lines for r in line.runs],
-                                                              ctx.dataset)):
+                                                              ctx.image_size)):
         table.notes.insert(table.notes.index(PAPER_TABLE6) + 1, here)
     return table
 
@@ -285,53 +284,44 @@ PAPER_TABLE6 = ("The paper's Table 6, for the direction only (its data, 256² fr
 # The paper's Table 6 setting, for the differences a reader must know (docs/reproduction.md): its 5 CT patients at
 # 256², both backbones from ImageNet
 PAPER_SETTING = {"image_size": 256, "patients": 5, "init": "ImageNet"}
+INIT_WORDS = {"random": "random", "imagenet": "ImageNet", "file": "a file's"}  # a run's init tag, before any ':'
 
 
-def _beside_paper(table: Table, runs: Sequence[RunRecord], dataset: Mapping[str, str] | None = None) -> str:
+def _beside_paper(table: Table, runs: Sequence[RunRecord], image_size: int | None) -> str:
     """Our Table 6 in the paper's words: position L2 and CE of the two model rows, which is lower (and whether the
-    table finds it significantly so), and every remaining difference from the paper's setting the runs record
-    (frame size, patients, initialisation; numerics, when the rows differ, have a note of their own) besides the
-    data itself (``dataset``: the config's ``dataset.generate.*`` where the runs do not log them). Empty without
+    table finds it significantly so), and every remaining difference from the paper's setting: frame size
+    (``image_size``: the config's, which cell runs do not log; None: unknown), patients (those the rows' samples
+    rest on), the backbones'
+    initialisation (the runs' init tags); numerics, when the rows differ, have a note of their own. Empty without
     both model rows."""
     models = [r for r in table.rows if r.kind == "model"]
     if len(models) != 2:
         return ""
-    n_extra = len(table.columns) - len(metrics_of("paper"))
+    metrics = metrics_of("paper")
+    n_extra = len(table.columns) - len(metrics)
     rows = [table.rows.index(r) for r in models]
-    said = []
-    for metric, unit in (("pos_l2", " vox"), ("ce", "")):
-        j = n_extra + metrics_of("paper").index(metric)
+    said = []  # (metric's words, its numbers, the lower row's name, significantly)
+    for metric, words, unit in (("pos_l2", "position", " vox"), ("ce", "CE", "")):
+        j = n_extra + metrics.index(metric)
         vals = [table.rows[i].values[j] for i in rows]
         if any(v is None for v in vals):
             return ""
         a, b = (v.mean for v in vals)
         lower = 0 if a < b else 1
-        sig = "best" in table.marks[rows[lower]][j]
-        said.append((f"{'position L2' if metric == 'pos_l2' else 'CE'} {models[0].name} {a:.4g} vs {models[1].name} "
-                     f"{b:.4g}{unit}", models[lower].name, sig))
-    winners = {w for _, w, _ in said}
-    verdict = (f"{next(iter(winners))} lower in both" if len(winners) == 1
-               else "; ".join(f"{w} lower in {'position' if k == 0 else 'CE'}" for k, (_, w, _) in enumerate(said)))
-    sig = ", ".join(f"{'position' if k == 0 else 'CE'} {'significantly' if s else 'not significantly'}"
-                    for k, (_, _, s) in enumerate(said))
-    params = [r.params for r in runs]
-
-    def one(key: str) -> str:
-        seen = sorted({p.get(key, "") or (dataset or {}).get(key, "") for p in params} - {""})
-        return "/".join(seen) if seen else "?"
-
-    size, patients, anatomy = (one(f"dataset.generate.{k}") for k in ("image_size", "patients", "anatomy"))
-    inits = sorted({r.tag(TAG_INIT) or "?" for r in runs})
-    init = {"random": "random", "imagenet": "ImageNet", "file": "a file's", "?": "unrecorded"}.get(
-        inits[0].split(":", 1)[0], inits[0]) if len(inits) == 1 else "mixed"
+        said.append((words, f"{'position L2' if metric == 'pos_l2' else 'CE'} {models[0].name} {a:.4g} vs "
+                     f"{models[1].name} {b:.4g}{unit}", models[lower].name, "best" in table.marks[rows[lower]][j]))
+    winners = {w for _, _, w, _ in said}
+    verdict = (f"{winners.pop()} lower in both" if len(winners) == 1
+               else "; ".join(f"{w} lower in {words}" for words, _, w, _ in said))
+    sig = ", ".join(f"{words} {'significantly' if s else 'not significantly'}" for words, _, _, s in said)
+    inits = {INIT_WORDS.get(r.tag(TAG_INIT).split(":", 1)[0], "unrecorded") for r in runs}
     paper = PAPER_SETTING
-    diffs = [(f"{size}² frames" if size != "?" else "frames of unrecorded size")
+    diffs = [(f"{image_size}² frames" if image_size else "frames of unrecorded size")
              + f" (the paper: {paper['image_size']}²)",
-             (f"{patients} {'procedural ' if anatomy == 'procedural' else ''}airway(s)"
-              + (f" from {Path(anatomy).name}" if anatomy not in ("procedural", "?") else "")
-              if patients != "?" else "synthetic airways") + f" (the paper: {paper['patients']} CT patients)",
-             f"backbones from {init} weights (the paper: {paper['init']})"]
-    return (f"Here: {'; '.join(t for t, _, _ in said)} — {verdict} ({sig}: the table's bold). Remaining "
+             (f"{len(patients)} patient(s)" if (patients := patients_of(table.rows)) else "patients not known "
+              "(no per-trajectory errors)") + f" (the paper: {paper['patients']} CT patients)",
+             f"backbones from {inits.pop() if len(inits) == 1 else 'mixed'} weights (the paper: {paper['init']})"]
+    return (f"Here: {'; '.join(n for _, n, _, _ in said)} — {verdict} ({sig}: the table's bold). Remaining "
             f"differences from the paper's setting: {', '.join(diffs)}, and the training budget (Source).")
 
 

@@ -25,40 +25,33 @@ def table(pos: tuple[float, float], ce: tuple[float, float], best: dict[str, int
                  rows, marks=marks)
 
 
-def run(size: str, init: str) -> RunRecord:
-    return RunRecord("r", "FINISHED", 0, {TAG_INIT: init}, {}, params={
-        "dataset.generate.image_size": size, "dataset.generate.patients": "3",
-        "dataset.generate.anatomy": "procedural"})
+def run(init: str) -> RunRecord:
+    return RunRecord("r", "FINISHED", 0, {TAG_INIT: init}, {})
 
 
 def test_offsetnet_lower_in_position_is_said_so_with_its_significance_and_the_differences():
-    note = _beside_paper(table((52.0, 26.5), (0.05, 0.06), {"pos_l2": 1}), [run("96", "random")] * 4)
+    note = _beside_paper(table((52.0, 26.5), (0.05, 0.06), {"pos_l2": 1}), [run("random")] * 4, 96)
     assert note.startswith("Here: position L2 BronchoTrack 52 vs OffsetNet 26.5 vox; CE BronchoTrack 0.05 vs "
                            "OffsetNet 0.06 — OffsetNet lower in position; BronchoTrack lower in CE (position "
                            "significantly, CE not significantly")
     assert "96² frames (the paper: 256²)" in note
-    assert "3 procedural airway(s) (the paper: 5 CT patients)" in note
+    assert "patients not known (no per-trajectory errors) (the paper: 5 CT patients)" in note  # no samples here
     assert "backbones from random weights (the paper: ImageNet)" in note
 
 
 def test_one_winner_in_both_and_an_imagenet_start():
-    note = _beside_paper(table((4.9, 5.7), (0.8, 0.99), {}), [run("256", "imagenet:lite0.pth")] * 2)
+    note = _beside_paper(table((4.9, 5.7), (0.8, 0.99), {}), [run("imagenet:lite0.pth")] * 2, 256)
     assert "— BronchoTrack lower in both (position not significantly, CE not significantly" in note
     assert "backbones from ImageNet weights (the paper: ImageNet)" in note
+
+
+def test_unknown_size_and_mixed_or_unrecorded_starts_are_said_so():
+    note = _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [run("random"), run("imagenet:x.pth")], None)
+    assert "frames of unrecorded size (the paper: 256²)" in note and "backbones from mixed weights" in note
+    assert "backbones from unrecorded weights" in _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [run("")], 96)
 
 
 def test_without_both_model_rows_there_is_no_note():
     t = table((1.0, 2.0), (0.1, 0.2), {})
     t.rows = t.rows[:1] + t.rows[2:]
-    assert _beside_paper(t, [run("96", "random")]) == ""
-
-
-def test_the_configs_dataset_stands_in_for_what_cell_runs_do_not_log():
-    """Cell runs do not log dataset.generate.* (the sweep's parent does): the report passes the config's."""
-    bare = RunRecord("r", "FINISHED", 0, {TAG_INIT: "random"}, {})
-    config = {"dataset.generate.image_size": "96", "dataset.generate.patients": "3",
-              "dataset.generate.anatomy": "/data/airways/patient7.vtu"}
-    note = _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [bare] * 2, config)
-    assert "96² frames (the paper: 256²)" in note
-    assert "3 airway(s) from patient7.vtu (the paper: 5 CT patients)" in note
-    assert "frames of unrecorded size" in _beside_paper(table((2.0, 1.0), (0.1, 0.2), {}), [bare])
+    assert _beside_paper(t, [run("random")], 96) == ""

@@ -9,8 +9,8 @@ Then workers claim the rows, one Optuna trial per row (``worker``), started
 by a launcher and watched by the sweep's driver (``launch.drive``) on every
 machine: local worker processes placed on the GPUs (one worker without a GPU:
 the local launcher runs it in this process, its own choice), Slurm array tasks
-(``tune --launcher slurm``) or any registered launcher. The launcher is given the config named after the
-study's rows, so its jobs are the study's (Slurm: job name
+(``tune --launcher slurm``) or any registered launcher. The launcher is given
+the config named after the study's rows, so its jobs are the study's (Slurm: job name
 ``bronchopose-<study>.trials``): ``bronchopose sweep cancel --study NAME``
 stops them, ``bronchopose status --sweep <study>.trials`` shows the rows.
 
@@ -38,15 +38,15 @@ from ...runs.client import client_for
 from ...runs.contract import RunInterrupted
 from ...runs.parents import KIND_STUDY, find_parent, set_parent_status, start_parent
 from .. import launch as driver, summary
-from . import studies, trial
 from ..launchers import launcher_class, reference
 from ..launchers.base import Launcher
 from ..plan import Plan, Step, cells_left, open_store, read_plan
 from ..record import existing_experiment, rebuild_trials
 from ..storage import FAILED, PENDING, SweepStore
-from .rows import StudyTask, study_sweep, trial_cell
 from ..task import TaskSpec, command
 from ..worker import EXIT_INTERRUPTED
+from . import studies, trial
+from .rows import StudyTask, study_sweep, trial_cell
 
 log = logging.getLogger(__name__)
 

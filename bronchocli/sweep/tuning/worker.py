@@ -30,9 +30,9 @@ from ...config import Config
 from ...errors import BronchoError
 from ..liveness import StopSignals
 from ..storage import SweepStore
+from ..worker import EXIT_OK, TAG_WORKER, Worker
 from .rows import StudyTask, study_sweep
 from .trial import ATTR_RUN, TrialFailed, objective, open_study, study_parent_or_none
-from ..worker import EXIT_OK, TAG_WORKER, Worker
 
 log = logging.getLogger(__name__)
 
