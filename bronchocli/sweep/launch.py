@@ -32,7 +32,7 @@ from ..runs.contract import failure_reason
 from ..runs.records import TAG_FAILURE, set_tags
 from . import summary
 from .launchers import reference
-from .launchers.base import Launcher, Workers, words
+from .launchers.base import Launcher, Workers, job_order, submission_id, words
 from .plan import Plan, Step, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
 from .session import Session
 from .planview import final, print_plan, report_workers, stage_title, waits_line
@@ -44,10 +44,6 @@ from .worker import EXIT_INTERRUPTED, job_of
 log = logging.getLogger(__name__)
 
 CANCEL_CHECK_S = 10.0  # how often a watch asks whether the sweep was cancelled while its workers run
-
-
-def _job_order(job: str) -> tuple:
-    return (0, int(job), "") if job.isdigit() else (1, 0, job)
 
 
 def runnable_now(walk: StageWalk, stage: Stage, active: Sequence[Workers]) -> int:
@@ -96,15 +92,16 @@ def _steps(walk: StageWalk, console: Console, record: Submitted) -> Iterator[Ste
 
 
 def _submit(launcher: Launcher, n: int, stage: str, after: Sequence[str]) -> str:
-    """``launcher.submit``; any exception of the launcher's own code is one line naming it (``--debug``: its
-    traceback), which the sweep's parent run ends FAILED with (``launch``)."""
+    """``launcher.submit``: the submission's id; any exception of the launcher's own code is one line naming it
+    (``--debug``: its traceback), which the sweep's parent run ends FAILED with (``launch``)."""
     try:
-        return launcher.submit(n, stage, after)
+        job = launcher.submit(n, stage, after)
     except BronchoError:
         raise
     except Exception as exc:  # noqa: BLE001 - a plugin's submission may raise anything: one line naming it
         raise BronchoError(f"launcher {launcher.name}: submitting {n} worker(s) for stage {stage} failed: "
                            f"{failure_reason(exc)}{DEBUG_HINT}") from exc
+    return submission_id(launcher, job)
 
 
 def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record: Submitted | None = None, *,
@@ -126,7 +123,7 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record
     first = True
     for stage, left in session.to_submit(walk, _steps(walk, console, record)):
         mine = [t for t in active if t.stage == stage.name]
-        if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=_job_order)):
+        if submitted and (queued := sorted({t.job for t in mine if t.state == "PENDING"}, key=job_order)):
             session.follow(queued, earlier)
         if left:
             have = sum(t.count for t in mine)
@@ -144,7 +141,7 @@ def submit_missing(walk: StageWalk, launcher: Launcher, console: Console, record
                 earlier.append(job)
                 record.stages.append(stage.name)
             first = False
-        earlier += sorted({t.job for t in mine} - set(earlier), key=_job_order)
+        earlier += sorted({t.job for t in mine} - set(earlier), key=job_order)
     return submitted
 
 
@@ -229,15 +226,22 @@ def drive(walk: StageWalk, launcher: Launcher, console: Console, *, detach: bool
 
 def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> int:
     """``bronchopose sweep cancel``: stop every worker of this sweep (running ones release their cells);
-    ``dry_run``: only list them."""
+    ``dry_run``: only list them, each job with its state, workers and logs."""
     cfg, what = launcher.cfg, f"{words(type(launcher))[0]} job"
     jobs = launcher.cancel(dry_run=dry_run)
+    ids = ", ".join(j.id for j in jobs)
     if not jobs:
         console.print(f"no {what} of sweep {cfg.name} is queued or running")
     elif dry_run:
-        console.print(f"dry run: would cancel {what}(s) {', '.join(jobs)} of sweep {cfg.name}; nothing cancelled")
+        console.print(f"dry run: would cancel {what}(s) {ids} of sweep {cfg.name}; nothing cancelled")
+        for job in jobs:
+            logs = job.logs()
+            n = sum(w.count for w in job.workers())
+            console.print(f"  {job.id}: {job.state}, {n} {words(type(launcher))[2]}(s)"
+                          + (f", logs {', '.join(str(p) for p in logs)}" if logs else ""), highlight=False,
+                          soft_wrap=True)
     else:
-        console.print(f"cancelled {what}(s) {', '.join(jobs)} of sweep {cfg.name}: running cells are released "
+        console.print(f"cancelled {what}(s) {ids} of sweep {cfg.name}: running cells are released "
                       "(their runs resume from the checkpoint when the sweep is run again)")
     return 0
 

@@ -15,7 +15,9 @@ What it declares:
 - ``parameters``: its one option, ``ssh_hosts`` (a launcher's own options are named ``<launcher name>_<option>``;
   the generic ``workers``/``gpus``/``per_gpu`` it does not take: each host runs one worker, which claims cells
   until none is left, so the sweep is refused with ``--workers`` in one line naming the launchers that take it);
-- the three required methods, ``submit``, ``active`` and ``cancel`` (and ``describe``, ``check``, ``capacity``);
+- the three required methods: ``submit`` (returns the submission as its ``Job``) and ``active`` on the launcher,
+  ``cancel`` on its ``Job`` (``SshJob``: a job's logs, ``ssh-<job>_<i>.log``, are found by the default ``logs``);
+  and ``describe``, ``check``, ``capacity``;
   each worker runs the command the sweep gives it (``self.command``: ``python -m bronchocli.sweep.task '<spec>'``),
   with ``BRONCHOPOSE_SWEEP_STAGE`` set to its stage, and a worker submitted ``after`` others starts once their
   local processes have exited (so a staged plan's later stage waits for the earlier one, as the default
@@ -31,6 +33,7 @@ closes the session and the remote worker gets SIGHUP: it stops as on Ctrl-C and 
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import shlex
@@ -42,9 +45,11 @@ from pathlib import Path
 from typing import Any
 
 from bronchocli.errors import BronchoError
-from bronchocli.sweep.launchers import STAGE_ENV, Launcher, Parameter, Workers
+from bronchocli.sweep.launchers import STAGE_ENV, Job, Launcher, Parameter, Workers
 
 LOCAL = ("localhost", "127.0.0.1")  # hosts whose workers start here directly, without ssh
+
+SUBMISSIONS = itertools.count()  # this process's submissions: each job's id is <pid>.<n>
 
 
 def _alive(pid: int) -> bool:
@@ -59,10 +64,22 @@ def _alive(pid: int) -> bool:
         return True
 
 
+class SshJob(Job):
+    """One submission: its workers' local processes (the command, or the ``ssh`` client) get SIGTERM."""
+
+    def cancel(self) -> None:
+        for w in self.workers():
+            try:
+                os.kill(int(w.id.rpartition(":")[2]), signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+
+
 class SshLauncher(Launcher):
     """One worker per host of ``ssh_hosts`` (a host named twice runs two)."""
 
     name = "ssh"
+    Job = SshJob
     parameters = {
         "ssh_hosts": Parameter(list, "Hosts that run the ssh launcher's workers, one worker each: a comma list "
                                "such as node1,node2 (localhost: a worker started here without ssh).",
@@ -101,10 +118,10 @@ class SshLauncher(Launcher):
         pids = " ".join(str(p) for p in waits)
         return ["sh", "-c", f'while kill -0 {pids} 2>/dev/null; do sleep 1; done; exec "$@"', "sh", *run]
 
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> Job:
         folder = self.folder()
         folder.mkdir(parents=True, exist_ok=True)
-        job = f"{os.getpid()}.{len(list(folder.glob('*.json')))}"
+        job = f"{os.getpid()}.{next(SUBMISSIONS)}"
         env = {**os.environ, STAGE_ENV: stage, "PYTHONPATH": os.pathsep.join(sys.path)}  # this module importable
         waits = [int(w.id.rpartition(":")[2]) for w in self.active() if w.job in after]
         for i in range(n):
@@ -115,7 +132,7 @@ class SshLauncher(Launcher):
             self.children[proc.pid] = proc
             (folder / f"{proc.pid}.json").write_text(json.dumps({"job": job, "stage": stage, "pid": proc.pid,
                                                                  "host": host}))
-        return job
+        return self.Job(self, job)
 
     def active(self) -> list[Workers]:
         out = []
@@ -128,12 +145,3 @@ class SshLauncher(Launcher):
                 record.unlink(missing_ok=True)
         return out
 
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        workers = self.active()
-        if not dry_run:
-            for w in workers:
-                try:
-                    os.kill(int(w.id.rpartition(":")[2]), signal.SIGTERM)
-                except ProcessLookupError:
-                    pass
-        return sorted({w.job for w in workers})

@@ -12,6 +12,7 @@ earlier submissions' processes.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -23,9 +24,11 @@ from pathlib import Path
 from pydantic import Field
 
 from bronchocli.config import Section
-from bronchocli.sweep.launchers import STAGE_ENV, Launcher, WorkerEnvironment, Workers, register
+from bronchocli.sweep.launchers import STAGE_ENV, Job, Launcher, WorkerEnvironment, Workers, register
 
 JOB_ENV = "SUBPROCESS_LAUNCHER_JOB"  # the worker's job id, as its launcher knows it
+
+SUBMISSIONS = itertools.count()  # this process's submissions: each job's id is <pid>.<n>
 
 
 def _alive(pid: int) -> bool:
@@ -57,8 +60,18 @@ class SubprocessEnvironment(WorkerEnvironment):
         return int(job.rpartition("_")[2]) if "_" in job else None
 
 
+class SubprocessJob(Job):
+    def cancel(self) -> None:
+        for w in self.workers():
+            try:
+                os.kill(int(w.id), signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+
+
 class SubprocessLauncher(Launcher):
     name = "subprocess"
+    Job = SubprocessJob
     Settings = SubprocessSettings
     Environment = SubprocessEnvironment
     children: dict[int, subprocess.Popen] = {}  # started by this process: reaped when they exit
@@ -72,10 +85,10 @@ class SubprocessLauncher(Launcher):
     def describe(self) -> str:
         return f"as detached processes here, logs {self.logs(self.cfg)}"
 
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> Job:
         folder = self.folder()
         folder.mkdir(parents=True, exist_ok=True)
-        job = f"{os.getpid()}.{len(list(folder.glob('*.json')))}"
+        job = f"{os.getpid()}.{next(SUBMISSIONS)}"
         waits = [str(w.id) for w in self.active() if w.job in after]
         for i in range(n):
             env = {**os.environ, STAGE_ENV: stage, JOB_ENV: f"{job}_{i}", "PYTHONPATH": os.pathsep.join(sys.path)}
@@ -86,7 +99,7 @@ class SubprocessLauncher(Launcher):
             log.close()
             self.children[proc.pid] = proc
             (folder / f"{proc.pid}.json").write_text(json.dumps({"job": job, "stage": stage, "pid": proc.pid}))
-        return job
+        return self.Job(self, job)
 
     def active(self) -> list[Workers]:
         out = []
@@ -98,13 +111,6 @@ class SubprocessLauncher(Launcher):
             else:
                 record.unlink(missing_ok=True)
         return out
-
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        workers = self.active()
-        if not dry_run:
-            for w in workers:
-                os.kill(int(w.id), signal.SIGTERM)
-        return sorted({w.job for w in workers})
 
 
 register(SubprocessLauncher)

@@ -119,3 +119,13 @@ def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
     runs = search_runs(client, [exp.experiment_id], {TAG_SWEEP: cfg.name, TAG_KIND: "cell"},
                                 [status] if status else None)
     return Counter(r.data.tags[TAG_CELL_KEY] for r in runs)
+
+
+def idle_worker(log_path: str, stop_event) -> None:
+    """A local worker process that writes its log and waits for a signal (``LocalProcesses``' target in tests of
+    who a cancel reaches)."""
+    import signal
+
+    Path(log_path).write_text("idle worker\n")
+    while True:
+        signal.pause()

@@ -18,7 +18,7 @@ from bronchocli.errors import BronchoError
 from bronchocli.sweep import FINISHED, SweepStore
 from bronchocli.sweep import launchers
 from bronchocli.sweep.entry import launcher_options
-from bronchocli.sweep.launchers import GENERIC, Launcher, LocalLauncher, Parameter, SlurmLauncher, register
+from bronchocli.sweep.launchers import GENERIC, Job, Launcher, LocalLauncher, Parameter, SlurmLauncher, register
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "docs" / "examples"
 MAIN = "import sys; from bronchocli.cli import main; sys.argv[0] = 'bronchopose'; main()"
@@ -31,8 +31,12 @@ def registry(monkeypatch):
 
 
 def _launcher(name: str, parameters: dict) -> type[Launcher]:
+    class ProbeJob(Job):
+        cancel = lambda self: None  # noqa: E731
+
     class Probe(Launcher):
-        submit = active = cancel = describe = lambda self, *a, **k: None  # noqa: E731
+        submit = active = describe = lambda self, *a, **k: None  # noqa: E731
+        Job = ProbeJob
 
     Probe.name, Probe.parameters = name, parameters
     return Probe

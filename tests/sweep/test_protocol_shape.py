@@ -5,9 +5,13 @@ from __future__ import annotations
 import ast
 import inspect
 
+import pytest
+
 from bronchocli.sweep import launch
 from bronchocli.sweep.launchers import LocalLauncher, SlurmLauncher
-from bronchocli.sweep.launchers.base import Launcher
+from bronchocli.errors import BronchoError
+from bronchocli.sweep.launchers import register
+from bronchocli.sweep.launchers.base import Job, Launcher
 from bronchocli.sweep.session import AttachedSession, Session
 
 # what used to be mode flags of the launcher (and the one that remains, on its Session): no driver condition names them
@@ -76,9 +80,29 @@ def _implementable(cls: type) -> tuple[set[str], set[str]]:
 
 
 def test_the_protocol_is_small_three_methods_and_a_name_required():
+    """submitit's shape: the executor submits and lists; the Job it returns owns cancel (and state, logs)."""
     members, required = _implementable(Launcher)
-    assert len(members) <= 12 and required == {"name", "submit", "active", "cancel"}, (sorted(members), required)
-    assert len(required - {"name"}) <= 3  # the name is a declaration; three methods to write
+    assert len(members) <= 12 and required == {"name", "submit", "active"}, (sorted(members), required)
+    assert "Job" in members and "cancel" not in members and "jobs" not in members  # provided: every Job's cancel
+    job_members, job_required = _implementable(Job)
+    assert job_required == {"cancel"} and {"logs", "state", "workers"} <= job_members, (job_members, job_required)
+    assert len(required - {"name"} | {f"Job.{m}" for m in job_required}) <= 3  # three methods to write in all
+
+
+def test_a_launcher_whose_job_cannot_cancel_is_refused_in_one_line(monkeypatch):
+    from bronchocli.sweep import launchers
+
+    monkeypatch.setattr(launchers, "_LAUNCHERS", dict(launchers._LAUNCHERS))
+
+    class Silent(Launcher):  # forgot its Job: cancel would stop nothing
+        name = "silent"
+        submit = active = lambda self, *a, **k: []  # noqa: E731
+
+    with pytest.raises(BronchoError) as refused:
+        register(Silent)
+    assert str(refused.value).startswith("launcher silent: its Job must be a launchers.Job subclass that writes "
+                                         "cancel()") and "\n" not in str(refused.value)
+    assert "silent" not in launchers.names()
 
 
 def test_the_member_count_can_fail():

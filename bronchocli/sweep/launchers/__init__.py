@@ -20,7 +20,8 @@ from pathlib import Path
 
 from ...config import Config
 from ...errors import DEBUG_HINT, BronchoError, ConfigError
-from .base import GENERIC, STAGE_ENV, Launcher, Parameter, WorkerEnvironment, Workers, check_parameters, flag, words
+from .base import (GENERIC, STAGE_ENV, Job, Launcher, Parameter, WorkerEnvironment, Workers, check_declarations, flag,
+                   words)
 from .local import LocalLauncher
 from .slurm import SlurmLauncher
 
@@ -30,10 +31,10 @@ GROUP = "bronchopose.launchers"  # the entry-point group of launchers that insta
 
 def register(cls: type[Launcher]) -> type[Launcher]:
     """Make ``cls`` a launcher that ``--launcher cls.name`` names (usable as a class decorator); its ``parameters``
-    are checked first (one line naming the launcher and the parameter: ``base.check_parameters``)."""
+    and its ``Job`` are checked first (one line naming the launcher: ``base.check_declarations``)."""
     if not isinstance(cls, type) or not issubclass(cls, Launcher):
         raise BronchoError(f"launcher {cls!r}: must be a subclass of sweep.launchers.Launcher")
-    check_parameters(cls)
+    check_declarations(cls)
     _LAUNCHERS[cls.name] = cls
     return cls
 
@@ -142,6 +143,6 @@ def reference(cls: type[Launcher]) -> str:
 register(LocalLauncher)
 register(SlurmLauncher)
 
-__all__ = ["GENERIC", "GROUP", "STAGE_ENV", "Launcher", "LocalLauncher", "Parameter", "SlurmLauncher",
+__all__ = ["GENERIC", "GROUP", "STAGE_ENV", "Job", "Launcher", "LocalLauncher", "Parameter", "SlurmLauncher",
            "WorkerEnvironment", "Workers", "detected", "flag", "launcher_class", "loadable", "log_roots", "names",
            "owners", "parameters", "reference", "register", "words"]

@@ -2,20 +2,24 @@
 
 A launcher starts, lists and stops *workers*; the claims table still decides
 which cell each worker runs, exactly once (docs/sweep.md, "Launchers"). The
-protocol follows submitit's ``Executor`` (submit jobs, find them again, cancel
-them) with the sweep's claims model in place of job results:
+protocol follows submitit's: an executor (``Launcher``) that submits, and a
+``Job`` per submission that owns its state, its cancel and its logs, with the
+sweep's claims model in place of job results:
 
 - ``submit(n, stage, after)``: start ``n`` workers that work the stages up to
   ``stage`` (the worker entry ``stagework.worker_main``, told the stage in
   ``STAGE_ENV``), started only once the submissions ``after`` have ended;
-  returns the submission's id;
+  returns the submission as a ``Job`` (``self.Job(self, id)``);
 - ``active()``: this sweep's workers still queued or running, as ``Workers``
-  groups (a submission's id, its stage, how many);
-- ``cancel(dry_run)``: stop every worker of this sweep (they release their
-  cells); returns the submissions stopped (``dry_run``: those it would stop);
-- ``describe()``: one line saying where the workers run and where they log.
+  groups (a submission's id, its stage, how many): what finds a submission again
+  in a later command (``jobs()``, ``sweep cancel``);
+- ``Job.cancel()``: stop that submission's workers (they release their cells).
 
-Those three (and ``name``) are all a launcher must write. What else it may write has a default: ``describe``
+Those three (and ``name``) are all a launcher must write: ``submit`` and ``active`` on the launcher, ``cancel`` on
+its ``Job`` subclass (``Job = MyJob``). Provided from them: ``jobs()`` (the submissions ``active`` lists, as Jobs),
+``cancel(dry_run)`` (every job of this sweep), and on a Job ``workers()``, ``state`` and ``logs()`` (its log files:
+the launcher's log folder's files named after the job, unless its Job says otherwise). What else a launcher may
+write has a default: ``describe``
 (one line: where the workers run and log), ``parameters`` (the options it takes: name -> ``Parameter``, submitit's
 executor parameters; ``sweep run --<name-with-dashes>`` on the command line, keywords of ``bronchocli.api``; a
 name is ``GENERIC`` or ``<launcher name>_<option>``), ``__init__`` (built by ``sweep run`` and ``tune`` with the
@@ -109,9 +113,14 @@ GENERIC: dict[str, Parameter] = {
 NAME = re.compile(r"[a-z][a-z0-9]*(?:_[a-z0-9]+)*")  # a parameter's name: lower case words joined by _
 
 
-def check_parameters(cls: type[Launcher]) -> None:
+def check_declarations(cls: type[Launcher]) -> None:
     """Refuse, in one line naming the launcher and the parameter, a ``parameters`` entry that is neither a generic
-    name declared as ``GENERIC`` has it nor ``<launcher name>_<option>`` with a ``Parameter``."""
+    name declared as ``GENERIC`` has it nor ``<launcher name>_<option>`` with a ``Parameter``; and a launcher whose
+    ``Job`` does not say how to cancel a submission."""
+    job = getattr(cls, "Job", None)
+    if not (isinstance(job, type) and issubclass(job, Job)) or getattr(job, "__abstractmethods__", None):
+        raise BronchoError(f"launcher {cls.name}: its Job must be a launchers.Job subclass that writes cancel() "
+                           "(class MyJob(Job): def cancel(self): ...; then Job = MyJob in the launcher)")
     params = getattr(cls, "parameters", None)
     if not isinstance(params, Mapping):
         raise BronchoError(f"launcher {cls.name}: parameters must be a mapping of name -> Parameter, not "
@@ -141,6 +150,67 @@ class Workers:
     count: int = 1  # workers this entry stands for
     reason: str = ""  # why a pending one waits (Slurm: BeginTime, a requeued task's hold)
     ending: bool = False  # being stopped (Slurm: COMPLETING after scancel): covers no cell
+
+
+def job_order(job: str) -> tuple:
+    """Submissions in the order they were made where their ids say it (Slurm's ``812``; ``<pid>-<k>``,
+    ``<pid>.<k>``), else by name."""
+    parts = re.split(r"[-.]", job)
+    if all(p.isdigit() for p in parts):
+        return (0, *map(int, parts))
+    return (1, job)
+
+
+class Job(ABC):
+    """One submission of a launcher (submitit's Job): what ``submit`` returns, and what ``Launcher.jobs`` finds
+    again from the workers ``active`` lists, in this command or a later one. It owns its state (``workers``,
+    ``state``), its cancel and its logs. A launcher writes ``cancel`` in a subclass (its ``Job``); ``logs`` where
+    its log files are not named after the job."""
+
+    def __init__(self, launcher: Launcher, id: str):
+        self.launcher, self.id = launcher, str(id)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.launcher.name} {self.id})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Job) and (other.launcher.name, other.id) == (self.launcher.name, self.id)
+
+    def __hash__(self) -> int:
+        return hash((self.launcher.name, self.id))
+
+    def workers(self) -> list[Workers]:
+        """Its workers still queued or running (the launcher's ``active``, this job's)."""
+        return [w for w in self.launcher.active() if w.job == self.id]
+
+    @property
+    def state(self) -> str:
+        """RUNNING (a worker of it runs), PENDING (all queued), ENDING (all being stopped), DONE (none left), or the
+        launcher's own word where its workers share one."""
+        workers = self.workers()
+        states = {"ENDING" if w.ending else w.state for w in workers}
+        if not states:
+            return "DONE"
+        return states.pop() if len(states) == 1 else ("RUNNING" if "RUNNING" in states else sorted(states)[0])
+
+    @abstractmethod
+    def cancel(self) -> None:
+        """Stop its workers (running ones release their cells; queued ones never start)."""
+
+    def logs(self) -> list[Path]:
+        """Its workers' log files: the files of the launcher's log folder whose names hold the job's id as a word
+        (``812_3.log``, ``ssh-4711.0_1.log``); none written yet: none."""
+        folder = self.launcher.logs(self.launcher.cfg)
+        word = re.compile(rf"(?<![0-9A-Za-z])(?<![0-9]\.){re.escape(self.id)}(?![0-9A-Za-z]|\.[0-9])")
+        return sorted(p for p in folder.rglob("*.log") if word.search(p.name)) if folder.is_dir() else []
+
+
+def submission_id(launcher: Launcher, job: Any) -> str:
+    """The id of what ``launcher.submit`` returned, refused in one line unless it is a ``Job``."""
+    if not isinstance(job, Job):
+        raise BronchoError(f"launcher {launcher.name}: submit returned {type(job).__name__} {job!r}, not a Job "
+                           "(return self.Job(self, id): docs/sweep.md, \"Adding a launcher\")")
+    return job.id
 
 
 class WorkerEnvironment:
@@ -200,6 +270,7 @@ class Launcher(ABC):
     Settings: ClassVar[type[Section] | None] = None  # the model of its section sweep.launchers.<name>; None: none
     Environment: ClassVar[type[WorkerEnvironment]] = WorkerEnvironment  # the worker side
     Session: ClassVar[type[Session]] = Session  # the submitting command's side (sweep.session): workers outlive it
+    Job: ClassVar[type[Job]] = Job  # one submission: its state, cancel and logs (a launcher's own writes ``cancel``)
     parameters: ClassVar[Mapping[str, Parameter]] = {}  # the options its __init__ takes: GENERIC or <name>_<option>
 
     def __init__(self, cfg: Config, command: Sequence[str] | Callable[[], Sequence[str]] = (), *, only: Any = None,
@@ -224,16 +295,28 @@ class Launcher(ABC):
 
     # -- the submitting side -------------------------------------------------------------------------------
     @abstractmethod
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
-        """Start ``n`` workers for the stages up to ``stage``, once the submissions ``after`` have ended."""
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> Job:
+        """Start ``n`` workers for the stages up to ``stage``, once the submissions ``after`` (their ids) have
+        ended; the submission (``self.Job(self, id)``)."""
 
     @abstractmethod
     def active(self) -> list[Workers]:
         """This sweep's workers still queued or running."""
 
-    @abstractmethod
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        """Stop every worker of this sweep; the submissions stopped (``dry_run``: would be; nothing is stopped)."""
+    @final
+    def jobs(self) -> list[Job]:
+        """This sweep's submissions with workers still queued or running, in the order they were made."""
+        return [self.Job(self, j) for j in sorted({w.job for w in self.active()}, key=job_order)]
+
+    @final
+    def cancel(self, dry_run: bool = False) -> list[Job]:
+        """Stop every submission of this sweep (each ``Job.cancel``); the jobs stopped (``dry_run``: would be;
+        nothing is stopped)."""
+        jobs = self.jobs()
+        if not dry_run:
+            for job in jobs:
+                job.cancel()
+        return jobs
 
     def describe(self) -> str:
         """One line: where the workers run and where their logs are."""

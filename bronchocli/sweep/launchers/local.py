@@ -41,7 +41,7 @@ from ...cells import Selection
 from ...config import Config
 from ..placement import assign, default_workers, parse_gpus, share_counts, visible_gpus
 from ..session import EXIT_INTERRUPTED, AttachedSession
-from .base import GENERIC, Launcher, Workers
+from .base import GENERIC, Job, Launcher, Workers
 
 if TYPE_CHECKING:  # the worker side loads when workers are started (the registry lists options without it)
     from ..tuning.rows import StudyTask
@@ -56,6 +56,7 @@ class LocalProcesses:
         self.ctx = mp.get_context("spawn")
         self.event = self.ctx.Event()  # set by ``stop``: workers start nothing new
         self.procs: list[tuple[mp.Process, str, str]] = []  # (process, submission, stage)
+        self.log_paths: dict[str, list[Path]] = {}  # submission -> its workers' log files
         self.stops = 0
 
     def start(self, n: int, target: Callable[..., Any], job: Callable[[str | None, int, str], Any],
@@ -66,6 +67,7 @@ class LocalProcesses:
         placed = assign(n, self.gpus)
         for gpu, share in zip(placed, share_counts(placed)):
             log_path = self.log_dir / f"{socket.gethostname()}-{os.getpid()}-w{len(self.procs)}.log"
+            self.log_paths.setdefault(sub, []).append(log_path)
             proc = self.ctx.Process(target=target, args=(job(gpu, share, str(log_path)), self.event), name=self.name)
             proc.start()
             self.procs.append((proc, sub, stage))
@@ -77,13 +79,15 @@ class LocalProcesses:
     def sentinels(self) -> list[int]:
         return [p.sentinel for p, _, _ in self.alive()]
 
-    def stop(self) -> None:
-        """Tell every worker to stop: the first time SIGTERM (release the cell at a checkpoint), then SIGINT."""
-        self.stops += 1
-        self.event.set()
-        forward = signal.SIGTERM if self.stops == 1 else signal.SIGINT
-        for p, _, _ in self.alive():
-            if p.pid:
+    def stop(self, submission: str | None = None) -> None:
+        """Tell every worker to stop: the first time SIGTERM (release the cell at a checkpoint), then SIGINT.
+        ``submission``: only that submission's workers (SIGTERM; the others go on)."""
+        if submission is None:
+            self.stops += 1
+            self.event.set()
+        forward = signal.SIGTERM if self.stops <= 1 else signal.SIGINT
+        for p, sub, _ in self.alive():
+            if p.pid and submission in (None, sub):
                 try:
                     os.kill(p.pid, forward)
                 except ProcessLookupError:
@@ -210,6 +214,18 @@ class LocalSession(AttachedSession):
         return self.processes.stops > 0 or EXIT_INTERRUPTED in self._codes
 
 
+class LocalJob(Job):
+    """A submission's worker processes: stopped with SIGTERM (they release their cells), each with its log file."""
+
+    launcher: LocalLauncher
+
+    def cancel(self) -> None:
+        self.launcher.processes.stop(self.id)
+
+    def logs(self) -> list[Path]:
+        return [p for p in self.launcher.processes.log_paths.get(self.id, []) if p.exists()]
+
+
 class LocalLauncher(Launcher):
     """Workers as this command's child processes (``LocalProcesses``), each through ``stagework.worker_main``;
     at most ``workers`` at once, pinned round-robin to ``gpus``. A study's only worker without a GPU: this process
@@ -217,6 +233,7 @@ class LocalLauncher(Launcher):
 
     name = "local"
     Session = LocalSession
+    Job = LocalJob
     parameters = dict(GENERIC)  # --workers, --gpus, --per-gpu
 
     def __init__(self, cfg: Config, command: Any = (), *, only: Selection | None = None, runner: Runner | None = None,
@@ -263,7 +280,7 @@ class LocalLauncher(Launcher):
     def capacity(self, runnable: int) -> int:
         return max(0, min(runnable, self.workers))
 
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> Job:
         from ..stagework import WorkerJob, local_process  # lazy: see the imports
 
         def job(gpu: str | None, share: int, log_path: str) -> WorkerJob:
@@ -271,13 +288,7 @@ class LocalLauncher(Launcher):
                              exit_when_idle=False, ends_parent=False, log_path=log_path, gpu=gpu, gpu_share=share,
                              parent_pid=os.getpid(), cpu_workers=n, study=self.study)
 
-        return self.processes.start(n, local_process, job, stage)
+        return self.Job(self, self.processes.start(n, local_process, job, stage))
 
     def active(self) -> list[Workers]:
         return [Workers(str(p.pid), sub, "RUNNING", stage) for p, sub, stage in self.processes.alive()]
-
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        subs = sorted({w.job for w in self.active()})
-        if subs and not dry_run:
-            self.processes.stop()
-        return subs

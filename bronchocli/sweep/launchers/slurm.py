@@ -51,7 +51,7 @@ from ...errors import BronchoError
 from ...io import write_text
 from ...retry import retry
 from ..session import Session
-from .base import STAGE_ENV, Launcher, WorkerEnvironment, Workers
+from .base import STAGE_ENV, Job, Launcher, WorkerEnvironment, Workers
 
 log = logging.getLogger(__name__)
 
@@ -406,14 +406,22 @@ class SlurmSession(Session):
         release_held(active, self._held)
 
 
+class SlurmJob(Job):
+    """A Slurm array job: ``scancel`` stops its tasks (its logs, ``<job>_<task>.log``, are found by the default)."""
+
+    def cancel(self) -> None:
+        _run(["scancel", self.id], f"cancelling Slurm job {self.id}")
+
+
 class SlurmLauncher(Launcher):
-    """Workers as Slurm array tasks: ``submit`` is one ``sbatch --array``, ``active`` is ``squeue``, ``cancel``
-    is ``scancel``; a task warned of its time limit (SIGUSR1) requeues itself."""
+    """Workers as Slurm array tasks: ``submit`` is one ``sbatch --array``, ``active`` is ``squeue``, a job's
+    ``cancel`` is ``scancel``; a task warned of its time limit (SIGUSR1) requeues itself."""
 
     name = "slurm"
     Settings = SlurmSettings
     Environment = SlurmEnvironment
     Session = SlurmSession
+    Job = SlurmJob
 
     def __init__(self, cfg: Config, command: Any = (), **work: Any):
         super().__init__(cfg, command, **work)
@@ -425,17 +433,11 @@ class SlurmLauncher(Launcher):
     def check(self) -> None:
         check(self.cfg)
 
-    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> str:
-        return submit(self.cfg, stage, n, self.command, after)
+    def submit(self, n: int, stage: str, after: Sequence[str] = ()) -> Job:
+        return self.Job(self, submit(self.cfg, stage, n, self.command, after))
 
     def active(self) -> list[Workers]:
         return sweep_tasks(self.cfg)
-
-    def cancel(self, dry_run: bool = False) -> list[str]:
-        jobs = sorted({t.job for t in sweep_tasks(self.cfg)}, key=int)
-        if jobs and not dry_run:
-            _run(["scancel", *jobs], "cancelling the sweep's jobs")
-        return jobs
 
     def capacity(self, runnable: int) -> int:
         """Tasks beyond those that run at once (``array_parallelism``, ``tasks``) would only start after the work
