@@ -12,6 +12,14 @@ and the kernels that win differ. The project ships the files measured on its own
 does not name gets the old defaults (``DEFAULTS``); a bare ``cpu`` key (a file written before the keys named
 the instructions) stands for any CPU.
 
+What is fastest also depends on what a step computes. With a pretrained backbone frozen up to stage n and that
+prefix computed once per dataset (``model.frozen_stages``, ``training/frozen_features.py``), a step trains only the
+last stages on 3x3 maps and the architecture's head, and the whole network's measurement does not carry over (the
+shipped file's ``frozen`` entries beside its whole-network ones show by how much). Such a
+training is measured as its own entry, ``frozen["<backbone>, frozen <n>"]`` of the device
+(``profile --speed FILE --backbone B --frozen-stages N``; ``frozen_key``), which a run that trains that way uses
+first (``choose(..., frozen=...)``), falling back to the whole network's.
+
 This module reads and writes the file only (no torch: the sweep orders its cells by the measured costs
 without loading torch).
 """
@@ -111,13 +119,20 @@ def device_entry(data: dict[str, Any], key: str) -> dict[str, Any] | None:
     return None if found is None else data["devices"][found]
 
 
+def frozen_key(backbone: str, frozen_stages: int) -> str | None:
+    """The name of a training on a cached frozen prefix in the settings (``<backbone>, frozen <n>``); None for
+    none."""
+    return f"{backbone}, frozen {frozen_stages}" if frozen_stages > 0 else None
+
+
 def choose(arch: str, key: str, precision: str, channels_last: bool | str, *, path: Path | None = None,
-           bf16_ok: bool = True) -> SpeedSetting:
+           bf16_ok: bool = True, frozen: str | None = None) -> SpeedSetting:
     """The setting for ``arch`` on device ``key`` given the config's ``train.precision`` and
     ``model.channels_last`` (each ``auto`` or explicit: an explicit value always wins).
 
     ``bf16_ok`` is False where the device cannot run bf16 fast (a CPU without avx512_bf16/AMX): a measured
-    bf16 setting then falls back to fp32."""
+    bf16 setting then falls back to fp32. ``frozen``: the run trains on a cached frozen prefix (``frozen_key``):
+    that training's measurement where the file has one, else the whole network's."""
     kind = key.split(":", 1)[0]
     default_prec, default_cl = DEFAULTS.get(kind, ("32", True))
     if kind == "cuda" and not bf16_ok:
@@ -126,13 +141,18 @@ def choose(arch: str, key: str, precision: str, channels_last: bool | str, *, pa
         return SpeedSetting(precision, bool(channels_last), "config")
     data = load(path)
     entry = device_entry(data, key)
-    measured = (entry or {}).get("archs", {}).get(arch)
+    scope = ((entry or {}).get("frozen") or {}).get(frozen) if frozen else None
+    measured = (scope or {}).get("archs", {}).get(arch)
+    if measured is None:
+        scope, frozen = entry, None
+        measured = (entry or {}).get("archs", {}).get(arch)
     if measured is not None:
         prec, cl = measured["precision"], bool(measured["channels_last"])
         if prec == "bf16-mixed" and not bf16_ok:
             prec = default_prec
         where = path.name if path is not None else "shipped"
-        source = f"measured ({where} settings, {entry_key(data, key)}, {entry.get('measured', {}).get('date', '?')})"
+        source = (f"measured ({where} settings, {entry_key(data, key)}{f', {frozen}' if frozen else ''}, "
+                  f"{scope.get('measured', {}).get('date', '?')})")
     else:
         prec, cl = default_prec, default_cl
         source = f"default (no measurement of this architecture on {key})"  # the arch is a param already
@@ -159,8 +179,10 @@ def training_rates(key: str, path: Path | None = None) -> dict[str, float]:
     return out
 
 
-def write(path: Path, key: str, entry: dict[str, Any]) -> None:
-    """Put ``entry`` under device ``key`` of the settings file at ``path`` (other devices kept), atomically."""
+def write(path: Path, key: str, entry: dict[str, Any], frozen: str | None = None) -> None:
+    """Put ``entry`` under device ``key`` of the settings file at ``path`` (other devices kept), atomically;
+    ``frozen``: as that device's measurement of a training on a cached frozen prefix (``frozen_key``; the
+    device's other measurements kept). A whole-network entry keeps the device's frozen-prefix ones."""
     path = Path(path)
     data: dict[str, Any] = {"version": VERSION, "devices": {}}
     if path.is_file():
@@ -171,5 +193,9 @@ def write(path: Path, key: str, entry: dict[str, Any]) -> None:
             raise BronchoError(f"--speed {path}: exists and is not a speed settings file; choose another path"
                                ) from None
     data["version"] = VERSION
-    data["devices"][key] = entry
+    old = data["devices"].get(key) or {}
+    if frozen:
+        data["devices"][key] = {**old, "frozen": {**(old.get("frozen") or {}), frozen: entry}}
+    else:
+        data["devices"][key] = {**entry, **({"frozen": old["frozen"]} if old.get("frozen") else {})}
     write_json(path, data)

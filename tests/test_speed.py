@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 
@@ -112,3 +113,69 @@ def test_settings_measured_on_one_cpu_do_not_apply_to_a_cpu_with_other_instructi
 def test_the_shipped_file_names_each_cpu_by_its_instructions():
     keys = set(speed.load()["devices"])
     assert keys and all(k.startswith("cuda:") or k.startswith("cpu:") for k in keys), keys
+
+
+FROZEN = "efficientnet_lite0, frozen 7"
+HEAD_ONLY = {"measured": {"date": "2026-12-07", "frozen_stages": 7}, "archs": {
+    "convlstm": {"precision": "32", "channels_last": False, "chosen": "fp32 contiguous",
+                 "pairs_per_s": {"fp32 CL": 100.0, "fp32 contiguous": 130.0}}}}
+
+
+def test_a_run_on_a_cached_frozen_prefix_takes_that_trainings_measurement_first(tmp_path):
+    """Issue 56: a step on a cached frozen prefix trains the last stages and the head only, so its own measurement
+    applies; an architecture that measurement lacks gets its whole network's."""
+    path = _file(tmp_path, ENTRY)
+    speed.write(path, "cpu", HEAD_ONLY, FROZEN)
+    s = speed.choose("convlstm", "cpu", "auto", "auto", path=path, frozen=FROZEN)
+    assert (s.precision, s.channels_last) == ("32", False) and f"cpu, {FROZEN}, 2026-12-07" in s.source
+    whole = speed.choose("convlstm", "cpu", "auto", "auto", path=path)  # no frozen prefix: the whole network's
+    assert (whole.precision, whole.channels_last) == ("32", True) and "frozen" not in whole.source
+    other = speed.choose("offsetnet", "cpu", "auto", "auto", path=path, frozen=FROZEN)  # not in the frozen entry
+    assert other.precision == "bf16-mixed" and "frozen" not in other.source
+    assert speed.choose("convlstm", "cpu", "auto", "auto", path=path, frozen="efficientnet_b0, frozen 7").channels_last
+
+
+def test_measuring_the_whole_network_again_keeps_the_frozen_prefix_entries(tmp_path):
+    path = _file(tmp_path, ENTRY)
+    speed.write(path, "cpu", HEAD_ONLY, FROZEN)
+    speed.write(path, "cpu", ENTRY)  # the whole network measured again
+    data = json.loads(path.read_text())["devices"]["cpu"]
+    assert data["archs"] == ENTRY["archs"] and data["frozen"] == {FROZEN: HEAD_ONLY}
+    assert speed.frozen_key("efficientnet_lite0", 7) == FROZEN and speed.frozen_key("efficientnet_b0", 0) is None
+
+
+def test_a_flat_reference_qualifies_no_candidate():
+    """The loss check cannot fail when the reference does not learn: nothing but the default may be chosen then
+    (the ConvLSTM head on a cached prefix: flat in 50 steps, while bf16 kept the baseline from learning)."""
+    from bronchocli.diagnostics.speed import Trial, choose, loss_gap, reference_learns
+
+    flat, learning = [1.66, 1.60, 1.59, 1.60, 1.58], [1.86, 1.39, 1.13, 0.90, 0.83]
+    mean_only = [2.01, 1.56, 1.54, 1.55, 1.53]  # the 3-D-conv head: the labels' mean in the first block, then flat
+    assert not reference_learns(flat) and not reference_learns(mean_only) and reference_learns(learning)
+    assert loss_gap([2.0, 1.8, 1.8, 1.7, 1.7], learning) > 0.05  # bf16 on the baseline: caught when it learns
+    base = Trial("32", True, 100.0, flat, gap=0.0)
+    fast = Trial("bf16-mixed", False, 170.0, flat, gap=math.inf)  # what measure_arch gives a flat reference's rivals
+    assert choose([base, fast], ("32", True)) is base
+
+
+def test_profile_speed_measures_the_training_on_a_cached_frozen_prefix_as_its_own_entry(cli, tmp_path, one_thread):
+    """`profile --speed FILE --backbone B --frozen-stages N` trains on a cached prefix (the default plan's recipe)
+    and writes the device's frozen entry, keeping the whole network's; without --speed the options are refused."""
+    import torch
+
+    from bronchocli.training.device import device_key
+
+    path = tmp_path / "speed.json"
+    speed.write(path, device_key(torch.device("cpu")), ENTRY)  # a whole-network measurement already there
+    code, out, err = cli("profile", "--speed", path, "-a", "baseline", "--image-size", "32", "--batch", "2",
+                         "--threads", "1", "--backbone", "efficientnet_lite0", "--frozen-stages", "7")
+    assert code == 0, out + err
+    entry = json.loads(path.read_text())["devices"][device_key(torch.device("cpu"))]
+    assert entry["archs"] == ENTRY["archs"]  # kept
+    frozen = entry["frozen"][FROZEN]
+    assert frozen["measured"]["frozen_stages"] == 7 and frozen["measured"]["backbone"] == "efficientnet_lite0"
+    m = frozen["archs"]["baseline"]
+    assert m["chosen"] in m["pairs_per_s"] and isinstance(m["reference_learns"], bool)
+    assert f"({FROZEN}: a cached frozen prefix)" in out
+    code, out, err = cli("profile", "-a", "baseline", "--frozen-stages", "7")
+    assert code == 2 and "--backbone and --frozen-stages are options of --speed" in err and "Traceback" not in err

@@ -109,9 +109,11 @@ def profile(arch: Sequence[str] = ("all",), *, image_size: int | None = None, de
             full: bool = False, batch: int | None = None, repeats: int | None = None, warmup: int | None = None,
             window: int = 10, precision: str = "32", channels_last: bool = True, threads: int | None = None,
             fmt: str = "table", speed: str | os.PathLike | None = None, steps: int = 50,
+            backbone: str | None = None, frozen_stages: int = 0,
             console: Console | None = None, err_console: Console | None = None) -> None:
     """``profile``: parameters, GMAC, latency and peak memory per architecture (quick unless ``full``); with
-    ``speed`` (a file) instead the training speed per setting, the fastest per architecture written there."""
+    ``speed`` (a file) instead the training speed per setting, the fastest per architecture written there
+    (``frozen_stages`` > 0: the training on a cached prefix of that many stages of ``backbone``, its own entry)."""
     if fmt not in ("table", "json"):
         raise BronchoError(f"--format {fmt!r}: must be table or json")
     from ..diagnostics import entry  # lazy: torch loads only when profiling
@@ -119,8 +121,12 @@ def profile(arch: Sequence[str] = ("all",), *, image_size: int | None = None, de
     console, err_console = console or _silent(), err_console or console or _silent()
     if speed is not None:
         entry.speed(list(arch), Path(speed), device=device, image_size=image_size or 128, pairs=batch or 10,
-                    steps=steps, threads=threads, console=console, err_console=err_console)
+                    steps=steps, threads=threads, console=console, err_console=err_console,
+                    **({"backbone": backbone} if backbone else {}), frozen_stages=frozen_stages)
         return
+    if backbone or frozen_stages:
+        raise BronchoError("--backbone and --frozen-stages are options of --speed (the training measured); "
+                           "give --speed FILE")
     entry.profile(list(arch), fmt=fmt, threads=threads, console=console, err_console=err_console,
                   image_size=image_size or 256, device=device, batch=batch or (8 if full else 2),
                   repeats=repeats or (10 if full else 3), warmup=(2 if full else 1) if warmup is None else warmup,

@@ -38,6 +38,13 @@ def profile(
                                                   "settings for this device into this file (train.speed_settings).")
                       ] = None,
     steps: Annotated[int, typer.Option("--steps", help="--speed: training steps per setting (>= 50).")] = 50,
+    backbone: Annotated[Optional[str], typer.Option("--backbone", help="--speed: the backbone of the BronchoPose "
+                                                    "architectures (efficientnet_b0, the default, or "
+                                                    "efficientnet_lite0).")] = None,
+    frozen_stages: Annotated[int, typer.Option("--frozen-stages", min=0, max=8, help="--speed: measure the training "
+                                               "on a cached frozen prefix of this many backbone stages "
+                                               "(model.frozen_stages), its own entry in FILE; 0: the whole "
+                                               "network.")] = 0,
 ) -> None:
     """Profile the architectures: parameters, GMAC per pair, latency per pair (batch 1 and N), peak memory.
 
@@ -58,4 +65,5 @@ def profile(
 
     tools.profile(arch, image_size=image_size, device=device, full=full, batch=batch, repeats=repeats, warmup=warmup,
                   window=window, precision=precision, channels_last=channels_last, threads=threads, fmt=fmt,
-                  speed=speed, steps=steps, console=console, err_console=err_console)
+                  speed=speed, steps=steps, backbone=backbone, frozen_stages=frozen_stages, console=console,
+                  err_console=err_console)

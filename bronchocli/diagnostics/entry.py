@@ -17,7 +17,7 @@ from rich.table import Table
 from ..config import Config, check_paths
 from ..errors import BronchoError
 from ..generation import ensure_dataset
-from ..models import ARCHITECTURES
+from ..models import ARCHITECTURES, PAPER_BACKBONE
 from ..models import profile as profiling
 from ..runs import cores
 from . import learning
@@ -104,7 +104,8 @@ def _selftest(device: str, precision: str, archs: Sequence[str] | None, *, conso
 
 
 def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pairs: int, steps: int,
-          threads: int | None, console: Console, err_console: Console) -> None:
+          threads: int | None, console: Console, err_console: Console, backbone: str = PAPER_BACKBONE,
+          frozen_stages: int = 0) -> None:
     """``profile --speed``: measure the speed settings of ``archs`` on ``device``, print the Markdown table and
     write them into ``out`` (diagnostics/speed.py)."""
     names = profiling.arch_names(archs)
@@ -118,7 +119,8 @@ def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pair
             line = f"[{time.perf_counter() - started:.0f} s] {text}"
             status.update(line)
             err_console.print(line, highlight=False)
-        table = sp.run(names, dev, out, image_size=image_size, pairs=pairs, steps=steps, progress=progress)
+        table = sp.run(names, dev, out, image_size=image_size, pairs=pairs, steps=steps, progress=progress,
+                       backbone=backbone, frozen=frozen_stages)
     console.file.write(table + "\n")  # verbatim Markdown
     console.print(f"wrote {out} ({time.perf_counter() - started:.0f} s)", highlight=False)
 

@@ -15,6 +15,11 @@ Per architecture the fastest qualifying candidate becomes the setting when it is
 times as fast as the device's default; otherwise the default stays. The samples are a fixed pool of
 synthetic frames with random poses, cycled, so the loss falls steadily (the network memorises them) and the
 curves have something to track.
+
+With ``frozen`` stages (``--frozen-stages N``, ``--backbone B``) it measures the training a run with a pretrained
+backbone frozen up to stage N does: both backbones start from the same weights, their first N stages are computed
+once for the pool's frames (``training.frozen_features``) and each step trains the rest; the entry goes under
+the device's ``frozen["<B>, frozen <N>"]`` (``speed.frozen_key``), which such runs use first.
 """
 
 from __future__ import annotations
@@ -37,13 +42,20 @@ from .. import runkeys, speed
 from ..data.batches import FrameSource
 from ..data.cache import FrameCache
 from ..errors import BronchoError
-from ..models import ARCHITECTURES, build_model
+from ..models import ARCHITECTURES, PAPER_BACKBONE, build_model
 from ..training.device import bf16_fast, device_key, exact_fp32, seed_everything, set_tf32
+from ..training.frozen_features import FeatureSource, load_or_compute
 from ..training.loop import Settings, Trainer
 from ..training.network import PoseRegressor
 from .selftest import synthetic_cache, synthetic_samples
 
 BLOCK = 10  # optimiser steps per compared loss block
+# The reference must learn for its curve to check anything: after its first block (where every network fits the
+# labels' mean), its last block at most this fraction of its second. A reference that stays flat (the ConvLSTM and
+# 3-D-conv heads on a cached random-weight prefix in 50 steps, measured) would let any candidate through, bf16
+# included, which on the same prefix keeps the baseline and the LSTM head from learning at all (the shipped file's
+# frozen entry): no candidate qualifies then.
+MIN_DROP = 0.8
 WINDOW = 10  # pairs per temporal sample (data.window's default)
 POOL_STEPS = 4  # the sample pool holds this many steps' worth of samples (cycled: the loss keeps falling)
 
@@ -102,23 +114,32 @@ class Baton:
 
 
 def _trainer(arch: str, device: torch.device, precision: str, channels_last: bool, cache: FrameCache, *,
-             pairs: int, steps: int, seed: int, on_step: Callable[[int, int], None]) -> Trainer:
+             pairs: int, steps: int, seed: int, on_step: Callable[[int, int], None], backbone: str = PAPER_BACKBONE,
+             frozen: int = 0) -> Trainer:
     seed_everything(seed)
-    model = build_model(arch, image_size=cache.shape[-1], dropout=0.0)  # no dropout: no RNG inside a step
+    # no dropout: no RNG inside a step
+    model = build_model(arch, image_size=cache.shape[-1], dropout=0.0, backbone=backbone)
+    if frozen:  # as from one pretrained file: both backbones alike, their first stages frozen and computed once
+        model.backbone_prev.load_state_dict(model.backbone_cur.state_dict())
+        model.freeze_stages(frozen)
     if channels_last:
         model.to(memory_format=torch.channels_last)
     net = PoseRegressor(model, (0.5,) * 3, (0.25,) * 3, standardized=True).to(device)
+    source = FrameSource(cache, device, "yes")
+    if frozen:
+        source = FeatureSource(load_or_compute(net, cache, frozen)[0], device)
+        net.model.prefix_cached = frozen
     per_sample = min(WINDOW, pairs) if ARCHITECTURES[arch].temporal else 1
     samples = synthetic_samples(POOL_STEPS * max(1, pairs // per_sample), per_sample, len(cache), seed=1)
     val = synthetic_samples(max(1, pairs // per_sample), per_sample, len(cache), seed=2)
     s = Settings(steps=steps, micro_pairs=pairs, accum=1, chunk=per_sample, val_every=BLOCK, patience=None,
                  min_delta=0.0, lr=1e-3, weight_decay=0.0, warmup_steps=0, schedule="constant", rot_loss="mse",
                  rot_weight=1.0, precision=precision, bn_recalibrate=1, augment=False, seed=seed)
-    return Trainer(net, samples, val, FrameSource(cache, device, "yes"), s, device=device, on_step=on_step)
+    return Trainer(net, samples, val, source, s, device=device, on_step=on_step)
 
 
 def train_trials(arch: str, device: torch.device, settings: Sequence[tuple[str, bool]], cache: FrameCache, *,
-                 pairs: int, steps: int, seed: int = 0) -> list[Trial]:
+                 pairs: int, steps: int, seed: int = 0, backbone: str = PAPER_BACKBONE, frozen: int = 0) -> list[Trial]:
     """Train ``arch`` for ``steps`` steps in each setting, the trainings interleaved step by step (see
     :class:`Baton`); each one's step rate and loss per block. A setting ``(precision, cl, tf32)`` with
     ``tf32`` True/False sets CUDA's TF32 switches at each of its turns (they are global)."""
@@ -143,7 +164,8 @@ def train_trials(arch: str, device: torch.device, settings: Sequence[tuple[str, 
 
         my_turn()
         try:
-            t = _trainer(arch, device, precision, cl, cache, pairs=pairs, steps=steps, seed=seed, on_step=stepped)
+            t = _trainer(arch, device, precision, cl, cache, pairs=pairs, steps=steps, seed=seed, on_step=stepped,
+                         backbone=backbone, frozen=frozen)
             began[0] = time.perf_counter()
             fit = t.fit()
             rate = pairs / statistics.median(durations[1:] or durations)
@@ -175,6 +197,12 @@ def loss_gap(blocks: Sequence[float], reference: Sequence[float]) -> float:
     return sum(gaps) / len(gaps)
 
 
+def reference_learns(blocks: Sequence[float]) -> bool:
+    """The reference's loss fell enough after its first block (last block <= ``MIN_DROP`` x the second) for a gap
+    from it to mean something."""
+    return len(blocks) >= 3 and all(map(math.isfinite, blocks)) and blocks[-1] <= MIN_DROP * blocks[1]
+
+
 def choose(trials: Sequence[Trial], default: tuple[str, bool]) -> Trial:
     """The fastest trial whose loss tracks fp32, if ``speed.MIN_GAIN`` times faster than ``default``'s."""
     base = next(t for t in trials if (t.precision, t.channels_last) == default)
@@ -184,7 +212,8 @@ def choose(trials: Sequence[Trial], default: tuple[str, bool]) -> Trial:
 
 
 def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: int, steps: int,
-                 progress: Callable[[str], None] = lambda text: None) -> dict[str, Any]:
+                 progress: Callable[[str], None] = lambda text: None, backbone: str = PAPER_BACKBONE,
+                 frozen: int = 0) -> dict[str, Any]:
     """Every candidate of ``arch`` on ``device``; the settings-file entry of this architecture."""
     kind = device.type
     default_prec, default_cl = speed.DEFAULTS.get(kind, ("32", True))
@@ -195,10 +224,11 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
         settings = [(p, cl, True) for p, cl in settings] + [("32", True, False)]
     progress(f"{arch}: {', '.join(label(*st[:2]) for st in settings[:len(candidates(device))])}"
              f"{' and the fp32 reference (TF32 off)' if kind == 'cuda' else ''}, {steps} steps each, interleaved")
-    trials = train_trials(arch, device, settings, cache, pairs=pairs, steps=steps)
+    trials = train_trials(arch, device, settings, cache, pairs=pairs, steps=steps, backbone=backbone, frozen=frozen)
     reference = trials.pop() if kind == "cuda" else trials[0]  # fp32 channels-last: exact fp32 on the CPU
+    learns = reference_learns(reference.blocks)
     for t in trials:
-        t.gap = loss_gap(t.blocks, reference.blocks)
+        t.gap = loss_gap(t.blocks, reference.blocks) if learns or t is reference else math.inf
     if (default_prec, default_cl) not in [(t.precision, t.channels_last) for t in trials]:
         default_prec = "32"  # e.g. 16-mixed default on a GPU without bf16: compare with fp32 instead
     chosen = choose(trials, (default_prec, default_cl))
@@ -206,7 +236,7 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
     return {
         "precision": chosen.precision, "channels_last": chosen.channels_last, "chosen": chosen.name,
         "default": base.name, "ratio": chosen.pairs_per_s / base.pairs_per_s,
-        "pairs_per_s": {t.name: round(t.pairs_per_s, 2) for t in trials},
+        "pairs_per_s": {t.name: round(t.pairs_per_s, 2) for t in trials}, "reference_learns": learns,
         "loss_gap": {t.name: round(t.gap, 4) if math.isfinite(t.gap) else None for t in trials},
         "loss_blocks": {"reference": [round(x, 4) for x in reference.blocks],
                         **{t.name: [round(x, 4) for x in t.blocks] for t in trials}},
@@ -223,8 +253,10 @@ def _device_name(device: torch.device) -> str:
 
 
 def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pairs: int, steps: int,
-            progress: Callable[[str], None] = lambda text: None) -> tuple[str, dict[str, Any]]:
-    """The settings-file entry of ``device``: (its key, the entry) for ``archs``."""
+            progress: Callable[[str], None] = lambda text: None, backbone: str = PAPER_BACKBONE,
+            frozen: int = 0) -> tuple[str, dict[str, Any]]:
+    """The settings-file entry of ``device``: (its key, the entry) for ``archs`` (``frozen``: trained on a cached
+    prefix of that many stages of ``backbone``)."""
     if steps < 5 * BLOCK:
         raise BronchoError(f"--steps {steps}: the numerics check needs at least {5 * BLOCK} steps "
                            f"({BLOCK}-step loss blocks)")
@@ -239,11 +271,13 @@ def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pair
     with tempfile.TemporaryDirectory(prefix="bronchopose-speed-") as tmp:
         cache = synthetic_cache(Path(tmp), frames=max(48, 4 * pairs), size=image_size)
         for arch in archs:
-            entry["archs"][arch] = measure_arch(arch, device, cache, pairs=pairs, steps=steps, progress=progress)
+            entry["archs"][arch] = measure_arch(arch, device, cache, pairs=pairs, steps=steps, progress=progress,
+                                                backbone=backbone, frozen=frozen)
     entry["measured"] = {
         "date": dt.date.today().isoformat(), "device": _device_name(device), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "image_size": image_size, "pairs_per_step": pairs, "steps": steps,
         "block_steps": BLOCK, "loss_tolerance": speed.LOSS_TOLERANCE, "min_gain": speed.MIN_GAIN,
+        "backbone": backbone, "frozen_stages": frozen,
         "seconds": round(time.perf_counter() - started, 1),
     }
     return device_key(device), entry
@@ -254,21 +288,26 @@ def markdown(key: str, entry: dict[str, Any]) -> str:
     m = entry["measured"]
     names = list(next(iter(entry["archs"].values()))["pairs_per_s"])
     head = ["arch", *(f"{n} pairs/s" for n in names), *(f"{n} loss gap" for n in names[1:]), "chosen", "× default"]
-    lines = [f"Speed settings for `{key}` ({m['device']}, torch {m['torch']}, {m['image_size']}², "
+    part = speed.frozen_key(m.get("backbone", PAPER_BACKBONE), m.get("frozen_stages", 0))
+    lines = [f"Speed settings for `{key}`{f' ({part}: a cached frozen prefix)' if part else ''} "
+             f"({m['device']}, torch {m['torch']}, {m['image_size']}², "
              f"{m['pairs_per_step']} pairs/step, {m['steps']} steps, loss tolerance {m['loss_tolerance']:.0%} per "
              f"{m['block_steps']}-step block, {m['seconds']:.0f} s)", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arch, a in entry["archs"].items():
         rates = [f"{a['pairs_per_s'][n]:.1f}" for n in names]
         gaps = ["—" if a["loss_gap"][n] is None else f"{a['loss_gap'][n]:.1%}" for n in names[1:]]
-        lines.append(f"| {arch} | " + " | ".join(rates + gaps) + f" | {a['chosen']} | {a['ratio']:.2f} |")
+        flat = " (the reference did not learn: nothing could be checked)" if a.get("reference_learns") is False else ""
+        lines.append(f"| {arch} | " + " | ".join(rates + gaps) + f" | {a['chosen']}{flat} | {a['ratio']:.2f} |")
     return "\n".join(lines)
 
 
 def run(archs: Sequence[str], device: torch.device, out: Path, *, image_size: int, pairs: int, steps: int,
-        progress: Callable[[str], None] = lambda text: None) -> str:
-    """Measure, write ``out`` (this device's entry; other devices kept) and return the Markdown table."""
+        progress: Callable[[str], None] = lambda text: None, backbone: str = PAPER_BACKBONE, frozen: int = 0) -> str:
+    """Measure, write ``out`` (this device's entry, or its frozen-prefix entry; the rest kept) and return the
+    Markdown table."""
     with exact_fp32():  # restores the TF32 switches the trials set
-        key, entry = measure(archs, device, image_size=image_size, pairs=pairs, steps=steps, progress=progress)
-    speed.write(out, key, entry)
+        key, entry = measure(archs, device, image_size=image_size, pairs=pairs, steps=steps, progress=progress,
+                             backbone=backbone, frozen=frozen)
+    speed.write(out, key, entry, speed.frozen_key(backbone, frozen))
     return markdown(key, entry)

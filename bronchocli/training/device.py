@@ -91,7 +91,17 @@ def speed_for(cfg: Config, arch: str, device: torch.device) -> speed.SpeedSettin
     """Precision and memory format of ``arch`` on ``device``: the config's when explicit, else the measured
     per-architecture setting for this device (``bronchocli/speed.py``), else the defaults."""
     return speed.choose(arch, device_key(device), cfg.train.precision, cfg.model.channels_last,
-                        path=cfg.paths.speed_settings, bf16_ok=bf16_fast(device))
+                        path=cfg.paths.speed_settings, bf16_ok=bf16_fast(device), frozen=cached_prefix(cfg, arch))
+
+
+def cached_prefix(cfg: Config, arch: str) -> str | None:
+    """The speed settings' name of the training ``arch`` does under ``cfg`` when it runs on a cached frozen prefix
+    (``speed.frozen_key``), else None: frozen stages, a pretrained start (both backbones from one file, so their
+    prefixes are equal: ``frozen_features.shared_prefix``), no photometric augmentation. An architecture whose
+    backbone has no stages (OffsetNet) has no such measurement and gets its whole network's."""
+    if not cfg.model.frozen_stages or cfg.paths.pretrained is None or cfg.data.augment:
+        return None
+    return speed.frozen_key(cfg.model.backbone, cfg.model.frozen_stages)
 
 
 def precision_for(cfg: Config, device: torch.device, arch: str) -> str:
