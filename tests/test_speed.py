@@ -179,3 +179,10 @@ def test_profile_speed_measures_the_training_on_a_cached_frozen_prefix_as_its_ow
     assert f"({FROZEN}: a cached frozen prefix)" in out
     code, out, err = cli("profile", "-a", "baseline", "--frozen-stages", "7")
     assert code == 2 and "--backbone and --frozen-stages are options of --speed" in err and "Traceback" not in err
+    before = path.read_text()  # refused before anything is measured or written:
+    code, out, err = cli("profile", "--speed", path, "-a", "offsetnet", "-a", "lstm", "--frozen-stages", "7")
+    assert code == 2 and err.strip() == ("error: --frozen-stages 7: offsetnet has no backbone stages to freeze (its "
+                                         "own backbones); measure it without --frozen-stages"), err
+    code, out, err = cli("profile", "--speed", path, "-a", "baseline", "--backbone", "b7", "--frozen-stages", "7")
+    assert code == 2 and err.strip() == "error: --backbone b7: not one of efficientnet_b0, efficientnet_lite0", err
+    assert path.read_text() == before

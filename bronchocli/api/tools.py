@@ -121,8 +121,8 @@ def profile(arch: Sequence[str] = ("all",), *, image_size: int | None = None, de
     console, err_console = console or _silent(), err_console or console or _silent()
     if speed is not None:
         entry.speed(list(arch), Path(speed), device=device, image_size=image_size or 128, pairs=batch or 10,
-                    steps=steps, threads=threads, console=console, err_console=err_console,
-                    **({"backbone": backbone} if backbone else {}), frozen_stages=frozen_stages)
+                    steps=steps, threads=threads, console=console, err_console=err_console, backbone=backbone,
+                    frozen_stages=frozen_stages)
         return
     if backbone or frozen_stages:
         raise BronchoError("--backbone and --frozen-stages are options of --speed (the training measured); "

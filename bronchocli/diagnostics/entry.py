@@ -17,7 +17,7 @@ from rich.table import Table
 from ..config import Config, check_paths
 from ..errors import BronchoError
 from ..generation import ensure_dataset
-from ..models import ARCHITECTURES, PAPER_BACKBONE
+from ..models import ARCHITECTURES, EFFICIENT_BACKBONES, PAPER_BACKBONE, EfficientPairNet
 from ..models import profile as profiling
 from ..runs import cores
 from . import learning
@@ -104,11 +104,22 @@ def _selftest(device: str, precision: str, archs: Sequence[str] | None, *, conso
 
 
 def speed(archs: Sequence[str], out: Path, *, device: str, image_size: int, pairs: int, steps: int,
-          threads: int | None, console: Console, err_console: Console, backbone: str = PAPER_BACKBONE,
+          threads: int | None, console: Console, err_console: Console, backbone: str | None = None,
           frozen_stages: int = 0) -> None:
     """``profile --speed``: measure the speed settings of ``archs`` on ``device``, print the Markdown table and
-    write them into ``out`` (diagnostics/speed.py)."""
+    write them into ``out`` (diagnostics/speed.py). ``frozen_stages``: the training on a cached prefix of that many
+    stages of ``backbone`` (the paper's when None), for the architectures whose backbones have stages; one named
+    that has none is refused, ``all`` leaves it out."""
+    backbone = backbone or PAPER_BACKBONE
+    if backbone not in EFFICIENT_BACKBONES:
+        raise BronchoError(f"--backbone {backbone}: not one of {', '.join(EFFICIENT_BACKBONES)}")
     names = profiling.arch_names(archs)
+    if frozen_stages:
+        stageless = [a for a in names if not issubclass(ARCHITECTURES[a], EfficientPairNet)]
+        if stageless and "all" not in archs:
+            raise BronchoError(f"--frozen-stages {frozen_stages}: {', '.join(stageless)} has no backbone stages to "
+                               "freeze (its own backbones); measure it without --frozen-stages")
+        names = [a for a in names if a not in stageless]
     dev = profiling.resolve_device(device)
     out = Path(out)
     if out.is_dir():

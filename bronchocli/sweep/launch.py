@@ -32,7 +32,7 @@ from ..runs.contract import failure_reason
 from ..runs.records import TAG_FAILURE, set_tags
 from . import summary
 from .launchers import reference
-from .launchers.base import Launcher, Workers, job_order, submission_id, words
+from .launchers.base import Launcher, Workers, job_order, state_of, submission_id, words
 from .plan import Plan, Step, StageWalk, cells_left, claimable_now, ensure_rows, prepare_walk, read_plan
 from .session import Session
 from .planview import final, print_plan, report_workers, stage_title, waits_line
@@ -235,9 +235,9 @@ def cancel(launcher: Launcher, console: Console, *, dry_run: bool = False) -> in
     elif dry_run:
         console.print(f"dry run: would cancel {what}(s) {ids} of sweep {cfg.name}; nothing cancelled")
         for job in jobs:
-            logs = job.logs()
-            n = sum(w.count for w in job.workers())
-            console.print(f"  {job.id}: {job.state}, {n} {words(type(launcher))[2]}(s)"
+            logs, workers = job.logs(), job.workers()  # one listing of its workers for both figures
+            n = sum(w.count for w in workers)
+            console.print(f"  {job.id}: {state_of(workers)}, {n} {words(type(launcher))[2]}(s)"
                           + (f", logs {', '.join(str(p) for p in logs)}" if logs else ""), highlight=False,
                           soft_wrap=True)
     else:

@@ -121,6 +121,17 @@ def runs_by_cell(cfg, status: str | None = "FINISHED") -> Counter:
     return Counter(r.data.tags[TAG_CELL_KEY] for r in runs)
 
 
+def wait_for(predicate, what: str, procs=(), limit: float = 120.0):
+    """Wait for an event the test controls (a file, a state); the limit only guards against hanging."""
+    end = time.monotonic() + limit
+    while not predicate():
+        if time.monotonic() > end:
+            raise AssertionError(f"gave up waiting for {what}")
+        if procs and not any(p.is_alive() for p in procs):
+            raise AssertionError(f"workers exited while waiting for {what}")
+        time.sleep(0.05)
+
+
 def idle_worker(log_path: str, stop_event) -> None:
     """A local worker process that writes its log and waits for a signal (``LocalProcesses``' target in tests of
     who a cancel reaches)."""

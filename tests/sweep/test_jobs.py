@@ -5,10 +5,9 @@ its state and log files; a launcher's ``submit`` that returns anything but a Job
 from __future__ import annotations
 
 import os
-import time
 
 import pytest
-from sweep_fakes import FAKE, idle_worker
+from sweep_fakes import FAKE, idle_worker, wait_for
 from tinydata import write_tiny_dataset
 
 from bronchocli.sweep.launchers import LocalLauncher
@@ -19,14 +18,6 @@ from bronchocli.sweep.launchers.base import job_order
 def project(make_config, tmp_path):
     write_tiny_dataset(tmp_path / "data" / "tiny", patients=2, lobes=("ur",), trajectories=3, frames=3, image_size=16)
     return make_config()
-
-
-def _until(predicate, what: str, limit: float = 60.0) -> None:
-    """Wait for an event the test caused (a process gone); the limit only guards against a hang."""
-    end = time.monotonic() + limit
-    while not predicate():
-        assert time.monotonic() < end, f"gave up waiting for {what}"
-        time.sleep(0.05)
 
 
 def test_job_ids_sort_in_the_order_they_were_made():
@@ -48,12 +39,12 @@ def test_cancelling_one_subprocess_job_stops_its_workers_only(project):
         assert [p.name for p in second.logs()] == [f"{second.id}_0.log"]
 
         first.cancel()
-        _until(lambda: first.state == "DONE", "the first job's workers to stop")
+        wait_for(lambda: first.state == "DONE", "the first job's workers to stop")
         assert second.state == "RUNNING" and launcher.jobs() == [second]  # the other job goes on
 
         assert launcher.cancel(dry_run=True) == [second] and second.state == "RUNNING"  # a dry run stops nothing
         assert launcher.cancel() == [second]
-        _until(lambda: not launcher.active(), "the second job's worker to stop")
+        wait_for(lambda: not launcher.active(), "the second job's worker to stop")
         assert launcher.cancel() == []
     finally:
         for w in launcher.active():
@@ -68,13 +59,13 @@ def test_cancelling_one_local_job_stops_its_processes_only(project):
     second = launcher.Job(launcher, processes.start(1, idle_worker, make, "grid"))
     try:
         assert launcher.jobs() == [first, second] and [len(j.workers()) for j in (first, second)] == [2, 1]
-        _until(lambda: len(first.logs()) == 2 and len(second.logs()) == 1, "the workers' logs")
+        wait_for(lambda: len(first.logs()) == 2 and len(second.logs()) == 1, "the workers' logs")
         assert not set(first.logs()) & set(second.logs())
         first.cancel()
-        _until(lambda: first.state == "DONE", "the first job's processes to stop")
+        wait_for(lambda: first.state == "DONE", "the first job's processes to stop")
         assert second.state == "RUNNING" and not processes.event.is_set()  # not a stop of the whole command
         assert launcher.cancel() == [second]
-        _until(lambda: not launcher.active(), "the second job's process to stop")
+        wait_for(lambda: not launcher.active(), "the second job's process to stop")
     finally:
         for p, _, _ in processes.alive():
             p.kill()
@@ -105,4 +96,4 @@ def test_a_dry_run_cancel_lists_each_job_with_its_state_and_logs(cli, project, m
         assert job.state == "RUNNING"
     finally:
         job.cancel()
-        _until(lambda: job.state == "DONE", "the job's worker to stop")
+        wait_for(lambda: job.state == "DONE", "the job's worker to stop")

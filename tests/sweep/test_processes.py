@@ -5,11 +5,10 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import signal
-import time
 from pathlib import Path
 
 import pytest
-from sweep_fakes import calls, fake_runner, runs_by_cell
+from sweep_fakes import calls, fake_runner, runs_by_cell, wait_for
 
 from bronchocli.runs.client import client_for
 from bronchocli.runs.records import TAG_FAILURE
@@ -29,17 +28,6 @@ def start(cfg, plan, n: int, log_dir: Path, first: int = 0) -> list:
         proc.start()
         procs.append(proc)
     return procs
-
-
-def wait_for(predicate, what: str, procs=(), limit: float = 120.0):
-    """Wait for an event the test controls (a file, a state); the limit only guards against hanging."""
-    end = time.monotonic() + limit
-    while not predicate():
-        if time.monotonic() > end:
-            raise AssertionError(f"gave up waiting for {what}")
-        if procs and not any(p.is_alive() for p in procs):
-            raise AssertionError(f"workers exited while waiting for {what}")
-        time.sleep(0.05)
 
 
 def join(procs, log_dir: Path) -> list:

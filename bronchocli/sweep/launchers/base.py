@@ -185,13 +185,8 @@ class Job(ABC):
 
     @property
     def state(self) -> str:
-        """RUNNING (a worker of it runs), PENDING (all queued), ENDING (all being stopped), DONE (none left), or the
-        launcher's own word where its workers share one."""
-        workers = self.workers()
-        states = {"ENDING" if w.ending else w.state for w in workers}
-        if not states:
-            return "DONE"
-        return states.pop() if len(states) == 1 else ("RUNNING" if "RUNNING" in states else sorted(states)[0])
+        """Its workers' state (``state_of``)."""
+        return state_of(self.workers())
 
     @abstractmethod
     def cancel(self) -> None:
@@ -203,6 +198,15 @@ class Job(ABC):
         folder = self.launcher.logs(self.launcher.cfg)
         word = re.compile(rf"(?<![0-9A-Za-z])(?<![0-9]\.){re.escape(self.id)}(?![0-9A-Za-z]|\.[0-9])")
         return sorted(p for p in folder.rglob("*.log") if word.search(p.name)) if folder.is_dir() else []
+
+
+def state_of(workers: Sequence[Workers]) -> str:
+    """A job's state from its workers: RUNNING (one runs), PENDING (all queued), ENDING (all being stopped), DONE
+    (none left), or the launcher's own word where they share one."""
+    states = {"ENDING" if w.ending else w.state for w in workers}
+    if not states:
+        return "DONE"
+    return states.pop() if len(states) == 1 else ("RUNNING" if "RUNNING" in states else sorted(states)[0])
 
 
 def submission_id(launcher: Launcher, job: Any) -> str:
