@@ -158,6 +158,99 @@ def test_a_flat_reference_qualifies_no_candidate():
     assert choose([base, fast], ("32", True)) is base
 
 
+def test_a_candidate_computing_the_function_as_exactly_qualifies_without_a_loss_curve():
+    """fp32 in the other memory format (gradients as close to float64's as the default's) qualifies even when the
+    reference's curve is flat or drifts; a candidate that changes the arithmetic (bf16) needs the loss curve."""
+    from bronchocli.diagnostics.speed import Trial, choose
+
+    flat = [1.66, 1.60, 1.59, 1.60, 1.58]
+    base = Trial("32", True, 100.0, flat, gap=0.0, exact=True)
+    contiguous = Trial("32", False, 121.0, flat, gap=math.inf, exact=True)
+    bf16 = Trial("bf16-mixed", True, 180.0, flat, gap=math.inf, exact=False)
+    assert contiguous.qualifies and not bf16.qualifies
+    assert choose([base, contiguous, bf16], ("32", True)) is contiguous
+    slow = Trial("32", False, 104.0, flat, gap=math.inf, exact=True)  # below speed.MIN_GAIN: the default stays
+    assert choose([base, slow], ("32", True)) is base
+    drifted = Trial("32", False, 121.0, flat, gap=0.09, exact=False)  # neither check passes
+    assert not drifted.qualifies and choose([base, drifted], ("32", True)) is base
+    tracks = Trial("bf16-mixed", True, 180.0, flat, gap=0.01, exact=False)  # a loss curve that tracks suffices
+    assert choose([base, tracks], ("32", True)) is tracks
+
+
+def _speed_trainer(tmp_path, arch, precision="32", channels_last=True, frozen=0, cache=None):
+    from bronchocli.diagnostics.selftest import synthetic_cache
+    from bronchocli.diagnostics.speed import _trainer
+    import torch
+
+    cache = cache or synthetic_cache(tmp_path, frames=48, size=32)
+    return _trainer(arch, torch.device("cpu"), precision, channels_last, cache, pairs=10, steps=4, seed=0,
+                    on_step=lambda step, total: None, backbone="efficientnet_lite0", frozen=frozen)
+
+
+@pytest.mark.parametrize("arch,frozen", [("baseline", 0), ("convlstm", 7)])
+def test_trainer_gradients_are_autograds_and_leave_the_training_as_it_was(tmp_path, one_thread, arch, frozen):
+    """training.probe.batch_gradients returns what torch.autograd gives the loss of that batch (computed here
+    independently), and a training that asked for them first runs exactly as one that did not."""
+    import torch
+
+    from bronchocli.training.probe import batch_gradients
+
+    t = _speed_trainer(tmp_path, arch, frozen=frozen)
+    before = {k: v.clone() for k, v in t.net.state_dict().items()}
+    torch.manual_seed(5)  # stochastic depth: the same draws for both computations
+    rng = torch.get_rng_state()
+    loss, grads = batch_gradients(t, 0)
+    assert torch.equal(torch.get_rng_state(), rng)
+    assert all(torch.equal(before[k], v) for k, v in t.net.state_dict().items())  # BatchNorm statistics too
+    assert all(p.grad is None for p in t.net.parameters())
+    params = [p for p in t.net.parameters() if p.requires_grad]
+    frames, labels = t._batch(0)
+    state, total, chunks = None, 0.0, 0
+    t.net.train()
+    torch.manual_seed(5)
+    for start in range(0, labels.shape[1], t.s.chunk):
+        out, state = t.net(frames[:, start: start + t.s.chunk + 1], state)
+        total = total + t.net.loss(out.float(), labels[:, start: start + t.s.chunk], t.s.rot_loss, t.s.rot_weight,
+                                   t.s.rot_scale)
+        chunks += 1
+    expected = torch.autograd.grad(total, params, allow_unused=True)
+    flat = torch.cat([g.flatten() for g in expected if g is not None])
+    t.net.load_state_dict(before)
+    assert loss == pytest.approx(float(total.detach()) / chunks, rel=1e-5)
+    torch.testing.assert_close(grads, flat, rtol=1e-5, atol=1e-7)
+    torch.manual_seed(7)
+    asked = t.fit().history
+    fresh = _speed_trainer(tmp_path, arch, frozen=frozen)
+    torch.manual_seed(7)
+    fresh = fresh.fit().history
+    assert [h["train_loss"] for h in asked] == [h["train_loss"] for h in fresh]
+
+
+@pytest.mark.parametrize("arch", ["lstm", "conv3d"])
+def test_the_gradient_check_tells_a_memory_format_from_a_change_of_arithmetic(tmp_path, one_thread, arch):
+    """Real kernels against float64 (an independent computation of the same function): fp32 contiguous within
+    speed.GRAD_TOLERANCE of it; fp32 channels-last within 1e-2 (on the Zen 3 its 3-D-conv head's gradients lie
+    2e-3 - 9e-3 away: the check's "as exactly as the default" covers that); bf16 autocast far outside both."""
+    from bronchocli.diagnostics.speed import exact_gradients, grad_gap, no_stochastic_depth
+    from bronchocli.training.probe import batch_gradients
+    from bronchocli.diagnostics.selftest import synthetic_cache
+    import torch
+
+    cache = synthetic_cache(tmp_path, frames=48, size=96)
+    exact = exact_gradients(arch, torch.device("cpu"), cache, pairs=10, seed=0, backbone="efficientnet_lite0",
+                            frozen=7)
+
+    def gradients(precision, channels_last):
+        t = _speed_trainer(tmp_path, arch, precision, channels_last, frozen=7, cache=cache)
+        with no_stochastic_depth(t.net):
+            return batch_gradients(t, 0)[1]
+
+    assert grad_gap(gradients("32", False), exact) <= speed.GRAD_TOLERANCE
+    assert grad_gap(gradients("32", True), exact) <= 1e-2
+    assert grad_gap(gradients("bf16-mixed", True), exact) > 5e-2
+    assert grad_gap(exact, exact) == 0 and grad_gap(None, exact) == math.inf and grad_gap(exact[:-1], exact) == math.inf
+
+
 def test_profile_speed_measures_the_training_on_a_cached_frozen_prefix_as_its_own_entry(cli, tmp_path, one_thread):
     """`profile --speed FILE --backbone B --frozen-stages N` trains on a cached prefix (the default plan's recipe)
     and writes the device's frozen entry, keeping the whole network's; without --speed the options are refused."""
@@ -176,6 +269,8 @@ def test_profile_speed_measures_the_training_on_a_cached_frozen_prefix_as_its_ow
     assert frozen["measured"]["frozen_stages"] == 7 and frozen["measured"]["backbone"] == "efficientnet_lite0"
     m = frozen["archs"]["baseline"]
     assert m["chosen"] in m["pairs_per_s"] and isinstance(m["reference_learns"], bool)
+    assert all(math.isfinite(m["grad_error"][n]) for n in ("fp32 CL", "fp32 contiguous"))  # against float64's
+    assert "fp32 contiguous gradient error" in out
     assert f"({FROZEN}: a cached frozen prefix)" in out
     code, out, err = cli("profile", "-a", "baseline", "--frozen-stages", "7")
     assert code == 2 and "--backbone and --frozen-stages are options of --speed" in err and "Traceback" not in err

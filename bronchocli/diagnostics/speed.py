@@ -7,9 +7,15 @@ the same synthetic samples for ``steps`` optimiser steps:
 
 * **speed**: training pairs/s = pairs per step / the median optimiser-step time (the median leaves out the
   first steps' warm-up, the validations between blocks and a shared machine's hiccups);
-* **numerics**: the mean training loss of every block of :data:`BLOCK` steps is compared with the fp32
-  reference's (the fp32 channels-last run; on CUDA with TF32 off): a candidate qualifies when its blocks
-  differs on average by more than ``speed.LOSS_TOLERANCE`` (relative; :func:`loss_gap`).
+* **numerics**: before its first step each training computes one batch's gradients from the common initial
+  weights (``training.probe.batch_gradients``, stochastic depth off), and so does the network in float64 (the
+  exact function, to ~1e-16). A candidate whose gradients lie as close to those as the default's do, or within
+  ``speed.GRAD_TOLERANCE`` (relative L2, :func:`grad_gap`), computes the network's function as exactly and
+  qualifies: fp32 in the other memory format, where only the order of the sums differs. Any other candidate
+  (bf16, TF32: an error ~100x larger) qualifies when the mean training loss of its blocks of :data:`BLOCK` steps
+  differs from the fp32 reference's (the fp32 channels-last run; on CUDA with TF32 off) by at most
+  ``speed.LOSS_TOLERANCE`` on average (relative; :func:`loss_gap`), and only when the reference learns in those
+  steps (:func:`reference_learns`).
 
 Per architecture the fastest qualifying candidate becomes the setting when it is at least ``speed.MIN_GAIN``
 times as fast as the device's default; otherwise the default stays. The samples are a fixed pool of
@@ -31,7 +37,8 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,9 +50,11 @@ from ..data.batches import FrameSource
 from ..data.cache import FrameCache
 from ..errors import BronchoError
 from ..models import ARCHITECTURES, PAPER_BACKBONE, build_model
+from ..models.backbones import StochasticDepth
 from ..training.device import bf16_fast, device_key, exact_fp32, seed_everything, set_tf32
 from ..training.frozen_features import FeatureSource, load_or_compute
 from ..training.loop import Settings, Trainer
+from ..training.probe import batch_gradients
 from ..training.network import PoseRegressor
 from .selftest import synthetic_cache, synthetic_samples
 
@@ -68,8 +77,17 @@ class Trial:
     channels_last: bool
     pairs_per_s: float
     blocks: list[float]  # mean training loss per block of BLOCK steps
-    gap: float = math.nan  # max relative block difference from the fp32 reference
+    gap: float = math.nan  # mean relative block difference from the fp32 reference (loss_gap)
+    grad_error: float = math.nan  # relative L2 distance of one batch's gradients from float64's (grad_gap)
+    exact: bool = False  # grad_error within the default's or speed.GRAD_TOLERANCE
+    grads: torch.Tensor | None = None  # those gradients (dropped once compared)
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def qualifies(self) -> bool:
+        """The network's function as exactly as the default computes it, or a loss curve that tracks the
+        reference's."""
+        return self.exact or self.gap <= speed.LOSS_TOLERANCE
 
     @property
     def name(self) -> str:
@@ -166,10 +184,12 @@ def train_trials(arch: str, device: torch.device, settings: Sequence[tuple[str, 
         try:
             t = _trainer(arch, device, precision, cl, cache, pairs=pairs, steps=steps, seed=seed, on_step=stepped,
                          backbone=backbone, frozen=frozen)
+            with no_stochastic_depth(t.net):
+                _, grads = batch_gradients(t, 0)  # from the weights every setting starts from (one seed), untimed
             began[0] = time.perf_counter()
             fit = t.fit()
             rate = pairs / statistics.median(durations[1:] or durations)
-            results[i] = Trial(precision, cl, rate, [h[runkeys.TRAIN_LOSS] for h in fit.history])
+            results[i] = Trial(precision, cl, rate, [h[runkeys.TRAIN_LOSS] for h in fit.history], grads=grads)
         except BaseException as exc:  # noqa: BLE001 - re-raised in the calling thread
             results[i] = exc
         finally:
@@ -197,6 +217,51 @@ def loss_gap(blocks: Sequence[float], reference: Sequence[float]) -> float:
     return sum(gaps) / len(gaps)
 
 
+class _Float64Source:
+    """A frame or feature source whose batches come as float64."""
+
+    def __init__(self, source: Callable[[Any], torch.Tensor]) -> None:
+        self.source = source
+
+    def __call__(self, idx: Any) -> torch.Tensor:
+        return self.source(idx).double()
+
+
+@contextmanager
+def no_stochastic_depth(net: torch.nn.Module) -> Iterator[None]:
+    """Stochastic depth off while inside (its draws would differ between dtypes): the gradients compared are of
+    one deterministic function."""
+    drops = [(m, m.p) for m in net.modules() if isinstance(m, StochasticDepth)]
+    for m, _ in drops:
+        m.p = 0.0
+    try:
+        yield
+    finally:
+        for m, p in drops:
+            m.p = p
+
+
+def exact_gradients(arch: str, device: torch.device, cache: FrameCache, *, pairs: int, seed: int,
+                    backbone: str = PAPER_BACKBONE, frozen: int = 0) -> torch.Tensor:
+    """The gradients every candidate's are compared with: the same network, weights and batch in float64."""
+    t = _trainer(arch, device, "32", False, cache, pairs=pairs, steps=1, seed=seed, on_step=lambda s, n: None,
+                 backbone=backbone, frozen=frozen)
+    t.net.double()
+    t.source = _Float64Source(t.source)
+    with no_stochastic_depth(t.net):
+        return batch_gradients(t, 0)[1]
+
+
+def grad_gap(grads: torch.Tensor | None, reference: torch.Tensor | None) -> float:
+    """How far one batch's gradients are from the reference's, from the same weights: ``||g - g_ref|| / ||g_ref||``
+    over every trainable parameter at once (inf when missing, of another size or not finite)."""
+    if grads is None or reference is None or grads.shape != reference.shape or not grads.numel():
+        return math.inf
+    g, ref = grads.double(), reference.double()
+    gap = float(torch.linalg.vector_norm(g - ref) / torch.linalg.vector_norm(ref).clamp_min(1e-30))
+    return gap if math.isfinite(gap) else math.inf
+
+
 def reference_learns(blocks: Sequence[float]) -> bool:
     """The reference's loss fell enough after its first block (last block <= ``MIN_DROP`` x the second) for a gap
     from it to mean something."""
@@ -204,9 +269,10 @@ def reference_learns(blocks: Sequence[float]) -> bool:
 
 
 def choose(trials: Sequence[Trial], default: tuple[str, bool]) -> Trial:
-    """The fastest trial whose loss tracks fp32, if ``speed.MIN_GAIN`` times faster than ``default``'s."""
+    """The fastest trial that qualifies (:attr:`Trial.qualifies`), if ``speed.MIN_GAIN`` times faster than
+    ``default``'s."""
     base = next(t for t in trials if (t.precision, t.channels_last) == default)
-    ok = [t for t in trials if t.gap <= speed.LOSS_TOLERANCE]
+    ok = [t for t in trials if t.qualifies]
     best = max(ok, key=lambda t: t.pairs_per_s, default=base)
     return best if best.pairs_per_s >= speed.MIN_GAIN * base.pairs_per_s else base
 
@@ -227,8 +293,14 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
     trials = train_trials(arch, device, settings, cache, pairs=pairs, steps=steps, backbone=backbone, frozen=frozen)
     reference = trials.pop() if kind == "cuda" else trials[0]  # fp32 channels-last: exact fp32 on the CPU
     learns = reference_learns(reference.blocks)
+    exact = exact_gradients(arch, device, cache, pairs=pairs, seed=0, backbone=backbone, frozen=frozen)
+    for t in trials if any(t is reference for t in trials) else [*trials, reference]:  # each once
+        t.grad_error = grad_gap(t.grads, exact)
+        t.grads = None
+    bound = max(speed.GRAD_TOLERANCE, reference.grad_error)  # as exact as the default, or within the tolerance
     for t in trials:
         t.gap = loss_gap(t.blocks, reference.blocks) if learns or t is reference else math.inf
+        t.exact = t.grad_error <= bound
     if (default_prec, default_cl) not in [(t.precision, t.channels_last) for t in trials]:
         default_prec = "32"  # e.g. 16-mixed default on a GPU without bf16: compare with fp32 instead
     chosen = choose(trials, (default_prec, default_cl))
@@ -238,6 +310,7 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
         "default": base.name, "ratio": chosen.pairs_per_s / base.pairs_per_s,
         "pairs_per_s": {t.name: round(t.pairs_per_s, 2) for t in trials}, "reference_learns": learns,
         "loss_gap": {t.name: round(t.gap, 4) if math.isfinite(t.gap) else None for t in trials},
+        "grad_error": {t.name: float(f"{t.grad_error:.3g}") if math.isfinite(t.grad_error) else None for t in trials},
         "loss_blocks": {"reference": [round(x, 4) for x in reference.blocks],
                         **{t.name: [round(x, 4) for x in t.blocks] for t in trials}},
     }
@@ -276,7 +349,8 @@ def measure(archs: Sequence[str], device: torch.device, *, image_size: int, pair
     entry["measured"] = {
         "date": dt.date.today().isoformat(), "device": _device_name(device), "torch": torch.__version__,
         "threads": torch.get_num_threads(), "image_size": image_size, "pairs_per_step": pairs, "steps": steps,
-        "block_steps": BLOCK, "loss_tolerance": speed.LOSS_TOLERANCE, "min_gain": speed.MIN_GAIN,
+        "block_steps": BLOCK, "loss_tolerance": speed.LOSS_TOLERANCE, "grad_tolerance": speed.GRAD_TOLERANCE,
+        "min_gain": speed.MIN_GAIN,
         "backbone": backbone, "frozen_stages": frozen,
         "seconds": round(time.perf_counter() - started, 1),
     }
@@ -287,18 +361,22 @@ def markdown(key: str, entry: dict[str, Any]) -> str:
     """The measurement as a Markdown table: pairs/s per candidate, ratios to the default, loss gaps, choice."""
     m = entry["measured"]
     names = list(next(iter(entry["archs"].values()))["pairs_per_s"])
-    head = ["arch", *(f"{n} pairs/s" for n in names), *(f"{n} loss gap" for n in names[1:]), "chosen", "× default"]
+    head = ["arch", *(f"{n} pairs/s" for n in names), *(f"{n} gradient error" for n in names),
+            *(f"{n} loss gap" for n in names[1:]), "chosen", "× default"]
     part = speed.frozen_key(m.get("backbone", PAPER_BACKBONE), m.get("frozen_stages", 0))
     lines = [f"Speed settings for `{key}`{f' ({part}: a cached frozen prefix)' if part else ''} "
              f"({m['device']}, torch {m['torch']}, {m['image_size']}², "
-             f"{m['pairs_per_step']} pairs/step, {m['steps']} steps, loss tolerance {m['loss_tolerance']:.0%} per "
+             f"{m['pairs_per_step']} pairs/step, {m['steps']} steps, gradient tolerance "
+             f"{m.get('grad_tolerance', speed.GRAD_TOLERANCE):.0e}, loss tolerance {m['loss_tolerance']:.0%} per "
              f"{m['block_steps']}-step block, {m['seconds']:.0f} s)", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for arch, a in entry["archs"].items():
         rates = [f"{a['pairs_per_s'][n]:.1f}" for n in names]
+        grads = ["—" if a.get("grad_error", {}).get(n) is None else f"{a['grad_error'][n]:.1e}" for n in names]
         gaps = ["—" if a["loss_gap"][n] is None else f"{a['loss_gap'][n]:.1%}" for n in names[1:]]
-        flat = " (the reference did not learn: nothing could be checked)" if a.get("reference_learns") is False else ""
-        lines.append(f"| {arch} | " + " | ".join(rates + gaps) + f" | {a['chosen']}{flat} | {a['ratio']:.2f} |")
+        flat = (" (the reference did not learn: no loss curve could be checked)"
+                if a.get("reference_learns") is False else "")
+        lines.append(f"| {arch} | " + " | ".join(rates + grads + gaps) + f" | {a['chosen']}{flat} | {a['ratio']:.2f} |")
     return "\n".join(lines)
 
 
