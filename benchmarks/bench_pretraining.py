@@ -15,7 +15,7 @@ This script reads those curves and the runs' test metrics and writes benchmarks/
   ``speedup_bound``); frozen stages shared between runs cost once, ``features_core_s``, outside the runs' own;
 * ``table``: the Markdown table benchmarks/README.md shows (a ``numbers: lines`` block).
 
-    python benchmarks/bench_pretraining.py PROJECT [--out FILE]
+    python benchmarks/bench_pretraining.py PROJECT [--out FILE] [--command TEXT]
 
 Run it on the machine that trained the runs (its CPU line is this machine's). Nothing here trains anything.
 """
@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("project", type=Path)
     ap.add_argument("--out", type=Path, default=HERE / "results" / "pretraining.json")
+    ap.add_argument("--command", help="how the runs were made, when not the plain script (recorded as the command)")
     args = ap.parse_args(argv)
     runs = collect(args.project.resolve())
     if not runs:
@@ -193,7 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         "title": "What pretraining buys: BronchoTrack's cost to val.ratio.pos_l2 <= 0.90 / 0.85 and its test ratios, "
                  "per backbone, initialisation and lever (benchmarks/pretraining.sh)",
         "machine": cpu_line(), "date": dt.date.today().isoformat(),
-        "command": f"benchmarks/pretraining.sh {args.project} && python benchmarks/bench_pretraining.py {args.project}",
+        "command": args.command or (f"benchmarks/pretraining.sh {args.project} && "
+                                    f"python benchmarks/bench_pretraining.py {args.project}"),
         "figures": {"arms": arms, "runs": runs, "table": table(arms)},
     }
     tmp = args.out.with_suffix(".tmp")
