@@ -133,7 +133,7 @@ def page(browser, request, tmp_path):
     """A fresh page (no saved UI state); its screenshot is kept when the test fails."""
     context = browser.new_context(viewport={"width": 1600, "height": 1000})
     pg = context.new_page()
-    pg.set_default_timeout(120_000)  # a busy 2-core machine serves the first page slowly
+    pg.set_default_timeout(240_000)  # a busy 2-core machine serves pages slowly (a Zen 3 under the suite: > 120 s)
     failed_before = request.session.testsfailed
     yield pg
     if request.session.testsfailed > failed_before:  # this test's call failed
