@@ -291,7 +291,7 @@ def measure_arch(arch: str, device: torch.device, cache: FrameCache, *, pairs: i
     progress(f"{arch}: {', '.join(label(*st[:2]) for st in settings[:len(candidates(device))])}"
              f"{' and the fp32 reference (TF32 off)' if kind == 'cuda' else ''}, {steps} steps each, interleaved")
     trials = train_trials(arch, device, settings, cache, pairs=pairs, steps=steps, backbone=backbone, frozen=frozen)
-    reference = trials.pop() if kind == "cuda" else trials[0]  # fp32 channels-last: exact fp32 on the CPU
+    reference = trials.pop() if kind == "cuda" else trials[0]  # fp32 channels-last: the CPU default
     learns = reference_learns(reference.blocks)
     exact = exact_gradients(arch, device, cache, pairs=pairs, seed=0, backbone=backbone, frozen=frozen)
     for t in trials if any(t is reference for t in trials) else [*trials, reference]:  # each once
